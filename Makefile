@@ -1,0 +1,38 @@
+# Quick start: `make demo` then `make test`. Both create or refresh .venv first.
+VENV    ?= .venv
+PY      := $(VENV)/bin/python
+STAMP   := $(VENV)/.installed
+DEMO    ?= demo_out
+
+.PHONY: demo test bench system-deps clean
+
+# open3d and pyusb load the system's libusb-1.0 at import time; without it `import open3d` fails.
+system-deps:
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+	  echo "[make] libusb-1.0-0 is missing: open3d and pyusb need it to import. Installing it with apt-get."; \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	  else sudo apt-get update -qq && sudo apt-get install -y -qq libusb-1.0-0 >/dev/null; fi; \
+	fi
+
+$(STAMP): pyproject.toml
+	@$(MAKE) --no-print-directory system-deps
+	@test -x $(PY) || python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/twinfocus simulate --out $(DEMO)/scan.npz --template-out $(DEMO)/template_scan.npz
+	$(VENV)/bin/twinfocus focus $(DEMO)/scan.npz --template-scan $(DEMO)/template_scan.npz \
+	    --reference-roi -0.15 0.0 -0.11 0.12 0.6 --target-roi 0.02 0.13 -0.11 0.12 0.6 \
+	    --size 100 --out $(DEMO)/focus
+	@echo "[make] pictures and figures are in $(DEMO)/focus"
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) -m benchmarks.run --out benchmarks/results
+
+clean:
+	rm -rf $(VENV) $(DEMO) .pytest_cache

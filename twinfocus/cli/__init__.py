@@ -1,0 +1,60 @@
+"""The ``twinfocus`` command: one sub-command per module in this package.
+
+Each sub-command module defines ``add_arguments(parser)`` and ``run(args) -> int``. Modules
+are imported only when their command runs, so ``twinfocus --help`` stays fast and a missing
+optional dependency of one command never breaks another.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from twinfocus.errors import TwinFocusError
+
+# command name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "simulate": ("twinfocus.cli.simulate", "simulate a handheld scan (and a motion-stage template scan)"),
+    "focus": ("twinfocus.cli.focus", "focus a scan file offline with a twin reference"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="twinfocus",
+        description="Twin-reference autofocus for handheld mmWave SAR imaging.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name, (module_name, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module_name)
+        # Arguments are added lazily in main() for the chosen command only.
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    # Find the command first, then let its module declare its arguments.
+    if argv and argv[0] in COMMANDS:
+        module = importlib.import_module(COMMANDS[argv[0]][0])
+        sub_parser = argparse.ArgumentParser(
+            prog=f"twinfocus {argv[0]}", description=COMMANDS[argv[0]][1]
+        )
+        module.add_arguments(sub_parser)
+        args = sub_parser.parse_args(argv[1:])
+        try:
+            return int(module.run(args) or 0)
+        except TwinFocusError as exc:
+            print(f"twinfocus {argv[0]}: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print(f"twinfocus {argv[0]}: interrupted", file=sys.stderr)
+            return 130
+    parser.parse_args(argv)  # prints usage / unknown-command error and exits
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
