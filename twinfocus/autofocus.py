@@ -1,0 +1,212 @@
+"""Autofocus on the sub-image basis: twin-reference (the paper's method) and baselines.
+
+With the basis B (M, H, W) of a region (``twinfocus.backprojection.subimage_basis``) the image
+corrected by one phase per radar position is
+
+    image(phi) = sum_m exp(j phi_m) B_m.
+
+The twin method (source paper, section 4.2) finds phi that makes the max-normalised, soft-
+thresholded amplitude of the *reference* region match the template under the loss 1 - SSIM, with
+Adam (lr 5e-2), cosine annealing to 1e-5 and 300 iterations, phi starting at 0; the same phi then
+focuses the *target* region (phase transfer: ``form_image(target_basis, phi)``).
+
+Speed: the basis is held as one real matrix [Re B | Im B] (M, 2P) so each iteration is two
+matrix products over it (forward and gradient); at the paper size (780 x 100 x 100) that is the
+whole cost (see docs/performance.md).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from twinfocus.errors import TwinFocusError
+from twinfocus.metrics import ssim_torch
+
+ProgressFn = Callable[[int, int, float], None]
+
+
+@dataclass
+class AutofocusConfig:
+    """Optimiser settings (defaults: the source paper)."""
+
+    iterations: int = 300
+    lr: float = 5e-2
+    lr_min: float = 1e-5
+    threshold_centre: float = 0.4
+    threshold_steepness: float = 1.0
+    precision: str = "float32"
+    device: str = "cpu"
+
+    def validate(self) -> None:
+        if int(self.iterations) < 1:
+            raise TwinFocusError(f"iterations must be >= 1, got {self.iterations}")
+        if not self.lr > 0 or not self.lr_min >= 0:
+            raise TwinFocusError(f"learning rates must be positive, got lr={self.lr}, lr_min={self.lr_min}")
+        if self.precision not in ("float32", "float64"):
+            raise TwinFocusError(f"precision must be 'float32' or 'float64', got {self.precision!r}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class AutofocusResult:
+    """phase_rad float64 (M,); loss_history float64 (iterations,); image complex64 (H, W): the
+    corrected region the optimiser looked at; time_s: optimiser wall time."""
+
+    phase_rad: np.ndarray
+    loss_history: np.ndarray
+    image: np.ndarray
+    time_s: float
+    method: str
+    extra: dict = field(default_factory=dict)
+
+
+def form_image(basis: np.ndarray, phase_rad: np.ndarray) -> np.ndarray:
+    """sum_m exp(j phi_m) B_m: complex64 (H, W) from basis (M, H, W) and phase (M,)."""
+    basis = np.asarray(basis)
+    phase_rad = np.asarray(phase_rad, dtype=np.float64)
+    if phase_rad.shape != (basis.shape[0],):
+        raise TwinFocusError(f"phase must have one value per radar position ({basis.shape[0]}), got {phase_rad.shape}")
+    w = np.exp(1j * phase_rad).astype(np.complex64)
+    return np.tensordot(w, basis, axes=(0, 0)).astype(np.complex64)
+
+
+class _BasisOperator:
+    """The map phi -> amplitude image as torch operations on the stacked real basis."""
+
+    def __init__(self, basis: np.ndarray, dtype: torch.dtype, device: str):
+        basis = np.asarray(basis)
+        if basis.ndim != 3 or not np.iscomplexobj(basis):
+            raise TwinFocusError(f"basis must be complex (M, H, W), got {basis.dtype} {basis.shape}")
+        if not np.isfinite(basis).all():
+            raise TwinFocusError("basis holds NaN or inf")
+        self.shape = basis.shape[1:]
+        self.n_pix = int(np.prod(self.shape))
+        flat = basis.reshape(basis.shape[0], -1)
+        stacked = np.concatenate([flat.real, flat.imag], axis=1)
+        self.matrix = torch.from_numpy(np.ascontiguousarray(stacked)).to(device=device, dtype=dtype)
+
+    def amplitude(self, phase: torch.Tensor) -> torch.Tensor:
+        cs = torch.stack([torch.cos(phase), torch.sin(phase)])  # (2, M)
+        y = cs @ self.matrix  # (2, 2P): [c.Br | c.Bi ; s.Br | s.Bi]
+        p = self.n_pix
+        re = y[0, :p] - y[1, p:]
+        im = y[0, p:] + y[1, :p]
+        # The epsilon keeps the gradient of |.| finite at exact zeros.
+        return torch.sqrt(re * re + im * im + 1e-30).reshape(self.shape)
+
+
+def _prepare_template(template: np.ndarray, shape: tuple[int, int], cfg: AutofocusConfig) -> np.ndarray:
+    t = np.asarray(template, dtype=np.float64)
+    if t.shape != tuple(shape):
+        raise TwinFocusError(f"template is {t.shape} but the reference region is {tuple(shape)}")
+    if not np.isfinite(t).all():
+        raise TwinFocusError("template holds NaN or inf")
+    t = np.abs(t)
+    if t.max() <= 0:
+        raise TwinFocusError("template is empty (all zeros)")
+    if t.max() - t.min() <= 1e-6 * t.max():
+        raise TwinFocusError("template is constant: it holds no structure to focus on")
+    t = t / t.max()
+    return 1.0 / (1.0 + np.exp(-cfg.threshold_steepness * (t - cfg.threshold_centre)))
+
+
+def _run_adam(
+    loss_fn: Callable[[torch.Tensor], torch.Tensor],
+    n_positions: int,
+    cfg: AutofocusConfig,
+    dtype: torch.dtype,
+    progress: ProgressFn | None,
+    init: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    phase0 = np.zeros(n_positions) if init is None else np.asarray(init, dtype=np.float64)
+    phase = torch.tensor(phase0, dtype=dtype, device=cfg.device, requires_grad=True)
+    opt = torch.optim.Adam([phase], lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=int(cfg.iterations), eta_min=cfg.lr_min)
+    losses = np.empty(int(cfg.iterations))
+    for it in range(int(cfg.iterations)):
+        opt.zero_grad(set_to_none=True)
+        loss = loss_fn(phase)
+        loss.backward()
+        opt.step()
+        sched.step()
+        losses[it] = float(loss.detach())
+        if not np.isfinite(losses[it]):
+            raise TwinFocusError(f"autofocus diverged at iteration {it} (loss {losses[it]}); lower the learning rate")
+        if progress is not None:
+            progress(it + 1, int(cfg.iterations), losses[it])
+    return phase.detach().cpu().double().numpy(), losses
+
+
+def _torch_dtype(cfg: AutofocusConfig) -> torch.dtype:
+    return torch.float32 if cfg.precision == "float32" else torch.float64
+
+
+def twin_autofocus(
+    basis: np.ndarray,
+    template: np.ndarray,
+    config: AutofocusConfig | None = None,
+    progress: ProgressFn | None = None,
+    init_phase_rad: np.ndarray | None = None,
+) -> AutofocusResult:
+    """Estimate per-position phases from a reference region and its template (the paper's method).
+
+    Parameters
+    ----------
+    basis : complex64 (M, H, W) sub-image basis of the reference region.
+    template : float (H, W) focused amplitude of the reference on the same grid (any scale).
+    config : optimiser settings; ``progress(iteration, total, loss)`` is called every iteration.
+
+    Returns
+    -------
+    AutofocusResult with phase_rad (M,) to apply to any region's basis.
+    """
+    cfg = config or AutofocusConfig()
+    cfg.validate()
+    dtype = _torch_dtype(cfg)
+    op = _BasisOperator(basis, dtype, cfg.device)
+    target = torch.from_numpy(_prepare_template(template, op.shape, cfg)).to(device=cfg.device, dtype=dtype)
+
+    def loss_fn(phase: torch.Tensor) -> torch.Tensor:
+        amp = op.amplitude(phase)
+        soft = torch.sigmoid(cfg.threshold_steepness * (amp / amp.max() - cfg.threshold_centre))
+        return 1.0 - ssim_torch(soft, target)
+
+    t0 = time.perf_counter()
+    phase, losses = _run_adam(loss_fn, basis.shape[0], cfg, dtype, progress, init_phase_rad)
+    elapsed = time.perf_counter() - t0
+    return AutofocusResult(phase, losses, form_image(basis, phase), elapsed, "twin")
+
+
+def sharpness_autofocus(
+    basis: np.ndarray,
+    config: AutofocusConfig | None = None,
+    progress: ProgressFn | None = None,
+) -> AutofocusResult:
+    """Baseline: maximise the image sharpness sum(I^2)/sum(I)^2 (I = |image|^2) of the region
+    itself, with the same optimiser. Needs no reference."""
+    cfg = config or AutofocusConfig()
+    cfg.validate()
+    dtype = _torch_dtype(cfg)
+    op = _BasisOperator(basis, dtype, cfg.device)
+
+    def loss_fn(phase: torch.Tensor) -> torch.Tensor:
+        inten = op.amplitude(phase) ** 2
+        # log keeps the gradient scale independent of the image energy
+        return -torch.log((inten**2).sum() / inten.sum() ** 2)
+
+    t0 = time.perf_counter()
+    phase, losses = _run_adam(loss_fn, basis.shape[0], cfg, dtype, progress)
+    elapsed = time.perf_counter() - t0
+    return AutofocusResult(phase, losses, form_image(basis, phase), elapsed, "sharpness")
+
+
+def no_correction(basis: np.ndarray) -> AutofocusResult:
+    """Baseline: phi = 0."""
+    phase = np.zeros(np.asarray(basis).shape[0])
+    return AutofocusResult(phase, np.zeros(0), form_image(basis, phase), 0.0, "none")

@@ -1,0 +1,79 @@
+"""Reference templates: the focused amplitude of the reference on the reference grid.
+
+Template file (``.npz``, DESIGN.md section 4): ``image`` float32 (H, W) amplitude, ``x_m`` (W,),
+``y_m`` (H,), ``z_m`` scalar. A template made on another grid is resampled (bilinear) onto the
+reference grid; one that does not cover it is refused.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from scipy.ndimage import map_coordinates
+
+from twinfocus.backprojection import backproject
+from twinfocus.errors import TwinFocusError
+from twinfocus.grid import ImageGrid
+from twinfocus.scan import Scan, load_npz, save_npz_atomic
+
+
+def save_template(path: str | os.PathLike, amplitude: np.ndarray, grid: ImageGrid) -> None:
+    """Write a template file for ``grid``."""
+    amplitude = np.abs(np.asarray(amplitude)).astype(np.float32)
+    if amplitude.shape != grid.shape:
+        raise TwinFocusError(f"template image is {amplitude.shape}, grid is {grid.shape}")
+    save_npz_atomic(path, {"image": amplitude, "x_m": grid.x_m, "y_m": grid.y_m, "z_m": np.float64(grid.z)})
+
+
+def load_template(path: str | os.PathLike, grid: ImageGrid, z_tolerance_m: float = 0.01) -> np.ndarray:
+    """Read a template file and resample it onto ``grid``: float32 (H, W)."""
+    z = load_npz(path)
+    missing = [k for k in ("image", "x_m", "y_m", "z_m") if k not in z]
+    if missing:
+        raise TwinFocusError(f"{path}: not a template file, missing key(s) {', '.join(missing)}")
+    image, x, y = np.asarray(z["image"]), np.asarray(z["x_m"], float), np.asarray(z["y_m"], float)
+    if image.ndim != 2 or image.shape != (y.size, x.size):
+        raise TwinFocusError(f"{path}: image {image.shape} does not match y_m ({y.size}) x x_m ({x.size})")
+    if not np.isfinite(image).all():
+        raise TwinFocusError(f"{path}: template image holds NaN or inf")
+    if abs(float(z["z_m"]) - grid.z) > z_tolerance_m:
+        raise TwinFocusError(
+            f"{path}: template is on the plane z = {float(z['z_m']):.3f} m, the reference region is at z = {grid.z:.3f} m"
+        )
+    if x.size < 2 or y.size < 2 or np.any(np.diff(x) <= 0) or np.any(np.diff(y) <= 0):
+        raise TwinFocusError(f"{path}: x_m and y_m must be increasing with at least 2 values")
+    tol = 1e-9
+    if grid.x0 < x[0] - tol or grid.x1 > x[-1] + tol or grid.y0 < y[0] - tol or grid.y1 > y[-1] + tol:
+        raise TwinFocusError(
+            f"{path}: template covers x [{x[0]:.3f}, {x[-1]:.3f}] y [{y[0]:.3f}, {y[-1]:.3f}] m, "
+            f"which does not contain the reference region x [{grid.x0}, {grid.x1}] y [{grid.y0}, {grid.y1}]"
+        )
+    amp = np.abs(image).astype(np.float64)
+    if np.allclose(x, grid.x_m) and np.allclose(y, grid.y_m):
+        return amp.astype(np.float32)
+    cols = np.interp(grid.x_m, x, np.arange(x.size))
+    rows = np.interp(grid.y_m, y, np.arange(y.size))
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    return map_coordinates(amp, [rr, cc], order=1, mode="nearest").astype(np.float32)
+
+
+def template_from_scan(scan: Scan, grid: ImageGrid, **bp_options) -> np.ndarray:
+    """Physical twin: the amplitude of a scan taken on accurate positions (a motion-stage capture
+    of the reference alone), back-projected on the reference grid. float32 (H, W)."""
+    positions = scan.positions_true if scan.positions_true is not None else scan.positions
+    return np.abs(backproject(scan.data, positions, scan.chirp, grid, **bp_options)).astype(np.float32)
+
+
+def check_has_signal(amplitude: np.ndarray, what: str, min_peak_to_median: float = 4.0) -> None:
+    """Refuse an image region with nothing in it: its peak must stand well above its median
+    (a region of pure noise has peak/median ~ 3.6 for 10^4 Rayleigh pixels)."""
+    a = np.abs(np.asarray(amplitude, dtype=np.float64))
+    if not np.isfinite(a).all():
+        raise TwinFocusError(f"{what} holds NaN or inf")
+    peak, med = a.max(), np.median(a)
+    if peak <= 0:
+        raise TwinFocusError(f"{what} is empty: no signal reaches it")
+    if med > 0 and peak / med < min_peak_to_median:
+        raise TwinFocusError(
+            f"{what} shows no object (peak only {peak / med:.1f} x the median); check the region of interest"
+        )
