@@ -15,8 +15,9 @@ from twinfocus.grid import ImageGrid  # noqa: E402
 def _show(ax, image: np.ndarray, grid: ImageGrid, title: str) -> None:
     amp = np.abs(image)
     amp = amp / max(amp.max(), 1e-30)
-    extent = [grid.x0 * 1e3, grid.x1 * 1e3, grid.y0 * 1e3, grid.y1 * 1e3]
-    ax.imshow(amp, origin="lower", extent=extent, cmap="inferno", vmin=0, vmax=1)
+    # Scene frame as seen from the radar: x right, y down (right-handed with z into the scene).
+    extent = [grid.x0 * 1e3, grid.x1 * 1e3, grid.y1 * 1e3, grid.y0 * 1e3]
+    ax.imshow(amp, origin="upper", extent=extent, cmap="inferno", vmin=0, vmax=1)
     ax.set_title(title, fontsize=9)
     ax.set_xlabel("x (mm)", fontsize=8)
     ax.set_ylabel("y (mm)", fontsize=8)
