@@ -49,7 +49,7 @@ def load_template(path: str | os.PathLike, grid: ImageGrid, z_tolerance_m: float
             f"which does not contain the reference region x [{grid.x0}, {grid.x1}] y [{grid.y0}, {grid.y1}]"
         )
     amp = np.abs(image).astype(np.float64)
-    if np.allclose(x, grid.x_m) and np.allclose(y, grid.y_m):
+    if x.shape == grid.x_m.shape and y.shape == grid.y_m.shape and np.allclose(x, grid.x_m) and np.allclose(y, grid.y_m):
         return amp.astype(np.float32)
     cols = np.interp(grid.x_m, x, np.arange(x.size))
     rows = np.interp(grid.y_m, y, np.arange(y.size))
@@ -67,12 +67,14 @@ def template_from_scan(scan: Scan, grid: ImageGrid, **bp_options) -> np.ndarray:
 def check_has_signal(amplitude: np.ndarray, what: str, min_peak_to_median: float = 4.0) -> None:
     """Refuse an image region with nothing in it: its peak must stand well above its median
     (a region of pure noise has peak/median ~ 3.6 for 10^4 Rayleigh pixels)."""
-    a = np.abs(np.asarray(amplitude, dtype=np.float64))
+    a = np.abs(np.asarray(amplitude)).astype(np.float64)
     if not np.isfinite(a).all():
         raise TwinFocusError(f"{what} holds NaN or inf")
     peak, med = a.max(), np.median(a)
     if peak <= 0:
         raise TwinFocusError(f"{what} is empty: no signal reaches it")
+    if peak - a.min() <= 1e-6 * peak:
+        raise TwinFocusError(f"{what} is constant: it holds no structure to focus on")
     if med > 0 and peak / med < min_peak_to_median:
         raise TwinFocusError(
             f"{what} shows no object (peak only {peak / med:.1f} x the median); check the region of interest"

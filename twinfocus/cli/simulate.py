@@ -32,6 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--template-offset-mm", nargs=3, type=float, default=[1.0, 0.0, 0.0], metavar=("DX", "DY", "DZ"),
                    help="placement error of the reference in the template scan, mm (default 1 0 0)")
     p.add_argument("--range-step-mm", type=float, default=None, help="simulator range grid step (fidelity knob)")
+    p.add_argument("--columns", type=int, default=6, help="raster columns (default 6)")
+    p.add_argument("--rows", type=int, default=130, help="raster rows per column (default 130)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true")
 
@@ -55,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
         error_sigma_m=(args.xy_error_sigma_mm * 1e-3, args.xy_error_sigma_mm * 1e-3, args.error_sigma_mm * 1e-3),
         snr_db=snr, speckle=not args.no_speckle, template_offset_m=tuple(v * 1e-3 for v in args.template_offset_mm),
         range_step_m=None if args.range_step_mm is None else args.range_step_mm * 1e-3, seed=args.seed,
+        n_columns=args.columns, n_rows=args.rows,
     )
     t0 = time.perf_counter()
     scan, template_scan = simulate_scenario(sc, progress=Progress("simulate", enabled=not args.quiet))

@@ -1,0 +1,105 @@
+"""The offline commands end to end on a small scene, and their answers to bad input."""
+import json
+
+import numpy as np
+import pytest
+
+from twinfocus.cli import main
+from twinfocus.scan import Scan, save_npz_atomic
+
+REF = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
+TGT = ["0.02", "0.13", "-0.11", "0.12", "0.6"]
+
+
+@pytest.fixture(scope="module")
+def small_scans(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sim")
+    # 3 columns of 40 rows: a quarter of the paper's aperture, enough to image both letters
+    rc = main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"),
+               "--columns", "3", "--rows", "40", "--quiet", "--seed", "3"])
+    assert rc == 0
+    return d
+
+
+def _focus(scan, out, *extra):
+    return main(["focus", str(scan), "--reference-roi", *REF, "--target-roi", *TGT, "--size", "48",
+                 "--iterations", "150", "--out", str(out), "--quiet", *extra])
+
+
+def test_simulate_then_focus_with_template_scan(small_scans, tmp_path):
+    out = tmp_path / "focus"
+    assert _focus(small_scans / "scan.npz", out, "--template-scan", str(small_scans / "tpl.npz")) == 0
+    for name in ("target.npy", "target_uncorrected.npy", "reference.npy", "phase.npy", "metrics.json",
+                 "summary.png", "target.png", "loss.png"):
+        assert (out / name).is_file(), name
+    target = np.load(out / "target.npy")
+    assert target.dtype == np.complex64 and target.shape == (48, 48)
+    assert np.load(out / "phase.npy").shape == (120,)
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["target_ssim_corrected"] > m["target_ssim_uncorrected"] + 0.03
+    assert m["reference_ssim_vs_template_corrected"] > m["reference_ssim_vs_template_uncorrected"]
+
+
+def test_template_file_path_and_baselines(small_scans, tmp_path):
+    from twinfocus.grid import ImageGrid
+    from twinfocus.templates import save_template, template_from_scan
+
+    grid = ImageGrid.from_roi([float(v) for v in REF], 60)  # another grid: resampled on load
+    save_template(tmp_path / "t.npz", template_from_scan(Scan.load(small_scans / "tpl.npz"), grid), grid)
+    assert _focus(small_scans / "scan.npz", tmp_path / "a", "--template", str(tmp_path / "t.npz")) == 0
+    assert _focus(small_scans / "scan.npz", tmp_path / "b", "--method", "none") == 0
+    assert _focus(small_scans / "scan.npz", tmp_path / "c", "--method", "sharpness") == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "b" / "phase.npy"), 0)
+
+
+def _corrupt(src, dst, **changes):
+    z = dict(np.load(src))
+    z.update(changes)
+    save_npz_atomic(dst, z)
+    return dst
+
+
+def test_bad_inputs_give_clear_errors_and_keep_old_results(small_scans, tmp_path, capsys):
+    scan = small_scans / "scan.npz"
+    tpl = ["--template-scan", str(small_scans / "tpl.npz")]
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "target.npy").write_bytes(b"earlier result")
+    z = np.load(scan)
+    cases = {
+        "NaN or inf": _corrupt(scan, tmp_path / "nan.npz", data=np.where(np.arange(z["data"].size).reshape(z["data"].shape) == 5, np.nan, z["data"]).astype(np.complex64)),
+        "positions must have shape": _corrupt(scan, tmp_path / "shape.npz", positions=z["positions"][:, :10]),
+        "all zeros": _corrupt(scan, tmp_path / "zeros.npz", data=np.zeros_like(z["data"])),
+        "must be complex": _corrupt(scan, tmp_path / "real.npz", data=z["data"].real.astype(np.float32)),
+        "missing key": _corrupt(scan, tmp_path / "nokey.npz", f0_hz=None) if False else None,
+    }
+    cases.pop("missing key")
+    for message, path in cases.items():
+        assert _focus(path, out, *tpl) == 2, message
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err
+    # a region of interest with nothing in it
+    empty = ["-0.5", "-0.4", "0.3", "0.4", "0.6"]
+    rc = main(["focus", str(scan), "--reference-roi", *empty, "--target-roi", *TGT, "--size", "32", "--out", str(out), "--quiet", *tpl])
+    assert rc == 2 and "no object" in capsys.readouterr().err
+    # a template file that is constant
+    from twinfocus.grid import ImageGrid
+    from twinfocus.templates import save_template
+
+    grid = ImageGrid.from_roi([float(v) for v in REF], 48)
+    save_template(tmp_path / "flat.npz", np.ones(grid.shape), grid)
+    assert _focus(scan, out, "--template", str(tmp_path / "flat.npz")) == 2
+    assert "constant" in capsys.readouterr().err
+    assert _focus(tmp_path / "missing.npz", out, *tpl) == 2
+    assert "no such file" in capsys.readouterr().err
+    # nothing of the earlier result was touched
+    assert (out / "target.npy").read_bytes() == b"earlier result"
+    assert sorted(p.name for p in out.iterdir()) == ["target.npy"]
+
+
+def test_unknown_options_are_refused(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["focus", "x.npz", "--bogus"])
+    assert e.value.code == 2
+    with pytest.raises(SystemExit):
+        main(["no-such-command"])
