@@ -131,3 +131,21 @@ def test_bad_templates_and_shapes_are_refused(scene_05mm):
         twin_autofocus(ref_basis, template, AutofocusConfig(iterations=0))
     with pytest.raises(TwinFocusError, match="one value per radar position"):
         form_image(ref_basis, np.zeros(3))
+
+
+def test_linear_phase_fit_recovers_ramp_through_wrapping():
+    from twinfocus.autofocus import fit_linear_phase, remove_linear_phase
+
+    rng = np.random.default_rng(7)
+    poses = paper_raster()
+    ap = poses.position_m[:, :2]
+    # 0.3 rad jitter on top of a ramp of several turns across the aperture
+    a, bx, by = 1.3, 17.0, -21.0  # |bx| < pi / 82 mm: unaliased on the raster's columns
+    jitter = rng.normal(0, 0.3, ap.shape[0])
+    phase = np.angle(np.exp(1j * (a + ap @ np.array([bx, by]) + jitter)))
+    ramp, coeffs = fit_linear_phase(phase, ap)
+    np.testing.assert_allclose(coeffs[1:], [bx, by], atol=0.5)
+    left = remove_linear_phase(phase, ap)
+    assert phase_error_rms(left, jitter) < 0.05
+    with pytest.raises(TwinFocusError, match="aperture_m"):
+        fit_linear_phase(phase, ap[:10])

@@ -18,7 +18,15 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus import metrics
-from twinfocus.autofocus import AutofocusConfig, AutofocusResult, form_image, no_correction, sharpness_autofocus, twin_autofocus
+from twinfocus.autofocus import (
+    AutofocusConfig,
+    AutofocusResult,
+    fit_linear_phase,
+    form_image,
+    no_correction,
+    sharpness_autofocus,
+    twin_autofocus,
+)
 from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
@@ -60,10 +68,15 @@ def focus_scan(
     config: AutofocusConfig | None = None,
     bp_options: dict | None = None,
     progress_factory=None,
+    remove_phase_ramp: bool = True,
 ) -> FocusOutputs:
     """Run the offline focusing steps on a validated scan.
 
     template : float (H, W) amplitude on ``reference_grid`` (required for ``method="twin"``).
+    remove_phase_ramp : transfer the estimated phase without its best constant + linear-in-
+        aperture ramp (:func:`twinfocus.autofocus.fit_linear_phase`). That ramp only moves the
+        image; a template placed off by a millimetre pulls one in, and transferring it would shift
+        the target. False transfers the optimiser's phase as is (the source paper).
     progress_factory : ``label -> progress callable`` (see :class:`twinfocus.progress.Progress`).
     """
     if method not in METHODS:
@@ -99,11 +112,16 @@ def focus_scan(
     timings["autofocus"] = time.perf_counter() - t
 
     phase = result.phase_rad
+    m: dict = {"method": method, "n_positions": scan.n_positions, "n_channels": scan.n_channels,
+               "phase_ramp_removed": bool(remove_phase_ramp and method != "none")}
+    if remove_phase_ramp and method != "none":
+        ramp, coeffs = fit_linear_phase(phase, scan.positions.mean(axis=1)[:, :2])
+        phase = np.angle(np.exp(1j * (phase - ramp)))
+        m["phase_ramp_rad_per_m"] = coeffs[1:].tolist()
     ref_cor = form_image(ref_basis, phase)
     tgt_cor = form_image(tgt_basis, phase)
     centre, steep = cfg.threshold_centre, cfg.threshold_steepness
 
-    m: dict = {"method": method, "n_positions": scan.n_positions, "n_channels": scan.n_channels}
     if template is not None:
         tpl_disp = metrics.display_image(template, centre, steep)
         m["reference_ssim_vs_template_uncorrected"] = metrics.ssim(metrics.display_image(ref_unc, centre, steep), tpl_disp)
