@@ -47,8 +47,12 @@ def write_focus_pictures(out_dir: Path, o) -> None:
     ]
     if o.target_truth is not None:
         panels.append((o.target_truth, o.target_grid, "target, true positions"))
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.1 * len(panels), 3.6))
-    for ax, (img, grid, title) in zip(np.atleast_1d(axes), panels):
+    cols = 3 if len(panels) > 4 else len(panels)
+    rows = int(np.ceil(len(panels) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.9 * rows), squeeze=False)
+    for ax in axes.ravel()[len(panels):]:
+        ax.axis("off")
+    for ax, (img, grid, title) in zip(axes.ravel(), panels):
         _show(ax, img, grid, title)
     fig.tight_layout()
     fig.savefig(out_dir / "summary.png", dpi=110)

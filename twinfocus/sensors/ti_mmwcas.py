@@ -1,0 +1,406 @@
+"""TI MMWCAS-RF-EVM cascade captures: the four devices' ``_data.bin`` / ``_idx.bin`` files.
+
+The MMWCAS-DSP-EVM (TDA2) capture card writes, per capture "slice" ``NNNN``, one pair of files
+per AWR2243 device: ``master_NNNN_data.bin``, ``master_NNNN_idx.bin``, then ``slave1``, ``slave2``,
+``slave3``. Layouts as implemented (sources in ``docs/sensors.md``):
+
+Index file (little-endian, TI ``Bucket::Info`` and ``Bucket::BuffIdx``)::
+
+    header, 24 bytes: u32 tag ('bckt'), u32 version, u32 flags, u32 numIdx (frames),
+                      u64 dataFileSize (bytes written to the data file)
+    entry,  48 bytes: u16 tag ('id'), u16 version, u32 flags, u16 width, u16 height,
+                      u32 pitchOrMetaSize[4], u32 size (bytes of this frame),
+                      u64 timestamp, u64 offset (of the frame in the data file)
+
+Data file: frames back to back; one device frame is int16 pairs (I then Q) with RX fastest
+(4 per device), then ADC sample, then chirp, then loop — TI's ``readBinFile`` reshapes it to
+(4 RX, N samples, chirps, loops) in MATLAB (column-major) order.
+
+The 16 receive channels are master RX1-4, slave1 RX1-4, slave2 RX1-4, slave3 RX1-4 (data
+channels 1..16); the antennas in ascending position along the board are data channels
+13-16, 1-4, 9-12, 5-8 (TI's ``TI_Cascade_RX_ID``), which is the RX order of
+:mod:`twinfocus.radar`. With TI's default chirp order (``TxToEnable = [12 11 ... 1]``) chirp c
+fires the TX that :mod:`twinfocus.radar` numbers c; other orders are given as ``tx_of_chirp``.
+
+The capture card's first frame is known to be bad (TI's scripts skip it "due to TDA2"): it is
+dropped unless ``skip_first_frame=False``. Truncated files (a capture cut short) keep their
+complete frames; what was cut is reported in :attr:`MmwcasCapture.warnings`.
+"""
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from twinfocus.errors import TwinFocusError
+from twinfocus.radar import Chirp
+from twinfocus.sensors.frames import FrameFlag, RadarFrame
+
+DEVICES: tuple[str, ...] = ("master", "slave1", "slave2", "slave3")
+RX_PER_DEVICE = 4
+N_TX = 12
+N_RX = 16
+
+#: Array RX a (0-based, ascending along the board, the order of twinfocus.radar) is data channel
+#: RX_ARRAY_ORDER[a] (0-based; data channel = 4 * device + device RX). TI: TI_Cascade_RX_ID - 1.
+RX_ARRAY_ORDER = np.array([13, 14, 15, 16, 1, 2, 3, 4, 9, 10, 11, 12, 5, 6, 7, 8]) - 1
+
+IDX_HEADER_DTYPE = np.dtype(
+    [("tag", "<u4"), ("version", "<u4"), ("flags", "<u4"), ("num_idx", "<u4"), ("data_file_size", "<u8")]
+)
+IDX_ENTRY_DTYPE = np.dtype(
+    [
+        ("tag", "<u2"),
+        ("version", "<u2"),
+        ("flags", "<u4"),
+        ("width", "<u2"),
+        ("height", "<u2"),
+        ("pitch_or_meta_size", "<u4", (4,)),
+        ("size", "<u4"),
+        ("timestamp", "<u8"),
+        ("offset", "<u8"),
+    ]
+)
+assert IDX_HEADER_DTYPE.itemsize == 24 and IDX_ENTRY_DTYPE.itemsize == 48
+
+#: TI Bucket tags: 'b' 'c' 'k' 't' and 'i' 'd', little-endian.
+INFO_TAG = 0x746B6362
+BUFF_IDX_TAG = 0x6469
+
+_SLICE_RE = re.compile(r"^master_(\d{4})_idx\.bin$")
+
+
+@dataclass(frozen=True)
+class MmwcasConfig:
+    """What the capture's frames hold (the radar configuration of the cascade scripts).
+
+    chirp : the chirp (defaults: the paper's 76 GHz, 5 us ADC start, 120 MHz/us, 8 Msps, 256).
+    n_chirps : chirps per loop (one per TX used).
+    n_loops : loops per frame.
+    tx_of_chirp : TX index (order of :mod:`twinfocus.radar`) fired by each chirp of a loop;
+        default chirp c -> TX c, TI's default ``TxToEnable = [12 11 ... 1]``.
+    timestamp_unit_ns : nanoseconds per tick of the index files' time stamps (default 1000:
+        microseconds, the TDA2 Vision SDK's buffer time stamps).
+    frame_period_s : nominal frame period (0.1 s in the paper); used to flag device skew.
+    """
+
+    chirp: Chirp = field(default_factory=Chirp)
+    n_chirps: int = N_TX
+    n_loops: int = 1
+    tx_of_chirp: tuple[int, ...] = tuple(range(N_TX))
+    timestamp_unit_ns: int = 1000
+    frame_period_s: float | None = 0.1
+
+    def __post_init__(self) -> None:
+        if int(self.n_chirps) < 1 or int(self.n_loops) < 1:
+            raise TwinFocusError(f"n_chirps and n_loops must be >= 1, got {self.n_chirps}, {self.n_loops}")
+        tx = tuple(int(t) for t in self.tx_of_chirp)
+        if len(tx) != int(self.n_chirps):
+            raise TwinFocusError(f"tx_of_chirp lists {len(tx)} TX but there are {self.n_chirps} chirps per loop")
+        if len(set(tx)) != len(tx) or min(tx) < 0 or max(tx) >= N_TX:
+            raise TwinFocusError(f"tx_of_chirp must name distinct TX in 0..{N_TX - 1}, got {tx}")
+        object.__setattr__(self, "tx_of_chirp", tx)
+        if int(self.timestamp_unit_ns) < 1:
+            raise TwinFocusError(f"timestamp_unit_ns must be a positive integer, got {self.timestamp_unit_ns}")
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.chirp.n_samples)
+
+    @property
+    def device_frame_values(self) -> int:
+        """int16 values in one device's frame: loops x chirps x samples x 4 RX x (I, Q)."""
+        return int(self.n_loops) * int(self.n_chirps) * self.n_samples * RX_PER_DEVICE * 2
+
+    @property
+    def device_frame_bytes(self) -> int:
+        return 2 * self.device_frame_values
+
+
+# --- index files ------------------------------------------------------------------------------
+
+
+@dataclass
+class IndexFile:
+    """One ``*_idx.bin`` file: its header and the entries of its complete frames."""
+
+    path: Path
+    header: np.void
+    entries: np.ndarray  # IDX_ENTRY_DTYPE (n,)
+    warnings: list[str]
+
+
+def read_index(path: str | os.PathLike) -> IndexFile:
+    """Read a capture index file; malformed files raise, truncated ones warn.
+
+    Raises :class:`TwinFocusError` when the file is missing, shorter than its header, has the
+    wrong tag, or its first entry is not an index entry. A last entry cut short, entries the
+    header does not count, or an entry with a bad tag end the list with a warning.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise TwinFocusError(f"{path}: no such index file")
+    raw = path.read_bytes()
+    if len(raw) < IDX_HEADER_DTYPE.itemsize:
+        raise TwinFocusError(
+            f"{path}: index file is {len(raw)} bytes, shorter than its {IDX_HEADER_DTYPE.itemsize}-byte header"
+        )
+    header = np.frombuffer(raw, IDX_HEADER_DTYPE, count=1)[0]
+    if int(header["tag"]) != INFO_TAG:
+        raise TwinFocusError(
+            f"{path}: not a TI capture index file (header tag 0x{int(header['tag']):08x}, expected 0x{INFO_TAG:08x} 'bckt')"
+        )
+    warnings: list[str] = []
+    body = len(raw) - IDX_HEADER_DTYPE.itemsize
+    n_complete, partial = divmod(body, IDX_ENTRY_DTYPE.itemsize)
+    if partial:
+        warnings.append(f"{path.name}: last index entry is cut short ({partial} of {IDX_ENTRY_DTYPE.itemsize} bytes)")
+    entries = np.frombuffer(raw, IDX_ENTRY_DTYPE, count=n_complete, offset=IDX_HEADER_DTYPE.itemsize)
+    num_idx = int(header["num_idx"])
+    if num_idx < n_complete:
+        entries = entries[:num_idx]
+    elif num_idx > n_complete:
+        warnings.append(f"{path.name}: header counts {num_idx} frames but the file holds {n_complete} entries")
+    bad = np.flatnonzero(entries["tag"] != BUFF_IDX_TAG)
+    if bad.size:
+        if bad[0] == 0:
+            raise TwinFocusError(
+                f"{path}: first index entry has tag 0x{int(entries['tag'][0]):04x}, expected 0x{BUFF_IDX_TAG:04x} 'id'"
+            )
+        warnings.append(f"{path.name}: index entry {int(bad[0])} has a bad tag; entries from there on are ignored")
+        entries = entries[: bad[0]]
+    return IndexFile(path, header, entries.copy(), warnings)
+
+
+# --- frame decoding ---------------------------------------------------------------------------
+
+
+def decode_device_frame(raw: np.ndarray, config: MmwcasConfig) -> np.ndarray:
+    """One device's frame as complex samples.
+
+    raw : int16 (..., device_frame_values), I/Q pairs, RX fastest, then sample, chirp, loop.
+    Returns complex64 (..., n_loops, n_chirps, N, 4): [loop, chirp, sample, device RX].
+    """
+    raw = np.asarray(raw)
+    lead = raw.shape[:-1]
+    if raw.shape[-1] != config.device_frame_values:
+        raise TwinFocusError(
+            f"device frame holds {raw.shape[-1]} int16 values, the configuration expects {config.device_frame_values}"
+        )
+    pairs = np.ascontiguousarray(raw, dtype=np.int16).astype(np.float32).reshape(*lead, -1, 2)
+    iq = pairs.view(np.complex64)[..., 0]
+    return iq.reshape(*lead, config.n_loops, config.n_chirps, config.n_samples, RX_PER_DEVICE)
+
+
+def assemble_cascade_frame(devices: np.ndarray, config: MmwcasConfig) -> np.ndarray:
+    """The four devices' frames as one MIMO frame in array order.
+
+    devices : complex (4, n_loops, n_chirps, N, 4) from :func:`decode_device_frame`, in the
+        order master, slave1, slave2, slave3.
+    Returns complex64 (n_loops, 12, 16, N): [loop, TX, RX, sample]; TX that no chirp fires are 0.
+    """
+    devices = np.asarray(devices)
+    want = (len(DEVICES), config.n_loops, config.n_chirps, config.n_samples, RX_PER_DEVICE)
+    if devices.shape != want:
+        raise TwinFocusError(f"device frames must have shape {want}, got {devices.shape}")
+    # (dev, loop, chirp, sample, rx) -> (loop, chirp, dev, rx, sample) -> data channel = 4 dev + rx
+    x = devices.transpose(1, 2, 0, 4, 3).reshape(config.n_loops, config.n_chirps, N_RX, config.n_samples)
+    x = x[:, :, RX_ARRAY_ORDER, :]
+    out = np.zeros((config.n_loops, N_TX, N_RX, config.n_samples), dtype=np.complex64)
+    out[:, list(config.tx_of_chirp)] = x
+    return out
+
+
+def cascade_frame_to_device_iq(frame_iq: np.ndarray, config: MmwcasConfig) -> np.ndarray:
+    """Inverse of decode + assemble, on integers: what each device writes for a frame.
+
+    frame_iq : int16 (n_loops, 12, 16, N, 2), (I, Q) of every [loop, TX, RX (array order), sample].
+    Returns int16 (4, device_frame_values), the data-file bytes of master, slave1..3.
+    """
+    frame_iq = np.asarray(frame_iq)
+    want = (config.n_loops, N_TX, N_RX, config.n_samples, 2)
+    if frame_iq.shape != want:
+        raise TwinFocusError(f"frame I/Q must have shape {want}, got {frame_iq.shape}")
+    if frame_iq.dtype != np.int16:
+        raise TwinFocusError(f"frame I/Q must be int16, got {frame_iq.dtype}")
+    chirps = frame_iq[:, list(config.tx_of_chirp)]  # (loop, chirp, array RX, sample, 2)
+    data_ch = np.empty_like(chirps)
+    data_ch[:, :, RX_ARRAY_ORDER] = chirps  # back to data-channel order
+    x = data_ch.reshape(config.n_loops, config.n_chirps, len(DEVICES), RX_PER_DEVICE, config.n_samples, 2)
+    # (loop, chirp, dev, rx, sample, iq) -> (dev, loop, chirp, sample, rx, iq)
+    x = x.transpose(2, 0, 1, 4, 3, 5)
+    return np.ascontiguousarray(x).reshape(len(DEVICES), -1)
+
+
+# --- captures ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _FrameRef:
+    slice_pos: int
+    local: int
+    offsets: tuple[int, ...]
+    stamp_ns: int
+    flags: FrameFlag
+
+
+class MmwcasCapture:
+    """A folder of MMWCAS captures, read frame by frame.
+
+    Parameters
+    ----------
+    folder : the capture folder (all slices ``0000``, ``0001``, ... found there, in order).
+    config : :class:`MmwcasConfig` describing the frames.
+    skip_first_frame : drop the capture card's first frame, known to be bad (default True).
+
+    Attributes
+    ----------
+    timestamps_ns : int64 (F,), capture times of the frames (the master's index time stamps in
+        the capture card's clock, which starts at the DSP board's boot, not the epoch).
+    warnings : what was cut or ignored (truncated files, uncounted entries, device skew).
+
+    Use as ``with MmwcasCapture(folder, cfg) as cap: for frame in cap.frames(): ...``.
+    """
+
+    def __init__(self, folder: str | os.PathLike, config: MmwcasConfig | None = None, skip_first_frame: bool = True):
+        self.folder = Path(folder)
+        self.config = config or MmwcasConfig()
+        self.warnings: list[str] = []
+        if not self.folder.is_dir():
+            raise TwinFocusError(f"{self.folder}: no such capture folder")
+        slices = sorted(m.group(1) for p in self.folder.iterdir() if (m := _SLICE_RE.match(p.name)))
+        if not slices:
+            raise TwinFocusError(
+                f"{self.folder}: no MMWCAS capture here (expected master_0000_idx.bin and master_0000_data.bin, "
+                "slave1_..., slave2_..., slave3_...)"
+            )
+        self._data_paths: list[list[Path]] = []
+        self._maps: list[list[np.ndarray | None]] = []
+        refs: list[_FrameRef] = []
+        fb = self.config.device_frame_bytes
+        period_ns = None if self.config.frame_period_s is None else self.config.frame_period_s * 1e9
+        for pos, sid in enumerate(slices):
+            idx_files, data_paths, sizes = [], [], []
+            for dev in DEVICES:
+                ip = self.folder / f"{dev}_{sid}_idx.bin"
+                dp = self.folder / f"{dev}_{sid}_data.bin"
+                for p in (ip, dp):
+                    if not p.is_file():
+                        raise TwinFocusError(f"{p}: missing; a capture slice needs the data and index files of all four devices")
+                idx = read_index(ip)
+                self.warnings.extend(idx.warnings)
+                idx_files.append(idx)
+                data_paths.append(dp)
+                sizes.append(dp.stat().st_size)
+            self._data_paths.append(data_paths)
+            self._maps.append([None] * len(DEVICES))
+            n = min(len(i.entries) for i in idx_files)
+            counts = [len(i.entries) for i in idx_files]
+            if len(set(counts)) > 1:
+                self.warnings.append(f"slice {sid}: devices index {counts} frames; only the first {n} are used")
+            for dev, idx in zip(DEVICES, idx_files):
+                sz = idx.entries["size"][:n]
+                wrong = np.flatnonzero(sz != fb)
+                if wrong.size:
+                    i = int(wrong[0])
+                    raise TwinFocusError(
+                        f"{idx.path}: frame {i} is {int(sz[i])} bytes but the configuration expects {fb} "
+                        f"({self.config.n_loops} loops x {self.config.n_chirps} chirps x {self.config.n_samples} "
+                        f"samples x 4 RX x 4 bytes); check n_samples, n_chirps and n_loops"
+                    )
+            for i in range(n):
+                offs = tuple(int(idx_files[d].entries["offset"][i]) for d in range(len(DEVICES)))
+                cut = [DEVICES[d] for d in range(len(DEVICES)) if offs[d] + fb > sizes[d]]
+                if cut:
+                    self.warnings.append(
+                        f"slice {sid}: data files of {', '.join(cut)} end inside frame {i}; "
+                        f"{n - i} indexed frame(s) from there on are dropped (truncated capture)"
+                    )
+                    break
+                ticks = [int(idx_files[d].entries["timestamp"][i]) for d in range(len(DEVICES))]
+                if max(ticks) >= (1 << 63) // int(self.config.timestamp_unit_ns):
+                    raise TwinFocusError(
+                        f"slice {sid} frame {i}: time stamp {max(ticks)} does not fit nanoseconds in 64 bits "
+                        f"(timestamp_unit_ns = {self.config.timestamp_unit_ns}); is the index file damaged?"
+                    )
+                stamps_ns = np.array(ticks, dtype=np.int64) * int(self.config.timestamp_unit_ns)
+                flags = FrameFlag.OK
+                if period_ns is not None and stamps_ns.max() - stamps_ns.min() > period_ns / 2:
+                    flags |= FrameFlag.DEVICE_SKEW
+                refs.append(_FrameRef(pos, i, offs, int(stamps_ns[0]), flags))
+        if skip_first_frame and refs:
+            refs = refs[1:]
+        self._refs = refs
+        skewed = sum(1 for r in refs if r.flags & FrameFlag.DEVICE_SKEW)
+        if skewed:
+            self.warnings.append(f"{skewed} frame(s) have device time stamps more than half a frame period apart")
+        self.timestamps_ns = np.array([r.stamp_ns for r in refs], dtype=np.int64)
+        self.flags = np.array([int(r.flags) for r in refs], dtype=np.int64)
+
+    # -- access --------------------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return len(self._refs)
+
+    def __enter__(self) -> "MmwcasCapture":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release the memory maps of the data files."""
+        for maps in self._maps:
+            for d in range(len(maps)):
+                maps[d] = None
+
+    def _map(self, slice_pos: int, dev: int) -> np.ndarray:
+        m = self._maps[slice_pos][dev]
+        if m is None:
+            m = np.memmap(self._data_paths[slice_pos][dev], dtype=np.uint8, mode="r")
+            self._maps[slice_pos][dev] = m
+        return m
+
+    def read_raw(self, i: int) -> np.ndarray:
+        """The four devices' raw frame ``i`` exactly as stored: int16 (4, device_frame_values)."""
+        ref = self._ref(i)
+        fb = self.config.device_frame_bytes
+        out = np.empty((len(DEVICES), self.config.device_frame_values), dtype=np.int16)
+        for d in range(len(DEVICES)):
+            m = self._map(ref.slice_pos, d)
+            out[d] = m[ref.offsets[d] : ref.offsets[d] + fb].view("<i2")
+        return out
+
+    def read_frame(self, i: int) -> np.ndarray:
+        """Frame ``i`` with every loop: complex64 (n_loops, 12, 16, N), array order."""
+        return assemble_cascade_frame(decode_device_frame(self.read_raw(i), self.config), self.config)
+
+    def __getitem__(self, i: int) -> RadarFrame:
+        """Frame ``i`` (its first loop) as a :class:`RadarFrame`."""
+        return RadarFrame(int(self.timestamps_ns[self._index(i)]), self.read_frame(i)[0], FrameFlag(int(self.flags[self._index(i)])))
+
+    def _index(self, i: int) -> int:
+        self._ref(i)
+        return int(i) % len(self)
+
+    def frames(self, loop: int | None = 0, start: int = 0, stop: int | None = None) -> Iterator[RadarFrame]:
+        """Yield :class:`RadarFrame` (stamp_ns, complex64 (12, 16, N), flags) in capture order.
+
+        loop : which loop of each frame to give; None averages the loops (coherent sum / L).
+        """
+        stop = len(self) if stop is None else min(int(stop), len(self))
+        if loop is not None and not 0 <= int(loop) < self.config.n_loops:
+            raise TwinFocusError(f"loop must be in 0..{self.config.n_loops - 1} or None, got {loop}")
+        for i in range(int(start), stop):
+            f = self.read_frame(i)
+            data = f.mean(axis=0).astype(np.complex64) if loop is None else f[int(loop)]
+            yield RadarFrame(int(self.timestamps_ns[i]), data, FrameFlag(int(self.flags[i])))
+
+    def _ref(self, i: int) -> _FrameRef:
+        if not -len(self) <= int(i) < len(self):
+            raise TwinFocusError(f"frame {i} is out of range: the capture holds {len(self)} frame(s)")
+        return self._refs[int(i)]
