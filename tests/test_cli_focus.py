@@ -40,6 +40,19 @@ def test_simulate_then_focus_with_template_scan(small_scans, tmp_path):
     assert m["reference_ssim_vs_template_corrected"] > m["reference_ssim_vs_template_uncorrected"]
 
 
+def test_confidence_report_warns_when_transfer_cannot_be_trusted(small_scans, tmp_path, capsys):
+    assert _focus(small_scans / "scan.npz", tmp_path / "ok", "--method", "none") == 0
+    ok = json.loads((tmp_path / "ok" / "metrics.json").read_text())["confidence"]
+    # the regions' centres (x = -0.075 and 0.075 m at 0.6 m) seen from the aperture centre
+    assert ok["trusted"] and ok["separation_deg"] == pytest.approx(2 * np.degrees(np.arctan(0.075 / 0.6)), abs=0.2)
+    capsys.readouterr()
+    # 3 mm of tracking error at 10 degrees: the first-order bound passes pi/4
+    assert _focus(small_scans / "scan.npz", tmp_path / "bad", "--method", "none", "--tracking-error-mm", "3") == 0
+    assert "not to be trusted" in capsys.readouterr().err
+    bad = json.loads((tmp_path / "bad" / "metrics.json").read_text())["confidence"]
+    assert not bad["trusted"] and bad["transfer_bound_rad_max"] > np.pi / 4
+
+
 def test_template_file_path_and_baselines(small_scans, tmp_path):
     from twinfocus.grid import ImageGrid
     from twinfocus.templates import save_template, template_from_scan

@@ -85,3 +85,20 @@ def test_phase_error_rms_ignores_constant_and_wrapping():
     truth = rng.uniform(-np.pi, np.pi, 100)
     assert phase_error_rms(truth + 2.0 + 2 * np.pi * rng.integers(-3, 3, 100), truth) < 1e-9
     assert phase_error_rms(truth + rng.normal(0, 0.1, 100), truth) == pytest.approx(0.1, rel=0.25)
+
+
+def test_transfer_bound_closed_form():
+    from twinfocus.metrics import transfer_bound_rad
+
+    pos = np.zeros((1, 2, 3))  # one position at the origin
+    z = 0.6
+    half = np.deg2rad(10) / 2
+    ref = np.array([-z * np.tan(half), 0, z])
+    tgt = np.array([z * np.tan(half), 0, z])
+    lam, dp = 3.9e-3, 0.5e-3
+    # |u1 - u2| = 2 sin(theta / 2) for two unit vectors theta apart
+    expected = 4 * np.pi / lam * 2 * np.sin(np.deg2rad(10) / 2) * dp
+    assert transfer_bound_rad(pos, ref, tgt, lam, dp)[0] == pytest.approx(expected, rel=1e-9)
+    # the paper's figure: 20 degrees and 0.5 mm stay below ~0.17 pi
+    tgt20 = np.array([z * np.tan(np.deg2rad(20) - half), 0, z])
+    assert transfer_bound_rad(pos, ref, tgt20, 4e-3, dp)[0] < 0.18 * np.pi

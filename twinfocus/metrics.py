@@ -135,3 +135,18 @@ def phase_error_rms(estimate_rad: np.ndarray, truth_rad: np.ndarray) -> float:
     d = d - np.angle(np.exp(1j * d).mean())
     d = np.angle(np.exp(1j * d))
     return float(np.sqrt((d**2).mean()))
+
+
+def transfer_bound_rad(positions_m: np.ndarray, reference_m: np.ndarray, target_m: np.ndarray, wavelength_m: float, tracking_error_m: float) -> np.ndarray:
+    """First-order bound on the phase-error difference between reference and target (paper eq. 7).
+
+    |dphi_ref - dphi_tgt| <= (4 pi / lambda) |u_ref - u_tgt| |dp| per radar position, with u the
+    unit line-of-sight vectors from the position's phase centre (channel mean) to the two points
+    and |dp| the tracking error. positions_m (M, K, 3); returns float64 (M,) radians.
+    """
+    c = np.asarray(positions_m, dtype=np.float64).mean(axis=1)
+    u_r = np.asarray(reference_m, float) - c
+    u_t = np.asarray(target_m, float) - c
+    u_r /= np.linalg.norm(u_r, axis=1, keepdims=True)
+    u_t /= np.linalg.norm(u_t, axis=1, keepdims=True)
+    return 4.0 * np.pi / wavelength_m * np.linalg.norm(u_r - u_t, axis=1) * float(tracking_error_m)

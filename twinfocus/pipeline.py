@@ -69,6 +69,7 @@ def focus_scan(
     bp_options: dict | None = None,
     progress_factory=None,
     remove_phase_ramp: bool = True,
+    tracking_error_m: float = 0.5e-3,
 ) -> FocusOutputs:
     """Run the offline focusing steps on a validated scan.
 
@@ -77,6 +78,7 @@ def focus_scan(
         aperture ramp (:func:`twinfocus.autofocus.fit_linear_phase`). That ramp only moves the
         image; a template placed off by a millimetre pulls one in, and transferring it would shift
         the target. False transfers the optimiser's phase as is (the source paper).
+    tracking_error_m : the tracker's position error magnitude assumed by the confidence report.
     progress_factory : ``label -> progress callable`` (see :class:`twinfocus.progress.Progress`).
     """
     if method not in METHODS:
@@ -141,6 +143,7 @@ def focus_scan(
         timings_s=timings,
         config={**cfg.to_dict(), **{f"bp_{k}": v for k, v in bp.items()}},
     )
+    m["confidence"] = confidence_report(m, scan, reference_grid, target_grid, tracking_error_m)
     if scan.positions_true is not None:
         t = time.perf_counter()
         out.target_truth = backproject(scan.data, scan.positions_true, scan.chirp, target_grid, progress=prog("target truth"), **bp)
@@ -155,6 +158,42 @@ def focus_scan(
         m["phase_error_rms_rad_vs_oracle"] = metrics.phase_error_rms(phase, out.phase_oracle_rad)
         m["phase_error_rms_rad_uncorrected"] = metrics.phase_error_rms(np.zeros_like(phase), out.phase_oracle_rad)
     m["timings_s"] = timings
+    return out
+
+
+#: below this reference-vs-template SSIM the reference was not matched and the phase is suspect
+MIN_REFERENCE_MATCH = 0.8
+
+
+def confidence_report(m: dict, scan: Scan, reference_grid: ImageGrid, target_grid: ImageGrid, tracking_error_m: float) -> dict:
+    """How far to trust the correction of this scan: the reference match, the first-order
+    transfer bound for this geometry (paper eq. 7) and warnings when either is poor."""
+    bound = metrics.transfer_bound_rad(scan.positions, reference_grid.centre_m, target_grid.centre_m,
+                                       scan.chirp.wavelength_m, tracking_error_m)
+    centre = scan.positions.reshape(-1, 3).mean(axis=0)
+    sep = np.degrees(np.arccos(np.clip(np.dot(
+        (reference_grid.centre_m - centre) / np.linalg.norm(reference_grid.centre_m - centre),
+        (target_grid.centre_m - centre) / np.linalg.norm(target_grid.centre_m - centre)), -1, 1)))
+    out = {
+        "separation_deg": float(sep),
+        "tracking_error_m_assumed": float(tracking_error_m),
+        "transfer_bound_rad_max": float(bound.max()),
+        "transfer_bound_rad_rms": float(np.sqrt((bound**2).mean())),
+        "reference_match_ssim": m.get("reference_ssim_vs_template_corrected"),
+        "warnings": [],
+    }
+    if bound.max() > np.pi / 4:
+        out["warnings"].append(
+            f"reference and target are {sep:.0f} deg apart: their phase errors may differ by up to "
+            f"{bound.max():.2f} rad (> pi/4) for {tracking_error_m * 1e3:.1f} mm tracking error; the transfer is not to be trusted"
+        )
+    match = out["reference_match_ssim"]
+    if match is not None and match < MIN_REFERENCE_MATCH:
+        out["warnings"].append(
+            f"the corrected reference matches its template poorly (SSIM {match:.2f} < {MIN_REFERENCE_MATCH}); "
+            "check the template, the reference region and the template's placement"
+        )
+    out["trusted"] = not out["warnings"]
     return out
 
 

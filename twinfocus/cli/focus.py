@@ -34,6 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "linear-in-aperture part, which only moves the image, is removed first")
     p.add_argument("--basis-dtype", choices=["float32", "float16"], default="float32",
                    help="storage of the sub-image basis in the optimiser (float16: ~2x faster, same result)")
+    p.add_argument("--tracking-error-mm", type=float, default=0.5,
+                   help="tracker position error assumed by the confidence report (default 0.5 mm)")
     p.add_argument("--no-pictures", action="store_true", help="skip the PNG pictures")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
@@ -82,9 +84,12 @@ def run(args: argparse.Namespace) -> int:
         method = args.method
 
     outputs = focus_scan(scan, ref_grid, tgt_grid, template=template, method=method, config=cfg,
-                         bp_options=bp, progress_factory=progress, remove_phase_ramp=not args.keep_phase_ramp)
+                         bp_options=bp, progress_factory=progress, remove_phase_ramp=not args.keep_phase_ramp,
+                         tracking_error_m=args.tracking_error_mm * 1e-3)
     write_outputs(args.out, outputs, pictures=not args.no_pictures)
     m = outputs.metrics
+    for warning in m["confidence"]["warnings"]:
+        print(f"twinfocus focus: warning: {warning}", file=sys.stderr)
     if "target_ssim_corrected" in m:
         print(f"target SSIM: uncorrected {m['target_ssim_uncorrected']:.3f} -> {method} {m['target_ssim_corrected']:.3f} "
               f"(oracle phase {m['target_ssim_oracle_phase']:.3f})")
