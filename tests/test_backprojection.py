@@ -129,3 +129,29 @@ def test_bad_inputs_are_named():
         backproject(data.real, pos, ch, grid)
     with pytest.raises(TwinFocusError, match="X0 < X1"):
         ImageGrid(0.1, -0.1, -0.1, 0.1, 0.6, 4, 4)
+
+
+def test_volume_backprojection_finds_the_point_in_depth():
+    from twinfocus.grid import VolumeGrid
+
+    ch = Chirp()
+    pos = small_aperture(n_rows=12, row_pitch=0.004)
+    point = np.array([0.0, 0.0, 0.62])
+    data = point_scan(ch, pos, point)
+    vol = VolumeGrid(ImageGrid(-0.02, 0.02, -0.02, 0.02, 0.6, 9, 9), 0.55, 0.69, 15)
+    img = backproject(data, pos, ch, vol)
+    assert img.shape == (15, 9, 9)
+    d, i, j = np.unravel_index(np.argmax(np.abs(img)), img.shape)
+    assert abs(vol.z_m[d] - point[2]) <= 0.005 + 1e-9
+    assert (i, j) == (4, 4)
+
+
+@pytest.mark.gpu
+def test_cuda_backend_matches_cpu():
+    ch = Chirp()
+    pos = small_aperture(n_rows=6)
+    data = point_scan(ch, pos, [0.01, 0.0, 0.6])
+    grid = ImageGrid(-0.03, 0.03, -0.03, 0.03, 0.6, 16, 16)
+    cpu = backproject(data, pos, ch, grid)
+    gpu = backproject(data, pos, ch, grid, backend="torch", device="cuda")
+    assert np.abs(cpu - gpu).max() / np.abs(cpu).max() < 1e-4
