@@ -253,6 +253,12 @@ def backproject_points(
     pos, pts = _local_frame(positions_m, points_m, dtype)
     out_re = np.zeros(pts.shape[0], dtype)
     out_im = np.zeros(pts.shape[0], dtype)
+    # Pixel blocks of at most 4096 (cache-resident), in a multiple of the thread count so no
+    # thread idles at the end.
+    threads = numba.get_num_threads()
+    n_blocks = max(1, -(-pts.shape[0] // 4096))
+    n_blocks = -(-n_blocks // threads) * threads
+    block = max(1, -(-pts.shape[0] // n_blocks))
     # Chunks over positions bound the profile memory and give progress ticks.
     chunk = max(1, int(4e6 // max(1, data.shape[1] * chirp.n_samples)))
     for lo in range(0, data.shape[0], chunk):
@@ -261,7 +267,7 @@ def backproject_points(
         part_re = np.empty_like(out_re)
         part_im = np.empty_like(out_im)
         _image_kernel(pre, pim, pos[lo:hi], pts[:, 0].copy(), pts[:, 1].copy(), pts[:, 2].copy(),
-                      dtype(r0), dtype(1.0 / dr), dtype(_turns_per_m(chirp)), 2048, part_re, part_im)
+                      dtype(r0), dtype(1.0 / dr), dtype(_turns_per_m(chirp)), block, part_re, part_im)
         out_re += part_re
         out_im += part_im
         if progress is not None:
