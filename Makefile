@@ -4,7 +4,7 @@ PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
 DEMO    ?= demo_out
 
-.PHONY: demo test bench system-deps clean
+.PHONY: demo test bench bench-paper system-deps browser-deps clean
 
 # open3d and pyusb load the system's libusb-1.0 at import time; without it `import open3d` fails.
 system-deps:
@@ -28,11 +28,25 @@ demo: $(STAMP)
 	    --size 100 --out $(DEMO)/focus
 	@echo "[make] pictures and figures are in $(DEMO)/focus"
 
-test: $(STAMP)
+# The node-graph test opens the live web page in a real headless browser (Debian's chromium).
+browser-deps:
+	@if ! command -v chromium >/dev/null 2>&1; then \
+	  echo "[make] chromium is missing: the visualizer's page test needs it. Installing it with apt-get."; \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq chromium >/dev/null; \
+	  else sudo apt-get update -qq && sudo apt-get install -y -qq chromium >/dev/null; fi \
+	  || echo "[make] could not install chromium: the browser test will be skipped"; \
+	fi
+
+test: $(STAMP) browser-deps
 	$(PY) -m pytest -q
 
 bench: $(STAMP)
 	$(PY) -m benchmarks.run --out benchmarks/results
+
+# The paper's evaluation in simulation (about an hour on 2 cores): docs/results.md + docs/results/.
+# Add ARGS="--draws 5" for the paper's five error draws per pair, ARGS="--resume" to keep finished parts.
+bench-paper: $(STAMP)
+	nice $(VENV)/bin/twinfocus bench paper --out docs/results --markdown docs/results.md $(ARGS)
 
 clean:
 	rm -rf $(VENV) $(DEMO) .pytest_cache

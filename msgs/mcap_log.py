@@ -180,7 +180,10 @@ class LogReader:
             if end > self.size:
                 return pos, False
             if opcode == Opcode.FOOTER:
-                return self.size, True
+                f.seek(end)
+                if f.read(8) == _MAGIC:
+                    return self.size, True
+                return pos, False
             pos = end
 
     def _records(self) -> Iterator[tuple[Channel, Message]]:

@@ -1,0 +1,382 @@
+"""Autofocus solver node: ``sar/measurement`` + ``twin/template`` -> ``autofocus/result`` and images.
+
+As measurements of a scan arrive, the solver back-projects each onto the reference and the
+target regions: one row B_m of the sub-image basis per radar position
+(:func:`twinfocus.backprojection.subimage_basis`, rows are independent), computed in batches of
+whatever has arrived while the previous batch ran. So when the scan's ``last`` measurement
+arrives, the back-projection is already done and only the optimiser remains
+(:func:`twinfocus.autofocus.twin_autofocus`, or the baselines ``sharpness`` / ``none``). With
+``basis:=after_scan`` it instead keeps the samples and runs :func:`twinfocus.pipeline.focus_scan`
+on the assembled scan at the end (the same call as ``twinfocus focus``; the benchmark's
+baseline).
+
+Outputs per scan: :class:`msgs.AutofocusResult` (phase, loss curve, metrics, timings) and
+:class:`msgs.Image` on ``image/focused`` named ``target``, ``target_uncorrected``,
+``reference``, ``reference_uncorrected``; with ``out_dir`` also ``twinfocus focus``'s files in
+``out_dir/<scan_id>/`` (:func:`twinfocus.pipeline.write_outputs`). Metrics against the truth
+are computed when the measurements carry ``positions_true_m`` (simulation).
+"""
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from msgs import AutofocusResult, Header, Image, SarMeasurement, TwinTemplate, now_ns
+from nodes.node import Node, run_node
+from nodes.params import REQUIRED, Param
+from twinfocus.errors import TwinFocusError
+
+
+@dataclass
+class _Scan:
+    scan_id: str
+    chirp: object
+    n_channels: int
+    first_wall: float
+    pending: list = field(default_factory=list)
+    ref_rows: list = field(default_factory=list)
+    tgt_rows: list = field(default_factory=list)
+    positions: list = field(default_factory=list)
+    truth: list | None = field(default_factory=list)
+    data: list = field(default_factory=list)  # basis:=after_scan only
+    truth_ref: np.ndarray | None = None
+    truth_tgt: np.ndarray | None = None
+    basis_time_s: float = 0.0
+    batches: int = 0
+    last_wall: float | None = None
+    n: int = 0
+
+
+class Solver(Node):
+    """Twin-reference autofocus of each scan."""
+
+    NAME = "solver"
+    PARAMS = {
+        **Node.PARAMS,
+        "reference_roi": Param(REQUIRED, "reference region X0 X1 Y0 Y1 Z, metres", type="floats"),
+        "target_roi": Param(REQUIRED, "target region X0 X1 Y0 Y1 Z, metres", type="floats"),
+        "size": Param(100, "image size in pixels per side"),
+        "method": Param("twin", "twin (needs twin/template), sharpness or none", choices=("twin", "sharpness", "none")),
+        "iterations": Param(300, "optimiser iterations"),
+        "lr": Param(5e-2, "Adam learning rate"),
+        "lr_min": Param(1e-5, "end of the cosine schedule"),
+        "threshold_centre": Param(0.4, "soft threshold centre"),
+        "threshold_steepness": Param(1.0, "soft threshold steepness"),
+        "precision": Param("float32", "float32 or float64 arithmetic", choices=("float32", "float64")),
+        "basis_dtype": Param("float32", "storage of the basis in the optimiser (float32 or float16)", choices=("float32", "float16")),
+        "remove_phase_ramp": Param(True, "transfer the phase without its constant + linear ramp (as twinfocus focus)"),
+        "tracking_error_m": Param(0.5e-3, "tracker error assumed by the confidence report, metres"),
+        "oversample": Param(16, "range-profile oversampling of the back-projection"),
+        "device": Param("", "torch device; empty = cuda if present, else cpu", type="str"),
+        "basis": Param("stream", "stream: basis built as measurements arrive; after_scan: all at the end",
+                       choices=("stream", "after_scan")),
+        "truth_metrics": Param(True, "compute SSIM against the truth when measurements carry it"),
+        "template_wait_s": Param(30.0, "how long a finished scan waits for a template before it is dropped"),
+        "out_dir": Param("", "write twinfocus focus's files to OUT_DIR/<scan_id>/ (empty: do not write)", type="str"),
+        "pictures": Param(True, "with out_dir, also write the PNG pictures"),
+        "exit_after_scans": Param(0, "end the node after this many focused scans (0: never)"),
+        "warm_up": Param(True, "run the optimiser and back-projection once on a toy problem at start-up, so the "
+                               "first scan does not pay their one-off set-up (seconds of imports and JIT loading)"),
+    }
+
+    def __init__(self, **kw):
+        super().__init__(**kw)
+        from twinfocus.autofocus import AutofocusConfig
+        from twinfocus.grid import ImageGrid
+
+        p = self.params
+        for name in ("reference_roi", "target_roi"):
+            if len(p[name]) != 5:
+                raise TwinFocusError(f"node {self.name!r}: parameter {name!r} needs 5 numbers X0 X1 Y0 Y1 Z, got {p[name]}")
+        self.ref_grid = ImageGrid.from_roi(p["reference_roi"], p["size"])
+        self.tgt_grid = ImageGrid.from_roi(p["target_roi"], p["size"])
+        device = p["device"]
+        if not device:
+            import torch
+
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        self.cfg = AutofocusConfig(
+            iterations=p["iterations"], lr=p["lr"], lr_min=p["lr_min"], threshold_centre=p["threshold_centre"],
+            threshold_steepness=p["threshold_steepness"], precision=p["precision"], device=device,
+            basis_dtype=p["basis_dtype"],
+        )
+        self.cfg.validate()
+        self.bp = {"oversample": p["oversample"], "precision": p["precision"]}
+        if device != "cpu":
+            self.bp.update(backend="torch", device=device)
+        self.template: np.ndarray | None = None
+        self.template_info = ""
+        self.scan: _Scan | None = None
+        self.waiting: list[_Scan] = []  # finished scans waiting for a template
+        self.done = 0
+        self._flush_scheduled = False
+        self.result_pub = self.create_publisher("autofocus/result")
+        self.image_pub = self.create_publisher("image/focused")
+        self.create_subscription("sar/measurement", self.on_measurement)
+        self.create_subscription("twin/template", self.on_template)
+        if p["warm_up"]:
+            self._warm_up()
+
+    def _warm_up(self) -> None:
+        from twinfocus.autofocus import AutofocusConfig, twin_autofocus
+        from twinfocus.backprojection import subimage_basis
+        from twinfocus.grid import ImageGrid
+        from twinfocus.radar import Chirp
+
+        rng = np.random.default_rng(0)
+        chirp = Chirp(n_samples=8)
+        grid = ImageGrid(-0.01, 0.01, -0.01, 0.01, 0.3, 4, 4)
+        data = (rng.standard_normal((2, 2, 8)) + 1j * rng.standard_normal((2, 2, 8))).astype(np.complex64)
+        pos = np.zeros((2, 2, 3))
+        pos[:, 1, 0] = 1e-3
+        basis = subimage_basis(data, pos, chirp, grid, **self.bp)
+        cfg = AutofocusConfig(**{**self.cfg.to_dict(), "iterations": 2})
+        twin_autofocus(basis, rng.random((4, 4)), cfg)
+
+    # -- template -----------------------------------------------------------------------------
+    def on_template(self, msg: TwinTemplate) -> None:
+        from twinfocus.scan import save_npz_atomic
+        from twinfocus.templates import load_template
+
+        g = self.ref_grid
+        if msg.image.shape == g.shape and np.allclose(msg.x_m, g.x_m) and np.allclose(msg.y_m, g.y_m) and abs(msg.z_m - g.z) < 1e-9:
+            self.template = np.asarray(msg.image, dtype=np.float32)
+        else:  # resample through the template-file reader, the project's one way to do it
+            with tempfile.TemporaryDirectory() as d:
+                path = Path(d) / "template.npz"
+                save_npz_atomic(path, {"image": msg.image, "x_m": msg.x_m, "y_m": msg.y_m, "z_m": np.float64(msg.z_m)})
+                try:
+                    self.template = load_template(path, g)
+                except TwinFocusError as exc:
+                    self.log(f"ignored a {msg.kind} template from {msg.source or '?'}: {str(exc).split(': ', 1)[-1]}")
+                    return
+        self.template_info = f"{msg.kind} twin from {msg.source or '?'}"
+        self.log(f"template received: {self.template_info}")
+        for s in list(self.waiting):
+            self.waiting.remove(s)
+            self._finish(s)
+
+    # -- measurements -------------------------------------------------------------------------
+    def on_measurement(self, m: SarMeasurement) -> None:
+        chirp = m.chirp()
+        s = self.scan
+        if s is not None and s.scan_id != m.scan_id:
+            self.log(f"scan {s.scan_id!r} ended without its last measurement ({s.n} received); focusing what arrived")
+            self._end_scan()
+            s = None
+        if s is None:
+            s = self.scan = _Scan(m.scan_id, chirp, m.data.shape[0], time.monotonic())
+            s.truth = [] if self.params["truth_metrics"] else None
+            self.log(f"scan {m.scan_id!r} started")
+        if chirp != s.chirp or m.data.shape[0] != s.n_channels:
+            self.log(f"dropped measurement {m.index} of scan {m.scan_id!r}: its chirp or channel count differs from the scan's first")
+            return
+        s.pending.append(m)
+        s.n += 1
+        if s.truth is not None and m.positions_true_m is None:
+            s.truth = None
+        if m.last:
+            s.last_wall = time.monotonic()
+            self._flush()
+            self._end_scan()
+        elif not self._flush_scheduled:
+            # Runs after the loop has read what is already queued: one batch per pass.
+            self._flush_scheduled = True
+            self.call_later(0, self._flush)
+
+    def _flush(self) -> None:
+        from twinfocus.backprojection import backproject, subimage_basis
+
+        self._flush_scheduled = False
+        s = self.scan
+        if s is None or not s.pending:
+            return
+        batch, s.pending = s.pending, []
+        data = np.stack([m.data for m in batch])
+        pos = np.stack([m.positions_m for m in batch])
+        s.positions.append(pos)
+        if s.truth is not None:
+            s.truth.append(np.stack([m.positions_true_m for m in batch]))
+        if self.params["basis"] == "after_scan":
+            s.data.append(data)
+            return
+        t = time.perf_counter()
+        s.ref_rows.append(subimage_basis(data, pos, s.chirp, self.ref_grid, **self.bp))
+        s.tgt_rows.append(subimage_basis(data, pos, s.chirp, self.tgt_grid, **self.bp))
+        if s.truth is not None:
+            tr = s.truth[-1]
+            ref = backproject(data, tr, s.chirp, self.ref_grid, **self.bp)
+            tgt = backproject(data, tr, s.chirp, self.tgt_grid, **self.bp)
+            s.truth_ref = ref if s.truth_ref is None else s.truth_ref + ref
+            s.truth_tgt = tgt if s.truth_tgt is None else s.truth_tgt + tgt
+        s.basis_time_s += time.perf_counter() - t
+        s.batches += 1
+        self.heartbeat_if_due()
+
+    def _end_scan(self) -> None:
+        s, self.scan = self.scan, None
+        if s is None:
+            return
+        self._flush()
+        if s.last_wall is None:
+            s.last_wall = time.monotonic()
+        if self.params["method"] == "twin" and self.template is None:
+            self.log(f"scan {s.scan_id!r} complete ({s.n} positions); waiting up to {self.params['template_wait_s']:g} s for a template")
+            self.waiting.append(s)
+            self.call_later(self.params["template_wait_s"], lambda s=s: self._give_up(s))
+            return
+        self._finish(s)
+
+    def _give_up(self, s: _Scan) -> None:
+        if s in self.waiting:
+            self.waiting.remove(s)
+            self.log(f"dropped scan {s.scan_id!r}: no template arrived on twin/template within {self.params['template_wait_s']:g} s")
+            self._count_done()
+
+    # -- focusing -----------------------------------------------------------------------------
+    def _finish(self, s: _Scan) -> None:
+        from twinfocus.scan import Scan
+
+        t_start = time.monotonic()
+        positions = np.concatenate(s.positions)
+        truth = np.concatenate(s.truth) if s.truth else None
+        progress = self._progress
+        try:
+            if self.params["basis"] == "after_scan":
+                from twinfocus.pipeline import focus_scan
+
+                scan = Scan(np.concatenate(s.data), positions, s.chirp, positions_true=truth)
+                out = focus_scan(scan, self.ref_grid, self.tgt_grid, template=self.template, method=self.params["method"],
+                                 config=self.cfg, bp_options=self.bp, progress_factory=lambda label: progress,
+                                 remove_phase_ramp=self.params["remove_phase_ramp"],
+                                 tracking_error_m=self.params["tracking_error_m"])
+            else:
+                out = self._focus_bases(s, positions, truth)
+        except TwinFocusError as exc:
+            self.log(f"could not focus scan {s.scan_id!r}: {exc}")
+            self.status_message = f"could not focus scan {s.scan_id!r}: {exc}"
+            self._count_done()
+            return
+        timing = {k: float(v) for k, v in out.timings_s.items()}
+        if self.params["basis"] == "stream":
+            timing["basis_streamed"] = s.basis_time_s
+            out.metrics["basis_batches"] = s.batches
+        timing["last_measurement_to_result"] = time.monotonic() - s.last_wall
+        timing["after_last_measurement_work"] = time.monotonic() - t_start
+        self._publish(s, out, timing)
+        if self.params["out_dir"]:
+            from twinfocus.pipeline import write_outputs
+
+            out.metrics["timings_s"] = timing
+            d = write_outputs(Path(self.params["out_dir"]) / s.scan_id, out, pictures=self.params["pictures"])
+            self.log(f"wrote {d}/")
+        self._count_done()
+
+    def _progress(self, *args) -> None:
+        self.heartbeat_if_due()
+
+    def _focus_bases(self, s: _Scan, positions: np.ndarray, truth: np.ndarray | None):
+        """The steps of :func:`twinfocus.pipeline.focus_scan` that follow the bases, on the
+        streamed bases (kept step for step the same; tests/test_graph.py checks the phase)."""
+        from types import SimpleNamespace
+
+        from twinfocus import metrics
+        from twinfocus.autofocus import fit_linear_phase, form_image, no_correction, sharpness_autofocus, twin_autofocus
+        from twinfocus.pipeline import FocusOutputs, confidence_report
+        from twinfocus.templates import check_has_signal
+
+        ref_basis = np.concatenate(s.ref_rows)
+        tgt_basis = np.concatenate(s.tgt_rows)
+        ref_unc = ref_basis.sum(axis=0)
+        tgt_unc = tgt_basis.sum(axis=0)
+        check_has_signal(ref_unc, "the reference region")
+        method, cfg, template = self.params["method"], self.cfg, self.template
+        if template is not None:
+            check_has_signal(template, "the template")
+        t = time.perf_counter()
+        if method == "twin":
+            result = twin_autofocus(ref_basis, template, cfg, progress=self._progress)
+        elif method == "sharpness":
+            result = sharpness_autofocus(tgt_basis, cfg, progress=self._progress)
+        else:
+            result = no_correction(ref_basis)
+        timings = {"autofocus": time.perf_counter() - t}
+        phase = result.phase_rad
+        remove_ramp = bool(self.params["remove_phase_ramp"] and method != "none")
+        m: dict = {"method": method, "n_positions": int(ref_basis.shape[0]), "n_channels": s.n_channels,
+                   "phase_ramp_removed": remove_ramp}
+        if remove_ramp:
+            ramp, coeffs = fit_linear_phase(phase, positions.mean(axis=1)[:, :2])
+            phase = np.angle(np.exp(1j * (phase - ramp)))
+            m["phase_ramp_rad_per_m"] = coeffs[1:].tolist()
+        ref_cor = form_image(ref_basis, phase)
+        tgt_cor = form_image(tgt_basis, phase)
+        centre, steep = cfg.threshold_centre, cfg.threshold_steepness
+        if template is not None:
+            tpl = metrics.display_image(template, centre, steep)
+            m["reference_ssim_vs_template_uncorrected"] = metrics.ssim(metrics.display_image(ref_unc, centre, steep), tpl)
+            m["reference_ssim_vs_template_corrected"] = metrics.ssim(metrics.display_image(ref_cor, centre, steep), tpl)
+        out = FocusOutputs(
+            reference_grid=self.ref_grid, target_grid=self.tgt_grid, method=method, phase_rad=phase,
+            reference=ref_cor, reference_uncorrected=ref_unc, target=tgt_cor, target_uncorrected=tgt_unc,
+            template=None if template is None else np.asarray(template, np.float32),
+            loss_history=result.loss_history, metrics=m, timings_s=timings,
+            config={**cfg.to_dict(), **{f"bp_{k}": v for k, v in self.bp.items()}},
+        )
+        # The report reads only the scan's positions and chirp (the samples are not kept).
+        m["confidence"] = confidence_report(m, SimpleNamespace(positions=positions, chirp=s.chirp), self.ref_grid,
+                                            self.tgt_grid, self.params["tracking_error_m"])
+        if truth is not None and s.truth_tgt is not None:
+            out.target_truth, out.reference_truth = s.truth_tgt, s.truth_ref
+            out.phase_oracle_rad = metrics.oracle_phase(truth, positions, self.tgt_grid.centre_m, s.chirp)
+            m["target_ssim_uncorrected"] = metrics.image_ssim(tgt_unc, s.truth_tgt, centre, steep)
+            m["target_ssim_corrected"] = metrics.image_ssim(tgt_cor, s.truth_tgt, centre, steep)
+            m["target_ssim_oracle_phase"] = metrics.image_ssim(form_image(tgt_basis, out.phase_oracle_rad), s.truth_tgt, centre, steep)
+            m["reference_ssim_uncorrected"] = metrics.image_ssim(ref_unc, s.truth_ref, centre, steep)
+            m["reference_ssim_corrected"] = metrics.image_ssim(ref_cor, s.truth_ref, centre, steep)
+            m["phase_error_rms_rad_vs_oracle"] = metrics.phase_error_rms(phase, out.phase_oracle_rad)
+            m["phase_error_rms_rad_uncorrected"] = metrics.phase_error_rms(np.zeros_like(phase), out.phase_oracle_rad)
+        return out
+
+    def _publish(self, s: _Scan, out, timing: dict) -> None:
+        stamp = now_ns()
+        numeric = {k: float(v) for k, v in out.metrics.items() if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)}
+        self.result_pub.publish(AutofocusResult(
+            header=Header(stamp_ns=stamp, frame_id="scene"),
+            scan_id=s.scan_id, method=out.method,
+            phase_rad=np.asarray(out.phase_rad, np.float64),
+            loss_history=np.asarray(out.loss_history, np.float64),
+            metrics=numeric, timing_s=timing,
+        ))
+        for name, img, grid in (
+            ("target_uncorrected", out.target_uncorrected, self.tgt_grid),
+            ("reference_uncorrected", out.reference_uncorrected, self.ref_grid),
+            ("reference", out.reference, self.ref_grid),
+            ("target", out.target, self.tgt_grid),  # last: a viewer waiting for it has the rest
+        ):
+            self.image_pub.publish(Image(header=Header(stamp_ns=stamp, frame_id="scene"), name=name, scan_id=s.scan_id,
+                                         image=img, x_m=grid.x_m, y_m=grid.y_m, z_m=grid.z))
+        ssim = numeric.get("target_ssim_corrected")
+        tag = f", target SSIM {numeric.get('target_ssim_uncorrected', float('nan')):.3f} -> {ssim:.3f}" if ssim is not None else ""
+        self.log(f"focused scan {s.scan_id!r}: {out.phase_rad.size} positions, {out.method}{tag}, "
+                 f"{timing['last_measurement_to_result']:.2f} s after its last measurement")
+        self.status_message = f"focused {self.done + 1} scan(s)"
+
+    def _count_done(self) -> None:
+        self.done += 1
+        n = int(self.params["exit_after_scans"])
+        if n and self.done >= n:
+            self.request_shutdown(f"{self.done} scan(s) done")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(Solver, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

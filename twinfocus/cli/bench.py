@@ -1,0 +1,62 @@
+"""``twinfocus bench paper``: the source paper's evaluation in simulation, the speed/accuracy trade
+and the limits, written as a report folder (markdown, PNG figures, raw JSON).
+
+    twinfocus bench paper [--quick] [--out DIR] [--draws N] [--only EXPERIMENTS] [--markdown FILE] [--resume]
+    twinfocus bench paper --report-only [--out DIR] [--markdown FILE]
+"""
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+
+from twinfocus.errors import TwinFocusError
+
+SUITES = ("paper",)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from twinfocus.evaluation.experiments import EXPERIMENT_NAMES
+
+    p.add_argument("suite", choices=SUITES, help="what to run: 'paper' (the source paper's evaluation)")
+    p.add_argument("--quick", action="store_true",
+                   help="smoke run: two baseline pairs and two tracking errors on small scans (240 positions, 32 x 32, 60 iterations)")
+    p.add_argument("--out", default="bench_paper", help="report folder (default bench_paper/)")
+    p.add_argument("--draws", type=int, default=None,
+                   help="tracking-error draws per pair and condition for every experiment (default 1; the paper used 5)")
+    p.add_argument("--only", default="",
+                   help=f"comma-separated experiments: {', '.join(EXPERIMENT_NAMES)}, trade (default all)")
+    p.add_argument("--markdown", default=None, help="where to write the report markdown (default OUT/report.md)")
+    p.add_argument("--resume", action="store_true", help="keep experiments already in OUT/raw with the same settings")
+    p.add_argument("--report-only", action="store_true", help="only rewrite the report from the raw results in OUT/raw")
+    p.add_argument("--trade-scenes", type=int, default=None, help="scenes in the speed/accuracy trade (default 1; pairs A>F, R>X)")
+    p.add_argument("--device", default="cpu", help="torch device for the optimiser and back-projection (cpu, cuda)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from twinfocus.evaluation.report import write_report
+    from twinfocus.evaluation.runner import run_paper
+
+    if args.report_only:
+        if not (Path(args.out) / "raw").is_dir():
+            raise TwinFocusError(f"--report-only: {Path(args.out) / 'raw'} holds no raw results; run the benchmark first")
+        print(write_report(args.out, args.markdown))
+        return 0
+    only = [s.strip() for s in args.only.split(",") if s.strip()] or None
+    if args.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise TwinFocusError(f"--device {args.device}: no CUDA device is available")
+    if args.trade_scenes is not None and args.trade_scenes < 1:
+        raise TwinFocusError(f"--trade-scenes must be at least 1, got {args.trade_scenes}")
+    command = "twinfocus bench " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["bench"] else None
+    log = (lambda msg: None) if args.quiet else None
+    kw = {} if log is None else {"log": log}
+    md = run_paper(args.out, quick=args.quick, draws=args.draws, only=only, resume=args.resume, markdown=args.markdown,
+                   device=args.device, trade_scenes=args.trade_scenes, command=command, **kw)
+    print(md)
+    return 0

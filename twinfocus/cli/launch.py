@@ -1,0 +1,30 @@
+"""``twinfocus launch FILE [name:=value ...]``: start the broker and a graph of nodes.
+
+See :mod:`nodes.launch` for the launch-file format and the shutdown rules.
+"""
+from __future__ import annotations
+
+import argparse
+
+from nodes import launch
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", help="launch file (a path, or a name in launch/: sim, replay, live); options go before it")
+    parser.add_argument("assignments", nargs="*", metavar="name:=value", help="launch arguments")
+    parser.add_argument("--show", action="store_true", help="print the resolved graph and exit")
+    parser.add_argument("--grace", type=float, default=10.0, help="seconds a node gets to stop after Ctrl-C before SIGTERM")
+
+
+def run(args: argparse.Namespace) -> int:
+    graph = launch.load(args.file, args.assignments)
+    if args.show:
+        print(f"# {graph.path}: {graph.description}")
+        print(f"broker: {graph.broker}")
+        print("arguments: " + ", ".join(f"{k}={v!r}" for k, v in graph.arguments.items()))
+        for n in graph.nodes:
+            print(f"- {n.name} ({n.module}){' on_exit=shutdown' if n.on_exit == 'shutdown' else ''}")
+            for k, v in n.parameters.items():
+                print(f"    {k}: {v!r}")
+        return 0
+    return launch.Launcher(graph, grace_s=args.grace).run()

@@ -1,0 +1,178 @@
+"""``twinfocus twin LEFT RIGHT --camera CAMERA.json --seed-... --points-out POINTS.npy
+[--scan SCAN.npz --reference-roi X0 X1 Y0 Y1 Z --out TEMPLATE.npz]``: the digital twin of the
+reference, from a stereo pair (and a seed) to its point cloud and amplitude template.
+
+POINTS.npy holds the cloud in the radar's scene frame, with the radar-camera calibration's offset
+already applied when one is given or measured: ``twinfocus focus --digital-twin POINTS.npy``
+takes it as it is.
+
+With ``--calibrate-scan`` (a scan of the scene on accurate positions) it also makes the one-time
+radar-camera offset calibration (``--calibration-out``); ``--calibration`` applies a stored one.
+Every output is computed before anything is written, and each file is written atomically.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+from twinfocus.errors import TwinFocusError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("left", help="left picture (PNG/JPEG, rectified or as calibrated)")
+    p.add_argument("right", help="right picture, same size")
+    p.add_argument("--camera", required=True, help="stereo calibration and camera pose (camera.json)")
+    seed = p.add_mutually_exclusive_group(required=True)
+    seed.add_argument("--seed-point", nargs=2, type=float, metavar=("U", "V"), help="a pixel on the reference")
+    seed.add_argument("--seed-box", nargs=4, type=float, metavar=("X0", "Y0", "X1", "Y1"), help="pixel box around the reference")
+    seed.add_argument("--seed-roi", nargs=5, type=float, metavar=("X0", "X1", "Y0", "Y1", "Z"),
+                      help="radar region (metres) holding the reference, projected into the picture")
+    seed.add_argument("--seed-nearest", action="store_true", help="the nearest sizeable object (beware occluders)")
+    p.add_argument("--segmenter", default="classical",
+                   help="classical (default), sam2:CHECKPOINT[:CONFIG] or sam:CHECKPOINT[:TYPE]")
+    p.add_argument("--surface", choices=["auto", "plane", "raw"], default="auto", help="surface model (default auto)")
+    p.add_argument("--voxel-mm", type=float, default=None,
+                   help="point spacing; default: half the radar's resolution from --scan, else 1.0 mm")
+    p.add_argument("--points-out", required=True, help="reference point cloud to write (.npy, (N, 3) metres)")
+    p.add_argument("--mask-out", help="also write the reference mask (PNG)")
+    p.add_argument("--scan", help="scan file whose aperture the template is simulated for")
+    p.add_argument("--reference-roi", nargs=5, type=float, metavar=("X0", "X1", "Y0", "Y1", "Z"),
+                   help="reference region (metres) of the template")
+    p.add_argument("--size", type=int, default=100, help="template size in pixels per side (default 100)")
+    p.add_argument("--out", help="template file to write (.npz: image, x_m, y_m, z_m)")
+    p.add_argument("--template-method", choices=["psf", "exact"], default="psf", help="psf (fast, default) or exact")
+    p.add_argument("--incoherent", action="store_true", help="template of a rough surface (mean speckle amplitude)")
+    p.add_argument("--calibration", help="radar-camera offset calibration to apply (JSON)")
+    p.add_argument("--calibrate-scan", help="scan on accurate positions: measure the radar-camera offset")
+    p.add_argument("--calibration-out", help="where to write the measured calibration (JSON)")
+    p.add_argument("--report", help="write stage timings and counts here (JSON)")
+    p.add_argument("--quiet", action="store_true")
+
+
+def _check_args(args) -> None:
+    if args.out and not (args.scan and args.reference_roi):
+        raise TwinFocusError("--out (a template) needs --scan and --reference-roi")
+    if args.calibrate_scan and not (args.reference_roi and args.calibration_out):
+        raise TwinFocusError("--calibrate-scan needs --reference-roi and --calibration-out")
+    if args.calibration_out and not args.calibrate_scan:
+        raise TwinFocusError("--calibration-out needs --calibrate-scan")
+    if args.out and not str(args.out).endswith(".npz"):
+        raise TwinFocusError(f"--out must name a .npz file, got {args.out}")
+    if not str(args.points_out).endswith(".npy"):
+        raise TwinFocusError(f"--points-out must name a .npy file, got {args.points_out}")
+    if args.voxel_mm is not None and not args.voxel_mm > 0:
+        raise TwinFocusError(f"--voxel-mm must be positive, got {args.voxel_mm}")
+    if args.size < 2:
+        raise TwinFocusError(f"--size must be at least 2, got {args.size}")
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from twinfocus.digital_twin.camera import StereoCamera, write_bytes_atomic
+    from twinfocus.digital_twin.pipeline import reference_from_stereo
+    from twinfocus.digital_twin.pointcloud import PointCloudConfig, radar_point_spacing
+    from twinfocus.digital_twin.render import read_image, write_image_atomic
+    from twinfocus.digital_twin.segment import Seed, box_from_scene_roi, load_segmenter
+    from twinfocus.grid import ImageGrid
+    from twinfocus.scan import Scan
+
+    _check_args(args)
+    say = (lambda *a: None) if args.quiet else (lambda *a: print("twinfocus twin:", *a, file=sys.stderr))
+    t_all = time.perf_counter()
+    camera = StereoCamera.load(args.camera)
+    left, right = read_image(args.left), read_image(args.right)
+    if left.shape != right.shape:
+        raise TwinFocusError(
+            f"{args.left} is {left.shape[1]}x{left.shape[0]} but {args.right} is {right.shape[1]}x{right.shape[0]}: "
+            "a stereo pair must have one size"
+        )
+    scan = Scan.load(args.scan) if args.scan else None
+    calib_offset = None
+    if args.calibration:
+        from twinfocus.digital_twin.align import RadarCameraCalibration
+
+        calib_offset = RadarCameraCalibration.load(args.calibration).offset_m
+    grid = ImageGrid.from_roi(args.reference_roi, args.size) if args.reference_roi else None
+
+    if args.seed_point:
+        seed = Seed.point(*args.seed_point)
+    elif args.seed_box:
+        seed = Seed.box(*args.seed_box)
+    elif args.seed_roi:
+        seed = box_from_scene_roi(args.seed_roi, camera)
+    else:
+        seed = Seed.nearest()
+
+    if args.voxel_mm is not None:
+        voxel = args.voxel_mm * 1e-3
+    elif scan is not None and grid is not None:
+        voxel = radar_point_spacing(scan.chirp.wavelength_m, scan.positions, grid.centre_m)
+    else:
+        voxel = 1.0e-3
+    segmenter = load_segmenter(args.segmenter)
+    say(f"segmenting and reconstructing the reference (seed: {seed.kind}, voxel {voxel * 1e3:.2f} mm)")
+    twin = reference_from_stereo(left, right, camera, seed, segmenter=segmenter,
+                                 cloud_config=PointCloudConfig(surface=args.surface, voxel_m=voxel))
+    points = twin.points_m
+    report = {"seed": {"kind": seed.kind, "values": list(seed.values)}, **twin.summary(), "voxel_m": voxel}
+    timings = dict(twin.timings_s)
+
+    calibration = None
+    if args.calibrate_scan:
+        from twinfocus.backprojection import backproject
+        from twinfocus.digital_twin.align import calibrate_offset
+        from twinfocus.digital_twin.template import digital_twin_template
+
+        cal_scan = Scan.load(args.calibrate_scan)
+        pos = cal_scan.positions_true if cal_scan.positions_true is not None else cal_scan.positions
+        say("calibrating the radar-camera offset against the accurate-position scan")
+        t = time.perf_counter()
+        measured = np.abs(backproject(cal_scan.data, pos, cal_scan.chirp, grid))
+        sim = digital_twin_template(points, pos, cal_scan.chirp, grid, method=args.template_method,
+                                    coherent=not args.incoherent)
+        calibration = calibrate_offset(sim, measured, grid)
+        calibration.source.update({"calibrate_scan": str(args.calibrate_scan)})
+        calib_offset = calibration.offset_m
+        timings["calibration"] = time.perf_counter() - t
+        report["calibration_offset_m"] = calibration.offset_m.tolist()
+
+    # The cloud as the radar sees it: the calibration's offset applied (what focus --digital-twin takes).
+    points_radar = points if calib_offset is None else points + calib_offset
+    template = None
+    if args.out:
+        from twinfocus.digital_twin.template import digital_twin_template
+
+        say(f"simulating the template ({args.template_method}) over {scan.n_positions} x {scan.n_channels} phase centres")
+        t = time.perf_counter()
+        template = digital_twin_template(points_radar, scan.positions, scan.chirp, grid, method=args.template_method,
+                                         coherent=not args.incoherent)
+        timings["template"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_all
+    report["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
+
+    # Everything is computed: write the outputs (each atomically).
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, points_radar.astype(np.float64))
+    write_bytes_atomic(args.points_out, buf.getvalue())
+    if args.mask_out:
+        write_image_atomic(args.mask_out, twin.mask.astype(np.uint8) * 255)
+    if calibration is not None:
+        calibration.save(args.calibration_out)
+    if template is not None:
+        from twinfocus.templates import save_template
+
+        save_template(args.out, template, grid)
+    if args.report:
+        from twinfocus.digital_twin.camera import write_text_atomic
+
+        write_text_atomic(args.report, json.dumps(report, indent=2, default=float) + "\n")
+    say(f"{points.shape[0]} points ({twin.cloud.surface} surface), stages " +
+        ", ".join(f"{k} {v:.2f}s" for k, v in timings.items()))
+    print(json.dumps({"points": int(points.shape[0]), "points_out": str(args.points_out), "template": args.out,
+                      "timings_s": report["timings_s"]}))
+    return 0

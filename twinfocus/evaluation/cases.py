@@ -1,0 +1,453 @@
+"""One evaluation case: a simulated scene, its templates, and the methods run on error draws.
+
+A *scene* (:func:`prepare_scene`) is simulated once: the IF samples on the true positions, the
+image of the target formed with the true positions (the truth every metric compares with), the
+physical twin (the reference's motion-stage scan, back-projected) and the digital twin (the
+scene rendered for the tracking stereo camera, the reference segmented, its point cloud turned
+into a simulated template). Each *draw* (:func:`run_draw`) then puts a fresh tracking error on
+the positions — the scene's data stay the same, as when the paper injects error draws into one
+motion-stage capture — forms the two sub-image bases once and runs every method on them.
+
+Beside the metrics, every draw records the phase errors that explain them (DESIGN.md section 1):
+the oracle phase at the target's and at the reference's centre, the first-order prediction
+(4 pi / lambda) (u_ref - u_tgt) . dp of what a perfect reference correction leaves on the target,
+and the bound (4 pi / lambda) |u_ref - u_tgt| |dp| on it.
+"""
+from __future__ import annotations
+
+import hashlib
+import time
+import zlib
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from twinfocus import metrics
+from twinfocus.autofocus import AutofocusConfig, fit_linear_phase, form_image, sharpness_autofocus, twin_autofocus
+from twinfocus.backprojection import backproject, subimage_basis
+from twinfocus.errors import TwinFocusError
+from twinfocus.evaluation.features import hog_similarity
+from twinfocus.grid import ImageGrid
+from twinfocus.motion import apply_position_errors, drift_errors, gaussian_errors, vio_errors
+from twinfocus.radar import Chirp, mmwcas_virtual_array
+from twinfocus.scan import Scan
+from twinfocus.scenario import Scenario, scenario_positions, simulate_scenario
+from twinfocus.scene import Clutter, paper_scene, scatterer_spacing_m
+from twinfocus.simulate import add_thermal_noise, simulate_if
+from twinfocus.templates import template_from_scan
+from twinfocus.trajectory import paper_raster, phase_centres
+
+METHODS = ("none", "sharpness", "physical", "digital")
+
+#: Margin (metres) around an object's extent for the "object" regions of interest: about what
+#: DESIGN.md's regions leave around the default letters (a tight 15 mm frame starves the digital
+#: twin, docs/evaluation.md).
+OBJECT_ROI_MARGIN_M = 0.04
+
+
+@dataclass
+class EvalScenario(Scenario):
+    """:class:`~twinfocus.scenario.Scenario` plus the reference's own distance (the paper's NLoS
+    set-up puts the reference at 76 cm and the target at 60 cm) and a denser room.
+
+    clutter_near_m : with ``clutter``, the room's clutter fills a box from this far in front of
+        the letters' plane to 60 cm behind it (2,000 weak scatterers of amplitude 0.1, 40 strong
+        ones of 0.5) instead of :meth:`~twinfocus.scene.Clutter.room`'s, which starts 5 cm behind
+        and so lies outside the range cell of the image plane.
+    """
+
+    reference_distance_m: float | None = None
+    clutter_near_m: float | None = None
+
+    def scene(self):
+        scene = super().scene()
+        if self.clutter and self.clutter_near_m is not None:
+            d = max(self.distance_m, self.reference_distance_m or 0.0)
+            scene.clutter = Clutter((-0.4, -0.3, min(self.distance_m, self.reference_distance_m or 9.9) - self.clutter_near_m),
+                                    (0.4, 0.3, d + 0.6), n_points=2000, amplitude=0.1, n_strong=40, strong_amplitude=0.5)
+        if self.reference_distance_m is not None:
+            moved = paper_scene(reference=self.reference, target=self.target, distance_m=self.distance_m,
+                                separation_deg=self.separation_deg, height_m=self.height_m,
+                                reference_distance_m=self.reference_distance_m,
+                                reference_material=self.reference_material)
+            scene.objects[[o.name for o in scene.objects].index("reference")] = moved.object("reference")
+        return scene
+
+
+@dataclass
+class EvalSettings:
+    """Sizes and optimiser settings every case of a run shares (defaults: the paper's)."""
+
+    size: int = 100
+    iterations: int = 300
+    basis_dtype: str = "float16"
+    precision: str = "float32"
+    n_columns: int = 6
+    n_rows: int = 130
+    spacing_m: float | None = None
+    device: str = "cpu"
+    #: transfer the phase without its constant + linear ramp, as ``twinfocus focus`` does by default
+    remove_phase_ramp: bool = True
+
+    def autofocus_config(self, **overrides) -> AutofocusConfig:
+        kw = dict(iterations=self.iterations, basis_dtype=self.basis_dtype, precision=self.precision, device=self.device)
+        kw.update(overrides)
+        return AutofocusConfig(**kw)
+
+    def bp_options(self) -> dict:
+        if self.device.startswith("cuda"):
+            return {"backend": "torch", "device": self.device, "precision": self.precision}
+        return {"precision": self.precision}
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class SceneCase:
+    """A simulated scene ready for error draws.
+
+    scan : data on the true positions (``positions_true``); its ``positions`` are not used.
+    truth_target : complex64 (H, W) target image formed with the true positions.
+    templates : {"physical": float32 (H, W), "digital": float32 (H, W) or None when the digital
+        twin failed (``notes["digital_error"]`` says why)}.
+    centres : {"reference", "target", "target_far"}: (3,) scene points (object centres, and the
+        target corner farthest from the reference).
+    """
+
+    scenario: Scenario
+    scan: Scan
+    ref_grid: ImageGrid
+    tgt_grid: ImageGrid
+    truth_target: np.ndarray
+    templates: dict
+    centres: dict
+    timings_s: dict = field(default_factory=dict)
+    notes: dict = field(default_factory=dict)
+
+
+def object_roi(sc: Scenario, name: str, margin_m: float = OBJECT_ROI_MARGIN_M) -> tuple:
+    """(X0, X1, Y0, Y1, Z) around object ``name`` ("reference" or "target") of the scenario's
+    scene: its extent plus ``margin_m``, on the plane of its centre, but never past the middle of
+    the gap between the two objects (the reference lies on -x, the target on +x), so neither
+    region takes in the other object."""
+    scene = sc.scene()
+    ext = {}
+    for n in ("reference", "target"):
+        c = scene.object(n).corners_m()
+        ext[n] = (c[:, :2].min(axis=0), c[:, :2].max(axis=0))
+    lo, hi = ext[name][0] - margin_m, ext[name][1] + margin_m
+    middle = (ext["reference"][1][0] + ext["target"][0][0]) / 2.0
+    if name == "reference":
+        hi[0] = min(hi[0], middle)
+    else:
+        lo[0] = max(lo[0], middle)
+    return (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), float(scene.object(name).centre_m[2]))
+
+
+def case_grids(sc: Scenario, size: int, roi: str, margin_m: float = OBJECT_ROI_MARGIN_M) -> tuple[ImageGrid, ImageGrid]:
+    """Reference and target grids: ``roi="paper"`` the scenario's own regions (DESIGN.md's for the
+    default scene), ``"object"`` each object's extent plus ``margin_m`` (:func:`object_roi`)."""
+    if roi == "paper":
+        return ImageGrid.from_roi(sc.reference_roi(), size), ImageGrid.from_roi(sc.target_roi(), size)
+    if roi == "object":
+        return (ImageGrid.from_roi(object_roi(sc, "reference", margin_m), size),
+                ImageGrid.from_roi(object_roi(sc, "target", margin_m), size))
+    raise TwinFocusError(f"roi must be 'paper' or 'object', got {roi!r}")
+
+
+def stage_template_scan(sc: Scenario, with_clutter: bool, snr_seed: int = 0, chirp: Chirp | None = None) -> Scan:
+    """The reference's motion-stage scan, optionally in the scene's cluttered room.
+
+    Same reference scatterers (and the same room clutter) as :func:`simulate_scenario` draws for
+    ``sc``: the scene seed is recovered the way it derives it. ``with_clutter=False`` with no noise
+    reproduces its template scan exactly (tests check this).
+    """
+    chirp = chirp or Chirp()
+    rng = np.random.default_rng(sc.seed)
+    scenario_positions(sc, rng)  # consumes the draws simulate_scenario makes before the scene seed
+    scene_seed = int(rng.integers(0, 2**31))
+    scene = sc.scene()
+    ref_scene = scene.select("reference", occluders=False, clutter=with_clutter)
+    ref = ref_scene.objects[0]
+    ref_scene.objects[0] = replace(ref, centre_m=np.asarray(ref.centre_m) + np.asarray(sc.template_offset_m, float))
+    stage = phase_centres(paper_raster(sc.n_columns, sc.n_rows), mmwcas_virtual_array())
+    spacing = sc.spacing_m or scatterer_spacing_m(sc.distance_m)
+    pts, amps = ref_scene.scatterers(spacing, scene_seed, speckle=sc.speckle)
+    sim_kw = {} if sc.range_step_m is None else {"range_step_m": sc.range_step_m}
+    data = simulate_if(pts, amps, stage, chirp, **sim_kw)
+    if sc.snr_db is not None:
+        data = add_thermal_noise(data, sc.snr_db, np.random.default_rng([sc.seed, snr_seed, 7]))
+    return Scan(data, stage, chirp, positions_true=stage)
+
+
+def digital_twin_points(sc: Scenario, ref_roi, seed: int) -> tuple[np.ndarray, dict]:
+    """The digital twin's view of the reference: render the scene for the ZED 2i-like camera
+    co-located with the radar, segment the reference inside its region of interest projected into
+    the picture, and extract its point cloud (:mod:`twinfocus.digital_twin`).
+
+    Returns (float64 (N, 3) scene-frame points, {stage: seconds}).
+    """
+    from twinfocus.digital_twin.camera import StereoCamera
+    from twinfocus.digital_twin.pipeline import reference_from_stereo
+    from twinfocus.digital_twin.render import render_scene
+    from twinfocus.digital_twin.segment import box_from_scene_roi
+
+    cam = StereoCamera.zed2i()
+    t = time.perf_counter()
+    pictures = render_scene(sc.scene(), cam, seed=seed)
+    info = {"render": time.perf_counter() - t}
+    twin = reference_from_stereo(pictures.left, pictures.right, cam, box_from_scene_roi(ref_roi, cam))
+    info.update(twin.timings_s)
+    info["points"] = int(twin.points_m.shape[0])
+    return twin.points_m, info
+
+
+def digital_twin_for(sc: Scenario, scan_positions: np.ndarray, chirp: Chirp, ref_grid: ImageGrid, seed: int,
+                     method: str = "psf", coherent: bool = True, **bp) -> tuple[np.ndarray, dict]:
+    """The digital twin's template on ``ref_grid``: :func:`digital_twin_points`, then its SAR
+    amplitude simulated (:func:`twinfocus.digital_twin.template.digital_twin_template`).
+
+    Returns (float32 (H, W) template, {stage: seconds, "points": N}).
+    """
+    from twinfocus.digital_twin.template import digital_twin_template
+
+    points, info = digital_twin_points(sc, ref_grid.roi, seed)
+    t = time.perf_counter()
+    tpl = digital_twin_template(points, scan_positions, chirp, ref_grid, method=method, coherent=coherent, **bp)
+    info["template_simulation"] = time.perf_counter() - t
+    return tpl, info
+
+
+def _far_corner(sc: Scenario, reference_centre: np.ndarray) -> np.ndarray:
+    c = sc.scene().object("target").corners_m()
+    return c[int(np.argmax(np.linalg.norm(c[:, :2] - reference_centre[:2], axis=1)))]
+
+
+def _data_key(scan: Scan) -> str:
+    return hashlib.blake2b(np.ascontiguousarray(scan.data).view(np.uint8), digest_size=16).hexdigest()
+
+
+def prepare_scene(sc: Scenario, settings: EvalSettings, roi: str, template_envs=("open",), digital: bool = True,
+                  template_cache: dict | None = None, progress=None, roi_margin_m: float = OBJECT_ROI_MARGIN_M) -> SceneCase:
+    """Simulate ``sc`` once and build what every draw on it needs.
+
+    template_envs : which physical templates to build: ``"open"`` (the reference alone on the
+        stage) and/or ``"cluttered"`` (on the stage in the scene's cluttered room).
+    template_cache : dict shared across scenes; a reference whose motion-stage scan is
+        bit-identical to one seen before reuses its templates (one twin per reference object,
+        amortised over the targets scanned with it, as in the paper).
+    """
+    bp = settings.bp_options()
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    scan, template_scan = simulate_scenario(sc, progress=progress)
+    timings["simulate"] = time.perf_counter() - t
+    ref_grid, tgt_grid = case_grids(sc, settings.size, roi, roi_margin_m)
+    t = time.perf_counter()
+    truth = backproject(scan.data, scan.positions_true, scan.chirp, tgt_grid, **bp)
+    timings["truth_image"] = time.perf_counter() - t
+
+    cache = template_cache if template_cache is not None else {}
+    key = (_data_key(template_scan), ref_grid.roi, ref_grid.shape)
+    templates: dict = {}
+    notes: dict = {}
+    for env in template_envs:
+        if (key, env) not in cache:
+            t = time.perf_counter()
+            if env == "open":
+                stage = template_scan
+            elif env == "cluttered":
+                stage = stage_template_scan(replace(sc, clutter=True), with_clutter=True)
+            else:
+                raise TwinFocusError(f"template environment must be 'open' or 'cluttered', got {env!r}")
+            cache[(key, env)] = template_from_scan(stage, ref_grid, **bp)
+            timings[f"template_{env}"] = time.perf_counter() - t
+        templates[f"physical:{env}"] = cache[(key, env)]
+    if digital:
+        if (key, "digital") not in cache:
+            try:
+                tpl, info = digital_twin_for(sc, scan.positions_true, scan.chirp, ref_grid, seed=sc.seed, **bp)
+                cache[(key, "digital")] = (tpl, info, None)
+            except TwinFocusError as exc:  # a failed twin is a result, not a crash
+                cache[(key, "digital")] = (None, {}, str(exc))
+        tpl, info, err = cache[(key, "digital")]
+        templates["digital"] = tpl
+        notes["digital_timings_s"] = info
+        if err:
+            notes["digital_error"] = err
+    ref_centre = np.asarray(sc.scene().object("reference").centre_m, float)
+    centres = {
+        "reference": ref_centre,
+        "target": np.asarray(sc.scene().object("target").centre_m, float),
+        "target_far": _far_corner(sc, ref_centre),
+    }
+    return SceneCase(sc, scan, ref_grid, tgt_grid, truth, templates, centres, timings, notes)
+
+
+def draw_position_errors(sc: Scenario, timestamps_ns: np.ndarray, seed) -> np.ndarray:
+    """One tracking-error realisation (M, 3) metres for the scenario's error model and sigma.
+
+    The same ``seed`` gives the same underlying normal draws whatever the sigma, so a sweep over
+    sigma compares like with like (common random numbers).
+    """
+    m = int(np.asarray(timestamps_ns).shape[0])
+    rng = np.random.default_rng(seed)
+    if sc.error_model == "gaussian":
+        return gaussian_errors(m, sc.error_sigma_m, rng)
+    if sc.error_model == "drift":
+        return drift_errors(timestamps_ns, sc.error_sigma_m, rng=rng)
+    if sc.error_model == "vio":
+        return vio_errors(timestamps_ns, rng=rng)
+    raise TwinFocusError(f"unknown error model {sc.error_model!r}; use 'gaussian', 'drift' or 'vio'")
+
+
+def draw_seed(*parts) -> int:
+    """A stable integer seed from strings and numbers (crc32 of their text)."""
+    return zlib.crc32("|".join(str(p) for p in parts).encode())
+
+
+def phase_transfer_terms(true_m: np.ndarray, tracked_m: np.ndarray, ref_point: np.ndarray, tgt_point: np.ndarray,
+                         wavelength_m: float) -> dict:
+    """First-order phase-transfer error of DESIGN.md section 1, r.m.s. over radar positions (rad).
+
+    true_m, tracked_m : (M, K, 3) phase centres. Per position m (channels averaged): dp_m the
+    position error, u the unit line of sight to each point. Returns ``first_order``
+    = rms (4 pi / lambda) (u_ref - u_tgt) . dp and ``bound`` = rms (4 pi / lambda) |u_ref - u_tgt| |dp|
+    (:func:`twinfocus.metrics.transfer_bound_rad` per unit error, times each position's |dp|).
+    """
+    p = np.asarray(true_m, float).mean(axis=1)
+    dp = np.asarray(tracked_m, float).mean(axis=1) - p
+    u_r = ref_point - p
+    u_r /= np.linalg.norm(u_r, axis=1, keepdims=True)
+    u_t = tgt_point - p
+    u_t /= np.linalg.norm(u_t, axis=1, keepdims=True)
+    first = 4.0 * np.pi / wavelength_m * np.einsum("mi,mi->m", u_r - u_t, dp)
+    bound = metrics.transfer_bound_rad(true_m, ref_point, tgt_point, wavelength_m, 1.0) * np.linalg.norm(dp, axis=1)
+    return {"first_order": float(np.sqrt(np.mean(first**2))), "bound": float(np.sqrt(np.mean(bound**2)))}
+
+
+def transfer_phase(phase_rad: np.ndarray, tracked_m: np.ndarray, remove_ramp: bool = True) -> np.ndarray:
+    """The phase applied to the target: without its best constant + linear-in-aperture ramp (it
+    only moves the image; ``twinfocus focus``'s default, :func:`twinfocus.autofocus.fit_linear_phase`
+    on the tracked aperture) or as estimated (the source paper)."""
+    if not remove_ramp:
+        return np.asarray(phase_rad, float)
+    ramp, _ = fit_linear_phase(phase_rad, np.asarray(tracked_m, float).mean(axis=1)[:, :2])
+    return np.angle(np.exp(1j * (np.asarray(phase_rad, float) - ramp)))
+
+
+@dataclass
+class DrawBases:
+    """One draw's sub-image bases (complex64 (M, H, W); ``reference`` None when no twin method
+    runs), its oracle phases (M,) and the fields every method's record shares."""
+
+    reference: np.ndarray | None
+    target: np.ndarray
+    oracle_target: np.ndarray
+    oracle_reference: np.ndarray
+    shared: dict
+    tracked_m: np.ndarray
+
+
+def draw_shared(case: SceneCase, tracked_m: np.ndarray, settings: EvalSettings, need_reference: bool = True) -> DrawBases:
+    """Bases of one error draw and what explains its results (all phases in radians, r.m.s. over
+    radar positions after removing the best constant):
+
+    phase_rms_uncorrected : the target's oracle phase (the error to undo);
+    transfer_floor_rad : reference oracle vs target oracle: the error a perfect reference
+        estimate leaves on the target's centre (``_far``: on its corner farthest from the reference);
+    transfer_first_order_rad / transfer_bound_rad : DESIGN.md's first-order prediction of it and the bound;
+    ssim_oracle_target / ssim_oracle_transfer : target SSIM with the target's / the reference's
+        oracle phase (the ceiling of any per-position correction / of any reference method).
+    """
+    scan, chirp = case.scan, case.scan.chirp
+    bp = settings.bp_options()
+    cfg = settings.autofocus_config()
+    centre, steep = cfg.threshold_centre, cfg.threshold_steepness
+    t = time.perf_counter()
+    ref_basis = subimage_basis(scan.data, tracked_m, chirp, case.ref_grid, **bp) if need_reference else None
+    tgt_basis = subimage_basis(scan.data, tracked_m, chirp, case.tgt_grid, **bp)
+    basis_s = time.perf_counter() - t
+
+    true = scan.positions_true
+    oracle_t = metrics.oracle_phase(true, tracked_m, case.centres["target"], chirp)
+    oracle_r = metrics.oracle_phase(true, tracked_m, case.centres["reference"], chirp)
+    oracle_far = metrics.oracle_phase(true, tracked_m, case.centres["target_far"], chirp)
+    lam = chirp.wavelength_m
+    centre_terms = phase_transfer_terms(true, tracked_m, case.centres["reference"], case.centres["target"], lam)
+    far_terms = phase_transfer_terms(true, tracked_m, case.centres["reference"], case.centres["target_far"], lam)
+    shared = {
+        "basis_s": basis_s,
+        "phase_rms_uncorrected": metrics.phase_error_rms(np.zeros(scan.n_positions), oracle_t),
+        "transfer_floor_rad": metrics.phase_error_rms(oracle_r, oracle_t),
+        "transfer_floor_far_rad": metrics.phase_error_rms(oracle_r, oracle_far),
+        "transfer_first_order_rad": centre_terms["first_order"],
+        "transfer_bound_rad": centre_terms["bound"],
+        "transfer_first_order_far_rad": far_terms["first_order"],
+        "transfer_bound_far_rad": far_terms["bound"],
+        "ssim_oracle_target": metrics.image_ssim(form_image(tgt_basis, oracle_t), case.truth_target, centre, steep),
+        "ssim_oracle_transfer": metrics.image_ssim(form_image(tgt_basis, oracle_r), case.truth_target, centre, steep),
+    }
+    return DrawBases(ref_basis, tgt_basis, oracle_t, oracle_r, shared, tracked_m)
+
+
+def estimate_phase(method: str, case: SceneCase, bases: DrawBases, cfg: AutofocusConfig, template_env: str = "open") -> tuple[np.ndarray, float]:
+    """Phase (M,) radians of one method and its optimiser time (s). Raises TwinFocusError when the
+    method cannot run (no digital twin)."""
+    if method == "none":
+        return np.zeros(bases.target.shape[0]), 0.0
+    if method == "sharpness":
+        res = sharpness_autofocus(bases.target, cfg)
+        return res.phase_rad, res.time_s
+    if method in ("physical", "digital"):
+        key = f"physical:{template_env}" if method == "physical" else "digital"
+        tpl = case.templates.get(key)
+        if tpl is None:
+            raise TwinFocusError(case.notes.get("digital_error", f"no {key} template"))
+        if bases.reference is None:
+            raise TwinFocusError("the reference basis was not formed for this draw")
+        res = twin_autofocus(bases.reference, tpl, cfg)
+        return res.phase_rad, res.time_s
+    raise TwinFocusError(f"unknown method {method!r}; use one of {', '.join(METHODS)}")
+
+
+def evaluate_methods(case: SceneCase, bases: DrawBases, methods, settings: EvalSettings,
+                     template_env: str = "open", config_overrides: dict | None = None, keep_images: bool = False) -> list[dict]:
+    """Every method on one draw: one record each with method, status ("ok" or "failed: ..."),
+    ssim and hog (target vs truth), phase error r.m.s. against the target's and the reference's
+    oracle phases (rad) and autofocus_s; with ``settings.remove_phase_ramp`` also
+    ssim_as_estimated (the phase transferred with its ramp, as the source paper does); with
+    ``keep_images`` also "image": the target's display image (float32 (H, W), what SSIM is taken on)."""
+    cfg = settings.autofocus_config(**(config_overrides or {}))
+    records = []
+    for method in methods:
+        rec = {"method": method, "status": "ok", "ssim": None, "hog": None, "autofocus_s": 0.0}
+        try:
+            phase, rec["autofocus_s"] = estimate_phase(method, case, bases, cfg, template_env)
+        except TwinFocusError as exc:
+            rec["status"] = f"failed: {exc}"
+            records.append(rec)
+            continue
+        if method != "none":
+            if settings.remove_phase_ramp:
+                # The source paper transfers the phase as estimated: keep its score too.
+                rec["ssim_as_estimated"] = metrics.image_ssim(form_image(bases.target, phase), case.truth_target,
+                                                              cfg.threshold_centre, cfg.threshold_steepness)
+            phase = transfer_phase(phase, bases.tracked_m, settings.remove_phase_ramp)
+        image = form_image(bases.target, phase)
+        rec["ssim"] = metrics.image_ssim(image, case.truth_target, cfg.threshold_centre, cfg.threshold_steepness)
+        rec["hog"] = hog_similarity(image, case.truth_target, cfg.threshold_centre, cfg.threshold_steepness)
+        rec["phase_rms_vs_target_oracle"] = metrics.phase_error_rms(phase, bases.oracle_target)
+        rec["phase_rms_vs_reference_oracle"] = metrics.phase_error_rms(phase, bases.oracle_reference)
+        if keep_images:
+            rec["image"] = metrics.display_image(image, cfg.threshold_centre, cfg.threshold_steepness).astype(np.float32)
+        records.append(rec)
+    return records
+
+
+def tracked_positions(scan: Scan, error_scenario: Scenario, seed) -> np.ndarray:
+    """The scan's true phase centres plus one draw of ``error_scenario``'s tracking error (its
+    ``error_model`` and ``error_sigma_m``): (M, K, 3) metres."""
+    stamps = scan.timestamps_ns if scan.timestamps_ns is not None else np.arange(scan.n_positions, dtype=np.int64) * 100_000_000
+    return apply_position_errors(scan.positions_true, draw_position_errors(error_scenario, stamps, seed))

@@ -1,0 +1,724 @@
+"""The evaluation report: markdown tables, PNG figures and a summary JSON from the raw results.
+
+:func:`write_report` reads ``OUT/raw/*.json`` (written by :mod:`twinfocus.evaluation.runner`),
+aggregates the records (mean SSIM and its standard error per condition and method, improvement
+over no correction as the ratio of paired means, as the paper's +23.3 % = 0.74 / 0.60 - 1), and
+writes ``report.md`` (or the path given), one PNG per figure beside it and ``summary.json``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from twinfocus.evaluation.experiments import LIMIT_SWEEPS
+from twinfocus.evaluation.paper import PAPER, PAPER_TABLE1
+
+METHOD_ORDER = ("none", "sharpness", "digital", "physical")
+METHOD_NAMES = {"none": "no correction", "sharpness": "sharpness autofocus", "digital": "digital twin",
+                "physical": "physical twin"}
+METHOD_COLOURS = {"none": "#777777", "sharpness": "#d08c2e", "digital": "#3b7dd8", "physical": "#c23b3b"}
+SECTION_ORDER = ("baseline", "tracking_error", "separation", "distance", "size", "material", "nlos", "environment",
+                 "handheld", "size_ratio")
+#: What the simulation does and does not model for an experiment, printed under its table.
+SECTION_NOTES = {
+    "nlos": "In this simulator a sheet is a two-way attenuation of the target's returns (polyester 2 dB, paper and "
+            "plastic 3 dB, one ray per scatterer); it neither reflects nor refracts. After max-normalisation and the "
+            "back-projection's integration gain a uniform 2-3 dB loss changes almost nothing, so the three sheets give "
+            "nearly the same numbers: the experiment checks that the phase transfer does not depend on the target being "
+            "visible, not how real sheets distort.",
+    "environment": "The cluttered room fills a box from 3 cm in front of the letters to 60 cm behind them with 2,000 weak "
+                   "(0.1) and 40 strong (0.5) point scatterers, so some of it falls inside the image plane's range cell; "
+                   "the room of `Clutter.room` (from 5 cm behind) would not show in the images at all. Multipath between "
+                   "objects is not simulated. The digital twin does not depend on the room.",
+    "handheld": "The true path is a simulated hand sweep (uneven speed, 2-3 mm wander, 1 deg tilt); the tracker's error "
+                "is VIO-like: random-walk drift (about 1.8 mm in z after the sweep) plus white jitter, on x, y and z.",
+}
+#: A method "stops helping" where its mean SSIM gain over no correction falls below this.
+HELP_THRESHOLD = 0.01
+DPI = 60
+
+
+# --- aggregation -----------------------------------------------------------------------------------
+
+
+def _ok(records):
+    return [r for r in records if r.get("status", "ok") == "ok" and r.get("ssim") is not None]
+
+
+def _draw_key(r) -> tuple:
+    return (r["condition"], r["pair"], r["draw"])
+
+
+def method_stats(records: list[dict], condition: str) -> dict:
+    """{method: {n, mean, sem, hog, failed, improvement_pct, gain}} for one condition.
+
+    improvement_pct = mean(method) / mean(none) - 1 over the draws where both ran (paired), in %;
+    gain = the same as a difference of means.
+    """
+    rec = [r for r in records if r["condition"] == condition]
+    none = {_draw_key(r): r["ssim"] for r in _ok(rec) if r["method"] == "none"}
+    out = {}
+    for m in METHOD_ORDER:
+        mr = [r for r in rec if r["method"] == m]
+        if not mr:
+            continue
+        ok = _ok(mr)
+        vals = np.array([r["ssim"] for r in ok], float)
+        hog = np.array([r["hog"] for r in ok if r.get("hog") is not None], float)
+        paired = [(r["ssim"], none[_draw_key(r)]) for r in ok if _draw_key(r) in none]
+        e = {"n": len(ok), "failed": len(mr) - len(ok),
+             "mean": float(vals.mean()) if vals.size else None,
+             "sem": float(vals.std(ddof=1) / math.sqrt(vals.size)) if vals.size > 1 else None,
+             "hog": float(hog.mean()) if hog.size else None}
+        if paired and m != "none":
+            a = np.array(paired)
+            e["improvement_pct"] = float((a[:, 0].mean() / a[:, 1].mean() - 1) * 100)
+            e["gain"] = float((a[:, 0] - a[:, 1]).mean())
+            e["gain_sem"] = float((a[:, 0] - a[:, 1]).std(ddof=1) / math.sqrt(len(a))) if len(a) > 1 else None
+        out[m] = e
+    return out
+
+
+def draw_means(records: list[dict], condition: str, field: str) -> float | None:
+    """Mean over the condition's draws of a per-draw field (each draw counted once)."""
+    seen = {}
+    for r in records:
+        if r["condition"] == condition and r.get(field) is not None:
+            seen[_draw_key(r)] = r[field]
+    return float(np.mean(list(seen.values()))) if seen else None
+
+
+def method_mean(records: list[dict], condition: str, method: str, field: str) -> float | None:
+    vals = [r[field] for r in _ok(records) if r["condition"] == condition and r["method"] == method and r.get(field) is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+def pair_improvements(records: list[dict], method: str) -> dict:
+    """{pair: improvement % of ``method`` over no correction (paired means over its draws)}."""
+    out = {}
+    for pair in sorted({r["pair"] for r in records}):
+        rec = [r for r in records if r["pair"] == pair]
+        none = {_draw_key(r): r["ssim"] for r in _ok(rec) if r["method"] == "none"}
+        paired = [(r["ssim"], none[_draw_key(r)]) for r in _ok(rec) if r["method"] == method and _draw_key(r) in none]
+        if paired:
+            a = np.array(paired)
+            out[pair] = float((a[:, 0].mean() / a[:, 1].mean() - 1) * 100)
+    return out
+
+
+def conditions_of(doc: dict) -> list[dict]:
+    return doc["definition"]["conditions"]
+
+
+# --- formatting ------------------------------------------------------------------------------------
+
+
+def _f(v, digits=3) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
+
+
+def _pct(v) -> str:
+    return "-" if v is None else f"{v:+.1f} %"
+
+
+def _ssim_cell(e: dict | None) -> str:
+    if not e or e.get("mean") is None:
+        return "failed" if e and e.get("failed") else "-"
+    s = f"{e['mean']:.3f}"
+    if e.get("improvement_pct") is not None:
+        s += f" ({e['improvement_pct']:+.1f} %)"
+    if e.get("failed"):
+        s += f" [{e['failed']} failed]"
+    return s
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"] + \
+        ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+
+
+def _methods_in(records) -> list[str]:
+    present = {r["method"] for r in records}
+    return [m for m in METHOD_ORDER if m in present]
+
+
+# --- figures ---------------------------------------------------------------------------------------
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> None:
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    fig.savefig(tmp, dpi=DPI, bbox_inches="tight")
+    os.replace(tmp, path)
+    _plt().close(fig)
+
+
+def _fig_baseline(doc: dict, path: Path) -> None:
+    plt = _plt()
+    rec = doc["records"]
+    cond = conditions_of(doc)[0]["label"]
+    st = method_stats(rec, cond)
+    methods = [m for m in METHOD_ORDER if m in st]
+    fig, ax = plt.subplots(figsize=(5.2, 3.0))
+    x = np.arange(len(methods))
+    means = [st[m]["mean"] or 0 for m in methods]
+    errs = [st[m]["sem"] or 0 for m in methods]
+    ax.bar(x, means, yerr=errs, color=[METHOD_COLOURS[m] for m in methods], capsize=3, label="ours (simulation)")
+    paper = PAPER["baseline"]["ssim"]
+    px = [i for i, m in enumerate(methods) if m in paper]
+    ax.plot(px, [paper[methods[i]] for i in px], "kD", label="paper (real data)")
+    ax.set_xticks(x, [METHOD_NAMES[m] for m in methods], fontsize=8)
+    ax.set_ylabel("mean target SSIM")
+    ax.set_ylim(0, 1)
+    ax.legend(fontsize=8, loc="lower right")
+    ax.set_title("Baseline set: our simulation vs the paper", fontsize=9)
+    _save(fig, path)
+
+
+def _fig_pairs(doc: dict, path: Path) -> None:
+    plt = _plt()
+    rec = doc["records"]
+    letters = sorted({r["reference"] for r in rec} | {r["target"] for r in rec})
+    methods = [m for m in ("digital", "physical") if any(r["method"] == m for r in rec)]
+    fig, axes = plt.subplots(1, len(methods), figsize=(3.0 * len(methods), 2.8), squeeze=False)
+    for ax, m in zip(axes[0], methods):
+        imp = pair_improvements(rec, m)
+        grid = np.full((len(letters), len(letters)), np.nan)
+        for pair, v in imp.items():
+            r, t = pair.split(">")
+            grid[letters.index(r), letters.index(t)] = v
+        im = ax.imshow(grid, cmap="RdBu", vmin=-60, vmax=60)
+        ax.set_xticks(range(len(letters)), letters)
+        ax.set_yticks(range(len(letters)), letters)
+        ax.set_xlabel("target")
+        ax.set_ylabel("reference")
+        ax.set_title(f"{METHOD_NAMES[m]}: SSIM gain %", fontsize=8)
+        for i in range(len(letters)):
+            for j in range(len(letters)):
+                if np.isfinite(grid[i, j]):
+                    ax.text(j, i, f"{grid[i, j]:.0f}", ha="center", va="center", fontsize=6)
+    fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8)
+    _save(fig, path)
+
+
+def _fig_examples(examples: dict, path: Path, title: str) -> None:
+    plt = _plt()
+    keys = ["truth"] + [m for m in METHOD_ORDER if m in examples]
+    fig, axes = plt.subplots(1, len(keys), figsize=(1.6 * len(keys), 1.9))
+    for ax, k in zip(np.atleast_1d(axes), keys):
+        ax.imshow(examples[k], cmap="gray", origin="upper")
+        ax.set_title("true positions" if k == "truth" else METHOD_NAMES[k], fontsize=7)
+        ax.axis("off")
+    fig.suptitle(title, fontsize=8)
+    _save(fig, path)
+
+
+def _fig_sweep(doc: dict, path: Path) -> None:
+    plt = _plt()
+    d = doc["definition"]
+    rec = doc["records"]
+    conds = conditions_of(doc)
+    methods = _methods_in(rec)
+    fig, ax = plt.subplots(figsize=(5.0, 3.0))
+    if d["numeric"]:
+        xs = [c["x"] for c in conds]
+        for m in methods:
+            st = [method_stats(rec, c["label"]).get(m, {}) for c in conds]
+            ys = [s.get("mean") if s else None for s in st]
+            es = [s.get("sem") or 0 if s else 0 for s in st]
+            ok = [i for i, y in enumerate(ys) if y is not None]
+            ax.errorbar([xs[i] for i in ok], [ys[i] for i in ok], yerr=[es[i] for i in ok], marker="o", ms=4, capsize=2,
+                        color=METHOD_COLOURS[m], label=METHOD_NAMES[m])
+        out = [c["x"] for c in conds if not c["in_paper"]]
+        if out:
+            inside = [c["x"] for c in conds if c["in_paper"]]
+            lo_out = [x for x in out if not inside or x > max(inside)]
+            hi_out = [x for x in out if inside and x < min(inside)]
+            if lo_out:
+                ax.axvspan(max(inside) if inside else min(lo_out), max(lo_out), color="#eeeeee", zorder=0, label="beyond the paper")
+            if hi_out:
+                ax.axvspan(min(hi_out), min(inside), color="#eeeeee", zorder=0)
+        ax.set_xlabel(d["axis"])
+    else:
+        labels = [c["label"] for c in conds]
+        w = 0.8 / max(1, len(methods))
+        for k, m in enumerate(methods):
+            st = [method_stats(rec, c["label"]).get(m, {}) for c in conds]
+            ax.bar(np.arange(len(conds)) + (k - (len(methods) - 1) / 2) * w, [s.get("mean") or 0 for s in st],
+                   w, yerr=[s.get("sem") or 0 for s in st], capsize=2, color=METHOD_COLOURS[m], label=METHOD_NAMES[m])
+        ax.set_xticks(np.arange(len(conds)), [lab.replace(", ", ",\n") for lab in labels], fontsize=7)
+    ax.set_ylabel("mean target SSIM")
+    lo = min([r["ssim"] for r in _ok(rec)] or [0.0])
+    ax.set_ylim(max(0.0, lo - 0.1), 1.0)
+    ax.legend(fontsize=7, loc="lower left")
+    ax.set_title(d["title"], fontsize=9)
+    _save(fig, path)
+
+
+def _limit_rows(doc: dict) -> list[dict]:
+    rec = doc["records"]
+    rows = []
+    far = doc["definition"]["name"] == "size_ratio"
+    for c in conditions_of(doc):
+        lab = c["label"]
+        st = method_stats(rec, lab)
+        none = st.get("none", {}).get("mean")
+        ceil = draw_means(rec, lab, "ssim_oracle_transfer")
+        rows.append({
+            "x": c["x"], "label": lab, "in_paper": c["in_paper"], "stats": st,
+            "ceiling_gain": None if (ceil is None or none is None) else ceil - none,
+            "floor": draw_means(rec, lab, "transfer_floor_far_rad" if far else "transfer_floor_rad"),
+            "first_order": draw_means(rec, lab, "transfer_first_order_far_rad" if far else "transfer_first_order_rad"),
+            "bound": draw_means(rec, lab, "transfer_bound_far_rad" if far else "transfer_bound_rad"),
+            "uncorrected": draw_means(rec, lab, "phase_rms_uncorrected"),
+            # SSIM lost to the transfer (perfect target phase vs perfect reference phase) and, per
+            # twin, to the estimate on the reference (perfect reference phase vs the twin's).
+            "transfer_loss": _diff(draw_means(rec, lab, "ssim_oracle_target"), ceil),
+            "estimation_loss": {m: _diff(ceil, st[m].get("mean")) for m in st if m != "none"},
+        })
+    return rows
+
+
+def _diff(a, b):
+    return None if a is None or b is None else a - b
+
+
+def stops_helping(rows: list[dict], method: str) -> dict:
+    """Where ``method``'s mean SSIM gain over no correction first falls below HELP_THRESHOLD:
+    {"x": value or None, "label", "gain"} (None: it helps over the whole sweep)."""
+    for r in rows:
+        g = r["stats"].get(method, {}).get("gain")
+        if g is not None and g < HELP_THRESHOLD:
+            return {"x": r["x"], "label": r["label"], "gain": g}
+    return {"x": None, "label": None, "gain": None}
+
+
+def crossing(xs, ys, level: float):
+    """First x where the piecewise-linear ys reaches ``level`` (None if never)."""
+    for (x0, y0), (x1, y1) in zip(zip(xs, ys), zip(xs[1:], ys[1:])):
+        if y0 is None or y1 is None:
+            continue
+        if y0 < level <= y1:
+            return x0 + (level - y0) * (x1 - x0) / (y1 - y0)
+    if ys and ys[0] is not None and ys[0] >= level:
+        return xs[0]
+    return None
+
+
+def _fig_limit(doc: dict, rows: list[dict], path: Path) -> None:
+    plt = _plt()
+    d = doc["definition"]
+    xs = [r["x"] for r in rows]
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(8.0, 3.0))
+    for m in ("digital", "physical"):
+        g = [r["stats"].get(m, {}).get("gain") for r in rows]
+        ok = [i for i, v in enumerate(g) if v is not None]
+        if ok:
+            a1.plot([xs[i] for i in ok], [g[i] for i in ok], "o-", ms=4, color=METHOD_COLOURS[m], label=METHOD_NAMES[m])
+    cg = [r["ceiling_gain"] for r in rows]
+    ok = [i for i, v in enumerate(cg) if v is not None]
+    a1.plot([xs[i] for i in ok], [cg[i] for i in ok], "k--", lw=1, label="perfect reference estimate")
+    a1.axhline(0, color="#999999", lw=0.8)
+    a1.axhline(HELP_THRESHOLD, color="#999999", lw=0.8, ls=":")
+    a1.set_xlabel(d["axis"])
+    a1.set_ylabel("SSIM gain over no correction")
+    a1.legend(fontsize=7)
+    for key, style, lab in (("uncorrected", "s-", "uncorrected (target oracle)"), ("floor", "^-", "transfer floor (measured)"),
+                            ("first_order", ":", "first-order prediction"), ("bound", "--", "first-order bound")):
+        v = [r[key] for r in rows]
+        ok = [i for i, y in enumerate(v) if y is not None]
+        a2.plot([xs[i] for i in ok], [v[i] for i in ok], style, ms=4, lw=1, color="#555555" if key == "uncorrected" else "k", label=lab)
+    a2.axhline(1.0, color="#999999", lw=0.8, ls=":")
+    a2.set_xlabel(d["axis"])
+    a2.set_ylabel("r.m.s. phase error on the target (rad)")
+    a2.legend(fontsize=6)
+    fig.suptitle(f"Limits: {d['title']}", fontsize=9)
+    _save(fig, path)
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points no other point beats in both time (lower) and SSIM (higher), by time."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
+    front, best = [], -np.inf
+    for i in order:
+        if points[i][1] > best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def trade_means(rows: list[dict]) -> list[dict]:
+    """Mean over scenes per (knob, label): time_s (reference basis + autofocus), autofocus_s, ssim, hog."""
+    out: dict = {}
+    for r in rows:
+        if r.get("status", "ok") != "ok":
+            continue
+        e = out.setdefault((r["knob"], r["label"]), {"knob": r["knob"], "label": r["label"], "value": r["value"], "rows": []})
+        e["rows"].append(r)
+    res = []
+    for e in out.values():
+        rs = e["rows"]
+        res.append({"knob": e["knob"], "label": e["label"], "value": e["value"], "n": len(rs),
+                    "time_s": float(np.mean([r["reference_basis_s"] + r["autofocus_s"] + r.get("template_s", 0.0) for r in rs])),
+                    "reference_basis_s": float(np.mean([r["reference_basis_s"] for r in rs])),
+                    "autofocus_s": float(np.mean([r["autofocus_s"] for r in rs])),
+                    "template_s": float(np.mean([r["template_s"] for r in rs])) if "template_s" in rs[0] else None,
+                    "ssim": float(np.mean([r["ssim"] for r in rs])), "hog": float(np.mean([r["hog"] for r in rs])),
+                    "n_positions": rs[0].get("n_positions")})
+    return res
+
+
+def _fig_pareto(means: list[dict], path: Path) -> None:
+    plt = _plt()
+    colours = {"image size": "#3b7dd8", "optimiser": "#c23b3b", "precision": "#2e9d57", "preset": "#000000",
+               "positions": "#d08c2e", "digital twin": "#8a4fb5"}
+    pts = [m for m in means if m["knob"] in ("image size", "optimiser", "precision", "preset")]
+    fig, ax = plt.subplots(figsize=(6.0, 3.6))
+    for knob in ("image size", "optimiser", "precision", "positions", "digital twin", "preset"):
+        ks = [m for m in means if m["knob"] == knob]
+        if not ks:
+            continue
+        ax.scatter([m["time_s"] for m in ks], [m["ssim"] for m in ks], s=60 if knob == "preset" else 18,
+                   marker="*" if knob == "preset" else "o", color=colours[knob], label=knob, zorder=3)
+        for m in ks:
+            ax.annotate(m["label"], (m["time_s"], m["ssim"]), fontsize=5, xytext=(2, 2), textcoords="offset points")
+    if pts:
+        front = pareto_front([(m["time_s"], m["ssim"]) for m in pts])
+        ax.plot([pts[i]["time_s"] for i in front], [pts[i]["ssim"] for i in front], "k-", lw=0.8, zorder=2, label="Pareto front")
+    unc = [m for m in means if m["knob"] == "uncorrected"]
+    if unc:
+        ax.axhline(unc[0]["ssim"], color="#777777", ls=":", lw=1, label="no correction")
+    ax.set_xscale("log")
+    ax.set_xlabel("time from scan to phase estimate (s): reference basis + optimiser")
+    ax.set_ylabel("target SSIM (100 x 100)")
+    ax.legend(fontsize=6, loc="lower right")
+    ax.set_title("Speed/accuracy trade (physical twin)", fontsize=9)
+    _save(fig, path)
+
+
+# --- the report ------------------------------------------------------------------------------------
+
+
+def _rel(path: Path, md: Path) -> str:
+    return os.path.relpath(path, md.parent).replace(os.sep, "/")
+
+
+def _paper_cell(name: str, label: str, method: str) -> str:
+    imp = PAPER.get(name, {}).get("improvement_pct", {})
+    if label in imp and isinstance(imp[label], dict):
+        v = imp[label].get(method)
+        return "-" if v is None else f"{v:+.1f} %"
+    for k, v in imp.items():
+        if isinstance(v, dict) and label.startswith(k):
+            return "-" if v.get(method) is None else f"{v[method]:+.1f} %"
+    return "-"
+
+
+def _section_sweep(name: str, doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
+    d = doc["definition"]
+    rec = doc["records"]
+    paper = PAPER.get(name, {})
+    methods = _methods_in(rec)
+    lines += [f"### {d['title']} ({paper.get('figure', '')})", ""]
+    if paper:
+        lines += [f"Paper: {paper['setup']}. *{paper['claim']}.*", ""]
+    roi = "DESIGN.md's regions of interest" if d["roi"] == "paper" else \
+        f"regions of interest framing each letter with {d['roi'].split('+')[-1]} of margin (up to the middle of the gap between the letters)"
+    lines += [f"Ours: {len({(r['pair'], r['condition'], r['draw']) for r in rec})} draws "
+              f"({d['draws']} per pair and condition), pairs {', '.join(sorted({r['pair'] for r in rec}))}; {roi}.", ""]
+    note = SECTION_NOTES.get(name)
+    if note:
+        lines += [note, ""]
+    header = ["condition", "n"] + [f"{METHOD_NAMES[m]} SSIM (gain)" for m in methods] + ["HOG sim. " + " / ".join(METHOD_NAMES[m].split()[0] for m in methods)]
+    has_paper_numbers = any(isinstance(v, dict) for v in paper.get("improvement_pct", {}).values())
+    if has_paper_numbers:
+        header += ["paper gain (digital / physical)"]
+    rows = []
+    summary = {}
+    for c in conditions_of(doc):
+        st = method_stats(rec, c["label"])
+        summary[c["label"]] = st
+        label = c["label"] + ("" if c["in_paper"] else " *(beyond paper)*")
+        row = [label, str(max((e["n"] for e in st.values()), default=0))] + [_ssim_cell(st.get(m)) for m in methods]
+        row.append(" / ".join(_f(st.get(m, {}).get("hog"), 2) for m in methods))
+        if has_paper_numbers:
+            row.append(f"{_paper_cell(name, c['label'], 'digital')} / {_paper_cell(name, c['label'], 'physical')}")
+        rows.append(row)
+    lines += _table(header, rows) + [""]
+    fig = out / f"{name}.png"
+    _fig_sweep(doc, fig)
+    lines += [f"![{d['title']}]({_rel(fig, md)})", ""]
+    fails = [s["notes"]["digital_error"] for s in doc.get("scenes", []) if s.get("notes", {}).get("digital_error")]
+    if fails:
+        lines += [f"Digital twin failed on {len(fails)} scene(s): {fails[0]}", ""]
+    ex = out / "raw" / f"{name}_examples.npz"
+    if ex.exists() and name != "baseline":
+        z = dict(np.load(ex, allow_pickle=False))
+        meta = json.loads(str(z.pop("meta")))
+        p = out / f"{name}_examples.png"
+        _fig_examples(z, p, f"{meta['pair']}, {meta['condition']}")
+        lines += [f"![examples]({_rel(p, md)})", ""]
+    return summary
+
+
+def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
+    rec = doc["records"]
+    cond = conditions_of(doc)[0]["label"]
+    st = method_stats(rec, cond)
+    paper = PAPER["baseline"]
+    n_draws = len({(r["pair"], r["draw"]) for r in rec})
+    lines += [f"### Baseline set ({paper['figure']})", "",
+              f"Paper: {paper['setup']}.", "",
+              f"Ours: {n_draws} samples = {len({r['pair'] for r in rec})} ordered pairs x {doc['definition']['draws']} "
+              f"error draw(s), simulated with speckle, 10 dB thermal noise, x/y/z tracking error sigma 0.5 mm, "
+              f"physical twin captured separately with a 1 mm placement error, digital twin from the rendered stereo pair.", ""]
+    rows = []
+    for m in METHOD_ORDER:
+        if m not in st:
+            continue
+        e = st[m]
+        raw_ssim = method_mean(rec, cond, m, "ssim_as_estimated")
+        rows.append([METHOD_NAMES[m], _f(paper["ssim"].get(m), 2), _pct(paper["improvement_pct"].get(m)) if m != "none" else "-",
+                     f"{_f(e['mean'])} ± {_f(e['sem'])}", _pct(e.get("improvement_pct")) if m != "none" else "-",
+                     _f(raw_ssim), _f(e["hog"]), f"{e['n']}" + (f" ({e['failed']} failed)" if e["failed"] else "")])
+    for field, lab in (("ssim_oracle_transfer", "ceiling: reference's true phase transferred"),
+                       ("ssim_oracle_target", "ceiling: target's true phase")):
+        v = draw_means(rec, cond, field)
+        none = st.get("none", {}).get("mean")
+        rows.append([f"*{lab}*", "-", "-", _f(v), _pct(None if (v is None or not none) else (v / none - 1) * 100), "-", "-", str(n_draws)])
+    lines += _table(["method", "paper SSIM", "paper gain", "our SSIM (mean ± s.e.)", "our gain",
+                     "our SSIM, ramp kept", "our HOG sim.", "n"], rows) + [""]
+    lines += ["*Ramp kept*: the estimated phase transferred as it is, as the paper does; our default (`twinfocus focus`) "
+              "first removes its best constant + linear-in-aperture ramp, which only moves the image and which a misplaced "
+              "template pulls in.", ""]
+    fig = out / "baseline.png"
+    _fig_baseline(doc, fig)
+    lines += [f"![baseline]({_rel(fig, md)})", ""]
+    # Shapes (Fig. 13): per-pair improvements.
+    sp = PAPER["shapes"]
+    rows = []
+    for m in ("digital", "physical"):
+        imp = pair_improvements(rec, m)
+        if not imp:
+            continue
+        v = np.array(list(imp.values()))
+        worst = min(imp, key=imp.get)
+        rows.append([METHOD_NAMES[m], _pct(sp["median_improvement_pct"][m]), _pct(float(np.median(v))),
+                     f"{int((v > 0).sum())} / {v.size}", f"{worst} ({imp[worst]:+.1f} %)"])
+    if rows:
+        lines += [f"**Shapes ({sp['figure']})**: improvement per reference-target pair.", ""]
+        lines += _table(["method", "paper median", "our median", "pairs improved", "worst pair"], rows) + [""]
+        fig = out / "baseline_pairs.png"
+        _fig_pairs(doc, fig)
+        lines += [f"![pairs]({_rel(fig, md)})", ""]
+    ex = out / "raw" / "baseline_examples.npz"
+    if ex.exists():
+        z = dict(np.load(ex, allow_pickle=False))
+        meta = json.loads(str(z.pop("meta")))
+        p = out / "baseline_examples.png"
+        _fig_examples(z, p, f"Target {meta['pair'].split('>')[1]} (reference {meta['pair'].split('>')[0]}), one draw")
+        lines += [f"![examples]({_rel(p, md)})", ""]
+    return st
+
+
+def _section_limits(raw: dict, out: Path, md: Path, lines: list[str]) -> dict:
+    res = {}
+    lines += ["## Limits: where each method stops helping", "",
+              "DESIGN.md section 1: to first order a position error dp changes the phase of a scatterer seen along the unit "
+              "line of sight u by (4 pi / lambda) u . dp, so the correction estimated on the reference and applied to the "
+              "target leaves (4 pi / lambda) (u_ref - u_tgt) . dp, at most (4 pi / lambda) |u_ref - u_tgt| |dp|. Every "
+              "draw records this *first-order prediction* and *bound* (r.m.s. over radar positions), the *measured transfer "
+              "floor* (the exact phase at the reference's centre applied to the target, against the exact phase at the "
+              "target), and the SSIM a perfect reference estimate would give (*perfect reference estimate*, the ceiling of "
+              "any twin method). The gains are SSIM differences, not percentages. A method stops helping where its mean SSIM gain over no correction falls below "
+              f"{HELP_THRESHOLD}. For the size sweep the floor is taken at the target's corner farthest from the reference.", ""]
+    for name, what in LIMIT_SWEEPS.items():
+        if name not in raw:
+            continue
+        doc = raw[name]
+        rows = _limit_rows(doc)
+        methods = [m for m in ("digital", "physical") if any(m in r["stats"] for r in rows)]
+        lines += [f"### {what.capitalize()} ({doc['definition']['axis']})", ""]
+        tab = []
+        for r in rows:
+            tab.append([r["label"] + ("" if r["in_paper"] else " *(beyond paper)*")]
+                       + [f"{_f(r['stats'].get(m, {}).get('gain'))}" for m in methods]
+                       + [_f(r["ceiling_gain"]), _f(r["transfer_loss"])] + [_f(r["estimation_loss"].get(m)) for m in methods]
+                       + [_f(r["uncorrected"], 2), _f(r["floor"], 2), _f(r["first_order"], 2), _f(r["bound"], 2)])
+        lines += _table(["condition"] + [f"{METHOD_NAMES[m]} gain" for m in methods]
+                        + ["perfect-reference gain", "transfer loss"] + [f"{METHOD_NAMES[m]} estimation loss" for m in methods]
+                        + ["uncorrected rad", "transfer floor rad", "first-order rad", "bound rad"], tab) + [""]
+        xs = [r["x"] for r in rows]
+        floor_x = crossing(xs, [r["floor"] for r in rows], 1.0)
+        sentences = []
+        res[name] = {}
+        for m in methods:
+            s = stops_helping(rows, m)
+            res[name][m] = s
+            if s["x"] is None:
+                sentences.append(f"the {METHOD_NAMES[m]} helps over the whole sweep (gain >= {HELP_THRESHOLD} up to {rows[-1]['label']})")
+            else:
+                sentences.append(f"the {METHOD_NAMES[m]} stops helping at {s['label']} (gain {s['gain']:+.3f})")
+        lines += ["Measured: " + "; ".join(sentences) + ". " +
+                  ("The measured transfer floor reaches 1 rad r.m.s. near "
+                   f"{floor_x:.3g} ({doc['definition']['axis']})." if floor_x is not None else
+                   "The measured transfer floor stays below 1 rad r.m.s. over the sweep.") +
+                  " *Transfer loss* = SSIM with the target's exact phase minus SSIM with the reference's exact phase (what "
+                  "the separation costs even with a perfect reference estimate); *estimation loss* = the latter minus the "
+                  "twin's SSIM (what the estimate on the reference costs). Where the estimation loss grows while the "
+                  "transfer loss stays small, the reference estimate, not the transfer, is what fails.", ""]
+        fig = out / f"limits_{name}.png"
+        _fig_limit(doc, rows, fig)
+        lines += [f"![limits {name}]({_rel(fig, md)})", ""]
+    return res
+
+
+def _section_trade(doc: dict, out: Path, md: Path, lines: list[str], machine: dict) -> dict:
+    rows = doc["rows"]
+    means = trade_means(rows)
+    lines += ["## Speed/accuracy trade", "",
+              "One knob at a time from the paper's configuration, physical-twin autofocus, on "
+              f"{len({r['pair'] for r in rows})} scene(s) ({', '.join(sorted({r['pair'] for r in rows}))}), one tracking-error draw "
+              "(sigma 0.5 mm) each. Time = reference sub-image basis + optimiser (+ template for the digital twin); SSIM of "
+              "the 100 x 100 target focused with the estimated phase (for the array size: the target formed from the same "
+              "positions, against its own truth). Means over the scenes.", ""]
+    for knob in ("image size", "positions", "optimiser", "precision", "digital twin", "preset"):
+        ks = [m for m in means if m["knob"] == knob]
+        if not ks:
+            continue
+        lines += [f"**{knob}**", ""]
+        hdr = ["setting", "basis s", "optimiser s"] + (["template s"] if knob == "digital twin" else []) + ["total s", "target SSIM", "HOG sim."]
+        tab = []
+        for m in ks:
+            tab.append([m["label"], _f(m["reference_basis_s"], 2), _f(m["autofocus_s"], 2)]
+                       + ([_f(m["template_s"], 2)] if knob == "digital twin" else []) + [_f(m["time_s"], 2), _f(m["ssim"]), _f(m["hog"])])
+        lines += _table(hdr, tab) + [""]
+    unc = [m for m in means if m["knob"] == "uncorrected"]
+    if unc:
+        lines += [f"No correction: target SSIM {unc[0]['ssim']:.3f}.", ""]
+    fig = out / "pareto.png"
+    _fig_pareto(means, fig)
+    lines += [f"![pareto]({_rel(fig, md)})", ""]
+    presets = doc.get("presets", {})
+    if presets:
+        lines += ["**Recommended presets** (per knob, the cheapest setting within 0.02 (fast) or 0.003 (accurate) of that "
+                  "knob's best mean SSIM, combined and measured):", ""]
+        tab = []
+        for name, p in presets.items():
+            m = next((x for x in means if x["knob"] == "preset" and x["label"] == name), None)
+            coarse = p.get("coarse_iterations", 0)
+            cli = f"`--size {p['size']} --iterations {p['iterations']} --lr {p['lr']:g} --basis-dtype {p['basis_dtype']}`"
+            if p["precision"] != "float32":
+                cli = cli[:-1] + f" --precision {p['precision']}`"
+            if coarse:
+                cli += f" + `AutofocusConfig(coarse_iterations={coarse})`"
+            tab.append([name, f"{p['size']} x {p['size']}", str(p["iterations"]), str(coarse), f"{p['lr']:g}", p["basis_dtype"],
+                        p["precision"], _f(m["time_s"] if m else None, 2), _f(m["ssim"] if m else None), cli])
+        lines += _table(["preset", "reference image", "iterations", "coarse it.", "lr", "basis", "arithmetic", "total s",
+                         "target SSIM", "`twinfocus focus` options"], tab) + [""]
+        lines += ["`--size` sets both regions in `twinfocus focus`; the estimated phase focuses a target image of any size "
+                  "(the table's SSIM is on the 100 x 100 target). The choice rests on the scene(s) above: rerun with "
+                  "`--trade-scenes 2` before relying on it.", ""]
+    # Table 1 counterpart.
+    def af(knob, label):
+        m = next((x for x in means if x["knob"] == knob and x["label"] == label), None)
+        return None if m is None else m["autofocus_s"]
+    dt = [r for r in rows if r["knob"] == "digital twin" and r.get("status") == "ok"]
+
+    def stage(key):
+        vals = [r["stages_s"][key] for r in dt if key in r.get("stages_s", {})]
+        return float(np.mean(vals)) if vals else None
+
+    def tmpl(value):
+        vals = [r["template_s"] for r in dt if r["value"] == value]
+        return float(np.mean(vals)) if vals else None
+    t1 = []
+    for s, v in PAPER_TABLE1["image_size"].items():
+        t1.append([f"optimisation, image {s} x {s} (780 x 86)", f"{v:.2f}", _f(af("image size", f"{s} x {s}"), 2)])
+    for n, v in PAPER_TABLE1["array_size"].items():
+        t1.append([f"optimisation, array {n} x 86 (100 x 100)", f"{v:.2f}", _f(af("positions", f"{n} x 86"), 2)])
+    t1.append(["digital twin: visual segmentation", f"{PAPER_TABLE1['digital_twin']['visual segmentation']:.2f}", _f(stage("segmentation"), 2)])
+    t1.append(["digital twin: point cloud extraction", f"{PAPER_TABLE1['digital_twin']['point cloud extraction']:.2f}", _f(stage("point_cloud"), 2)])
+    t1.append(["digital twin: stereo disparity (inside the ZED SDK in the paper)", "-", _f(stage("disparity"), 2)])
+    t1.append(["digital twin: array signal simulation, exact (simulate + back-project)", f"{PAPER_TABLE1['digital_twin']['array signal simulation']:.2f}", _f(tmpl("exact"), 2)])
+    t1.append(["digital twin: array signal simulation, PSF convolution (our default)", "-", _f(tmpl("psf"), 2)])
+    hw = machine.get("cpu_model") or "this machine"
+    lines += ["**Table 1 of the paper, row by row** (seconds; paper: NVIDIA RTX 4090; ours: "
+              f"{hw}, {machine.get('cpu_count')} cores, {'GPU ' + machine['cuda'] if machine.get('cuda') else 'no GPU'}, "
+              f"optimiser with {doc['settings']['basis_dtype']} basis storage, 300 iterations):", ""]
+    lines += _table(["operation", "paper s", "ours s"], t1) + [""]
+    return {"means": means, "presets": presets}
+
+
+def write_report(out_dir, markdown_path=None) -> Path:
+    """Write the report from ``out_dir/raw``. Returns the markdown path (default ``out_dir/report.md``)."""
+    out = Path(out_dir)
+    raw_dir = out / "raw"
+    from twinfocus.evaluation.runner import load_raw, write_json_atomic
+
+    raw = load_raw(raw_dir)
+    run = raw.pop("run", {})
+    md = Path(markdown_path) if markdown_path else out / "report.md"
+    machine = run.get("machine", {})
+    lines = ["# TwinFocus evaluation: the paper's experiments in simulation", ""]
+    lines += ["Regenerate: `make bench-paper` (= `twinfocus bench paper --out docs/results --markdown docs/results.md`; "
+              "add `--resume` to keep finished experiments, `--draws 5` for the paper's five error draws). "
+              f"Last invocation: `{run.get('command') or 'twinfocus bench paper'}`.", ""]
+    total = sum(doc.get("seconds", 0.0) for doc in raw.values())
+    per = ", ".join(f"{k} {v.get('seconds', 0) / 60:.1f} min" for k, v in raw.items())
+    lines += [f"Machine: {machine.get('cpu_model', '?')}, {machine.get('cpu_count', '?')} cores "
+              f"(shared with other jobs; load average {', '.join(f'{x:.1f}' for x in machine.get('load_average') or [])} at the start), "
+              f"{'GPU ' + machine['cuda'] if machine.get('cuda') else 'no GPU'}, torch {machine.get('torch', '?')} "
+              f"({machine.get('torch_threads', '?')} threads), Python {machine.get('python', '?')}.", "",
+              f"Compute time: {total / 60:.1f} min in all ({per}). Last invocation started {run.get('started', '?')}.", ""]
+    settings = next((doc["settings"] for doc in raw.values() if "settings" in doc), {})
+    if settings:
+        lines += [f"Settings: {settings.get('n_columns')} x {settings.get('n_rows')} radar positions x 86 channels, "
+                  f"{settings.get('size')} x {settings.get('size')} images, Adam lr 5e-2 with cosine annealing, "
+                  f"{settings.get('iterations')} iterations, basis stored as {settings.get('basis_dtype')}, "
+                  f"{settings.get('precision')} arithmetic" + (", **quick smoke settings**" if run.get("quick") else "") + ".", ""]
+    lines += ["Methods: *no correction*; *sharpness autofocus* (maximises sum I^2 / (sum I)^2 of the target itself, same "
+              "optimiser); *physical twin* (template = the reference scanned alone on exact positions, 1 mm misplaced); "
+              "*digital twin* (template simulated from the reference's point cloud, which the digital-twin pipeline "
+              "extracts from a rendered ZED 2i-like stereo pair: SGBM disparity, classical segmentation, plane fit).", "",
+              "Metrics: **SSIM** is the paper's (soft-thresholded, max-normalised target image against the image formed "
+              "with the true positions). The paper's second metric, cosine similarity of ResNet features, needs downloaded "
+              "network weights; in its place we report **HOG similarity**: the cosine similarity of Histogram-of-Oriented-"
+              "Gradients descriptors (9 orientations, 8 px cells, 2 x 2-cell L2-Hys blocks) of the same two images: a "
+              "weight-free descriptor of local edge structure that, like early CNN layers, ignores gain and sub-cell "
+              "shifts. Gains are ratios of paired means (the paper's +23.3 % = 0.74 / 0.60 - 1).", "",
+              "Absolute SSIM levels are not comparable with the paper's: the paper's are measured on real data (real "
+              "multipath, antenna patterns, specular letters), ours on point-scatterer simulation, and the soft threshold "
+              "sigmoid(a - 0.4) compresses the display range, so SSIM of an uncorrected image depends strongly on how much "
+              "energy the defocus spreads. Compare the ordering of methods, the gains and the trends.", ""]
+    summary: dict = {"run": run}
+    if "baseline" in raw or any(k in raw for k in SECTION_ORDER):
+        lines += ["## The paper's experiments, ours beside theirs", ""]
+    for name in SECTION_ORDER:
+        if name not in raw:
+            continue
+        if name == "baseline":
+            summary[name] = _section_baseline(raw[name], out, md, lines)
+        else:
+            summary[name] = _section_sweep(name, raw[name], out, md, lines)
+    summary["limits"] = _section_limits(raw, out, md, lines)
+    if "trade" in raw:
+        summary["trade"] = _section_trade(raw["trade"], out, md, lines, machine)
+    md.parent.mkdir(parents=True, exist_ok=True)
+    tmp = md.with_name(f".{md.name}.tmp")
+    tmp.write_text("\n".join(lines) + "\n")
+    os.replace(tmp, md)
+    write_json_atomic(out / "summary.json", summary)
+    return md

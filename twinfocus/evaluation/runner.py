@@ -1,0 +1,244 @@
+"""Run the experiments and keep their raw results.
+
+Each experiment's records go to ``OUT/raw/<name>.json`` as soon as it finishes (so a long run
+that is stopped keeps what it finished, and ``resume`` skips experiments already done with the
+same settings). The report (:mod:`twinfocus.evaluation.report`) is written from those files.
+"""
+from __future__ import annotations
+
+import gc
+import json
+import os
+import platform
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from twinfocus import metrics
+from twinfocus.evaluation.cases import (
+    EvalScenario, EvalSettings, evaluate_methods, draw_seed, draw_shared, prepare_scene, tracked_positions,
+)
+from twinfocus.evaluation.experiments import Experiment
+
+
+def quick_settings() -> EvalSettings:
+    """Small enough for ``make test``: 6 x 40 positions, 32 x 32 pixels, 60 iterations, scatterers
+    every 2.4 mm."""
+    return EvalSettings(size=32, iterations=60, n_rows=40, spacing_m=2.4e-3)
+
+
+def machine_info() -> dict:
+    """Where the numbers were measured."""
+    import numba
+    import torch
+
+    info = {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "cpu_count": os.cpu_count(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "numba_threads": numba.get_num_threads(),
+        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+    }
+    try:
+        with open("/proc/cpuinfo") as f:
+            info["cpu_model"] = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), None)
+    except OSError:
+        pass
+    return info
+
+
+def _log(msg: str, stream=None) -> None:
+    stream = stream or sys.stderr
+    stream.write(msg + "\n")
+    stream.flush()
+
+
+def _scene_units(exp: Experiment) -> list[dict]:
+    """Group the experiment's (condition, pair) by scene: conditions that share scene fields and a
+    pair share one simulation."""
+    units: dict = {}
+    for cond in exp.conditions:
+        for ref, tgt in cond.pairs:
+            key = (json.dumps(cond.scene, sort_keys=True), ref, tgt)
+            units.setdefault(key, {"scene": cond.scene, "pair": (ref, tgt), "conditions": []})["conditions"].append(cond)
+    return list(units.values())
+
+
+#: Experiments whose first draw keeps its images for the report's picture of the methods.
+EXAMPLE_EXPERIMENTS = ("baseline", "nlos", "handheld")
+
+
+def run_experiment(exp: Experiment, settings: EvalSettings, template_cache: dict | None = None, log=_log) -> dict:
+    """Run one experiment; returns {"definition", "settings", "records", "scenes", "seconds",
+    "examples"}.
+
+    A record is one (condition, pair, draw, method): the method's metrics plus the draw's shared
+    fields (:func:`twinfocus.evaluation.cases.draw_shared`). ``examples`` (experiments of
+    :data:`EXAMPLE_EXPERIMENTS`): the display images of the first draw, {"truth" | method: float32
+    (H, W)}, plus "pair" and "condition".
+    """
+    t_start = time.perf_counter()
+    cache = template_cache if template_cache is not None else {}
+    records: list[dict] = []
+    scenes: list[dict] = []
+    examples: dict = {}
+    units = _scene_units(exp)
+    total = sum(len(u["conditions"]) for u in units) * exp.draws
+    done = 0
+    for i, unit in enumerate(units):
+        ref, tgt = unit["pair"]
+        sc = EvalScenario(reference=ref, target=tgt, seed=exp.seed, n_columns=settings.n_columns, n_rows=settings.n_rows,
+                          spacing_m=settings.spacing_m, **unit["scene"])
+        conds = unit["conditions"]
+        methods_all = {m for c in conds for m in (c.methods or exp.methods)}
+        envs = tuple(sorted({c.template_env for c in conds}))
+        case = prepare_scene(sc, settings, exp.roi, envs, digital="digital" in methods_all, template_cache=cache,
+                             roi_margin_m=exp.roi_margin_m)
+        scenes.append({"pair": f"{ref}>{tgt}", "scene": unit["scene"], "timings_s": case.timings_s,
+                       "notes": case.notes, "reference_roi": list(case.ref_grid.roi), "target_roi": list(case.tgt_grid.roi)})
+        # Conditions with the same tracking error share each draw's positions and bases.
+        by_errors: dict = {}
+        for c in conds:
+            by_errors.setdefault(json.dumps(c.errors, sort_keys=True), []).append(c)
+        for group in by_errors.values():
+            err_sc = replace(sc, **group[0].errors)
+            for d in range(exp.draws):
+                tracked = tracked_positions(case.scan, err_sc, draw_seed(exp.name, ref, tgt, d))
+                bases = draw_shared(case, tracked, settings, need_reference=any(
+                    m in ("physical", "digital") for c in group for m in (c.methods or exp.methods)))
+                for c in group:
+                    keep = exp.name in EXAMPLE_EXPERIMENTS and not examples
+                    recs = evaluate_methods(case, bases, c.methods or exp.methods, settings, c.template_env, keep_images=keep)
+                    if keep:
+                        examples = {"pair": f"{ref}>{tgt}", "condition": c.label,
+                                    "truth": metrics.display_image(case.truth_target).astype(np.float32),
+                                    **{r["method"]: r.pop("image") for r in recs if "image" in r}}
+                    for r in recs:
+                        records.append({
+                            "experiment": exp.name, "condition": c.label, "x": c.x, "in_paper": c.in_paper,
+                            "template_env": c.template_env, "pair": f"{ref}>{tgt}", "reference": ref, "target": tgt,
+                            "draw": d, **bases.shared, **r,
+                        })
+                    done += 1
+                    summary = " ".join(f"{r['method']} {r['ssim']:.3f}" if r["ssim"] is not None else f"{r['method']} failed" for r in recs)
+                    log(f"[{exp.name}] {done}/{total} scene {i + 1}/{len(units)} {ref}>{tgt} {c.label} draw {d + 1}: "
+                        f"{summary} ({time.perf_counter() - t_start:.0f} s)")
+                del bases
+        del case
+        gc.collect()
+    return {"definition": exp.to_dict(), "settings": settings.to_dict(), "records": records, "scenes": scenes,
+            "seconds": time.perf_counter() - t_start, "examples": examples}
+
+
+def write_json_atomic(path: Path, doc) -> None:
+    """Write JSON to ``path`` through a temporary file and a rename (never half a file)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(json.dumps(doc, separators=(",", ":"), default=_json_default))
+    os.replace(tmp, path)
+
+
+def _json_default(v):
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, tuple):
+        return list(v)
+    raise TypeError(f"not JSON serialisable: {type(v).__name__}")
+
+
+def load_raw(raw_dir: Path) -> dict:
+    """{name: result} of every ``*.json`` in ``raw_dir``."""
+    out = {}
+    for p in sorted(Path(raw_dir).glob("*.json")):
+        out[p.stem] = json.loads(p.read_text())
+    return out
+
+
+def _same_run(doc: dict, exp_def: dict, settings: dict) -> bool:
+    return json.loads(json.dumps(doc.get("definition"), default=_json_default)) == json.loads(json.dumps(exp_def, default=_json_default)) \
+        and doc.get("settings") == settings
+
+
+def _save_examples(path: Path, examples: dict) -> None:
+    arrays = {k: np.asarray(v, np.float16) for k, v in examples.items() if isinstance(v, np.ndarray)}
+    meta = json.dumps({k: v for k, v in examples.items() if not isinstance(v, np.ndarray)})
+    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.npz")
+    np.savez_compressed(tmp, meta=np.array(meta), **arrays)
+    os.replace(tmp, path)
+
+
+def run_paper(out_dir, *, quick: bool = False, draws: int | None = None, only=None, resume: bool = False,
+              markdown=None, device: str = "cpu", trade_scenes: int | None = None, command: str | None = None,
+              log=_log) -> Path:
+    """``twinfocus bench paper``: run the experiments (and the speed/accuracy trade), keep their raw
+    results in ``out_dir/raw`` and write the report. Returns the report's path.
+
+    only : experiment names (see :data:`twinfocus.evaluation.experiments.EXPERIMENT_NAMES`, plus
+        ``trade``); default all. The report covers every raw result in ``out_dir/raw``, so runs of
+        parts add up.
+    resume : skip experiments whose raw result exists with the same definition and settings.
+    """
+    from twinfocus.evaluation.experiments import paper_experiments
+    from twinfocus.evaluation.report import write_report
+    from twinfocus.evaluation.trade import run_trade
+
+    settings = quick_settings() if quick else EvalSettings()
+    settings.device = device
+    exps = paper_experiments(quick=quick, draws=draws, only=only)  # checks the names before any work
+    out = Path(out_dir)
+    raw = out / "raw"
+    raw.mkdir(parents=True, exist_ok=True)
+    do_trade = not only or "trade" in only
+    t0 = time.perf_counter()
+    run = {"command": command, "quick": quick, "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": machine_info()}
+    cache: dict = {}
+    for exp in exps:
+        path = raw / f"{exp.name}.json"
+        if resume and path.exists():
+            try:
+                if _same_run(json.loads(path.read_text()), exp.to_dict(), settings.to_dict()):
+                    log(f"[{exp.name}] kept from an earlier run ({path})")
+                    continue
+            except (OSError, ValueError):
+                pass
+        log(f"[{exp.name}] {exp.n_draws()} draws ...")
+        res = run_experiment(exp, settings, cache, log)
+        examples = res.pop("examples")
+        if examples:
+            _save_examples(raw / f"{exp.name}_examples.npz", examples)
+        write_json_atomic(path, res)
+        log(f"[{exp.name}] done in {res['seconds'] / 60:.1f} min")
+    cache.clear()
+    if do_trade:
+        path = raw / "trade.json"
+        scenes = trade_scenes if trade_scenes is not None else 1
+        keep = False
+        if resume and path.exists():
+            try:
+                doc = json.loads(path.read_text())
+                keep = doc.get("settings") == settings.to_dict() and doc.get("quick") == quick and doc.get("scenes") == scenes
+            except (OSError, ValueError):
+                keep = False
+        if keep:
+            log(f"[trade] kept from an earlier run ({path})")
+        else:
+            log("[trade] speed/accuracy knobs ...")
+            res = run_trade(settings, quick=quick, scenes=scenes, log=log)
+            res.update({"quick": quick, "scenes": scenes})
+            write_json_atomic(path, res)
+            log(f"[trade] done in {res['seconds'] / 60:.1f} min")
+    run["seconds"] = time.perf_counter() - t0
+    run["machine"]["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    write_json_atomic(raw / "run.json", run)
+    md = write_report(out, markdown)
+    log(f"[bench] report {md} ({run['seconds'] / 60:.1f} min)")
+    return md
