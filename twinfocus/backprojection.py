@@ -182,6 +182,8 @@ def prepare_profiles(
         raise TwinFocusError(f"oversample must be >= 1, got {oversample}")
     dr = chirp.range_resolution_m / oversample
     r_min, r_max = range_window(positions_m, points_m, margin_m=2 * dr)
+    # Snap the window to a global grid so a basis built batch by batch equals a whole-scan one.
+    r_min = np.floor(r_min / dr) * dr
     q = int(np.ceil((r_max - r_min) / dr)) + 2
     ranges = r_min + dr * np.arange(q)
     prof = range_profiles_at(data.reshape(-1, data.shape[-1]), chirp, ranges)

@@ -38,6 +38,7 @@ def backproject_points_torch(
     n_pos, n_ch = data.shape[:2]
     dr = chirp.range_resolution_m / oversample
     r0, r1 = range_window(pos.astype(np.float64), pts.astype(np.float64), margin_m=2 * dr)
+    r0 = np.floor(r0 / dr) * dr  # same global range grid as the numba back-end
     q = int(np.ceil((r1 - r0) / dr)) + 2
     turns_per_m = _turns_per_m(chirp)
     kernel = torch.from_numpy(range_kernel(chirp, r0 + dr * np.arange(q))).to(device=device, dtype=cplx)
