@@ -1,8 +1,9 @@
 """Backend plug-in point of the radar and VIO drivers.
 
 A driver node (:mod:`nodes.radar_driver`, :mod:`nodes.vio_driver`) is the same for every source;
-what differs is its *backend*: a small class that produces samples. To add one (real hardware,
-another file format), write the class and add one line to :data:`RADAR_BACKENDS` or
+what differs is its *backend*: a small class that produces samples (simulation:
+:mod:`nodes.sim_backends`; files: :mod:`nodes.file_backends`; hardware and the emulated rig:
+:mod:`nodes.sensor_backends`). To add one, write the class and add one line to :data:`RADAR_BACKENDS` or
 :data:`VIO_BACKENDS` (``name -> "module:Class"``, imported only when chosen), or name the class
 directly in a launch file (``backend: mypackage.mymodule:MyRadar``).
 
@@ -70,12 +71,16 @@ class PoseSample:
 RADAR_BACKENDS: dict[str, str] = {
     "sim": "nodes.sim_backends:SimRadar",
     "scan_file": "nodes.file_backends:ScanFileRadar",
+    "mmwcas": "nodes.sensor_backends:MmwcasRadar",  # TI MMWCAS capture folder
+    "dca1000": "nodes.sensor_backends:Dca1000Radar",  # DCA1000EVM stream (+ radar CLI); the emulated rig
 }
 
 #: VIO backend name -> "module:Class"
 VIO_BACKENDS: dict[str, str] = {
     "sim": "nodes.sim_backends:SimVio",
     "trajectory_file": "nodes.file_backends:TrajectoryFileVio",
+    "zed": "nodes.sensor_backends:ZedVio",  # ZED 2i positional tracking (ZED SDK)
+    "emulated": "nodes.sensor_backends:EmulatedRigVio",  # the emulated rig's tracker
 }
 
 

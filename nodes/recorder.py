@@ -2,20 +2,39 @@
 
 Subscribes to the listed topics (all but ``graph/...`` when none are listed) and appends every
 message as it arrives (:class:`msgs.mcap_log.LogWriter`: unchunked, flushed per message, so a
-killed recorder leaves a readable file). The radar configuration (chirp, virtual channel
-offsets) is stored as the ``radar`` metadata record when the first radar frame or SAR
-measurement arrives; the ``calibration`` parameter (e.g. the radar's lever arm in the camera
-frame) as the ``calibration`` record. On SIGINT/SIGTERM the file is closed with its summary.
+killed recorder leaves a readable file). The radar configuration is stored as the ``radar``
+metadata record when the first radar frame or SAR measurement arrives (:func:`radar_metadata`:
+flat keys ``source_topic``, the chirp's ``f0_hz`` ``slope_hz_per_s`` ``fs_hz`` ``n_samples``,
+``n_channels`` and, from a radar frame, ``channel_offsets_m``); the ``calibration`` parameter as
+the ``calibration`` record, verbatim (the launch files give ``{extrinsics: T_camera_radar}``).
+``twinfocus convert`` writes the same two records. On SIGINT/SIGTERM the file is closed with its
+summary.
 """
 from __future__ import annotations
 
 import sys
 from typing import Any
 
+import numpy as np
+
 from msgs import RadarFrame, SarMeasurement, encode, now_ns
 from msgs.mcap_log import LogWriter
 from nodes.node import Node, run_node
 from nodes.params import REQUIRED, Param
+
+
+def radar_metadata(topic: str, msg: RadarFrame | SarMeasurement) -> dict:
+    """The ``radar`` metadata record of a log, from its first radar message on ``topic``.
+
+    Flat: ``source_topic``, the chirp (:meth:`twinfocus.radar.Chirp.to_dict` keys), ``n_channels``
+    and, for a :class:`msgs.RadarFrame`, ``channel_offsets_m`` ((K, 3) list, metres). The one
+    convention of the recorder and ``twinfocus convert``: ``Chirp(**{k: meta[k] for k in
+    ("f0_hz", "slope_hz_per_s", "fs_hz", "n_samples")})`` reads the chirp back from either.
+    """
+    meta = {"source_topic": topic, **msg.chirp().to_dict(), "n_channels": int(msg.data.shape[0])}
+    if isinstance(msg, RadarFrame):
+        meta["channel_offsets_m"] = np.asarray(msg.channel_offsets_m, np.float64).tolist()
+    return meta
 
 
 class Recorder(Node):
@@ -54,10 +73,7 @@ class Recorder(Node):
             return
         if not self._radar_done and isinstance(msg, (RadarFrame, SarMeasurement)):
             self._radar_done = True
-            meta = {"source_topic": topic, **msg.chirp().to_dict(), "n_channels": int(msg.data.shape[0])}
-            if isinstance(msg, RadarFrame):
-                meta["channel_offsets_m"] = msg.channel_offsets_m.tolist()
-            self.writer.add_metadata("radar", meta)
+            self.writer.add_metadata("radar", radar_metadata(topic, msg))
         self.writer.write_blob(topic, msg.TYPE, encode(msg), now_ns(), msg.header.stamp_ns, msg.header.seq)
 
     def on_start(self) -> None:

@@ -4,8 +4,9 @@ As measurements of a scan arrive, the solver back-projects each onto the referen
 target regions: one row B_m of the sub-image basis per radar position
 (:func:`twinfocus.backprojection.subimage_basis`, rows are independent), computed in batches of
 whatever has arrived while the previous batch ran. So when the scan's ``last`` measurement
-arrives, the back-projection is already done and only the optimiser remains
-(:func:`twinfocus.autofocus.twin_autofocus`, or the baselines ``sharpness`` / ``none``). With
+arrives, the back-projection is already done and only the optimiser and the metrics remain
+(:func:`twinfocus.pipeline.focus_bases`, the steps ``twinfocus focus`` runs after its
+back-projections: ``twin``, or the baselines ``sharpness`` / ``none``). With
 ``basis:=after_scan`` it instead keeps the samples and runs :func:`twinfocus.pipeline.focus_scan`
 on the assembled scan at the end (the same call as ``twinfocus focus``; the benchmark's
 baseline).
@@ -281,67 +282,17 @@ class Solver(Node):
         self.heartbeat_if_due()
 
     def _focus_bases(self, s: _Scan, positions: np.ndarray, truth: np.ndarray | None):
-        """The steps of :func:`twinfocus.pipeline.focus_scan` that follow the bases, on the
-        streamed bases (kept step for step the same; tests/test_graph.py checks the phase)."""
-        from types import SimpleNamespace
+        """:func:`twinfocus.pipeline.focus_bases` on the streamed bases (the same call as
+        ``twinfocus focus`` after its back-projections; tests/test_graph.py checks the phase)."""
+        from twinfocus.pipeline import focus_bases
 
-        from twinfocus import metrics
-        from twinfocus.autofocus import fit_linear_phase, form_image, no_correction, sharpness_autofocus, twin_autofocus
-        from twinfocus.pipeline import FocusOutputs, confidence_report
-        from twinfocus.templates import check_has_signal
-
-        ref_basis = np.concatenate(s.ref_rows)
-        tgt_basis = np.concatenate(s.tgt_rows)
-        ref_unc = ref_basis.sum(axis=0)
-        tgt_unc = tgt_basis.sum(axis=0)
-        check_has_signal(ref_unc, "the reference region")
-        method, cfg, template = self.params["method"], self.cfg, self.template
-        if template is not None:
-            check_has_signal(template, "the template")
-        t = time.perf_counter()
-        if method == "twin":
-            result = twin_autofocus(ref_basis, template, cfg, progress=self._progress)
-        elif method == "sharpness":
-            result = sharpness_autofocus(tgt_basis, cfg, progress=self._progress)
-        else:
-            result = no_correction(ref_basis)
-        timings = {"autofocus": time.perf_counter() - t}
-        phase = result.phase_rad
-        remove_ramp = bool(self.params["remove_phase_ramp"] and method != "none")
-        m: dict = {"method": method, "n_positions": int(ref_basis.shape[0]), "n_channels": s.n_channels,
-                   "phase_ramp_removed": remove_ramp}
-        if remove_ramp:
-            ramp, coeffs = fit_linear_phase(phase, positions.mean(axis=1)[:, :2])
-            phase = np.angle(np.exp(1j * (phase - ramp)))
-            m["phase_ramp_rad_per_m"] = coeffs[1:].tolist()
-        ref_cor = form_image(ref_basis, phase)
-        tgt_cor = form_image(tgt_basis, phase)
-        centre, steep = cfg.threshold_centre, cfg.threshold_steepness
-        if template is not None:
-            tpl = metrics.display_image(template, centre, steep)
-            m["reference_ssim_vs_template_uncorrected"] = metrics.ssim(metrics.display_image(ref_unc, centre, steep), tpl)
-            m["reference_ssim_vs_template_corrected"] = metrics.ssim(metrics.display_image(ref_cor, centre, steep), tpl)
-        out = FocusOutputs(
-            reference_grid=self.ref_grid, target_grid=self.tgt_grid, method=method, phase_rad=phase,
-            reference=ref_cor, reference_uncorrected=ref_unc, target=tgt_cor, target_uncorrected=tgt_unc,
-            template=None if template is None else np.asarray(template, np.float32),
-            loss_history=result.loss_history, metrics=m, timings_s=timings,
-            config={**cfg.to_dict(), **{f"bp_{k}": v for k, v in self.bp.items()}},
+        return focus_bases(
+            np.concatenate(s.ref_rows), np.concatenate(s.tgt_rows), positions, s.chirp, self.ref_grid, self.tgt_grid,
+            template=self.template, method=self.params["method"], config=self.cfg, bp_options=self.bp,
+            progress_factory=lambda label: self._progress, remove_phase_ramp=self.params["remove_phase_ramp"],
+            tracking_error_m=self.params["tracking_error_m"],
+            truth_target=s.truth_tgt, truth_reference=s.truth_ref, positions_true=truth,
         )
-        # The report reads only the scan's positions and chirp (the samples are not kept).
-        m["confidence"] = confidence_report(m, SimpleNamespace(positions=positions, chirp=s.chirp), self.ref_grid,
-                                            self.tgt_grid, self.params["tracking_error_m"])
-        if truth is not None and s.truth_tgt is not None:
-            out.target_truth, out.reference_truth = s.truth_tgt, s.truth_ref
-            out.phase_oracle_rad = metrics.oracle_phase(truth, positions, self.tgt_grid.centre_m, s.chirp)
-            m["target_ssim_uncorrected"] = metrics.image_ssim(tgt_unc, s.truth_tgt, centre, steep)
-            m["target_ssim_corrected"] = metrics.image_ssim(tgt_cor, s.truth_tgt, centre, steep)
-            m["target_ssim_oracle_phase"] = metrics.image_ssim(form_image(tgt_basis, out.phase_oracle_rad), s.truth_tgt, centre, steep)
-            m["reference_ssim_uncorrected"] = metrics.image_ssim(ref_unc, s.truth_ref, centre, steep)
-            m["reference_ssim_corrected"] = metrics.image_ssim(ref_cor, s.truth_ref, centre, steep)
-            m["phase_error_rms_rad_vs_oracle"] = metrics.phase_error_rms(phase, out.phase_oracle_rad)
-            m["phase_error_rms_rad_uncorrected"] = metrics.phase_error_rms(np.zeros_like(phase), out.phase_oracle_rad)
-        return out
 
     def _publish(self, s: _Scan, out, timing: dict) -> None:
         stamp = now_ns()

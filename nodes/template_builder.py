@@ -75,7 +75,8 @@ class TemplateBuilder(Node):
         from twinfocus.templates import load_template, template_from_scan
 
         if src == "file":
-            image, kind = load_template(path, self.grid), "physical"
+            # twin/template carries an amplitude (DESIGN.md); a file's phase stays with `focus`
+            image, kind = np.abs(load_template(path, self.grid)).astype(np.float32), "physical"
         elif src == "scan":
             image, kind = template_from_scan(Scan.load(path), self.grid, **self.bp), "physical"
         else:

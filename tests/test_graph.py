@@ -231,8 +231,10 @@ def test_replayed_log_gives_the_phase_of_twinfocus_focus_on_the_equivalent_scan(
     assert streamed.shape == offline.shape == (40,)
     # Replayed at 4x (not all at once), so the solver really built its basis in many batches.
     assert json.loads((tmp_path / "graph" / "focus" / "run" / "metrics.json").read_text())["basis_batches"] > 5
-    # Equal to the interpolation accuracy of the back-projection (~1e-3 of the peak): each batch
-    # samples its range profiles on its own range window. Computed in one batch, the phase is
-    # bit-identical; once the window starts on a fixed range lattice (as the simulator's does)
-    # the two agree to 1e-6 rad in float64 and this tolerance can shrink to that.
-    np.testing.assert_allclose(streamed, offline, rtol=0, atol=1e-2)
+    # Both build the same sub-image basis rows (the back-projection's range window starts on the
+    # global lattice dr * integer, so a batch's profiles are samples of the whole scan's) and run
+    # the same pipeline.focus_bases; what differs is float64 rounding (each batch's window starts
+    # at another lattice node), which 40 Adam steps carry to the phase. Measured: 5.7e-7 rad
+    # (float64, this case); the tolerance is ~10x that. (Before the lattice, each batch sampled
+    # its profiles on its own grid and this test needed 1e-2 rad.)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (streamed - offline))), 0.0, rtol=0, atol=5e-6)

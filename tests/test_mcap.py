@@ -140,3 +140,56 @@ def test_a_killed_recorder_leaves_a_readable_log(tmp_path):
     assert [f.index for f in frames] == list(range(n))
     assert all(np.all(f.data == f.index) for f in frames)
     assert r.metadata["radar"]["n_channels"] == 4 and r.metadata["radar"]["f0_hz"] == Chirp().f0_hz
+
+
+def test_converted_and_recorded_logs_carry_the_same_metadata(tmp_path, capsys):
+    """``twinfocus convert --mcap`` writes the recorder's metadata convention: a converted log
+    played through the recorder (as launch/live.yaml records) gives back equal ``radar``
+    records, and both read back into the capture's chirp, array and extrinsics."""
+    from nodes.player import Player
+    from nodes.recorder import Recorder
+    from twinfocus.cli import main
+    from twinfocus.radar import mmwcas_virtual_array
+    from twinfocus.scan import Scan
+    from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
+    from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
+    from twinfocus.sensors.ti_mmwcas import MmwcasConfig
+    from twinfocus.sensors.trajectory_files import write_tum
+    from twinfocus.trajectory import Poses
+
+    chirp = Chirp(f0_hz=77.1e9, n_samples=16)  # not the default: the chirp must come from the file
+    iq = np.random.default_rng(1).integers(-2000, 2000, size=(5, 12, 16, 16, 2), dtype=np.int16)
+    write_mmwcas_capture(tmp_path / "cap", iq, 5_000_000_000 + np.arange(5) * 100_000_000, MmwcasConfig(chirp=chirp))
+    t = 1_700_000_000_000_000_000 + np.arange(11) * 50_000_000
+    write_tum(tmp_path / "traj.txt", Poses(t, np.c_[np.arange(11) * 1e-3, np.zeros(11), np.zeros(11)], np.tile([0, 0, 0, 1.0], (11, 1))))
+    extrinsics = {"translation_m": [0.0, 0.05, -0.01], "rotation_xyzw": [0.0, 0.0, 0.0, 1.0]}
+    (tmp_path / "ext.yaml").write_text(f"translation_m: {extrinsics['translation_m']}\nrotation_xyzw: {extrinsics['rotation_xyzw']}\n")
+    converted, recorded = tmp_path / "converted.mcap", tmp_path / "recorded.mcap"
+    assert main(["convert", str(tmp_path / "cap"), "--trajectory", str(tmp_path / "traj.txt"), "--extrinsics",
+                 str(tmp_path / "ext.yaml"), "--out", str(tmp_path / "scan.npz"), "--mcap", str(converted),
+                 "--n-samples", "16", "--f0-hz", "77.1e9", "--quiet"]) == 0
+    capsys.readouterr()
+
+    with local_broker() as ep:
+        # The recorder's parameters as launch/live.yaml sets them.
+        rec = Recorder(broker=ep, name="recorder", params={"out": str(recorded), "calibration": {"extrinsics": extrinsics}})
+        player = Player(broker=ep, params={"log": str(converted), "rate": 0, "wait_for": ["recorder"]})
+        with running(rec):
+            assert player.spin() == 0
+            want = sum(LogReader(converted).counts.values())
+            deadline = time.monotonic() + 20
+            while sum(rec.writer.counts.values()) < want and time.monotonic() < deadline:
+                time.sleep(0.02)
+
+    logs = {"converted": LogReader(converted), "recorded": LogReader(recorded)}
+    n_frames = Scan.load(tmp_path / "scan.npz").n_positions
+    assert logs["recorded"].counts == logs["converted"].counts and logs["converted"].counts["radar/frame"] == n_frames
+    assert logs["converted"].metadata["radar"] == logs["recorded"].metadata["radar"]
+    for name, log in logs.items():
+        radar, calib = log.metadata["radar"], log.metadata["calibration"]
+        assert Chirp(**{k: radar[k] for k in ("f0_hz", "slope_hz_per_s", "fs_hz", "n_samples")}) == chirp, name
+        assert radar["n_channels"] == 86 and radar["source_topic"] == "radar/frame", name
+        np.testing.assert_array_equal(np.array(radar["channel_offsets_m"]), mmwcas_virtual_array().offsets_m)
+        ext = RadarCameraExtrinsics.from_dict(calib["extrinsics"])
+        np.testing.assert_array_equal(ext.translation_m, extrinsics["translation_m"])
+        np.testing.assert_allclose(ext.rotation, np.eye(3), atol=1e-15)

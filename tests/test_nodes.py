@@ -282,7 +282,7 @@ def test_vio_driver_replays_a_tum_file_paced_by_its_stamps(tmp_path):
 def test_unknown_backend_is_a_clear_error():
     from nodes.radar_driver import RadarDriver
 
-    with pytest.raises(TwinFocusError, match="unknown radar backend 'dca9000'; known: sim, scan_file"):
+    with pytest.raises(TwinFocusError, match="unknown radar backend 'dca9000'; known: sim, scan_file, mmwcas, dca1000"):
         RadarDriver(params={"backend": "dca9000"})
 
 

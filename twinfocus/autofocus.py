@@ -46,10 +46,24 @@ class AutofocusConfig:
     #: then ``iterations`` at full resolution from there. 0 = the paper's single stage.
     coarse_iterations: int = 0
     coarse_blur_px: float = 2.0
+    #: where the phases start: "zero" (the paper) or "correlation": the closed-form per-position
+    #: matched filter against a complex template (:func:`twinfocus.template_match.correlation_phase`),
+    #: which needs no unwrapping; with ``iterations=0`` it is the whole estimate.
+    init: str = "zero"
+    #: "none", or "correlation": first move a complex template to where the scan puts the reference
+    #: (:func:`twinfocus.template_match.register_template`), so a misplaced twin pulls no shift in
+    template_registration: str = "none"
+    registration_max_shift_px: int = 4
 
     def validate(self) -> None:
-        if int(self.iterations) < 1:
-            raise TwinFocusError(f"iterations must be >= 1, got {self.iterations}")
+        if self.init not in ("zero", "correlation"):
+            raise TwinFocusError(f"init must be 'zero' or 'correlation', got {self.init!r}")
+        if self.template_registration not in ("none", "correlation"):
+            raise TwinFocusError(f"template_registration must be 'none' or 'correlation', got {self.template_registration!r}")
+        if int(self.registration_max_shift_px) < 1:
+            raise TwinFocusError(f"registration_max_shift_px must be >= 1, got {self.registration_max_shift_px}")
+        if int(self.iterations) < (0 if self.init == "correlation" else 1):
+            raise TwinFocusError(f"iterations must be >= 1 (0 only with init='correlation'), got {self.iterations}")
         if not self.lr > 0 or not self.lr_min >= 0:
             raise TwinFocusError(f"learning rates must be positive, got lr={self.lr}, lr_min={self.lr_min}")
         if self.precision not in ("float32", "float64"):
@@ -204,18 +218,39 @@ def twin_autofocus(
     Parameters
     ----------
     basis : complex64 (M, H, W) sub-image basis of the reference region.
-    template : float (H, W) focused amplitude of the reference on the same grid (any scale).
+    template : float (H, W) focused amplitude of the reference on the same grid (any scale), or
+        complex (H, W) (a physical twin's image), which ``config.template_registration`` and
+        ``config.init="correlation"`` need.
     config : optimiser settings; ``progress(iteration, total, loss)`` is called every iteration.
 
     Returns
     -------
-    AutofocusResult with phase_rad (M,) to apply to any region's basis.
+    AutofocusResult with phase_rad (M,) to apply to any region's basis; ``extra`` holds the
+    registration's shift (pixels) and score gain when it ran, and ``template``: the template
+    the phases were fitted to (moved by the registration).
     """
     cfg = config or AutofocusConfig()
     cfg.validate()
+    extra: dict = {}
+    t0 = time.perf_counter()
+    if cfg.template_registration == "correlation":
+        from twinfocus.template_match import register_template
+
+        template, _, extra["registration"] = register_template(basis, template, int(cfg.registration_max_shift_px))
+    if cfg.init == "correlation":
+        from twinfocus.template_match import correlation_phase
+
+        init_phase_rad = correlation_phase(basis, template)
+        if int(cfg.iterations) == 0:
+            loss = np.array([1.0 - ssim_torch(
+                torch.from_numpy(_prepare_template(np.abs(form_image(basis, init_phase_rad)), basis.shape[1:], cfg)),
+                torch.from_numpy(_prepare_template(np.abs(template), basis.shape[1:], cfg))).item()])
+            extra["template"] = template
+            return AutofocusResult(init_phase_rad, loss, form_image(basis, init_phase_rad), time.perf_counter() - t0, "twin", extra)
+    extra["template"] = template
     dtype = _torch_dtype(cfg)
     op = _BasisOperator(basis, dtype, cfg.device, cfg.basis_dtype)
-    tpl = np.abs(np.asarray(template, dtype=np.float64))
+    tpl = np.abs(np.asarray(template)).astype(np.float64)
     target = torch.from_numpy(_prepare_template(tpl, op.shape, cfg)).to(device=cfg.device, dtype=dtype)
 
     def make_loss(blur_px: float):
@@ -236,7 +271,6 @@ def twin_autofocus(
 
         return loss_fn
 
-    t0 = time.perf_counter()
     init = init_phase_rad
     history = []
     if cfg.coarse_iterations > 0:
@@ -246,7 +280,7 @@ def twin_autofocus(
     phase, losses = _run_adam(make_loss(0.0), basis.shape[0], cfg, dtype, progress, init)
     history.append(losses)
     elapsed = time.perf_counter() - t0
-    return AutofocusResult(phase, np.concatenate(history), form_image(basis, phase), elapsed, "twin")
+    return AutofocusResult(phase, np.concatenate(history), form_image(basis, phase), elapsed, "twin", extra)
 
 
 def _blur_matrix(n: int, sigma_px: float) -> np.ndarray:
@@ -285,7 +319,8 @@ def no_correction(basis: np.ndarray) -> AutofocusResult:
     return AutofocusResult(phase, np.zeros(0), form_image(basis, phase), 0.0, "none")
 
 
-def fit_linear_phase(phase_rad: np.ndarray, aperture_m: np.ndarray, max_slope_rad_per_m: float = 80.0) -> tuple[np.ndarray, np.ndarray]:
+def fit_linear_phase(phase_rad: np.ndarray, aperture_m: np.ndarray, max_slope_rad_per_m: float = 80.0,
+                     min_coherence_sqrt_m: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
     """Best constant + linear-in-aperture phase a + b . p fitted to wrapped phases.
 
     A linear phase across the aperture only moves the image (and a constant changes nothing
@@ -293,8 +328,12 @@ def fit_linear_phase(phase_rad: np.ndarray, aperture_m: np.ndarray, max_slope_ra
     maximises the coherence |sum_m exp(j (phi_m - b . p_m))| — a coarse grid over the slope b,
     then Gauss-Newton steps on the wrapped residual — so wrapping never biases it.
 
+    A ramp is taken only when it is significant: the coherence |mean exp(j (phi - ramp))| it
+    leaves must reach ``min_coherence_sqrt_m / sqrt(M)`` (random phases reach ~2.5 / sqrt(M) at
+    the best of the grid's ramps); otherwise the ramp is the constant alone and the slopes are 0.
+
     phase_rad : (M,) radians; aperture_m : (M, 2) position of each radar position in the aperture
-    plane (x, y), metres. Returns (ramp (M,) radians, coefficients [a, bx, by]).
+    plane (x, y), metres. Returns (ramp (M,) radians, coefficients [a, bx, by] (rad, rad/m)).
     """
     phi = np.asarray(phase_rad, dtype=np.float64)
     p = np.asarray(aperture_m, dtype=np.float64)
@@ -323,6 +362,12 @@ def fit_linear_phase(phase_rad: np.ndarray, aperture_m: np.ndarray, max_slope_ra
         i = int(np.argmax(coh))
         if coh[i] > best:
             best, best_b = coh[i], np.array([bx, axes[1][i]])
+    if best < min_coherence_sqrt_m * np.sqrt(phi.size):
+        # The phases hold no detectable ramp (errors past lambda/4 wrap them to noise: the best of
+        # the grid's ramps then only reaches ~2.5 / sqrt(M)); a fitted one would shift the image
+        # at random, so only the constant is taken.
+        a = float(np.angle(z.sum()))
+        return np.full(phi.size, a), np.array([a, 0.0, 0.0])
     b = best_b
     a = np.angle(np.sum(z * np.exp(-1j * (p @ b))))
     design = np.column_stack([np.ones(phi.size), p])

@@ -27,6 +27,7 @@ import numpy as np
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import C_M_PER_S, Chirp, range_profiles_at
+from twinfocus.range_geometry import cis_turns, local_frame, range_lattice, turns_per_m
 
 try:  # numba is a hard dependency; the guard only keeps import errors readable
     import numba
@@ -37,22 +38,6 @@ except ImportError as exc:  # pragma: no cover
 ProgressFn = Callable[[int, int], None]
 
 DEFAULT_OVERSAMPLE = 16
-
-# Minimax-fitted polynomials for sin(2 pi r), cos(2 pi r) on r in [-1/2, 1/2]: max error 1.2e-9 and
-# 1.2e-10 in float64. Evaluating them inline lets LLVM vectorise the pixel loop (libm sin/cos do not).
-_SIN_C = (6.28318527, -41.34169704, 81.6050236, -76.70153711, 42.01607168, -14.86830851, 3.19931986)
-_COS_C = (1.0, -19.73920874, 64.93938907, -85.45665829, 60.24213103, -26.40466624, 7.80012531, -1.45310477)
-
-
-@njit(inline="always", fastmath=True)
-def _cis_turns(t):
-    """(cos 2 pi t, sin 2 pi t) for t >= -1/2 (turns), without libm calls."""
-    r = t - int(t + 0.5)
-    r2 = r * r
-    s = r * (_SIN_C[0] + r2 * (_SIN_C[1] + r2 * (_SIN_C[2] + r2 * (_SIN_C[3] + r2 * (_SIN_C[4] + r2 * (_SIN_C[5] + r2 * _SIN_C[6]))))))
-    c = _COS_C[0] + r2 * (_COS_C[1] + r2 * (_COS_C[2] + r2 * (_COS_C[3] + r2 * (_COS_C[4] + r2 * (_COS_C[5] + r2 * (_COS_C[6] + r2 * _COS_C[7]))))))
-    return c, s
-
 
 @njit(inline="always", fastmath=True)
 def _accumulate_channel(pr, pi, ex, ey, ez, px, py, pz, r0, inv_dr, turns_per_m, qmax, out_re, out_im, p_lo, p_hi, idx, frac, cos_buf, sin_buf):
@@ -73,7 +58,7 @@ def _accumulate_channel(pr, pi, ex, ey, ez, px, py, pz, r0, inv_dr, turns_per_m,
         i = np.int32(u)
         idx[q] = i
         frac[q] = u - i
-        c, s = _cis_turns(rel * turns_per_m)
+        c, s = cis_turns(rel * turns_per_m)
         cos_buf[q] = c
         sin_buf[q] = s
     for q in range(n):
@@ -150,20 +135,6 @@ def _check_inputs(data: np.ndarray, positions: np.ndarray, chirp: Chirp) -> None
         raise TwinFocusError("data hold NaN or inf")
 
 
-def range_window(positions_m: np.ndarray, points_m: np.ndarray, margin_m: float) -> tuple[float, float]:
-    """Smallest and largest distance between any phase centre and the bounding box of ``points_m``.
-
-    positions_m : (..., 3); points_m : (P, 3). Returns (r_min, r_max) in metres, widened by margin.
-    """
-    e = positions_m.reshape(-1, 3)
-    lo, hi = points_m.min(axis=0), points_m.max(axis=0)
-    nearest = np.clip(e, lo, hi)
-    r_min = np.sqrt(((nearest - e) ** 2).sum(axis=1)).min()
-    far = np.where(np.abs(e - lo) > np.abs(e - hi), lo, hi)
-    r_max = np.sqrt(((far - e) ** 2).sum(axis=1)).max()
-    return max(r_min - margin_m, 0.0), r_max + margin_m
-
-
 def prepare_profiles(
     data: np.ndarray,
     positions_m: np.ndarray,
@@ -181,10 +152,8 @@ def prepare_profiles(
     if oversample < 1:
         raise TwinFocusError(f"oversample must be >= 1, got {oversample}")
     dr = chirp.range_resolution_m / oversample
-    r_min, r_max = range_window(positions_m, points_m, margin_m=2 * dr)
-    # Snap the window to a global grid so a basis built batch by batch equals a whole-scan one.
-    r_min = np.floor(r_min / dr) * dr
-    q = int(np.ceil((r_max - r_min) / dr)) + 2
+    # On the global lattice dr * integer: a basis built batch by batch equals a whole-scan one.
+    r_min, q = range_lattice(positions_m, points_m, dr, margin_m=2 * dr)
     ranges = r_min + dr * np.arange(q)
     prof = range_profiles_at(data.reshape(-1, data.shape[-1]), chirp, ranges)
     turns0 = 2.0 * chirp.fc_hz * r_min / C_M_PER_S
@@ -193,21 +162,32 @@ def prepare_profiles(
     return prof.real.astype(dtype), prof.imag.astype(dtype), float(r_min), float(dr)
 
 
-def _local_frame(positions_m: np.ndarray, points_m: np.ndarray, dtype) -> tuple[np.ndarray, np.ndarray]:
-    """Shift both point sets to the image centre (in float64) before casting: distances then keep
-    float32 precision even far from the origin."""
-    origin = points_m.mean(axis=0)
-    return (positions_m - origin).astype(dtype), (points_m - origin).astype(dtype)
-
-
 def _normalise_precision(precision: str):
     if precision not in ("float32", "float64"):
         raise TwinFocusError(f"precision must be 'float32' or 'float64', got {precision!r}")
     return np.float32 if precision == "float32" else np.float64
 
 
-def _turns_per_m(chirp: Chirp) -> float:
-    return 2.0 * chirp.fc_hz / C_M_PER_S
+def _dispatch(numba_impl, data, positions_m, chirp: Chirp, points_m, oversample, precision, backend, device, progress, basis: bool):
+    """What :func:`backproject_points` and :func:`subimage_basis_points` share: convert and check
+    the inputs, then run the torch back-end (``basis`` picks image or basis) or
+    ``numba_impl(data, pos, pts, dtype, chirp, oversample, progress)`` with positions and points
+    in the local frame (:func:`~twinfocus.range_geometry.local_frame`) as ``dtype``."""
+    data = np.asarray(data)
+    positions_m = np.asarray(positions_m, dtype=np.float64)
+    points_m = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    _check_inputs(data, positions_m, chirp)
+    dtype = _normalise_precision(precision)
+    if backend == "torch":
+        from twinfocus.backprojection_torch import backproject_points_torch
+
+        return backproject_points_torch(
+            data, positions_m, chirp, points_m, oversample=oversample, precision=precision, device=device, basis=basis
+        )
+    if backend != "numba":
+        raise TwinFocusError(f"unknown back-projection backend {backend!r}; use 'numba' or 'torch'")
+    pos, pts = local_frame(positions_m, points_m, dtype)
+    return numba_impl(data, pos, pts, dtype, chirp, oversample, progress)
 
 
 # --- public API --------------------------------------------------------------------------------
@@ -239,20 +219,11 @@ def backproject_points(
     -------
     complex64 (P,) sum over positions and channels of the matched filter (unnormalised).
     """
-    data = np.asarray(data)
-    positions_m = np.asarray(positions_m, dtype=np.float64)
-    points_m = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
-    _check_inputs(data, positions_m, chirp)
-    dtype = _normalise_precision(precision)
-    if backend == "torch":
-        from twinfocus.backprojection_torch import backproject_points_torch
+    return _dispatch(_image_numba, data, positions_m, chirp, points_m, oversample, precision, backend, device, progress, basis=False)
 
-        return backproject_points_torch(
-            data, positions_m, chirp, points_m, oversample=oversample, precision=precision, device=device, basis=False
-        )
-    if backend != "numba":
-        raise TwinFocusError(f"unknown back-projection backend {backend!r}; use 'numba' or 'torch'")
-    pos, pts = _local_frame(positions_m, points_m, dtype)
+
+def _image_numba(data, pos, pts, dtype, chirp: Chirp, oversample: int, progress: ProgressFn | None) -> np.ndarray:
+    """The numba path of :func:`backproject_points` (inputs checked, in the local frame)."""
     out_re = np.zeros(pts.shape[0], dtype)
     out_im = np.zeros(pts.shape[0], dtype)
     # Pixel blocks of at most 4096 (cache-resident), in a multiple of the thread count so no
@@ -269,7 +240,7 @@ def backproject_points(
         part_re = np.empty_like(out_re)
         part_im = np.empty_like(out_im)
         _image_kernel(pre, pim, pos[lo:hi], pts[:, 0].copy(), pts[:, 1].copy(), pts[:, 2].copy(),
-                      dtype(r0), dtype(1.0 / dr), dtype(_turns_per_m(chirp)), block, part_re, part_im)
+                      dtype(r0), dtype(1.0 / dr), dtype(turns_per_m(chirp)), block, part_re, part_im)
         out_re += part_re
         out_im += part_im
         if progress is not None:
@@ -294,20 +265,11 @@ def subimage_basis_points(
     ``basis.sum(axis=0)`` equals :func:`backproject_points`; the autofocus forms
     |sum_m exp(j phi_m) B_m| from it.
     """
-    data = np.asarray(data)
-    positions_m = np.asarray(positions_m, dtype=np.float64)
-    points_m = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
-    _check_inputs(data, positions_m, chirp)
-    dtype = _normalise_precision(precision)
-    if backend == "torch":
-        from twinfocus.backprojection_torch import backproject_points_torch
+    return _dispatch(_basis_numba, data, positions_m, chirp, points_m, oversample, precision, backend, device, progress, basis=True)
 
-        return backproject_points_torch(
-            data, positions_m, chirp, points_m, oversample=oversample, precision=precision, device=device, basis=True
-        )
-    if backend != "numba":
-        raise TwinFocusError(f"unknown back-projection backend {backend!r}; use 'numba' or 'torch'")
-    pos, pts = _local_frame(positions_m, points_m, dtype)
+
+def _basis_numba(data, pos, pts, dtype, chirp: Chirp, oversample: int, progress: ProgressFn | None) -> np.ndarray:
+    """The numba path of :func:`subimage_basis_points` (inputs checked, in the local frame)."""
     n_pos = data.shape[0]
     out = np.empty((n_pos, pts.shape[0]), np.complex64)
     px, py, pz = pts[:, 0].copy(), pts[:, 1].copy(), pts[:, 2].copy()
@@ -317,7 +279,7 @@ def subimage_basis_points(
         pre, pim, r0, dr = prepare_profiles(data[lo:hi], pos[lo:hi].astype(np.float64), chirp, pts.astype(np.float64), oversample, dtype)
         o_re = np.zeros((hi - lo, pts.shape[0]), dtype)
         o_im = np.zeros((hi - lo, pts.shape[0]), dtype)
-        _basis_kernel(pre, pim, pos[lo:hi], px, py, pz, dtype(r0), dtype(1.0 / dr), dtype(_turns_per_m(chirp)), o_re, o_im)
+        _basis_kernel(pre, pim, pos[lo:hi], px, py, pz, dtype(r0), dtype(1.0 / dr), dtype(turns_per_m(chirp)), o_re, o_im)
         out[lo:hi].real = o_re
         out[lo:hi].imag = o_im
         if progress is not None:

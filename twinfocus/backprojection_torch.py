@@ -9,8 +9,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from twinfocus.backprojection import DEFAULT_OVERSAMPLE, _local_frame, _turns_per_m, range_window
+from twinfocus.backprojection import DEFAULT_OVERSAMPLE
 from twinfocus.radar import Chirp, range_kernel
+from twinfocus.range_geometry import local_frame, range_lattice, turns_per_m
 
 
 def default_device() -> str:
@@ -34,15 +35,14 @@ def backproject_points_torch(
     real = torch.float32 if precision == "float32" else torch.float64
     cplx = torch.complex64 if precision == "float32" else torch.complex128
     np_real = np.float32 if precision == "float32" else np.float64
-    pos, pts = _local_frame(positions_m, points_m, np_real)
+    pos, pts = local_frame(positions_m, points_m, np_real)
     n_pos, n_ch = data.shape[:2]
     dr = chirp.range_resolution_m / oversample
-    r0, r1 = range_window(pos.astype(np.float64), pts.astype(np.float64), margin_m=2 * dr)
-    r0 = np.floor(r0 / dr) * dr  # same global range grid as the numba back-end
-    q = int(np.ceil((r1 - r0) / dr)) + 2
-    turns_per_m = _turns_per_m(chirp)
+    # The same range lattice as the numba back-end (prepare_profiles).
+    r0, q = range_lattice(pos.astype(np.float64), pts.astype(np.float64), dr, margin_m=2 * dr)
+    tpm = turns_per_m(chirp)
     kernel = torch.from_numpy(range_kernel(chirp, r0 + dr * np.arange(q))).to(device=device, dtype=cplx)
-    turns0 = turns_per_m * r0
+    turns0 = tpm * r0
     kernel = kernel * complex(np.exp(-2j * np.pi * (turns0 - np.floor(turns0))))
     pts_t = torch.from_numpy(pts).to(device=device, dtype=real)
     n_pix = pts.shape[0]
@@ -63,7 +63,7 @@ def backproject_points_torch(
         lo_v = torch.gather(prof, 1, i)
         hi_v = torch.gather(prof, 1, i + 1)
         v = lo_v + f * (hi_v - lo_v)
-        turns = rel * turns_per_m
+        turns = rel * tpm
         mf = v * torch.polar(torch.ones_like(turns), -2.0 * np.pi * (turns - torch.round(turns)))
         per_pos = mf.reshape(hi - lo, n_ch, n_pix).sum(1)
         if basis:

@@ -1,4 +1,7 @@
-"""Offline focusing of one scan: the steps behind ``twinfocus focus``.
+"""Offline focusing of one scan: the steps behind ``twinfocus focus`` and the solver node.
+
+:func:`focus_scan` does steps 1-4 on a scan; :func:`focus_bases` does steps 3-4 on bases built
+elsewhere (the solver node builds them batch by batch as measurements arrive).
 
 1. sub-image bases of the reference and target regions (one back-projection each);
 2. the reference template (file, motion-stage scan, digital twin) — or none for the baselines;
@@ -30,6 +33,7 @@ from twinfocus.autofocus import (
 from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
+from twinfocus.radar import Chirp
 from twinfocus.scan import Scan
 from twinfocus.templates import check_has_signal
 
@@ -58,6 +62,13 @@ class FocusOutputs:
     config: dict = field(default_factory=dict)
 
 
+def _check_method(method: str, template: np.ndarray | None) -> None:
+    if method not in METHODS:
+        raise TwinFocusError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    if method == "twin" and template is None:
+        raise TwinFocusError("the twin method needs a template (--template, --template-scan or --digital-twin)")
+
+
 def focus_scan(
     scan: Scan,
     reference_grid: ImageGrid,
@@ -71,22 +82,15 @@ def focus_scan(
     remove_phase_ramp: bool = True,
     tracking_error_m: float = 0.5e-3,
 ) -> FocusOutputs:
-    """Run the offline focusing steps on a validated scan.
+    """Run the offline focusing steps on a validated scan: the two sub-image bases (and the
+    truth images when the scan carries ``positions_true``), then :func:`focus_bases`.
 
-    template : float (H, W) amplitude on ``reference_grid`` (required for ``method="twin"``).
-    remove_phase_ramp : transfer the estimated phase without its best constant + linear-in-
-        aperture ramp (:func:`twinfocus.autofocus.fit_linear_phase`). That ramp only moves the
-        image; a template placed off by a millimetre pulls one in, and transferring it would shift
-        the target. False transfers the optimiser's phase as is (the source paper).
-    tracking_error_m : the tracker's position error magnitude assumed by the confidence report.
-    progress_factory : ``label -> progress callable`` (see :class:`twinfocus.progress.Progress`).
+    bp_options : keywords of :func:`twinfocus.backprojection.subimage_basis` (oversample,
+        precision, backend, device). Other arguments as :func:`focus_bases`.
     """
-    if method not in METHODS:
-        raise TwinFocusError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    if method == "twin" and template is None:
-        raise TwinFocusError("the twin method needs a template (--template, --template-scan or --digital-twin)")
-    cfg = config or AutofocusConfig()
-    cfg.validate()
+    _check_method(method, template)
+    if config is not None:  # a bad configuration fails before the back-projections
+        config.validate()
     bp = dict(bp_options or {})
     prog = progress_factory or (lambda label: None)
     timings: dict[str, float] = {}
@@ -94,15 +98,93 @@ def focus_scan(
     t = time.perf_counter()
     ref_basis = subimage_basis(scan.data, scan.positions, scan.chirp, reference_grid, progress=prog("reference basis"), **bp)
     timings["reference_basis"] = time.perf_counter() - t
-    ref_unc = ref_basis.sum(axis=0)
-    check_has_signal(ref_unc, "the reference region")
+    # Fail before the second back-projection, not after it (focus_bases checks these again).
+    check_has_signal(ref_basis.sum(axis=0), "the reference region")
     if template is not None:
         check_has_signal(template, "the template")
 
     t = time.perf_counter()
     tgt_basis = subimage_basis(scan.data, scan.positions, scan.chirp, target_grid, progress=prog("target basis"), **bp)
     timings["target_basis"] = time.perf_counter() - t
+
+    truth_tgt = truth_ref = None
+    if scan.positions_true is not None:
+        t = time.perf_counter()
+        truth_tgt = backproject(scan.data, scan.positions_true, scan.chirp, target_grid, progress=prog("target truth"), **bp)
+        truth_ref = backproject(scan.data, scan.positions_true, scan.chirp, reference_grid, progress=prog("reference truth"), **bp)
+        truth_time = time.perf_counter() - t
+
+    out = focus_bases(
+        ref_basis, tgt_basis, scan.positions, scan.chirp, reference_grid, target_grid,
+        template=template, method=method, config=config, bp_options=bp, progress_factory=progress_factory,
+        remove_phase_ramp=remove_phase_ramp, tracking_error_m=tracking_error_m,
+        truth_target=truth_tgt, truth_reference=truth_ref, positions_true=scan.positions_true,
+    )
+    timings.update(out.timings_s)
+    if truth_tgt is not None:
+        timings["truth_images"] = truth_time
+    out.timings_s = timings
+    out.metrics["timings_s"] = timings
+    return out
+
+
+def focus_bases(
+    ref_basis: np.ndarray,
+    tgt_basis: np.ndarray,
+    positions: np.ndarray,
+    chirp: Chirp,
+    reference_grid: ImageGrid,
+    target_grid: ImageGrid,
+    *,
+    template: np.ndarray | None = None,
+    method: str = "twin",
+    config: AutofocusConfig | None = None,
+    bp_options: dict | None = None,
+    progress_factory=None,
+    remove_phase_ramp: bool = True,
+    tracking_error_m: float = 0.5e-3,
+    truth_target: np.ndarray | None = None,
+    truth_reference: np.ndarray | None = None,
+    positions_true: np.ndarray | None = None,
+) -> FocusOutputs:
+    """The focusing steps that follow the sub-image bases: autofocus, transfer, metrics.
+
+    Shared by ``twinfocus focus`` (:func:`focus_scan`) and the solver node (bases streamed batch
+    by batch), so both give the same phase, images and metrics keys.
+
+    ref_basis, tgt_basis : complex (M, H, W) sub-image bases of the reference and target regions
+        (:func:`twinfocus.backprojection.subimage_basis`) on ``reference_grid`` / ``target_grid``.
+    positions : float64 (M, K, 3) tracked phase centres, metres (the ramp fit, the confidence
+        report); chirp : the scan's :class:`~twinfocus.radar.Chirp`.
+    template : float (H, W) amplitude, or complex (H, W) image with its phase, on
+        ``reference_grid`` (required for ``method="twin"``; the phase is what
+        ``config.template_registration`` / ``config.init="correlation"`` need).
+    method : ``"twin"`` (reference vs template), ``"sharpness"`` (of the target) or ``"none"``.
+    config : :class:`~twinfocus.autofocus.AutofocusConfig`, handed to the autofocus as is.
+    bp_options : the back-projection options the bases were built with (recorded in ``config``).
+    remove_phase_ramp : transfer the estimated phase without its best constant + linear-in-
+        aperture ramp (:func:`twinfocus.autofocus.fit_linear_phase`). That ramp only moves the
+        image; a template placed off by a millimetre pulls one in, and transferring it would shift
+        the target. False transfers the optimiser's phase as is (the source paper).
+    tracking_error_m : the tracker's position error magnitude assumed by the confidence report.
+    progress_factory : ``label -> progress callable`` (see :class:`twinfocus.progress.Progress`).
+    truth_target, truth_reference : complex (H, W) images formed on the true positions, and
+        positions_true : float64 (M, K, 3); with all three the metrics include the SSIMs
+        against the truth and the phase error against the oracle phase.
+
+    Returns :class:`FocusOutputs` (``timings_s`` holds ``autofocus``; ``metrics`` has no
+    ``timings_s``: the caller adds its own).
+    """
+    _check_method(method, template)
+    cfg = config or AutofocusConfig()
+    cfg.validate()
+    bp = dict(bp_options or {})
+    prog = progress_factory or (lambda label: None)
+    ref_unc = ref_basis.sum(axis=0)
     tgt_unc = tgt_basis.sum(axis=0)
+    check_has_signal(ref_unc, "the reference region")
+    if template is not None:
+        check_has_signal(template, "the template")
 
     t = time.perf_counter()
     if method == "twin":
@@ -111,13 +193,19 @@ def focus_scan(
         result = sharpness_autofocus(tgt_basis, cfg, progress=prog("sharpness autofocus"))
     else:
         result = no_correction(ref_basis)
-    timings["autofocus"] = time.perf_counter() - t
+    timings = {"autofocus": time.perf_counter() - t}
 
     phase = result.phase_rad
-    m: dict = {"method": method, "n_positions": scan.n_positions, "n_channels": scan.n_channels,
+    m: dict = {"method": method, "n_positions": int(positions.shape[0]), "n_channels": int(positions.shape[1]),
                "phase_ramp_removed": bool(remove_phase_ramp and method != "none")}
+    if method == "twin":
+        m["estimator"] = {"init": cfg.init, "template_registration": cfg.template_registration, "iterations": int(cfg.iterations)}
+        if "registration" in result.extra:
+            m["template_registration"] = result.extra["registration"]
+        # metrics and pictures against the template the phases were fitted to (moved when registered)
+        template = result.extra.get("template", template)
     if remove_phase_ramp and method != "none":
-        ramp, coeffs = fit_linear_phase(phase, scan.positions.mean(axis=1)[:, :2])
+        ramp, coeffs = fit_linear_phase(phase, positions.mean(axis=1)[:, :2])
         phase = np.angle(np.exp(1j * (phase - ramp)))
         m["phase_ramp_rad_per_m"] = coeffs[1:].tolist()
     ref_cor = form_image(ref_basis, phase)
@@ -137,27 +225,23 @@ def focus_scan(
         reference_uncorrected=ref_unc,
         target=tgt_cor,
         target_uncorrected=tgt_unc,
-        template=None if template is None else np.asarray(template, np.float32),
+        template=None if template is None else np.abs(template).astype(np.float32),
         loss_history=result.loss_history,
         metrics=m,
         timings_s=timings,
         config={**cfg.to_dict(), **{f"bp_{k}": v for k, v in bp.items()}},
     )
-    m["confidence"] = confidence_report(m, scan, reference_grid, target_grid, tracking_error_m)
-    if scan.positions_true is not None:
-        t = time.perf_counter()
-        out.target_truth = backproject(scan.data, scan.positions_true, scan.chirp, target_grid, progress=prog("target truth"), **bp)
-        out.reference_truth = backproject(scan.data, scan.positions_true, scan.chirp, reference_grid, progress=prog("reference truth"), **bp)
-        timings["truth_images"] = time.perf_counter() - t
-        out.phase_oracle_rad = metrics.oracle_phase(scan.positions_true, scan.positions, target_grid.centre_m, scan.chirp)
-        m["target_ssim_uncorrected"] = metrics.image_ssim(tgt_unc, out.target_truth, centre, steep)
-        m["target_ssim_corrected"] = metrics.image_ssim(tgt_cor, out.target_truth, centre, steep)
-        m["target_ssim_oracle_phase"] = metrics.image_ssim(form_image(tgt_basis, out.phase_oracle_rad), out.target_truth, centre, steep)
-        m["reference_ssim_uncorrected"] = metrics.image_ssim(ref_unc, out.reference_truth, centre, steep)
-        m["reference_ssim_corrected"] = metrics.image_ssim(ref_cor, out.reference_truth, centre, steep)
+    m["confidence"] = confidence_report(m, positions, chirp, reference_grid, target_grid, tracking_error_m)
+    if truth_target is not None and truth_reference is not None and positions_true is not None:
+        out.target_truth, out.reference_truth = truth_target, truth_reference
+        out.phase_oracle_rad = metrics.oracle_phase(positions_true, positions, target_grid.centre_m, chirp)
+        m["target_ssim_uncorrected"] = metrics.image_ssim(tgt_unc, truth_target, centre, steep)
+        m["target_ssim_corrected"] = metrics.image_ssim(tgt_cor, truth_target, centre, steep)
+        m["target_ssim_oracle_phase"] = metrics.image_ssim(form_image(tgt_basis, out.phase_oracle_rad), truth_target, centre, steep)
+        m["reference_ssim_uncorrected"] = metrics.image_ssim(ref_unc, truth_reference, centre, steep)
+        m["reference_ssim_corrected"] = metrics.image_ssim(ref_cor, truth_reference, centre, steep)
         m["phase_error_rms_rad_vs_oracle"] = metrics.phase_error_rms(phase, out.phase_oracle_rad)
         m["phase_error_rms_rad_uncorrected"] = metrics.phase_error_rms(np.zeros_like(phase), out.phase_oracle_rad)
-    m["timings_s"] = timings
     return out
 
 
@@ -165,12 +249,16 @@ def focus_scan(
 MIN_REFERENCE_MATCH = 0.8
 
 
-def confidence_report(m: dict, scan: Scan, reference_grid: ImageGrid, target_grid: ImageGrid, tracking_error_m: float) -> dict:
+def confidence_report(m: dict, positions: np.ndarray, chirp: Chirp, reference_grid: ImageGrid, target_grid: ImageGrid,
+                      tracking_error_m: float) -> dict:
     """How far to trust the correction of this scan: the reference match, the first-order
-    transfer bound for this geometry (paper eq. 7) and warnings when either is poor."""
-    bound = metrics.transfer_bound_rad(scan.positions, reference_grid.centre_m, target_grid.centre_m,
-                                       scan.chirp.wavelength_m, tracking_error_m)
-    centre = scan.positions.reshape(-1, 3).mean(axis=0)
+    transfer bound for this geometry (paper eq. 7) and warnings when either is poor.
+
+    m : the metrics so far (reads ``reference_ssim_vs_template_corrected``); positions : float64
+    (M, K, 3) phase centres, metres."""
+    bound = metrics.transfer_bound_rad(positions, reference_grid.centre_m, target_grid.centre_m,
+                                       chirp.wavelength_m, tracking_error_m)
+    centre = positions.reshape(-1, 3).mean(axis=0)
     sep = np.degrees(np.arccos(np.clip(np.dot(
         (reference_grid.centre_m - centre) / np.linalg.norm(reference_grid.centre_m - centre),
         (target_grid.centre_m - centre) / np.linalg.norm(target_grid.centre_m - centre)), -1, 1)))
@@ -192,6 +280,12 @@ def confidence_report(m: dict, scan: Scan, reference_grid: ImageGrid, target_gri
         out["warnings"].append(
             f"the corrected reference matches its template poorly (SSIM {match:.2f} < {MIN_REFERENCE_MATCH}); "
             "check the template, the reference region and the template's placement"
+        )
+    reg = m.get("template_registration")
+    if reg and reg.get("at_limit"):
+        out["warnings"].append(
+            f"the template registration stopped at its search limit (shift {reg['shift_px'][0]:+.1f}, "
+            f"{reg['shift_px'][1]:+.1f} px): the template is placed farther off than that; check its placement"
         )
     out["trusted"] = not out["warnings"]
     return out

@@ -42,9 +42,9 @@ from typing import Callable
 
 import numpy as np
 
-from twinfocus.backprojection import _cis_turns, range_window
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import C_M_PER_S, Chirp
+from twinfocus.range_geometry import cis_turns, range_lattice, range_window, turns_per_m
 
 try:
     from numba import njit, prange
@@ -157,7 +157,7 @@ def _spread_kernel(pos, px, py, pz, a_re, a_im, turns_per_m, r0, inv_step, n_ter
             b = np.int32(u + 0.5)
             b_buf[j] = b
             x_buf[j] = 2.0 * (u - b)
-            c, s = _cis_turns(r * turns_per_m)
+            c, s = cis_turns(r * turns_per_m)
             c_re[j] = a_re[j] * c - a_im[j] * s
             c_im[j] = a_re[j] * s + a_im[j] * c
         row = out[e]
@@ -278,7 +278,7 @@ def simulate_if(
     px, py, pz = (np.ascontiguousarray(p[:, i]) for i in range(3))
     a_re = np.ascontiguousarray(a.real)
     a_im = np.ascontiguousarray(a.imag)
-    turns_per_m = 2.0 * chirp.fc_hz / C_M_PER_S
+    carrier_turns_per_m = turns_per_m(chirp)
 
     if chunk_positions is None:
         lo, hi = range_window(e, p, margin_m=step)
@@ -290,13 +290,11 @@ def simulate_if(
     for m0 in range(0, m_total, chunk_positions):
         m1 = min(m_total, m0 + chunk_positions)
         el = np.ascontiguousarray(e[m0:m1].reshape(-1, 3))
-        r_lo, r_hi = range_window(el, p, margin_m=step)
         # Nodes on the lattice step * integer, whatever the chunk: the result does not depend on
         # how the positions are chunked.
-        r_lo = step * np.floor(r_lo / step)
-        n_bins = int(np.ceil((r_hi - r_lo) / step)) + 2
+        r_lo, n_bins = range_lattice(el, p, step, margin_m=step)
         h = np.zeros((el.shape[0], 2 * n_bins * n_terms))  # interleaved (re, im)
-        _spread_kernel(el, px, py, pz, a_re, a_im, turns_per_m, r_lo, 1.0 / step, n_terms, h)
+        _spread_kernel(el, px, py, pz, a_re, a_im, carrier_turns_per_m, r_lo, 1.0 / step, n_terms, h)
         h = h.view(np.complex128).astype(np.complex64)
         out[m0:m1] = (h @ _basis(chirp, r_lo, step, n_bins, n_terms)).reshape(m1 - m0, k, n)
         if progress is not None:

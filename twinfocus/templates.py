@@ -1,8 +1,10 @@
 """Reference templates: the focused amplitude of the reference on the reference grid.
 
 Template file (``.npz``, DESIGN.md section 4): ``image`` float32 (H, W) amplitude, ``x_m`` (W,),
-``y_m`` (H,), ``z_m`` scalar. A template made on another grid is resampled (bilinear) onto the
-reference grid; one that does not cover it is refused.
+``y_m`` (H,), ``z_m`` scalar, and optionally ``phase_rad`` float32 (H, W): the phase of a physical
+twin's image, which lets autofocus register the template and estimate the phases in closed form
+(:mod:`twinfocus.template_match`). A template made on another grid is resampled (bilinear, on the
+complex image when it has a phase) onto the reference grid; one that does not cover it is refused.
 """
 from __future__ import annotations
 
@@ -17,16 +19,21 @@ from twinfocus.grid import ImageGrid
 from twinfocus.scan import Scan, load_npz, save_npz_atomic
 
 
-def save_template(path: str | os.PathLike, amplitude: np.ndarray, grid: ImageGrid) -> None:
-    """Write a template file for ``grid``."""
-    amplitude = np.abs(np.asarray(amplitude)).astype(np.float32)
-    if amplitude.shape != grid.shape:
-        raise TwinFocusError(f"template image is {amplitude.shape}, grid is {grid.shape}")
-    save_npz_atomic(path, {"image": amplitude, "x_m": grid.x_m, "y_m": grid.y_m, "z_m": np.float64(grid.z)})
+def save_template(path: str | os.PathLike, image: np.ndarray, grid: ImageGrid) -> None:
+    """Write a template file for ``grid``: a float image is stored as the amplitude, a complex one
+    as amplitude and ``phase_rad``."""
+    image = np.asarray(image)
+    if image.shape != grid.shape:
+        raise TwinFocusError(f"template image is {image.shape}, grid is {grid.shape}")
+    arrays = {"image": np.abs(image).astype(np.float32), "x_m": grid.x_m, "y_m": grid.y_m, "z_m": np.float64(grid.z)}
+    if np.iscomplexobj(image):
+        arrays["phase_rad"] = np.angle(image).astype(np.float32)
+    save_npz_atomic(path, arrays)
 
 
 def load_template(path: str | os.PathLike, grid: ImageGrid, z_tolerance_m: float = 0.01) -> np.ndarray:
-    """Read a template file and resample it onto ``grid``: float32 (H, W)."""
+    """Read a template file and resample it onto ``grid``: float32 (H, W), or complex64 (H, W)
+    when the file holds ``phase_rad``."""
     z = load_npz(path)
     missing = [k for k in ("image", "x_m", "y_m", "z_m") if k not in z]
     if missing:
@@ -48,20 +55,32 @@ def load_template(path: str | os.PathLike, grid: ImageGrid, z_tolerance_m: float
             f"{path}: template covers x [{x[0]:.3f}, {x[-1]:.3f}] y [{y[0]:.3f}, {y[-1]:.3f}] m, "
             f"which does not contain the reference region x [{grid.x0}, {grid.x1}] y [{grid.y0}, {grid.y1}]"
         )
-    amp = np.abs(image).astype(np.float64)
+    img = np.abs(image).astype(np.float64)
+    if "phase_rad" in z:
+        phase = np.asarray(z["phase_rad"], dtype=np.float64)
+        if phase.shape != img.shape or not np.isfinite(phase).all():
+            raise TwinFocusError(f"{path}: phase_rad must be finite and of the image's shape {img.shape}, got {phase.shape}")
+        img = img * np.exp(1j * phase)
+    out_dtype = np.complex64 if np.iscomplexobj(img) else np.float32
     if x.shape == grid.x_m.shape and y.shape == grid.y_m.shape and np.allclose(x, grid.x_m) and np.allclose(y, grid.y_m):
-        return amp.astype(np.float32)
+        return img.astype(out_dtype)
     cols = np.interp(grid.x_m, x, np.arange(x.size))
     rows = np.interp(grid.y_m, y, np.arange(y.size))
     rr, cc = np.meshgrid(rows, cols, indexing="ij")
-    return map_coordinates(amp, [rr, cc], order=1, mode="nearest").astype(np.float32)
+    if np.iscomplexobj(img):
+        out = map_coordinates(img.real, [rr, cc], order=1, mode="nearest") + 1j * map_coordinates(img.imag, [rr, cc], order=1, mode="nearest")
+    else:
+        out = map_coordinates(img, [rr, cc], order=1, mode="nearest")
+    return out.astype(out_dtype)
 
 
-def template_from_scan(scan: Scan, grid: ImageGrid, **bp_options) -> np.ndarray:
-    """Physical twin: the amplitude of a scan taken on accurate positions (a motion-stage capture
-    of the reference alone), back-projected on the reference grid. float32 (H, W)."""
+def template_from_scan(scan: Scan, grid: ImageGrid, keep_phase: bool = False, **bp_options) -> np.ndarray:
+    """Physical twin: a scan taken on accurate positions (a motion-stage capture of the reference
+    alone), back-projected on the reference grid: its amplitude, float32 (H, W), or with
+    ``keep_phase`` the complex image, complex64 (H, W)."""
     positions = scan.positions_true if scan.positions_true is not None else scan.positions
-    return np.abs(backproject(scan.data, positions, scan.chirp, grid, **bp_options)).astype(np.float32)
+    image = backproject(scan.data, positions, scan.chirp, grid, **bp_options)
+    return image.astype(np.complex64) if keep_phase else np.abs(image).astype(np.float32)
 
 
 def check_has_signal(amplitude: np.ndarray, what: str, min_peak_to_median: float = 4.0) -> None:

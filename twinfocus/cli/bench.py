@@ -1,8 +1,10 @@
 """``twinfocus bench paper``: the source paper's evaluation in simulation, the speed/accuracy trade
-and the limits, written as a report folder (markdown, PNG figures, raw JSON).
+and the limits, written as a report folder (markdown, PNG figures, raw JSON); ``twinfocus bench
+beyond``: the improvements of the twin estimate beyond the paper, one row each.
 
     twinfocus bench paper [--quick] [--out DIR] [--draws N] [--only EXPERIMENTS] [--markdown FILE] [--resume]
     twinfocus bench paper --report-only [--out DIR] [--markdown FILE]
+    twinfocus bench beyond [--quick] [--out DIR] [--draws N] [--markdown FILE] [--resume] [--report-only]
 """
 from __future__ import annotations
 
@@ -12,16 +14,17 @@ import sys
 
 from twinfocus.errors import TwinFocusError
 
-SUITES = ("paper",)
+SUITES = ("paper", "beyond")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from twinfocus.evaluation.experiments import EXPERIMENT_NAMES
 
-    p.add_argument("suite", choices=SUITES, help="what to run: 'paper' (the source paper's evaluation)")
+    p.add_argument("suite", choices=SUITES, help="what to run: 'paper' (the source paper's evaluation) or 'beyond' "
+                   "(the twin estimate's improvements beyond the paper, docs/beyond.md)")
     p.add_argument("--quick", action="store_true",
                    help="smoke run: two baseline pairs and two tracking errors on small scans (240 positions, 32 x 32, 60 iterations)")
-    p.add_argument("--out", default="bench_paper", help="report folder (default bench_paper/)")
+    p.add_argument("--out", default=None, help="report folder (default bench_<suite>/)")
     p.add_argument("--draws", type=int, default=None,
                    help="tracking-error draws per pair and condition for every experiment (default 1; the paper used 5)")
     p.add_argument("--only", default="",
@@ -37,13 +40,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from twinfocus.evaluation.beyond import run_beyond, write_beyond_report
     from twinfocus.evaluation.report import write_report
     from twinfocus.evaluation.runner import run_paper
 
+    args.out = args.out or f"bench_{args.suite}"
+    if args.suite == "beyond" and (args.only or args.trade_scenes is not None):
+        raise TwinFocusError("--only and --trade-scenes apply to the 'paper' suite only")
     if args.report_only:
         if not (Path(args.out) / "raw").is_dir():
             raise TwinFocusError(f"--report-only: {Path(args.out) / 'raw'} holds no raw results; run the benchmark first")
-        print(write_report(args.out, args.markdown))
+        print((write_beyond_report if args.suite == "beyond" else write_report)(args.out, args.markdown))
         return 0
     only = [s.strip() for s in args.only.split(",") if s.strip()] or None
     if args.device.startswith("cuda"):
@@ -56,6 +63,10 @@ def run(args: argparse.Namespace) -> int:
     command = "twinfocus bench " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["bench"] else None
     log = (lambda msg: None) if args.quiet else None
     kw = {} if log is None else {"log": log}
+    if args.suite == "beyond":
+        print(run_beyond(args.out, draws=args.draws or 1, quick=args.quick, resume=args.resume, markdown=args.markdown,
+                         device=args.device, command=command, **kw))
+        return 0
     md = run_paper(args.out, quick=args.quick, draws=args.draws, only=only, resume=args.resume, markdown=args.markdown,
                    device=args.device, trade_scenes=args.trade_scenes, command=command, **kw)
     print(md)

@@ -100,6 +100,7 @@ def _write_mcap(path: Path, scan, radar_traj, array, chirp, extrinsics, scan_id:
 
     from msgs import Header, Pose, RadarFrame
     from msgs.mcap_log import LogWriter
+    from nodes.recorder import radar_metadata
 
     t0, t1 = int(scan.timestamps_ns[0]), int(scan.timestamps_ns[-1])
     in_span = np.flatnonzero((radar_traj.timestamps_ns >= t0) & (radar_traj.timestamps_ns <= t1))
@@ -107,18 +108,23 @@ def _write_mcap(path: Path, scan, radar_traj, array, chirp, extrinsics, scan_id:
     events += [(int(scan.timestamps_ns[m]), 1, "radar/frame", m) for m in range(scan.n_positions)]
     events.sort()
     seq = {"vio/pose": 0, "radar/frame": 0}
+
+    def radar_frame(stamp: int, i: int) -> RadarFrame:
+        return RadarFrame(header=Header(stamp, seq["radar/frame"], "radar"), data=scan.data[i], f0_hz=chirp.f0_hz,
+                          slope_hz_per_s=chirp.slope_hz_per_s, fs_hz=chirp.fs_hz, channel_offsets_m=array.offsets_m,
+                          scan_id=scan_id, index=i, last=i == scan.n_positions - 1)
+
     with LogWriter(path, overwrite=overwrite) as log:
-        log.add_metadata("radar", {"chirp": chirp.to_dict(), "n_channels": array.n_channels, "device": "TI MMWCAS-RF-EVM",
-                                   "scan_id": scan_id})
-        log.add_metadata("calibration", {"T_camera_radar": extrinsics.to_dict()})
+        # The recorder's records (nodes.recorder.radar_metadata; calibration as launch/live.yaml
+        # gives it), so a converted log reads back like a recorded one.
+        log.add_metadata("radar", radar_metadata("radar/frame", radar_frame(int(scan.timestamps_ns[0]), 0)))
+        log.add_metadata("calibration", {"extrinsics": extrinsics.to_dict()})
         for stamp, _, topic, i in events:
             if topic == "vio/pose":
                 conf = 1.0 if radar_traj.confidence is None else float(radar_traj.confidence[i])
                 msg = Pose(header=Header(stamp, seq[topic], "scene"), position_m=radar_traj.position_m[i],
                            quat_xyzw=radar_traj.quat_xyzw[i], confidence=conf, child_frame_id="radar")
             else:
-                msg = RadarFrame(header=Header(stamp, seq[topic], "radar"), data=scan.data[i], f0_hz=chirp.f0_hz,
-                                 slope_hz_per_s=chirp.slope_hz_per_s, fs_hz=chirp.fs_hz, channel_offsets_m=array.offsets_m,
-                                 scan_id=scan_id, index=i, last=i == scan.n_positions - 1)
+                msg = radar_frame(stamp, i)
             seq[topic] += 1
             log.write(topic, msg, log_time_ns=stamp)

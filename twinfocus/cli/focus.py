@@ -34,6 +34,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "linear-in-aperture part, which only moves the image, is removed first")
     p.add_argument("--basis-dtype", choices=["float32", "float16"], default="float32",
                    help="storage of the sub-image basis in the optimiser (float16: ~2x faster, same result)")
+    p.add_argument("--estimator", choices=["auto", "paper", "registered", "correlation", "correlation-refined"], default="auto",
+                   help="how the phases are found from the reference (docs/beyond.md): 'paper' = the optimiser from zero; "
+                        "'registered' = the same after moving the template to where the scan puts the reference; "
+                        "'correlation' = registered + closed-form per-position phase, no optimiser (fastest); "
+                        "'correlation-refined' = that, then the optimiser. The last three need the template's phase "
+                        "(--template-scan, or a template file with phase_rad). auto: correlation when the template "
+                        "has a phase, else paper")
     p.add_argument("--tracking-error-mm", type=float, default=0.5,
                    help="tracker position error assumed by the confidence report (default 0.5 mm)")
     p.add_argument("--no-pictures", action="store_true", help="skip the PNG pictures")
@@ -41,6 +48,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
     import torch
 
     from twinfocus.autofocus import AutofocusConfig
@@ -57,12 +65,6 @@ def run(args: argparse.Namespace) -> int:
         raise TwinFocusError(f"--device {device}: no CUDA device is available")
     ref_grid = ImageGrid.from_roi(args.reference_roi, args.size)
     tgt_grid = ImageGrid.from_roi(args.target_roi, args.size)
-    cfg = AutofocusConfig(
-        iterations=args.iterations, lr=args.lr, lr_min=args.lr_min,
-        threshold_centre=args.threshold_centre, threshold_steepness=args.threshold_steepness,
-        precision=args.precision, basis_dtype=args.basis_dtype, device=device,
-    )
-    cfg.validate()
     bp = {"oversample": args.oversample, "precision": args.precision}
     if device != "cpu":
         bp.update(backend="torch", device=device)
@@ -75,13 +77,28 @@ def run(args: argparse.Namespace) -> int:
         template = load_template(args.template, ref_grid)
     elif args.template_scan:
         tpl_scan = Scan.load(args.template_scan)
-        template = template_from_scan(tpl_scan, ref_grid, progress=progress("template"), **bp)
+        template = template_from_scan(tpl_scan, ref_grid, keep_phase=True, progress=progress("template"), **bp)
     elif args.digital_twin:
         from twinfocus.digital_twin.template import digital_twin_template_from_file
 
         template = digital_twin_template_from_file(args.digital_twin, scan, ref_grid, **bp)
     else:
         method = args.method
+    estimator = args.estimator
+    has_phase = template is not None and np.iscomplexobj(template)
+    if estimator == "auto":
+        estimator = "correlation" if has_phase else "paper"
+    if estimator != "paper" and method == "twin" and not has_phase:
+        raise TwinFocusError(f"--estimator {estimator} needs the template's phase: use --template-scan or a template "
+                             "file with phase_rad (a digital twin's template has none; use --estimator paper)")
+    cfg = AutofocusConfig(
+        iterations=0 if estimator == "correlation" else args.iterations, lr=args.lr, lr_min=args.lr_min,
+        threshold_centre=args.threshold_centre, threshold_steepness=args.threshold_steepness,
+        precision=args.precision, basis_dtype=args.basis_dtype, device=device,
+        template_registration="none" if estimator == "paper" else "correlation",
+        init="correlation" if estimator.startswith("correlation") else "zero",
+    )
+    cfg.validate()
 
     outputs = focus_scan(scan, ref_grid, tgt_grid, template=template, method=method, config=cfg,
                          bp_options=bp, progress_factory=progress, remove_phase_ramp=not args.keep_phase_ramp,

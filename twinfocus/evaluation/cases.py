@@ -39,6 +39,27 @@ from twinfocus.trajectory import paper_raster, phase_centres
 
 METHODS = ("none", "sharpness", "physical", "digital")
 
+#: Twin methods beyond the paper's (docs/evaluation.md, "Beyond the paper"): method -> (template,
+#: AutofocusConfig overrides, register an amplitude template by the autofocus loss first).
+#: "physical" and "digital" are the paper's optimiser (phase ramp removed per EvalSettings).
+TWIN_VARIANTS = {
+    "physical": ("physical", {}, False),
+    "physical-registered": ("physical", {"template_registration": "correlation"}, False),
+    "physical-correlation": ("physical", {"template_registration": "correlation", "init": "correlation", "iterations": 0}, False),
+    "physical-correlation-refined": ("physical", {"template_registration": "correlation", "init": "correlation"}, False),
+    "digital": ("digital", {}, False),
+    "digital-registered": ("digital", {}, True),
+}
+
+
+def needs_reference(method: str) -> bool:
+    """Whether ``method`` estimates from the reference region (a twin method)."""
+    return method in TWIN_VARIANTS
+
+
+def needs_digital_twin(method: str) -> bool:
+    return method in TWIN_VARIANTS and TWIN_VARIANTS[method][0] == "digital"
+
 #: Margin (metres) around an object's extent for the "object" regions of interest: about what
 #: DESIGN.md's regions leave around the default letters (a tight 15 mm frame starves the digital
 #: twin, docs/evaluation.md).
@@ -109,8 +130,9 @@ class SceneCase:
 
     scan : data on the true positions (``positions_true``); its ``positions`` are not used.
     truth_target : complex64 (H, W) target image formed with the true positions.
-    templates : {"physical": float32 (H, W), "digital": float32 (H, W) or None when the digital
-        twin failed (``notes["digital_error"]`` says why)}.
+    templates : {"physical:<room>": complex64 (H, W) (the motion-stage image, phase kept),
+        "digital": float32 (H, W) amplitude or None when the digital twin failed
+        (``notes["digital_error"]`` says why)}.
     centres : {"reference", "target", "target_far"}: (3,) scene points (object centres, and the
         target corner farthest from the reference).
     """
@@ -261,7 +283,7 @@ def prepare_scene(sc: Scenario, settings: EvalSettings, roi: str, template_envs=
                 stage = stage_template_scan(replace(sc, clutter=True), with_clutter=True)
             else:
                 raise TwinFocusError(f"template environment must be 'open' or 'cluttered', got {env!r}")
-            cache[(key, env)] = template_from_scan(stage, ref_grid, **bp)
+            cache[(key, env)] = template_from_scan(stage, ref_grid, keep_phase=True, **bp)
             timings[f"template_{env}"] = time.perf_counter() - t
         templates[f"physical:{env}"] = cache[(key, env)]
     if digital:
@@ -400,15 +422,21 @@ def estimate_phase(method: str, case: SceneCase, bases: DrawBases, cfg: Autofocu
     if method == "sharpness":
         res = sharpness_autofocus(bases.target, cfg)
         return res.phase_rad, res.time_s
-    if method in ("physical", "digital"):
-        key = f"physical:{template_env}" if method == "physical" else "digital"
+    if method in TWIN_VARIANTS:
+        kind, overrides, register_by_loss = TWIN_VARIANTS[method]
+        key = f"physical:{template_env}" if kind == "physical" else "digital"
         tpl = case.templates.get(key)
         if tpl is None:
             raise TwinFocusError(case.notes.get("digital_error", f"no {key} template"))
         if bases.reference is None:
             raise TwinFocusError("the reference basis was not formed for this draw")
-        res = twin_autofocus(bases.reference, tpl, cfg)
-        return res.phase_rad, res.time_s
+        t = time.perf_counter()
+        if register_by_loss:
+            from twinfocus.digital_twin.align import refine_template_shift_by_loss
+
+            tpl, _, _ = refine_template_shift_by_loss(bases.reference, np.abs(tpl), cfg)
+        res = twin_autofocus(bases.reference, tpl, replace(cfg, **overrides))
+        return res.phase_rad, time.perf_counter() - t
     raise TwinFocusError(f"unknown method {method!r}; use one of {', '.join(METHODS)}")
 
 

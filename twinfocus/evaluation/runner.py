@@ -19,7 +19,8 @@ import numpy as np
 
 from twinfocus import metrics
 from twinfocus.evaluation.cases import (
-    EvalScenario, EvalSettings, evaluate_methods, draw_seed, draw_shared, prepare_scene, tracked_positions,
+    EvalScenario, EvalSettings, evaluate_methods, draw_seed, draw_shared, needs_digital_twin, needs_reference, prepare_scene,
+    tracked_positions,
 )
 from twinfocus.evaluation.experiments import Experiment
 
@@ -98,7 +99,7 @@ def run_experiment(exp: Experiment, settings: EvalSettings, template_cache: dict
         conds = unit["conditions"]
         methods_all = {m for c in conds for m in (c.methods or exp.methods)}
         envs = tuple(sorted({c.template_env for c in conds}))
-        case = prepare_scene(sc, settings, exp.roi, envs, digital="digital" in methods_all, template_cache=cache,
+        case = prepare_scene(sc, settings, exp.roi, envs, digital=any(needs_digital_twin(m) for m in methods_all), template_cache=cache,
                              roi_margin_m=exp.roi_margin_m)
         scenes.append({"pair": f"{ref}>{tgt}", "scene": unit["scene"], "timings_s": case.timings_s,
                        "notes": case.notes, "reference_roi": list(case.ref_grid.roi), "target_roi": list(case.tgt_grid.roi)})
@@ -111,7 +112,7 @@ def run_experiment(exp: Experiment, settings: EvalSettings, template_cache: dict
             for d in range(exp.draws):
                 tracked = tracked_positions(case.scan, err_sc, draw_seed(exp.name, ref, tgt, d))
                 bases = draw_shared(case, tracked, settings, need_reference=any(
-                    m in ("physical", "digital") for c in group for m in (c.methods or exp.methods)))
+                    needs_reference(m) for c in group for m in (c.methods or exp.methods)))
                 for c in group:
                     keep = exp.name in EXAMPLE_EXPERIMENTS and not examples
                     recs = evaluate_methods(case, bases, c.methods or exp.methods, settings, c.template_env, keep_images=keep)

@@ -1,0 +1,120 @@
+"""Complex-template registration and the closed-form phase (twinfocus.template_match), against
+brute-force sums and injected shifts / phase errors past lambda/4."""
+import numpy as np
+import pytest
+
+from twinfocus.autofocus import AutofocusConfig, fit_linear_phase, twin_autofocus
+from twinfocus.backprojection import backproject, subimage_basis
+from twinfocus.errors import TwinFocusError
+from twinfocus.grid import ImageGrid
+from twinfocus.metrics import oracle_phase, phase_error_rms
+from twinfocus.motion import apply_position_errors, gaussian_errors
+from twinfocus.radar import Chirp, mmwcas_virtual_array
+from twinfocus.simulate import simulate_if
+from twinfocus.template_match import correlation_phase, match_scores, register_template, shift_image
+from twinfocus.templates import load_template, save_template
+from twinfocus.trajectory import paper_raster, phase_centres
+
+Z = 0.4
+GRID = ImageGrid(-0.03, 0.03, -0.03, 0.03, Z, 32, 32)
+
+
+def test_match_scores_equal_brute_force_sums():
+    rng = np.random.default_rng(0)
+    basis = (rng.normal(size=(7, 20, 24)) + 1j * rng.normal(size=(7, 20, 24))).astype(np.complex64)
+    tpl = np.zeros((20, 24), np.complex64)
+    tpl[5:15, 6:18] = rng.normal(size=(10, 12)) + 1j * rng.normal(size=(10, 12))
+    scores = match_scores(basis, tpl, max_shift_px=3)
+    flat = basis.reshape(7, -1)
+    for dy, dx in [(0, 0), (2, -3), (-3, 1), (1, 3)]:
+        moved = np.zeros_like(tpl)
+        moved[max(dy, 0):20 + min(dy, 0), max(dx, 0):24 + min(dx, 0)] = tpl[max(-dy, 0):20 - max(dy, 0), max(-dx, 0):24 - max(dx, 0)]
+        want = np.abs(flat.conj() @ moved.reshape(-1)).sum() / np.linalg.norm(moved)
+        assert scores[3 + dy, 3 + dx] == pytest.approx(want, rel=1e-4)
+        # shift_image moves content the same way for whole pixels
+        assert np.allclose(shift_image(tpl, dy, dx), moved, atol=1e-4)
+
+
+def _letter_scene(offset_m):
+    """An 'F'-shaped speckled reference; positions with 1.6 mm z jitter (every phase wraps); the
+    template: the same scatterers moved by ``offset_m``, back-projected on exact positions."""
+    rng = np.random.default_rng(3)
+    s = np.arange(-0.018, 0.0181, 0.002)
+    xy = [(-0.018, y) for y in s] + [(x, 0.018) for x in s] + [(x * 0.6, 0.0) for x in s]
+    pts = np.array([(x, y, Z) for x, y in xy])
+    amps = np.exp(2j * np.pi * rng.random(len(pts)))
+    poses = paper_raster(n_columns=2, n_rows=36, column_pitch_m=0.08, row_pitch_m=0.003)
+    true = phase_centres(poses, mmwcas_virtual_array())
+    tracked = apply_position_errors(true, gaussian_errors(true.shape[0], (0, 0, 1.6e-3), rng))
+    ch = Chirp()
+    data = simulate_if(pts, amps, true, ch)
+    stage = simulate_if(pts + np.asarray(offset_m), amps, true, ch)
+    basis = subimage_basis(data, tracked, ch, GRID)
+    template = backproject(stage, true, ch, GRID)
+    return ch, true, tracked, basis, template
+
+
+@pytest.fixture(scope="module")
+def misplaced():
+    return _letter_scene((1.5e-3, -1.0e-3, 0.0))
+
+
+def test_registration_finds_a_misplaced_template_when_every_phase_wraps(misplaced):
+    ch, true, tracked, basis, template = misplaced
+    assert phase_error_rms(np.zeros(basis.shape[0]), oracle_phase(true, tracked, GRID.centre_m, ch)) > 1.5  # wrapped
+    _, (dy, dx), info = register_template(basis, template, max_shift_px=4)
+    sy, sx = GRID.spacing_m
+    # the template sits +1.5 mm in x, -1.0 mm in y: it must move back by that
+    assert dx * sx == pytest.approx(-1.5e-3, abs=0.25 * sx)
+    assert dy * sy == pytest.approx(1.0e-3, abs=0.25 * sy)
+    assert info["score_gain"] > 1.0 and not info["at_limit"]
+
+
+def test_closed_form_phase_recovers_wrapped_errors_once_registered(misplaced):
+    ch, true, tracked, basis, template = misplaced
+    oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
+    registered, _, _ = register_template(basis, template)
+    err_registered = phase_error_rms(correlation_phase(basis, registered), oracle)
+    err_misplaced = phase_error_rms(correlation_phase(basis, template), oracle)
+    assert err_registered < 0.3
+    # unregistered, the misplacement's phase ramp stays in the estimate
+    assert err_misplaced > 2 * err_registered
+    # through twin_autofocus with no iterations: the same closed form
+    res = twin_autofocus(basis, template, AutofocusConfig(iterations=0, init="correlation", template_registration="correlation"))
+    assert phase_error_rms(res.phase_rad, oracle) == pytest.approx(err_registered, abs=1e-6)
+    assert res.extra["registration"]["shift_px"][1] < 0
+
+
+def test_correlation_needs_the_templates_phase(misplaced):
+    _, _, _, basis, template = misplaced
+    with pytest.raises(TwinFocusError, match="phase"):
+        twin_autofocus(basis, np.abs(template), AutofocusConfig(iterations=0, init="correlation"))
+    with pytest.raises(TwinFocusError, match="iterations"):
+        AutofocusConfig(iterations=0).validate()
+
+
+def test_ramp_fit_leaves_wrapped_noise_alone_and_finds_a_real_ramp():
+    rng = np.random.default_rng(1)
+    ap = np.column_stack([np.repeat(np.arange(6) * 0.082, 130), np.tile(np.arange(130) * 0.0018, 6)])
+    noise = rng.uniform(-np.pi, np.pi, ap.shape[0])
+    ramp, coeffs = fit_linear_phase(noise, ap)
+    assert coeffs[1] == 0.0 and coeffs[2] == 0.0
+    assert np.ptp(ramp) == 0.0
+    true = 0.7 + ap @ np.array([20.0, -9.0])
+    ramp, coeffs = fit_linear_phase(true + rng.normal(0, 1.0, ap.shape[0]), ap)
+    assert coeffs[1:] == pytest.approx([20.0, -9.0], abs=1.0)
+
+
+def test_template_file_keeps_the_phase(tmp_path, misplaced):
+    template = misplaced[4].astype(np.complex64)
+    save_template(tmp_path / "t.npz", template, GRID)
+    back = load_template(tmp_path / "t.npz", GRID)
+    assert back.dtype == np.complex64
+    assert np.allclose(back, template, rtol=1e-5, atol=1e-6 * np.abs(template).max())
+    # onto a finer grid inside it: bilinear on the complex image, so a pixel half-way between two
+    # of the file's is their complex mean
+    fine = ImageGrid(GRID.x_m[1], GRID.x_m[3], GRID.y_m[1], GRID.y_m[3], Z, 5, 5)
+    res = load_template(tmp_path / "t.npz", fine)
+    assert res[0, 1] == pytest.approx((template[1, 1] + template[1, 2]) / 2, rel=1e-4)
+    save_template(tmp_path / "a.npz", np.abs(template), GRID)
+    assert load_template(tmp_path / "a.npz", GRID).dtype == np.float32

@@ -1,0 +1,133 @@
+"""Matching a complex template to the sub-image basis, whatever the phase errors.
+
+A physical twin is a focused *complex* image T of the reference (its motion-stage scan,
+back-projected). Against the scan's sub-image basis B (M, H, W) it gives two things no amplitude
+template can:
+
+* **Registration** (:func:`register_template`). A per-position phase can absorb any shift that
+  is a linear phase across the aperture, which is why an amplitude loss cannot tell where the
+  template should sit; but it cannot reshape the image one position sees through its own array
+  (the 86 channels resolve the reference along their line, the range spread resolves it a
+  little across). The score
+
+      J(s) = sum_m | <B_m, T(. - s)> | / ||T(. - s)||
+
+  is unchanged by any per-position phase and peaks where the template lines up with the
+  reference in the scan, so it locates a misplaced template even when every phase has wrapped.
+* **A closed-form phase** (:func:`correlation_phase`): phi_m = angle <B_m, T>, the phase that
+  best lines up each position's sub-image with the template (the per-position matched filter).
+  With a registered template it reaches the transfer ceiling in one matrix-vector product
+  (docs/evaluation.md, "beyond the paper").
+
+<a, b> = sum_pixels conj(a) b throughout.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.fft
+
+from twinfocus.errors import TwinFocusError
+
+
+def shift_image(image: np.ndarray, dy: float, dx: float) -> np.ndarray:
+    """``image`` moved by (dy, dx) pixels (cubic spline, zeros shifted in); same dtype family.
+
+    Complex images are shifted in real and imaginary parts (a back-projected image is shift-
+    equivariant, phases included, for shifts small against the range).
+    """
+    from scipy.ndimage import shift
+
+    img = np.asarray(image)
+    if np.iscomplexobj(img):
+        return (shift(img.real, (dy, dx), order=3, mode="constant") + 1j * shift(img.imag, (dy, dx), order=3, mode="constant")).astype(img.dtype)
+    out = shift(img.astype(np.float64), (dy, dx), order=3, mode="constant")
+    return np.maximum(out, 0.0).astype(img.dtype) if np.all(img >= 0) else out.astype(img.dtype)
+
+
+def _check(basis: np.ndarray, template: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    b = np.asarray(basis)
+    t = np.asarray(template)
+    if b.ndim != 3 or not np.iscomplexobj(b):
+        raise TwinFocusError(f"basis must be complex (M, H, W), got {b.dtype} {b.shape}")
+    if not np.iscomplexobj(t):
+        raise TwinFocusError("this needs the template's phase (a complex image, e.g. a physical twin's "
+                             "back-projected scan); an amplitude template cannot be matched per position")
+    if t.shape != b.shape[1:]:
+        raise TwinFocusError(f"template is {t.shape} but the reference region is {b.shape[1:]}")
+    if not np.isfinite(t).all():
+        raise TwinFocusError("template holds NaN or inf")
+    if not np.any(t):
+        raise TwinFocusError("template is empty (all zeros)")
+    return b, t
+
+
+def correlation_phase(basis: np.ndarray, template: np.ndarray) -> np.ndarray:
+    """phi_m = angle <B_m, T>: float64 (M,) radians, the per-position phase that lines up
+    position m's sub-image with the complex template (maximises Re <T, exp(j phi_m) B_m> for
+    each m on its own).
+
+    basis : complex (M, H, W); template : complex (H, W) on the same grid.
+    """
+    b, t = _check(basis, template)
+    flat = b.reshape(b.shape[0], -1)
+    c = flat.conj() @ t.reshape(-1).astype(flat.dtype)
+    return np.angle(c).astype(np.float64)
+
+
+def match_scores(basis: np.ndarray, template: np.ndarray, max_shift_px: int = 4, chunk: int = 64) -> np.ndarray:
+    """J(s) for every integer shift s = (dy, dx) with |dy|, |dx| <= max_shift_px.
+
+    Returns float64 (2 S + 1, 2 S + 1), S = max_shift_px, entry [S + dy, S + dx] the score of the
+    template moved by (dy, dx) pixels (:func:`shift_image`'s convention). Computed for all shifts
+    at once by zero-padded FFT cross-correlation, ``chunk`` positions at a time.
+    """
+    b, t = _check(basis, template)
+    s = int(max_shift_px)
+    if s < 1:
+        raise TwinFocusError(f"max_shift_px must be >= 1, got {max_shift_px}")
+    h, w = t.shape
+    if 2 * s + 1 > min(h, w):
+        raise TwinFocusError(f"max_shift_px {s} is too large for a {h} x {w} region")
+    shape = (h + s, w + s)  # enough padding that shifts up to s never wrap
+    ft = np.conj(scipy.fft.fft2(t.astype(np.complex64), shape))
+    rows = np.r_[0 : s + 1, shape[0] - s : shape[0]]
+    cols = np.r_[0 : s + 1, shape[1] - s : shape[1]]
+    acc = np.zeros((rows.size, cols.size))
+    for i in range(0, b.shape[0], chunk):
+        fb = scipy.fft.fft2(b[i : i + chunk], shape, workers=-1)
+        xc = scipy.fft.ifft2(fb * ft[None], workers=-1)[:, rows][:, :, cols]
+        acc += np.abs(xc).sum(axis=0)
+    # xc[u] = sum_p B(p) conj(T(p - u)): the template moved by +u, so index order -s..s after the roll
+    acc = np.roll(acc, s, axis=(0, 1))
+    # the part of the moved template that stays on the grid
+    energy = np.abs(t) ** 2
+    ones = np.ones_like(energy)
+    fe = np.conj(scipy.fft.fft2(energy, shape))
+    kept = np.real(scipy.fft.ifft2(scipy.fft.fft2(ones, shape) * fe))[rows][:, cols]
+    kept = np.roll(kept, s, axis=(0, 1))
+    return acc / np.sqrt(np.maximum(kept, 1e-30 * energy.sum()))
+
+
+def _vertex(m1: float, c: float, p1: float) -> float:
+    den = m1 - 2.0 * c + p1
+    return 0.0 if den >= 0 else float(np.clip(0.5 * (m1 - p1) / den, -0.5, 0.5))
+
+
+def register_template(basis: np.ndarray, template: np.ndarray, max_shift_px: int = 4) -> tuple[np.ndarray, tuple[float, float], dict]:
+    """Move a complex template to where the scan's reference is (the peak of :func:`match_scores`,
+    refined to sub-pixel by a parabola through the peak and its neighbours on each axis).
+
+    Returns (template moved, complex64 (H, W); (dy, dx) pixels applied; info with ``score_gain``
+    (J at the peak over J unmoved, >= 1) and ``at_limit`` (the peak lies on the search border:
+    the template is farther off than ``max_shift_px``, widen it or check the template)).
+    """
+    scores = match_scores(basis, template, max_shift_px)
+    s = int(max_shift_px)
+    i, j = np.unravel_index(int(np.argmax(scores)), scores.shape)
+    at_limit = i in (0, 2 * s) or j in (0, 2 * s)
+    fy = 0.0 if i in (0, 2 * s) else _vertex(scores[i - 1, j], scores[i, j], scores[i + 1, j])
+    fx = 0.0 if j in (0, 2 * s) else _vertex(scores[i, j - 1], scores[i, j], scores[i, j + 1])
+    dy, dx = i - s + fy, j - s + fx
+    moved = shift_image(np.asarray(template, np.complex64), dy, dx)
+    info = {"shift_px": [float(dy), float(dx)], "score_gain": float(scores[i, j] / scores[s, s]), "at_limit": bool(at_limit)}
+    return moved, (float(dy), float(dx)), info
