@@ -4,7 +4,7 @@ PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
 DEMO    ?= demo_out
 
-.PHONY: demo test bench bench-paper system-deps browser-deps clean
+.PHONY: demo test bench bench-paper bench-beyond system-deps browser-deps clean
 
 # open3d and pyusb load the system's libusb-1.0 at import time; without it `import open3d` fails.
 system-deps:
@@ -47,6 +47,11 @@ bench: $(STAMP)
 # Add ARGS="--draws 5" for the paper's five error draws per pair, ARGS="--resume" to keep finished parts.
 bench-paper: $(STAMP)
 	nice $(VENV)/bin/twinfocus bench paper --out docs/results --markdown docs/results.md $(ARGS)
+
+# Each improvement of the twin estimate beyond the paper, time against SSIM (about 15 min on 2 cores):
+# docs/beyond.md + docs/beyond/.
+bench-beyond: $(STAMP)
+	nice $(VENV)/bin/twinfocus bench beyond --out docs/beyond --markdown docs/beyond.md $(ARGS)
 
 clean:
 	rm -rf $(VENV) $(DEMO) .pytest_cache

@@ -87,6 +87,36 @@ def _focus(scan, template_scan, sc, size, cfg, bp=None):
     }
 
 
+ESTIMATORS = {
+    "paper": {},
+    "registered": {"template_registration": "correlation"},
+    "correlation": {"template_registration": "correlation", "init": "correlation", "iterations": 0},
+    "correlation-refined": {"template_registration": "correlation", "init": "correlation"},
+}
+
+
+def bench_estimators(scan, template_scan, sc, quick) -> list[dict]:
+    """Each ``twinfocus focus --estimator`` on the default scene: estimator seconds (registration
+    + estimate, best of runs) and target SSIM with the phase ramp removed as ``focus`` does."""
+    from twinfocus.evaluation.cases import transfer_phase
+
+    rows = []
+    for size in ((100,) if quick else (50, 100, 200)):
+        rg, tg = scenario_grids(sc, size)
+        rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
+        tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+        tpl = template_from_scan(template_scan, rg, keep_phase=True)
+        truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
+        for name, over in ESTIMATORS.items():
+            cfg = AutofocusConfig(basis_dtype="float16", **over)
+            t, r = _best(lambda: twin_autofocus(rb, tpl, cfg), 1)
+            ssim = image_ssim(form_image(tb, transfer_phase(r.phase_rad, scan.positions)), truth)
+            rows.append({"size": size, "estimator": name, "seconds": t, "ssim": ssim})
+            print(f"  {size} {name}: {t:.2f} s, SSIM {ssim:.3f}")
+        del rb, tb
+    return rows
+
+
 def main(out_dir, quick: bool = False) -> dict:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -110,6 +140,9 @@ def main(out_dir, quick: bool = False) -> dict:
         t, r = _best(lambda: twin_autofocus(rb, tpl, AutofocusConfig(basis_dtype=bd)), 1 if quick else 2)
         res["autofocus_paper"].append({"basis_dtype": bd, "seconds": t, "final_loss": float(r.loss_history[-1])})
         print(f"  basis {bd}: {t:.2f} s")
+
+    print("trade: estimator (template registration, closed-form phase; docs/beyond.md)")
+    res["trade_estimator"] = bench_estimators(scan, template_scan, sc, quick)
 
     print("trade: image size")
     res["trade_image_size"] = []
@@ -146,6 +179,10 @@ def _markdown(res: dict) -> str:
         lines += [f"| {r['oversample']} | {r['max_error_rel_peak']:.2e} | {r['image_s']:.2f} |" for r in res["oversample"]]
     lines += ["", "## Autofocus, paper configuration (780 x 100 x 100, 300 iterations)", "", "| basis storage | seconds |", "|---|---|"]
     lines += [f"| {r['basis_dtype']} | {r['seconds']:.2f} |" for r in res["autofocus_paper"]]
+    if "trade_estimator" in res:
+        lines += ["", "## Trade: estimator (float16 basis; seconds = registration + estimate)", "",
+                  "| size | estimator | seconds | target SSIM |", "|---|---|---|---|"]
+        lines += [f"| {r['size']} | {r['estimator']} | {r['seconds']:.2f} | {r['ssim']:.3f} |" for r in res["trade_estimator"]]
     for key, label in (("trade_image_size", "size"), ("trade_iterations", "iterations"), ("trade_precision", "precision")):
         if key not in res:
             continue

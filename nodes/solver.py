@@ -68,6 +68,7 @@ class Solver(Node):
         "lr_min": Param(1e-5, "end of the cosine schedule"),
         "threshold_centre": Param(0.4, "soft threshold centre"),
         "threshold_steepness": Param(1.0, "soft threshold steepness"),
+        "loss_steepness": Param(5.0, "soft threshold steepness inside the loss only (as twinfocus focus --estimator paper)"),
         "precision": Param("float32", "float32 or float64 arithmetic", choices=("float32", "float64")),
         "basis_dtype": Param("float32", "storage of the basis in the optimiser (float32 or float16)", choices=("float32", "float16")),
         "remove_phase_ramp": Param(True, "transfer the phase without its constant + linear ramp (as twinfocus focus)"),
@@ -103,7 +104,7 @@ class Solver(Node):
             device = "cuda" if torch.cuda.is_available() else "cpu"
         self.cfg = AutofocusConfig(
             iterations=p["iterations"], lr=p["lr"], lr_min=p["lr_min"], threshold_centre=p["threshold_centre"],
-            threshold_steepness=p["threshold_steepness"], precision=p["precision"], device=device,
+            threshold_steepness=p["threshold_steepness"], loss_steepness=p["loss_steepness"], precision=p["precision"], device=device,
             basis_dtype=p["basis_dtype"],
         )
         self.cfg.validate()

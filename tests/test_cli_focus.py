@@ -40,6 +40,32 @@ def test_simulate_then_focus_with_template_scan(small_scans, tmp_path):
     assert m["reference_ssim_vs_template_corrected"] > m["reference_ssim_vs_template_uncorrected"]
 
 
+def test_estimators_from_a_template_scan(small_scans, tmp_path, capsys):
+    """auto = registration + closed form with a physical twin (its phase is known); every
+    estimator improves the target; one that needs a phase refuses an amplitude template."""
+    from twinfocus.grid import ImageGrid
+    from twinfocus.templates import save_template, template_from_scan
+
+    tpl = ["--template-scan", str(small_scans / "tpl.npz")]
+    ssim = {}
+    for est in ("auto", "paper", "correlation-refined"):
+        assert _focus(small_scans / "scan.npz", tmp_path / est, *tpl, "--estimator", est) == 0
+        m = json.loads((tmp_path / est / "metrics.json").read_text())
+        ssim[est] = m["target_ssim_corrected"]
+        assert ssim[est] > m["target_ssim_uncorrected"] + 0.03, est
+    auto = json.loads((tmp_path / "auto" / "metrics.json").read_text())
+    assert auto["estimator"] == {"init": "correlation", "template_registration": "correlation", "iterations": 0}
+    # the simulated template scan places the reference 1 mm off in x (Scenario.template_offset_m)
+    dx_px = auto["template_registration"]["shift_px"][1]
+    pixel_m = 0.15 / 47
+    assert dx_px * pixel_m == pytest.approx(-1e-3, abs=0.35 * pixel_m)
+    grid = ImageGrid.from_roi([float(v) for v in REF], 48)
+    save_template(tmp_path / "amp.npz", template_from_scan(Scan.load(small_scans / "tpl.npz"), grid), grid)
+    capsys.readouterr()
+    assert _focus(small_scans / "scan.npz", tmp_path / "x", "--template", str(tmp_path / "amp.npz"), "--estimator", "correlation") == 2
+    assert "needs the template's phase" in capsys.readouterr().err
+
+
 def test_confidence_report_warns_when_transfer_cannot_be_trusted(small_scans, tmp_path, capsys):
     assert _focus(small_scans / "scan.npz", tmp_path / "ok", "--method", "none") == 0
     ok = json.loads((tmp_path / "ok" / "metrics.json").read_text())["confidence"]

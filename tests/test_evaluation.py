@@ -243,3 +243,31 @@ def test_object_regions_frame_each_letter_without_the_other():
         assert r[0] < ref_c[:, 0].min() and r[1] > ref_c[:, 0].max() and r[1] <= tgt_c[:, 0].min()
         assert t[0] < tgt_c[:, 0].min() and t[1] > tgt_c[:, 0].max() and t[0] >= ref_c[:, 0].max()
         assert r[2] == pytest.approx(ref_c[:, 1].min() - 0.04) and r[4] == pytest.approx(sc.distance_m)
+
+
+def test_beyond_quick_end_to_end(tmp_path):
+    """``twinfocus bench beyond --quick``: every variant runs on the same draws, the closed-form
+    estimate improves on no correction, the report has its tables and the goals, and
+    ``--resume`` keeps what is done."""
+    from twinfocus.evaluation.beyond import METHODS, SV_ROWS
+
+    out = tmp_path / "beyond"
+    assert cli_main(["bench", "beyond", "--quick", "--out", str(out), "--quiet"]) == 0
+    err = json.loads((out / "raw" / "beyond_error.json").read_text())
+    for cond in ("0.5 mm x/y/z", "1.6 mm z"):
+        rec = {r["method"]: r for r in err["records"] if r["condition"] == cond}
+        assert set(rec) == set(METHODS) and all(r["status"] == "ok" for r in rec.values())
+        assert rec["physical-correlation"]["ssim"] > rec["none"]["ssim"] + 0.05
+        assert rec["physical-correlation"]["autofocus_s"] < rec["physical"]["autofocus_s"]
+    sv = json.loads((out / "raw" / "beyond_space_variant.json").read_text())
+    rows = {r["row"]: r["ssim"] for r in sv["records"]}
+    # quick scans (240 positions, 32 x 32) are too coarse for the fit to pay: only the plumbing
+    # here; tests/test_space_variant.py checks the fit against exact phases
+    assert set(rows) == set(SV_ROWS) and rows["ceiling-target"] > rows["none"] + 0.1
+    md = (out / "report.md").read_text()
+    for heading in ("## Tracking error", "## Reference-target angular separation", "## Space-variant", "## The goals"):
+        assert heading in md
+    assert "kept from an earlier run" not in md
+    before = (out / "raw" / "beyond_error.json").stat().st_mtime_ns
+    assert cli_main(["bench", "beyond", "--quick", "--out", str(out), "--quiet", "--resume"]) == 0
+    assert (out / "raw" / "beyond_error.json").stat().st_mtime_ns == before

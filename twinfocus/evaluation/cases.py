@@ -49,6 +49,8 @@ TWIN_VARIANTS = {
     "physical-correlation-refined": ("physical", {"template_registration": "correlation", "init": "correlation"}, False),
     "digital": ("digital", {}, False),
     "digital-registered": ("digital", {}, True),
+    "digital-steep": ("digital", {"loss_steepness": 5.0}, False),
+    "physical-steep": ("physical", {"loss_steepness": 5.0}, False),
 }
 
 
