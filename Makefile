@@ -48,7 +48,8 @@ bench: $(STAMP)
 bench-paper: $(STAMP)
 	nice $(VENV)/bin/twinfocus bench paper --out docs/results --markdown docs/results.md $(ARGS)
 
-# Each improvement of the twin estimate beyond the paper, time against SSIM (about 15 min on 2 cores):
+# Each improvement of the twin estimate beyond the paper, time against SSIM (about 18 min on 2 cores;
+# the committed report is ARGS="--draws 2", about 30 min):
 # docs/beyond.md + docs/beyond/.
 bench-beyond: $(STAMP)
 	nice $(VENV)/bin/twinfocus bench beyond --out docs/beyond --markdown docs/beyond.md $(ARGS)

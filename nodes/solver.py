@@ -31,6 +31,7 @@ from msgs import AutofocusResult, Header, Image, SarMeasurement, TwinTemplate, n
 from nodes.node import Node, run_node
 from nodes.params import REQUIRED, Param
 from twinfocus.errors import TwinFocusError
+from twinfocus.estimators import ESTIMATORS
 
 
 @dataclass
@@ -68,7 +69,10 @@ class Solver(Node):
         "lr_min": Param(1e-5, "end of the cosine schedule"),
         "threshold_centre": Param(0.4, "soft threshold centre"),
         "threshold_steepness": Param(1.0, "soft threshold steepness"),
-        "loss_steepness": Param(5.0, "soft threshold steepness inside the loss only (as twinfocus focus --estimator paper)"),
+        "loss_steepness": Param(0.0, "soft threshold steepness inside the loss only; 0 = the estimator's default "
+                                     "(as twinfocus focus --loss-steepness)"),
+        "estimator": Param("auto", "how the phases are found from the reference, as twinfocus focus --estimator "
+                                   "(auto: by the template and tracking_error_m)", choices=("auto",) + ESTIMATORS),
         "precision": Param("float32", "float32 or float64 arithmetic", choices=("float32", "float64")),
         "basis_dtype": Param("float32", "storage of the basis in the optimiser (float32 or float16)", choices=("float32", "float16")),
         "remove_phase_ramp": Param(True, "transfer the phase without its constant + linear ramp (as twinfocus focus)"),
@@ -104,10 +108,12 @@ class Solver(Node):
             device = "cuda" if torch.cuda.is_available() else "cpu"
         self.cfg = AutofocusConfig(
             iterations=p["iterations"], lr=p["lr"], lr_min=p["lr_min"], threshold_centre=p["threshold_centre"],
-            threshold_steepness=p["threshold_steepness"], loss_steepness=p["loss_steepness"], precision=p["precision"], device=device,
+            threshold_steepness=p["threshold_steepness"], precision=p["precision"], device=device,
             basis_dtype=p["basis_dtype"],
         )
         self.cfg.validate()
+        if p["loss_steepness"] < 0:
+            raise TwinFocusError(f"node {self.name!r}: parameter 'loss_steepness' must be >= 0 (0: the estimator's default)")
         self.bp = {"oversample": p["oversample"], "precision": p["precision"]}
         if device != "cpu":
             self.bp.update(backend="torch", device=device)
@@ -123,6 +129,24 @@ class Solver(Node):
         self.create_subscription("twin/template", self.on_template)
         if p["warm_up"]:
             self._warm_up()
+
+    def _config(self, chirp):
+        """The AutofocusConfig for the template at hand: the parameters plus the estimator's
+        (:func:`twinfocus.pipeline.estimator_settings`, the policy of ``twinfocus focus``)."""
+        from dataclasses import replace
+
+        from twinfocus.estimators import auto_estimator, estimator_settings
+
+        if self.params["method"] != "twin" or self.template is None:
+            return self.cfg
+        has_phase = bool(np.iscomplexobj(self.template))
+        name = self.params["estimator"]
+        if name == "auto":
+            name = auto_estimator(has_phase, self.params["tracking_error_m"], chirp.wavelength_m)
+        chosen = estimator_settings(name, has_phase)
+        if self.params["loss_steepness"] > 0:
+            chosen["loss_steepness"] = self.params["loss_steepness"]
+        return replace(self.cfg, **chosen)
 
     def _warm_up(self) -> None:
         from twinfocus.autofocus import AutofocusConfig, twin_autofocus
@@ -254,7 +278,7 @@ class Solver(Node):
 
                 scan = Scan(np.concatenate(s.data), positions, s.chirp, positions_true=truth)
                 out = focus_scan(scan, self.ref_grid, self.tgt_grid, template=self.template, method=self.params["method"],
-                                 config=self.cfg, bp_options=self.bp, progress_factory=lambda label: progress,
+                                 config=self._config(s.chirp), bp_options=self.bp, progress_factory=lambda label: progress,
                                  remove_phase_ramp=self.params["remove_phase_ramp"],
                                  tracking_error_m=self.params["tracking_error_m"])
             else:
@@ -289,7 +313,7 @@ class Solver(Node):
 
         return focus_bases(
             np.concatenate(s.ref_rows), np.concatenate(s.tgt_rows), positions, s.chirp, self.ref_grid, self.tgt_grid,
-            template=self.template, method=self.params["method"], config=self.cfg, bp_options=self.bp,
+            template=self.template, method=self.params["method"], config=self._config(s.chirp), bp_options=self.bp,
             progress_factory=lambda label: self._progress, remove_phase_ramp=self.params["remove_phase_ramp"],
             tracking_error_m=self.params["tracking_error_m"],
             truth_target=s.truth_tgt, truth_reference=s.truth_ref, positions_true=truth,

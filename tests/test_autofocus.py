@@ -95,6 +95,35 @@ def test_float16_basis_gives_the_same_answer(scene_05mm):
     assert abs(image_ssim(form_image(tgt_basis, a.phase_rad), truth) - image_ssim(form_image(tgt_basis, b.phase_rad), truth)) < 0.01
 
 
+def test_smoothness_penalty_is_the_mean_squared_chord():
+    import torch
+
+    from twinfocus.autofocus import smoothness_penalty
+
+    rng = np.random.default_rng(2)
+    phi = rng.uniform(-np.pi, np.pi, 50)
+    want = np.mean(np.abs(np.exp(1j * phi[1:]) - np.exp(1j * phi[:-1])) ** 2)
+    assert float(smoothness_penalty(torch.from_numpy(phi))) == pytest.approx(want, rel=1e-12)
+    # wrap-safe: a full turn between neighbours costs nothing, a constant costs nothing
+    assert float(smoothness_penalty(torch.tensor([0.0, 2 * np.pi, 4 * np.pi]))) == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(TwinFocusError, match="smoothness_weight"):
+        AutofocusConfig(smoothness_weight=-1.0).validate()
+
+
+def test_smoothness_prior_smooths_the_estimate_of_a_smooth_drift(scene_05mm):
+    import torch
+
+    from twinfocus.autofocus import smoothness_penalty
+
+    ch, true, tracked, ref_basis, tgt_basis, template, truth = scene_05mm
+    plain = twin_autofocus(ref_basis, template, AutofocusConfig(iterations=150))
+    smooth = twin_autofocus(ref_basis, template, AutofocusConfig(iterations=150, smoothness_weight=0.05))
+    pen = lambda r: float(smoothness_penalty(torch.from_numpy(r.phase_rad)))
+    assert pen(smooth) < pen(plain)
+    # the injected drift is smooth, so the prior costs the target nothing that matters
+    assert image_ssim(form_image(tgt_basis, smooth.phase_rad), truth) > 0.9
+
+
 def test_wrapping_errors_of_2mm_stay_finite():
     ch, data, true, tracked = _scenario(2e-3, seed=4, snr_db=0.0)
     ref_basis = subimage_basis(data, tracked, ch, REF_GRID)

@@ -64,6 +64,24 @@ def test_estimators_from_a_template_scan(small_scans, tmp_path, capsys):
     capsys.readouterr()
     assert _focus(small_scans / "scan.npz", tmp_path / "x", "--template", str(tmp_path / "amp.npz"), "--estimator", "correlation") == 2
     assert "needs the template's phase" in capsys.readouterr().err
+    # an amplitude template (a digital twin's kind): auto takes alternating projections alone
+    # within lambda/4 of tracking error, and the optimiser after them past it
+    amp = ["--template", str(tmp_path / "amp.npz")]
+    expect = {"template_registration": "none", "projection_iterations": 30, "projection_restarts": 0}
+    for err_mm, want in (("0.5", {"init": "projection", "iterations": 0}), ("1.6", {"init": "projection", "iterations": 150})):
+        assert _focus(small_scans / "scan.npz", tmp_path / f"auto{err_mm}", *amp, "--tracking-error-mm", err_mm) == 0
+        m = json.loads((tmp_path / f"auto{err_mm}" / "metrics.json").read_text())
+        assert m["estimator"] == {**expect, **want}, err_mm
+        assert m["target_ssim_corrected"] > m["target_ssim_uncorrected"] + 0.03
+    refined = [*amp, "--estimator", "projection-refined", "--coarse-iterations", "50", "--projection-restarts", "2"]
+    assert _focus(small_scans / "scan.npz", tmp_path / "proj", *refined) == 0
+    m = json.loads((tmp_path / "proj" / "metrics.json").read_text())
+    assert m["estimator"] == {**expect, "init": "projection", "iterations": 150, "projection_restarts": 2, "coarse_iterations": 50}
+    assert len(m["projection_restarts"]["losses"]) == 3
+    assert m["target_ssim_corrected"] > m["target_ssim_uncorrected"] + 0.03
+    capsys.readouterr()
+    assert _focus(small_scans / "scan.npz", tmp_path / "y", *amp, "--estimator", "projection", "--projection-iterations", "0") == 2
+    assert "projection_iterations must be >= 1" in capsys.readouterr().err
 
 
 def test_confidence_report_warns_when_transfer_cannot_be_trusted(small_scans, tmp_path, capsys):

@@ -208,7 +208,8 @@ def test_replayed_log_gives_the_phase_of_twinfocus_focus_on_the_equivalent_scan(
                                  scan_id="run", index=i, last=i == len(radar) - 1)
             w.write(topic, msg, log_time_ns=log_t)
 
-    common = ["--size", "24", "--iterations", "40", "--precision", "float64"]
+    # projections, then the optimiser: both steps of an amplitude template's estimate
+    common = ["--size", "24", "--iterations", "40", "--precision", "float64", "--estimator", "projection-refined"]
     roi = lambda r: [str(v) for v in r]  # noqa: E731
     focus = subprocess.run([*CLI, "focus", str(tmp_path / "scan.npz"), "--reference-roi", *roi(ref_roi), "--target-roi",
                             *roi(tgt_roi), "--template", str(tmp_path / "template.npz"), "--out", str(tmp_path / "offline"),
@@ -218,7 +219,7 @@ def test_replayed_log_gives_the_phase_of_twinfocus_focus_on_the_equivalent_scan(
     yaml_list = lambda r: "[" + ",".join(roi(r)) + "]"  # noqa: E731
     g = Launched("launch/replay.yaml", f"log:={tmp_path / 'run.mcap'}", f"out:={tmp_path / 'graph'}",
                  f"template:={tmp_path / 'template.npz'}", f"port:={free_port()}", "web_port:=0", "size:=24",
-                 "iterations:=40", "precision:=float64", f"reference_roi:={yaml_list(ref_roi)}",
+                 "iterations:=40", "precision:=float64", "estimator:=projection-refined", f"reference_roi:={yaml_list(ref_roi)}",
                  f"target_roi:={yaml_list(tgt_roi)}", "rate:=4")
     try:
         code = g.wait(300)

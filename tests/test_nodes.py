@@ -347,7 +347,8 @@ def test_solver_streams_the_basis_and_focuses_with_the_template(tmp_path):
     template = template_from_scan(scan, ref_grid)  # the reference focused on the true positions
     with local_broker() as ep:
         solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16, "iterations": 40,
-                                           "out_dir": str(tmp_path / "out"), "pictures": False, "warm_up": False})
+                                           "estimator": "paper", "out_dir": str(tmp_path / "out"), "pictures": False,
+                                           "warm_up": False})
         probe = Probe(ep, listen=["autofocus/result", "image/focused"], publish=["sar/measurement", "twin/template"],
                       wait_for=["solver"])
         with running(solver, probe):
@@ -367,6 +368,36 @@ def test_solver_streams_the_basis_and_focuses_with_the_template(tmp_path):
     assert np.array_equal(np.load(tmp_path / "out" / "p" / "target.npy"), images["target"].image)
     assert set(res.timing_s) >= {"autofocus", "basis_streamed", "last_measurement_to_result"}
     assert AutofocusConfig().iterations == 300  # the node's default is the paper's, tests ask for fewer
+
+
+def test_solver_picks_the_estimator_as_twinfocus_focus_does():
+    from nodes.solver import Solver
+    from twinfocus.estimators import estimator_settings
+
+    chirp = Chirp()
+    with local_broker() as ep:
+        base = {"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 8, "warm_up": False}
+        solver = Solver(broker=ep, params=base)
+        amplitude = np.ones((8, 8), np.float32)
+        amplitude[2:5, 3] = 4.0
+        solver.template = amplitude
+        # an amplitude template, 0.5 mm of tracking error (within lambda/4): projections alone
+        cfg = solver._config(chirp)
+        assert (cfg.init, cfg.iterations, cfg.loss_steepness) == ("projection", 0, 5.0)
+        solver.template = amplitude.astype(np.complex64)  # a template with its phase: the closed form
+        assert solver._config(chirp).init == "correlation"
+        solver = Solver(broker=ep, params={**base, "estimator": "projection-refined", "loss_steepness": 2.0,
+                                           "iterations": 40, "tracking_error_m": 2e-3})
+        solver.template = amplitude
+        cfg = solver._config(chirp)
+        want = {**estimator_settings("projection-refined", False), "loss_steepness": 2.0}
+        assert {k: getattr(cfg, k) for k in want} == want and cfg.iterations == 40
+        with pytest.raises(TwinFocusError, match="estimator"):
+            Solver(broker=ep, params={**base, "estimator": "random"})
+        solver = Solver(broker=ep, params={**base, "estimator": "correlation"})
+        solver.template = amplitude
+        with pytest.raises(TwinFocusError, match="needs the template's phase"):
+            solver._config(chirp)
 
 
 def test_solver_without_a_template_says_so_and_drops_the_scan(capfd):

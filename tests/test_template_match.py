@@ -3,7 +3,7 @@ brute-force sums and injected shifts / phase errors past lambda/4."""
 import numpy as np
 import pytest
 
-from twinfocus.autofocus import AutofocusConfig, fit_linear_phase, twin_autofocus
+from twinfocus.autofocus import AutofocusConfig, fit_linear_phase, form_image, template_loss, twin_autofocus
 from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
@@ -11,7 +11,7 @@ from twinfocus.metrics import oracle_phase, phase_error_rms
 from twinfocus.motion import apply_position_errors, gaussian_errors
 from twinfocus.radar import Chirp, mmwcas_virtual_array
 from twinfocus.simulate import simulate_if
-from twinfocus.template_match import correlation_phase, match_scores, register_template, shift_image
+from twinfocus.template_match import correlation_phase, match_scores, projection_phase, register_template, shift_image
 from twinfocus.templates import load_template, save_template
 from twinfocus.trajectory import paper_raster, phase_centres
 
@@ -83,6 +83,60 @@ def test_closed_form_phase_recovers_wrapped_errors_once_registered(misplaced):
     res = twin_autofocus(basis, template, AutofocusConfig(iterations=0, init="correlation", template_registration="correlation"))
     assert phase_error_rms(res.phase_rad, oracle) == pytest.approx(err_registered, abs=1e-6)
     assert res.extra["registration"]["shift_px"][1] < 0
+
+
+@pytest.fixture(scope="module")
+def placed():
+    return _letter_scene((0.0, 0.0, 0.0))
+
+
+def test_projection_phase_recovers_wrapped_errors_from_the_amplitude_alone(placed):
+    ch, true, tracked, basis, template = placed
+    oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
+    amplitude = np.abs(template)
+    assert phase_error_rms(np.zeros(basis.shape[0]), oracle) > 1.5  # every phase wrapped
+    # F(phi) = sum A |I(phi)| never decreases from one projection step to the next
+    f = [float((amplitude * np.abs(form_image(basis, projection_phase(basis, amplitude, k)))).sum()) for k in range(1, 9)]
+    assert all(b >= a * (1 - 1e-5) for a, b in zip(f, f[1:]))
+    assert f[-1] > 1.2 * f[0]
+    phi = projection_phase(basis, amplitude, 30)
+    assert phase_error_rms(phi, oracle) < 0.15
+    # the same start through twin_autofocus: with no iterations it is the whole estimate; the
+    # optimiser from there keeps it, while the optimiser from zero stays far from the truth
+    res = twin_autofocus(basis, amplitude, AutofocusConfig(init="projection", iterations=0))
+    assert np.allclose(res.phase_rad, phi)
+    ap = tracked.mean(axis=1)[:, :2]
+    refined = twin_autofocus(basis, amplitude, AutofocusConfig(init="projection", loss_steepness=5.0))
+    from_zero = twin_autofocus(basis, amplitude, AutofocusConfig(loss_steepness=5.0))
+    err = lambda p: phase_error_rms(np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p))
+    assert err(refined.phase_rad) < 0.2
+    assert err(from_zero.phase_rad) > 2 * err(refined.phase_rad)
+    # restarts: every start is projected, the one with the lowest optimiser loss is kept
+    res = twin_autofocus(basis, amplitude, AutofocusConfig(init="projection", iterations=0, projection_restarts=3))
+    losses = res.extra["projection_restarts"]["losses"]
+    assert len(losses) == 4 and res.extra["projection_restarts"]["chosen"] == int(np.argmin(losses))
+    assert res.loss_history[0] == pytest.approx(min(losses), abs=1e-9)
+    assert res.loss_history[0] == pytest.approx(template_loss(basis, res.phase_rad, amplitude), abs=1e-9)
+
+
+def test_projection_phase_refuses_bad_input(placed):
+    basis, template = placed[3], placed[4]
+    with pytest.raises(TwinFocusError, match="iterations"):
+        projection_phase(basis, np.abs(template), 0)
+    with pytest.raises(TwinFocusError, match="one value per radar position"):
+        projection_phase(basis, np.abs(template), 3, np.zeros(basis.shape[0] + 1))
+    with pytest.raises(TwinFocusError, match="empty"):
+        projection_phase(basis, np.zeros(template.shape), 3)
+    bad = np.abs(template)
+    bad[0, 0] = np.nan
+    with pytest.raises(TwinFocusError, match="NaN"):
+        projection_phase(basis, bad, 3)
+    with pytest.raises(TwinFocusError, match="projection_iterations"):
+        AutofocusConfig(init="projection", projection_iterations=0).validate()
+    with pytest.raises(TwinFocusError, match="projection_restarts"):
+        AutofocusConfig(init="projection", projection_restarts=-1).validate()
+    with pytest.raises(TwinFocusError, match="init must be"):
+        AutofocusConfig(init="random").validate()
 
 
 def test_correlation_needs_the_templates_phase(misplaced):

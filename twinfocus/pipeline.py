@@ -200,6 +200,13 @@ def focus_bases(
                "phase_ramp_removed": bool(remove_phase_ramp and method != "none")}
     if method == "twin":
         m["estimator"] = {"init": cfg.init, "template_registration": cfg.template_registration, "iterations": int(cfg.iterations)}
+        if cfg.init == "projection":
+            m["estimator"].update(projection_iterations=int(cfg.projection_iterations), projection_restarts=int(cfg.projection_restarts))
+        for knob in ("coarse_iterations", "smoothness_weight"):
+            if getattr(cfg, knob):
+                m["estimator"][knob] = getattr(cfg, knob)
+        if "projection_restarts" in result.extra:
+            m["projection_restarts"] = result.extra["projection_restarts"]
         if "registration" in result.extra:
             m["template_registration"] = result.extra["registration"]
         # metrics and pictures against the template the phases were fitted to (moved when registered)

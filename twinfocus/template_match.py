@@ -19,6 +19,10 @@ template can:
   With a registered template it reaches the transfer ceiling in one matrix-vector product
   (docs/evaluation.md, "beyond the paper").
 
+An amplitude template (a digital twin's) has no phase to correlate with; :func:`projection_phase`
+lends it the scan's own image phase and repeats the closed form (alternating projections, as in
+Gerchberg-Saxton phase retrieval), which needs no unwrapping either.
+
 <a, b> = sum_pixels conj(a) b throughout.
 """
 from __future__ import annotations
@@ -72,6 +76,38 @@ def correlation_phase(basis: np.ndarray, template: np.ndarray) -> np.ndarray:
     flat = b.reshape(b.shape[0], -1)
     c = flat.conj() @ t.reshape(-1).astype(flat.dtype)
     return np.angle(c).astype(np.float64)
+
+
+def projection_phase(basis: np.ndarray, amplitude: np.ndarray, iterations: int = 30,
+                     init_phase_rad: np.ndarray | None = None) -> np.ndarray:
+    """Per-position phases that fit an *amplitude* template by alternating projections.
+
+    Each step forms I = sum_m exp(j phi_m) B_m, gives it the template's amplitude while keeping
+    its own phase, T = A exp(j angle I), and takes the closed form phi_m = angle <B_m, T>
+    (:func:`correlation_phase`). That is block-coordinate ascent of F(phi) = sum_p A_p |I_p(phi)|
+    (the image's amplitude weighted by the template's), so F never decreases; every step is
+    closed form on the unit circle, so errors past lambda/4 (every phase wrapped) cost it nothing
+    more than small ones. A local maximum of F is not the truth, which is why
+    ``twin_autofocus(init="projection")`` goes on with the SSIM loss from here.
+
+    basis : complex (M, H, W); amplitude : real (H, W) >= 0 on the same grid (a complex template's
+    modulus is taken); iterations : projection steps (>= 1); init_phase_rad : (M,) start (zeros).
+    Returns float64 (M,) radians.
+    """
+    a = np.abs(np.asarray(amplitude))
+    b, _ = _check(basis, a.astype(np.complex64))
+    if int(iterations) < 1:
+        raise TwinFocusError(f"projection iterations must be >= 1, got {iterations}")
+    flat = b.reshape(b.shape[0], -1)
+    a = (a / a.max()).reshape(-1).astype(np.float32)
+    phi = np.zeros(b.shape[0]) if init_phase_rad is None else np.asarray(init_phase_rad, dtype=np.float64)
+    if phi.shape != (b.shape[0],):
+        raise TwinFocusError(f"init_phase_rad must have one value per radar position ({b.shape[0]}), got {phi.shape}")
+    for _ in range(int(iterations)):
+        image = np.exp(1j * phi).astype(flat.dtype) @ flat
+        goal = a * np.exp(1j * np.angle(image))
+        phi = np.angle(flat.conj() @ goal.astype(flat.dtype)).astype(np.float64)
+    return phi
 
 
 def match_scores(basis: np.ndarray, template: np.ndarray, max_shift_px: int = 4, chunk: int = 64) -> np.ndarray:

@@ -25,7 +25,10 @@ from twinfocus.errors import TwinFocusError
 from twinfocus.evaluation.experiments import Condition, Experiment, sigma3
 
 METHODS = ("none", "physical", "physical-steep", "physical-registered", "physical-correlation", "physical-correlation-refined",
-           "digital", "digital-registered", "digital-steep")
+           "digital", "digital-registered", "digital-steep", "digital-projection-only", "digital-projection",
+           "digital-restarts", "digital-coarse")
+#: the temporally correlated error's condition also tries the smoothness prior (white errors have none to use)
+DRIFT_METHODS = ("none", "physical-correlation", "digital-steep", "digital-projection", "digital-smooth")
 ROW_NAMES = {
     "none": "no correction",
     "physical-paper": "physical twin, the paper's method (phase transferred as estimated)",
@@ -38,6 +41,11 @@ ROW_NAMES = {
     "digital-registered": "+ template registered by the autofocus loss (5 short runs)",
     "digital-steep": "+ phase ramp removed, loss threshold steepness 5 instead of 1",
     "physical-steep": "+ phase ramp removed, loss threshold steepness 5 instead of 1",
+    "digital-projection-only": "alternating projections onto the template's amplitude (30 steps), no optimiser",
+    "digital-projection": "steepness 5 + alternating projections as the optimiser's start",
+    "digital-restarts": "+ 7 more projection starts from random phases, the one of lowest loss goes on",
+    "digital-coarse": "steepness 5 + coarse-to-fine: 200 iterations on images blurred by 2 px first",
+    "digital-smooth": "steepness 5 + projection start + a smoothness prior over time (weight 0.02)",
 }
 PAIRS = (("A", "C"), ("C", "F"), ("F", "R"), ("R", "X"), ("X", "Z"), ("Z", "A"))
 #: the issue's goals: (condition, row, minimum mean SSIM)
@@ -52,7 +60,9 @@ def beyond_experiments(draws: int = 1, quick: bool = False) -> list[Experiment]:
     return [
         Experiment("beyond_error", "Tracking error, past lambda/4", "tracking error",
                    [Condition("0.5 mm x/y/z", 0.5, pairs, errors={"error_sigma_m": sigma3(0.5)}),
-                    Condition("1.6 mm z", 1.6, pairs, errors={"error_sigma_m": (0.0, 0.0, 1.6e-3)}, in_paper=False)],
+                    Condition("1.6 mm z", 1.6, pairs, errors={"error_sigma_m": (0.0, 0.0, 1.6e-3)}, in_paper=False),
+                    Condition("1.6 mm z drift (tau 2 s)", "1.6 drift", pairs, in_paper=False, methods=DRIFT_METHODS,
+                              errors={"error_model": "drift", "error_sigma_m": (0.0, 0.0, 1.6e-3)})],
                    draws=draws, methods=METHODS, roi="paper", numeric=True),
         Experiment("beyond_separation", "Reference-target angular separation", "separation (deg)",
                    [Condition(f"{a} deg", a, (("K", "P"),), scene={"separation_deg": float(a)}, in_paper=a <= 20)
@@ -73,7 +83,7 @@ def _rows(records: list[dict], condition: str) -> dict:
             out[row] = {"mean": float(v.mean()), "n": int(v.size), "time_s": float(np.mean(times)) if times else 0.0,
                         "sem": float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else None}
 
-    for m in METHODS:
+    for m in METHODS + tuple(m for m in DRIFT_METHODS if m not in METHODS):
         mr = [r for r in rec if r["method"] == m]
         put(m, [r["ssim"] for r in mr], [r["autofocus_s"] for r in mr])
         if m in ("physical", "digital"):
@@ -86,6 +96,7 @@ def _rows(records: list[dict], condition: str) -> dict:
 
 ROW_ORDER = ("none", "physical-paper", "physical", "physical-steep", "physical-registered", "physical-correlation",
              "physical-correlation-refined", "digital-paper", "digital", "digital-registered", "digital-steep",
+             "digital-projection-only", "digital-projection", "digital-restarts", "digital-coarse", "digital-smooth",
              "ceiling-reference", "ceiling-target")
 CEILING_NAMES = {"ceiling-reference": "*ceiling: the reference's true phase transferred*",
                  "ceiling-target": "*ceiling: the target's true phase*"}
@@ -119,7 +130,8 @@ def summarise(raw: dict) -> dict:
         labels = list(sep)
         first = sep[labels[0]]
         last20 = [lab for lab in labels if lab.split()[0].isdigit() and float(lab.split()[0]) <= 20][-1]
-        for row in ("physical", "physical-registered", "physical-correlation", "physical-correlation-refined"):
+        for row in ("physical", "physical-registered", "physical-correlation", "physical-correlation-refined",
+                    "digital-steep", "digital-projection-only", "digital-projection"):
             if row in first and row in sep[last20]:
                 loss = first[row]["mean"] - min(sep[lab][row]["mean"] for lab in labels
                                                  if float(lab.split()[0]) <= 20 and row in sep[lab])
@@ -154,7 +166,9 @@ def write_beyond_report(out_dir, markdown_path=None) -> Path:
              "captured separately 1 mm off, the digital twin from a rendered stereo pair; 780 radar positions, "
              "100 x 100 images, the paper's optimiser (Adam, 300 iterations, float16 basis). Every row sees the same "
              "draws. Time: the estimator alone (registration + estimate), seconds on this machine; the two sub-image "
-             "bases (about 2 x 4.5 s) come on top for every row.", ""]
+             "bases (about 2 x 4.5 s) come on top for every row. The drift column's error is a Gauss-Markov process "
+             "along z (correlation time 2 s, 100 ms between positions), the one kind a smoothness prior over time can "
+             "use; only the rows it was run for have a value there.", ""]
     for name, doc in raw.items():
         conds = [c["label"] for c in doc["definition"]["conditions"]]
         d = doc["definition"]

@@ -26,6 +26,7 @@ from twinfocus import metrics
 from twinfocus.autofocus import AutofocusConfig, fit_linear_phase, form_image, sharpness_autofocus, twin_autofocus
 from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.errors import TwinFocusError
+from twinfocus.estimators import estimator_settings
 from twinfocus.evaluation.features import hog_similarity
 from twinfocus.grid import ImageGrid
 from twinfocus.motion import apply_position_errors, drift_errors, gaussian_errors, vio_errors
@@ -39,18 +40,25 @@ from twinfocus.trajectory import paper_raster, phase_centres
 
 METHODS = ("none", "sharpness", "physical", "digital")
 
-#: Twin methods beyond the paper's (docs/evaluation.md, "Beyond the paper"): method -> (template,
+#: Twin methods beyond the paper (docs/evaluation.md, "Beyond the paper"): method -> (template,
 #: AutofocusConfig overrides, register an amplitude template by the autofocus loss first).
-#: "physical" and "digital" are the paper's optimiser (phase ramp removed per EvalSettings).
+#: "physical" and "digital" are the paper's optimiser (phase ramp removed per EvalSettings); the
+#: others are ``twinfocus focus --estimator`` choices (:func:`twinfocus.estimators.estimator_settings`)
+#: or those plus one knob.
 TWIN_VARIANTS = {
     "physical": ("physical", {}, False),
-    "physical-registered": ("physical", {"template_registration": "correlation"}, False),
-    "physical-correlation": ("physical", {"template_registration": "correlation", "init": "correlation", "iterations": 0}, False),
-    "physical-correlation-refined": ("physical", {"template_registration": "correlation", "init": "correlation"}, False),
+    "physical-registered": ("physical", estimator_settings("registered", True), False),
+    "physical-correlation": ("physical", estimator_settings("correlation", True), False),
+    "physical-correlation-refined": ("physical", estimator_settings("correlation-refined", True), False),
+    "physical-steep": ("physical", {"loss_steepness": 5.0}, False),
     "digital": ("digital", {}, False),
     "digital-registered": ("digital", {}, True),
-    "digital-steep": ("digital", {"loss_steepness": 5.0}, False),
-    "physical-steep": ("physical", {"loss_steepness": 5.0}, False),
+    "digital-steep": ("digital", estimator_settings("paper", False), False),
+    "digital-projection-only": ("digital", estimator_settings("projection", False), False),
+    "digital-projection": ("digital", estimator_settings("projection-refined", False), False),
+    "digital-restarts": ("digital", {**estimator_settings("projection-refined", False), "projection_restarts": 7}, False),
+    "digital-coarse": ("digital", {**estimator_settings("paper", False), "coarse_iterations": 200}, False),
+    "digital-smooth": ("digital", {**estimator_settings("projection-refined", False), "smoothness_weight": 0.02}, False),
 }
 
 

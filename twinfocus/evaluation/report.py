@@ -623,7 +623,7 @@ def _section_trade(doc: dict, out: Path, md: Path, lines: list[str], machine: di
             if p["precision"] != "float32":
                 cli = cli[:-1] + f" --precision {p['precision']}`"
             if coarse:
-                cli += f" + `AutofocusConfig(coarse_iterations={coarse})`"
+                cli = cli[:-1] + f" --coarse-iterations {coarse}`"
             tab.append([name, f"{p['size']} x {p['size']}", str(p["iterations"]), str(coarse), f"{p['lr']:g}", p["basis_dtype"],
                         p["precision"], _f(m["time_s"] if m else None, 2), _f(m["ssim"] if m else None), cli])
         lines += _table(["preset", "reference image", "iterations", "coarse it.", "lr", "basis", "arithmetic", "total s",

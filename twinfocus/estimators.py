@@ -1,0 +1,48 @@
+"""The named estimators of ``twinfocus focus --estimator`` (and the solver node's ``estimator``):
+which :class:`~twinfocus.autofocus.AutofocusConfig` fields make each, and which one ``auto``
+takes. Plain Python, so a node can list the choices without importing the numerics.
+"""
+from __future__ import annotations
+
+from twinfocus.errors import TwinFocusError
+
+#: how the phases are found from the reference (``twinfocus focus --estimator``; docs/beyond.md)
+ESTIMATORS = ("paper", "projection", "projection-refined", "registered", "correlation", "correlation-refined")
+#: the estimators that need the template's phase (a physical twin's complex image)
+PHASE_ESTIMATORS = ("registered", "correlation", "correlation-refined")
+
+
+def auto_estimator(has_phase: bool, tracking_error_m: float, wavelength_m: float) -> str:
+    """The estimator measured best for a template (docs/beyond.md, six pairs x two draws):
+
+    * with the template's phase, the registered closed form ("correlation"): at the transfer
+      ceiling from 0.5 to 1.6 mm of tracking error, in 0.2 s;
+    * an amplitude template (a digital twin's): alternating projections alone ("projection",
+      0.951 at 0.5 mm against the paper's optimiser's 0.942, and 0.940 against 0.905 at 20
+      degrees of separation) while the tracker's error stays within lambda/4; past it, where
+      every phase wraps, the optimiser from there ("projection-refined": 0.924 against 0.862 at
+      1.6 mm along z).
+    """
+    if has_phase:
+        return "correlation"
+    return "projection" if tracking_error_m <= wavelength_m / 4.0 else "projection-refined"
+
+
+def estimator_settings(estimator: str, has_phase: bool) -> dict:
+    """The :class:`~twinfocus.autofocus.AutofocusConfig` fields that make a named estimator
+    (``iterations`` only where it is 0: no optimiser); ``loss_steepness`` is the default for
+    it, which an explicit choice overrides."""
+    if estimator not in ESTIMATORS:
+        raise TwinFocusError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
+    if estimator in PHASE_ESTIMATORS and not has_phase:
+        raise TwinFocusError(f"--estimator {estimator} needs the template's phase: use --template-scan or a template "
+                             "file with phase_rad (a digital twin's template has none; use --estimator projection, "
+                             "projection-refined or paper)")
+    out = {"template_registration": "correlation" if has_phase and estimator != "paper" else "none",
+           "init": estimator.removesuffix("-refined") if estimator.startswith(("correlation", "projection")) else "zero",
+           # a steeper threshold inside the loss lets a smooth amplitude template match a speckled
+           # reference by its outline (docs/evaluation.md)
+           "loss_steepness": 5.0 if estimator in ("paper", "projection", "projection-refined") else None}
+    if estimator in ("correlation", "projection"):
+        out["iterations"] = 0
+    return out
