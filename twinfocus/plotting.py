@@ -72,7 +72,13 @@ def write_focus_pictures(out_dir: Path, o) -> None:
 
     if o.loss_history.size:
         fig, ax = plt.subplots(figsize=(5, 3))
-        ax.plot(o.loss_history)
+        if o.loss_history.size == 1:
+            # a closed-form estimate has one loss and no curve: show the point and say why
+            ax.plot([0], o.loss_history, "o")
+            init = m.get("estimator", {}).get("init", "closed-form")
+            ax.set_title(f"{init} estimate, no optimiser: loss {o.loss_history[0]:.3f}", fontsize=9)
+        else:
+            ax.plot(o.loss_history)
         ax.set_xlabel("iteration")
         ax.set_ylabel("loss")
         ax.set_yscale("log")
