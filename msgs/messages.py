@@ -129,9 +129,12 @@ class SarMeasurement:
 
 @message(topic="twin/template")
 class TwinTemplate:
-    """The reference object's focused amplitude (a template file on the wire).
+    """The reference object's focused image (a template file on the wire).
 
     image : float32 (H, W) amplitude; x_m (W,), y_m (H,) pixel coordinates; z_m the plane.
+    phase_rad : optional float32 (H, W) phase of the image, radians: a physical twin's
+        motion-stage image has one, and with it the solver can register the template and take
+        the closed-form phase (docs/beyond.md); None for an amplitude (a digital twin's).
     kind : ``"physical"`` (motion-stage measurement) or ``"digital"`` (from the camera).
     source : where it came from (file name, scan, ...), for the record.
     """
@@ -141,6 +144,7 @@ class TwinTemplate:
     x_m: np.ndarray = array("float64", ("W",))
     y_m: np.ndarray = array("float64", ("H",))
     z_m: float = real()
+    phase_rad: np.ndarray | None = array("float32", ("H", "W"), optional=True)
     kind: str = text("physical")
     source: str = text()
 

@@ -24,6 +24,7 @@ import json
 import os
 import threading
 import time
+import uuid
 from urllib.parse import urlsplit
 
 import zmq
@@ -79,7 +80,9 @@ class Broker:
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self._threads: list[threading.Thread] = []
-        self._ctrl_addr = f"inproc://broker-steer-{id(self)}"
+        # unique per broker: id(self) can be reused by the next broker before ZeroMQ has released
+        # the previous one's inproc name ("Address already in use")
+        self._ctrl_addr = f"inproc://broker-steer-{uuid.uuid4().hex}"
         self._graph: dict[str, dict] = {}  # latest heartbeat of every node, for late joiners
         self._graph_lock = threading.Lock()
 

@@ -172,10 +172,15 @@ class Solver(Node):
         g = self.ref_grid
         if msg.image.shape == g.shape and np.allclose(msg.x_m, g.x_m) and np.allclose(msg.y_m, g.y_m) and abs(msg.z_m - g.z) < 1e-9:
             self.template = np.asarray(msg.image, dtype=np.float32)
+            if msg.phase_rad is not None:
+                self.template = (self.template * np.exp(1j * np.asarray(msg.phase_rad, np.float64))).astype(np.complex64)
         else:  # resample through the template-file reader, the project's one way to do it
             with tempfile.TemporaryDirectory() as d:
                 path = Path(d) / "template.npz"
-                save_npz_atomic(path, {"image": msg.image, "x_m": msg.x_m, "y_m": msg.y_m, "z_m": np.float64(msg.z_m)})
+                fields = {"image": msg.image, "x_m": msg.x_m, "y_m": msg.y_m, "z_m": np.float64(msg.z_m)}
+                if msg.phase_rad is not None:
+                    fields["phase_rad"] = msg.phase_rad
+                save_npz_atomic(path, fields)
                 try:
                     self.template = load_template(path, g)
                 except TwinFocusError as exc:

@@ -74,22 +74,25 @@ class TemplateBuilder(Node):
         from twinfocus.scan import Scan
         from twinfocus.templates import load_template, template_from_scan
 
+        # a physical twin's phase travels with it (TwinTemplate.phase_rad): the solver's closed form needs it
         if src == "file":
-            # twin/template carries an amplitude (DESIGN.md); a file's phase stays with `focus`
-            image, kind = np.abs(load_template(path, self.grid)).astype(np.float32), "physical"
+            image, kind = load_template(path, self.grid), "physical"
         elif src == "scan":
-            image, kind = template_from_scan(Scan.load(path), self.grid, **self.bp), "physical"
+            image, kind = template_from_scan(Scan.load(path), self.grid, keep_phase=True, **self.bp), "physical"
         else:
             from nodes.sim_backends import scenario_from, template_scan
 
             sc = scenario_from({"scenario": self.params["scenario"] or {}}, f"node {self.name!r}")
-            image, kind, path = template_from_scan(template_scan(sc), self.grid, **self.bp), "physical", "simulated motion-stage scan"
+            image, kind, path = (template_from_scan(template_scan(sc), self.grid, keep_phase=True, **self.bp), "physical",
+                                 "simulated motion-stage scan")
         return self._message(image, kind, path)
 
     def _message(self, image: np.ndarray, kind: str, source: str) -> TwinTemplate:
         g = self.grid
-        return TwinTemplate(header=Header(stamp_ns=now_ns(), frame_id="scene"), image=np.asarray(image, np.float32),
-                            x_m=g.x_m, y_m=g.y_m, z_m=g.z, kind=kind, source=str(source))
+        image = np.asarray(image)
+        phase = np.angle(image).astype(np.float32) if np.iscomplexobj(image) else None
+        return TwinTemplate(header=Header(stamp_ns=now_ns(), frame_id="scene"), image=np.abs(image).astype(np.float32),
+                            phase_rad=phase, x_m=g.x_m, y_m=g.y_m, z_m=g.z, kind=kind, source=str(source))
 
     def on_start(self) -> None:
         if self.msg is not None:

@@ -308,24 +308,54 @@ REF_ROI = [-0.045, -0.005, -0.02, 0.02, 0.3]
 TGT_ROI = [0.01, 0.05, -0.03, 0.01, 0.3]
 
 
-def test_template_builder_publishes_the_resampled_template_file(tmp_path):
+def _published_template(path, size=12):
+    """What a template builder with ``source: file`` publishes on twin/template."""
     from nodes.template_builder import TemplateBuilder
+
+    with local_broker() as ep:
+        probe = Probe(ep, listen=["twin/template"])
+        tb = TemplateBuilder(broker=ep, params={"source": "file", "path": str(path), "reference_roi": REF_ROI, "size": size,
+                                                "wait_for": ["probe"]})
+        with running(probe, tb):
+            (t,) = probe.wait_for("twin/template", 1)
+    return t
+
+
+def test_template_builder_publishes_the_resampled_template_file(tmp_path):
     from twinfocus.grid import ImageGrid
     from twinfocus.templates import load_template, save_template
 
     fine = ImageGrid.from_roi([-0.05, 0.0, -0.03, 0.03, 0.3], (31, 26))
     image = np.random.default_rng(0).random(fine.shape).astype(np.float32)
     save_template(tmp_path / "t.npz", image, fine)
-    with local_broker() as ep:
-        probe = Probe(ep, listen=["twin/template"])
-        tb = TemplateBuilder(broker=ep, params={"source": "file", "path": str(tmp_path / "t.npz"),
-                                                "reference_roi": REF_ROI, "size": 12, "wait_for": ["probe"]})
-        with running(probe, tb):
-            (t,) = probe.wait_for("twin/template", 1)
+    t = _published_template(tmp_path / "t.npz")
     grid = ImageGrid.from_roi(REF_ROI, 12)
     assert np.array_equal(t.image, load_template(tmp_path / "t.npz", grid))
     assert np.array_equal(t.x_m, grid.x_m) and np.array_equal(t.y_m, grid.y_m) and t.z_m == 0.3
-    assert t.kind == "physical" and t.source.endswith("t.npz")
+    assert t.kind == "physical" and t.source.endswith("t.npz") and t.phase_rad is None
+
+
+def test_a_physical_twins_phase_travels_to_the_solver(tmp_path):
+    """A template file with its phase: the builder sends it along (TwinTemplate.phase_rad), and the
+    solver rebuilds the complex template, so auto picks the registered closed form."""
+    from nodes.solver import Solver
+    from twinfocus.grid import ImageGrid
+    from twinfocus.templates import load_template, save_template
+
+    grid = ImageGrid.from_roi(REF_ROI, 12)
+    rng = np.random.default_rng(4)
+    image = (rng.random(grid.shape) * np.exp(1j * rng.uniform(-3, 3, grid.shape))).astype(np.complex64)
+    save_template(tmp_path / "t.npz", image, grid)
+    t = _published_template(tmp_path / "t.npz")
+    want = load_template(tmp_path / "t.npz", grid)
+    np.testing.assert_allclose(t.image * np.exp(1j * t.phase_rad.astype(np.float64)), want, atol=1e-5)
+    with local_broker() as ep:
+        for size in (12, 9):  # the solver's own grid, then another one (resampled)
+            solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": size, "warm_up": False})
+            solver.on_template(t)
+            assert solver.template.dtype == np.complex64 and solver.template.shape == (size, size)
+            assert solver._config(Chirp()).init == "correlation"
+        np.testing.assert_allclose(solver.template, load_template(tmp_path / "t.npz", ImageGrid.from_roi(REF_ROI, 9)), atol=1e-5)
 
 
 def measurements(scan, scan_id="p"):

@@ -68,8 +68,8 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.grid import ImageGrid
     from twinfocus.estimators import auto_estimator, estimator_settings
+    from twinfocus.grid import ImageGrid
     from twinfocus.pipeline import focus_scan, write_outputs
     from twinfocus.progress import Progress
     from twinfocus.scan import Scan
