@@ -114,6 +114,26 @@ def bench_estimators(scan, template_scan, sc, quick) -> list[dict]:
     return rows
 
 
+def bench_projection_iterations(scan, template_scan, sc, quick) -> list[dict]:
+    """``--estimator projection`` (amplitude template, no optimiser) against its step count on
+    the default scene, 100 x 100: seconds and target SSIM (phase ramp removed as ``focus`` does)."""
+    from twinfocus.evaluation.cases import transfer_phase
+
+    rg, tg = scenario_grids(sc, 100)
+    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
+    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+    amplitude = template_from_scan(template_scan, rg)
+    truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
+    rows = []
+    for steps in ((10, 30) if quick else (3, 10, 30, 100)):
+        cfg = AutofocusConfig(**estimator_settings("projection", False), projection_iterations=steps)
+        t, r = _best(lambda: twin_autofocus(rb, amplitude, cfg), 1 if quick else 2)
+        ssim = image_ssim(form_image(tb, transfer_phase(r.phase_rad, scan.positions)), truth)
+        rows.append({"projection_iterations": steps, "seconds": t, "ssim": ssim})
+        print(f"  {steps} steps: {t:.2f} s, SSIM {ssim:.3f}")
+    return rows
+
+
 def main(out_dir, quick: bool = False) -> dict:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -140,6 +160,8 @@ def main(out_dir, quick: bool = False) -> dict:
 
     print("trade: estimator (template registration, closed-form phase; docs/beyond.md)")
     res["trade_estimator"] = bench_estimators(scan, template_scan, sc, quick)
+    print("trade: projection steps (amplitude template, no optimiser)")
+    res["trade_projection_iterations"] = bench_projection_iterations(scan, template_scan, sc, quick)
 
     print("trade: image size")
     res["trade_image_size"] = []
@@ -183,6 +205,10 @@ def _markdown(res: dict) -> str:
                   "| size | estimator | template | seconds | target SSIM |", "|---|---|---|---|---|"]
         lines += [f"| {r['size']} | {r['estimator']} | {r.get('template', 'complex')} | {r['seconds']:.2f} | {r['ssim']:.3f} |"
                   for r in res["trade_estimator"]]
+    if "trade_projection_iterations" in res:
+        lines += ["", "## Trade: projection steps (`--estimator projection --projection-iterations N`, 100 x 100)", "",
+                  "| steps | seconds | target SSIM |", "|---|---|---|"]
+        lines += [f"| {r['projection_iterations']} | {r['seconds']:.2f} | {r['ssim']:.3f} |" for r in res["trade_projection_iterations"]]
     for key, label in (("trade_image_size", "size"), ("trade_iterations", "iterations"), ("trade_precision", "precision")):
         if key not in res:
             continue
