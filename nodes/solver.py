@@ -132,7 +132,7 @@ class Solver(Node):
 
     def _config(self, chirp):
         """The AutofocusConfig for the template at hand: the parameters plus the estimator's
-        (:func:`twinfocus.pipeline.estimator_settings`, the policy of ``twinfocus focus``)."""
+        (:func:`twinfocus.estimators.estimator_settings`, the policy of ``twinfocus focus``)."""
         from dataclasses import replace
 
         from twinfocus.estimators import auto_estimator, estimator_settings

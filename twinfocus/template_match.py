@@ -95,7 +95,7 @@ def projection_phase(basis: np.ndarray, amplitude: np.ndarray, iterations: int =
     Returns float64 (M,) radians.
     """
     a = np.abs(np.asarray(amplitude))
-    b, _ = _check(basis, a.astype(np.complex64))
+    b, _ = _check(basis, a.astype(np.complex64))  # its shape, finiteness and emptiness checks
     if int(iterations) < 1:
         raise TwinFocusError(f"projection iterations must be >= 1, got {iterations}")
     flat = b.reshape(b.shape[0], -1)
@@ -105,8 +105,9 @@ def projection_phase(basis: np.ndarray, amplitude: np.ndarray, iterations: int =
         raise TwinFocusError(f"init_phase_rad must have one value per radar position ({b.shape[0]}), got {phi.shape}")
     for _ in range(int(iterations)):
         image = np.exp(1j * phi).astype(flat.dtype) @ flat
-        goal = a * np.exp(1j * np.angle(image))
-        phi = np.angle(flat.conj() @ goal.astype(flat.dtype)).astype(np.float64)
+        # angle <B_m, T> = -angle (B_m . conj T): no conjugate copy of the basis per step
+        goal_conj = (a * np.exp(-1j * np.angle(image))).astype(flat.dtype)
+        phi = -np.angle(flat @ goal_conj).astype(np.float64)
     return phi
 
 
