@@ -58,7 +58,7 @@ class AutofocusConfig:
     #: (:func:`twinfocus.template_match.projection_phase`). Neither needs unwrapping; with
     #: ``iterations=0`` the start is the whole estimate.
     init: str = "zero"
-    #: projection steps of ``init="projection"`` (~20 ms each at 780 x 100 x 100 on 2 cores)
+    #: projection steps of ``init="projection"`` (~3 ms each at 780 x 100 x 100 on 2 cores)
     projection_iterations: int = 30
     #: ``init="projection"`` also from this many random starts (fixed seed); the end with the
     #: lowest loss (:func:`template_loss`) starts the optimiser. Pays past lambda/4, where the

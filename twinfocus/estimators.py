@@ -16,12 +16,12 @@ def auto_estimator(has_phase: bool, tracking_error_m: float, wavelength_m: float
     """The estimator measured best for a template (docs/beyond.md, six pairs x two draws):
 
     * with the template's phase, the registered closed form ("correlation"): at the transfer
-      ceiling from 0.5 to 1.6 mm of tracking error, in 0.2 s;
+      ceiling from 0.5 to 1.6 mm of tracking error, in 0.15 s;
     * an amplitude template (a digital twin's): alternating projections alone ("projection",
-      0.951 at 0.5 mm against the paper's optimiser's 0.942, and 0.940 against 0.905 at 20
-      degrees of separation) while the tracker's error stays within lambda/4; past it, where
-      every phase wraps, the optimiser from there ("projection-refined": 0.924 against 0.862 at
-      1.6 mm along z).
+      0.950 at 0.5 mm against the steepness-5 optimiser's 0.941, and 0.940 against 0.905 at 20
+      degrees of separation, in 0.12 s) while the tracker's error stays within lambda/4; past
+      it, where every phase wraps, the optimiser from there ("projection-refined": 0.921
+      against 0.861 at 1.6 mm along z).
     """
     if has_phase:
         return "correlation"

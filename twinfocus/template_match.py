@@ -74,8 +74,8 @@ def correlation_phase(basis: np.ndarray, template: np.ndarray) -> np.ndarray:
     """
     b, t = _check(basis, template)
     flat = b.reshape(b.shape[0], -1)
-    c = flat.conj() @ t.reshape(-1).astype(flat.dtype)
-    return np.angle(c).astype(np.float64)
+    # angle <B_m, T> = -angle (B_m . conj T): no conjugate copy of the basis
+    return -np.angle(flat @ np.conj(t.reshape(-1)).astype(flat.dtype)).astype(np.float64)
 
 
 def projection_phase(basis: np.ndarray, amplitude: np.ndarray, iterations: int = 30,

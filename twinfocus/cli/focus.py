@@ -50,10 +50,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "when the template has a phase; else projection, or projection-refined when "
                         "--tracking-error-mm exceeds lambda/4")
     p.add_argument("--projection-iterations", type=int, default=30,
-                   help="alternating-projection steps of --estimator projection (default 30, ~20 ms each)")
+                   help="alternating-projection steps of --estimator projection (default 30, ~3 ms each)")
     p.add_argument("--projection-restarts", type=int, default=0,
                    help="--estimator projection also from this many random starts, the best by the loss going on "
-                        "(default 0; pays past lambda/4, ~0.7 s each at 780 x 100 x 100 on 2 cores)")
+                        "(default 0; pays past lambda/4, ~0.1 s each at 780 x 100 x 100 on 2 cores)")
     p.add_argument("--coarse-iterations", type=int, default=0,
                    help="coarse-to-fine: this many optimiser iterations on blurred images before the full-resolution "
                         "ones (default 0: the paper's single stage)")
