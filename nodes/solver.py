@@ -135,15 +135,12 @@ class Solver(Node):
         (:func:`twinfocus.estimators.estimator_settings`, the policy of ``twinfocus focus``)."""
         from dataclasses import replace
 
-        from twinfocus.estimators import auto_estimator, estimator_settings
+        from twinfocus.estimators import estimator_settings
 
         if self.params["method"] != "twin" or self.template is None:
             return self.cfg
-        has_phase = bool(np.iscomplexobj(self.template))
-        name = self.params["estimator"]
-        if name == "auto":
-            name = auto_estimator(has_phase, self.params["tracking_error_m"], chirp.wavelength_m)
-        chosen = estimator_settings(name, has_phase)
+        chosen = estimator_settings(self.params["estimator"], bool(np.iscomplexobj(self.template)),
+                                    self.params["tracking_error_m"], chirp.wavelength_m)
         if self.params["loss_steepness"] > 0:
             chosen["loss_steepness"] = self.params["loss_steepness"]
         return replace(self.cfg, **chosen)

@@ -424,6 +424,8 @@ def test_solver_picks_the_estimator_as_twinfocus_focus_does():
         assert {k: getattr(cfg, k) for k in want} == want and cfg.iterations == 40
         with pytest.raises(TwinFocusError, match="estimator"):
             Solver(broker=ep, params={**base, "estimator": "random"})
+        with pytest.raises(TwinFocusError, match="'auto' needs the tracking error"):
+            estimator_settings("auto", False)
         solver = Solver(broker=ep, params={**base, "estimator": "correlation"})
         solver.template = amplitude
         with pytest.raises(TwinFocusError, match="needs the template's phase"):

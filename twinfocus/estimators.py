@@ -28,10 +28,16 @@ def auto_estimator(has_phase: bool, tracking_error_m: float, wavelength_m: float
     return "projection" if tracking_error_m <= wavelength_m / 4.0 else "projection-refined"
 
 
-def estimator_settings(estimator: str, has_phase: bool) -> dict:
+def estimator_settings(estimator: str, has_phase: bool, tracking_error_m: float | None = None,
+                       wavelength_m: float | None = None) -> dict:
     """The :class:`~twinfocus.autofocus.AutofocusConfig` fields that make a named estimator
     (``iterations`` only where it is 0: no optimiser); ``loss_steepness`` is the default for
-    it, which an explicit choice overrides."""
+    it, which an explicit choice overrides. ``"auto"`` is resolved by :func:`auto_estimator`
+    and needs ``tracking_error_m`` and ``wavelength_m``."""
+    if estimator == "auto":
+        if tracking_error_m is None or wavelength_m is None:
+            raise TwinFocusError("estimator 'auto' needs the tracking error and the wavelength to choose")
+        estimator = auto_estimator(has_phase, tracking_error_m, wavelength_m)
     if estimator not in ESTIMATORS:
         raise TwinFocusError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
     if estimator in PHASE_ESTIMATORS and not has_phase:

@@ -94,20 +94,18 @@ def projection_phase(basis: np.ndarray, amplitude: np.ndarray, iterations: int =
     modulus is taken); iterations : projection steps (>= 1); init_phase_rad : (M,) start (zeros).
     Returns float64 (M,) radians.
     """
+    from twinfocus.autofocus import form_image
+
     a = np.abs(np.asarray(amplitude))
     b, _ = _check(basis, a.astype(np.complex64))  # its shape, finiteness and emptiness checks
     if int(iterations) < 1:
         raise TwinFocusError(f"projection iterations must be >= 1, got {iterations}")
-    flat = b.reshape(b.shape[0], -1)
-    a = (a / a.max()).reshape(-1).astype(np.float32)
+    a = (a / a.max()).astype(np.float32)
     phi = np.zeros(b.shape[0]) if init_phase_rad is None else np.asarray(init_phase_rad, dtype=np.float64)
     if phi.shape != (b.shape[0],):
         raise TwinFocusError(f"init_phase_rad must have one value per radar position ({b.shape[0]}), got {phi.shape}")
     for _ in range(int(iterations)):
-        image = np.exp(1j * phi).astype(flat.dtype) @ flat
-        # angle <B_m, T> = -angle (B_m . conj T): no conjugate copy of the basis per step
-        goal_conj = (a * np.exp(-1j * np.angle(image))).astype(flat.dtype)
-        phi = -np.angle(flat @ goal_conj).astype(np.float64)
+        phi = correlation_phase(b, a * np.exp(1j * np.angle(form_image(b, phi))))
     return phi
 
 

@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.estimators import auto_estimator, estimator_settings
+    from twinfocus.estimators import estimator_settings
     from twinfocus.grid import ImageGrid
     from twinfocus.pipeline import focus_scan, write_outputs
     from twinfocus.progress import Progress
@@ -102,10 +102,9 @@ def run(args: argparse.Namespace) -> int:
     else:
         method = args.method
     has_phase = template is not None and np.iscomplexobj(template)
-    estimator = args.estimator
-    if estimator == "auto":
-        estimator = auto_estimator(has_phase, args.tracking_error_mm * 1e-3, scan.chirp.wavelength_m)
-    chosen = estimator_settings(estimator, has_phase) if method == "twin" else {}
+    chosen = {}
+    if method == "twin":
+        chosen = estimator_settings(args.estimator, has_phase, args.tracking_error_mm * 1e-3, scan.chirp.wavelength_m)
     if args.loss_steepness is not None:
         chosen["loss_steepness"] = args.loss_steepness
     cfg = AutofocusConfig(**{
