@@ -4,7 +4,7 @@ PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
 DEMO    ?= demo_out
 
-.PHONY: demo test bench bench-paper bench-beyond system-deps browser-deps clean
+.PHONY: demo test test-fast lint bench bench-paper bench-beyond system-deps browser-deps clean
 
 # open3d and pyusb load the system's libusb-1.0 at import time; without it `import open3d` fails.
 system-deps:
@@ -21,11 +21,15 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e '.[test]'
 	@touch $(STAMP)
 
+# The paper's regions and image size, from their one home (twinfocus.scenario; launch/paper.yaml
+# holds the same for the launch files). Expanded only when a recipe uses it, after the venv exists.
+PAPER_FOCUS_ARGS = $(shell $(PY) -c 'from twinfocus.scenario import PAPER_REFERENCE_ROI as r, PAPER_TARGET_ROI as t, \
+	PAPER_IMAGE_SIZE as s; print("--reference-roi", *r, "--target-roi", *t, "--size", s)')
+
 demo: $(STAMP)
 	$(VENV)/bin/twinfocus simulate --out $(DEMO)/scan.npz --template-out $(DEMO)/template_scan.npz
 	$(VENV)/bin/twinfocus focus $(DEMO)/scan.npz --template-scan $(DEMO)/template_scan.npz \
-	    --reference-roi -0.15 0.0 -0.11 0.12 0.6 --target-roi 0.02 0.13 -0.11 0.12 0.6 \
-	    --size 100 --out $(DEMO)/focus
+	    $(PAPER_FOCUS_ARGS) --out $(DEMO)/focus
 	@echo "[make] pictures and figures are in $(DEMO)/focus"
 
 # The node-graph test opens the live web page in a real headless browser (Debian's chromium).
@@ -39,6 +43,16 @@ browser-deps:
 
 test: $(STAMP) browser-deps
 	$(PY) -m pytest -q
+
+# The tests not marked slow (under two minutes on 2 cores): the quick check while working.
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+# Lint, types and the import layers (pyproject.toml's [tool.ruff], [tool.mypy], [tool.importlinter]).
+lint: $(STAMP)
+	$(VENV)/bin/ruff check twinfocus msgs nodes
+	$(VENV)/bin/mypy
+	$(VENV)/bin/lint-imports
 
 bench: $(STAMP)
 	$(PY) -m benchmarks.run --out benchmarks/results

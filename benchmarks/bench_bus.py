@@ -13,6 +13,13 @@
    radar's rate and focuses it; the time from sending the last measurement to receiving the
    focused target image, with the sub-image basis accumulated as measurements arrive
    (``basis:=stream``) and computed after the scan (``basis:=after_scan``).
+3. Live graph latency (issue 17): ``launch/sim.yaml`` at the paper's size (780 positions x 86
+   channels, 100 x 100) with the simulated sensors at real time (``rate:=1``); a probe on the
+   bus takes the wall time the sweep's last ``radar/frame`` reaches it and the time the focused
+   ``target`` image does. Also reported: the solver's own ``latency_s`` (last measurement in ->
+   result out, the field the visualizer shows) and its step timings.
+
+    python -m benchmarks.bench_bus --out benchmarks/results --graph-only   # part 3 alone
 """
 from __future__ import annotations
 
@@ -211,9 +218,63 @@ def latency_run(mode: str, columns: int, rows: int, size: int, iterations: int, 
     }
 
 
-def main(out_dir: str | Path = "benchmarks/results", quick: bool = False) -> dict:
+def graph_latency_run(columns: int, rows: int, size: int, rate: float, iterations: int = 300) -> dict:
+    """``twinfocus launch sim`` with a probe: last radar frame of the sweep -> focused target image."""
+    import socket
+    import subprocess
+    import tempfile
+
+    from nodes.testing import Probe, running
+
+    def free_port() -> int:
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            return sock.getsockname()[1]
+
+    repo = str(Path(__file__).resolve().parent.parent)
+    port = free_port()
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, "-c", "import sys; from twinfocus.cli import main; sys.exit(main())", "launch", "sim",
+               f"port:={port}", "web_port:=0", f"out:={tmp}", f"columns:={columns}", f"rows:={rows}", f"size:={size}",
+               f"rate:={rate}", f"iterations:={iterations}", "exit_after:=1"]
+        g = subprocess.Popen(cmd, cwd=repo, env={**os.environ, "PYTHONPATH": repo}, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+        try:
+            probe = Probe(f"tcp://127.0.0.1:{port}", listen=["radar/frame", "image/focused", "autofocus/result"],
+                          name="bench_graph_probe", params={"ready_timeout_s": 300})
+            with running(probe, start_timeout_s=300):
+                timeout = float(os.environ.get("BENCH_TIMEOUT", 1800))
+                probe.wait_for("image/focused", 1, timeout_s=timeout, where=lambda i: i.name == "target")
+                (res,) = probe.wait_for("autofocus/result", 1, timeout_s=60)
+                frames = probe.received["radar/frame"]
+                last = [i for i, f in enumerate(frames) if f.last]
+                t_last = probe.arrival["radar/frame"][last[0]] if last else float("nan")
+                names = [i.name for i in probe.received["image/focused"]]
+                t_image = probe.arrival["image/focused"][names.index("target")]
+        finally:
+            g.wait(120)
+    return {
+        "graph": "launch/sim.yaml",
+        "positions": int(res.phase_rad.size),
+        "frames_seen_by_probe": len(frames),
+        "image": f"{size}x{size}",
+        "sensor_rate": rate,
+        "last_radar_frame_to_focused_image_s": t_image - t_last,
+        "solver_latency_s": float(res.latency_s),
+        "solver_timing_s": res.timing_s,
+    }
+
+
+def main(out_dir: str | Path = "benchmarks/results", quick: bool = False, graph_only: bool = False) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    graph = graph_latency_run(*((2, 40, 40, 1.0) if quick else (6, 130, 100, 1.0)))
+    if graph_only:
+        prev = json.loads((out / "bus.json").read_text()) if (out / "bus.json").is_file() else {}
+        prev["live_graph"] = graph
+        (out / "bus.json").write_text(json.dumps(prev, indent=2, default=float))
+        print(json.dumps(graph, indent=2, default=float))
+        return prev
     n_big = 300 if quick else 2000
     results = {
         "bus": [
@@ -223,6 +284,7 @@ def main(out_dir: str | Path = "benchmarks/results", quick: bool = False) -> dic
             bus_run("pose", 500 if quick else 2000, 200.0),
         ],
         "scan_end_to_image": [],
+        "live_graph": graph,
     }
     cols, rows, size, iters, rate = (2, 40, 40, 30, 20.0) if quick else (6, 130, 100, 300, 10.0)
     for mode in ("stream", "after_scan"):
@@ -237,6 +299,10 @@ def main(out_dir: str | Path = "benchmarks/results", quick: bool = False) -> dic
     for r in results["scan_end_to_image"]:
         lines.append(f"| {r['basis']} | {r['positions']} | {r['image']} | {r['iterations']} | {r['feed_rate_hz']:g} | "
                      f"{r['last_measurement_to_focused_image_s']:.2f} |")
+    lines += ["", "| graph | positions | image | sensor rate | last radar frame -> focused image (s) | solver latency_s |",
+              "|---|---|---|---|---|---|",
+              f"| {graph['graph']} | {graph['positions']} | {graph['image']} | {graph['sensor_rate']:g} | "
+              f"{graph['last_radar_frame_to_focused_image_s']:.2f} | {graph['solver_latency_s']:.2f} |"]
     (out / "bus.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return results
@@ -246,5 +312,6 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--quick", action="store_true", help="small sizes (a minute), for checking the script")
+    ap.add_argument("--graph-only", action="store_true", help="only the live graph's latency (part 3), added to bus.json")
     a = ap.parse_args()
-    main(a.out, a.quick)
+    main(a.out, a.quick, a.graph_only)

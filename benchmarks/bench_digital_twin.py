@@ -39,8 +39,9 @@ def _best(fn, repeats: int):
 def main(out_dir: str | os.PathLike = "benchmarks/results", repeats: int = 3, trials: int = 2) -> dict:
     import torch
 
-    from twinfocus.autofocus import AutofocusConfig, form_image, twin_autofocus
+    from twinfocus.autofocus import AutofocusConfig, twin_autofocus
     from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.basis import form_image
     from twinfocus.digital_twin.pipeline import reference_from_stereo
     from twinfocus.digital_twin.render import render_scene
     from twinfocus.digital_twin.segment import box_from_scene_roi, mask_iou

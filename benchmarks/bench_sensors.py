@@ -12,6 +12,11 @@ the figure is the highest rate with none lost. For scale: the paper's radar prod
 Capture read: a capture folder in TI's layout is written to a temporary folder (so it is in the
 page cache: this measures the reader, not the disk), then read frame by frame, raw and as the
 86 virtual channels of a scan.
+
+DCA1000 files: the same MMWCAS-shaped frames written as mmWave Studio's raw ``adc_data.bin``,
+the CLI's reordered form and its sequence-number records (one lost packet), read into decoded
+frames by ``Dca1000FileCapture`` (``--only dca1000_files`` runs this part alone and updates
+``sensors.json`` in place).
 """
 from __future__ import annotations
 
@@ -130,11 +135,53 @@ def bench_capture_read(quick: bool) -> dict:
     return out
 
 
-def main(out_dir, quick: bool = False) -> dict:
+def bench_dca1000_files(quick: bool) -> dict:
+    import struct
+
+    from twinfocus.sensors.dca1000_files import CliCaptureSettings, Dca1000FileCapture
+
+    n = 40 if quick else 150
+    stream = np.random.default_rng(2).integers(-2000, 2000, n * LAYOUT.frame_values, dtype=np.int16)
+    forms = {
+        "raw": stream.tobytes(),
+        "reordered": stream.reshape(-1, 4)[:, [0, 2, 1, 3]].tobytes(),  # I0 I1 Q0 Q1 -> I0 Q0 I1 Q1
+    }
+    raw = forms["raw"]
+    recs = []
+    for k, start in enumerate(range(0, len(raw), 1456)):
+        if k != 7:  # one lost packet
+            payload = raw[start:start + 1456]
+            recs.append(struct.pack("<II", k + 1, len(payload)) + start.to_bytes(6, "little") + payload)
+    forms["records"] = b"".join(recs)
+    out = {"frames": n, "frame_bytes": LAYOUT.frame_bytes}
+    with tempfile.TemporaryDirectory() as d:
+        for name, data in forms.items():
+            path = Path(d) / f"{name}.bin"
+            path.write_bytes(data)
+            settings = CliCaptureSettings(reorder=name == "reordered")
+            best = np.inf
+            for _ in range(2):
+                t = time.perf_counter()
+                cap = Dca1000FileCapture(path, LAYOUT, 0.1, name, settings)
+                best = min(best, time.perf_counter() - t)
+            assert len(cap.frames) == n, (name, len(cap.frames), cap.warnings)
+            out[name] = {"decoded_frames_per_s": n / best, "MB_per_s": len(data) / best / 1e6,
+                         "frames_zero_filled": cap.stats.frames_zero_filled}
+            print(f"  DCA1000 file '{name}': {n / best:.0f} frames/s ({len(data) / best / 1e6:.0f} MB/s)")
+    return out
+
+
+def main(out_dir, quick: bool = False, only: str | None = None) -> dict:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    result = {"udp_ingest": bench_ingest(quick), "capture_read": bench_capture_read(quick)}
-    (out_dir / "sensors.json").write_text(json.dumps(result, indent=2))
+    parts = {"udp_ingest": bench_ingest, "capture_read": bench_capture_read, "dca1000_files": bench_dca1000_files}
+    path = out_dir / "sensors.json"
+    if only:
+        result = json.loads(path.read_text()) if path.is_file() else {}
+        result[only] = parts[only](quick)
+    else:
+        result = {k: f(quick) for k, f in parts.items()}
+    path.write_text(json.dumps(result, indent=2))
     return result
 
 
@@ -142,5 +189,6 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--only", choices=["udp_ingest", "capture_read", "dca1000_files"], help="run one part, update sensors.json")
     a = ap.parse_args()
-    main(a.out, a.quick)
+    main(a.out, a.quick, a.only)

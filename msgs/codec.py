@@ -18,7 +18,8 @@ Nothing is pickled: dtypes must be exactly the schema's (a string compare, never
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import msgpack
 import numpy as np

@@ -1,24 +1,23 @@
-"""One typed message per topic kind (DESIGN.md section 4).
+"""One typed message per topic kind (docs/architecture.md section 4).
 
 Units are SI, time stamps integer nanoseconds, arrays numpy with the dtype and shape each
 field declares (symbols such as K, N bind across the fields of one message). Frames:
-``"scene"`` is the scene frame of DESIGN.md (x, y across the aperture, z into the scene);
+``"scene"`` is the scene frame of docs/architecture.md section 4 (x, y across the aperture, z into the scene);
 ``"radar"`` the radar body frame (x along the virtual array, y across, z boresight).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from twinfocus.radar import Chirp
-
 from msgs.schema import Header, array, flag, integer, mapping, message, real, strings, text
+from twinfocus.radar import Chirp
 
 
 @message(topic="radar/frame")
 class RadarFrame:
     """One radar position: the monostatic-equivalent IF samples of every virtual channel.
 
-    data : complex64 (K, N), the model of DESIGN.md section 2 (one row of a scan's ``data``).
+    data : complex64 (K, N), the model of docs/architecture.md section 2 (one row of a scan's ``data``).
     f0_hz, slope_hz_per_s, fs_hz : the chirp (N = data.shape[1] samples).
     channel_offsets_m : float64 (K, 3), each channel's phase centre in the radar body frame,
         metres (``VirtualArray.offsets_m``); the synchronizer places them with the pose.
@@ -26,6 +25,9 @@ class RadarFrame:
     last : True on the scan's final frame.
     positions_true_m : optional float64 (K, 3) true scene-frame phase centres (simulation only,
         for metrics against the truth).
+    frames_lost, frames_zero_filled, bytes_lost : capture gaps of the stream so far (a capture
+        board's lost and zero-filled frames and missing bytes, counted since the stream began;
+        0 from sources without gaps and in logs written before these fields existed).
     """
 
     header: Header
@@ -38,6 +40,9 @@ class RadarFrame:
     index: int = integer(0)
     last: bool = flag(False)
     positions_true_m: np.ndarray | None = array("float64", ("K", 3), optional=True)
+    frames_lost: int = integer(0, doc="capture frames of which no byte arrived, since the stream began")
+    frames_zero_filled: int = integer(0, doc="capture frames with missing bytes (zeros stand in), since the stream began")
+    bytes_lost: int = integer(0, doc="capture bytes that never arrived, since the stream began")
 
     def check(self) -> str | None:
         return _check_chirp(self)
@@ -155,7 +160,12 @@ class AutofocusResult:
 
     phase_rad : float64 (M,) per-position phase correction; loss_history : float64 (I,) loss
     per iteration; metrics : figures of merit (e.g. ``ssim_target``); timing_s : durations of
-    the solver's steps (``basis_after_scan``, ``autofocus``, ...), seconds.
+    the solver's steps (``basis_after_scan``, ``autofocus``, ...), seconds; latency_s : wall-clock
+    seconds from the scan's last measurement reaching the solver to the focused image and the
+    first result for the scan (0: unknown, as in logs recorded before the field);
+    metrics_pending : True on a first result published as soon as the image was ready, whose
+    metrics against the truth (simulation) follow in a second result for the same scan
+    (False: this result is the scan's last, as in logs recorded before the field).
     """
 
     header: Header
@@ -165,11 +175,13 @@ class AutofocusResult:
     loss_history: np.ndarray = array("float64", ("I",))
     metrics: dict = mapping("float")
     timing_s: dict = mapping("float")
+    latency_s: float = real(0.0, doc="last measurement in -> result out, wall-clock seconds (0: unknown)")
+    metrics_pending: bool = flag(False, doc="truth metrics follow in a later result for this scan")
 
 
 @message(topic="image/focused")
 class Image:
-    """A complex SAR image on a grid (DESIGN.md section 4).
+    """A complex SAR image on a grid (docs/architecture.md section 4).
 
     name : which image (``"target"``, ``"target_uncorrected"``, ``"reference"``, ...);
     image : complex64 (H, W); x_m (W,), y_m (H,), z_m: pixel coordinates, metres.

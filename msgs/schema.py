@@ -15,11 +15,19 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+
+if TYPE_CHECKING:
+    from typing_extensions import dataclass_transform
+else:
+
+    def dataclass_transform(**_kwargs):
+        """typing.dataclass_transform is Python 3.11+; it only informs type checkers."""
+        return lambda f: f
 
 
 class MessageError(TwinFocusError):
@@ -49,7 +57,7 @@ class Header:
         return [int(self.stamp_ns), int(self.seq), str(self.frame_id)]
 
     @classmethod
-    def from_wire(cls, value: Any, where: str) -> "Header":
+    def from_wire(cls, value: Any, where: str) -> Header:
         if (
             not isinstance(value, (list, tuple))
             or len(value) != 3
@@ -135,10 +143,13 @@ def mapping(value_type: str, doc: str = "") -> Any:
 MESSAGE_TYPES: dict[str, type] = {}
 
 
+# Tells type checkers that message types take their fields as keywords (names and value types
+# checked at call sites); the field helpers above return Any, so every field counts as defaulted.
+@dataclass_transform(kw_only_default=True)
 def message(topic: str | None = None):
     """Class decorator: make a dataclass message type and register it under its class name.
 
-    ``topic`` is the topic this type normally travels on (DESIGN.md section 4).
+    ``topic`` is the topic this type normally travels on (docs/architecture.md section 4).
     """
 
     def wrap(cls):
@@ -239,7 +250,7 @@ def _check_array(spec: ArraySpec, value: Any, where: str, name: str, strict: boo
             continue
         trial = dict(dims)
         ok = True
-        for axis, (want, got) in enumerate(zip(shape, value.shape)):
+        for want, got in zip(shape, value.shape):
             if isinstance(want, int):
                 ok = ok and want == got
             elif want in trial:

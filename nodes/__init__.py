@@ -15,6 +15,15 @@ NODE_TYPES: dict[str, str] = {
     "visualizer": "nodes.visualizer",
     "recorder": "nodes.recorder",
     "player": "nodes.player",
+    "foxglove_bridge": "nodes.foxglove_bridge",
 }
+
+#: node types whose end (status 0) is part of their job: a player at the end of its log, a
+#: driver whose backend has no more samples (simulation, files). By default the launcher lets
+#: them finish. Any other node ending while the graph runs would stall it (the solver would wait
+#: for measurements forever), so by default the launcher stops the graph then (status 1).
+#: A launched node stopped by a signal that is not the launcher's exits 128 + signal, so that is
+#: never taken for a finished job.
+FINISHING_TYPES = frozenset({"player", "radar_driver", "vio_driver"})
 
 __doc__ += "".join(f"\n* ``{k}``: :mod:`{v}`" for k, v in NODE_TYPES.items())

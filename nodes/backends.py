@@ -47,6 +47,7 @@ class RadarSample:
         hardware backends apply :func:`twinfocus.sensors.frames.frame_to_virtual_channels`).
     scan_id, index, last : which scan, position in it, and whether it is the scan's last frame.
     positions_true_m : optional float64 (K, 3) true phase centres (simulation only).
+    gaps : optional (frames_lost, frames_zero_filled, bytes_lost) of the capture so far.
     """
 
     stamp_ns: int
@@ -55,6 +56,7 @@ class RadarSample:
     index: int = 0
     last: bool = False
     positions_true_m: np.ndarray | None = None
+    gaps: tuple[int, int, int] | None = None
 
 
 @dataclass

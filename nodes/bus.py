@@ -1,6 +1,6 @@
 """The message bus: one XSUB/XPUB proxy (the broker) and the topic framing every node uses.
 
-Wiring (DESIGN.md section 4, docs/node_graph.md):
+Wiring (docs/architecture.md section 4, docs/node_graph.md):
 
 * The broker binds one **well-known control endpoint** (default ``tcp://127.0.0.1:7447``,
   loopback only) and two data sockets on free ports of the same interface: an XSUB that
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import threading
 import time
 import uuid
@@ -87,7 +88,7 @@ class Broker:
         self._graph_lock = threading.Lock()
 
     # -- lifecycle --------------------------------------------------------------------------
-    def start(self, timeout_s: float = 5.0) -> "Broker":
+    def start(self, timeout_s: float = 5.0) -> Broker:
         steer = self.ctx.socket(zmq.PAIR)
         steer.bind(self._ctrl_addr)
         self._steer = steer
@@ -119,7 +120,7 @@ class Broker:
         except Exception:
             pass
 
-    def __enter__(self) -> "Broker":
+    def __enter__(self) -> Broker:
         return self.start()
 
     def __exit__(self, *exc) -> None:
@@ -223,29 +224,42 @@ def query_graph(endpoint: str, ctx: zmq.Context, timeout_s: float = 0.5) -> dict
         req.close(linger=0)
 
 
-def discover(endpoint: str, ctx: zmq.Context, timeout_s: float) -> tuple[str, str]:
+def discover(endpoint: str, ctx: zmq.Context, timeout_s: float, stream=None) -> tuple[str, str]:
     """Ask the broker at ``endpoint`` for its data endpoints -> (xsub, xpub) to connect to.
 
-    Retries until ``timeout_s`` (the launcher may still be starting the broker).
+    Retries until ``timeout_s`` (the launcher may still be starting the broker). When the first
+    half second brings no answer it says once, on ``stream`` (default stderr), that it is
+    waiting for a broker at ``endpoint``, so a node or command started with no graph running
+    does not sit silent until it gives up.
     """
     host, _ = _host_port(endpoint)
-    deadline = time.monotonic() + timeout_s
+    start = time.monotonic()
+    deadline = start + timeout_s
+    said = False
     while True:
         req = ctx.socket(zmq.REQ)
         req.setsockopt(zmq.LINGER, 0)
         req.connect(endpoint)
         try:
             req.send(b"endpoints")
-            if req.poll(int(min(1.0, max(0.05, deadline - time.monotonic())) * 1000)):
+            # short first wait: a launcher's broker answers in milliseconds
+            first = 0.5 if not said and time.monotonic() - start < 0.5 else 1.0
+            if req.poll(int(min(first, max(0.05, deadline - time.monotonic())) * 1000)):
                 info = json.loads(req.recv())
                 return f"tcp://{host}:{info['xsub_port']}", f"tcp://{host}:{info['xpub_port']}"
         finally:
             req.close(linger=0)
         if time.monotonic() >= deadline:
             raise TwinFocusError(
-                f"no broker answered at {endpoint} within {timeout_s:g} s "
-                "(start the graph with `twinfocus launch`, or pass broker:=tcp://HOST:PORT)"
+                f"no broker answered at {endpoint} within {timeout_s:g} s: start the graph with `twinfocus launch` "
+                f"(or `python -m nodes.bus`), or name the running broker with --broker tcp://HOST:PORT or "
+                f"${ENV_BROKER} (broker:=tcp://HOST:PORT for a node started by hand)"
             )
+        if not said:
+            said = True
+            out = stream if stream is not None else sys.stderr
+            print(f"waiting for a broker at {endpoint} (up to {timeout_s:g} s; is the graph running? another "
+                  f"broker: --broker tcp://HOST:PORT or ${ENV_BROKER})", file=out, flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:

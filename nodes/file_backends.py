@@ -1,6 +1,6 @@
 """File sources: radar frames from a scan file, poses from a TUM / EuRoC trajectory file.
 
-* :class:`ScanFileRadar` replays the ``data`` rows of a scan ``.npz`` (DESIGN.md section 4) at
+* :class:`ScanFileRadar` replays the ``data`` rows of a scan ``.npz`` (docs/architecture.md section 4) at
   their ``timestamps_ns`` (or ``frame_period_s`` apart when the file has none). The scan's
   positions are *not* sent: positions are the synchronizer's job, from the poses. The virtual
   channel offsets are the MMWCAS array's when K = 86 (``array: mmwcas``), or those of the
@@ -12,7 +12,7 @@
 """
 from __future__ import annotations
 
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 

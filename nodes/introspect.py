@@ -100,6 +100,18 @@ class TopicEcho(_Monitor):
         self.seen = 0
         self.create_subscription(topic, self._on_msg)
 
+    def on_start(self) -> None:
+        self.call_later(3.0, self._check_publishers)
+
+    def _check_publishers(self) -> None:
+        # Say so rather than wait in silence when nobody publishes the topic.
+        if self.seen:
+            return
+        published = sorted({t for st in self.graph.values() for t in st.publishes})
+        if self.topic not in published:
+            self.log(f"no node publishes {self.topic!r} (yet); published now: {', '.join(published) or 'nothing'}; "
+                     "waiting (Ctrl-C to stop)")
+
     def _on_msg(self, msg: Any) -> None:
         self._emit(summarise(msg) + "\n---")
         self.seen += 1

@@ -3,6 +3,7 @@
 A launch file is readable YAML (see ``launch/sim.yaml``)::
 
     description: one line
+    include: [paper.yaml]         # optional: files whose arguments this one shares (below)
     arguments:                    # name: {default: ..., help: ...}; no default = required
       port: {default: 7447, help: broker port on loopback}
     broker: tcp://127.0.0.1:$(arg port)
@@ -10,8 +11,25 @@ A launch file is readable YAML (see ``launch/sim.yaml``)::
       - name: solver              # unique; also the prefix of its output lines
         node: solver              # a type of nodes.NODE_TYPES, or a module path
         parameters: {size: $(arg size)}
-        on_exit: shutdown         # optional: when this node ends, stop the graph
+        on_exit: shutdown         # optional: what its end means (below)
+        respawn: true             # optional: restart it when it ends (as ROS 2 launch's respawn)
+        respawn_delay: 1.0        # optional: seconds before a restart (default 1)
+        respawn_max: 3            # optional: restarts allowed before the graph stops (default 3)
         enabled: $(arg record)    # optional: false, 0, "" or "no" leave the node out
+
+``on_exit`` says what a node's end (while the graph runs, not stopped by the launcher) means:
+``shutdown``: its work is the graph's, stop the graph (exit 0 when it ended with status 0);
+``ignore``: let the others run on; ``fail``: it must not end, stop the graph with exit status 1.
+The default is ``ignore`` for the types of :data:`nodes.FINISHING_TYPES` (the player) and
+``fail`` for every other (drivers, synchronizer, solver: the graph stalls without them). A
+node that crashes (non-zero status) always stops the graph unless it is respawned; the
+launcher's status is then 2 when the node reported a user error (status 2), else 1.
+
+``include:`` lists argument files (paths relative to the including file's folder, as ROS 2
+launch resolves ``$(dirname)/...``): YAML holding only ``description`` and ``arguments``, whose
+declarations the including file gets as if it declared them itself. The bundled launch files
+take the paper's regions, image size and iterations from ``launch/paper.yaml`` this way. An
+argument is declared in one place: the same name in two of them is an error.
 
 ``$(arg NAME)`` is replaced by an argument (keeping its YAML type when it is the whole
 value), ``$(env NAME)`` / ``$(env NAME default)`` by an environment variable.
@@ -20,7 +38,8 @@ value), ``$(env NAME)`` / ``$(env NAME default)`` by an environment variable.
 so a terminal's Ctrl-C reaches only the launcher, which then stops the nodes in order; and a
 parent-death signal, so no node outlives a killed launcher), prefixes their output with
 ``[name]``, and stops everything on Ctrl-C, SIGTERM, a node crash (non-zero exit) or the end
-of an ``on_exit: shutdown`` node: SIGINT first, SIGTERM after ``grace_s``, SIGKILL last.
+of a node whose ``on_exit`` says so: SIGTERM first, SIGKILL after ``grace_s``. Nodes also poll
+their parent pid, so they notice a dead launcher within 0.1 s even if the signal was missed.
 """
 from __future__ import annotations
 
@@ -38,9 +57,9 @@ from typing import Any
 
 import yaml
 
-from nodes import NODE_TYPES
+from nodes import FINISHING_TYPES, NODE_TYPES
 from nodes.bus import Broker
-from nodes.node import ENV_GRAPH_NODES, ENV_LAUNCHED
+from nodes.node import ENV_GRAPH_NODES, ENV_LAUNCHED, ENV_LAUNCHER_PID
 from nodes.params import parse_assignment
 from twinfocus.errors import TwinFocusError
 
@@ -53,7 +72,10 @@ class NodeSpec:
     name: str
     module: str
     parameters: dict[str, Any] = field(default_factory=dict)
-    on_exit: str = "ignore"  # "ignore" | "shutdown"
+    on_exit: str = "fail"  # "fail" | "ignore" | "shutdown" (see the module docstring)
+    respawn: bool = False
+    respawn_delay_s: float = 1.0
+    respawn_max: int = 3
 
 
 @dataclass
@@ -66,14 +88,71 @@ class Graph:
 
 
 def find_launch_file(name: str | os.PathLike) -> Path:
-    """A path, or a name in the repository's ``launch/`` folder (``sim`` -> launch/sim.yaml)."""
+    """A path, or a bundled launch file: ``sim``, ``sim.yaml`` or ``launch/sim.yaml`` (relative
+    to the repository, as README writes it) name launch/sim.yaml from any working folder."""
     p = Path(name)
     if p.is_file():
-        return p
-    for cand in (LAUNCH_DIR / p, LAUNCH_DIR / f"{p}.yaml"):
-        if cand.is_file():
-            return cand
-    raise TwinFocusError(f"{name}: no such launch file (the bundled ones are in {LAUNCH_DIR})")
+        return p.resolve()
+    if not p.is_absolute():
+        for cand in (LAUNCH_DIR / p, LAUNCH_DIR / f"{p}.yaml", LAUNCH_DIR.parent / p):
+            if cand.is_file():
+                return cand
+    if not LAUNCH_DIR.is_dir():
+        raise TwinFocusError(f"{name}: no such launch file (the bundled launch files come with the repository's "
+                             f"launch/ folder, which this installation lacks: give a launch file's path)")
+    bundled = ", ".join(sorted(q.stem for q in LAUNCH_DIR.glob("*.yaml") if _is_launch_file(q)))
+    raise TwinFocusError(f"{name}: no such launch file (bundled in {LAUNCH_DIR}: {bundled})")
+
+
+def _is_launch_file(path: Path) -> bool:
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return False
+    return isinstance(doc, dict) and "nodes" in doc
+
+
+def _read_yaml(path: Path, what: str) -> Any:
+    try:
+        return yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise TwinFocusError(f"{path}: cannot read the {what} ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise TwinFocusError(f"{path}: not valid YAML ({exc})") from None
+
+
+def _declarations(path: Path, doc: dict) -> dict[str, Any]:
+    """The arguments ``doc`` (read from ``path``) declares, its ``include:`` files' first."""
+    includes = doc.get("include") or []
+    if isinstance(includes, str):
+        includes = [includes]
+    if not isinstance(includes, list) or not all(isinstance(x, str) for x in includes):
+        raise TwinFocusError(f"{path}: 'include' must be a file name or a list of them")
+    declared: dict[str, Any] = {}
+    source: dict[str, Path] = {}
+
+    def add(names: dict, where: Path) -> None:
+        for name, spec in names.items():
+            if name in declared:
+                raise TwinFocusError(f"{where}: argument {name!r} is also declared in {source[name]}; "
+                                     "declare it in one place")
+            declared[name], source[name] = spec, where
+
+    for entry in includes:
+        inc = path.parent / entry  # an absolute entry stays absolute
+        if not inc.is_file():
+            raise TwinFocusError(f"{path}: included file {entry!r} not found (looked for {inc})")
+        sub = _read_yaml(inc, "included file")
+        extra = sorted(set(sub) - {"description", "arguments"}) if isinstance(sub, dict) else None
+        if extra is None or extra or not isinstance(sub.get("arguments"), dict):
+            raise TwinFocusError(f"{inc}: an included file holds only 'description' and an 'arguments' mapping"
+                                 + (f" (found {', '.join(extra)})" if extra else ""))
+        add(sub["arguments"], inc)
+    own = doc.get("arguments") or {}
+    if not isinstance(own, dict):
+        raise TwinFocusError(f"{path}: 'arguments' must be a mapping name -> {{default, help}}")
+    add(own, path)
+    return declared
 
 
 def _truthy(value: Any) -> bool:
@@ -110,15 +189,10 @@ def _substitute(value: Any, args: dict[str, Any], where: str) -> Any:
 def load(path: str | os.PathLike, assignments: list[str] | tuple = ()) -> Graph:
     """Read a launch file and resolve its arguments (``name:=value`` strings override defaults)."""
     path = find_launch_file(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise TwinFocusError(f"{path}: not valid YAML ({exc})") from None
+    doc = _read_yaml(path, "launch file")
     if not isinstance(doc, dict) or not isinstance(doc.get("nodes"), list) or not doc["nodes"]:
         raise TwinFocusError(f"{path}: a launch file needs a 'nodes:' list")
-    declared = doc.get("arguments") or {}
-    if not isinstance(declared, dict):
-        raise TwinFocusError(f"{path}: 'arguments' must be a mapping name -> {{default, help}}")
+    declared = _declarations(path, doc)
     given = dict(parse_assignment(a) for a in assignments)
     unknown = sorted(set(given) - set(declared))
     if unknown:
@@ -154,10 +228,19 @@ def load(path: str | os.PathLike, assignments: list[str] | tuple = ()) -> Graph:
         params = entry.get("parameters") or {}
         if not isinstance(params, dict):
             raise TwinFocusError(f"{where}: 'parameters' must be a mapping")
-        on_exit = str(entry.get("on_exit", "ignore"))
-        if on_exit not in ("ignore", "shutdown"):
-            raise TwinFocusError(f"{where}: on_exit must be 'ignore' or 'shutdown', got {on_exit!r}")
-        nodes.append(NodeSpec(name, module, params, on_exit))
+        on_exit = str(entry.get("on_exit", "ignore" if kind in FINISHING_TYPES else "fail"))
+        if on_exit not in ("fail", "ignore", "shutdown"):
+            raise TwinFocusError(f"{where}: on_exit must be 'fail', 'ignore' or 'shutdown', got {on_exit!r}")
+        respawn = entry.get("respawn", False)
+        if not isinstance(respawn, bool):
+            raise TwinFocusError(f"{where}: respawn must be true or false, got {respawn!r}")
+        try:
+            delay, most = float(entry.get("respawn_delay", 1.0)), int(entry.get("respawn_max", 3))
+        except (TypeError, ValueError):
+            raise TwinFocusError(f"{where}: respawn_delay must be seconds and respawn_max a count") from None
+        if not (delay >= 0 and most >= 0):
+            raise TwinFocusError(f"{where}: respawn_delay and respawn_max must be >= 0")
+        nodes.append(NodeSpec(name, module, params, on_exit, respawn, delay, most))
     if not nodes:
         raise TwinFocusError(f"{path}: every node is disabled")
     return Graph(path, str(doc.get("description", "")), broker, nodes, args)
@@ -180,6 +263,20 @@ class _Output:
         for raw in iter(pipe.readline, b""):
             self.line(name, raw.decode(errors="replace"))
         pipe.close()
+
+
+def _exit_text(code: int) -> str:
+    def name(n):
+        try:
+            return signal.Signals(n).name
+        except ValueError:
+            return f"signal {n}"
+
+    if code < 0:
+        return f"was killed by {name(-code)}"
+    if code > 128 and code - 128 < 65:
+        return f"was stopped by {name(code - 128)} from outside the launcher (status {code})"
+    return f"exited with status {code}"
 
 
 def _pdeathsig() -> None:  # runs in the child before exec
@@ -218,20 +315,25 @@ class Launcher:
         env = dict(os.environ)
         env[ENV_GRAPH_NODES] = ",".join(n.name for n in self.graph.nodes)
         env[ENV_LAUNCHED] = "1"
+        env[ENV_LAUNCHER_PID] = str(os.getpid())
         env["PYTHONUNBUFFERED"] = "1"
         # Repository root on the path, so `python -m nodes.x` works from any directory.
         root = str(Path(__file__).resolve().parent.parent)
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        self.env = env
         for spec in self.graph.nodes:
-            cmd = [sys.executable, "-m", spec.module, "--name", spec.name, "--broker", self.broker.endpoint,
-                   "--params", json.dumps(spec.parameters)]
-            p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                 env=env, start_new_session=True, preexec_fn=_pdeathsig)
-            self.procs[spec.name] = p
-            t = threading.Thread(target=self.out.pump, args=(spec.name, p.stdout), daemon=True)
-            t.start()
-            self.pumps.append(t)
-            self.say(f"started {spec.name} ({spec.module}, pid {p.pid})")
+            self._spawn(spec)
+
+    def _spawn(self, spec: NodeSpec) -> None:
+        cmd = [sys.executable, "-m", spec.module, "--name", spec.name, "--broker", self.broker.endpoint,
+               "--params", json.dumps(spec.parameters)]
+        p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                             env=self.env, start_new_session=True, preexec_fn=_pdeathsig)
+        self.procs[spec.name] = p
+        t = threading.Thread(target=self.out.pump, args=(spec.name, p.stdout), daemon=True)
+        t.start()
+        self.pumps.append(t)
+        self.say(f"started {spec.name} ({spec.module}, pid {p.pid})")
 
     def run(self) -> int:
         in_main = threading.current_thread() is threading.main_thread()
@@ -256,22 +358,45 @@ class Launcher:
     def _watch(self) -> None:
         specs = {n.name: n for n in self.graph.nodes}
         running = set(self.procs)
-        while running:
+        respawns = {name: 0 for name in specs}
+        due: dict[str, float] = {}  # node -> when to respawn it
+        while running or due:
             if self._stop_reason is not None:
                 self.say(f"{self._stop_reason}: stopping the graph")
                 return
+            for name, when in sorted(due.items()):
+                if time.monotonic() >= when:
+                    del due[name]
+                    self._spawn(specs[name])
+                    running.add(name)
             for name in sorted(running):
                 code = self.procs[name].poll()
                 if code is None:
                     continue
                 running.discard(name)
-                if code != 0:
-                    what = f"killed by {signal.Signals(-code).name}" if code < 0 else f"exited with status {code}"
-                    self.say(f"node {name!r} {what}; stopping the graph")
-                    self._code = 1
+                spec = specs[name]
+                what = _exit_text(code)
+                if spec.respawn:
+                    if respawns[name] < spec.respawn_max:
+                        respawns[name] += 1
+                        self.say(f"node {name!r} {what}; respawning it in {spec.respawn_delay_s:g} s "
+                                 f"(respawn {respawns[name]} of {spec.respawn_max})")
+                        due[name] = time.monotonic() + spec.respawn_delay_s
+                        continue
+                    self.say(f"node {name!r} {what} and was respawned {spec.respawn_max} time(s) already; stopping the graph")
+                    self._code = 2 if code == 2 else 1
                     return
-                if specs[name].on_exit == "shutdown":
+                if code != 0:
+                    self.say(f"node {name!r} {what}; stopping the graph")
+                    self._code = 2 if code == 2 else 1
+                    return
+                if spec.on_exit == "shutdown":
                     self.say(f"node {name!r} finished; stopping the graph (on_exit: shutdown)")
+                    return
+                if spec.on_exit == "fail":
+                    self.say(f"node {name!r} ended while the graph runs, and the graph cannot work without it; "
+                             "stopping the graph (set on_exit: ignore or respawn: true in the launch file to allow it)")
+                    self._code = 1
                     return
                 self.say(f"node {name!r} finished")
             time.sleep(0.05)
@@ -279,7 +404,9 @@ class Launcher:
 
     def _stop_all(self) -> None:
         alive = {n: p for n, p in self.procs.items() if p.poll() is None}
-        for sig, wait in ((signal.SIGINT, self.grace_s), (signal.SIGTERM, 3.0), (signal.SIGKILL, 3.0)):
+        # SIGTERM, not SIGINT: a node still importing dies of it quietly, where SIGINT would print
+        # a KeyboardInterrupt traceback; a running node stops cleanly on either.
+        for sig, wait in ((signal.SIGTERM, self.grace_s), (signal.SIGKILL, 3.0)):
             if not alive:
                 break
             if sig == signal.SIGKILL:
@@ -303,6 +430,7 @@ class Launcher:
 
 
 def run(path: str | os.PathLike, assignments: list[str] | tuple = (), grace_s: float = 10.0) -> int:
-    """Load and run a launch file; returns the exit code (0 clean, 1 a node failed)."""
+    """Load and run a launch file; returns the exit code (0 clean, 1 a node failed, 2 a node
+    reported a user error)."""
     graph = load(path, assignments)
     return Launcher(graph, grace_s=grace_s).run()

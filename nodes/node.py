@@ -31,7 +31,9 @@ Start-up protocol (why no message is lost to ZeroMQ's slow-joiner drop):
 
 Every subscriber counts messages per (topic, publisher) by ``header.seq`` and reports gaps on
 stderr and in its heartbeat (``lost``). SIGINT/SIGTERM end the loop; :meth:`on_shutdown` runs,
-a final ``stopped`` status goes out and queued outgoing messages are flushed (``linger_s``).
+a final ``stopped`` status goes out, the node waits for that status to come back through the
+broker (proof the broker has read everything it published before) and queued outgoing messages
+are flushed (both bounded by ``linger_s``).
 """
 from __future__ import annotations
 
@@ -45,7 +47,8 @@ import threading
 import time
 import traceback
 from collections import deque
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import zmq
 
@@ -57,6 +60,7 @@ from twinfocus.errors import TwinFocusError
 STATUS_TOPIC = "graph/status"
 ENV_GRAPH_NODES = "TWINFOCUS_GRAPH_NODES"  # set by the launcher: every node of the launch file
 ENV_LAUNCHED = "TWINFOCUS_LAUNCHED"  # set by the launcher: it prefixes output with node names
+ENV_LAUNCHER_PID = "TWINFOCUS_LAUNCHER_PID"  # set by the launcher: its pid, our parent while it lives
 READY_STATES = ("ready", "running")
 GONE_STATES = ("stopped", "error")  # a node that has ended no longer holds anyone up
 
@@ -73,7 +77,7 @@ class Shutdown(Exception):
 class Publisher:
     """Publishes one topic; sets ``header.seq`` (0, 1, 2, ...) on every message it sends."""
 
-    def __init__(self, node: "Node", topic: str, msg_type: type | None):
+    def __init__(self, node: Node, topic: str, msg_type: type | None):
         check_topic(topic)
         self.node = node
         self.topic = topic
@@ -164,10 +168,17 @@ class Node:
         self._status_pub: Publisher | None = None
         self._echo_topic = f"graph/echo/{self.name.lower().replace('-', '_')}_{os.getpid()}_{id(self) % 100000}"
         self.status_message = ""
+        # The launcher is our parent; when it dies we are re-parented, which getppid() shows
+        # even when the parent-death signal was missed (the launcher died before prctl ran).
+        launcher = os.environ.get(ENV_LAUNCHER_PID, "")
+        self._launcher_pid = int(launcher) if launcher.isdigit() else None
 
     # -- API for subclasses ------------------------------------------------------------------
     def log(self, text: str) -> None:
-        print(f"{self._prefix}{text}", file=sys.stderr, flush=True)
+        try:
+            print(f"{self._prefix}{text}", file=sys.stderr, flush=True)
+        except (BrokenPipeError, ValueError):  # the launcher that read our output is gone
+            pass
 
     def create_publisher(self, topic: str, msg_type: type | None = None) -> Publisher:
         if topic in self._publishers:
@@ -217,9 +228,16 @@ class Node:
         return self._graph
 
     def heartbeat_if_due(self) -> None:
-        """Publish the heartbeat if its period is over (call it from long computations)."""
+        """Publish the heartbeat if its period is over (call it from long computations); ends a
+        long computation at once (:class:`Shutdown`) when the launcher is gone."""
+        if self.launcher_gone():
+            raise Shutdown(1, "the launcher is gone")
         if time.monotonic() >= self._next_heartbeat:
             self._heartbeat()
+
+    def launcher_gone(self) -> bool:
+        """True when this node was started by a launcher that has died since."""
+        return self._launcher_pid is not None and os.getppid() != self._launcher_pid
 
     # -- main loop ----------------------------------------------------------------------------
     def spin(self) -> int:
@@ -262,7 +280,16 @@ class Node:
 
     # -- internals ----------------------------------------------------------------------------
     def _on_signal(self, signum, frame) -> None:
-        self.request_shutdown(f"received {signal.Signals(signum).name}", 0)
+        if self.launcher_gone():  # the parent-death signal: end even a long computation now
+            self.request_shutdown("the launcher is gone", 1)
+            if self.state == "running":
+                raise Shutdown(1, "the launcher is gone")
+        elif self._launcher_pid is not None:
+            # Under a launcher, a signal is either its stop (the code no longer matters) or
+            # someone else's: 128 + signal tells the launcher this is no finished job.
+            self.request_shutdown(f"received {signal.Signals(signum).name}", 128 + int(signum))
+        else:
+            self.request_shutdown(f"received {signal.Signals(signum).name}", 0)
 
     def _connect(self) -> None:
         xsub, xpub = discover(self.broker, self.ctx, timeout_s=min(10.0, self.params["ready_timeout_s"]))
@@ -506,9 +533,46 @@ class Node:
                 wait = min(wait, self._timers[0][0] - now)
             # Bounded so a signal's flag is seen promptly.
             self._poll(int(max(0.0, min(wait, 0.1)) * 1000))
+            if self._stop is None and self.launcher_gone():
+                self.request_shutdown("the launcher is gone", 1)
+                break
             self._run_timers()
             if time.monotonic() >= self._next_heartbeat:
                 self._heartbeat()
+
+    def _flush_through_broker(self) -> None:
+        """Wait (up to ``linger_s``) until our final heartbeat comes back through the broker.
+
+        One connection carries everything we published, in order, so its return proves the broker
+        has read all of it. Closing before that can lose the tail: a socket closed with unread
+        input (a subscription change from a peer that just left) is reset, not closed, and a reset
+        makes the broker's kernel discard what it had received but not yet read.
+        """
+        if self._sub_sock is None or self._status_pub is None:
+            return
+        final_seq = self._status_pub.seq - 1
+        deadline = time.monotonic() + float(self.params["linger_s"])
+        while (left := deadline - time.monotonic()) > 0:
+            events = dict(self._poller.poll(int(min(left, 0.1) * 1000)))
+            if self._pub_sock in events:
+                self._read_subscriptions()
+            if self._sub_sock not in events:
+                continue
+            while True:
+                try:
+                    frames = self._sub_sock.recv_multipart(zmq.NOBLOCK, copy=False)
+                except zmq.Again:
+                    break
+                if frames[0].bytes != topic_frame(STATUS_TOPIC):
+                    continue  # shutting down: nothing else is handled any more
+                try:
+                    st, _ = decode_frames(frames[1:], NodeStatus, where=STATUS_TOPIC)
+                except MessageError:
+                    continue
+                if st.node == self.name and st.pid == os.getpid() and st.header.seq >= final_seq:
+                    return
+        self.log(f"my last messages did not come back through the broker within linger_s={self.params['linger_s']:g} s; "
+                 "subscribers may miss the end of what I published")
 
     def _shutdown_node(self) -> int:
         stop = self._stop or Shutdown(0, "")
@@ -520,12 +584,17 @@ class Node:
             code = code or 1
         self.state = "error" if code else "stopped"
         self.status_message = stop.reason
+        orphan = self.launcher_gone()
+        if orphan:  # the broker died with the launcher: nothing queued can be delivered
+            self.log("the launcher is gone; stopping now")
         if self._pub_sock is not None:
             try:
-                self._heartbeat()
+                if not orphan:
+                    self._heartbeat()
+                    self._flush_through_broker()
             except Exception:
                 pass
-            self._pub_sock.close(linger=int(float(self.params["linger_s"]) * 1000))
+            self._pub_sock.close(linger=0 if orphan else int(float(self.params["linger_s"]) * 1000))
         if self._sub_sock is not None:
             self._sub_sock.close(linger=0)
         if self._own_ctx:

@@ -10,6 +10,7 @@ complete message. With ``exit_when_done`` (default) the node ends after the last
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 
@@ -31,6 +32,9 @@ class Player(Node):
         "loop": Param(False, "start again at the end"),
         "topics": Param([], "topics to play; empty = all except graph/...", type="strs"),
         "start_offset_s": Param(0.0, "skip this many seconds from the start of the log"),
+        "latched_topics": Param(["twin/template"], "topics whose latest message before start_offset_s is played first "
+                                                   "(as a latched / transient-local topic: a template published at the start)",
+                                type="strs"),
         "exit_when_done": Param(True, "end the node after the last message"),
     }
 
@@ -63,14 +67,36 @@ class Player(Node):
 
     def on_start(self) -> None:
         r = self.reader
-        n = sum(r.counts.get(t, 0) for t in self.topics)
-        note = "" if r.complete else f" (file not closed cleanly: playing its first {r.valid_bytes} readable bytes)"
-        self.log(f"playing {n} message(s) on {', '.join(self.topics)} from {r.path} at rate {self.params['rate']:g}{note}")
+        self._latched = self._latched_before_start()
+        n = len(self._latched) + sum(1 for _ in r.messages(self.topics, start_ns=self.start_ns))
+        note = "" if r.complete else f" ({r.condition})"
+        offset = f" from {self.params['start_offset_s']:g} s in" if self.params["start_offset_s"] else ""
+        latched = f" (with {len(self._latched)} latched from before it)" if self._latched else ""
+        self.log(f"playing {n} message(s){latched} on {', '.join(self.topics)} from {r.path}{offset} "
+                 f"at rate {self.params['rate']:g}{note}")
         self._begin_pass()
 
+    def _latched_before_start(self) -> list:
+        """The latest message of each latched topic logged before the start offset."""
+        latched = [t for t in self.params["latched_topics"] if t in self.topics]
+        if not latched or self.start_ns <= self.reader.start_ns:
+            return []
+        last = {}
+        for m in self.reader.messages(latched):
+            if m.log_time_ns >= self.start_ns:
+                break
+            last[m.topic] = m
+        return sorted(last.values(), key=lambda m: m.log_time_ns)
+
     def _begin_pass(self) -> None:
+        import itertools
+
         self.passes += 1
-        self._iter = self.reader.messages(self.topics, start_ns=self.start_ns)
+        self._iter = itertools.chain(
+            # Latched messages go out first, at the start's log time (no pause before them).
+            ((dataclasses.replace(m, log_time_ns=self.start_ns)) for m in self._latched),
+            self.reader.messages(self.topics, start_ns=self.start_ns),
+        )
         self._wall0 = time.monotonic()
         self._log0: int | None = None
         self._held = None

@@ -44,7 +44,16 @@ class RadarDriver(DriverNode):
             index=int(s.index),
             last=bool(s.last),
             positions_true_m=s.positions_true_m,
+            **_gap_fields(s.gaps),
         )
+
+
+def _gap_fields(gaps) -> dict:
+    """A backend's capture gaps as the RadarFrame fields (none: the fields' defaults)."""
+    if gaps is None:
+        return {}
+    lost, zero_filled, bytes_lost = (int(v) for v in gaps)
+    return {"frames_lost": lost, "frames_zero_filled": zero_filled, "bytes_lost": bytes_lost}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -2,7 +2,10 @@
 
 Subscribes to the listed topics (all but ``graph/...`` when none are listed) and appends every
 message as it arrives (:class:`msgs.mcap_log.LogWriter`: unchunked, flushed per message, so a
-killed recorder leaves a readable file). The radar configuration is stored as the ``radar``
+killed recorder leaves a readable file). The log is written beside ``out`` (``OUT.PID.partial``)
+and moved onto ``out`` when the recorder stops having recorded something: a recording over an
+earlier log replaces it only then; a run that recorded nothing (no graph, a failed start)
+leaves no file and the earlier log as it was; a killed recorder leaves the partial file. The radar configuration is stored as the ``radar``
 metadata record when the first radar frame or SAR measurement arrives (:func:`radar_metadata`:
 flat keys ``source_topic``, the chirp's ``f0_hz`` ``slope_hz_per_s`` ``fs_hz`` ``n_samples``,
 ``n_channels`` and, from a radar frame, ``channel_offsets_m``); the ``calibration`` parameter as
@@ -48,11 +51,12 @@ class Recorder(Node):
         "include_graph": Param(False, "with no topic list, also record graph/... (heartbeats)"),
         "overwrite": Param(False, "replace an existing file"),
         "calibration": Param({}, "calibration to store in the log's metadata (mapping)", type="any"),
+        "foxglove": Param(False, "also write Foxglove channels (images, poses, clouds, plots, log; nodes/foxglove_convert.py) so the file opens in Foxglove"),
     }
 
     def __init__(self, **kw):
         super().__init__(**kw)
-        self.writer = LogWriter(self.params["out"], overwrite=self.params["overwrite"])
+        self.writer = LogWriter(self.params["out"], overwrite=self.params["overwrite"], keep_empty=False)
         self._radar_done = False
         calib = self.params["calibration"]
         if calib:
@@ -61,6 +65,11 @@ class Recorder(Node):
 
                 raise TwinFocusError(f"node {self.name!r}: parameter 'calibration' must be a mapping, got {calib!r}")
             self.writer.add_metadata("calibration", calib)
+        self._foxglove = None
+        if self.params["foxglove"]:
+            from nodes.foxglove_convert import FoxgloveConverter
+
+            self._foxglove = FoxgloveConverter()
         topics = self.params["topics"]
         if topics:
             for t in topics:
@@ -69,18 +78,29 @@ class Recorder(Node):
             self.create_subscription("*", self._record)
 
     def _record(self, topic: str, msg: Any) -> None:
+        if self._foxglove is not None:
+            self._record_foxglove(topic, msg)
         if not self.params["topics"] and topic.startswith("graph/") and not self.params["include_graph"]:
             return
         if not self._radar_done and isinstance(msg, (RadarFrame, SarMeasurement)):
             self._radar_done = True
             self.writer.add_metadata("radar", radar_metadata(topic, msg))
-        self.writer.write_blob(topic, msg.TYPE, encode(msg), now_ns(), msg.header.stamp_ns, msg.header.seq)
+        t = now_ns()
+        self.writer.write_blob(topic, msg.TYPE, encode(msg), t, t, msg.header.seq)
+
+    def _record_foxglove(self, topic: str, msg: Any) -> None:
+        # graph/status feeds Foxglove's log channel even when the heartbeats themselves are not recorded
+        for rec in self._foxglove.convert(topic, msg, now_ns()):
+            self.writer.write_encoded(rec.topic, rec.schema_name, rec.schema_encoding, rec.schema_data,
+                                      rec.message_encoding, rec.data, rec.log_time_ns, rec.log_time_ns)
 
     def on_start(self) -> None:
         self.log(f"recording {', '.join(self.params['topics']) or 'all topics'} to {self.writer.path}")
 
     def on_shutdown(self) -> None:
-        self.writer.close()
+        if not self.writer.close():
+            self.log(f"recorded nothing; {self.writer.path} not written" + (" (the earlier log is kept)" if self.writer.path.exists() else ""))
+            return
         total = sum(self.writer.counts.values())
         per = ", ".join(f"{t}: {n}" for t, n in sorted(self.writer.counts.items()))
         self.log(f"wrote {total} message(s) to {self.writer.path}" + (f" ({per})" if per else ""))

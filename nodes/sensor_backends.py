@@ -13,7 +13,8 @@ Radar (:data:`nodes.backends.RADAR_BACKENDS`):
 Both turn each MIMO frame into the 86 monostatic-equivalent channels of
 :func:`twinfocus.radar.mmwcas_virtual_array` (:func:`twinfocus.sensors.frames.frame_to_virtual_channels`)
 and drop frames flagged unusable (lost or zero-filled packets, device skew) unless
-``keep_flagged``.
+``keep_flagged``. The DCA1000 stream's gaps (frames lost, zero-filled, bytes lost) travel on every
+sample (``RadarSample.gaps`` -> ``RadarFrame.frames_lost`` ...) and are said on stderr.
 
 VIO (:data:`nodes.backends.VIO_BACKENDS`):
 
@@ -29,8 +30,8 @@ poses, so it is no VIO backend.
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -57,28 +58,42 @@ class MmwcasRadar:
     correction), ``scan_id`` (default the folder name), ``f0_hz`` ``slope_hz_per_s`` ``fs_hz``
     ``n_samples`` (the chirp; default :class:`~twinfocus.radar.Chirp`'s), ``n_loops`` (1), ``loop``
     (0), ``timestamp_unit_ns`` (1000), ``time_offset_ns`` (0: added to every stamp, onto the
-    poses' clock), ``keep_first_frame`` (False), ``keep_flagged`` (False)."""
+    poses' clock), ``keep_first_frame`` (False), ``keep_flagged`` (False); the chirp layout
+    (``tx_order``: TI's TxToEnable, e.g. "12,11,...,1"; ``n_loops``; ``frame_period_s``) comes
+    from the capture's mmWave Studio JSON when it has one, these options otherwise;
+    ``setup`` (the configuration file, default the one found), ``drop_first_frame_of_each_slice``
+    (False) as TI's cascade processing does."""
 
     live = False
 
     def __init__(self, options: dict):
         from twinfocus.sensors.frames import FrameFlag
-        from twinfocus.sensors.ti_mmwcas import MmwcasCapture, MmwcasConfig
+        from twinfocus.sensors.ti_mmwcas import MmwcasCapture, resolve_config
 
         where = "radar backend 'mmwcas'"
         check_unknown(options, {"capture", "z0_m", "scan_id", "f0_hz", "slope_hz_per_s", "fs_hz", "n_samples", "n_loops",
-                                "loop", "timestamp_unit_ns", "time_offset_ns", "keep_first_frame", "keep_flagged"}, where)
+                                "loop", "timestamp_unit_ns", "time_offset_ns", "keep_first_frame", "keep_flagged", "tx_order",
+                                "frame_period_s", "drop_first_frame_of_each_slice", "setup"}, where)
         folder = option(options, "capture", None, str, where)
         d = Chirp()
         self.chirp = Chirp(option(options, "f0_hz", d.f0_hz, float, where), option(options, "slope_hz_per_s", d.slope_hz_per_s, float, where),
                            option(options, "fs_hz", d.fs_hz, float, where), int(option(options, "n_samples", d.n_samples, int, where)))
-        config = MmwcasConfig(chirp=self.chirp, n_loops=int(option(options, "n_loops", 1, int, where)),
-                              timestamp_unit_ns=int(option(options, "timestamp_unit_ns", 1000, int, where)))
+        loops = options.get("n_loops")
+        period = options.get("frame_period_s")
+        config, _notes = resolve_config(
+            folder, self.chirp, n_loops=None if loops is None else int(option(options, "n_loops", 1, int, where)),
+            tx_order=option(options, "tx_order", "", str, where) or None,
+            frame_period_s=None if period is None else option(options, "frame_period_s", 0.1, float, where),
+            timestamp_unit_ns=int(option(options, "timestamp_unit_ns", 1000, int, where)),
+            setup=option(options, "setup", "", str, where) or None)
+        self.chirp = config.chirp
         self.loop = int(option(options, "loop", 0, int, where))
         self.z0_m = option(options, "z0_m", 0.6, float, where)
         self.offset_ns = int(option(options, "time_offset_ns", 0, int, where))
         self.scan_id = str(option(options, "scan_id", Path(folder).name, str, where))
-        self.capture = MmwcasCapture(folder, config, skip_first_frame=not option(options, "keep_first_frame", False, bool, where))
+        self.capture = MmwcasCapture(folder, config, skip_first_frame=not option(options, "keep_first_frame", False, bool, where),
+                                     skip_first_frame_of_each_slice=bool(option(options, "drop_first_frame_of_each_slice", False,
+                                                                                bool, where)))
         keep = bool(option(options, "keep_flagged", False, bool, where))
         self.frames = [i for i in range(len(self.capture)) if keep or FrameFlag(int(self.capture.flags[i])).usable]
         if not self.frames:
@@ -122,6 +137,7 @@ class Dca1000Radar:
             cfg = EMULATED_CFG
         self.cfg = cfg
         config = RadarCliConfig.from_cfg(cfg)
+        config.check_stream_format()
         self.chirp = config.chirp()
         self.frame_period_s = config.frame_period_s
         layout = option(options, "layout", "mmwcas", str, where)
@@ -163,24 +179,45 @@ class Dca1000Radar:
             if not self._stop.is_set():  # sockets closed by close() end the stream quietly
                 raise
 
+    def gaps(self) -> tuple[int, int, int]:
+        """(frames lost, frames zero-filled, bytes lost) of the stream so far (the host's assembler)."""
+        st = self.host.stats
+        return st.frames_lost, st.frames_zero_filled, st.lost_bytes
+
     def _stream(self) -> Iterator[RadarSample]:
+        import sys
+        import time
+
         scan, index, pending = 0, 0, None
+        said, unsaid = 0.0, 0
         for frame in self.host.frames(self.layout, idle_timeout_s=self.idle_timeout_s, frame_period_s=self.frame_period_s,
                                       stop=self._stop):
-            if not (self.keep_flagged or frame.flags.usable):
-                continue
+            if not frame.flags.usable:
+                # Counted in host.stats and carried on every later frame (RadarFrame.frames_lost ...);
+                # said on stderr at most once a second so a burst does not flood the log.
+                unsaid += 1
+                if time.monotonic() - said >= 1.0:
+                    lost, zero_filled, nbytes = self.gaps()
+                    print(f"[dca1000] {unsaid} flagged frame(s) ({frame.flags!r}) "
+                          f"{'kept' if self.keep_flagged else 'dropped'}; so far {lost} lost, {zero_filled} zero-filled, "
+                          f"{nbytes} bytes lost", file=sys.stderr, flush=True)
+                    said, unsaid = time.monotonic(), 0
+                if not self.keep_flagged:
+                    continue
             # One frame held back, so that the scan's last frame can say so when the stream ends.
             if pending is not None:
                 yield pending
             scan_id = self.scan_id if not self.per_scan else f"{self.scan_id}_{scan:03d}"
             last = bool(self.per_scan) and index == self.per_scan - 1
-            pending = RadarSample(frame.stamp_ns, _virtual_channels(frame.data, self.chirp, self.z0_m), scan_id, index, last)
+            pending = RadarSample(frame.stamp_ns, _virtual_channels(frame.data, self.chirp, self.z0_m), scan_id, index, last,
+                                  gaps=self.gaps())
             index += 1
             if last:
                 yield pending
                 pending, scan, index = None, scan + 1, 0
         if pending is not None:
             pending.last = True
+            pending.gaps = self.gaps()  # gaps after the last usable frame still reach the user
             yield pending
 
     def close(self) -> None:

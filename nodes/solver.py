@@ -34,6 +34,32 @@ from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import ESTIMATORS
 
 
+class _Rows:
+    """Basis rows appended batch by batch into one array that doubles when full, so the whole
+    basis is there at the scan's end without a final copy (np.concatenate of the paper's two
+    bases, 2 x 62 MB, took 0.2 s on the loaded 2-core VM, all of it after the last measurement)."""
+
+    def __init__(self) -> None:
+        self.buf: np.ndarray | None = None
+        self.n = 0
+
+    def append(self, rows: np.ndarray) -> None:
+        k = rows.shape[0]
+        if self.buf is None or self.n + k > self.buf.shape[0]:
+            cap = max(64, self.n + k, 0 if self.buf is None else 2 * self.buf.shape[0])
+            grown = np.empty((cap,) + rows.shape[1:], rows.dtype)
+            if self.buf is not None:
+                grown[: self.n] = self.buf[: self.n]
+            self.buf = grown
+        self.buf[self.n : self.n + k] = rows
+        self.n += k
+
+    def array(self) -> np.ndarray:
+        """(M, H, W) the rows so far (a view)."""
+        assert self.buf is not None
+        return self.buf[: self.n]
+
+
 @dataclass
 class _Scan:
     scan_id: str
@@ -41,17 +67,20 @@ class _Scan:
     n_channels: int
     first_wall: float
     pending: list = field(default_factory=list)
-    ref_rows: list = field(default_factory=list)
-    tgt_rows: list = field(default_factory=list)
+    ref_rows: _Rows = field(default_factory=_Rows)
+    tgt_rows: _Rows = field(default_factory=_Rows)
     positions: list = field(default_factory=list)
     truth: list | None = field(default_factory=list)
-    data: list = field(default_factory=list)  # basis:=after_scan only
-    truth_ref: np.ndarray | None = None
-    truth_tgt: np.ndarray | None = None
+    data: list = field(default_factory=list)  # basis:=after_scan, or the truth images after the result
     basis_time_s: float = 0.0
+    last_batch_s: float = 0.0  # back-projection of the latest batch (the last one: after the scan)
     batches: int = 0
     last_wall: float | None = None
     n: int = 0
+    seen_wall: float = 0.0  # when its latest measurement arrived
+    max_index: int = -1
+    expected: int | None = None  # positions of the scan: the index of its `last` measurement + 1
+    sensor_stamp_ns: int = 0  # header stamp of its latest measurement (the radar frame's)
 
 
 class Solver(Node):
@@ -75,7 +104,9 @@ class Solver(Node):
                                    "(auto: by the template and tracking_error_m)", choices=("auto",) + ESTIMATORS),
         "precision": Param("float32", "float32 or float64 arithmetic", choices=("float32", "float64")),
         "basis_dtype": Param("float32", "storage of the basis in the optimiser (float32 or float16)", choices=("float32", "float16")),
-        "remove_phase_ramp": Param(True, "transfer the phase without its constant + linear ramp (as twinfocus focus)"),
+        "space_variant": Param("auto", "the across-sight drift correction: auto, on or off (as twinfocus focus --space-variant)",
+                               choices=("auto", "on", "off")),
+        "phase_ramp": Param("auto", "the estimate's linear phase ramp before the transfer: auto, remove or keep (as twinfocus focus --phase-ramp)"),
         "tracking_error_m": Param(0.5e-3, "tracker error assumed by the confidence report, metres"),
         "oversample": Param(16, "range-profile oversampling of the back-projection"),
         "device": Param("", "torch device; empty = cuda if present, else cpu", type="str"),
@@ -83,6 +114,9 @@ class Solver(Node):
                        choices=("stream", "after_scan")),
         "truth_metrics": Param(True, "compute SSIM against the truth when measurements carry it"),
         "template_wait_s": Param(30.0, "how long a finished scan waits for a template before it is dropped"),
+        "scan_timeout_s": Param(10.0, "a scan whose measurements stopped this long ago without its last one (an "
+                                      "incomplete log, a stopped radar) is focused with what arrived"),
+        "min_positions": Param(2, "an ended scan with fewer positions than this is dropped with a message"),
         "out_dir": Param("", "write twinfocus focus's files to OUT_DIR/<scan_id>/ (empty: do not write)", type="str"),
         "pictures": Param(True, "with out_dir, also write the PNG pictures"),
         "exit_after_scans": Param(0, "end the node after this many focused scans (0: never)"),
@@ -129,6 +163,16 @@ class Solver(Node):
         self.create_subscription("twin/template", self.on_template)
         if p["warm_up"]:
             self._warm_up()
+
+    def on_start(self) -> None:
+        self.create_timer(min(1.0, max(0.05, self.params["scan_timeout_s"] / 4)), self._check_stale)
+
+    def _check_stale(self) -> None:
+        s = self.scan
+        if s is not None and time.monotonic() - s.seen_wall > self.params["scan_timeout_s"]:
+            self.log(f"scan {s.scan_id!r}: no measurement for {self.params['scan_timeout_s']:g} s and no last one "
+                     f"({s.n} received); focusing what arrived")
+            self._end_scan()
 
     def _config(self, chirp):
         """The AutofocusConfig for the template at hand: the parameters plus the estimator's
@@ -206,6 +250,11 @@ class Solver(Node):
             return
         s.pending.append(m)
         s.n += 1
+        s.seen_wall = time.monotonic()
+        s.max_index = max(s.max_index, int(m.index))
+        s.sensor_stamp_ns = int(m.header.stamp_ns)
+        if m.last:
+            s.expected = int(m.index) + 1
         if s.truth is not None and m.positions_true_m is None:
             s.truth = None
         if m.last:
@@ -218,7 +267,7 @@ class Solver(Node):
             self.call_later(0, self._flush)
 
     def _flush(self) -> None:
-        from twinfocus.backprojection import backproject, subimage_basis
+        from twinfocus.backprojection import subimage_basis
 
         self._flush_scheduled = False
         s = self.scan
@@ -230,19 +279,17 @@ class Solver(Node):
         s.positions.append(pos)
         if s.truth is not None:
             s.truth.append(np.stack([m.positions_true_m for m in batch]))
-        if self.params["basis"] == "after_scan":
+        if self.params["basis"] == "after_scan" or s.truth is not None:
+            # after_scan: the whole scan at the end; truth: its images are formed only after the
+            # result is out, so they neither slow the stream nor delay the image (issue 17)
             s.data.append(data)
+        if self.params["basis"] == "after_scan":
             return
         t = time.perf_counter()
         s.ref_rows.append(subimage_basis(data, pos, s.chirp, self.ref_grid, **self.bp))
         s.tgt_rows.append(subimage_basis(data, pos, s.chirp, self.tgt_grid, **self.bp))
-        if s.truth is not None:
-            tr = s.truth[-1]
-            ref = backproject(data, tr, s.chirp, self.ref_grid, **self.bp)
-            tgt = backproject(data, tr, s.chirp, self.tgt_grid, **self.bp)
-            s.truth_ref = ref if s.truth_ref is None else s.truth_ref + ref
-            s.truth_tgt = tgt if s.truth_tgt is None else s.truth_tgt + tgt
-        s.basis_time_s += time.perf_counter() - t
+        s.last_batch_s = time.perf_counter() - t
+        s.basis_time_s += s.last_batch_s
         s.batches += 1
         self.heartbeat_if_due()
 
@@ -251,8 +298,12 @@ class Solver(Node):
         if s is None:
             return
         self._flush()
-        if s.last_wall is None:
-            s.last_wall = time.monotonic()
+        if s.last_wall is None:  # ended without its last measurement: from the latest that came
+            s.last_wall = s.seen_wall or time.monotonic()
+        if s.n < max(1, int(self.params["min_positions"])):
+            self.log(f"dropped scan {s.scan_id!r}: {s.n} position(s) arrived, fewer than min_positions {self.params['min_positions']}")
+            self._count_done()
+            return
         if self.params["method"] == "twin" and self.template is None:
             self.log(f"scan {s.scan_id!r} complete ({s.n} positions); waiting up to {self.params['template_wait_s']:g} s for a template")
             self.waiting.append(s)
@@ -274,6 +325,7 @@ class Solver(Node):
         positions = np.concatenate(s.positions)
         truth = np.concatenate(s.truth) if s.truth else None
         progress = self._progress
+        tgt_basis = None
         try:
             if self.params["basis"] == "after_scan":
                 from twinfocus.pipeline import focus_scan
@@ -281,22 +333,38 @@ class Solver(Node):
                 scan = Scan(np.concatenate(s.data), positions, s.chirp, positions_true=truth)
                 out = focus_scan(scan, self.ref_grid, self.tgt_grid, template=self.template, method=self.params["method"],
                                  config=self._config(s.chirp), bp_options=self.bp, progress_factory=lambda label: progress,
-                                 remove_phase_ramp=self.params["remove_phase_ramp"],
+                                 phase_ramp=self.params["phase_ramp"], space_variant=self.params["space_variant"],
                                  tracking_error_m=self.params["tracking_error_m"])
             else:
-                out = self._focus_bases(s, positions, truth)
+                out, tgt_basis = self._focus_bases(s, positions)
         except TwinFocusError as exc:
             self.log(f"could not focus scan {s.scan_id!r}: {exc}")
             self.status_message = f"could not focus scan {s.scan_id!r}: {exc}"
             self._count_done()
             return
+        expected = s.expected if s.expected is not None else s.max_index + 1
+        out.metrics["n_positions_expected"] = int(max(expected, s.n))
+        out.metrics["n_positions_missing"] = int(max(0, expected - s.n))
+        if expected > s.n:
+            self.log(f"scan {s.scan_id!r}: {expected - s.n} of its {expected} positions never arrived; "
+                     f"focused the {s.n} that did")
         timing = {k: float(v) for k, v in out.timings_s.items()}
         if self.params["basis"] == "stream":
             timing["basis_streamed"] = s.basis_time_s
+            timing["basis_last_batch"] = s.last_batch_s
             out.metrics["basis_batches"] = s.batches
         timing["last_measurement_to_result"] = time.monotonic() - s.last_wall
         timing["after_last_measurement_work"] = time.monotonic() - t_start
-        self._publish(s, out, timing)
+        latency = time.monotonic() - s.last_wall
+        pending = tgt_basis is not None and truth is not None
+        self._publish(s, out, timing, latency, pending)
+        if pending:
+            assert tgt_basis is not None and truth is not None
+            t = time.perf_counter()
+            self._truth_metrics(s, out, tgt_basis, positions, truth)
+            timing["truth_metrics_after_result"] = time.perf_counter() - t
+            self._publish_result(s, out, timing, latency, False)
+            self._log_focused(s, out, timing)
         if self.params["out_dir"]:
             from twinfocus.pipeline import write_outputs
 
@@ -308,29 +376,62 @@ class Solver(Node):
     def _progress(self, *args) -> None:
         self.heartbeat_if_due()
 
-    def _focus_bases(self, s: _Scan, positions: np.ndarray, truth: np.ndarray | None):
+    def _focus_bases(self, s: _Scan, positions: np.ndarray):
         """:func:`twinfocus.pipeline.focus_bases` on the streamed bases (the same call as
-        ``twinfocus focus`` after its back-projections; tests/test_graph.py checks the phase)."""
+        ``twinfocus focus`` after its back-projections; tests/test_graph.py checks the phase),
+        without the truth: :meth:`_truth_metrics` adds it once the image is out. Returns the
+        outputs and the target basis (the oracle-phase image needs it)."""
+        from threadpoolctl import threadpool_limits
+
         from twinfocus.pipeline import focus_bases
 
-        return focus_bases(
-            np.concatenate(s.ref_rows), np.concatenate(s.tgt_rows), positions, s.chirp, self.ref_grid, self.tgt_grid,
-            template=self.template, method=self.params["method"], config=self._config(s.chirp), bp_options=self.bp,
-            progress_factory=lambda label: self._progress, remove_phase_ramp=self.params["remove_phase_ramp"],
-            tracking_error_m=self.params["tracking_error_m"],
-            truth_target=s.truth_tgt, truth_reference=s.truth_ref, positions_true=truth,
-        )
+        tgt_basis = s.tgt_rows.array()
+        t = time.perf_counter()
+        # The BLAS work of these steps (SSIM filters, form_image, small fits on 100 x 100 images)
+        # is too small to gain from threads, and OpenBLAS's spinning threads fight numba's and the
+        # other nodes' for a few cores: one 100 x 100 SSIM took 60 ms instead of 1 ms on the loaded
+        # 2-core VM, a second of the latency after a scan (docs/performance.md). Only here: the
+        # back-projection keeps the BLAS set-up of `twinfocus focus` (with one BLAS thread for the
+        # whole node, the live uncorrected image differed from focus's by 4e-5 of its maximum
+        # under load, above tests/test_graph_offline.py's 1e-5).
+        with threadpool_limits(1, user_api="blas"):
+            out = focus_bases(
+                s.ref_rows.array(), tgt_basis, positions, s.chirp, self.ref_grid, self.tgt_grid,
+                template=self.template, method=self.params["method"], config=self._config(s.chirp), bp_options=self.bp,
+                progress_factory=lambda label: self._progress, phase_ramp=self.params["phase_ramp"],
+                space_variant=self.params["space_variant"], tracking_error_m=self.params["tracking_error_m"],
+            )
+        out.timings_s["focus_bases"] = time.perf_counter() - t  # autofocus and the rest of the steps
+        return out, tgt_basis
 
-    def _publish(self, s: _Scan, out, timing: dict) -> None:
-        stamp = now_ns()
+    def _truth_metrics(self, s: _Scan, out, tgt_basis: np.ndarray, positions: np.ndarray, truth: np.ndarray) -> None:
+        """:func:`twinfocus.pipeline.add_truth_metrics` (what ``focus_bases`` adds when handed the
+        truth), on images formed from the kept samples at the true positions, as
+        :func:`twinfocus.pipeline.focus_scan` forms them."""
+        from twinfocus.backprojection import backproject
+        from twinfocus.pipeline import add_truth_metrics
+
+        data = np.concatenate(s.data)
+        s.data = []
+        out.target_truth = backproject(data, truth, s.chirp, self.tgt_grid, progress=self._progress, **self.bp)
+        self.heartbeat_if_due()
+        out.reference_truth = backproject(data, truth, s.chirp, self.ref_grid, progress=self._progress, **self.bp)
+        add_truth_metrics(out, tgt_basis, positions, s.chirp, out.target_truth, out.reference_truth, truth,
+                          self.cfg.threshold_centre, self.cfg.threshold_steepness)
+
+    def _publish_result(self, s: _Scan, out, timing: dict, latency: float, pending: bool) -> None:
         numeric = {k: float(v) for k, v in out.metrics.items() if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)}
         self.result_pub.publish(AutofocusResult(
-            header=Header(stamp_ns=stamp, frame_id="scene"),
+            header=Header(stamp_ns=now_ns(), frame_id="scene"),
             scan_id=s.scan_id, method=out.method,
             phase_rad=np.asarray(out.phase_rad, np.float64),
             loss_history=np.asarray(out.loss_history, np.float64),
-            metrics=numeric, timing_s=timing,
+            metrics=numeric, timing_s=dict(timing), latency_s=latency, metrics_pending=pending,
         ))
+
+    def _publish(self, s: _Scan, out, timing: dict, latency: float, pending: bool) -> None:
+        """The images (target last: a viewer waiting for it has the rest), then the result."""
+        stamp = now_ns()
         for name, img, grid in (
             ("target_uncorrected", out.target_uncorrected, self.tgt_grid),
             ("reference_uncorrected", out.reference_uncorrected, self.ref_grid),
@@ -339,11 +440,16 @@ class Solver(Node):
         ):
             self.image_pub.publish(Image(header=Header(stamp_ns=stamp, frame_id="scene"), name=name, scan_id=s.scan_id,
                                          image=img, x_m=grid.x_m, y_m=grid.y_m, z_m=grid.z))
-        ssim = numeric.get("target_ssim_corrected")
-        tag = f", target SSIM {numeric.get('target_ssim_uncorrected', float('nan')):.3f} -> {ssim:.3f}" if ssim is not None else ""
+        self._publish_result(s, out, timing, latency, pending)
+        if not pending:
+            self._log_focused(s, out, timing)
+        self.status_message = f"focused {self.done + 1} scan(s)"
+
+    def _log_focused(self, s: _Scan, out, timing: dict) -> None:
+        ssim = out.metrics.get("target_ssim_corrected")
+        tag = f", target SSIM {out.metrics.get('target_ssim_uncorrected', float('nan')):.3f} -> {ssim:.3f}" if ssim is not None else ""
         self.log(f"focused scan {s.scan_id!r}: {out.phase_rad.size} positions, {out.method}{tag}, "
                  f"{timing['last_measurement_to_result']:.2f} s after its last measurement")
-        self.status_message = f"focused {self.done + 1} scan(s)"
 
     def _count_done(self) -> None:
         self.done += 1

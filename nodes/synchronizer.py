@@ -41,7 +41,8 @@ class Synchronizer(Node):
         **Node.PARAMS,
         "max_pose_gap_s": Param(0.2, "widest interval between two poses to interpolate across, seconds"),
         "max_wait_s": Param(2.0, "how long (wall clock) a frame waits for a later pose before it is reported unpaired"),
-        "pose_buffer_s": Param(30.0, "how much pose history is kept, seconds of stamps"),
+        "pose_buffer_s": Param(30.0, "pose history kept before the latest radar frame paired, seconds of stamps "
+                                     "(poses ahead of the radar are all kept, so a fast tracker loses nothing)"),
         "extrinsics": Param({}, "camera-to-radar transform for camera poses: {translation_m: [x,y,z], rotation_xyzw: [x,y,z,w]}", type="any"),
     }
 
@@ -81,11 +82,16 @@ class Synchronizer(Node):
             )
         self.stamps.append(t)
         self.poses.append(pose)
-        horizon = t - int(self.params["pose_buffer_s"] * 1e9)
+        self.try_pair()
+
+    def _prune(self, frame_stamp_ns: int) -> None:
+        # Relative to the radar, not to the newest pose: a tracker running ahead of the radar
+        # (replay or simulation as fast as possible) would otherwise lose the poses that the
+        # radar frames still to come need.
+        horizon = frame_stamp_ns - int(self.params["pose_buffer_s"] * 1e9)
         while len(self.stamps) > 2 and self.stamps[1] < horizon:
             self.stamps.popleft()
             self.poses.popleft()
-        self.try_pair()
 
     def on_frame(self, frame: RadarFrame) -> None:
         self.frames.append((frame, time.monotonic()))
@@ -107,6 +113,7 @@ class Synchronizer(Node):
                 self._decide(frame, None, f"it is earlier than the oldest pose kept ({(self.stamps[0] - t) / 1e9:.3f} s before)")
             else:
                 self._decide(frame, self._interpolate(frame), "")
+                self._prune(t)
             self.frames.popleft()
         if self.held is not None and not self.frames and time.monotonic() - self.held_since > max_wait:
             self._send(self.held)  # the radar went quiet without marking the scan's end
@@ -175,6 +182,10 @@ class Synchronizer(Node):
         self.out.publish(m)
 
     def on_shutdown(self) -> None:
+        if self.frames:
+            self.unpaired += len(self.frames)
+            self.log(f"{len(self.frames)} radar frame(s) were still waiting for a later pose at shutdown")
+            self.frames.clear()
         if self.held is not None and self._pub_sock is not None:
             self._send(self.held)
             self.held = None

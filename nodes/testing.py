@@ -18,8 +18,9 @@ from __future__ import annotations
 import queue
 import threading
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any, Iterator
+from typing import Any
 
 from nodes.bus import Broker
 from nodes.node import Node
@@ -123,3 +124,23 @@ def running(*nodes: Node, start_timeout_s: float = 30.0, stop_timeout_s: float =
     failed = {k: v for k, v in codes.items() if v != 0}
     if failed:
         raise RuntimeError(f"node(s) failed: {failed}")
+
+
+def write_driver_messages(writer, radar, vio, data, chirp, array) -> None:
+    """Write to an open :class:`msgs.mcap_log.LogWriter` what the drivers would have published for
+    one scan, in the order it would have arrived: each pose 5 ms and each radar frame 20 ms after
+    its stamp. radar, vio : :class:`twinfocus.trajectory.Poses` (radar frames, tracker poses);
+    data : complex (M, K, N) IF samples; array : the virtual array (its ``offsets_m``)."""
+    from msgs import Header, Pose, RadarFrame
+
+    events = [(int(t) + 5_000_000, "vio/pose", i) for i, t in enumerate(vio.timestamps_ns)]
+    events += [(int(t) + 20_000_000, "radar/frame", m) for m, t in enumerate(radar.timestamps_ns)]
+    for log_t, topic, i in sorted(events):
+        if topic == "vio/pose":
+            msg = Pose(header=Header(int(vio.timestamps_ns[i]), i, "scene"), position_m=vio.position_m[i],
+                       quat_xyzw=vio.quat_xyzw[i])
+        else:
+            msg = RadarFrame(header=Header(int(radar.timestamps_ns[i]), i, "radar"), data=data[i], f0_hz=chirp.f0_hz,
+                             slope_hz_per_s=chirp.slope_hz_per_s, fs_hz=chirp.fs_hz, channel_offsets_m=array.offsets_m,
+                             scan_id="run", index=i, last=i == len(radar.timestamps_ns) - 1)
+        writer.write(topic, msg, log_time_ns=log_t)

@@ -20,9 +20,7 @@ from __future__ import annotations
 import html
 import io
 import json
-import os
 import sys
-import tempfile
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -32,6 +30,7 @@ import numpy as np
 from msgs import AutofocusResult, Image, Pose, SarMeasurement
 from nodes.node import Node, run_node
 from nodes.params import Param
+from twinfocus.atomic import write_bytes_atomic
 from twinfocus.errors import TwinFocusError
 
 PANELS = (
@@ -128,7 +127,7 @@ class Visualizer(Node):
         "host": Param("127.0.0.1", "address the web page listens on (loopback by default)", type="str"),
         "port": Param(8765, "port of the web page; 0 = any free port (printed)"),
         "serve": Param(True, "serve the web page"),
-        "exit_after_results": Param(0, "end the node after this many focused images (0: never)"),
+        "exit_after_results": Param(0, "end the node after this many focused scans (images and final result; 0: never)"),
         "max_points": Param(20000, "trajectory points kept for the plot"),
     }
 
@@ -150,6 +149,9 @@ class Visualizer(Node):
         self.create_subscription("sar/measurement", self.on_measurement)
         self.create_subscription("image/focused", self.on_image)
         self.create_subscription("autofocus/result", self.on_result)
+        # Capture gaps (sensors helper): the radar frames carry the capture board's loss counts.
+        self.gaps_text = ""
+        self.create_subscription("radar/frame", self.on_radar_frame)
         if self.params["serve"]:
             self._start_server()
 
@@ -195,7 +197,7 @@ class Visualizer(Node):
 
     def page_state(self) -> dict:
         with self.lock:
-            return {"versions": dict(self.versions), "status": self.status, "metrics": self.metrics_text}
+            return {"versions": dict(self.versions), "status": self.status + self.gaps_text, "metrics": self.metrics_text}
 
     def page(self) -> str:
         with self.lock:
@@ -205,14 +207,11 @@ class Visualizer(Node):
                 src = f' src="/{name}.png?v={v}" data-v="{v}"' if v is not None else ""
                 figs.append(f'<figure><img id="{name}" alt="{html.escape(caption)}"{src} onload="loaded(this)">'
                             f"<figcaption>{html.escape(caption)}</figcaption></figure>")
-            return PAGE.format(status=html.escape(self.status), figures="\n".join(figs), metrics=html.escape(self.metrics_text))
+            return PAGE.format(status=html.escape(self.status + self.gaps_text), figures="\n".join(figs), metrics=html.escape(self.metrics_text))
 
     # -- outputs ------------------------------------------------------------------------------
     def _store(self, name: str, png: bytes) -> None:
-        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".png", dir=self.out_dir)
-        with os.fdopen(fd, "wb") as f:
-            f.write(png)
-        os.replace(tmp, self.out_dir / f"{name}.png")
+        write_bytes_atomic(self.out_dir / f"{name}.png", png)
         with self.lock:
             self.pngs[name] = png
             self.versions[name] = self.versions.get(name, 0) + 1
@@ -231,6 +230,15 @@ class Visualizer(Node):
             self.trajectory_dirty = True
         with self.lock:
             self.status = f"scan {m.scan_id!r}: {len(self.centres)} radar positions"
+
+    # -- capture gaps (sensors helper) ---------------------------------------------------------
+    def on_radar_frame(self, f) -> None:
+        """Show the capture board's lost / zero-filled frames next to the status line."""
+        if f.frames_lost or f.frames_zero_filled or f.bytes_lost:
+            text = (f" | capture gaps: {f.frames_lost} frame(s) lost, {f.frames_zero_filled} zero-filled, "
+                    f"{f.bytes_lost} bytes missing")
+            with self.lock:
+                self.gaps_text = text
 
     def _render_trajectory(self) -> None:
         if not self.trajectory_dirty:
@@ -259,16 +267,16 @@ class Visualizer(Node):
         self._store(name, amplitude_png(msg.image))
         if msg.name == "target":
             self._render_trajectory()
-            self.results += 1
             with self.lock:
                 self.status = f"scan {msg.scan_id!r} focused"
-            n = int(self.params["exit_after_results"])
-            if n and self.results >= n:
-                self.request_shutdown(f"{self.results} focused image(s) shown")
 
     def on_result(self, r: AutofocusResult) -> None:
         loss = np.asarray(r.loss_history)
         lines = [f"scan {r.scan_id}: method {r.method}, {r.phase_rad.size} positions"]
+        if r.latency_s > 0:
+            lines.append(f"latency: {r.latency_s:.2f} s from the scan's last measurement to its focused image")
+        if r.metrics_pending:
+            lines.append("metrics against the truth: being computed")
         lines += [f"{k}: {v:.4g}" for k, v in sorted(r.metrics.items())]
         lines += [f"time {k}: {v:.3f} s" for k, v in sorted(r.timing_s.items())]
         with self.lock:
@@ -282,6 +290,11 @@ class Visualizer(Node):
             ax.set_title(f"scan {r.scan_id} ({r.method})", fontsize=9)
 
         self._store("loss", _figure_png(draw))
+        if not r.metrics_pending:  # the scan's last result: its images came before it
+            self.results += 1
+            n = int(self.params["exit_after_results"])
+            if n and self.results >= n:
+                self.request_shutdown(f"{self.results} focused scan(s) shown")
 
     def on_shutdown(self) -> None:
         if self.server is not None:

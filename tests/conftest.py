@@ -6,6 +6,19 @@ import pytest
 os.environ.setdefault("NUMBA_NUM_THREADS", str(os.cpu_count() or 1))
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _template_cache_in_tmp(tmp_path_factory):
+    """``focus`` caches templates in the user's cache folder; tests (and the processes they
+    start) use a fresh one of their own instead."""
+    old = os.environ.get("TWINFOCUS_CACHE_DIR")
+    os.environ["TWINFOCUS_CACHE_DIR"] = str(tmp_path_factory.mktemp("template-cache"))
+    yield
+    if old is None:
+        os.environ.pop("TWINFOCUS_CACHE_DIR", None)
+    else:
+        os.environ["TWINFOCUS_CACHE_DIR"] = old
+
+
 def pytest_collection_modifyitems(config, items):
     try:
         import torch

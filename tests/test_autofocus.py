@@ -1,14 +1,15 @@
 import numpy as np
 import pytest
 
-from twinfocus.autofocus import AutofocusConfig, form_image, no_correction, sharpness_autofocus, twin_autofocus
+from twinfocus.autofocus import AutofocusConfig, no_correction, sharpness_autofocus, twin_autofocus
 from twinfocus.backprojection import backproject, subimage_basis
+from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
 from twinfocus.metrics import image_ssim, oracle_phase, phase_error_rms
+from twinfocus.motion import apply_position_errors, drift_errors, gaussian_errors
 from twinfocus.radar import Chirp, mmwcas_virtual_array
 from twinfocus.simulate import add_thermal_noise, simulate_if
-from twinfocus.motion import apply_position_errors, drift_errors, gaussian_errors
 from twinfocus.trajectory import paper_raster, phase_centres
 
 Z = 0.4
@@ -59,6 +60,7 @@ def scene_05mm():
     return ch, true, tracked, ref_basis, tgt_basis, template, truth
 
 
+@pytest.mark.slow
 def test_twin_autofocus_recovers_injected_phase_and_focuses_target(scene_05mm):
     ch, true, tracked, ref_basis, tgt_basis, template, truth = scene_05mm
     result = twin_autofocus(ref_basis, template, AutofocusConfig(iterations=300))
@@ -74,6 +76,7 @@ def test_twin_autofocus_recovers_injected_phase_and_focuses_target(scene_05mm):
     assert result.loss_history[-1] < result.loss_history[0]
 
 
+@pytest.mark.slow
 def test_twin_autofocus_with_independent_jitter_focuses_target():
     ch, data, true, tracked = _scenario(0.5e-3, seed=1)
     ref_basis = subimage_basis(data, tracked, ch, REF_GRID)
@@ -110,6 +113,7 @@ def test_smoothness_penalty_is_the_mean_squared_chord():
         AutofocusConfig(smoothness_weight=-1.0).validate()
 
 
+@pytest.mark.slow
 def test_smoothness_prior_smooths_the_estimate_of_a_smooth_drift(scene_05mm):
     import torch
 
@@ -163,7 +167,7 @@ def test_bad_templates_and_shapes_are_refused(scene_05mm):
 
 
 def test_linear_phase_fit_recovers_ramp_through_wrapping():
-    from twinfocus.autofocus import fit_linear_phase, remove_linear_phase
+    from twinfocus.autofocus import fit_linear_phase, transfer_phase
 
     rng = np.random.default_rng(7)
     poses = paper_raster()
@@ -174,7 +178,36 @@ def test_linear_phase_fit_recovers_ramp_through_wrapping():
     phase = np.angle(np.exp(1j * (a + ap @ np.array([bx, by]) + jitter)))
     ramp, coeffs = fit_linear_phase(phase, ap)
     np.testing.assert_allclose(coeffs[1:], [bx, by], atol=0.5)
-    left = remove_linear_phase(phase, ap)
-    assert phase_error_rms(left, jitter) < 0.05
+    left, info = transfer_phase(phase, ap, 0.6, 3.9e-3, "remove")
+    assert info["removed"] and phase_error_rms(left, jitter) < 0.05
     with pytest.raises(TwinFocusError, match="aperture_m"):
         fit_linear_phase(phase, ap[:10])
+
+
+@pytest.mark.parametrize("shift_mm, registered, mode, removed", [
+    (1.0, False, "auto", True),    # a misplaced template's ramp: taken out
+    (-2.5, False, "auto", True),
+    (8.0, False, "auto", False),   # no template is 8 mm off: tracking error, transferred
+    (1.0, True, "auto", False),    # registration already took the misplacement out
+    (8.0, False, "remove", True),
+    (1.0, False, "keep", False),
+])
+def test_transfer_phase_removes_only_what_a_misplaced_template_explains(shift_mm, registered, mode, removed):
+    from twinfocus.autofocus import transfer_phase
+
+    rng = np.random.default_rng(3)
+    ap = paper_raster().position_m[:, :2]
+    lam, r = 3.9e-3, 0.6
+    # an image shift d at range R is the aperture ramp k d / R, k = 4 pi / lambda
+    slope = 4 * np.pi / lam * shift_mm * 1e-3 / r
+    rest = rng.normal(0, 0.3, ap.shape[0])
+    phase = np.angle(np.exp(1j * (0.4 + slope * ap[:, 0] + rest)))
+    out, info = transfer_phase(phase, ap, r, lam, mode, registered)
+    assert info["removed"] is removed
+    np.testing.assert_allclose(info["implied_shift_m"][0], shift_mm * 1e-3, atol=0.15e-3)
+    if removed:
+        assert phase_error_rms(out, rest) < 0.05
+    else:
+        np.testing.assert_array_equal(out, phase)
+    with pytest.raises(TwinFocusError, match="phase ramp mode"):
+        transfer_phase(phase, ap, r, lam, "sometimes")

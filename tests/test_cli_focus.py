@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from twinfocus.cli import main
+from twinfocus.errors import TwinFocusError
 from twinfocus.scan import Scan, save_npz_atomic
 
 REF = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
@@ -26,12 +27,18 @@ def _focus(scan, out, *extra):
                  "--iterations", "150", "--out", str(out), "--quiet", *extra])
 
 
+@pytest.mark.slow
 def test_simulate_then_focus_with_template_scan(small_scans, tmp_path):
     out = tmp_path / "focus"
     assert _focus(small_scans / "scan.npz", out, "--template-scan", str(small_scans / "tpl.npz")) == 0
-    for name in ("target.npy", "target_uncorrected.npy", "reference.npy", "phase.npy", "metrics.json",
-                 "summary.png", "target.png", "loss.png"):
+    for name in ("target.npy", "target_uncorrected.npy", "reference.npy", "phase.npy", "metrics.json", "summary.png"):
         assert (out / name).is_file(), name
+    # by default only the summary picture (the others cost matplotlib's second or two)
+    assert sorted(p.name for p in out.glob("*.png")) == ["summary.png"]
+    assert _focus(small_scans / "scan.npz", tmp_path / "all", "--template-scan", str(small_scans / "tpl.npz"),
+                  "--pictures", "all") == 0
+    for name in ("summary.png", "target.png", "template.png", "loss.png", "phase.png"):
+        assert (tmp_path / "all" / name).is_file(), name
     target = np.load(out / "target.npy")
     assert target.dtype == np.complex64 and target.shape == (48, 48)
     assert np.load(out / "phase.npy").shape == (120,)
@@ -40,6 +47,7 @@ def test_simulate_then_focus_with_template_scan(small_scans, tmp_path):
     assert m["reference_ssim_vs_template_corrected"] > m["reference_ssim_vs_template_uncorrected"]
 
 
+@pytest.mark.slow
 def test_estimators_from_a_template_scan(small_scans, tmp_path, capsys):
     """auto = registration + closed form with a physical twin (its phase is known); every
     estimator improves the target; one that needs a phase refuses an amplitude template."""
@@ -84,6 +92,7 @@ def test_estimators_from_a_template_scan(small_scans, tmp_path, capsys):
     assert "projection_iterations must be >= 1" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_confidence_report_warns_when_transfer_cannot_be_trusted(small_scans, tmp_path, capsys):
     assert _focus(small_scans / "scan.npz", tmp_path / "ok", "--method", "none") == 0
     ok = json.loads((tmp_path / "ok" / "metrics.json").read_text())["confidence"]
@@ -97,6 +106,7 @@ def test_confidence_report_warns_when_transfer_cannot_be_trusted(small_scans, tm
     assert not bad["trusted"] and bad["transfer_bound_rad_max"] > np.pi / 4
 
 
+@pytest.mark.slow
 def test_template_file_path_and_baselines(small_scans, tmp_path):
     from twinfocus.grid import ImageGrid
     from twinfocus.templates import save_template, template_from_scan
@@ -160,3 +170,92 @@ def test_unknown_options_are_refused(capsys):
     assert e.value.code == 2
     with pytest.raises(SystemExit):
         main(["no-such-command"])
+
+
+def test_confidence_asks_more_of_a_registered_physical_twin_than_of_an_amplitude_template():
+    from twinfocus.grid import ImageGrid
+    from twinfocus.pipeline import MIN_REFERENCE_MATCH, MIN_REFERENCE_MATCH_PHYSICAL, confidence_report
+    from twinfocus.radar import Chirp, mmwcas_virtual_array
+    from twinfocus.trajectory import paper_raster, phase_centres
+
+    pos = phase_centres(paper_raster(6, 10), mmwcas_virtual_array())
+    ref, tgt = ImageGrid.from_roi([float(v) for v in REF], 20), ImageGrid.from_roi([float(v) for v in TGT], 20)
+    between = (MIN_REFERENCE_MATCH + MIN_REFERENCE_MATCH_PHYSICAL) / 2
+    registered = {"reference_ssim_vs_template_corrected": between,
+                  "template_registration": {"shift_px": [0.0, 0.0], "at_limit": False}}
+    physical = confidence_report(registered, pos, Chirp(), ref, tgt, 0.5e-3)
+    amplitude = confidence_report({"reference_ssim_vs_template_corrected": between}, pos, Chirp(), ref, tgt, 0.5e-3)
+    assert not physical["trusted"] and "matches its template poorly" in physical["warnings"][0]
+    assert amplitude["trusted"]
+
+
+def _one_line_error(capsys, *needles):
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    for needle in needles:
+        assert needle in err, (needle, err)
+    return err
+
+
+def test_inputs_are_checked_before_any_work(small_scans, tmp_path, capsys):
+    """Issue 15 item 7: each bad input is one line, exit 2, before any back-projection (each
+    answer comes in well under the time one back-projection would take)."""
+    import time
+
+    scan, tpl_path = small_scans / "scan.npz", small_scans / "tpl.npz"
+    tpl = ["--template-scan", str(tpl_path)]
+    raw = scan.read_bytes()
+    (tmp_path / "trunc.npz").write_bytes(raw[: len(raw) // 2])
+    damaged = bytearray(tpl_path.read_bytes())
+    damaged[len(damaged) // 3: len(damaged) // 3 + 64] = bytes(64)  # inside data.npy: a CRC failure on load
+    (tmp_path / "damaged.npz").write_bytes(bytes(damaged))
+    (tmp_path / "file").write_text("not a folder")
+    cases = [
+        ((tmp_path / "trunc.npz", tmp_path / "o1", *tpl), ("trunc.npz", "truncated or damaged")),
+        ((scan, tmp_path / "o2", "--template-scan", str(tmp_path / "trunc.npz")), ("trunc.npz", "truncated or damaged")),
+        ((scan, tmp_path / "o3", "--template-scan", str(tmp_path / "damaged.npz"), "--no-cache"), ("damaged.npz", "truncated or damaged")),
+        ((scan, tmp_path / "o4", "--digital-twin", str(tpl_path)), ("--digital-twin", ".npz archive")),
+        ((scan, tmp_path / "file", *tpl), ("--out", "existing file")),
+        ((scan, tmp_path / "file" / "sub", *tpl), ("--out", "not a folder")),
+        ((scan, tmp_path / "o5", *tpl, "--save-template", str(tmp_path)), ("--save-template", "is a folder")),
+    ]
+    for args, needles in cases:
+        t = time.perf_counter()
+        assert _focus(*args) == 2, needles
+        _one_line_error(capsys, *needles)
+        assert time.perf_counter() - t < 5, needles
+    # an unwritable place: a read-only file system refuses even root
+    assert _focus(scan, "/proc/twinfocus-out", *tpl) == 2
+    _one_line_error(capsys, "--out", "cannot write")
+    # --size 100000: the memory estimate is refused with its figure, at once
+    t = time.perf_counter()
+    rc = main(["focus", str(scan), "--reference-roi", *REF, "--target-roi", *TGT, "--size", "100000",
+               "--out", str(tmp_path / "o6"), "--quiet", *tpl])
+    assert rc == 2 and time.perf_counter() - t < 5
+    err = _one_line_error(capsys, "--size 100000", "GiB")
+    import re
+
+    # 120 positions x 1e10 pixels x (two complex64 bases + the optimiser's copies)
+    gib = float(re.search(r"about ([0-9.]+) GiB", err).group(1))
+    assert 120 * 1e10 * 24 / 2**30 <= gib <= 120 * 1e10 * 64 / 2**30
+    assert not any((tmp_path / f"o{i}").exists() for i in range(1, 7))
+
+
+def test_memory_estimate_against_the_bases_it_counts():
+    """The estimate covers at least the two complex64 bases and the optimiser's float32 copy."""
+    from twinfocus.cli.focus import check_memory
+
+    need = check_memory(780, 100, available=10**12)
+    assert need >= 780 * 100 * 100 * (2 * 8 + 8)
+    with pytest.raises(TwinFocusError, match="GiB"):
+        check_memory(780, 100, available=need - 1)
+
+
+def test_pictures_of_an_earlier_run_do_not_stay_beside_new_results(small_scans, tmp_path):
+    out = tmp_path / "o"
+    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--pictures", "all") == 0
+    assert len(list(out.glob("*.png"))) > 1
+    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--pictures", "summary") == 0
+    assert sorted(p.name for p in out.glob("*.png")) == ["summary.png"]
+    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--no-pictures") == 0
+    assert not list(out.glob("*.png")) and (out / "metrics.json").is_file()

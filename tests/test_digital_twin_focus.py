@@ -42,13 +42,14 @@ def capture(tmp_path_factory):
     torch.set_num_threads(n_threads)
 
 
+@pytest.mark.slow
 def test_twin_then_focus_raises_target_ssim(capture):
     d = capture
     st = d / "stereo"
     rc = main(["twin", str(st / "left.png"), str(st / "right.png"), "--camera", str(st / "camera.json"),
                "--seed-roi", *REF_ROI, "--points-out", str(d / "points.npy"), "--scan", str(d / "scan.npz"),
                "--reference-roi", *REF_ROI, "--size", "48", "--out", str(d / "template.npz"),
-               "--report", str(d / "twin.json"), "--quiet"])
+               "--support-out", str(d / "support.png"), "--report", str(d / "twin.json"), "--quiet"])
     assert rc == 0
     pts = np.load(d / "points.npy")
     assert pts.ndim == 2 and pts.shape[1] == 3 and pts.shape[0] > 500
@@ -59,6 +60,16 @@ def test_twin_then_focus_raises_target_ssim(capture):
         assert z["image"].shape == (48, 48) and z["x_m"].shape == (48,) and float(z["z_m"]) == 0.6
     report = json.loads((d / "twin.json").read_text())
     assert set(report["timings_s"]) >= {"disparity", "segmentation", "point_cloud", "template", "total"}
+    # The conditioning says what it chose and why; a flat letter is a plane.
+    assert report["conditioning"]["surface"] == "plane" and report["conditioning"]["surface_reason"]
+    import cv2
+
+    from twinfocus.digital_twin.condition import support_on_grid
+    from twinfocus.grid import ImageGrid
+
+    support = cv2.imread(str(d / "support.png"), cv2.IMREAD_GRAYSCALE) > 0
+    truth = support_on_grid(ref.surface_points(1e-3), ImageGrid.from_roi(REF_ROI, 48))
+    assert (support & truth).sum() / (support | truth).sum() > 0.7
 
     rc = main(["focus", str(d / "scan.npz"), "--reference-roi", *REF_ROI, "--target-roi", *TGT_ROI,
                "--size", "48", "--digital-twin", str(d / "points.npy"), "--out", str(d / "focus"),
@@ -93,3 +104,33 @@ def test_twin_bad_inputs_write_nothing(capture, tmp_path, capsys):
     fails(["twin", str(tmp_path / "none.png"), str(st / "right.png"), *base, "--seed-roi", *REF_ROI], "no such image")
     fails(["twin", str(st / "left.png"), str(st / "right.png"), *base, "--seed-roi", *REF_ROI,
            "--segmenter", "sam2:" + str(tmp_path / "none.pt")], "checkpoint not found")
+
+
+def test_focus_digital_twin_extreme_clouds_one_line(capture, tmp_path, capsys):
+    """Issue 14 item 5 through the command: each bad cloud is one line (exit 2) naming the file, and
+    a cloud with NaN rows is focused with a warning."""
+    d = capture
+    ref = paper_scene().object("reference")
+    exact = ref.surface_points(1e-3)
+    t = np.linspace(0, 0.05, 200)
+    clouds = {
+        "ten.npy": (exact[:10], "has only 10 finite points"),
+        "outside.npy": (exact + [0.6, 0.0, 0.0], "entirely outside the reference region"),
+        "line.npy": (np.stack([-0.1 + t, 0 * t, 0.6 + 0 * t], axis=1), "degenerate"),
+    }
+    for name, (pts, message) in clouds.items():
+        np.save(tmp_path / name, pts)
+        rc = main(["focus", str(d / "scan.npz"), "--reference-roi", *REF_ROI, "--target-roi", *TGT_ROI,
+                   "--size", "24", "--digital-twin", str(tmp_path / name), "--out", str(tmp_path / "out"),
+                   "--no-pictures", "--quiet", "--device", "cpu"])
+        err = capsys.readouterr().err
+        assert rc == 2 and message in err and name in err and "Traceback" not in err, err
+        assert not (tmp_path / "out").exists()
+    nan = exact.copy()
+    nan[::40] = np.nan
+    np.save(tmp_path / "nan.npy", nan)
+    with pytest.warns(UserWarning, match="NaN or inf"):
+        rc = main(["focus", str(d / "scan.npz"), "--reference-roi", *REF_ROI, "--target-roi", *TGT_ROI,
+                   "--size", "24", "--digital-twin", str(tmp_path / "nan.npy"), "--out", str(tmp_path / "out"),
+                   "--no-pictures", "--quiet", "--device", "cpu", "--estimator", "projection"])
+    assert rc == 0 and (tmp_path / "out" / "metrics.json").exists()

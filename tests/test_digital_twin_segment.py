@@ -10,7 +10,12 @@ import pytest
 from twinfocus.digital_twin.pipeline import reference_from_stereo
 from twinfocus.digital_twin.render import render_scene
 from twinfocus.digital_twin.segment import (
-    ClassicalSegmenter, PredictorSegmenter, Seed, box_from_scene_roi, load_segmenter, mask_iou,
+    ClassicalSegmenter,
+    PredictorSegmenter,
+    Seed,
+    box_from_scene_roi,
+    load_segmenter,
+    mask_iou,
 )
 from twinfocus.errors import TwinFocusError
 from twinfocus.scene import Scene, card, disc, paper_scene

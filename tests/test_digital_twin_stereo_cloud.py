@@ -6,7 +6,10 @@ import pytest
 from twinfocus.digital_twin.camera import StereoCamera
 from twinfocus.digital_twin.pipeline import reference_from_stereo
 from twinfocus.digital_twin.pointcloud import (
-    PointCloudConfig, check_not_degenerate, radar_point_spacing, reference_point_cloud,
+    PointCloudConfig,
+    check_not_degenerate,
+    radar_point_spacing,
+    reference_point_cloud,
 )
 from twinfocus.digital_twin.render import render_scene
 from twinfocus.digital_twin.segment import box_from_scene_roi

@@ -5,10 +5,19 @@ import numpy as np
 import pytest
 
 from twinfocus.digital_twin.align import (
-    RadarCameraCalibration, calibrate_offset, refine_template_shift_by_loss, register_translation, shift_image,
+    RadarCameraCalibration,
+    calibrate_offset,
+    refine_template_shift_by_loss,
+    register_translation,
+    shift_image,
 )
+from twinfocus.digital_twin.condition import digital_twin_template_from_file
 from twinfocus.digital_twin.template import (
-    convolve_points, digital_twin_template, digital_twin_template_from_file, exact_template, load_points, psf_template,
+    convolve_points,
+    digital_twin_template,
+    exact_template,
+    load_points,
+    psf_template,
 )
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
@@ -122,13 +131,19 @@ def test_template_inputs_and_files(small, tmp_path):
 
     scan = _ScanLike()
     scan.positions, scan.chirp = positions, chirp
+    from twinfocus.digital_twin.condition import digital_twin_reference
+
+    # The file path conditions the cloud (twinfocus.digital_twin.condition) before the template.
     a = digital_twin_template_from_file(good, scan, grid)
-    np.testing.assert_array_equal(a, digital_twin_template(pts, positions, chirp, grid))
+    np.testing.assert_array_equal(a, digital_twin_reference(pts, positions, chirp, grid).template)
+    # On exact points the conditioned template is the raw points' template, up to re-sampling.
+    assert _corr(a, digital_twin_template(pts, positions, chirp, grid)) > 0.95
     # The calibration's offset moves the template like moving the points.
     cal = RadarCameraCalibration(np.array([0.004, 0.0, 0.0]))
     cal.save(tmp_path / "cal.json")
     b = digital_twin_template_from_file(good, scan, grid, calibration=tmp_path / "cal.json")
-    np.testing.assert_allclose(b, digital_twin_template(pts + [0.004, 0, 0], positions, chirp, grid), rtol=1e-5, atol=1e-3 * b.max())
+    np.testing.assert_allclose(b, digital_twin_reference(pts + [0.004, 0, 0], positions, chirp, grid).template,
+                               rtol=1e-5, atol=1e-3 * b.max())
     with pytest.raises(TwinFocusError, match="no such radar-camera calibration"):
         digital_twin_template_from_file(good, scan, grid, calibration=tmp_path / "missing.json")
 

@@ -13,7 +13,10 @@ from twinfocus import metrics
 from twinfocus.cli import main as cli_main
 from twinfocus.errors import TwinFocusError
 from twinfocus.evaluation.cases import (
-    EvalScenario, draw_position_errors, phase_transfer_terms, stage_template_scan, transfer_phase,
+    EvalScenario,
+    draw_position_errors,
+    phase_transfer_terms,
+    transfer_phase,
 )
 from twinfocus.evaluation.experiments import BASELINE_LETTERS, paper_experiments
 from twinfocus.evaluation.features import hog_descriptor, hog_similarity
@@ -22,7 +25,6 @@ from twinfocus.evaluation.trade import central_rows
 from twinfocus.radar import Chirp, mmwcas_virtual_array
 from twinfocus.scenario import simulate_scenario
 from twinfocus.trajectory import paper_raster, phase_centres
-
 
 # --- second metric ---------------------------------------------------------------------------------
 
@@ -76,7 +78,7 @@ def test_first_order_prediction_matches_exact_transfer():
     prediction and never exceeds the bound."""
     chirp = Chirp()
     true = phase_centres(paper_raster(6, 20), mmwcas_virtual_array())
-    err = draw_position_errors(EvalScenario(error_sigma_m=(0.1e-3,) * 3), paper_raster(6, 20).timestamps_ns, 3)
+    err, _ = draw_position_errors(EvalScenario(error_sigma_m=(0.1e-3,) * 3), paper_raster(6, 20).timestamps_ns, 3)
     tracked = true + err[:, None, :]
     ref, tgt = np.array([-0.05, 0.0, 0.6]), np.array([0.06, 0.01, 0.6])
     floor = metrics.phase_error_rms(metrics.oracle_phase(true, tracked, ref, chirp), metrics.oracle_phase(true, tracked, tgt, chirp))
@@ -87,31 +89,37 @@ def test_first_order_prediction_matches_exact_transfer():
 
 def test_error_draws_scale_with_sigma_and_ramp_removal_keeps_focus_part():
     stamps = paper_raster(6, 10).timestamps_ns
-    a = draw_position_errors(EvalScenario(error_sigma_m=(0.5e-3,) * 3), stamps, 11)
-    b = draw_position_errors(EvalScenario(error_sigma_m=(2e-3,) * 3), stamps, 11)
+    a, _ = draw_position_errors(EvalScenario(error_sigma_m=(0.5e-3,) * 3), stamps, 11)
+    b, _ = draw_position_errors(EvalScenario(error_sigma_m=(2e-3,) * 3), stamps, 11)
     np.testing.assert_allclose(b, 4 * a)  # common random numbers across a sigma sweep
-    v = draw_position_errors(EvalScenario(error_model="vio"), stamps, 1)
-    assert v.shape == (60, 3) and np.isfinite(v).all()
+    v, turn = draw_position_errors(EvalScenario(error_model="vio"), stamps, 1)
+    assert v.shape == (60, 3) and np.isfinite(v).all() and not turn.any()
+    h, turn = draw_position_errors(EvalScenario(error_model="hand"), stamps, 1)
+    assert h.shape == turn.shape == (60, 3) and turn.any()
     # A pure ramp is removed entirely; a ramp on top of a random phase leaves the random part.
     pos = phase_centres(paper_raster(6, 10), mmwcas_virtual_array())
     xy = pos.mean(axis=1)[:, :2]
     ramp = 0.3 + 40.0 * xy[:, 0] - 25.0 * xy[:, 1]
-    assert metrics.phase_error_rms(transfer_phase(ramp, pos), np.zeros(60)) < 1e-6
+    assert metrics.phase_error_rms(transfer_phase(ramp, pos, "remove"), np.zeros(60)) < 1e-6
     bumps = np.random.default_rng(0).normal(0, 0.5, 60)
-    assert metrics.phase_error_rms(transfer_phase(bumps + ramp, pos), transfer_phase(bumps, pos)) < 1e-6
-    np.testing.assert_array_equal(transfer_phase(bumps + ramp, pos, remove_ramp=False), bumps + ramp)
+    assert metrics.phase_error_rms(transfer_phase(bumps + ramp, pos, "remove"), transfer_phase(bumps, pos, "remove")) < 1e-6
+    np.testing.assert_array_equal(transfer_phase(bumps + ramp, pos, "keep"), bumps + ramp)
+    # 40 rad/m at 0.6 m moves the image by 7 mm: more than a misplaced template, so auto keeps it
+    np.testing.assert_array_equal(transfer_phase(bumps + ramp, pos, "auto"), bumps + ramp)
 
 
 # --- scenes -----------------------------------------------------------------------------------------
 
 
-def test_stage_template_scan_reproduces_the_scenario_template():
+def test_the_cluttered_rooms_template_scan_is_the_scenarios_plus_the_room():
+    from twinfocus.scenario import template_scan
+
     sc = EvalScenario(reference="C", target="X", n_rows=3, n_columns=2, spacing_m=6e-3, snr_db=None, clutter=True)
     _, template = simulate_scenario(sc)
-    open_room = stage_template_scan(sc, with_clutter=False)
+    open_room = template_scan(sc, with_clutter=False)
     np.testing.assert_array_equal(open_room.data, template.data)
     np.testing.assert_array_equal(open_room.positions, template.positions)
-    room = stage_template_scan(sc, with_clutter=True)
+    room = template_scan(sc, with_clutter=True)
     assert np.abs(room.data - template.data).max() > 1e-3 * np.abs(template.data).max()
 
 
@@ -203,6 +211,7 @@ def test_cli_rejects_bad_arguments_before_any_work(tmp_path, capsys):
     assert cli_main(["bench", "paper", "--quick", "--draws", "0", "--out", str(tmp_path / "r")]) == 2
 
 
+@pytest.mark.slow
 def test_quick_benchmark_end_to_end(tmp_path):
     out = tmp_path / "bench"
     assert cli_main(["bench", "paper", "--quick", "--quiet", "--out", str(out)]) == 0
@@ -245,6 +254,7 @@ def test_object_regions_frame_each_letter_without_the_other():
         assert r[2] == pytest.approx(ref_c[:, 1].min() - 0.04) and r[4] == pytest.approx(sc.distance_m)
 
 
+@pytest.mark.slow
 def test_beyond_quick_end_to_end(tmp_path):
     """``twinfocus bench beyond --quick``: every variant runs on the same draws, the closed-form
     estimate improves on no correction, the report has its tables and the goals, and
@@ -277,3 +287,21 @@ def test_beyond_quick_end_to_end(tmp_path):
     before = (out / "raw" / "beyond_error.json").stat().st_mtime_ns
     assert cli_main(["bench", "beyond", "--quick", "--out", str(out), "--quiet", "--resume"]) == 0
     assert (out / "raw" / "beyond_error.json").stat().st_mtime_ns == before
+
+
+def test_report_adds_the_field_conditions_from_the_benchmarks_figures(tmp_path):
+    from twinfocus.evaluation.report import _section_field
+
+    lines: list = []
+    _section_field(tmp_path, lines)
+    assert lines == []  # nothing there: no section
+    hand = {"hand": [{"uncorrected": 0.5, "closed_form_auto": 0.8, "default": 0.9, "reference_true_phase": 0.85,
+                      "ceiling_target_phase": 0.97}, {"uncorrected": 0.6, "closed_form_auto": 0.8, "default": 0.92,
+                                                      "reference_true_phase": 0.85, "ceiling_target_phase": 0.97}]}
+    (tmp_path / "field_handheld.json").write_text(json.dumps(hand))
+    _section_field(tmp_path, lines)
+    text = "\n".join(lines)
+    assert "Field conditions" in text
+    row = next(line for line in lines if line.startswith("| hand"))
+    # mean ± population sd of the draws, as every table of the report
+    assert "| 2 | 0.550 ± 0.050 |" in row and "0.910 ± 0.010" in row

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from test_msgs import assert_same, one_of_each
 
 from msgs import Header, Pose, RadarFrame, decode
 from msgs.mcap_log import LogReader, LogWriter, read_messages
@@ -16,8 +17,6 @@ from nodes.node import Node
 from nodes.testing import local_broker, running
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import Chirp
-
-from test_msgs import assert_same, one_of_each
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -58,6 +57,9 @@ def test_the_reference_mcap_reader_reads_our_files(tmp_path):
     for (schema, channel, rec), m in zip(got, msgs):
         assert channel.topic == m.TOPIC and rec.sequence == m.header.seq
         assert_same(m, decode(rec.data))
+        # one clock per field: publish time is the log time (wall clock), never a sensor stamp,
+        # which may be simulated; the stamp stays in the message's header
+        assert rec.publish_time == rec.log_time
 
 
 def test_every_cut_of_a_file_reads_as_a_prefix(tmp_path):
@@ -131,8 +133,11 @@ def test_a_killed_recorder_leaves_a_readable_log(tmp_path):
             if rec.poll() is None:
                 rec.kill()
                 rec.wait()
-    r = LogReader(out)
-    assert not r.complete
+    # Written beside the destination until the recorder closes it: a killed one leaves the
+    # partial file (its pid in the name) and nothing at the destination.
+    assert not out.exists()
+    r = LogReader(tmp_path / f"killed.mcap.{rec.pid}.partial")
+    assert not r.complete and not r.skipped and "not closed cleanly" in r.condition
     frames = [m.decode() for m in r.messages(["radar/frame"])]
     n = len(frames)
     assert n >= 300, f"only {n} frames survived"

@@ -89,3 +89,42 @@ def test_apply_position_errors_one_offset_per_position():
         apply_position_errors(centres[0], err)
     with pytest.raises(TwinFocusError, match="NaN"):
         apply_position_errors(centres, np.full((5, 3), np.nan))
+
+
+def test_pose_errors_rotate_the_array_about_its_centre_like_a_rigid_body():
+    from scipy.spatial.transform import Rotation
+
+    from twinfocus.motion import apply_pose_errors
+
+    rng = np.random.default_rng(5)
+    centres = rng.normal(0, 0.05, (4, 86, 3))
+    shift = rng.normal(0, 1e-3, (4, 3))
+    turn = rng.normal(0, np.radians(0.15), (4, 3))
+    got = apply_pose_errors(centres, shift, turn)
+    for m in range(4):
+        c = centres[m].mean(axis=0)
+        exact = Rotation.from_rotvec(turn[m]).apply(centres[m] - c) + c + shift[m]
+        # first order in the angle: what is left is the second-order term, |r|^2 |arm| / 2
+        arm = np.linalg.norm(centres[m] - c, axis=1).max()
+        assert np.abs(got[m] - exact).max() <= 0.5 * np.dot(turn[m], turn[m]) * arm * 1.01
+    with pytest.raises(TwinFocusError, match="rotation_rad"):
+        apply_pose_errors(centres, shift, turn[:2])
+
+
+def test_hand_errors_drift_jitter_and_rotation_sizes():
+    from twinfocus.motion import draw_errors, hand_errors
+
+    stamps = np.arange(20000, dtype=np.int64) * 100_000_000
+    shift, turn = hand_errors(stamps, (0.8e-3,) * 3, 2.0, (0.2e-3,) * 3, np.radians(0.15), rng=1)
+    # drift and jitter are independent: variances add
+    np.testing.assert_allclose(shift.std(axis=0), np.hypot(0.8e-3, 0.2e-3), rtol=0.1)
+    np.testing.assert_allclose(turn.std(axis=0), np.radians(0.15), rtol=0.1)
+    # the rotation drifts with the correlation time: lag-20 (2 s) correlation exp(-1)
+    lag = np.mean([np.corrcoef(turn[:-20, i], turn[20:, i])[0, 1] for i in range(3)])
+    assert abs(lag - np.exp(-1)) < 0.05
+    s, r = draw_errors("hand", stamps[:100], (0.8e-3,) * 3, rng=4)
+    s2, r2 = hand_errors(stamps[:100], (0.8e-3,) * 3, rng=4)
+    np.testing.assert_array_equal(s, s2)
+    np.testing.assert_array_equal(r, r2)
+    with pytest.raises(TwinFocusError, match="unknown error model"):
+        draw_errors("wobble", stamps[:10])

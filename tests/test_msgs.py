@@ -221,3 +221,16 @@ def test_optional_arrays_may_be_absent_and_required_ones_may_not():
 def test_chirp_of_a_frame_is_the_radar_model_chirp():
     f = one_of_each()[0]
     assert f.chirp() == Chirp()
+
+
+def test_a_result_recorded_before_latency_and_metrics_pending_decodes_with_their_defaults():
+    """Logs written before the fields existed: latency 0 (unknown) and a final result."""
+    msg = AutofocusResult(header=Header(6, 0, "scene"), scan_id="old", method="twin", phase_rad=np.zeros(3),
+                          loss_history=np.ones(2), latency_s=0.7, metrics_pending=True)
+    env = msgpack.unpackb(encode(msg), raw=False)
+    for name in ("latency_s", "metrics_pending"):
+        del env["fields"][name]
+    old = decode(msgpack.packb(env, use_bin_type=True), AutofocusResult)
+    assert old.latency_s == 0.0 and old.metrics_pending is False and old.scan_id == "old"
+    new = decode(encode(msg), AutofocusResult)
+    assert new.latency_s == 0.7 and new.metrics_pending is True

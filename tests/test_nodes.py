@@ -4,10 +4,10 @@ Nodes run in threads of this process around a loopback broker (:mod:`nodes.testi
 probe node publishes the inputs and records the outputs, over the real ZeroMQ bus.
 """
 import json
-import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -15,9 +15,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import zmq
 from scipy.spatial.transform import Rotation, Slerp
 
-from msgs import AutofocusResult, Header, Image, NodeStatus, Pose, RadarFrame, SarMeasurement, TwinTemplate
+from msgs import AutofocusResult, Header, Image, Pose, RadarFrame, SarMeasurement, TwinTemplate
+from nodes.bus import Broker
 from nodes.node import Node
 from nodes.params import REQUIRED, Param, parse_assignment, resolve
 from nodes.testing import Probe, local_broker, running
@@ -138,6 +140,65 @@ def test_subscribers_detect_and_report_sequence_gaps(capfd):
         seqs = [m.header.seq for m in probe.received["vio/pose"]]
         assert seqs == list(range(10)) + list(range(15, 25))
     assert "lost 5 message(s) on vio/pose from burst (seq 9 -> 15)" in capfd.readouterr().err
+
+
+class HoldingBroker(Broker):
+    """A broker whose forwarding of published messages can be held back (``hold``); libzmq's
+    steerable proxy cannot be paused reliably (4.3.5 forwards through PAUSE)."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.hold = threading.Event()
+
+    def _proxy_thread(self):
+        xsub, xpub, steer = self.ctx.socket(zmq.XSUB), self.ctx.socket(zmq.XPUB), self.ctx.socket(zmq.PAIR)
+        steer.connect(self._ctrl_addr)
+        self.xsub_port = xsub.bind_to_random_port(f"tcp://{self.host}")
+        self.xpub_port = xpub.bind_to_random_port(f"tcp://{self.host}")
+        self._ready.set()
+        poller = zmq.Poller()
+        for sock in (xsub, xpub, steer):
+            poller.register(sock, zmq.POLLIN)
+        while True:
+            events = dict(poller.poll(20))
+            if steer in events:
+                break
+            if xpub in events:  # subscriptions always pass
+                xsub.send_multipart(xpub.recv_multipart())
+            if xsub in events and not self.hold.is_set():
+                xpub.send_multipart(xsub.recv_multipart())
+            elif self.hold.is_set():
+                time.sleep(0.02)
+        for sock in (xsub, xpub, steer):
+            sock.close(linger=0)
+
+
+def test_a_node_leaves_only_after_the_broker_has_passed_on_what_it_published():
+    # A publisher that exits the moment its queue is handed to the kernel can lose its tail
+    # (CI lost the last two radar frames of a scan this way): shutdown waits until the node's
+    # final heartbeat has come back through the broker, which a held broker holds back.
+    broker = HoldingBroker("tcp://127.0.0.1:0").start()
+
+    class HoldingBurst(Burst):
+        def on_start(self):
+            broker.hold.set()
+            super().on_start()
+
+    try:
+        probe = Probe(broker.endpoint, listen=["vio/pose"])
+        burst = HoldingBurst(["vio/pose"], 50, broker=broker.endpoint, params={"wait_for": ["probe"], "linger_s": 30})
+        with running(probe):
+            t = threading.Thread(target=burst.spin, daemon=True)
+            t.start()
+            time.sleep(1.5)
+            assert t.is_alive()  # published everything and asked to stop, but still waiting
+            assert len(probe.received.get("vio/pose", [])) <= 1  # the one in flight when the hold began
+            broker.hold.clear()
+            t.join(10)
+            assert not t.is_alive() and burst.exit_code == 0
+            assert [m.header.seq for m in probe.wait_for("vio/pose", 50)] == list(range(50))
+    finally:
+        broker.stop()
 
 
 def test_a_node_process_stops_cleanly_on_sigint():
@@ -358,6 +419,68 @@ def test_a_physical_twins_phase_travels_to_the_solver(tmp_path):
         np.testing.assert_allclose(solver.template, load_template(tmp_path / "t.npz", ImageGrid.from_roi(REF_ROI, 9)), atol=1e-5)
 
 
+def test_discover_says_at_once_that_it_waits_and_gives_up_naming_both_ways_to_name_a_broker():
+    import io
+
+    from nodes.bus import discover
+    from tests.test_graph import free_port
+
+    dead = f"tcp://127.0.0.1:{free_port()}"
+    said: list[float] = []
+
+    class Stream(io.StringIO):
+        def write(self, text):
+            said.append(time.monotonic())
+            return super().write(text)
+
+    stream, t0 = Stream(), time.monotonic()
+    with pytest.raises(TwinFocusError) as err:
+        discover(dead, zmq.Context.instance(), timeout_s=3.0, stream=stream)
+    gave_up = time.monotonic()
+    assert stream.getvalue().count("\n") == 1 and f"waiting for a broker at {dead}" in stream.getvalue()
+    # said while waiting, well before giving up (the first poll is half a second)
+    assert said and said[0] - t0 < gave_up - t0 - 1.0
+    msg = str(err.value)
+    assert "\n" not in msg and dead in msg and "--broker" in msg and "$TWINFOCUS_BROKER" in msg
+
+    with local_broker() as ep:  # a running broker answers at once, without a word
+        quiet = io.StringIO()
+        discover(ep, zmq.Context.instance(), timeout_s=3.0, stream=quiet)
+        assert quiet.getvalue() == ""
+
+
+def test_template_builder_computes_a_template_scan_once_then_takes_it_from_the_cache(tmp_path, monkeypatch):
+    """source scan: the first node computes the image and stores it; a later node (a later run)
+    gets the same image from the cache without back-projecting; no cache or another grid computes it."""
+    import twinfocus.templates
+    from nodes.template_builder import TemplateBuilder
+    from twinfocus.grid import ImageGrid
+    from twinfocus.templates import template_from_scan
+
+    monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
+    scan = point_scene_scan()
+    scan.save(tmp_path / "ref.npz")
+    want = template_from_scan(scan, ImageGrid.from_roi(REF_ROI, 12), keep_phase=True)  # independent: direct call
+    params = {"source": "scan", "path": str(tmp_path / "ref.npz"), "reference_roi": REF_ROI, "size": 12}
+    with local_broker() as ep:
+        first = TemplateBuilder(broker=ep, params=params)
+        assert first.cache_status == "miss" and len(list((tmp_path / "cache" / "templates").glob("*.npz"))) == 1
+
+        def no_backprojection(*a, **k):
+            raise AssertionError("the template scan was back-projected again")
+
+        monkeypatch.setattr(twinfocus.templates, "template_from_scan", no_backprojection)
+        second = TemplateBuilder(broker=ep, params=params)
+        assert second.cache_status == "hit"
+        with pytest.raises(AssertionError, match="back-projected again"):
+            TemplateBuilder(broker=ep, params={**params, "cache": False})
+        with pytest.raises(AssertionError, match="back-projected again"):  # another grid: another entry
+            TemplateBuilder(broker=ep, params={**params, "size": 10})
+    for b in (first, second):
+        got = b.msg.image * np.exp(1j * b.msg.phase_rad.astype(np.float64))
+        np.testing.assert_allclose(got, want, atol=1e-5 * np.abs(want).max())
+
+
 def measurements(scan, scan_id="p"):
     return [SarMeasurement(header=Header(stamp_ns=int(scan.timestamps_ns[m])), data=scan.data[m],
                            positions_m=scan.positions[m], f0_hz=CHIRP.f0_hz, slope_hz_per_s=CHIRP.slope_hz_per_s,
@@ -385,8 +508,13 @@ def test_solver_streams_the_basis_and_focuses_with_the_template(tmp_path):
             probe.send("twin/template", TwinTemplate(image=template, x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
             for m in measurements(scan):
                 probe.send("sar/measurement", m)
-            (res,) = probe.wait_for("autofocus/result", 1, timeout_s=60)
+            first, res = probe.wait_for("autofocus/result", 2, timeout_s=60)
             images = {i.name: i for i in probe.wait_for("image/focused", 4)}
+    # The image and a first result go out before the metrics against the truth (issue 17); the
+    # second result adds them to the same phase.
+    assert first.metrics_pending and not res.metrics_pending and first.latency_s > 0
+    assert "target_ssim_corrected" not in first.metrics and np.array_equal(first.phase_rad, res.phase_rad)
+    assert res.latency_s == first.latency_s and "truth_metrics_after_result" in res.timing_s
     assert res.scan_id == "p" and res.phase_rad.shape == (scan.n_positions,) and res.loss_history.shape == (40,)
     # The streamed basis sums to the batch back-projection of the whole scan.
     unc = backproject(scan.data, scan.positions, CHIRP, tgt_grid)
@@ -460,10 +588,11 @@ def test_visualizer_writes_and_serves_the_focused_image(tmp_path):
         with running(viz, probe):
             for i in range(5):
                 probe.send("vio/pose", pose(i, (0.01 * i, 0.0, 0.0)))
-            probe.send("autofocus/result", AutofocusResult(scan_id="v", method="twin", phase_rad=np.zeros(4),
-                                                           loss_history=np.linspace(1, 0.2, 10), metrics={"ssim": 0.5}))
             probe.send("image/focused", Image(name="target", scan_id="v", image=img, x_m=np.linspace(0, 1, 30),
                                               y_m=np.linspace(0, 1, 20), z_m=0.5))
+            probe.send("autofocus/result", AutofocusResult(scan_id="v", method="twin", phase_rad=np.zeros(4),
+                                                           loss_history=np.linspace(1, 0.2, 10), metrics={"ssim": 0.5},
+                                                           latency_s=0.25))
             deadline = time.monotonic() + 20
             while viz.results < 1 and time.monotonic() < deadline:
                 time.sleep(0.05)
@@ -476,6 +605,7 @@ def test_visualizer_writes_and_serves_the_focused_image(tmp_path):
     assert np.array_equal(cv2.imdecode(np.frombuffer(served, np.uint8), cv2.IMREAD_COLOR), expect)
     assert 'id="focused"' in page and "/focused.png?v=1" in page
     assert state["versions"]["focused"] == 1 and "ssim: 0.5" in state["metrics"]
+    assert "latency: 0.25 s" in state["metrics"]
     assert (tmp_path / "loss.png").stat().st_size > 0 and (tmp_path / "trajectory.png").stat().st_size > 0
 
 

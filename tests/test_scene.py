@@ -210,3 +210,66 @@ def test_point_cloud_thinning():
     np.testing.assert_allclose(np.abs(a), MATERIALS["plastic"].reflectivity)
     p_all, _ = obj.scatterers(rng=0)
     np.testing.assert_array_equal(p_all, pts)
+
+
+# --- field-like objects: rough surfaces, non-planar shapes (issue 14) --------------------------
+
+
+@pytest.mark.parametrize("deg,spread", [(90.0, 0.3), (30.0, 0.1)])
+def test_rough_surface_phase_and_amplitude_spread(deg, spread):
+    from dataclasses import replace
+
+    obj = replace(card(), roughness_deg=deg, amplitude_spread=spread)
+    _, a = obj.scatterers(1e-3, 5, speckle=True)  # roughness overrides scene-wide speckle
+    ph = np.rad2deg(np.angle(a))
+    # Uniform in +-deg: bounded, sd deg / sqrt(3), mean 0.
+    assert np.abs(ph).max() <= deg + 1e-9 and np.abs(ph).max() > 0.98 * deg
+    assert abs(ph.std() - deg / np.sqrt(3)) < 0.03 * deg
+    assert abs(ph.mean()) < 0.05 * deg
+    mag = np.abs(a) / obj.reflectivity
+    assert mag.min() >= 1 - spread - 1e-12 and mag.max() <= 1 + spread + 1e-12
+    assert abs(mag.std() - spread / np.sqrt(3)) < 0.03 * spread
+
+
+def test_rough_surface_seeded_per_object_in_scene():
+    from dataclasses import replace
+
+    sc = paper_scene()
+    sc.objects[0] = replace(sc.objects[0], roughness_deg=90.0, amplitude_spread=0.3)
+    p1, a1, l1 = sc.scatterers(rng=3, return_labels=True)
+    p2, a2 = sc.select("reference").scatterers(rng=3)
+    np.testing.assert_array_equal(a1[l1 == 0], a2)
+    with pytest.raises(TwinFocusError, match="roughness_deg"):
+        replace(sc.objects[0], roughness_deg=200.0)
+    with pytest.raises(TwinFocusError, match="amplitude_spread"):
+        replace(sc.objects[0], amplitude_spread=1.0)
+
+
+def test_cylinder_section_points_lie_on_the_cylinder():
+    from twinfocus.scene import cylinder_section
+
+    r = 0.15
+    obj = cylinder_section(card((0.0, 0.0, 0.6)), r)
+    pts, _ = obj.scatterers(1e-3, 0)
+    # Axis along y at x = 0, z = 0.6 + r; the card's face is the near side of the cylinder.
+    dist = np.hypot(pts[:, 0], pts[:, 2] - (0.6 + r))
+    # depth_m is per mask column: a point is off by at most half a pixel x the surface's slope
+    # (u / sqrt(R^2 - u^2) <= 0.3 at the card's edge).
+    np.testing.assert_allclose(dist, r, atol=obj.pixel_m / 2 * 0.3)
+    assert pts[:, 2].min() >= 0.6 - 1e-12 and pts[:, 2].max() > 0.6 + 0.005
+    with pytest.raises(TwinFocusError, match="radius"):
+        cylinder_section(card(), 0.01)
+
+
+def test_bent_plate_two_planes_at_the_bend_angle():
+    from twinfocus.scene import bent_plate, shaped
+
+    obj = bent_plate(card((0.0, 0.0, 0.6)), 40.0)
+    pts = obj.surface_points(1e-3)
+    for side in (pts[:, 0] > 0.002, pts[:, 0] < -0.002):
+        q = pts[side]
+        slope = np.polyfit(np.abs(q[:, 0]), q[:, 2] - 0.6, 1)[0]
+        assert abs(np.rad2deg(np.arctan(slope)) - 20.0) < 0.5
+    assert shaped(card(), "plane").depth_m is None
+    with pytest.raises(TwinFocusError, match="unknown shape"):
+        shaped(card(), "sphere")

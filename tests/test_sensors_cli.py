@@ -64,6 +64,11 @@ def test_cfg_gives_chirp_and_raw_layout():
         (lambda s: s.replace("adcCfg 2 1", "adcCfg 1 1"), "16-bit"),
         (lambda s: s.replace("0 0 0 0 0 0 0 4", "0 0 0 0 0 0 0 5"), "exactly one TX per chirp"),
         (lambda s: s.replace("frameCfg 0 1", "frameCfg 0 2"), "no chirpCfg covers it"),
+        (lambda s: s.replace("lvdsStreamCfg -1 0 1 0", "lvdsStreamCfg -1 1 1 0"), r"HSI headers \(0x0ADC\)"),
+        (lambda s: s.replace("lvdsStreamCfg -1 0 1 0", "lvdsStreamCfg -1 0 4 0"), "dataFmt is 4"),
+        (lambda s: s.replace("adcbufCfg -1 0 1 1 1", "adcbufCfg -1 0 1 0 1"), "ChanInterleave 0"),
+        (lambda s: s.replace("adcbufCfg -1 0 1 1 1", "adcbufCfg -1 0 0 1 1"), "SampleSwap 0"),
+        (lambda s: s.replace("adcbufCfg -1 0 1 1 1", "adcbufCfg -1 1 1 1 1"), "real"),
     ],
 )
 def test_bad_cfg_is_refused_with_line(edit, message):

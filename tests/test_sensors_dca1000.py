@@ -3,8 +3,8 @@ against an emulated board on 127.0.0.1 with injected faults."""
 from __future__ import annotations
 
 import socket
-import threading
 import struct
+import threading
 import time
 
 import numpy as np
@@ -24,7 +24,6 @@ from twinfocus.sensors.dca1000 import (
 )
 from twinfocus.sensors.emulators.fake_dca1000 import FakeDca1000, pattern_frame
 from twinfocus.sensors.frames import FrameFlag
-
 
 
 @pytest.fixture(autouse=True)

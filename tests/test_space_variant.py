@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from twinfocus.autofocus import form_image
+from twinfocus.basis import form_image, form_image_space_variant
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
 from twinfocus.metrics import oracle_phase
 from twinfocus.motion import apply_position_errors, gaussian_errors
 from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.space_variant import fit_position_errors, form_image_space_variant, lines_of_sight, pixel_phases
+from twinfocus.space_variant import fit_position_errors, lines_of_sight, pixel_phases
 from twinfocus.trajectory import paper_raster, phase_centres
 
 Z = 0.6
@@ -86,3 +86,103 @@ def test_bad_inputs_are_named(geometry):
         fit_position_errors(np.zeros((1, m)), np.ones((1, m)), refs[:1], tracked.mean(axis=1), ch.wavelength_m)
     with pytest.raises(TwinFocusError, match="weights"):
         fit_position_errors(np.zeros((2, m)), -np.ones((2, m)), refs, tracked.mean(axis=1), ch.wavelength_m)
+
+
+@pytest.fixture(scope="module")
+def drifting_scan():
+    """A rough extended reference and a target beside it, scanned with a smooth x/y drift."""
+    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.radar import VirtualArray
+    from twinfocus.simulate import simulate_if_exact
+
+    ch = Chirp()
+    k = 12
+    array = VirtualArray(np.c_[np.linspace(0, 0.04, k), np.zeros(k), np.zeros(k)], np.zeros(k, int), np.zeros(k, int),
+                         np.zeros((k, 2)))
+    tracked = phase_centres(paper_raster(n_columns=4, n_rows=60, row_pitch_m=0.003), array)
+    t = np.arange(tracked.shape[0])
+    drift = np.c_[0.8e-3 * np.sin(2 * np.pi * t / 80 + 0.3), 0.6e-3 * np.cos(2 * np.pi * t / 110), np.zeros_like(t)]
+    true = tracked + drift[:, None, :]
+    rng = np.random.default_rng(3)
+    gx, gy = np.meshgrid(np.linspace(-0.13, -0.03, 6), np.linspace(-0.05, 0.05, 6))
+    ref_pts = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, Z)]
+    tgt_pts = np.array([[0.06, -0.03, Z], [0.08, 0.02, Z], [0.10, -0.01, Z], [0.07, 0.04, Z]])
+    pts = np.r_[ref_pts, tgt_pts]
+    amps = rng.uniform(0.7, 1.3, len(pts)) * np.exp(1j * rng.uniform(-np.pi / 2, np.pi / 2, len(pts)))  # rough
+    data = simulate_if_exact(pts, amps, true, ch)
+    rg = ImageGrid(-0.15, -0.01, -0.07, 0.07, Z, 32, 32)
+    tg = ImageGrid(0.03, 0.13, -0.07, 0.07, Z, 24, 24)
+    template = backproject(data, true, ch, rg)  # what a motion-stage scan of the reference gives
+    return dict(chirp=ch, tracked=tracked, true=true, drift=drift, rg=rg, tg=tg, template=template,
+                ref_basis=subimage_basis(data, tracked, ch, rg), tgt_basis=subimage_basis(data, tracked, ch, tg),
+                ref_basis_true=subimage_basis(data, true, ch, rg), tgt_basis_true=subimage_basis(data, true, ch, tg),
+                truth_target=backproject(data, true, ch, tg), truth_reference=backproject(data, true, ch, rg))
+
+
+def test_smooth_drift_fit_recovers_an_injected_drift_and_the_targets_phase(drifting_scan):
+    from twinfocus.metrics import phase_error_rms
+    from twinfocus.space_variant import fit_smooth_drift
+    from twinfocus.template_match import correlation_phase
+
+    s = drifting_scan
+    centres = s["tracked"].mean(axis=1)
+    phi0 = correlation_phase(s["ref_basis"], s["template"])
+    phase, dp, info = fit_smooth_drift(s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m)
+    assert info["match_after"] > info["match_before"]
+    # the drift across the line of sight, in the correction's sense (true - tracked)
+    for axis in (0, 1):
+        assert np.corrcoef(dp[:, axis], s["drift"][:, axis])[0, 1] > 0.8
+    # the phase the target needs, from the fit, against the scalar transfer
+    k = 4 * np.pi / s["chirp"].wavelength_m
+    du = lines_of_sight(centres, s["tg"].centre_m) - lines_of_sight(centres, s["rg"].centre_m)
+    exact = oracle_phase(s["true"], s["tracked"], s["tg"].centre_m, s["chirp"])
+    scalar_err = phase_error_rms(phi0, exact)
+    fitted_err = phase_error_rms(phase + k * np.einsum("mc,mc->m", du, dp), exact)
+    assert scalar_err > 0.4 and fitted_err < 0.4 * scalar_err
+
+
+def test_focus_uses_the_space_variant_fit_only_when_the_data_ask_for_it(drifting_scan):
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.estimators import estimator_settings
+    from twinfocus.pipeline import focus_bases
+
+    s = drifting_scan
+    cfg = AutofocusConfig(**estimator_settings("correlation", True))
+
+    def focus(tracked, ref_basis, tgt_basis, mode):
+        return focus_bases(ref_basis, tgt_basis, tracked, s["chirp"], s["rg"], s["tg"], template=s["template"],
+                           config=cfg, space_variant=mode, truth_target=s["truth_target"],
+                           truth_reference=s["truth_reference"], positions_true=s["true"])
+
+    off = focus(s["tracked"], s["ref_basis"], s["tgt_basis"], "off")
+    auto = focus(s["tracked"], s["ref_basis"], s["tgt_basis"], "auto")
+    assert auto.metrics["space_variant"]["used"] and auto.drift_m is not None
+    assert auto.metrics["target_ssim_corrected"] > off.metrics["target_ssim_corrected"] + 0.02
+    assert auto.metrics["reference_residual"] < off.metrics["reference_residual"]
+    # the scalar correction leaves the reference visibly unmatched, and the report says so
+    assert not off.metrics["confidence"]["trusted"]
+    assert any("unmatched" in w for w in off.metrics["confidence"]["warnings"])
+
+    # no drift (the scan on its true positions): whatever auto decides, it finds no drift and
+    # costs the target nothing
+    exact = focus(s["true"], s["ref_basis_true"], s["tgt_basis_true"], "auto")
+    if exact.drift_m is not None:
+        assert np.sqrt((exact.drift_m ** 2).mean()) < 0.1e-3
+    assert exact.metrics["target_ssim_corrected"] > 0.99
+    assert exact.metrics["confidence"]["trusted"]
+
+
+def test_space_variant_bad_requests_are_named(drifting_scan):
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.estimators import estimator_settings
+    from twinfocus.pipeline import focus_bases
+
+    s = drifting_scan
+    args = (s["ref_basis"], s["tgt_basis"], s["tracked"], s["chirp"], s["rg"], s["tg"])
+    with pytest.raises(TwinFocusError, match="space_variant must be one of"):
+        focus_bases(*args, template=s["template"], config=AutofocusConfig(**estimator_settings("correlation", True)),
+                    space_variant="sometimes")
+    # "on" with an amplitude template: nothing to fit the drift to
+    with pytest.raises(TwinFocusError, match="needs a template with phase"):
+        focus_bases(*args, template=np.abs(s["template"]), config=AutofocusConfig(**estimator_settings("projection", False)),
+                    space_variant="on")

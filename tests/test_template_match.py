@@ -3,8 +3,9 @@ brute-force sums and injected shifts / phase errors past lambda/4."""
 import numpy as np
 import pytest
 
-from twinfocus.autofocus import AutofocusConfig, fit_linear_phase, form_image, template_loss, twin_autofocus
+from twinfocus.autofocus import AutofocusConfig, fit_linear_phase, template_loss, twin_autofocus
 from twinfocus.backprojection import backproject, subimage_basis
+from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
 from twinfocus.metrics import oracle_phase, phase_error_rms
@@ -35,13 +36,16 @@ def test_match_scores_equal_brute_force_sums():
         assert np.allclose(shift_image(tpl, dy, dx), moved, atol=1e-4)
 
 
+_S = np.arange(-0.018, 0.0181, 0.002)
+#: the scatterers (x, y) of an 'F' 36 mm tall, 2 mm apart, metres
+_F_XY = [(-0.018, y) for y in _S] + [(x, 0.018) for x in _S] + [(x * 0.6, 0.0) for x in _S]
+
+
 def _letter_scene(offset_m):
     """An 'F'-shaped speckled reference; positions with 1.6 mm z jitter (every phase wraps); the
     template: the same scatterers moved by ``offset_m``, back-projected on exact positions."""
     rng = np.random.default_rng(3)
-    s = np.arange(-0.018, 0.0181, 0.002)
-    xy = [(-0.018, y) for y in s] + [(x, 0.018) for x in s] + [(x * 0.6, 0.0) for x in s]
-    pts = np.array([(x, y, Z) for x, y in xy])
+    pts = np.array([(x, y, Z) for x, y in _F_XY])
     amps = np.exp(2j * np.pi * rng.random(len(pts)))
     poses = paper_raster(n_columns=2, n_rows=36, column_pitch_m=0.08, row_pitch_m=0.003)
     true = phase_centres(poses, mmwcas_virtual_array())
@@ -90,6 +94,7 @@ def placed():
     return _letter_scene((0.0, 0.0, 0.0))
 
 
+@pytest.mark.slow
 def test_projection_phase_recovers_wrapped_errors_from_the_amplitude_alone(placed):
     ch, true, tracked, basis, template = placed
     oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
@@ -172,3 +177,62 @@ def test_template_file_keeps_the_phase(tmp_path, misplaced):
     assert res[0, 1] == pytest.approx((template[1, 1] + template[1, 2]) / 2, rel=1e-4)
     save_template(tmp_path / "a.npz", np.abs(template), GRID)
     assert load_template(tmp_path / "a.npz", GRID).dtype == np.float32
+
+
+def _outline(grid, radius_m=2.5e-3):
+    """The 'F' of :func:`_letter_scene` as a support mask: pixels within ``radius_m`` of a scatterer."""
+    xy = np.array(_F_XY)
+    yy, xx = np.meshgrid(grid.y_m, grid.x_m, indexing="ij")
+    d = np.hypot(xx[..., None] - xy[:, 0], yy[..., None] - xy[:, 1]).min(axis=-1)
+    return d <= radius_m
+
+
+def test_outline_phase_recovers_wrapped_errors_from_the_outline_alone(placed):
+    from twinfocus.template_match import outline_phase
+
+    ch, true, tracked, basis, _ = placed
+    oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
+    ap = tracked.mean(axis=1)[:, :2]
+    err = lambda p: phase_error_rms(np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p))
+    assert err(np.zeros(basis.shape[0])) > 1.5  # every phase wrapped; the scatterers' own phases are random
+    support = _outline(GRID)
+    phi, info = outline_phase(basis, support)
+    assert err(phi) < 0.3
+    # the energy inside the outline is what chose the start, and it rose from the uncorrected image
+    e0 = np.abs(basis.sum(axis=0)) ** 2
+    assert info["energy_inside"][info["chosen"]] == max(info["energy_inside"])
+    assert max(info["energy_inside"]) > e0[support].sum() / e0.sum() + 0.1
+    # an outline placed 2 pixels off (a camera cloud's offset) is moved back by the data, where
+    # the image resolves it: across the two columns (x) but not along them (y: a 7 mm beam width
+    # here, 3.6 pixels, over which the energy inside hardly changes)
+    from twinfocus.template_match import _shift_mask
+
+    phi, info = outline_phase(basis, _shift_mask(support, 0, -2))
+    assert info["support_shift_px"] == [0, 2]
+    assert err(phi) < 0.3
+    # through twin_autofocus, as --estimator outline runs it
+    res = twin_autofocus(basis, np.abs(basis.sum(axis=0)), AutofocusConfig(init="outline", iterations=0), support=support)
+    assert err(res.phase_rad) < 0.3 and "energy_inside" in res.extra["outline"]
+
+
+def test_outline_phase_refuses_bad_input(placed):
+    from twinfocus.template_match import outline_phase
+
+    basis = placed[3]
+    with pytest.raises(TwinFocusError, match="outline"):
+        outline_phase(basis, np.zeros(GRID.shape, bool))
+    with pytest.raises(TwinFocusError, match="support is"):
+        outline_phase(basis, np.ones((5, 5), bool))
+    with pytest.raises(TwinFocusError, match="needs the reference's outline"):
+        twin_autofocus(basis, np.abs(basis.sum(axis=0)), AutofocusConfig(init="outline", iterations=0))
+
+
+def test_auto_takes_the_outline_for_a_cloud_twin_and_only_then():
+    from twinfocus.estimators import estimator_settings
+
+    wl = Chirp().wavelength_m
+    assert estimator_settings("auto", False, 1.6e-3, wl, has_support=True)["init"] == "outline"
+    assert estimator_settings("auto", False, 0.5e-3, wl)["init"] == "projection"
+    assert estimator_settings("auto", True, 0.5e-3, wl, has_support=True)["init"] == "correlation"
+    with pytest.raises(TwinFocusError, match="outline"):
+        estimator_settings("outline", False)

@@ -16,19 +16,24 @@ whole cost (see docs/performance.md).
 """
 from __future__ import annotations
 
+import functools
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
-from typing import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
+from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
-from twinfocus.metrics import ssim_torch
+from twinfocus.metrics import ssim, ssim_torch
+
+if TYPE_CHECKING:  # torch is imported where the optimiser runs: the closed-form estimators need none
+    import torch
 
 ProgressFn = Callable[[int, int, float], None]
 #: where the optimiser's phases start (:attr:`AutofocusConfig.init`)
-INITS = ("zero", "correlation", "projection")
+INITS = ("zero", "correlation", "projection", "outline")
 
 
 @dataclass
@@ -55,8 +60,10 @@ class AutofocusConfig:
     #: where the phases start: "zero" (the paper); "correlation": the closed-form per-position
     #: matched filter against a complex template (:func:`twinfocus.template_match.correlation_phase`);
     #: "projection": alternating projections onto an amplitude template, any template
-    #: (:func:`twinfocus.template_match.projection_phase`). Neither needs unwrapping; with
-    #: ``iterations=0`` the start is the whole estimate.
+    #: (:func:`twinfocus.template_match.projection_phase`); "outline": the reference's energy
+    #: inside its outline, no template texture (:func:`twinfocus.template_match.outline_phase`,
+    #: needs ``twin_autofocus(support=...)``). None needs unwrapping; with ``iterations=0`` the
+    #: start is the whole estimate.
     init: str = "zero"
     #: projection steps of ``init="projection"`` (~3 ms each at 780 x 100 x 100 on 2 cores)
     projection_iterations: int = 30
@@ -85,7 +92,7 @@ class AutofocusConfig:
         if int(self.registration_max_shift_px) < 1:
             raise TwinFocusError(f"registration_max_shift_px must be >= 1, got {self.registration_max_shift_px}")
         if int(self.iterations) < (1 if self.init == "zero" else 0):
-            raise TwinFocusError(f"iterations must be >= 1 (0 only with init='correlation' or 'projection'), got {self.iterations}")
+            raise TwinFocusError(f"iterations must be >= 1 (0 only with init 'correlation', 'projection' or 'outline'), got {self.iterations}")
         if not self.lr > 0 or not self.lr_min >= 0:
             raise TwinFocusError(f"learning rates must be positive, got lr={self.lr}, lr_min={self.lr_min}")
         if self.precision not in ("float32", "float64"):
@@ -116,34 +123,31 @@ class AutofocusResult:
     extra: dict = field(default_factory=dict)
 
 
-def form_image(basis: np.ndarray, phase_rad: np.ndarray) -> np.ndarray:
-    """sum_m exp(j phi_m) B_m: complex64 (H, W) from basis (M, H, W) and phase (M,)."""
-    basis = np.asarray(basis)
-    phase_rad = np.asarray(phase_rad, dtype=np.float64)
-    if phase_rad.shape != (basis.shape[0],):
-        raise TwinFocusError(f"phase must have one value per radar position ({basis.shape[0]}), got {phase_rad.shape}")
-    w = np.exp(1j * phase_rad).astype(np.complex64)
-    return np.tensordot(w, basis, axes=(0, 0)).astype(np.complex64)
+@functools.cache
+def _half_basis_product():
+    """The autograd function below, defined on first use so importing this module needs no torch."""
+    import torch
 
+    class _HalfBasisProduct(torch.autograd.Function):
+        """y = cs @ A with A held in float16 twice, once per product layout.
 
-class _HalfBasisProduct(torch.autograd.Function):
-    """y = cs @ A with A held in float16 twice, once per product layout.
+        Torch's CPU half-precision GEMM is fast only when its second operand is a transposed view,
+        so the forward keeps A^T (2P, M) and the backward A (M, 2P) contiguous; operands are scaled
+        to unit peak before the cast so nothing overflows or flushes to zero.
+        """
 
-    Torch's CPU half-precision GEMM is fast only when its second operand is a transposed view,
-    so the forward keeps A^T (2P, M) and the backward A (M, 2P) contiguous; operands are scaled
-    to unit peak before the cast so nothing overflows or flushes to zero.
-    """
+        @staticmethod
+        def forward(ctx, cs, a_rows, a_cols):
+            ctx.save_for_backward(a_rows)
+            return (cs.half() @ a_cols.T).float()
 
-    @staticmethod
-    def forward(ctx, cs, a_rows, a_cols):
-        ctx.save_for_backward(a_rows)
-        return (cs.half() @ a_cols.T).float()
+        @staticmethod
+        def backward(ctx, grad):
+            (a_rows,) = ctx.saved_tensors
+            scale = grad.abs().max().clamp_min(1e-30)
+            return ((grad / scale).half() @ a_rows.T).float() * scale, None, None
 
-    @staticmethod
-    def backward(ctx, grad):
-        (a_rows,) = ctx.saved_tensors
-        scale = grad.abs().max().clamp_min(1e-30)
-        return ((grad / scale).half() @ a_rows.T).float() * scale, None, None
+    return _HalfBasisProduct
 
 
 class _BasisOperator:
@@ -151,7 +155,9 @@ class _BasisOperator:
     [Re B | Im B] (M, 2P). ``basis_dtype`` float16 halves the memory traffic that bounds the
     optimiser's speed (relative error of a product ~4e-4, docs/performance.md)."""
 
-    def __init__(self, basis: np.ndarray, dtype: torch.dtype, device: str, basis_dtype: str = "float32"):
+    def __init__(self, basis: np.ndarray, dtype, device: str, basis_dtype: str = "float32"):
+        import torch
+
         basis = np.asarray(basis)
         if basis.ndim != 3 or not np.iscomplexobj(basis):
             raise TwinFocusError(f"basis must be complex (M, H, W), got {basis.dtype} {basis.shape}")
@@ -173,10 +179,12 @@ class _BasisOperator:
         else:
             raise TwinFocusError(f"basis_dtype must be 'float32' or 'float16', got {basis_dtype!r}")
 
-    def amplitude(self, phase: torch.Tensor) -> torch.Tensor:
+    def amplitude(self, phase):
+        import torch
+
         cs = torch.stack([torch.cos(phase), torch.sin(phase)])  # (2, M)
         if self.half:
-            y = _HalfBasisProduct.apply(cs.float(), self.a_rows, self.a_cols).to(self.dtype)
+            y = _half_basis_product().apply(cs.float(), self.a_rows, self.a_cols).to(self.dtype)
         else:
             y = cs @ self.matrix  # (2, 2P): [c.Br | c.Bi ; s.Br | s.Bi]
         p = self.n_pix
@@ -213,6 +221,8 @@ def _run_adam(
     progress: ProgressFn | None,
     init: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
+    import torch
+
     phase0 = np.zeros(n_positions) if init is None else np.asarray(init, dtype=np.float64)
     phase = torch.tensor(phase0, dtype=dtype, device=cfg.device, requires_grad=True)
     opt = torch.optim.Adam([phase], lr=cfg.lr)
@@ -232,7 +242,9 @@ def _run_adam(
     return phase.detach().cpu().double().numpy(), losses
 
 
-def _torch_dtype(cfg: AutofocusConfig) -> torch.dtype:
+def _torch_dtype(cfg: AutofocusConfig):
+    import torch
+
     return torch.float32 if cfg.precision == "float32" else torch.float64
 
 
@@ -242,6 +254,7 @@ def twin_autofocus(
     config: AutofocusConfig | None = None,
     progress: ProgressFn | None = None,
     init_phase_rad: np.ndarray | None = None,
+    support: np.ndarray | None = None,
 ) -> AutofocusResult:
     """Estimate per-position phases from a reference region and its template (the paper's method).
 
@@ -254,6 +267,9 @@ def twin_autofocus(
     config : optimiser settings; ``progress(iteration, total, loss)`` is called every iteration.
     init_phase_rad : float (M,) radians where the optimiser starts (zeros), and where
         ``config.init="projection"`` starts its projections; ignored with ``init="correlation"``.
+    support : bool (H, W), the reference's outline on the grid (a digital twin's
+        :attr:`~twinfocus.digital_twin.condition.DigitalTwinReference.support`): what
+        ``config.init="outline"`` needs.
 
     Returns
     -------
@@ -287,11 +303,20 @@ def twin_autofocus(
             best = int(np.argmin(losses))
             init_phase_rad = ends[best]
             extra["projection_restarts"] = {"losses": losses, "chosen": best}
+    elif cfg.init == "outline":
+        from twinfocus.template_match import outline_phase
+
+        if support is None:
+            raise TwinFocusError("the outline estimator needs the reference's outline (a digital twin from a point "
+                                 "cloud gives one: --digital-twin); choose another --estimator for this template")
+        init_phase_rad, extra["outline"] = outline_phase(basis, support)
     if cfg.init != "zero" and int(cfg.iterations) == 0:
         loss = np.array([template_loss(basis, init_phase_rad, template, cfg)])
         extra["template"] = template
         return AutofocusResult(init_phase_rad, loss, form_image(basis, init_phase_rad), time.perf_counter() - t0, "twin", extra)
     extra["template"] = template
+    import torch
+
     dtype = _torch_dtype(cfg)
     op = _BasisOperator(basis, dtype, cfg.device, cfg.basis_dtype)
     tpl = np.abs(np.asarray(template)).astype(np.float64)
@@ -336,12 +361,14 @@ def template_loss(basis: np.ndarray, phase_rad: np.ndarray, template: np.ndarray
     cfg = config or AutofocusConfig()
     shape = np.asarray(basis).shape[1:]
     amp = _prepare_template(np.abs(form_image(basis, phase_rad)), shape, cfg)
-    return float(1.0 - ssim_torch(torch.from_numpy(amp), torch.from_numpy(_prepare_template(np.abs(template), shape, cfg))).item())
+    return 1.0 - ssim(amp, _prepare_template(np.abs(template), shape, cfg))
 
 
 def smoothness_penalty(phase: torch.Tensor) -> torch.Tensor:
     """mean_m |exp(j phi_{m+1}) - exp(j phi_m)|^2 = mean 2 (1 - cos(phi_{m+1} - phi_m)): 0 for a
     constant phase, 2 on average for independent ones; phase (M,) radians in capture order."""
+    import torch
+
     return 2.0 * (1.0 - torch.cos(phase[1:] - phase[:-1])).mean()
 
 
@@ -363,8 +390,9 @@ def sharpness_autofocus(
     cfg.validate()
     dtype = _torch_dtype(cfg)
     op = _BasisOperator(basis, dtype, cfg.device, cfg.basis_dtype)
+    import torch
 
-    def loss_fn(phase: torch.Tensor) -> torch.Tensor:
+    def loss_fn(phase):
         inten = op.amplitude(phase) ** 2
         # log keeps the gradient scale independent of the image energy
         return -torch.log((inten**2).sum() / inten.sum() ** 2)
@@ -441,7 +469,53 @@ def fit_linear_phase(phase_rad: np.ndarray, aperture_m: np.ndarray, max_slope_ra
     return ramp, np.array([a, *b])
 
 
-def remove_linear_phase(phase_rad: np.ndarray, aperture_m: np.ndarray) -> np.ndarray:
-    """``phase_rad`` minus its best constant + linear ramp (:func:`fit_linear_phase`), wrapped."""
-    ramp, _ = fit_linear_phase(phase_rad, aperture_m)
-    return np.angle(np.exp(1j * (np.asarray(phase_rad, dtype=np.float64) - ramp)))
+#: how the estimated phase's constant + linear ramp is handled before the transfer (``--phase-ramp``)
+RAMP_MODES = ("auto", "remove", "keep")
+#: the largest template misplacement ``auto`` takes a ramp for, metres: a physical twin placed by
+#: hand to ~1 mm, a digital twin's camera-to-radar offset of 2-3 mm
+MAX_TEMPLATE_OFFSET_M = 3e-3
+
+
+def transfer_phase(phase_rad: np.ndarray, aperture_m: np.ndarray, range_m: float, wavelength_m: float,
+                   mode: str = "auto", registered: bool = False,
+                   max_template_offset_m: float = MAX_TEMPLATE_OFFSET_M) -> tuple[np.ndarray, dict]:
+    """The phase to apply to the target, and why: the estimate with or without its constant +
+    linear-in-aperture ramp (:func:`fit_linear_phase`).
+
+    A ramp b across the aperture moves the image by b R / k (k = 4 pi / lambda, R the range), so
+    a misplaced template pulls one in, and transferring it would move the target. But a hand's
+    drift also has a ramp-like part (each column of a sweep drifts its own way), which is real
+    error and must be transferred. ``auto`` removes only what a template's misplacement explains:
+
+    * nothing when the template was registered to the scan (``registered``: its misplacement was
+      measured and taken out before the estimate);
+    * otherwise the fitted ramp when the image shift it stands for is at most
+      ``max_template_offset_m`` on both axes, and nothing when it is larger (no template is that
+      far off: the ramp is tracking error).
+
+    ``remove`` always removes the fitted ramp, ``keep`` never does (the source paper).
+
+    phase_rad : float (M,) radians; aperture_m : float (M, 2) each position's (x, y), metres;
+    range_m : distance from the aperture to the reference, metres. Returns (float64 (M,) radians,
+    info dict: ``mode``, ``removed``, ``reason``, ``implied_shift_m`` (x, y) of the fitted ramp).
+    """
+    if mode not in RAMP_MODES:
+        raise TwinFocusError(f"phase ramp mode must be one of {', '.join(RAMP_MODES)}, got {mode!r}")
+    phi = np.asarray(phase_rad, dtype=np.float64)
+    ramp, coeffs = fit_linear_phase(phi, aperture_m)
+    shift = coeffs[1:] * float(range_m) * float(wavelength_m) / (4.0 * np.pi)
+    info = {"mode": mode, "implied_shift_m": shift.tolist(), "slope_rad_per_m": coeffs[1:].tolist()}
+    if mode == "remove":
+        remove, why = True, "removed on request"
+    elif mode == "keep":
+        remove, why = False, "kept on request (the source paper)"
+    elif registered:
+        remove, why = False, "kept: the template was registered to the scan, so no misplacement ramp is left in the estimate"
+    elif np.all(np.abs(shift) <= max_template_offset_m):
+        remove, why = True, (f"removed: it moves the image by ({shift[0] * 1e3:+.1f}, {shift[1] * 1e3:+.1f}) mm, "
+                             f"what a template misplaced by up to {max_template_offset_m * 1e3:.0f} mm explains")
+    else:
+        remove, why = False, (f"kept: it moves the image by ({shift[0] * 1e3:+.1f}, {shift[1] * 1e3:+.1f}) mm, more than "
+                              f"a template misplaced by up to {max_template_offset_m * 1e3:.0f} mm explains: tracking error")
+    info.update(removed=bool(remove), reason=why)
+    return (np.angle(np.exp(1j * (phi - ramp))) if remove else phi), info

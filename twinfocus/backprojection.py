@@ -21,13 +21,20 @@ Backends: ``"numba"`` (CPU, JIT-compiled, parallel over positions or pixel block
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import C_M_PER_S, Chirp, range_profiles_at
-from twinfocus.range_geometry import cis_turns, local_frame, range_lattice, turns_per_m
+from twinfocus.range_geometry import (
+    _COS_C,
+    _SIN_C,
+    DEFAULT_OVERSAMPLE,
+    local_frame,
+    range_lattice,
+    turns_per_m,
+)
 
 try:  # numba is a hard dependency; the guard only keeps import errors readable
     import numba
@@ -37,16 +44,28 @@ except ImportError as exc:  # pragma: no cover
 
 ProgressFn = Callable[[int, int], None]
 
-DEFAULT_OVERSAMPLE = 16
+def _kernel_constants(dtype, qmax: float) -> np.ndarray:
+    """The constants of :func:`_accumulate_channel` as an array of the arithmetic's dtype: a
+    Python float literal in jitted code is float64 and would promote every float32 operation it
+    touches to float64 (half the vector width). [0, 1/2, qmax, sin coefficients (7), cos (8)]."""
+    return np.array((0.0, 0.5, qmax, *_SIN_C, *_COS_C), dtype=dtype)
+
 
 @njit(inline="always", fastmath=True)
-def _accumulate_channel(pr, pi, ex, ey, ez, px, py, pz, r0, inv_dr, turns_per_m, qmax, out_re, out_im, p_lo, p_hi, idx, frac, cos_buf, sin_buf):
+def _accumulate_channel(tab, ex, ey, ez, px, py, pz, r0, inv_dr, turns_per_m, kc, out_re, out_im, p_lo, p_hi, idx, frac, cos_buf, sin_buf):
     """Add one channel's matched filter to out[0:p_hi-p_lo] for pixels p_lo..p_hi.
 
     Two passes over the pixel block: distance, interpolation index and carrier (branch-free
-    arithmetic the compiler vectorises), then the profile gather and accumulation.
-    idx/frac/cos_buf/sin_buf are scratch buffers of the block's length.
+    arithmetic in the dtype of the inputs, which the compiler vectorises), then the profile
+    gather and accumulation. tab: (Q, 4) the channel's profile as (re, im, d re, d im) per range
+    node (:func:`_interpolation_table`): one 16-byte read per pixel instead of four scattered
+    ones, which made the gather pass 1.5x faster. kc: :func:`_kernel_constants`. idx/frac/cos_buf/sin_buf are scratch
+    buffers of the block's length. The carrier is :func:`~twinfocus.range_geometry.cis_turns`'
+    polynomials, evaluated here with typed constants.
     """
+    zero, half, qmax = kc[0], kc[1], kc[2]
+    s0, s1, s2, s3, s4, s5, s6 = kc[3], kc[4], kc[5], kc[6], kc[7], kc[8], kc[9]
+    c0, c1, c2, c3, c4, c5, c6, c7 = kc[10], kc[11], kc[12], kc[13], kc[14], kc[15], kc[16], kc[17]
     n = p_hi - p_lo
     for q in range(n):
         p = p_lo + q
@@ -54,20 +73,20 @@ def _accumulate_channel(pr, pi, ex, ey, ez, px, py, pz, r0, inv_dr, turns_per_m,
         dy = py[p] - ey
         dz = pz[p] - ez
         rel = math.sqrt(dx * dx + dy * dy + dz * dz) - r0
-        u = min(max(rel * inv_dr, 0.0), qmax)
-        i = np.int32(u)
-        idx[q] = i
-        frac[q] = u - i
-        c, s = cis_turns(rel * turns_per_m)
-        cos_buf[q] = c
-        sin_buf[q] = s
+        u = min(max(rel * inv_dr, zero), qmax)
+        fl = np.floor(u)  # u >= 0: floor is the truncation, in u's type
+        idx[q] = np.int32(fl)
+        frac[q] = u - fl
+        t = rel * turns_per_m
+        r = t - np.floor(t + half)
+        r2 = r * r
+        sin_buf[q] = r * (s0 + r2 * (s1 + r2 * (s2 + r2 * (s3 + r2 * (s4 + r2 * (s5 + r2 * s6))))))
+        cos_buf[q] = c0 + r2 * (c1 + r2 * (c2 + r2 * (c3 + r2 * (c4 + r2 * (c5 + r2 * (c6 + r2 * c7))))))
     for q in range(n):
         i = idx[q]
         f = frac[q]
-        a_re = pr[i]
-        a_im = pi[i]
-        vr = a_re + f * (pr[i + 1] - a_re)
-        vi = a_im + f * (pi[i + 1] - a_im)
+        vr = tab[i, 0] + f * tab[i, 2]
+        vi = tab[i, 1] + f * tab[i, 3]
         c = cos_buf[q]
         s = sin_buf[q]
         # v * exp(-j phase)
@@ -76,11 +95,10 @@ def _accumulate_channel(pr, pi, ex, ey, ez, px, py, pz, r0, inv_dr, turns_per_m,
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _basis_kernel(prof_re, prof_im, pos, px, py, pz, r0, inv_dr, turns_per_m, out_re, out_im):
+def _basis_kernel(tab, pos, px, py, pz, r0, inv_dr, turns_per_m, kc, out_re, out_im):
     """out[m, p] = sum_k MF_mk(R_mkp); parallel over positions (rows never collide)."""
     n_pos, n_ch = pos.shape[0], pos.shape[1]
     n_pix = px.shape[0]
-    qmax = prof_re.shape[2] - 1.0001
     for m in prange(n_pos):
         idx = np.empty(n_pix, np.int32)
         frac = np.empty(n_pix, px.dtype)
@@ -88,18 +106,17 @@ def _basis_kernel(prof_re, prof_im, pos, px, py, pz, r0, inv_dr, turns_per_m, ou
         sin_buf = np.empty(n_pix, px.dtype)
         for k in range(n_ch):
             _accumulate_channel(
-                prof_re[m, k], prof_im[m, k], pos[m, k, 0], pos[m, k, 1], pos[m, k, 2],
-                px, py, pz, r0, inv_dr, turns_per_m, qmax, out_re[m], out_im[m], 0, n_pix, idx, frac, cos_buf, sin_buf,
+                tab[m, k], pos[m, k, 0], pos[m, k, 1], pos[m, k, 2],
+                px, py, pz, r0, inv_dr, turns_per_m, kc, out_re[m], out_im[m], 0, n_pix, idx, frac, cos_buf, sin_buf,
             )
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _image_kernel(prof_re, prof_im, pos, px, py, pz, r0, inv_dr, turns_per_m, block, out_re, out_im):
+def _image_kernel(tab, pos, px, py, pz, r0, inv_dr, turns_per_m, kc, block, out_re, out_im):
     """out[p] = sum_{m,k} MF_mk(R_mkp); parallel over pixel blocks that stay in cache."""
     n_pos, n_ch = pos.shape[0], pos.shape[1]
     n_pix = px.shape[0]
     n_blocks = (n_pix + block - 1) // block
-    qmax = prof_re.shape[2] - 1.0001
     for b in prange(n_blocks):
         lo = b * block
         hi = min(lo + block, n_pix)
@@ -112,14 +129,25 @@ def _image_kernel(prof_re, prof_im, pos, px, py, pz, r0, inv_dr, turns_per_m, bl
         for m in range(n_pos):
             for k in range(n_ch):
                 _accumulate_channel(
-                    prof_re[m, k], prof_im[m, k], pos[m, k, 0], pos[m, k, 1], pos[m, k, 2],
-                    px, py, pz, r0, inv_dr, turns_per_m, qmax, acc_re, acc_im, lo, hi, idx, frac, cos_buf, sin_buf,
+                    tab[m, k], pos[m, k, 0], pos[m, k, 1], pos[m, k, 2],
+                    px, py, pz, r0, inv_dr, turns_per_m, kc, acc_re, acc_im, lo, hi, idx, frac, cos_buf, sin_buf,
                 )
         out_re[lo:hi] = acc_re
         out_im[lo:hi] = acc_im
 
 
 # --- shared preparation ----------------------------------------------------------------------
+
+
+def _interpolation_table(prof_re: np.ndarray, prof_im: np.ndarray) -> np.ndarray:
+    """(M, K, Q, 4) [re, im, next re - re, next im - im] per range node, the kernels' layout
+    (the last node's differences are 0: the kernels never interpolate past Q - 1.0001)."""
+    tab = np.zeros((*prof_re.shape, 4), prof_re.dtype)
+    tab[..., 0] = prof_re
+    tab[..., 1] = prof_im
+    tab[..., :-1, 2] = np.diff(prof_re, axis=-1)
+    tab[..., :-1, 3] = np.diff(prof_im, axis=-1)
+    return tab
 
 
 def _check_inputs(data: np.ndarray, positions: np.ndarray, chirp: Chirp) -> None:
@@ -239,8 +267,9 @@ def _image_numba(data, pos, pts, dtype, chirp: Chirp, oversample: int, progress:
         pre, pim, r0, dr = prepare_profiles(data[lo:hi], pos[lo:hi].astype(np.float64), chirp, pts.astype(np.float64), oversample, dtype)
         part_re = np.empty_like(out_re)
         part_im = np.empty_like(out_im)
-        _image_kernel(pre, pim, pos[lo:hi], pts[:, 0].copy(), pts[:, 1].copy(), pts[:, 2].copy(),
-                      dtype(r0), dtype(1.0 / dr), dtype(turns_per_m(chirp)), block, part_re, part_im)
+        _image_kernel(_interpolation_table(pre, pim), pos[lo:hi], pts[:, 0].copy(), pts[:, 1].copy(), pts[:, 2].copy(),
+                      dtype(r0), dtype(1.0 / dr), dtype(turns_per_m(chirp)), _kernel_constants(dtype, pre.shape[2] - 1.0001),
+                      block, part_re, part_im)
         out_re += part_re
         out_im += part_im
         if progress is not None:
@@ -279,7 +308,8 @@ def _basis_numba(data, pos, pts, dtype, chirp: Chirp, oversample: int, progress:
         pre, pim, r0, dr = prepare_profiles(data[lo:hi], pos[lo:hi].astype(np.float64), chirp, pts.astype(np.float64), oversample, dtype)
         o_re = np.zeros((hi - lo, pts.shape[0]), dtype)
         o_im = np.zeros((hi - lo, pts.shape[0]), dtype)
-        _basis_kernel(pre, pim, pos[lo:hi], px, py, pz, dtype(r0), dtype(1.0 / dr), dtype(turns_per_m(chirp)), o_re, o_im)
+        _basis_kernel(_interpolation_table(pre, pim), pos[lo:hi], px, py, pz, dtype(r0), dtype(1.0 / dr), dtype(turns_per_m(chirp)),
+                      _kernel_constants(dtype, pre.shape[2] - 1.0001), o_re, o_im)
         out[lo:hi].real = o_re
         out[lo:hi].imag = o_im
         if progress is not None:

@@ -9,9 +9,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from twinfocus.backprojection import DEFAULT_OVERSAMPLE
 from twinfocus.radar import Chirp, range_kernel
-from twinfocus.range_geometry import local_frame, range_lattice, turns_per_m
+from twinfocus.range_geometry import DEFAULT_OVERSAMPLE, local_frame, range_lattice, turns_per_m
 
 
 def default_device() -> str:
@@ -47,7 +46,7 @@ def backproject_points_torch(
     pts_t = torch.from_numpy(pts).to(device=device, dtype=real)
     n_pix = pts.shape[0]
     chunk = max(1, int(max_pairs_per_chunk // max(1, n_ch * n_pix)))
-    out_basis = np.empty((n_pos, n_pix), np.complex64) if basis else None
+    out_basis: np.ndarray | None = np.empty((n_pos, n_pix), np.complex64) if basis else None
     image = torch.zeros(n_pix, dtype=cplx, device=device)
     for lo in range(0, n_pos, chunk):
         hi = min(lo + chunk, n_pos)
@@ -67,9 +66,9 @@ def backproject_points_torch(
         mf = v * torch.polar(torch.ones_like(turns), -2.0 * np.pi * (turns - torch.round(turns)))
         per_pos = mf.reshape(hi - lo, n_ch, n_pix).sum(1)
         if basis:
-            out_basis[lo:hi] = per_pos.to(torch.complex64).cpu().numpy()
+            out_basis[lo:hi] = per_pos.to(torch.complex64).cpu().numpy()  # type: ignore[index]  # set when basis
         else:
             image += per_pos.sum(0)
     if basis:
-        return out_basis
+        return out_basis  # type: ignore[return-value]  # set when basis
     return image.to(torch.complex64).cpu().numpy()

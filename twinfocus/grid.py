@@ -1,12 +1,12 @@
 """Image grids: a region of interest on a plane at depth Z, or a 3-D volume.
 
 Pixel [i, j] of an :class:`ImageGrid` sits at x = linspace(X0, X1, W)[j],
-y = linspace(Y0, Y1, H)[i], z = Z (DESIGN.md section 4).
+y = linspace(Y0, Y1, H)[i], z = Z (docs/architecture.md section 4).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -39,13 +39,13 @@ class ImageGrid:
             raise TwinFocusError(f"image size must be at least 2 x 2, got {self.height} x {self.width}")
 
     @classmethod
-    def from_roi(cls, roi: Sequence[float], size: int | tuple[int, int]) -> "ImageGrid":
+    def from_roi(cls, roi: Sequence[float], size: int | tuple[int, int]) -> ImageGrid:
         """From ``(X0, X1, Y0, Y1, Z)`` and a size (``n`` for n x n, or ``(H, W)``)."""
         roi = tuple(float(v) for v in roi)
         if len(roi) != 5:
             raise TwinFocusError(f"region of interest needs 5 numbers X0 X1 Y0 Y1 Z, got {len(roi)}")
-        h, w = (size, size) if np.isscalar(size) else size
-        return cls(*roi, height=int(h), width=int(w))
+        h, w = (size, size) if np.isscalar(size) else size  # type: ignore[misc]
+        return cls(*roi, height=int(h), width=int(w))  # type: ignore[arg-type]
 
     @property
     def roi(self) -> tuple[float, float, float, float, float]:
@@ -77,8 +77,8 @@ class ImageGrid:
         yy, xx = np.meshgrid(self.y_m, self.x_m, indexing="ij")
         return np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, float(self.z))], axis=1)
 
-    def index_of(self, x: float, y: float) -> tuple[float, float]:
-        """Fractional (row, column) of scene point (x, y)."""
+    def index_of(self, x, y):
+        """Fractional (row, column) of scene point(s) (x, y), metres: floats or arrays alike."""
         dy, dx = self.spacing_m
         return ((y - self.y0) / dy, (x - self.x0) / dx)
 

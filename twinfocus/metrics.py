@@ -10,7 +10,6 @@ window that fits (same sigma).
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import C_M_PER_S, Chirp
@@ -19,57 +18,84 @@ SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
 
 
-def _gaussian_1d(size: int, sigma: float, dtype, device) -> torch.Tensor:
-    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
-    g = torch.exp(-(x**2) / (2.0 * sigma**2))
-    return (g / g.sum()).to(dtype=dtype, device=device)
+# torch is imported inside the functions that need it: the closed-form estimators and the
+# metrics of ``focus`` run on numpy alone, and importing torch costs 1-3 s (docs/performance.md).
 
 
-def _band_matrix(n: int, win: int, sigma: float, dtype, device) -> torch.Tensor:
-    """(n - win + 1, n) matrix whose rows are the Gaussian window at each valid offset."""
-    g = _gaussian_1d(win, sigma, dtype, device)
-    out = torch.zeros(n - win + 1, n, dtype=dtype, device=device)
+def _band_matrix_np(n: int, win: int, sigma: float) -> np.ndarray:
+    """float64 (n - win + 1, n) matrix whose rows are the Gaussian window at each valid offset."""
+    x = np.arange(win, dtype=np.float64) - (win - 1) / 2.0
+    g = np.exp(-(x**2) / (2.0 * sigma**2))
+    g /= g.sum()
+    out = np.zeros((n - win + 1, n))
     for i in range(win):
-        out.diagonal(i)[:] = g[i]
+        idx = np.arange(n - win + 1)
+        out[idx, idx + i] = g[i]
     return out
 
 
-def ssim_torch(a: torch.Tensor, b: torch.Tensor, data_range: float = 1.0, window: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> torch.Tensor:
+def _band_matrix(n: int, win: int, sigma: float, dtype, device):
+    import torch
+
+    return torch.from_numpy(_band_matrix_np(n, win, sigma)).to(dtype=dtype, device=device)
+
+
+def _ssim_window(h: int, w: int, window: int) -> int:
+    win = min(window, h if h % 2 else h - 1, w if w % 2 else w - 1)
+    if win < 1:
+        raise TwinFocusError(f"image of {h} x {w} pixels is too small for SSIM")
+    return win
+
+
+def _ssim_map(mu_a, mu_b, e_aa, e_bb, e_ab, data_range: float):
+    """SSIM map from the filtered moments (numpy arrays or torch tensors)."""
+    var_a = e_aa - mu_a * mu_a
+    var_b = e_bb - mu_b * mu_b
+    cov = e_ab - mu_a * mu_b
+    c1 = (0.01 * data_range) ** 2
+    c2 = (0.03 * data_range) ** 2
+    return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
+
+
+def ssim_torch(a, b, data_range: float = 1.0, window: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA):
     """Differentiable mean SSIM of two real images (H, W) (or batches (B, H, W)); a 0-d tensor
     (or (B,)). Separable Gaussian filtering as two small matrix products (faster than conv2d on
     CPU for these sizes, forward and backward), valid region only."""
+    import torch
+
     if a.shape != b.shape:
         raise TwinFocusError(f"SSIM needs images of the same shape, got {tuple(a.shape)} and {tuple(b.shape)}")
     squeeze = a.dim() == 2
     if squeeze:
         a, b = a[None], b[None]
     h, w = a.shape[-2:]
-    win = min(window, h if h % 2 else h - 1, w if w % 2 else w - 1)
-    if win < 1:
-        raise TwinFocusError(f"image of {h} x {w} pixels is too small for SSIM")
+    win = _ssim_window(h, w, window)
     gy = _band_matrix(h, win, sigma, a.dtype, a.device)
     gx = _band_matrix(w, win, sigma, a.dtype, a.device)
     # Five maps filtered at once: mu_a, mu_b, E[a^2], E[b^2], E[ab].
     stack = torch.stack([a, b, a * a, b * b, a * b], dim=1)  # (B, 5, H, W)
     filt = gy @ stack @ gx.T
     mu_a, mu_b, e_aa, e_bb, e_ab = filt.unbind(dim=1)
-    var_a = e_aa - mu_a * mu_a
-    var_b = e_bb - mu_b * mu_b
-    cov = e_ab - mu_a * mu_b
-    c1 = (0.01 * data_range) ** 2
-    c2 = (0.03 * data_range) ** 2
-    smap = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
+    smap = _ssim_map(mu_a, mu_b, e_aa, e_bb, e_ab, data_range)
     out = smap.mean(dim=(-2, -1))
     return out[0] if squeeze else out
 
 
 def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float:
-    """Mean SSIM of two real images (H, W), computed in float64."""
+    """Mean SSIM of two real images (H, W), computed in float64 with numpy (the same arithmetic
+    as :func:`ssim_torch`, which the optimiser differentiates)."""
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     if a.ndim != 2:
         raise TwinFocusError(f"SSIM needs 2-D images, got shape {a.shape}")
-    return float(ssim_torch(torch.from_numpy(a), torch.from_numpy(b), data_range))
+    if a.shape != b.shape:
+        raise TwinFocusError(f"SSIM needs images of the same shape, got {a.shape} and {b.shape}")
+    h, w = a.shape
+    win = _ssim_window(h, w, SSIM_WINDOW)
+    gy = _band_matrix_np(h, win, SSIM_SIGMA)
+    gx = _band_matrix_np(w, win, SSIM_SIGMA)
+    mu_a, mu_b, e_aa, e_bb, e_ab = (gy @ m @ gx.T for m in (a, b, a * a, b * b, a * b))
+    return float(_ssim_map(mu_a, mu_b, e_aa, e_bb, e_ab, data_range).mean())
 
 
 def normalise(amplitude, eps: float = 1e-30):
@@ -80,9 +106,11 @@ def normalise(amplitude, eps: float = 1e-30):
 def soft_threshold(normalised_amplitude, centre: float = 0.4, steepness: float = 1.0):
     """The paper's soft threshold sigmoid(steepness * (a - centre)) of a max-normalised amplitude.
 
-    The defaults are DESIGN.md's sigmoid(a - 0.4). Works on numpy arrays and torch tensors.
+    The defaults are the paper's sigmoid(a - 0.4). Works on numpy arrays and torch tensors.
     """
-    if isinstance(normalised_amplitude, torch.Tensor):
+    if type(normalised_amplitude).__module__.startswith("torch"):
+        import torch
+
         return torch.sigmoid(steepness * (normalised_amplitude - centre))
     return 1.0 / (1.0 + np.exp(-steepness * (np.asarray(normalised_amplitude) - centre)))
 

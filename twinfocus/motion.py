@@ -3,7 +3,7 @@
 Every model returns position errors float64 (M, 3) in metres (scene frame; z is range) and takes
 ``rng``: a ``numpy.random.Generator``, an integer seed or None (fresh entropy). The tracked
 positions of a scan are the true phase centres plus one rigid offset per radar position,
-shared by its K channels (:func:`apply_position_errors`, DESIGN.md section 2).
+shared by its K channels (:func:`apply_position_errors`, docs/architecture.md section 2).
 
 Models
 ------
@@ -14,6 +14,13 @@ Models
   time ``tau``: E[e(t) e(t + dt)] = sigma^2 exp(-|dt| / tau).
 - :func:`vio_errors`: a VIO-like tracker: slow random-walk drift + white jitter + optional
   re-localisation jumps.
+- :func:`hand_errors`: a hand-held radar tracked by a camera: Gauss-Markov drift on all three
+  axes, white jitter, and small rotations of the array that drift the same way. A rotation moves
+  each of the K channels differently (:func:`apply_pose_errors`), so no single phase per
+  position undoes it.
+
+:func:`draw_errors` picks a model by name (:data:`ERROR_MODELS`) for the simulator, the node
+graph's sim backends and the evaluation alike.
 """
 from __future__ import annotations
 
@@ -139,6 +146,89 @@ def vio_errors(
     for i in range(1, m):
         drift[i] = residual[i - 1] if jumps[i - 1] else drift[i - 1] + steps[i - 1]
     return drift + gen.standard_normal((m, 3)) * jit
+
+
+#: per-axis array rotation of :func:`hand_errors`, radians (0.15 degrees)
+HAND_ROTATION_SIGMA_RAD = float(np.radians(0.15))
+
+
+def hand_errors(
+    timestamps_ns,
+    drift_sigma_m=(0.8e-3, 0.8e-3, 0.8e-3),
+    correlation_time_s: float = 2.0,
+    jitter_sigma_m=(0.2e-3, 0.2e-3, 0.2e-3),
+    rotation_sigma_rad=HAND_ROTATION_SIGMA_RAD,
+    rng: np.random.Generator | int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Tracking error of a hand-held radar: translation drift + jitter, and array rotation drift.
+
+    - translation: :func:`drift_errors` (stationary Gauss-Markov, ``drift_sigma_m`` per axis,
+      correlation time ``correlation_time_s``) plus white jitter ``jitter_sigma_m``;
+    - rotation: a small rotation vector (rx, ry, rz) per position, radians, also Gauss-Markov with
+      the same correlation time (a wrist turns as slowly as it moves), ``rotation_sigma_rad`` per
+      axis. About the array's centre; 0.15 degrees tilts the ends of the 83 mm virtual line by
+      0.11 mm (0.35 rad of phase at 77 GHz).
+
+    The defaults are the held-out handheld scene of docs/results.md: 0.8 mm drift over ~20
+    positions at 10 Hz, 0.2 mm jitter, 0.15 degree rotations.
+    Returns (translation float64 (M, 3) metres, rotation float64 (M, 3) radians).
+    """
+    gen = np.random.default_rng(rng)
+    drift = drift_errors(timestamps_ns, drift_sigma_m, correlation_time_s, gen)
+    jitter = gaussian_errors(drift.shape[0], jitter_sigma_m, gen)
+    rotation = drift_errors(timestamps_ns, rotation_sigma_rad, correlation_time_s, gen)
+    return drift + jitter, rotation
+
+
+#: the names :func:`draw_errors` takes
+ERROR_MODELS = ("gaussian", "drift", "vio", "hand", "none")
+
+
+def draw_errors(model: str, timestamps_ns, sigma_m=PAPER_SIGMA_M, rng: np.random.Generator | int | None = None,
+                correlation_time_s: float = 2.0, rotation_sigma_rad: float = HAND_ROTATION_SIGMA_RAD) -> tuple[np.ndarray, np.ndarray]:
+    """One draw of a named error model: (translation float64 (M, 3) metres, rotation float64 (M, 3)
+    radians; zeros for the models without rotation).
+
+    sigma_m : per-axis size, metres: the jitter of "gaussian", the stationary sigma of "drift", the
+    drift sigma of "hand" (its jitter and rotation keep :func:`hand_errors`'s defaults unless
+    given); "vio" uses :func:`vio_errors`'s defaults; "none" is the truth.
+    """
+    stamps = np.asarray(timestamps_ns)
+    m = int(stamps.shape[0])
+    gen = np.random.default_rng(rng)
+    zeros = np.zeros((m, 3))
+    if model == "gaussian":
+        return gaussian_errors(m, sigma_m, gen), zeros
+    if model == "drift":
+        return drift_errors(stamps, sigma_m, correlation_time_s, gen), zeros
+    if model == "vio":
+        return vio_errors(stamps, rng=gen), zeros
+    if model == "hand":
+        return hand_errors(stamps, sigma_m, correlation_time_s, rotation_sigma_rad=rotation_sigma_rad, rng=gen)
+    if model == "none":
+        return zeros, zeros.copy()
+    raise TwinFocusError(f"unknown error model {model!r}; use one of {', '.join(ERROR_MODELS)}")
+
+
+def apply_pose_errors(centres_m: np.ndarray, translation_m: np.ndarray, rotation_rad: np.ndarray | None = None) -> np.ndarray:
+    """Tracked phase centres of a rigid array moved by a small pose error per radar position.
+
+    Channel k of position m moves by t_m + r_m x (c_mk - cbar_m): a translation shared by the K
+    channels and a small rotation r_m (rotation vector, radians, first order) about the
+    position's channel centre cbar_m, so the channels at the array's ends move most.
+
+    centres_m : float (M, K, 3) true phase centres; translation_m : (M, 3) metres;
+    rotation_rad : (M, 3) radians or None. Returns float64 (M, K, 3).
+    """
+    out = apply_position_errors(centres_m, translation_m)
+    if rotation_rad is None:
+        return out
+    r = np.asarray(rotation_rad, dtype=np.float64)
+    c = np.asarray(centres_m, dtype=np.float64)
+    if r.shape != (c.shape[0], 3) or not np.isfinite(r).all():
+        raise TwinFocusError(f"rotation_rad must be finite ({c.shape[0]}, 3) radians, got {r.shape}")
+    arm = c - c.mean(axis=1, keepdims=True)
+    return out + np.cross(np.broadcast_to(r[:, None, :], arm.shape), arm)
 
 
 def apply_position_errors(centres_m: np.ndarray, errors_m: np.ndarray) -> np.ndarray:

@@ -24,13 +24,13 @@ from twinfocus import metrics
 from twinfocus.autofocus import (
     AutofocusConfig,
     AutofocusResult,
-    fit_linear_phase,
-    form_image,
     no_correction,
     sharpness_autofocus,
+    transfer_phase,
     twin_autofocus,
 )
 from twinfocus.backprojection import backproject, subimage_basis
+from twinfocus.basis import form_image, form_image_space_variant
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
 from twinfocus.radar import Chirp
@@ -60,6 +60,8 @@ class FocusOutputs:
     reference_truth: np.ndarray | None = None
     phase_oracle_rad: np.ndarray | None = None
     config: dict = field(default_factory=dict)
+    #: float64 (M, 3) metres: the smooth drift of the space-variant correction, when it was used
+    drift_m: np.ndarray | None = None
 
 
 def _check_method(method: str, template: np.ndarray | None) -> None:
@@ -75,11 +77,13 @@ def focus_scan(
     target_grid: ImageGrid,
     *,
     template: np.ndarray | None = None,
+    support: np.ndarray | None = None,
     method: str = "twin",
     config: AutofocusConfig | None = None,
     bp_options: dict | None = None,
     progress_factory=None,
-    remove_phase_ramp: bool = True,
+    phase_ramp: str = "auto",
+    space_variant: str = "auto",
     tracking_error_m: float = 0.5e-3,
 ) -> FocusOutputs:
     """Run the offline focusing steps on a validated scan: the two sub-image bases (and the
@@ -116,8 +120,8 @@ def focus_scan(
 
     out = focus_bases(
         ref_basis, tgt_basis, scan.positions, scan.chirp, reference_grid, target_grid,
-        template=template, method=method, config=config, bp_options=bp, progress_factory=progress_factory,
-        remove_phase_ramp=remove_phase_ramp, tracking_error_m=tracking_error_m,
+        template=template, support=support, method=method, config=config, bp_options=bp, progress_factory=progress_factory,
+        phase_ramp=phase_ramp, space_variant=space_variant, tracking_error_m=tracking_error_m,
         truth_target=truth_tgt, truth_reference=truth_ref, positions_true=scan.positions_true,
     )
     timings.update(out.timings_s)
@@ -137,11 +141,13 @@ def focus_bases(
     target_grid: ImageGrid,
     *,
     template: np.ndarray | None = None,
+    support: np.ndarray | None = None,
     method: str = "twin",
     config: AutofocusConfig | None = None,
     bp_options: dict | None = None,
     progress_factory=None,
-    remove_phase_ramp: bool = True,
+    phase_ramp: str = "auto",
+    space_variant: str = "auto",
     tracking_error_m: float = 0.5e-3,
     truth_target: np.ndarray | None = None,
     truth_reference: np.ndarray | None = None,
@@ -159,13 +165,23 @@ def focus_bases(
     template : float (H, W) amplitude, or complex (H, W) image with its phase, on
         ``reference_grid`` (required for ``method="twin"``; the phase is what
         ``config.template_registration`` / ``config.init="correlation"`` need).
+    support : bool (H, W) the reference's outline on ``reference_grid`` (a digital twin's), which
+        ``config.init="outline"`` needs.
     method : ``"twin"`` (reference vs template), ``"sharpness"`` (of the target) or ``"none"``.
     config : :class:`~twinfocus.autofocus.AutofocusConfig`, handed to the autofocus as is.
     bp_options : the back-projection options the bases were built with (recorded in ``config``).
-    remove_phase_ramp : transfer the estimated phase without its best constant + linear-in-
-        aperture ramp (:func:`twinfocus.autofocus.fit_linear_phase`). That ramp only moves the
-        image; a template placed off by a millimetre pulls one in, and transferring it would shift
-        the target. False transfers the optimiser's phase as is (the source paper).
+    phase_ramp : "auto", "remove" or "keep": the estimate's constant + linear-in-aperture ramp
+        before the transfer (:func:`twinfocus.autofocus.transfer_phase`). That ramp moves the
+        image; "auto" removes only what a template's misplacement explains (none after a
+        registration; a fitted ramp only when it stands for a shift of at most 3 mm), since a
+        hand's drift puts real error in it. "keep" transfers the phase as is (the source paper).
+    space_variant : "auto", "on" or "off": a smooth across-sight drift fitted to the whole
+        reference and transferred per pixel (:func:`twinfocus.space_variant.fit_smooth_drift`)
+        instead of one phase per position. Needs a registered template with phase (a physical
+        twin). "auto" fits it only when the scalar estimate leaves more than
+        ``SPACE_VARIANT_MIN_RESIDUAL`` of the reference unmatched, and keeps it only when it
+        takes away at least ``SPACE_VARIANT_MIN_GAIN`` of that residual; metrics.json
+        ``space_variant`` says what was done and why.
     tracking_error_m : the tracker's position error magnitude assumed by the confidence report.
     progress_factory : ``label -> progress callable`` (see :class:`twinfocus.progress.Progress`).
     truth_target, truth_reference : complex (H, W) images formed on the true positions, and
@@ -188,7 +204,7 @@ def focus_bases(
 
     t = time.perf_counter()
     if method == "twin":
-        result: AutofocusResult = twin_autofocus(ref_basis, template, cfg, progress=prog("autofocus"))
+        result: AutofocusResult = twin_autofocus(ref_basis, template, cfg, progress=prog("autofocus"), support=support)
     elif method == "sharpness":
         result = sharpness_autofocus(tgt_basis, cfg, progress=prog("sharpness autofocus"))
     else:
@@ -196,8 +212,7 @@ def focus_bases(
     timings = {"autofocus": time.perf_counter() - t}
 
     phase = result.phase_rad
-    m: dict = {"method": method, "n_positions": int(positions.shape[0]), "n_channels": int(positions.shape[1]),
-               "phase_ramp_removed": bool(remove_phase_ramp and method != "none")}
+    m: dict = {"method": method, "n_positions": int(positions.shape[0]), "n_channels": int(positions.shape[1])}
     if method == "twin":
         m["estimator"] = {"init": cfg.init, "template_registration": cfg.template_registration, "iterations": int(cfg.iterations)}
         if cfg.init == "projection":
@@ -205,24 +220,53 @@ def focus_bases(
         for knob in ("coarse_iterations", "smoothness_weight"):
             if getattr(cfg, knob):
                 m["estimator"][knob] = getattr(cfg, knob)
+        if "outline" in result.extra:
+            m["estimator"]["outline"] = result.extra["outline"]
         if "projection_restarts" in result.extra:
             m["projection_restarts"] = result.extra["projection_restarts"]
         if "registration" in result.extra:
             m["template_registration"] = result.extra["registration"]
         # metrics and pictures against the template the phases were fitted to (moved when registered)
         template = result.extra.get("template", template)
-    if remove_phase_ramp and method != "none":
-        ramp, coeffs = fit_linear_phase(phase, positions.mean(axis=1)[:, :2])
-        phase = np.angle(np.exp(1j * (phase - ramp)))
-        m["phase_ramp_rad_per_m"] = coeffs[1:].tolist()
-    ref_cor = form_image(ref_basis, phase)
-    tgt_cor = form_image(tgt_basis, phase)
+    if method != "none":
+        aperture = positions.mean(axis=1)
+        phase, m["phase_ramp"] = transfer_phase(
+            phase, aperture[:, :2], float(reference_grid.z - aperture[:, 2].mean()), chirp.wavelength_m, phase_ramp,
+            registered="registration" in result.extra)
+        m["phase_ramp_removed"] = m["phase_ramp"]["removed"]
+    drift = None
+    if method == "twin":
+        t = time.perf_counter()
+        sv = _space_variant(ref_basis, template, phase, positions, chirp, reference_grid, space_variant,
+                            registered="registration" in result.extra, ramp_removed=bool(m["phase_ramp"]["removed"]),
+                            progress=prog("space-variant fit"))
+        m["space_variant"] = sv.pop("info")
+        if sv:
+            timings["space_variant"] = time.perf_counter() - t
+            phase, drift = sv["phase"], sv["drift"]
+    if drift is None:
+        ref_cor = form_image(ref_basis, phase)
+        tgt_cor = form_image(tgt_basis, phase)
+    else:
+        from twinfocus.space_variant import lines_of_sight, pixel_phases
+
+        centres = positions.mean(axis=1)
+        ref_cor = form_image_space_variant(ref_basis, pixel_phases(phase, drift, reference_grid.centre_m, centres,
+                                                                   reference_grid, chirp.wavelength_m))
+        tgt_cor = form_image_space_variant(tgt_basis, pixel_phases(phase, drift, reference_grid.centre_m, centres,
+                                                                   target_grid, chirp.wavelength_m))
+        # the scalar phase nearest to what the target got: the per-pixel phase at its centre
+        k = 4.0 * np.pi / chirp.wavelength_m
+        du = lines_of_sight(centres, target_grid.centre_m) - lines_of_sight(centres, reference_grid.centre_m)
+        phase = phase + k * np.einsum("mc,mc->m", du, drift)
     centre, steep = cfg.threshold_centre, cfg.threshold_steepness
 
     if template is not None:
         tpl_disp = metrics.display_image(template, centre, steep)
         m["reference_ssim_vs_template_uncorrected"] = metrics.ssim(metrics.display_image(ref_unc, centre, steep), tpl_disp)
         m["reference_ssim_vs_template_corrected"] = metrics.ssim(metrics.display_image(ref_cor, centre, steep), tpl_disp)
+        if np.iscomplexobj(template):
+            m["reference_residual"] = 1.0 - _complex_match(ref_cor, template)
     out = FocusOutputs(
         reference_grid=reference_grid,
         target_grid=target_grid,
@@ -237,23 +281,106 @@ def focus_bases(
         metrics=m,
         timings_s=timings,
         config={**cfg.to_dict(), **{f"bp_{k}": v for k, v in bp.items()}},
+        drift_m=drift,
     )
     m["confidence"] = confidence_report(m, positions, chirp, reference_grid, target_grid, tracking_error_m)
     if truth_target is not None and truth_reference is not None and positions_true is not None:
-        out.target_truth, out.reference_truth = truth_target, truth_reference
-        out.phase_oracle_rad = metrics.oracle_phase(positions_true, positions, target_grid.centre_m, chirp)
-        m["target_ssim_uncorrected"] = metrics.image_ssim(tgt_unc, truth_target, centre, steep)
-        m["target_ssim_corrected"] = metrics.image_ssim(tgt_cor, truth_target, centre, steep)
-        m["target_ssim_oracle_phase"] = metrics.image_ssim(form_image(tgt_basis, out.phase_oracle_rad), truth_target, centre, steep)
-        m["reference_ssim_uncorrected"] = metrics.image_ssim(ref_unc, truth_reference, centre, steep)
-        m["reference_ssim_corrected"] = metrics.image_ssim(ref_cor, truth_reference, centre, steep)
-        m["phase_error_rms_rad_vs_oracle"] = metrics.phase_error_rms(phase, out.phase_oracle_rad)
-        m["phase_error_rms_rad_uncorrected"] = metrics.phase_error_rms(np.zeros_like(phase), out.phase_oracle_rad)
+        add_truth_metrics(out, tgt_basis, positions, chirp, truth_target, truth_reference, positions_true, centre, steep)
     return out
 
 
-#: below this reference-vs-template SSIM the reference was not matched and the phase is suspect
+def add_truth_metrics(out: FocusOutputs, tgt_basis: np.ndarray, positions: np.ndarray, chirp: Chirp,
+                      truth_target: np.ndarray, truth_reference: np.ndarray, positions_true: np.ndarray,
+                      centre: float, steepness: float) -> None:
+    """The metrics against the truth, into ``out.metrics`` (and the truth images and oracle phase
+    into ``out``): SSIMs of the target and reference against the images formed on the true
+    positions, the oracle-phase ceiling at the target's centre and the phase error against it.
+
+    tgt_basis : complex (M, H, W) the target's basis; positions, positions_true : float64
+    (M, K, 3) tracked and true phase centres, metres; truth_* : complex (H, W) images on the true
+    positions; centre, steepness : the display threshold of the SSIMs. Also run by the solver node
+    after it has published its image."""
+    m = out.metrics
+    out.target_truth, out.reference_truth = truth_target, truth_reference
+    out.phase_oracle_rad = metrics.oracle_phase(positions_true, positions, out.target_grid.centre_m, chirp)
+    m["target_ssim_uncorrected"] = metrics.image_ssim(out.target_uncorrected, truth_target, centre, steepness)
+    m["target_ssim_corrected"] = metrics.image_ssim(out.target, truth_target, centre, steepness)
+    m["target_ssim_oracle_phase"] = metrics.image_ssim(form_image(tgt_basis, out.phase_oracle_rad), truth_target, centre, steepness)
+    m["reference_ssim_uncorrected"] = metrics.image_ssim(out.reference_uncorrected, truth_reference, centre, steepness)
+    m["reference_ssim_corrected"] = metrics.image_ssim(out.reference, truth_reference, centre, steepness)
+    m["phase_error_rms_rad_vs_oracle"] = metrics.phase_error_rms(out.phase_rad, out.phase_oracle_rad)
+    m["phase_error_rms_rad_uncorrected"] = metrics.phase_error_rms(np.zeros_like(out.phase_rad), out.phase_oracle_rad)
+
+
+#: space-variant "auto": fit when the scalar estimate leaves more than this of the reference
+#: unmatched (1 - normalised complex correlation with its template): 0.0008 on the paper's
+#: protocol, 0.008 on the demo scene's 0.5 mm x/y/z jitter, 0.025-0.031 under a hand's drift
+SPACE_VARIANT_MIN_RESIDUAL = 0.01
+#: ... and keep the fit when it takes away at least this fraction of that residual (0.4-0.6 under
+#: a hand's drift, docs/handheld.md)
+SPACE_VARIANT_MIN_GAIN = 0.3
+SPACE_VARIANT_MODES = ("auto", "on", "off")
+
+
+def _space_variant(ref_basis: np.ndarray, template: np.ndarray | None, phase: np.ndarray, positions: np.ndarray,
+                   chirp: Chirp, grid: ImageGrid, mode: str, registered: bool, ramp_removed: bool,
+                   progress=None) -> dict:
+    """The space-variant step of :func:`focus_bases`: {"info": what was done and why} plus, when
+    it is used, "phase" (M,) and "drift" (M, 3)."""
+    if mode not in SPACE_VARIANT_MODES:
+        raise TwinFocusError(f"space_variant must be one of {', '.join(SPACE_VARIANT_MODES)}, got {mode!r}")
+    info: dict = {"mode": mode, "used": False}
+    if mode == "off":
+        return {"info": {**info, "reason": "off on request"}}
+    why_not = None
+    if template is None or not np.iscomplexobj(template) or not registered:
+        why_not = "needs a template with phase registered to the scan (a physical twin)"
+    elif ramp_removed:
+        why_not = "the phase ramp was removed before the transfer; the drift fit needs the whole estimate"
+    if why_not:
+        if mode == "on":
+            raise TwinFocusError(f"space-variant correction {why_not}")
+        return {"info": {**info, "reason": why_not}}
+    residual = 1.0 - _complex_match(form_image(ref_basis, phase), template)
+    info["residual_scalar"] = residual
+    if mode == "auto" and residual <= SPACE_VARIANT_MIN_RESIDUAL:
+        return {"info": {**info, "reason": f"not needed: the scalar phase leaves {residual:.4f} of the reference "
+                                           f"unmatched (<= {SPACE_VARIANT_MIN_RESIDUAL})"}}
+    from twinfocus.space_variant import fit_smooth_drift  # torch and scipy: only on this path
+
+    new_phase, drift, fit = fit_smooth_drift(ref_basis, template, phase, positions.mean(axis=1), grid,
+                                             chirp.wavelength_m, progress=progress)
+    after = 1.0 - fit["match_after"]
+    info.update(residual_space_variant=after, knot_spacing_positions=fit["knot_spacing_positions"],
+                iterations=fit["iterations"], time_s=fit["time_s"],
+                drift_rms_mm=[float(v) for v in np.sqrt((drift[:, :2] ** 2).mean(axis=0)) * 1e3])
+    gain = 1.0 - after / residual if residual > 0 else 0.0
+    if mode == "auto" and gain < SPACE_VARIANT_MIN_GAIN:
+        return {"info": {**info, "reason": f"fitted but not kept: it took away {gain:.0%} of the unmatched reference "
+                                           f"(< {SPACE_VARIANT_MIN_GAIN:.0%}); the error is not a smooth drift"}}
+    info.update(used=True, reason=("on request" if mode == "on" else
+                                   f"the scalar phase left {residual:.4f} of the reference unmatched; a smooth "
+                                   f"drift takes away {gain:.0%} of it"))
+    return {"info": info, "phase": new_phase, "drift": drift}
+
+
+def _complex_match(image: np.ndarray, template: np.ndarray) -> float:
+    """Normalised complex correlation Re<image, template> / (|image| |template|): 1 when equal."""
+    num = np.vdot(template.ravel(), image.ravel()).real
+    return float(num / max(np.linalg.norm(image) * np.linalg.norm(template), 1e-300))
+
+
+#: below this reference-vs-template SSIM the reference was not matched and the phase is suspect:
+#: an amplitude template (a digital twin's) against a speckled reference matches at 0.77-0.99 even
+#: when the target is at its ceiling; a physical twin's own image, registered and fitted in closed
+#: form, matches at 0.97-1.0 when the estimate is right (docs/handheld.md), so less is a warning
 MIN_REFERENCE_MATCH = 0.8
+MIN_REFERENCE_MATCH_PHYSICAL = 0.95
+#: above this 1 - complex correlation of the corrected reference with a template that has phase,
+#: the correction is incomplete: 0.0008-0.008 under jitter and the live default's VIO error (targets
+#: within 0.02 of their ceilings), 0.025-0.031 under a hand's drift with one phase per position
+#: (0.85 against 0.97), 0.012-0.019 after the space-variant fit (0.89-0.945 against 0.97)
+MAX_REFERENCE_RESIDUAL = 0.01
 
 
 def confidence_report(m: dict, positions: np.ndarray, chirp: Chirp, reference_grid: ImageGrid, target_grid: ImageGrid,
@@ -283,10 +410,26 @@ def confidence_report(m: dict, positions: np.ndarray, chirp: Chirp, reference_gr
             f"{bound.max():.2f} rad (> pi/4) for {tracking_error_m * 1e3:.1f} mm tracking error; the transfer is not to be trusted"
         )
     match = out["reference_match_ssim"]
-    if match is not None and match < MIN_REFERENCE_MATCH:
+    least = MIN_REFERENCE_MATCH_PHYSICAL if m.get("template_registration") else MIN_REFERENCE_MATCH
+    if match is not None and match < least:
         out["warnings"].append(
-            f"the corrected reference matches its template poorly (SSIM {match:.2f} < {MIN_REFERENCE_MATCH}); "
+            f"the corrected reference matches its template poorly (SSIM {match:.2f} < {least}); "
             "check the template, the reference region and the template's placement"
+        )
+    est = m.get("estimator") or {}
+    if "outline" in est:
+        # how sure the outline estimator is: the energy it put inside the outline, and how many of
+        # its starts ended within 0.01 of the chosen one (several far-apart maxima: less sure)
+        inside = est["outline"]["energy_inside"]
+        best = max(inside)
+        out["outline_energy_inside"] = best
+        out["outline_starts_agreeing"] = f"{sum(v >= best - 0.01 for v in inside)}/{len(inside)}"
+    residual = m.get("reference_residual")
+    out["reference_residual"] = residual
+    if residual is not None and residual > MAX_REFERENCE_RESIDUAL:
+        out["warnings"].append(
+            f"the corrected reference leaves {residual:.3f} of its template unmatched (> {MAX_REFERENCE_RESIDUAL}): "
+            "the error is not all one phase per position (a hand's drift, rotation); expect the target below its ceiling"
         )
     reg = m.get("template_registration")
     if reg and reg.get("at_limit"):
@@ -298,12 +441,19 @@ def confidence_report(m: dict, positions: np.ndarray, chirp: Chirp, reference_gr
     return out
 
 
-def write_outputs(out_dir: str | os.PathLike, outputs: FocusOutputs, pictures: bool = True) -> Path:
-    """Write DESIGN.md's output files into ``out_dir``.
+def write_outputs(out_dir: str | os.PathLike, outputs: FocusOutputs, pictures: str | bool = "summary") -> Path:
+    """Write the output files of docs/architecture.md section 4 into ``out_dir``.
+
+    pictures : "summary" (summary.png, the default), "all" (every picture), "none"; True/False
+        mean "summary"/"none". Pictures of an earlier run that this one does not write are removed,
+        so the folder never shows images of another result.
 
     Everything is first written to a temporary folder beside ``out_dir`` and moved in at the end,
     so a failure never leaves a mix of old and new results.
     """
+    which = ("summary" if pictures else "none") if isinstance(pictures, bool) else pictures
+    if which not in ("summary", "all", "none"):
+        raise TwinFocusError(f"pictures must be 'summary', 'all' or 'none', got {pictures!r}")
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
@@ -313,6 +463,8 @@ def write_outputs(out_dir: str | os.PathLike, outputs: FocusOutputs, pictures: b
         np.save(tmp / "reference.npy", outputs.reference.astype(np.complex64))
         np.save(tmp / "reference_uncorrected.npy", outputs.reference_uncorrected.astype(np.complex64))
         np.save(tmp / "phase.npy", outputs.phase_rad.astype(np.float64))
+        if outputs.drift_m is not None:
+            np.save(tmp / "drift.npy", outputs.drift_m.astype(np.float64))
         if outputs.loss_history.size:
             np.save(tmp / "loss.npy", outputs.loss_history)
         doc = {
@@ -323,13 +475,17 @@ def write_outputs(out_dir: str | os.PathLike, outputs: FocusOutputs, pictures: b
             "config": outputs.config,
         }
         (tmp / "metrics.json").write_text(json.dumps(doc, indent=2, default=float))
-        if pictures:
+        if which != "none":
             from twinfocus.plotting import write_focus_pictures
 
-            write_focus_pictures(tmp, outputs)
+            write_focus_pictures(tmp, outputs, which)
         out_dir.mkdir(parents=True, exist_ok=True)
+        written = {f.name for f in tmp.iterdir()}
         for f in tmp.iterdir():
             os.replace(f, out_dir / f.name)
+        for old in out_dir.glob("*.png"):
+            if old.name not in written:
+                old.unlink()
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_dir

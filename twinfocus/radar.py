@@ -1,6 +1,6 @@
 """FMCW chirp, the MMWCAS 12x16 MIMO layout and range compression.
 
-Signal model used everywhere in the project (DESIGN.md section 2): for a monostatic phase
+Signal model used everywhere in the project (docs/architecture.md section 2): for a monostatic phase
 centre at distance R_j from scatterer j the IF sample n is
 
     s(t_n) = sum_j a_j exp(+j 2 pi (f0 + S t_n) 2 R_j / c),   t_n = n / fs,
@@ -11,7 +11,6 @@ back-projection are matched filters of exactly this model.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 
@@ -221,7 +220,7 @@ def mmwcas_virtual_array() -> VirtualArray:
     for t in on_line:
         for r in range(rx.shape[0]):
             key = int(round((tx[t, 0] + rx[r, 0]) / 2.0 / quarter))
-            seen.setdefault(key, (t, r))
+            seen.setdefault(key, (int(t), r))
     keys = sorted(seen)
     t_idx = np.array([seen[k][0] for k in keys])
     r_idx = np.array([seen[k][1] for k in keys])

@@ -22,6 +22,9 @@ try:  # numba is a hard dependency; the guard only keeps import errors readable
 except ImportError as exc:  # pragma: no cover
     raise ImportError("twinfocus.range_geometry needs numba (pip install numba)") from exc
 
+#: Range-profile oversampling the back-projection interpolates on (both back-ends).
+DEFAULT_OVERSAMPLE = 16
+
 # Minimax-fitted polynomials for sin(2 pi r), cos(2 pi r) on r in [-1/2, 1/2]: max error 1.2e-9 and
 # 1.2e-10 in float64. Evaluating them inline lets LLVM vectorise the pixel loop (libm sin/cos do not).
 _SIN_C = (6.28318527, -41.34169704, 81.6050236, -76.70153711, 42.01607168, -14.86830851, 3.19931986)

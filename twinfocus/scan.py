@@ -1,4 +1,4 @@
-"""One SAR scan ready to image, and its ``.npz`` file (DESIGN.md section 4).
+"""One SAR scan ready to image, and its ``.npz`` file (docs/architecture.md section 4).
 
 Keys of the scan file:
     data            complex64 (M, K, N)  monostatic-equivalent IF samples
@@ -10,12 +10,14 @@ Keys of the scan file:
 from __future__ import annotations
 
 import os
-import tempfile
+import zipfile
+import zlib
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from twinfocus.atomic import atomic_writer
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import Chirp
 
@@ -82,7 +84,7 @@ class Scan:
         if not np.any(d):
             raise TwinFocusError("scan data is all zeros: nothing was captured")
 
-    def with_data(self, data: np.ndarray) -> "Scan":
+    def with_data(self, data: np.ndarray) -> Scan:
         return replace(self, data=data)
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -101,7 +103,7 @@ class Scan:
         return save_npz_atomic(path, arrays)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "Scan":
+    def load(cls, path: str | os.PathLike) -> Scan:
         """Read and validate a scan file; errors name the file and the bad key."""
         z = load_npz(path)
         missing = [k for k in ("data", "positions", "f0_hz", "slope_hz_per_s", "fs_hz") if k not in z]
@@ -141,24 +143,36 @@ def load_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
-    except (OSError, ValueError) as exc:
-        raise TwinFocusError(f"{path}: not a readable .npz file ({exc})") from None
+    # A truncated or damaged archive fails inside zipfile/zlib, not with an OSError.
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise TwinFocusError(f"{path}: not a readable .npz file, truncated or damaged? ({exc})") from None
+
+
+def peek_npz_shapes(path: str | os.PathLike) -> dict[str, tuple[int, ...]]:
+    """Shapes of the arrays of an ``.npz`` file from their headers alone (milliseconds, whatever
+    the file's size): lets a command check sizes and memory before loading anything. A truncated
+    file (its zip directory sits at the end) fails here with one line."""
+    path = Path(path)
+    if not path.is_file():
+        raise TwinFocusError(f"{path}: no such file")
+    try:
+        shapes = {}
+        with zipfile.ZipFile(path) as zf:
+            for name in zf.namelist():
+                if not name.endswith(".npy"):
+                    continue
+                with zf.open(name) as f:
+                    version = np.lib.format.read_magic(f)
+                    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                    shape, _, _ = read(f)
+                shapes[name[:-4]] = tuple(shape)
+        return shapes
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise TwinFocusError(f"{path}: not a readable .npz file, truncated or damaged? ({exc})") from None
 
 
 def save_npz_atomic(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> Path:
     """Write ``arrays`` to ``path`` through a temporary file and a rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-        # mkstemp creates 0600; give the file the permissions a plain open() would.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_writer(path) as f:
+        np.savez(f, **arrays)  # type: ignore[arg-type]  # numpy stubs type **kwds as the flag
+    return Path(path)

@@ -5,6 +5,12 @@ clutter), the trajectory, the motion errors and the impairments (speckle, therma
 template's placement error). :func:`simulate_scenario` returns the scan of the whole scene on
 tracked (erroneous) positions with the truth attached, and the template scan: the reference
 alone, placed ``template_offset_m`` off, scanned on accurate positions as a motion stage would.
+
+Every random draw comes from its own stream of the scenario's seed (:func:`scenario_stream`:
+trajectory, scene, radar noise, tracking error, template noise), so the simulated sensors of the
+node graph (``nodes/sim_backends.py``, each in its own process, the radar a block of frames at
+a time) draw exactly the scan :func:`simulate_scenario` draws: ``twinfocus launch sim`` and
+``twinfocus simulate`` agree for one seed (tests/test_graph_offline.py).
 """
 from __future__ import annotations
 
@@ -14,16 +20,20 @@ import numpy as np
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
-from twinfocus.motion import apply_position_errors, drift_errors, gaussian_errors, vio_errors
+from twinfocus.motion import apply_pose_errors, draw_errors
 from twinfocus.radar import Chirp, mmwcas_virtual_array
 from twinfocus.scan import Scan
-from twinfocus.scene import Scene, paper_scene, scatterer_spacing_m
+from twinfocus.scene import PlanarObject, Scene, paper_scene, scatterer_spacing_m, shaped
 from twinfocus.simulate import add_thermal_noise, simulate_if
-from twinfocus.trajectory import handheld_zigzag, paper_raster, phase_centres
+from twinfocus.trajectory import Poses, handheld_zigzag, paper_raster, phase_centres
 
-#: DESIGN.md's regions of interest for the default scene (X0, X1, Y0, Y1, Z).
+#: the paper's regions of interest (docs/architecture.md section 2) for the default scene (X0, X1, Y0, Y1, Z).
 PAPER_REFERENCE_ROI = (-0.15, 0.0, -0.11, 0.12, 0.6)
 PAPER_TARGET_ROI = (0.02, 0.13, -0.11, 0.12, 0.6)
+#: the paper's image size (pixels per side) and optimiser iterations. launch/paper.yaml and the
+#: Makefile's demo take these values (tests/test_launch.py checks the launch file agrees).
+PAPER_IMAGE_SIZE = 100
+PAPER_ITERATIONS = 300
 
 
 @dataclass
@@ -42,8 +52,11 @@ class Scenario:
     occluder: str | None = None
     clutter: bool = False
     trajectory: str = "raster"  # "raster" (motion-stage geometry) or "zigzag" (hand sweep)
-    error_model: str = "gaussian"  # "gaussian", "drift" or "vio"
+    error_model: str = "gaussian"  # twinfocus.motion.ERROR_MODELS: "gaussian", "drift", "vio", "hand", "none"
     error_sigma_m: tuple = (0.5e-3, 0.5e-3, 0.5e-3)
+    #: correlation time of "drift" and "hand" (seconds) and the array rotation of "hand" (degrees)
+    correlation_time_s: float = 2.0
+    rotation_sigma_deg: float = 0.15
     snr_db: float | None = 10.0
     speckle: bool = True
     template_offset_m: tuple = (1e-3, 0.0, 0.0)
@@ -53,6 +66,15 @@ class Scenario:
     n_rows: int = 130
     seed: int = 0
     extra: dict = field(default_factory=dict)
+    # Field-like references (issue 14): a rough surface (per-scatterer phase uniform in
+    # +-reference_roughness_deg, magnitude x (1 +- reference_amplitude_spread)); a non-planar
+    # shape (twinfocus.scene.SHAPES: 'plane', 'cylinder' radius m, 'bent' degrees; parameter None:
+    # the shape's default); a target further from the aperture than the reference, along its ray.
+    reference_roughness_deg: float | None = None
+    reference_amplitude_spread: float = 0.3
+    reference_shape: str = "plane"
+    reference_shape_parameter: float | None = None
+    target_depth_offset_m: float = 0.0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -69,14 +91,41 @@ class Scenario:
                                  separation_deg=self.separation_deg, height_m=self.target_height_m,
                                  target_material=self.target_material)
             scene.objects[1] = bigger.object("target")
-        return scene
+        return _field_like(scene, self)
 
     def reference_roi(self) -> tuple:
-        """A reference region around the reference letter (DESIGN.md's for the defaults)."""
+        """A reference region around the reference letter (the paper's for the defaults, docs/architecture.md section 2)."""
         return _roi_around(self.scene().object("reference"), self.distance_m, PAPER_REFERENCE_ROI, self)
 
     def target_roi(self) -> tuple:
+        if self.target_depth_offset_m:
+            tgt = _planar(self.scene(), "target")
+            # distance_m=-1 only tells _roi_around this is not the paper's geometry (no fixed ROI)
+            return _roi_around(tgt, float(tgt.centre_m[2]), None, replace(self, distance_m=-1.0))
         return _roi_around(self.scene().object("target"), self.distance_m, PAPER_TARGET_ROI, self)
+
+
+def _planar(scene: Scene, name: str) -> PlanarObject:
+    """The paper scene's object ``name``, which paper_scene always builds as a planar mask."""
+    obj = scene.object(name)
+    assert isinstance(obj, PlanarObject)
+    return obj
+
+
+def _field_like(scene: Scene, sc: Scenario) -> Scene:
+    """The Scenario's field-like options applied to the paper scene (twinfocus.scene does the work)."""
+    ref = shaped(_planar(scene, "reference"), sc.reference_shape, sc.reference_shape_parameter)
+    if sc.reference_roughness_deg is not None:
+        ref = replace(ref, roughness_deg=sc.reference_roughness_deg, amplitude_spread=sc.reference_amplitude_spread)
+    scene.objects[0] = ref
+    off = float(sc.target_depth_offset_m)
+    if off:
+        tgt = _planar(scene, "target")
+        c = np.asarray(tgt.centre_m, float)
+        if not (np.isfinite(off) and c[2] + off > 0):
+            raise TwinFocusError(f"target_depth_offset_m ({off}) must keep the target in front of the aperture")
+        scene.objects[1] = replace(tgt, centre_m=c * (c[2] + off) / c[2])  # along its ray: same angle
+    return scene
 
 
 def _roi_around(obj, z, default, sc: Scenario) -> tuple:
@@ -88,25 +137,84 @@ def _roi_around(obj, z, default, sc: Scenario) -> tuple:
     return (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), float(z))
 
 
-def scenario_positions(sc: Scenario, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(true phase centres (M, K, 3), tracked phase centres (M, K, 3), timestamps_ns (M,))."""
+#: Purposes of the scenario's random streams (:func:`scenario_stream`).
+TRAJECTORY_STREAM, SCENE_STREAM, RADAR_NOISE_STREAM, TRACKING_STREAM, TEMPLATE_NOISE_STREAM = 1, 2, 3, 4, 5
+
+#: The thermal noise level is set from the clean signal's power at every this-many-th position,
+#: so that a sensor simulating a block of frames at a time knows it before the scan is complete.
+NOISE_POWER_STRIDE = 10
+
+
+def scenario_stream(sc: Scenario, purpose: int) -> np.random.Generator:
+    """Independent random stream ``purpose`` (one of the ``*_STREAM`` constants) of the seed."""
+    return np.random.default_rng([int(sc.seed), int(purpose)])
+
+
+def scenario_poses(sc: Scenario, frame_period_s: float = 0.1, t0_ns: int = 0) -> Poses:
+    """The true radar poses, one per radar frame (stamps ``t0_ns`` + k ``frame_period_s``)."""
     if sc.trajectory == "raster":
-        poses = paper_raster(sc.n_columns, sc.n_rows)
-    elif sc.trajectory == "zigzag":
-        poses = handheld_zigzag(sc.n_columns, sc.n_rows, rng=rng)
-    else:
-        raise TwinFocusError(f"unknown trajectory {sc.trajectory!r}; use 'raster' or 'zigzag'")
+        return paper_raster(sc.n_columns, sc.n_rows, frame_period_s=frame_period_s, t0_ns=t0_ns)
+    if sc.trajectory == "zigzag":
+        return handheld_zigzag(sc.n_columns, sc.n_rows, frame_period_s=frame_period_s,
+                               rng=scenario_stream(sc, TRAJECTORY_STREAM), t0_ns=t0_ns)
+    raise TwinFocusError(f"unknown trajectory {sc.trajectory!r}; use 'raster' or 'zigzag'")
+
+
+def scenario_positions(sc: Scenario, rng: np.random.Generator | None = None, frame_period_s: float = 0.1,
+                       t0_ns: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(true phase centres (M, K, 3), tracked phase centres (M, K, 3), timestamps_ns (M,)).
+
+    rng : the tracking error's draws (default: the scenario's tracking stream)."""
+    poses = scenario_poses(sc, frame_period_s, t0_ns)
+    if rng is None:
+        rng = scenario_stream(sc, TRACKING_STREAM)
     true = phase_centres(poses, mmwcas_virtual_array())
-    m = true.shape[0]
-    if sc.error_model == "gaussian":
-        err = gaussian_errors(m, sc.error_sigma_m, rng)
-    elif sc.error_model == "drift":
-        err = drift_errors(poses.timestamps_ns, sc.error_sigma_m, rng=rng)
-    elif sc.error_model == "vio":
-        err = vio_errors(poses.timestamps_ns, rng=rng)
-    else:
-        raise TwinFocusError(f"unknown error model {sc.error_model!r}; use 'gaussian', 'drift' or 'vio'")
-    return true, apply_position_errors(true, err), poses.timestamps_ns
+    shift, turn = draw_errors(sc.error_model, poses.timestamps_ns, sc.error_sigma_m, rng,
+                              sc.correlation_time_s, np.radians(sc.rotation_sigma_deg))
+    return true, apply_pose_errors(true, shift, turn), poses.timestamps_ns
+
+
+def scenario_scene_seed(sc: Scenario) -> int:
+    """The seed of the scene's scatterers (speckle, clutter) for this scenario."""
+    return int(scenario_stream(sc, SCENE_STREAM).integers(0, 2**31))
+
+
+def scenario_scatterers(sc: Scenario, reference_only: bool = False, with_clutter: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Scatterers (P, 3) metres and complex amplitudes (P,) of the whole scene, or of the reference
+    alone moved by the template placement error (the same scatterers: streams are keyed by object),
+    in the scene's room clutter with ``with_clutter``."""
+    scene = sc.scene()
+    if reference_only:
+        scene = scene.select("reference", occluders=False, clutter=with_clutter)
+        ref = scene.objects[0]
+        scene.objects[0] = replace(ref, centre_m=np.asarray(ref.centre_m) + np.asarray(sc.template_offset_m, float))
+    spacing = sc.spacing_m or scatterer_spacing_m(sc.distance_m)
+    return scene.scatterers(spacing, scenario_scene_seed(sc), speckle=sc.speckle)
+
+
+def simulator_options(sc: Scenario) -> dict:
+    """Keywords of :func:`twinfocus.simulate.simulate_if` the scenario sets."""
+    return {} if sc.range_step_m is None else {"range_step_m": sc.range_step_m}
+
+
+def scenario_noise_power(n_positions: int, samples_at) -> float:
+    """Mean clean-signal power the scan's SNR refers to: over every :data:`NOISE_POWER_STRIDE`-th
+    of the ``n_positions`` radar positions. samples_at : ``indices -> complex IF samples``
+    (len(indices), K, N) of those positions."""
+    x = np.asarray(samples_at(np.arange(0, int(n_positions), NOISE_POWER_STRIDE)))
+    return float(np.mean(np.abs(x.astype(np.complex128)) ** 2))
+
+
+def template_scan(sc: Scenario, chirp: Chirp | None = None, with_clutter: bool = False) -> Scan:
+    """The reference alone on the motion stage's raster (exact positions): the physical twin's
+    capture; ``with_clutter``: in the scene's cluttered room (the evaluation's swapped rooms)."""
+    chirp = chirp or Chirp()
+    stage = phase_centres(paper_raster(sc.n_columns, sc.n_rows), mmwcas_virtual_array())
+    pts, amps = scenario_scatterers(sc, reference_only=True, with_clutter=with_clutter)
+    data = simulate_if(pts, amps, stage, chirp, **simulator_options(sc))
+    if sc.snr_db is not None:
+        data = add_thermal_noise(data, sc.snr_db, scenario_stream(sc, TEMPLATE_NOISE_STREAM))
+    return Scan(data, stage, chirp, positions_true=stage)
 
 
 def simulate_scenario(sc: Scenario, chirp: Chirp | None = None, progress=None) -> tuple[Scan, Scan]:
@@ -116,31 +224,15 @@ def simulate_scenario(sc: Scenario, chirp: Chirp | None = None, progress=None) -
     ``scan.positions_true`` the truth; the template scan's positions are exact.
     """
     chirp = chirp or Chirp()
-    rng = np.random.default_rng(sc.seed)
-    true, tracked, stamps = scenario_positions(sc, rng)
-    scene = sc.scene()
-    spacing = sc.spacing_m or scatterer_spacing_m(sc.distance_m)
-    sim_kw = {} if sc.range_step_m is None else {"range_step_m": sc.range_step_m}
-    scene_seed = int(rng.integers(0, 2**31))
-    pts, amps = scene.scatterers(spacing, scene_seed, speckle=sc.speckle)
-    data = simulate_if(pts, amps, true, chirp, progress=progress, **sim_kw)
+    true, tracked, stamps = scenario_positions(sc)
+    pts, amps = scenario_scatterers(sc)
+    data = simulate_if(pts, amps, true, chirp, progress=progress, **simulator_options(sc))
     if sc.snr_db is not None:
-        data = add_thermal_noise(data, sc.snr_db, rng)
+        power = scenario_noise_power(data.shape[0], lambda idx: data[idx])
+        data = add_thermal_noise(data, sc.snr_db, scenario_stream(sc, RADAR_NOISE_STREAM), signal_power=power)
     scan = Scan(data, tracked, chirp, positions_true=true, timestamps_ns=stamps)
-
-    # Template: the same reference object (same scatterers: streams are keyed by object name),
-    # moved by the placement error, alone, on the stage's exact positions.
-    ref_scene = scene.select("reference", occluders=False)
-    ref = ref_scene.objects[0]
-    ref_scene.objects[0] = replace(ref, centre_m=np.asarray(ref.centre_m) + np.asarray(sc.template_offset_m, float))
-    stage = phase_centres(paper_raster(sc.n_columns, sc.n_rows), mmwcas_virtual_array())
-    tpts, tamps = ref_scene.scatterers(spacing, scene_seed, speckle=sc.speckle)
-    tdata = simulate_if(tpts, tamps, stage, chirp, **sim_kw)
-    if sc.snr_db is not None:
-        tdata = add_thermal_noise(tdata, sc.snr_db, rng)
-    template_scan = Scan(tdata, stage, chirp, positions_true=stage)
-    return scan, template_scan
+    return scan, template_scan(sc, chirp)
 
 
-def scenario_grids(sc: Scenario, size: int = 100) -> tuple[ImageGrid, ImageGrid]:
+def scenario_grids(sc: Scenario, size: int = PAPER_IMAGE_SIZE) -> tuple[ImageGrid, ImageGrid]:
     return ImageGrid.from_roi(sc.reference_roi(), size), ImageGrid.from_roi(sc.target_roi(), size)

@@ -6,7 +6,7 @@ camera) and optional clutter. The radar simulator asks it for point scatterers
 (:meth:`Scene.scatterers`); a camera renderer uses the same objects' masks, corners, colours and
 textures.
 
-Geometry (DESIGN.md section 4): scene frame x, y across the aperture, z from the aperture into
+Geometry (docs/architecture.md section 4): scene frame x, y across the aperture, z from the aperture into
 the scene. A planar object's own frame has u along its mask's columns, v along its mask's rows
 (downwards in the raster) and lies in the plane w = 0; ``rotation`` maps (u, v, w) to the scene,
 so the identity puts the mask upright as seen from the radar (u -> +x, v -> +y: x right, y down,
@@ -20,8 +20,8 @@ gives about 1,500-2,500 points for a 127 mm letter.
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass, field
-from typing import Sequence
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -108,6 +108,12 @@ def _vec3(name: str, v) -> np.ndarray:
     return a
 
 
+def _filled(v: np.ndarray | None) -> np.ndarray:
+    """A field that ``__post_init__`` fills in when given None (never None afterwards)."""
+    assert v is not None
+    return v
+
+
 def _rotation(name: str, r) -> np.ndarray:
     if r is None:
         return np.eye(3)
@@ -142,6 +148,32 @@ def _random_phase(rng: np.random.Generator, n: int) -> np.ndarray:
     return np.exp(2j * np.pi * rng.random(n))
 
 
+def _check_roughness(name: str, roughness_deg, amplitude_spread) -> tuple[float | None, float]:
+    if roughness_deg is not None:
+        r = float(roughness_deg)
+        if not (np.isfinite(r) and 0.0 <= r <= 180.0):
+            raise TwinFocusError(f"object {name!r}: roughness_deg must lie in [0, 180] degrees, got {roughness_deg!r}")
+        roughness_deg = r
+    a = float(amplitude_spread)
+    if not (np.isfinite(a) and 0.0 <= a < 1.0):
+        raise TwinFocusError(f"object {name!r}: amplitude_spread must lie in [0, 1), got {amplitude_spread!r}")
+    return roughness_deg, a
+
+
+def rough_amplitudes(
+    reflectivity: float, n: int, roughness_deg: float, amplitude_spread: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Amplitudes of ``n`` scatterers of a rough surface, complex128 (n,).
+
+    Each scatterer has its own reflectivity phase, uniform in [-roughness_deg, +roughness_deg]
+    degrees, and its own magnitude, uniform in reflectivity x [1 - amplitude_spread,
+    1 + amplitude_spread]. 180 degrees is full speckle (as ``speckle=True``), 0 a smooth surface.
+    """
+    phase = np.deg2rad(float(roughness_deg)) * (2.0 * rng.random(n) - 1.0)
+    mag = float(reflectivity) * (1.0 + float(amplitude_spread) * (2.0 * rng.random(n) - 1.0))
+    return mag * np.exp(1j * phase)
+
+
 # --- objects ----------------------------------------------------------------------------------
 
 
@@ -160,6 +192,14 @@ class PlanarObject:
     colour_bgr : uint8 (3,) for the camera renderer (default: the material's).
     texture : optional uint8 (h, w, 3) BGR picture of the surface, same raster as ``mask``.
     name : label (the scene's objects are told apart by name).
+    depth_m : optional float64 (h, w), the surface's displacement along w (away from the radar
+        for the identity rotation) at every mask pixel, metres: a non-planar object (see
+        :func:`cylinder_section`, :func:`bent_plate`). None: flat. Camera renderers that draw
+        the mask as a flat quad ignore it.
+    roughness_deg : a rough surface: every scatterer gets its own reflectivity phase, uniform in
+        +-roughness_deg degrees, and magnitude, reflectivity x (1 +- amplitude_spread) uniform;
+        it replaces the scene-wide ``speckle`` for this object. None: ``speckle`` decides.
+    amplitude_spread : fraction, see ``roughness_deg`` (used only with it).
     """
 
     mask: np.ndarray
@@ -170,6 +210,9 @@ class PlanarObject:
     colour_bgr: np.ndarray | None = None
     texture: np.ndarray | None = None
     name: str = "object"
+    depth_m: np.ndarray | None = None
+    roughness_deg: float | None = None
+    amplitude_spread: float = 0.0
 
     def __post_init__(self) -> None:
         m = np.asarray(self.mask)
@@ -193,6 +236,14 @@ class PlanarObject:
                     f"got {t.dtype} {t.shape}"
                 )
             self.texture = t
+        if self.depth_m is not None:
+            d = np.asarray(self.depth_m, dtype=np.float64)
+            if d.shape != m.shape or not np.isfinite(d).all():
+                raise TwinFocusError(
+                    f"object {self.name!r}: depth_m must be finite float {m.shape} (the mask's raster), got shape {d.shape}"
+                )
+            self.depth_m = d
+        self.roughness_deg, self.amplitude_spread = _check_roughness(self.name, self.roughness_deg, self.amplitude_spread)
 
     @property
     def reflectivity(self) -> float:
@@ -207,12 +258,44 @@ class PlanarObject:
     @property
     def normal_m(self) -> np.ndarray:
         """Unit normal of the face turned to the radar (scene frame); (0, 0, -1) for identity."""
-        return -self.rotation[:, 2]
+        return -_filled(self.rotation)[:, 2]
 
-    def plane_to_scene(self, uv: np.ndarray) -> np.ndarray:
-        """Scene positions float64 (N, 3) of object-plane points ``uv`` (N, 2), metres."""
+    def plane_to_scene(self, uv: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+        """Scene positions float64 (N, 3) of object-frame points ``uv`` (N, 2), metres, displaced
+        by ``w`` (N,) along the object's w axis when given."""
         uv = np.asarray(uv, dtype=np.float64)
-        return self.centre_m + uv @ self.rotation[:, :2].T
+        rot = _filled(self.rotation)
+        out = self.centre_m + uv @ rot[:, :2].T
+        if w is not None:
+            out = out + np.asarray(w, dtype=np.float64)[:, None] * rot[:, 2]
+        return out
+
+    def surface_points(self, spacing_m: float = DEFAULT_SPACING_M) -> np.ndarray:
+        """The object's surface sampled on a regular grid ``spacing_m`` apart (cell centres where
+        the mask is set, with ``depth_m``), float64 (N, 3) scene metres: what an ideal camera
+        would see of it."""
+        spacing_m = _positive("spacing_m", spacing_m)
+        uv, rc = self._grid(spacing_m, None, 0.0)
+        return self.plane_to_scene(uv, self._depth_at(rc))
+
+    def _grid(self, spacing_m: float, gen, jitter: float) -> tuple[np.ndarray, np.ndarray]:
+        w_m, h_m = self.size_m
+        nu = max(1, int(np.ceil(w_m / spacing_m)))
+        nv = max(1, int(np.ceil(h_m / spacing_m)))
+        uu, vv = np.meshgrid((np.arange(nu) - (nu - 1) / 2) * spacing_m, (np.arange(nv) - (nv - 1) / 2) * spacing_m)
+        uv = np.stack([uu.ravel(), vv.ravel()], axis=1)
+        if gen is not None:
+            uv += (gen.random(uv.shape) - 0.5) * float(jitter) * spacing_m
+        h, w = self.mask.shape
+        col = np.floor(uv[:, 0] / self.pixel_m + w / 2).astype(np.int64)
+        row = np.floor(uv[:, 1] / self.pixel_m + h / 2).astype(np.int64)
+        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        keep = np.zeros(uv.shape[0], dtype=bool)
+        keep[inside] = self.mask[row[inside], col[inside]]
+        return uv[keep], np.stack([row[keep], col[keep]], axis=1)
+
+    def _depth_at(self, rc: np.ndarray) -> np.ndarray | None:
+        return None if self.depth_m is None else self.depth_m[rc[:, 0], rc[:, 1]]
 
     def corners_m(self) -> np.ndarray:
         """Corners of the mask raster in the scene, float64 (4, 3), in the order of the raster's
@@ -246,7 +329,8 @@ class PlanarObject:
         uniformly by up to ``jitter`` x spacing / 2 in u and v (1.0: anywhere in its cell, which
         breaks the grid's regularity so it makes no grating lobes), kept where the mask is set.
         Amplitude: the material's reflectivity, times a uniformly random unit phase when
-        ``speckle`` (a rough surface), else real.
+        ``speckle`` (a rough surface), else real; an object with ``roughness_deg`` set gets
+        :func:`rough_amplitudes` instead, whatever ``speckle`` says. Points follow ``depth_m``.
 
         Returns (points_m float64 (P, 3), amplitudes complex128 (P,)).
         """
@@ -254,23 +338,15 @@ class PlanarObject:
         if not (0.0 <= float(jitter) <= 1.0):
             raise TwinFocusError(f"jitter must lie in [0, 1], got {jitter!r}")
         gen = np.random.default_rng(rng)
-        w_m, h_m = self.size_m
-        nu = max(1, int(np.ceil(w_m / spacing_m)))
-        nv = max(1, int(np.ceil(h_m / spacing_m)))
-        uu, vv = np.meshgrid((np.arange(nu) - (nu - 1) / 2) * spacing_m, (np.arange(nv) - (nv - 1) / 2) * spacing_m)
-        uv = np.stack([uu.ravel(), vv.ravel()], axis=1)
-        uv += (gen.random(uv.shape) - 0.5) * float(jitter) * spacing_m
-        h, w = self.mask.shape
-        col = np.floor(uv[:, 0] / self.pixel_m + w / 2).astype(np.int64)
-        row = np.floor(uv[:, 1] / self.pixel_m + h / 2).astype(np.int64)
-        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        keep = np.zeros(uv.shape[0], dtype=bool)
-        keep[inside] = self.mask[row[inside], col[inside]]
-        uv = uv[keep]
-        amp = np.full(uv.shape[0], self.reflectivity, dtype=np.complex128)
-        if speckle:
-            amp *= _random_phase(gen, uv.shape[0])
-        return self.plane_to_scene(uv), amp
+        uv, rc = self._grid(spacing_m, gen, jitter)
+        n = uv.shape[0]
+        if self.roughness_deg is not None:
+            amp = rough_amplitudes(self.reflectivity, n, self.roughness_deg, self.amplitude_spread, gen)
+        else:
+            amp = np.full(n, self.reflectivity, dtype=np.complex128)
+            if speckle:
+                amp *= _random_phase(gen, n)
+        return self.plane_to_scene(uv, self._depth_at(rc)), amp
 
 
 @dataclass
@@ -286,6 +362,8 @@ class PointCloudObject:
     material: str = "metal"
     colour_bgr: np.ndarray | None = None
     name: str = "points"
+    roughness_deg: float | None = None
+    amplitude_spread: float = 0.0
 
     def __post_init__(self) -> None:
         p = np.asarray(self.points_m)
@@ -306,10 +384,15 @@ class PointCloudObject:
             self.amplitudes = a
         mat = material(self.material)
         self.colour_bgr = _colour(self.colour_bgr, mat.colour_bgr)
+        self.roughness_deg, self.amplitude_spread = _check_roughness(self.name, self.roughness_deg, self.amplitude_spread)
 
     @property
     def reflectivity(self) -> float:
         return MATERIALS[self.material].reflectivity
+
+    def surface_points(self, spacing_m: float | None = None) -> np.ndarray:
+        """The points (thinned to one per cube of side ``spacing_m`` if given), float64 (N, 3)."""
+        return self.scatterers(spacing_m, 0, speckle=False)[0]
 
     def scatterers(
         self,
@@ -331,6 +414,8 @@ class PointCloudObject:
             idx = np.sort(idx)
         if self.amplitudes is not None:
             amp = self.amplitudes[idx].copy()
+        elif self.roughness_deg is not None:
+            amp = rough_amplitudes(self.reflectivity, idx.shape[0], self.roughness_deg, self.amplitude_spread, gen)
         else:
             amp = np.full(idx.shape[0], self.reflectivity, dtype=np.complex128)
             if speckle:
@@ -486,6 +571,54 @@ def disc(
     return PlanarObject(mask, pixel_m, centre_m, rotation, material, colour_bgr, None, name)
 
 
+def _object_u(obj: PlanarObject) -> np.ndarray:
+    """u coordinate (metres) of every mask column's centre, float64 (w,)."""
+    w = obj.mask.shape[1]
+    return (np.arange(w) + 0.5 - w / 2) * obj.pixel_m
+
+
+def cylinder_section(obj: PlanarObject, radius_m: float) -> PlanarObject:
+    """``obj`` wrapped onto a cylinder of radius ``radius_m`` whose axis runs along v (the mask's
+    rows), convex towards the radar: the centre column stays at w = 0 and a column at u recedes by
+    R - sqrt(R^2 - u^2). The mask is kept as the object's projection on its plane. Returns a new
+    :class:`PlanarObject` with ``depth_m`` set (same name, material, roughness)."""
+    r = _positive("radius_m", radius_m)
+    u = _object_u(obj)
+    if np.abs(u).max() >= r:
+        raise TwinFocusError(f"cylinder radius {r} m is smaller than half the object's width ({np.abs(u).max():.4f} m)")
+    w = r - np.sqrt(r * r - u * u)
+    return replace(obj, depth_m=np.broadcast_to(w[None, :], obj.mask.shape).copy())
+
+
+def bent_plate(obj: PlanarObject, bend_deg: float) -> PlanarObject:
+    """``obj`` folded along its centre line u = 0 (a crease along v) by ``bend_deg`` degrees in
+    all: each half turns away from the radar by bend/2, so a column at u recedes by
+    |u| tan(bend / 2) (a V with its crease towards the radar). Returns a new :class:`PlanarObject`
+    with ``depth_m`` set."""
+    b = float(bend_deg)
+    if not (np.isfinite(b) and 0.0 <= b < 180.0):
+        raise TwinFocusError(f"bend_deg must lie in [0, 180), got {bend_deg!r}")
+    w = np.abs(_object_u(obj)) * np.tan(np.deg2rad(b) / 2.0)
+    return replace(obj, depth_m=np.broadcast_to(w[None, :], obj.mask.shape).copy())
+
+
+#: Reference shapes :func:`shaped` knows, with the meaning of their parameter.
+SHAPES = {"plane": "none", "cylinder": "radius, metres", "bent": "bend angle, degrees"}
+
+
+def shaped(obj: PlanarObject, shape: str, parameter: float | None = None) -> PlanarObject:
+    """``obj`` as a ``shape`` of :data:`SHAPES`: 'plane' (unchanged), 'cylinder'
+    (:func:`cylinder_section`, ``parameter`` the radius, default 0.15 m) or 'bent'
+    (:func:`bent_plate`, ``parameter`` the bend, default 30 degrees)."""
+    if shape == "plane":
+        return obj
+    if shape == "cylinder":
+        return cylinder_section(obj, 0.15 if parameter is None else parameter)
+    if shape == "bent":
+        return bent_plate(obj, 30.0 if parameter is None else parameter)
+    raise TwinFocusError(f"unknown shape {shape!r}; use one of {', '.join(SHAPES)}")
+
+
 # --- occluders and clutter --------------------------------------------------------------------
 
 
@@ -499,7 +632,7 @@ class Occluder:
     """
 
     centre_m: np.ndarray
-    size_m: Sequence[float]
+    size_m: Sequence[float] | np.ndarray
     rotation: np.ndarray | None = None
     material: str = "polyester"
     attenuation_db: float | None = None
@@ -544,7 +677,7 @@ class Occluder:
         """Corners float64 (4, 3): top-left, top-right, bottom-right, bottom-left (as for masks)."""
         w, h = self.size_m
         uv = np.array([[-w / 2, -h / 2], [w / 2, -h / 2], [w / 2, h / 2], [-w / 2, h / 2]])
-        return self.centre_m + uv @ self.rotation[:, :2].T
+        return self.centre_m + uv @ _filled(self.rotation)[:, :2].T
 
     def crosses(self, origin_m, points_m: np.ndarray) -> np.ndarray:
         """Whether the segment from ``origin_m`` (3,) to each point (P, 3) passes through the sheet.
@@ -553,7 +686,8 @@ class Occluder:
         """
         o = _vec3("origin_m", origin_m)
         p = np.asarray(points_m, dtype=np.float64)
-        n = self.rotation[:, 2]
+        rot = _filled(self.rotation)
+        n = rot[:, 2]
         d = p - o
         denom = d @ n
         num = (self.centre_m - o) @ n
@@ -561,8 +695,8 @@ class Occluder:
             t = num / denom
         hit_plane = (np.abs(denom) > 1e-15) & (t > 0) & (t < 1 - 1e-9)
         x = o + t[:, None] * d - self.centre_m
-        u = x @ self.rotation[:, 0]
-        v = x @ self.rotation[:, 1]
+        u = x @ rot[:, 0]
+        v = x @ rot[:, 1]
         w, h = self.size_m
         return hit_plane & (np.abs(u) <= w / 2) & (np.abs(v) <= h / 2)
 
@@ -596,11 +730,11 @@ class Clutter:
                 raise TwinFocusError(f"clutter {name} must be a non-negative number, got {v!r}")
 
     @classmethod
-    def room(cls, distance_m: float = 0.6, n_points: int = 300, n_strong: int = 4) -> "Clutter":
+    def room(cls, distance_m: float = 0.6, n_points: int = 300, n_strong: int = 4) -> Clutter:
         """Clutter behind and around a scene at ``distance_m``: a box 0.8 m x 0.6 m across, from
         5 cm to 60 cm behind it, with ``n_strong`` bright spots."""
         d = _positive("distance_m", distance_m)
-        return cls((-0.4, -0.3, d + 0.05), (0.4, 0.3, d + 0.6), n_points=n_points, n_strong=n_strong)
+        return cls(np.array([-0.4, -0.3, d + 0.05]), np.array([0.4, 0.3, d + 0.6]), n_points=n_points, n_strong=n_strong)
 
     def scatterers(self, rng: np.random.Generator | int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(points_m float64 (P, 3), amplitudes complex128 (P,)), P = n_points + n_strong."""
@@ -652,7 +786,7 @@ class Scene:
                 return o
         raise TwinFocusError(f"scene has no object named {name!r}; it has {', '.join(self.names) or 'none'}")
 
-    def select(self, *names: str, occluders: bool = True, clutter: bool = False) -> "Scene":
+    def select(self, *names: str, occluders: bool = True, clutter: bool = False) -> Scene:
         """A scene with only the objects called ``names`` (same occluders unless told otherwise)."""
         for n in names:
             self.object(n)  # raises for an unknown name
@@ -736,7 +870,7 @@ def paper_scene(
     their centres lie at -separation/2 and +separation/2 from boresight, so they are
     ``separation_deg`` apart. For the defaults (A and F, 127 mm, 0.6 m, 10 degrees) the reference
     lies inside x [-0.15, 0], the target inside x [0.02, 0.13], both inside y [-0.11, 0.12] (the
-    regions of interest of DESIGN.md).
+    regions of interest of docs/architecture.md section 2).
 
     occluder : None, a material name (a sheet of it is put ``occluder_distance_m`` from the
         aperture, default 10 cm in front of the target, covering the target with a 2 cm margin
@@ -764,12 +898,15 @@ def paper_scene(
         scaled = corners * (z_occ / corners[:, 2:3])  # project the target's outline onto the sheet's plane
         lo, hi = scaled[:, :2].min(axis=0), scaled[:, :2].max(axis=0)
         margin = 0.02
-        centre = ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, z_occ)
+        centre = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, z_occ])
         occluders.append(Occluder(centre, (hi[0] - lo[0] + 2 * margin, hi[1] - lo[1] + 2 * margin), material=occluder))
+    room: Clutter | None
     if clutter is True:
-        clutter = Clutter.room(max(distance_m, ref_z))
+        room = Clutter.room(max(distance_m, ref_z))
     elif clutter is False or clutter is None:
-        clutter = None
-    elif not isinstance(clutter, Clutter):
+        room = None
+    elif isinstance(clutter, Clutter):
+        room = clutter
+    else:
         raise TwinFocusError(f"clutter must be True, False or a Clutter, got {clutter!r}")
-    return Scene([ref, tgt], occluders, clutter)
+    return Scene([ref, tgt], occluders, room)

@@ -1,6 +1,6 @@
 """IF samples of point scatterers seen from many phase centres: the radar simulator.
 
-Model (:mod:`twinfocus.radar`, DESIGN.md section 2), phase centre (m, k), scatterer j at
+Model (:mod:`twinfocus.radar`, docs/architecture.md section 2), phase centre (m, k), scatterer j at
 distance R = R_mkj:
 
     s_mk(t_n) = sum_j a_j exp(+j 2 pi (f0 + S t_n) 2 R / c)
@@ -38,7 +38,7 @@ against ~45 minutes for the brute-force sum.
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -302,7 +302,30 @@ def simulate_if(
     return out
 
 
-def add_thermal_noise(data, snr_db: float, rng: np.random.Generator | int | None = None) -> np.ndarray:
+#: CPU time per (phase centre, scatterer) pair of :func:`simulate_if`, seconds (module docstring:
+#: ~8 ns measured on the paper scene); used only for up-front estimates.
+SECONDS_PER_PAIR = 8e-9
+#: Bytes per IF sample (complex64) held at the peak of one simulated scan with thermal noise:
+#: the result (8) plus :func:`add_thermal_noise`'s transients (a complex128 power pass, the float32
+#: noise pair, its complex128 sum and the complex64 result: ~48).
+BYTES_PER_SAMPLE_PEAK = 56
+
+
+def simulation_cost(n_positions: int, n_channels: int, n_samples: int, n_scatterers: int,
+                    n_scans: int = 1) -> tuple[int, float]:
+    """Up-front estimate of simulating ``n_scans`` scans of this size: (peak bytes, CPU seconds).
+
+    Bytes: the finished scans (complex64) plus the noise pass of the last one; seconds:
+    :data:`SECONDS_PER_PAIR` per (phase centre, scatterer) pair, each scan with all scatterers.
+    """
+    elements = int(n_positions) * int(n_channels)
+    samples = elements * int(n_samples)
+    peak = samples * (8 * (int(n_scans) - 1) + BYTES_PER_SAMPLE_PEAK)
+    return int(peak), float(int(n_scans) * elements * int(n_scatterers) * SECONDS_PER_PAIR)
+
+
+def add_thermal_noise(data, snr_db: float, rng: np.random.Generator | int | None = None,
+                      signal_power: float | None = None) -> np.ndarray:
     """Add circular complex white Gaussian noise at a per-sample SNR.
 
     SNR definition: mean signal power over all samples, mean(|data|^2), divided by the noise
@@ -311,6 +334,9 @@ def add_thermal_noise(data, snr_db: float, rng: np.random.Generator | int | None
     far higher (coherent gain of M K N).
 
     data : complex (M, K, N) (any shape); snr_db : finite number; rng : Generator, seed or None.
+    signal_power : the mean signal power the SNR refers to, when ``data`` is one block of a
+    larger scan (the noise of consecutive blocks drawn from one generator equals one draw over
+    the whole scan); default mean(|data|^2).
     Returns complex64 of data's shape.
     """
     x = np.asarray(data)
@@ -319,7 +345,10 @@ def add_thermal_noise(data, snr_db: float, rng: np.random.Generator | int | None
     snr = float(snr_db)
     if not np.isfinite(snr):
         raise TwinFocusError(f"snr_db must be a finite number of decibels, got {snr_db!r}")
-    power = float(np.mean(np.abs(x.astype(np.complex128)) ** 2)) if x.size else 0.0
+    if signal_power is not None:
+        power = float(signal_power)
+    else:
+        power = float(np.mean(np.abs(x.astype(np.complex128)) ** 2)) if x.size else 0.0
     if not power > 0:
         raise TwinFocusError("data is all zeros (or empty): an SNR relative to it is undefined")
     sigma = np.sqrt(power * 10.0 ** (-snr / 10.0) / 2.0)

@@ -23,6 +23,12 @@ An amplitude template (a digital twin's) has no phase to correlate with; :func:`
 lends it the scan's own image phase and repeats the closed form (alternating projections, as in
 Gerchberg-Saxton phase retrieval), which needs no unwrapping either.
 
+A rough reference (every scatterer its own phase and strength) is speckled in the radar image,
+whatever a template's texture says; what a camera cloud does tell is its *outline*.
+:func:`outline_phase` asks only that the reference's energy fall inside it (Fienup's error
+reduction with a support constraint), with the outline registered to the scan and the start
+chosen by that same criterion.
+
 <a, b> = sum_pixels conj(a) b throughout.
 """
 from __future__ import annotations
@@ -30,22 +36,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.fft
 
+from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
-
-
-def shift_image(image: np.ndarray, dy: float, dx: float) -> np.ndarray:
-    """``image`` moved by (dy, dx) pixels (cubic spline, zeros shifted in); same dtype family.
-
-    Complex images are shifted in real and imaginary parts (a back-projected image is shift-
-    equivariant, phases included, for shifts small against the range).
-    """
-    from scipy.ndimage import shift
-
-    img = np.asarray(image)
-    if np.iscomplexobj(img):
-        return (shift(img.real, (dy, dx), order=3, mode="constant") + 1j * shift(img.imag, (dy, dx), order=3, mode="constant")).astype(img.dtype)
-    out = shift(img.astype(np.float64), (dy, dx), order=3, mode="constant")
-    return np.maximum(out, 0.0).astype(img.dtype) if np.all(img >= 0) else out.astype(img.dtype)
+from twinfocus.subpixel import parabola_vertex, shift_image
 
 
 def _check(basis: np.ndarray, template: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +87,6 @@ def projection_phase(basis: np.ndarray, amplitude: np.ndarray, iterations: int =
     modulus is taken); iterations : projection steps (>= 1); init_phase_rad : (M,) start (zeros).
     Returns float64 (M,) radians.
     """
-    from twinfocus.autofocus import form_image
 
     a = np.abs(np.asarray(amplitude))
     b, _ = _check(basis, a.astype(np.complex64))  # its shape, finiteness and emptiness checks
@@ -143,11 +135,6 @@ def match_scores(basis: np.ndarray, template: np.ndarray, max_shift_px: int = 4,
     return acc / np.sqrt(np.maximum(kept, 1e-30 * energy.sum()))
 
 
-def _vertex(m1: float, c: float, p1: float) -> float:
-    den = m1 - 2.0 * c + p1
-    return 0.0 if den >= 0 else float(np.clip(0.5 * (m1 - p1) / den, -0.5, 0.5))
-
-
 def register_template(basis: np.ndarray, template: np.ndarray, max_shift_px: int = 4) -> tuple[np.ndarray, tuple[float, float], dict]:
     """Move a complex template to where the scan's reference is (the peak of :func:`match_scores`,
     refined to sub-pixel by a parabola through the peak and its neighbours on each axis).
@@ -160,9 +147,75 @@ def register_template(basis: np.ndarray, template: np.ndarray, max_shift_px: int
     s = int(max_shift_px)
     i, j = np.unravel_index(int(np.argmax(scores)), scores.shape)
     at_limit = i in (0, 2 * s) or j in (0, 2 * s)
-    fy = 0.0 if i in (0, 2 * s) else _vertex(scores[i - 1, j], scores[i, j], scores[i + 1, j])
-    fx = 0.0 if j in (0, 2 * s) else _vertex(scores[i, j - 1], scores[i, j], scores[i, j + 1])
+    fy = 0.0 if i in (0, 2 * s) else parabola_vertex(scores[i - 1, j], scores[i, j], scores[i + 1, j])
+    fx = 0.0 if j in (0, 2 * s) else parabola_vertex(scores[i, j - 1], scores[i, j], scores[i, j + 1])
     dy, dx = i - s + fy, j - s + fx
     moved = shift_image(np.asarray(template, np.complex64), dy, dx)
     info = {"shift_px": [float(dy), float(dx)], "score_gain": float(scores[i, j] / scores[s, s]), "at_limit": bool(at_limit)}
     return moved, (float(dy), float(dx)), info
+
+
+def _shift_mask(mask: np.ndarray, dy: int, dx: int) -> np.ndarray:
+    """``mask`` moved by whole pixels (dy rows, dx columns), zero-filled (no wrap-around)."""
+    out = np.zeros_like(mask)
+    h, w = mask.shape
+    out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] = mask[max(-dy, 0):h + min(-dy, 0), max(-dx, 0):w + min(-dx, 0)]
+    return out
+
+
+def outline_phase(basis: np.ndarray, support: np.ndarray, starts: int = 12, iterations: int = 20, rounds: int = 3,
+                  max_shift_px: int = 3, seed: int = 0) -> tuple[np.ndarray, dict]:
+    """Per-position phases that put the reference's energy inside its outline.
+
+    Maximises the fraction of the image's energy inside the support S,
+    F(phi) = sum_{p in S} |I_p|^2 / sum_p |I_p|^2 with I = sum_m exp(j phi_m) B_m, by projections:
+    T = I restricted to S, then the closed form phi_m = angle <B_m, T> (each step raises the energy
+    inside S; every step is on the unit circle, so wrapped errors cost nothing more). Between
+    ``rounds`` the outline is moved by the whole-pixel shift (up to ``max_shift_px``) that holds the
+    most of the current image's energy: a camera cloud sits a few millimetres off where the radar
+    sees the reference. All starts (zeros and ``starts`` random ones, fixed ``seed``) run at once
+    (one matrix product per step); the start with the largest F is returned.
+
+    basis : complex (M, H, W); support : bool (H, W), True inside the reference's outline (e.g.
+    :attr:`twinfocus.digital_twin.condition.DigitalTwinReference.support`).
+
+    Returns (float64 (M,) radians, info: ``energy_inside`` per start, ``chosen`` start,
+    ``support_shift_px`` (dy, dx) of the chosen start's outline).
+    """
+    b = np.asarray(basis)
+    mask = np.asarray(support, dtype=bool)
+    if b.ndim != 3 or not np.iscomplexobj(b):
+        raise TwinFocusError(f"basis must be complex (M, H, W), got {b.dtype} {b.shape}")
+    if mask.shape != b.shape[1:]:
+        raise TwinFocusError(f"support is {mask.shape} but the reference region is {b.shape[1:]}")
+    if not mask.any() or mask.all():
+        raise TwinFocusError("the reference's outline must cover some but not all of the reference region")
+    if min(int(starts), int(iterations), int(rounds), int(max_shift_px)) < 0 or int(iterations) < 1 or int(rounds) < 1:
+        raise TwinFocusError("outline estimator: iterations and rounds must be >= 1, starts and max_shift_px >= 0")
+    m = b.shape[0]
+    flat = b.reshape(m, -1)
+    rng = np.random.default_rng(seed)
+    phi = np.vstack([np.zeros((1, m)), rng.uniform(-np.pi, np.pi, (int(starts), m))])  # (S, M)
+    n = phi.shape[0]
+    shifts = [(0, 0)] * n
+    masks = np.repeat(mask.reshape(1, -1), n, axis=0).astype(np.float32)  # (S, P)
+    r = int(max_shift_px)
+    for rnd in range(int(rounds)):
+        for _ in range(int(iterations)):
+            image = np.exp(1j * phi).astype(np.complex64) @ flat  # (S, P)
+            # angle <B_m, T_s> = -angle (B_m . conj T_s), for all starts in one product
+            phi = -np.angle((flat @ np.conj(masks * image).T).T).astype(np.float64)
+        if rnd == int(rounds) - 1 or r == 0:
+            break
+        energy = np.abs(np.exp(1j * phi).astype(np.complex64) @ flat) ** 2
+        for i in range(n):
+            e = energy[i].reshape(mask.shape)
+            best = max((float((_shift_mask(mask, dy, dx) * e).sum()), dy, dx)
+                        for dy in range(-r, r + 1) for dx in range(-r, r + 1))
+            shifts[i] = best[1:]
+            masks[i] = _shift_mask(mask, *shifts[i]).reshape(-1)
+    energy = np.abs(np.exp(1j * phi).astype(np.complex64) @ flat) ** 2
+    inside = (masks * energy).sum(axis=1) / np.maximum(energy.sum(axis=1), 1e-300)
+    chosen = int(np.argmax(inside))
+    return phi[chosen].copy(), {"energy_inside": [round(float(v), 4) for v in inside], "chosen": chosen,
+                                "support_shift_px": [int(v) for v in shifts[chosen]]}

@@ -1,6 +1,6 @@
 """Reference templates: the focused amplitude of the reference on the reference grid.
 
-Template file (``.npz``, DESIGN.md section 4): ``image`` float32 (H, W) amplitude, ``x_m`` (W,),
+Template file (``.npz``, docs/architecture.md section 4): ``image`` float32 (H, W) amplitude, ``x_m`` (W,),
 ``y_m`` (H,), ``z_m`` scalar, and optionally ``phase_rad`` float32 (H, W): the phase of a physical
 twin's image, which lets autofocus register the template and estimate the phases in closed form
 (:mod:`twinfocus.template_match`). A template made on another grid is resampled (bilinear, on the
@@ -11,7 +11,6 @@ from __future__ import annotations
 import os
 
 import numpy as np
-from scipy.ndimage import map_coordinates
 
 from twinfocus.backprojection import backproject
 from twinfocus.errors import TwinFocusError
@@ -64,6 +63,8 @@ def load_template(path: str | os.PathLike, grid: ImageGrid, z_tolerance_m: float
     out_dtype = np.complex64 if np.iscomplexobj(img) else np.float32
     if x.shape == grid.x_m.shape and y.shape == grid.y_m.shape and np.allclose(x, grid.x_m) and np.allclose(y, grid.y_m):
         return img.astype(out_dtype)
+    from scipy.ndimage import map_coordinates  # only a resample needs it (0.1 s import)
+
     cols = np.interp(grid.x_m, x, np.arange(x.size))
     rows = np.interp(grid.y_m, y, np.arange(y.size))
     rr, cc = np.meshgrid(rows, cols, indexing="ij")

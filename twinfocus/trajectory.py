@@ -1,7 +1,7 @@
 """Radar trajectories: poses over time, the paper's motion-stage raster, a hand sweep, and the
 phase centres a trajectory gives a MIMO array.
 
-Frames (DESIGN.md section 4): the scene frame has x and y spanning the aperture plane and z
+Frames (docs/architecture.md section 4): the scene frame has x and y spanning the aperture plane and z
 pointing from the aperture into the scene. The radar *body* frame has x along the virtual array,
 y across it and z along boresight (into the scene); a pose's quaternion rotates body vectors into
 the scene frame, so the identity pose looks along scene +z with the array along scene x.
@@ -208,7 +208,7 @@ class Poses:
         """Body -> scene rotations, float64 (M, 3, 3)."""
         return quat_to_matrix(self.quat_xyzw)
 
-    def select(self, index) -> "Poses":
+    def select(self, index) -> Poses:
         """The poses at ``index`` (slice, integer array or boolean mask), as new Poses."""
         idx = np.arange(len(self))[index]
         idx = np.atleast_1d(idx)
@@ -219,11 +219,11 @@ class Poses:
             None if self.confidence is None else self.confidence[idx],
         )
 
-    def with_positions(self, position_m: np.ndarray) -> "Poses":
+    def with_positions(self, position_m: np.ndarray) -> Poses:
         """The same poses moved to ``position_m`` (M, 3) (e.g. with tracking errors added)."""
         return Poses(self.timestamps_ns, position_m, self.quat_xyzw, self.confidence)
 
-    def interpolate(self, timestamps_ns: np.ndarray) -> "Poses":
+    def interpolate(self, timestamps_ns: np.ndarray) -> Poses:
         """Poses at other times: positions linearly, orientations by :func:`slerp`.
 
         ``timestamps_ns`` : int (T,), non-decreasing. Times outside [first, last] are clamped to

@@ -16,11 +16,13 @@ from twinfocus.errors import TwinFocusError
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("twinfocus.cli.simulate", "simulate a handheld scan (and a motion-stage template scan)"),
     "focus": ("twinfocus.cli.focus", "focus a scan file offline with a twin reference"),
+    "batch": ("twinfocus.cli.batch", "focus every scan of a manifest on Dask (local cluster or --scheduler)"),
     "twin": ("twinfocus.cli.twin", "digital twin: stereo pair + seed -> reference point cloud and template"),
     "render": ("twinfocus.cli.render", "render the simulated scene as the stereo camera sees it (left/right PNG)"),
     "launch": ("twinfocus.cli.launch", "start a graph of nodes from a launch file (launch/sim.yaml, ...)"),
     "record": ("twinfocus.cli.record", "record topics of a running graph to an MCAP log"),
     "play": ("twinfocus.cli.play", "replay an MCAP log onto a running graph"),
+    "export": ("twinfocus.cli.export", "export an MCAP log for another viewer (--to foxglove: Foxglove's well-known schemas)"),
     "topic": ("twinfocus.cli.topic", "list, echo or measure the rate of topics of a running graph"),
     "convert": ("twinfocus.cli.convert", "convert a TI MMWCAS capture folder + trajectory file to a scan file (+ MCAP)"),
     "devices": ("twinfocus.cli.devices", "list attached radars, capture boards and cameras (USB)"),

@@ -5,6 +5,7 @@ beyond``: the improvements of the twin estimate beyond the paper, one row each.
     twinfocus bench paper [--quick] [--out DIR] [--draws N] [--only EXPERIMENTS] [--markdown FILE] [--resume]
     twinfocus bench paper --report-only [--out DIR] [--markdown FILE]
     twinfocus bench beyond [--quick] [--out DIR] [--draws N] [--markdown FILE] [--resume] [--report-only]
+    ... [--workers N | --scheduler tcp://HOST:PORT]: the experiments as Dask tasks (docs/batch.md)
 """
 from __future__ import annotations
 
@@ -34,6 +35,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report-only", action="store_true", help="only rewrite the report from the raw results in OUT/raw")
     p.add_argument("--trade-scenes", type=int, default=None, help="scenes in the speed/accuracy trade (default 1; pairs A>F, R>X)")
     p.add_argument("--device", default="cpu", help="torch device for the optimiser and back-projection (cpu, cuda)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, default=None,
+                       help="spread the experiments over a local Dask cluster of this many worker processes "
+                            "(default: one after the other in this process)")
+    where.add_argument("--scheduler", default=None,
+                       help="spread the experiments over an existing Dask cluster (tcp://HOST:PORT of 'dask scheduler'; "
+                            "docs/batch.md); the results equal the serial run's")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
@@ -60,14 +68,17 @@ def run(args: argparse.Namespace) -> int:
             raise TwinFocusError(f"--device {args.device}: no CUDA device is available")
     if args.trade_scenes is not None and args.trade_scenes < 1:
         raise TwinFocusError(f"--trade-scenes must be at least 1, got {args.trade_scenes}")
+    if args.workers is not None and args.workers < 1:
+        raise TwinFocusError(f"--workers must be at least 1, got {args.workers}")
+    cluster = {"scheduler": args.scheduler} if args.scheduler else {"workers": args.workers} if args.workers else None
     command = "twinfocus bench " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["bench"] else None
     log = (lambda msg: None) if args.quiet else None
     kw = {} if log is None else {"log": log}
     if args.suite == "beyond":
         print(run_beyond(args.out, draws=args.draws or 1, quick=args.quick, resume=args.resume, markdown=args.markdown,
-                         device=args.device, command=command, **kw))
+                         device=args.device, command=command, cluster=cluster, **kw))
         return 0
     md = run_paper(args.out, quick=args.quick, draws=args.draws, only=only, resume=args.resume, markdown=args.markdown,
-                   device=args.device, trade_scenes=args.trade_scenes, command=command, **kw)
+                   device=args.device, trade_scenes=args.trade_scenes, command=command, cluster=cluster, **kw)
     print(md)
     return 0

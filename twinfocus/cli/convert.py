@@ -1,9 +1,15 @@
-"""``twinfocus convert``: a TI MMWCAS capture folder plus a trajectory file -> a scan file (+ MCAP log).
+"""``twinfocus convert``: a TI capture plus a trajectory file -> a scan file (+ MCAP log).
 
-Example::
+The capture is an MMWCAS cascade folder (``master_0000_idx.bin`` ...) or a DCA1000 capture
+(``adc_data.bin`` from mmWave Studio, the DCA1000EVM CLI's ``<prefix>_Raw_N.bin``; see
+:mod:`twinfocus.sensors.dca1000_files`). Example::
 
     twinfocus convert capture_dir --trajectory zed_poses.txt --extrinsics radar_camera.yaml \\
         --z0 0.6 --out scan.npz --mcap scan.mcap
+    twinfocus convert adc_data.bin --cfg radar.cfg --dca-json cf.json --trajectory poses.txt --out scan.npz
+
+Beside the scan, ``<out>.capture.json`` records the capture's gaps (frames lost, zero-filled,
+bytes lost, frames dropped as flagged) for the metrics of a later ``focus``.
 """
 from __future__ import annotations
 
@@ -16,7 +22,8 @@ from twinfocus.errors import TwinFocusError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("capture", help="MMWCAS capture folder (master_0000_data.bin, master_0000_idx.bin, slave1_..., ...)")
+    p.add_argument("capture", help="MMWCAS capture folder (master_0000_data.bin, master_0000_idx.bin, slave1_..., ...), "
+                                   "or a DCA1000 capture (adc_data.bin, <prefix>_Raw_0.bin, or their folder)")
     p.add_argument("--trajectory", required=True, help="camera (VIO) trajectory file, TUM or EuRoC format")
     p.add_argument("--trajectory-format", choices=["auto", "tum", "euroc"], default="auto")
     p.add_argument("--extrinsics", help="camera-radar calibration (YAML); default identity (radar at the camera)")
@@ -32,8 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "'world': the VIO world frame")
     p.add_argument("--keep-first-frame", action="store_true", help="keep the capture card's first frame (known bad)")
     p.add_argument("--keep-flagged", action="store_true", help="keep frames flagged as device-skewed")
-    p.add_argument("--n-samples", type=int, default=256, help="ADC samples per chirp (default 256)")
-    p.add_argument("--n-loops", type=int, default=1, help="chirp loops per frame (default 1)")
+    p.add_argument("--n-samples", type=int, default=256, help="ADC samples per chirp (default 256; a capture's mmWave Studio JSON gives its own)")
+    p.add_argument("--n-loops", type=int, help="chirp loops per frame (default: the configuration's, else 1)")
     p.add_argument("--loop", type=int, default=0, help="which loop of each frame to use (default 0)")
     p.add_argument("--f0-hz", type=float, default=76.6e9, help="frequency of the first ADC sample (default 76.6e9)")
     p.add_argument("--slope-hz-per-s", type=float, default=120e12, help="chirp slope (default 120e12)")
@@ -41,15 +48,38 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timestamp-unit-ns", type=int, default=1000,
                    help="nanoseconds per tick of the index files' time stamps (default 1000: microseconds)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --mcap file")
+    g = p.add_argument_group("cascade chirp layout (read from the capture's mmWave Studio JSON / Lua setup when there)")
+    g.add_argument("--setup", help="the capture's configuration: mmWave Studio JSON (*.mmwave.json) or cascade setup Lua "
+                                   "(default: one found in the capture folder, or a .mmwave.json in its parent)")
+    g.add_argument("--tx-order", help="TxToEnable of the cascade scripts: TX numbers 1..12 in chirp order, comma separated "
+                                      "(default: from the capture's configuration, else 12,11,...,1)")
+    g.add_argument("--frame-period-s", type=float, help="frame period, s (default: from the configuration; MMWCAS 0.1, "
+                                                        "DCA1000 the .cfg's frameCfg)")
+    g.add_argument("--drop-first-frame-of-each-slice", action="store_true",
+                   help="drop the first frame of every capture slice _0000, _0001, ... as TI's cascade processing does "
+                        "(default: only the capture's first)")
+    g = p.add_argument_group("DCA1000 capture files")
+    g.add_argument("--cfg", help="mmWave SDK .cfg the radar ran (chirp, frame layout, frame period)")
+    g.add_argument("--dca-json", help="DCA1000EVM CLI JSON the capture was recorded with (reorderEnable, MSBToggle, lvdsMode); "
+                                      "default: a *.json beside the capture holding DCA1000Config")
+    g.add_argument("--dca-format", choices=["auto", "raw", "reordered", "records"], default="auto",
+                   help="byte layout: 'raw' I0 I1 Q0 Q1 (mmWave Studio adc_data.bin), 'reordered' I0 Q0 I1 Q1 (CLI with "
+                        "reorderEnable), 'records' (CLI sequence-number records); 'auto' (default) tells them apart")
+    g.add_argument("--dca-layout", choices=["mmwcas", "cfg"], default="mmwcas",
+                   help="'mmwcas' (default): 12 chirps = TX 0..11 x 16 RX as the emulated rig streams; 'cfg': from --cfg")
     p.add_argument("--quiet", action="store_true")
 
 
+def _is_mmwcas(path: Path) -> bool:
+    return path.is_dir() and any(path.glob("master_*_idx.bin"))
+
+
 def run(args: argparse.Namespace) -> int:
+    from twinfocus.evaluation.runner import write_json_atomic
     from twinfocus.progress import Progress
-    from twinfocus.radar import Chirp, mmwcas_virtual_array
-    from twinfocus.sensors.capture_to_scan import scan_from_frames
+    from twinfocus.radar import mmwcas_virtual_array
+    from twinfocus.sensors.capture_to_scan import capture_report_path, scan_from_frames
     from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
-    from twinfocus.sensors.ti_mmwcas import MmwcasCapture, MmwcasConfig
     from twinfocus.sensors.trajectory_files import read_trajectory
 
     out = Path(args.out)
@@ -59,23 +89,29 @@ def run(args: argparse.Namespace) -> int:
         raise TwinFocusError(f"{args.mcap}: already exists; choose another name or pass --overwrite")
     if not args.z0 > 0:
         raise TwinFocusError(f"--z0 must be positive, got {args.z0}")
-    chirp = Chirp(args.f0_hz, args.slope_hz_per_s, args.fs_hz, args.n_samples)
-    config = MmwcasConfig(chirp=chirp, n_loops=args.n_loops, timestamp_unit_ns=args.timestamp_unit_ns)
+    capture = Path(args.capture)
+    if not capture.exists():
+        raise TwinFocusError(f"{capture}: no such capture file or folder")
     poses = read_trajectory(args.trajectory, args.trajectory_format)
     extrinsics = RadarCameraExtrinsics.load(args.extrinsics) if args.extrinsics else RadarCameraExtrinsics()
     say = (lambda *a: None) if args.quiet else (lambda msg: print(f"[convert] {msg}", file=sys.stderr))
     if not args.extrinsics:
         say("no --extrinsics: the radar is taken to sit at the camera (identity transform)")
     array = mmwcas_virtual_array()
-    with MmwcasCapture(args.capture, config, skip_first_frame=not args.keep_first_frame) as cap:
+    gaps: dict = {}
+    if _is_mmwcas(capture):
+        cap, chirp = _open_mmwcas(args, capture, say)
+    else:
+        cap, chirp, gaps = _open_dca1000(args, capture, say)
+    with cap:
         for w in cap.warnings:
             say(f"warning: {w}")
-        if args.loop != 0:
-            if not 0 <= args.loop < args.n_loops:
-                raise TwinFocusError(f"--loop must be in 0..{args.n_loops - 1}, got {args.loop}")
+        if args.loop != 0 and _is_mmwcas(capture):
+            if not 0 <= args.loop < cap.config.n_loops:
+                raise TwinFocusError(f"--loop must be in 0..{cap.config.n_loops - 1}, got {args.loop}")
             frames = list(cap.frames(loop=args.loop))
         else:
-            frames = cap
+            frames = cap if _is_mmwcas(capture) else cap.frames
         scan, radar_traj, report = scan_from_frames(
             frames, chirp, poses, args.z0, extrinsics, array,
             time_offset_ns=int(round(args.time_offset_s * 1e9)), align=args.align, scene_frame=args.frame,
@@ -84,14 +120,85 @@ def run(args: argparse.Namespace) -> int:
         for note in report.notes:
             say(note)
         scan.save(out)
+        gaps = {**report.gaps(), **gaps}
+        write_json_atomic(capture_report_path(out), {"capture": str(capture), **gaps})
         say(f"{report.n_used} of {report.n_frames} frames -> {out} ({scan.data.shape[0]} x {scan.data.shape[1]} x {scan.data.shape[2]})")
         if args.mcap:
-            _write_mcap(Path(args.mcap), scan, radar_traj, array, chirp, extrinsics, Path(args.capture).name, args.overwrite)
+            _write_mcap(Path(args.mcap), scan, radar_traj, array, chirp, extrinsics, capture.name, args.overwrite)
             say(f"log -> {args.mcap}")
     print(json.dumps({"scan": str(out), "frames": report.n_frames, "used": report.n_used,
                       "dropped_outside": report.n_outside, "dropped_flagged": report.n_flagged,
-                      "time_shift_s": report.time_shift_ns * 1e-9}))
+                      "time_shift_s": report.time_shift_ns * 1e-9, **gaps}))
     return 0
+
+
+def _open_mmwcas(args, capture: Path, say):
+    from twinfocus.radar import Chirp
+    from twinfocus.sensors.ti_mmwcas import MmwcasCapture, resolve_config
+
+    chirp = Chirp(args.f0_hz, args.slope_hz_per_s, args.fs_hz, args.n_samples)
+    config, notes = resolve_config(capture, chirp, n_loops=args.n_loops, tx_order=args.tx_order,
+                                   frame_period_s=args.frame_period_s, timestamp_unit_ns=args.timestamp_unit_ns,
+                                   setup=args.setup)
+    for n in notes:
+        say(n)
+    cap = MmwcasCapture(capture, config, skip_first_frame=not args.keep_first_frame,
+                        skip_first_frame_of_each_slice=args.drop_first_frame_of_each_slice)
+    return cap, config.chirp
+
+
+class _Closing:
+    """A DCA1000 file capture in the ``with`` form the MMWCAS capture has."""
+
+    def __init__(self, cap):
+        self.cap = cap
+        self.frames = cap.frames
+        self.warnings = cap.warnings
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
+
+
+def _open_dca1000(args, capture: Path, say):
+    from twinfocus.radar import Chirp
+    from twinfocus.sensors.dca1000 import RawFrameLayout
+    from twinfocus.sensors.dca1000_files import Dca1000FileCapture, find_cli_json, read_cli_json
+    from twinfocus.sensors.ti_cli import RadarCliConfig
+
+    period = args.frame_period_s
+    if args.cfg:
+        cli_cfg = RadarCliConfig.from_cfg(args.cfg)
+        cli_cfg.check_stream_format()
+        chirp = cli_cfg.chirp()
+        period = period or cli_cfg.frame_period_s
+        layout = cli_cfg.raw_layout() if args.dca_layout == "cfg" else RawFrameLayout(chirp.n_samples, 16, tuple(range(12)), 1, 12)
+    else:
+        if args.dca_layout == "cfg":
+            raise TwinFocusError("--dca-layout cfg needs --cfg (the mmWave SDK .cfg the radar ran)")
+        chirp = Chirp(args.f0_hz, args.slope_hz_per_s, args.fs_hz, args.n_samples)
+        layout = RawFrameLayout(chirp.n_samples, 16, tuple(range(12)), args.n_loops or 1, 12)
+    if not period:
+        raise TwinFocusError(f"{capture}: a DCA1000 capture holds no time stamps; give --frame-period-s or --cfg")
+    n_tx = layout.n_tx
+    assert n_tx is not None  # RawFrameLayout.__post_init__ fills it in
+    if n_tx < 12 or layout.n_rx < 16:
+        raise TwinFocusError(f"the frames have {n_tx} TX x {layout.n_rx} RX; the 86 virtual channels of the MMWCAS "
+                             "array need 12 x 16 (--dca-layout mmwcas for the emulated rig)")
+    json_path = args.dca_json or find_cli_json(capture)
+    settings = read_cli_json(json_path) if json_path else None
+    if json_path and not args.dca_json:
+        say(f"DCA1000 CLI settings from {json_path}")
+    cap = Dca1000FileCapture(capture, layout, period, args.dca_format, settings, loop=args.loop)
+    say(f"DCA1000 capture read as '{cap.format}' ({len(cap.frames)} frames of {layout.frame_bytes} bytes, "
+        f"frame period {period * 1e3:g} ms)")
+    st = cap.stats
+    gaps = {"frames_lost": st.frames_lost, "frames_zero_filled": st.frames_zero_filled, "bytes_lost": st.lost_bytes}
+    if st.frames_lost or st.frames_zero_filled:
+        say(f"capture gaps: {st.frames_lost} frame(s) lost, {st.frames_zero_filled} zero-filled, {st.lost_bytes} bytes lost")
+    return _Closing(cap), chirp, gaps
 
 
 def _write_mcap(path: Path, scan, radar_traj, array, chirp, extrinsics, scan_id: str, overwrite: bool) -> None:
@@ -120,6 +227,7 @@ def _write_mcap(path: Path, scan, radar_traj, array, chirp, extrinsics, scan_id:
         log.add_metadata("radar", radar_metadata("radar/frame", radar_frame(int(scan.timestamps_ns[0]), 0)))
         log.add_metadata("calibration", {"extrinsics": extrinsics.to_dict()})
         for stamp, _, topic, i in events:
+            msg: Pose | RadarFrame
             if topic == "vio/pose":
                 conf = 1.0 if radar_traj.confidence is None else float(radar_traj.confidence[i])
                 msg = Pose(header=Header(stamp, seq[topic], "scene"), position_m=radar_traj.position_m[i],

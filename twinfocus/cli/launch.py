@@ -13,7 +13,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", help="launch file (a path, or a name in launch/: sim, replay, live); options go before it")
     parser.add_argument("assignments", nargs="*", metavar="name:=value", help="launch arguments")
     parser.add_argument("--show", action="store_true", help="print the resolved graph and exit")
-    parser.add_argument("--grace", type=float, default=10.0, help="seconds a node gets to stop after Ctrl-C before SIGTERM")
+    parser.add_argument("--grace", type=float, default=10.0, help="seconds a node gets to stop after Ctrl-C before SIGKILL")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -23,7 +23,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"broker: {graph.broker}")
         print("arguments: " + ", ".join(f"{k}={v!r}" for k, v in graph.arguments.items()))
         for n in graph.nodes:
-            print(f"- {n.name} ({n.module}){' on_exit=shutdown' if n.on_exit == 'shutdown' else ''}")
+            respawn = f" respawn (delay {n.respawn_delay_s:g} s, at most {n.respawn_max})" if n.respawn else ""
+            print(f"- {n.name} ({n.module}) on_exit={n.on_exit}{respawn}")
             for k, v in n.parameters.items():
                 print(f"    {k}: {v!r}")
         return 0

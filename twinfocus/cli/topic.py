@@ -26,6 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     common = {"out": sys.stdout, "broker": args.broker}
+    node: TopicList | TopicEcho | TopicHz
     if args.action == "list":
         node = TopicList(duration_s=args.wait, verbose=args.verbose, **common)
     elif args.action == "echo":

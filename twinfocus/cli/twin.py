@@ -43,7 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", type=int, default=100, help="template size in pixels per side (default 100)")
     p.add_argument("--out", help="template file to write (.npz: image, x_m, y_m, z_m)")
     p.add_argument("--template-method", choices=["psf", "exact"], default="psf", help="psf (fast, default) or exact")
-    p.add_argument("--incoherent", action="store_true", help="template of a rough surface (mean speckle amplitude)")
+    p.add_argument("--incoherent", action="store_true",
+                   help="a rough reference: outline-only model, template of the mean speckle amplitude")
+    p.add_argument("--support-out", help="with --out: also write the reference's outline on the grid (PNG)")
     p.add_argument("--calibration", help="radar-camera offset calibration to apply (JSON)")
     p.add_argument("--calibrate-scan", help="scan on accurate positions: measure the radar-camera offset")
     p.add_argument("--calibration-out", help="where to write the measured calibration (JSON)")
@@ -58,6 +60,8 @@ def _check_args(args) -> None:
         raise TwinFocusError("--calibrate-scan needs --reference-roi and --calibration-out")
     if args.calibration_out and not args.calibrate_scan:
         raise TwinFocusError("--calibration-out needs --calibrate-scan")
+    if args.support_out and not args.out:
+        raise TwinFocusError("--support-out needs --out (the template's grid)")
     if args.out and not str(args.out).endswith(".npz"):
         raise TwinFocusError(f"--out must name a .npz file, got {args.out}")
     if not str(args.points_out).endswith(".npy"):
@@ -71,7 +75,8 @@ def _check_args(args) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from twinfocus.digital_twin.camera import StereoCamera, write_bytes_atomic
+    from twinfocus.atomic import write_bytes_atomic
+    from twinfocus.digital_twin.camera import StereoCamera
     from twinfocus.digital_twin.pipeline import reference_from_stereo
     from twinfocus.digital_twin.pointcloud import PointCloudConfig, radar_point_spacing
     from twinfocus.digital_twin.render import read_image, write_image_atomic
@@ -126,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
         from twinfocus.digital_twin.align import calibrate_offset
         from twinfocus.digital_twin.template import digital_twin_template
 
+        assert grid is not None  # _check_args: --calibrate-scan needs --reference-roi
         cal_scan = Scan.load(args.calibrate_scan)
         pos = cal_scan.positions_true if cal_scan.positions_true is not None else cal_scan.positions
         say("calibrating the radar-camera offset against the accurate-position scan")
@@ -143,12 +149,18 @@ def run(args: argparse.Namespace) -> int:
     points_radar = points if calib_offset is None else points + calib_offset
     template = None
     if args.out:
-        from twinfocus.digital_twin.template import digital_twin_template
+        from twinfocus.digital_twin.condition import ConditionConfig, digital_twin_reference
 
-        say(f"simulating the template ({args.template_method}) over {scan.n_positions} x {scan.n_channels} phase centres")
+        assert scan is not None and grid is not None  # _check_args: --out needs --scan and --reference-roi
+        say(f"conditioning the cloud and simulating the template ({args.template_method}) over "
+            f"{scan.n_positions} x {scan.n_channels} phase centres")
         t = time.perf_counter()
-        template = digital_twin_template(points_radar, scan.positions, scan.chirp, grid, method=args.template_method,
-                                         coherent=not args.incoherent)
+        # --incoherent: a rough reference, whose radar texture no camera sees: its outline alone.
+        ref = digital_twin_reference(points_radar, scan.positions, scan.chirp, grid, method=args.template_method,
+                                     config=ConditionConfig(surface="outline" if args.incoherent else "auto"))
+        template = ref.template
+        report["conditioning"] = ref.info
+        say(f"surface model: {ref.surface} ({ref.info['surface_reason']})")
         timings["template"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     report["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
@@ -166,9 +178,12 @@ def run(args: argparse.Namespace) -> int:
     if template is not None:
         from twinfocus.templates import save_template
 
+        assert grid is not None  # a template is made only on a grid
         save_template(args.out, template, grid)
+        if args.support_out:
+            write_image_atomic(args.support_out, ref.support.astype(np.uint8) * 255)
     if args.report:
-        from twinfocus.digital_twin.camera import write_text_atomic
+        from twinfocus.atomic import write_text_atomic
 
         write_text_atomic(args.report, json.dumps(report, indent=2, default=float) + "\n")
     say(f"{points.shape[0]} points ({twin.cloud.surface} surface), stages " +

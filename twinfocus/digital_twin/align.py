@@ -27,6 +27,7 @@ import numpy as np
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
+from twinfocus.subpixel import parabola_vertex, shift_image
 
 
 def register_translation(moving: np.ndarray, fixed: np.ndarray) -> tuple[float, float, float]:
@@ -54,30 +55,12 @@ def register_translation(moving: np.ndarray, fixed: np.ndarray) -> tuple[float, 
     xc = np.fft.irfft2(np.fft.rfft2(b, shape) * np.conj(np.fft.rfft2(a, shape)), shape)
     i, j = np.unravel_index(int(np.argmax(xc)), xc.shape)
 
-    def vertex(m1: float, c: float, p1: float) -> float:
-        den = m1 - 2.0 * c + p1
-        return 0.0 if den >= 0 else float(np.clip(0.5 * (m1 - p1) / den, -0.5, 0.5))
-
-    fy = vertex(xc[(i - 1) % shape[0], j], xc[i, j], xc[(i + 1) % shape[0], j])
-    fx = vertex(xc[i, (j - 1) % shape[1]], xc[i, j], xc[i, (j + 1) % shape[1]])
+    fy = parabola_vertex(xc[(i - 1) % shape[0], j], xc[i, j], xc[(i + 1) % shape[0], j])
+    fx = parabola_vertex(xc[i, (j - 1) % shape[1]], xc[i, j], xc[i, (j + 1) % shape[1]])
     dy = (i if i < h else i - shape[0]) + fy
     dx = (j if j < w else j - shape[1]) + fx
     norm = float(np.sqrt((a * a).sum() * (b * b).sum()))
     return float(dy), float(dx), float(xc[i, j] / norm) if norm > 0 else 0.0
-
-
-def shift_image(image: np.ndarray, dy: float, dx: float) -> np.ndarray:
-    """``image`` moved by (dy, dx) pixels (cubic spline, zeros shifted in); same dtype family.
-
-    Complex images are shifted in real and imaginary parts.
-    """
-    from scipy.ndimage import shift
-
-    img = np.asarray(image)
-    if np.iscomplexobj(img):
-        return shift(img.real, (dy, dx), order=3, mode="constant") + 1j * shift(img.imag, (dy, dx), order=3, mode="constant")
-    out = shift(img.astype(np.float64), (dy, dx), order=3, mode="constant")
-    return np.maximum(out, 0.0).astype(img.dtype) if np.all(img >= 0) else out.astype(img.dtype)
 
 
 def pixels_to_metres(grid: ImageGrid, dy: float, dx: float) -> np.ndarray:
@@ -106,12 +89,12 @@ class RadarCameraCalibration:
                 "created_ns": int(self.created_ns), "source": self.source}
 
     def save(self, path: str | os.PathLike) -> Path:
-        from twinfocus.digital_twin.camera import write_text_atomic
+        from twinfocus.atomic import write_text_atomic
 
         return write_text_atomic(path, json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "RadarCameraCalibration":
+    def load(cls, path: str | os.PathLike) -> RadarCameraCalibration:
         path = Path(path)
         if not path.is_file():
             raise TwinFocusError(f"{path}: no such radar-camera calibration file (make one with twinfocus twin --calibrate-scan)")
@@ -162,7 +145,7 @@ def _parabola_vertex(lm: float, l0: float, lp: float, step: float) -> float:
     den = lm - 2.0 * l0 + lp
     if den <= 0:  # no interior minimum: go to the lower side
         return -step if lm < lp else (step if lp < lm else 0.0)
-    return float(np.clip(0.5 * step * (lm - lp) / den, -step, step))
+    return step * parabola_vertex(lm, l0, lp, limit=1.0)
 
 
 def refine_template_shift_by_loss(basis: np.ndarray, template: np.ndarray, config=None, step_px: float = 1.0,

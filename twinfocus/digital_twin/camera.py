@@ -7,7 +7,7 @@ optical axis; pixel (u, v) = (column, row) has its centre at integer coordinates
 sees a left-frame point p at ``R_rl @ p + t_rl`` (``cv2.stereoCalibrate``'s R, T); an ideal
 rectified pair has R_rl = I and t_rl = (-baseline, 0, 0).
 
-The radar's scene frame (DESIGN.md section 4) has x, y in the aperture plane and z into the scene;
+The radar's scene frame (docs/architecture.md section 4) has x, y in the aperture plane and z into the scene;
 its image rows grow with y (``ImageGrid``), so a camera looking along scene +z with identity
 rotation shows the scene in the same orientation as the radar image. ``scene_from_left`` is the
 4 x 4 pose of the left camera in the scene frame at the instant the stereo pair was taken (the
@@ -21,12 +21,12 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from twinfocus.atomic import write_text_atomic
 from twinfocus.errors import TwinFocusError
 
 ZED2I_BASELINE_M = 0.120
@@ -93,7 +93,7 @@ class Intrinsics:
         uu, vv = np.meshgrid(u, v)
         return np.stack([(uu - self.cx) / self.fx, (vv - self.cy) / self.fy, np.ones_like(uu)], axis=-1)
 
-    def scaled(self, factor: float) -> "Intrinsics":
+    def scaled(self, factor: float) -> Intrinsics:
         """The same camera at ``factor`` times the resolution (pixel centres stay consistent)."""
         f = float(factor)
         return Intrinsics(
@@ -106,7 +106,7 @@ class Intrinsics:
                 "width": int(self.width), "height": int(self.height), "dist": list(self.dist)}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Intrinsics":
+    def from_dict(cls, d: dict) -> Intrinsics:
         try:
             return cls(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
                        int(d["width"]), int(d["height"]), tuple(d.get("dist", (0.0,) * 5)))
@@ -213,7 +213,7 @@ class StereoCamera:
         height: int = ZED2I_HD720[1],
         scene_from_left: np.ndarray | None = None,
         baseline_m: float = ZED2I_BASELINE_M,
-    ) -> "StereoCamera":
+    ) -> StereoCamera:
         """An ideal rectified ZED 2i-like pair (defaults: HD720, fx = fy = 700 px, 120 mm).
 
         Other sizes scale the focal length with the width, like the ZED's resolution modes.
@@ -223,7 +223,7 @@ class StereoCamera:
         pose = pose_matrix(None, DEFAULT_LEFT_CAMERA_POSITION_M) if scene_from_left is None else scene_from_left
         return cls(eye, eye, np.eye(3), np.array([-float(baseline_m), 0.0, 0.0]), pose)
 
-    def with_pose(self, scene_from_left: np.ndarray) -> "StereoCamera":
+    def with_pose(self, scene_from_left: np.ndarray) -> StereoCamera:
         return StereoCamera(self.left, self.right, self.rotation_rl, self.translation_rl_m, scene_from_left)
 
     # --- geometry -----------------------------------------------------------------------------
@@ -279,7 +279,7 @@ class StereoCamera:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "StereoCamera":
+    def from_dict(cls, d: dict) -> StereoCamera:
         missing = [k for k in ("left", "right", "rotation_rl", "translation_rl_m", "scene_from_left") if k not in d]
         if missing:
             raise TwinFocusError(f"camera description misses key(s) {', '.join(missing)}")
@@ -294,7 +294,7 @@ class StereoCamera:
         return write_text_atomic(path, json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "StereoCamera":
+    def load(cls, path: str | os.PathLike) -> StereoCamera:
         path = Path(path)
         if not path.is_file():
             raise TwinFocusError(f"{path}: no such camera calibration file")
@@ -306,27 +306,3 @@ class StereoCamera:
             return cls.from_dict(d)
         except (TwinFocusError, TypeError, ValueError) as exc:
             raise TwinFocusError(f"{path}: {exc}") from None
-
-
-def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """Write a text file through a temporary file and a rename (never half-written)."""
-    return write_bytes_atomic(path, text.encode("utf-8"))
-
-
-def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
-    """Write bytes through a temporary file in the same folder and a rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        # mkstemp makes the file private (0600); give it the usual umask-based mode.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path

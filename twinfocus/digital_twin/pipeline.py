@@ -13,11 +13,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from twinfocus.errors import TwinFocusError
 from twinfocus.digital_twin.camera import StereoCamera, pose_matrix
 from twinfocus.digital_twin.pointcloud import PointCloudConfig, PointCloudResult, reference_point_cloud
 from twinfocus.digital_twin.segment import ClassicalSegmenter, Seed, Segmenter
 from twinfocus.digital_twin.stereo import StereoConfig, compute_disparity, rectify_pair
+from twinfocus.errors import TwinFocusError
 
 # Pixels matched around a box seed beyond the box (stereo context, GrabCut's band).
 _ROI_MARGIN_PX = 48

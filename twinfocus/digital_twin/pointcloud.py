@@ -20,12 +20,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
 # Imported here, not inside the functions: its first import costs ~1 s, which belongs to start-up,
 # not to the point-cloud stage's timing.
 import open3d as o3d
 
-from twinfocus.errors import TwinFocusError
 from twinfocus.digital_twin.camera import Intrinsics, transform_points
+from twinfocus.errors import TwinFocusError
 
 MIN_POINTS = 20
 
@@ -194,7 +195,7 @@ def reference_point_cloud(
     if not mask.any():
         raise TwinFocusError("the reference mask is empty: nothing to build a point cloud from")
     geo_mask = mask if confidence is None else mask & (np.asarray(confidence) >= cfg.min_confidence)
-    counts = {"mask_px": int(mask.sum())}
+    counts: dict[str, float] = {"mask_px": int(mask.sum())}
     pts = points_from_depth(depth_m, geo_mask, intrinsics)
     counts["with_depth"] = int(pts.shape[0])
     if pts.shape[0] < MIN_POINTS:

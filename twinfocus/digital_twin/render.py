@@ -14,14 +14,15 @@ the native resolution through the pixel centres.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
+from twinfocus.atomic import write_bytes_atomic
+from twinfocus.digital_twin.camera import Intrinsics, StereoCamera
 from twinfocus.errors import TwinFocusError
-from twinfocus.digital_twin.camera import Intrinsics, StereoCamera, write_bytes_atomic
 
 BACKGROUND_LABEL = -1
 
@@ -194,7 +195,8 @@ def object_surface(obj, rng: np.random.Generator, name: str | None = None) -> Su
     colour = np.asarray(getattr(obj, "colour_bgr", (160, 160, 160)), dtype=np.float32)
     extent = np.array(mask.shape, dtype=np.float64) * pixel
     # The albedo raster at a fixed fine texel size (the mask raster may be coarse).
-    tex_shape = tuple(int(max(8, np.ceil(e / _OBJECT_TEXEL_M))) for e in extent)
+    rows, cols = (int(max(8, np.ceil(e / _OBJECT_TEXEL_M))) for e in extent)
+    tex_shape = (rows, cols)
     material = str(getattr(obj, "material", "")).lower()
     streak = 1.0 if "metal" in material else 0.0
     tex = procedural_texture(tex_shape, rng, contrast=0.22, streak=streak)
@@ -338,7 +340,7 @@ def raycast(surfaces: Sequence[Surface], intrinsics: Intrinsics, scene_from_came
             continue
         np.copyto(d_view, t, where=valid)
         index[r0:r1, c0:c1][valid] = s_idx
-        if colour:
+        if bgr is not None:  # colour
             hmat = shift @ _plane_to_image(s, s.albedo.shape[:2], s.albedo_px_m, intrinsics, scene_from_camera)
             alb = cv2.warpPerspective(s.albedo, hmat, (c1 - c0, r1 - r0), flags=cv2.INTER_LINEAR,
                                       borderMode=cv2.BORDER_REFLECT)
@@ -355,6 +357,7 @@ def render_view(surfaces: Sequence[Surface], intrinsics: Intrinsics, scene_from_
 
     hi = intrinsics.scaled(supersample) if supersample > 1 else intrinsics
     bgr, _, _ = raycast(surfaces, hi, scene_from_camera, colour=True)
+    assert bgr is not None  # colour=True always paints it
     if supersample > 1:
         bgr = cv2.resize(bgr, intrinsics.size, interpolation=cv2.INTER_AREA)
     if blur_px > 0:

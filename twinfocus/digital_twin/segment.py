@@ -36,7 +36,6 @@ import numpy as np
 
 from twinfocus.errors import TwinFocusError
 
-
 # --- seeds -----------------------------------------------------------------------------------------
 
 
@@ -52,15 +51,15 @@ class Seed:
     values: tuple[float, ...] = ()
 
     @classmethod
-    def point(cls, u: float, v: float) -> "Seed":
+    def point(cls, u: float, v: float) -> Seed:
         return cls("point", (float(u), float(v)))
 
     @classmethod
-    def box(cls, x0: float, y0: float, x1: float, y1: float) -> "Seed":
+    def box(cls, x0: float, y0: float, x1: float, y1: float) -> Seed:
         return cls("box", (float(min(x0, x1)), float(min(y0, y1)), float(max(x0, x1)), float(max(y0, y1))))
 
     @classmethod
-    def nearest(cls) -> "Seed":
+    def nearest(cls) -> Seed:
         return cls("nearest")
 
     def validate(self, shape: tuple[int, int]) -> None:
@@ -422,7 +421,7 @@ class PredictorSegmenter:
             seed = Seed.point(starts[0][1], starts[0][0])
         rgb = np.ascontiguousarray(image_bgr[..., ::-1]) if image_bgr.ndim == 3 else np.repeat(image_bgr[..., None], 3, axis=2)
         self.predictor.set_image(rgb)
-        kwargs = {"point_coords": None, "point_labels": None, "box": None, "multimask_output": True}
+        kwargs: dict[str, object] = {"point_coords": None, "point_labels": None, "box": None, "multimask_output": True}
         if seed.kind == "point":
             kwargs["point_coords"] = np.array([seed.values], dtype=np.float32)
             kwargs["point_labels"] = np.array([1], dtype=np.int64)

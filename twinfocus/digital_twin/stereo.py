@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twinfocus.errors import TwinFocusError
 from twinfocus.digital_twin.camera import StereoCamera
+from twinfocus.errors import TwinFocusError
 
 
 @dataclass(frozen=True)

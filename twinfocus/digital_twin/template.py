@@ -249,7 +249,7 @@ def psf_template(points_m, positions_m, chirp: Chirp, grid: ImageGrid, amplitude
     amp = np.abs(total) if coherent else np.sqrt(np.maximum(total, 0.0))
     out = amp.astype(np.float32)
     if return_info:
-        return out, TemplateInfo(int(p.shape[0]), n_slabs, tuple(hs), times)
+        return out, TemplateInfo(int(p.shape[0]), n_slabs, (hs[0], hs[1]), times)
     return out
 
 
@@ -286,8 +286,12 @@ def digital_twin_template(points_m, scan_positions, chirp: Chirp, grid: ImageGri
     raise TwinFocusError(f"unknown template method {method!r}; use 'psf' or 'exact'")
 
 
-def load_points(path: str | os.PathLike) -> np.ndarray:
-    """Read a point-cloud file (.npy, float (N, 3) metres, scene frame) with clear errors."""
+def load_points(path: str | os.PathLike, allow_non_finite: bool = False) -> np.ndarray:
+    """Read a point-cloud file (.npy, float (N, 3) metres, scene frame) with clear errors.
+
+    allow_non_finite : keep rows with NaN or inf (for the conditioning, which drops and counts
+    them) instead of refusing the file.
+    """
     from pathlib import Path
 
     path = Path(path)
@@ -299,24 +303,20 @@ def load_points(path: str | os.PathLike) -> np.ndarray:
         raise TwinFocusError(f"{path}: not a readable .npy point cloud ({exc})") from None
     if p.ndim != 2 or p.shape[1] != 3 or not np.issubdtype(p.dtype, np.number):
         raise TwinFocusError(f"{path}: a point cloud must be an (N, 3) array of metres, got {p.dtype} {p.shape}")
+    if allow_non_finite:
+        return p.astype(np.float64)
     try:
         return _check_points(p)
     except TwinFocusError as exc:
         raise TwinFocusError(f"{path}: {exc}") from None
 
 
-def digital_twin_template_from_file(path: str | os.PathLike, scan, grid: ImageGrid, *, calibration=None,
-                                    method: str = "psf", **bp_options) -> np.ndarray:
-    """``twinfocus focus --digital-twin POINTS.npy``: the template of the cloud in ``path`` for
-    ``scan``'s aperture on ``grid``: float32 (H, W).
+def save_points(path: str | os.PathLike, points_m) -> None:
+    """Write a point cloud float64 (N, 3) metres as ``.npy`` atomically (the reader is :func:`load_points`)."""
+    import io
 
-    calibration : optional path of a camera-radar calibration (JSON from ``twinfocus twin
-    --calibrate``) whose offset is added to the points.
-    """
-    points = load_points(path)
-    offset = None
-    if calibration is not None:
-        from twinfocus.digital_twin.align import RadarCameraCalibration
+    from twinfocus.atomic import write_bytes_atomic
 
-        offset = RadarCameraCalibration.load(calibration).offset_m
-    return digital_twin_template(points, scan.positions, scan.chirp, grid, method=method, offset_m=offset, **bp_options)
+    buf = io.BytesIO()
+    np.save(buf, np.asarray(points_m, dtype=np.float64))
+    write_bytes_atomic(path, buf.getvalue())

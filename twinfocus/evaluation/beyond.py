@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 from pathlib import Path
 
@@ -122,7 +121,7 @@ def summarise(raw: dict) -> dict:
         rows = err.get(cond, {})
         cands = {k: v["mean"] for k, v in rows.items() if k.startswith(kind)}
         if cands:
-            best = max(cands, key=cands.get)
+            best = max(cands, key=lambda k: cands[k])
             goals.append({"condition": cond, "twin": kind, "goal": level, "best_row": best, "best": cands[best],
                           "met": cands[best] >= level})
     sep = out.get("beyond_separation", {})
@@ -195,21 +194,20 @@ def write_beyond_report(out_dir, markdown_path=None) -> Path:
         else:
             lines.append(f"| {g['twin']} twin >= {g['goal']} | {g['condition']} | {g['best_row']} | {g['best']:.3f} | {'yes' if g['met'] else 'no'} |")
     lines.append("")
-    md.parent.mkdir(parents=True, exist_ok=True)
-    tmp = md.with_name(f".{md.name}.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    os.replace(tmp, md)
-    from twinfocus.evaluation.runner import write_json_atomic
+    from twinfocus.atomic import write_json_atomic, write_text_atomic
 
+    write_text_atomic(md, "\n".join(lines) + "\n")
     write_json_atomic(out / "summary.json", summary)
     return md
 
 
 def run_beyond(out_dir, *, draws: int = 1, quick: bool = False, resume: bool = False, markdown=None,
-               device: str = "cpu", command: str | None = None, log=None) -> Path:
-    """Run the experiments into ``out_dir/raw`` and write the report; returns its path."""
-    from twinfocus.evaluation.runner import _log, _same_run, machine_info, quick_settings, run_experiment, write_json_atomic
+               device: str = "cpu", command: str | None = None, log=None, cluster: dict | None = None) -> Path:
+    """Run the experiments into ``out_dir/raw`` and write the report; returns its path. ``cluster``:
+    as :func:`twinfocus.evaluation.runner.run_paper`'s (the space-variant draws run here after)."""
+    from twinfocus.atomic import write_json_atomic
     from twinfocus.evaluation.cases import EvalSettings
+    from twinfocus.evaluation.runner import _log, machine_info, quick_settings, run_experiments
 
     log = log or _log
     if int(draws) < 1:
@@ -220,22 +218,11 @@ def run_beyond(out_dir, *, draws: int = 1, quick: bool = False, resume: bool = F
     raw = out / "raw"
     raw.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    run = {"command": command, "quick": quick, "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": machine_info()}
-    cache: dict = {}
-    for exp in beyond_experiments(draws, quick):
-        path = raw / f"{exp.name}.json"
-        if resume and path.exists():
-            try:
-                if _same_run(json.loads(path.read_text()), exp.to_dict(), settings.to_dict()):
-                    log(f"[{exp.name}] kept from an earlier run ({path})")
-                    continue
-            except (OSError, ValueError):
-                pass
-        log(f"[{exp.name}] {exp.n_draws()} draws ...")
-        res = run_experiment(exp, settings, cache, log)
-        res.pop("examples", None)
-        write_json_atomic(path, res)
-        log(f"[{exp.name}] done in {res['seconds'] / 60:.1f} min")
+    run: dict = {"command": command, "quick": quick, "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": machine_info()}
+    failed = run_experiments(beyond_experiments(draws, quick), settings, raw, resume=resume, log=log, cluster=cluster,
+                             keep_examples=False)
+    if failed:
+        run["failed"] = failed
     path = raw / "beyond_space_variant.json"
     sv_def = {"conditions": [list(c) for c in SV_CONDITIONS[:1 if quick else None]], "draws": draws, "settings": settings.to_dict()}
     keep = False
@@ -278,17 +265,17 @@ def space_variant_draws(sigma_mm: float, draws: int, angles_deg=(-20.0, 0.0, 20.
 
     Returns one record per draw and row (:data:`SV_ROWS`): {"row", "ssim", "time_s", "draw"}.
     """
+    from twinfocus import metrics
     from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.basis import form_image, form_image_space_variant
     from twinfocus.evaluation.cases import EvalSettings
     from twinfocus.grid import ImageGrid
-    from twinfocus import metrics
-    from twinfocus.autofocus import form_image
     from twinfocus.motion import apply_position_errors, gaussian_errors
     from twinfocus.radar import Chirp, mmwcas_virtual_array
     from twinfocus.scene import Scene, letter, scatterer_spacing_m
     from twinfocus.simulate import add_thermal_noise, simulate_if
-    from twinfocus.space_variant import fit_position_errors, form_image_space_variant, pixel_phases
-    from twinfocus.template_match import correlation_phase, register_template
+    from twinfocus.space_variant import fit_position_errors, pixel_phases
+    from twinfocus.template_match import register_template
     from twinfocus.trajectory import paper_raster, phase_centres
 
     st = settings or EvalSettings()
@@ -340,7 +327,7 @@ def space_variant_draws(sigma_mm: float, draws: int, angles_deg=(-20.0, 0.0, 20.
             phases.append(np.angle(c))
             weights.append(np.abs(c) ** 2)
             del basis
-        rec = lambda row, img, secs: records.append({"row": row, "draw": d, "time_s": secs,
+        rec = lambda row, img, secs: records.append({"row": row, "draw": d, "time_s": secs,  # noqa: B023 (called in the loop)
                                                      "ssim": metrics.image_ssim(img, truth)})
         rec("none", tb.sum(axis=0), 0.0)
         rec("scalar", form_image(tb, phases[near]), t_scalar / 2)

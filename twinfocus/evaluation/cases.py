@@ -8,7 +8,7 @@ into a simulated template). Each *draw* (:func:`run_draw`) then puts a fresh tra
 the positions — the scene's data stay the same, as when the paper injects error draws into one
 motion-stage capture — forms the two sub-image bases once and runs every method on them.
 
-Beside the metrics, every draw records the phase errors that explain them (DESIGN.md section 1):
+Beside the metrics, every draw records the phase errors that explain them (docs/architecture.md section 1):
 the oracle phase at the target's and at the reference's centre, the first-order prediction
 (4 pi / lambda) (u_ref - u_tgt) . dp of what a perfect reference correction leaves on the target,
 and the bound (4 pi / lambda) |u_ref - u_tgt| |dp| on it.
@@ -23,20 +23,21 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from twinfocus import metrics
-from twinfocus.autofocus import AutofocusConfig, fit_linear_phase, form_image, sharpness_autofocus, twin_autofocus
+from twinfocus.autofocus import AutofocusConfig, sharpness_autofocus, twin_autofocus
+from twinfocus.autofocus import transfer_phase as autofocus_transfer_phase
 from twinfocus.backprojection import backproject, subimage_basis
+from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import estimator_settings
 from twinfocus.evaluation.features import hog_similarity
 from twinfocus.grid import ImageGrid
-from twinfocus.motion import apply_position_errors, drift_errors, gaussian_errors, vio_errors
-from twinfocus.radar import Chirp, mmwcas_virtual_array
+from twinfocus.motion import apply_pose_errors, draw_errors
+from twinfocus.radar import Chirp
 from twinfocus.scan import Scan
-from twinfocus.scenario import Scenario, scenario_positions, simulate_scenario
-from twinfocus.scene import Clutter, paper_scene, scatterer_spacing_m
-from twinfocus.simulate import add_thermal_noise, simulate_if
+from twinfocus.scenario import Scenario, simulate_scenario
+from twinfocus.scenario import template_scan as scenario_template_scan
+from twinfocus.scene import Clutter, paper_scene
 from twinfocus.templates import template_from_scan
-from twinfocus.trajectory import paper_raster, phase_centres
 
 METHODS = ("none", "sharpness", "physical", "digital")
 
@@ -71,7 +72,7 @@ def needs_digital_twin(method: str) -> bool:
     return method in TWIN_VARIANTS and TWIN_VARIANTS[method][0] == "digital"
 
 #: Margin (metres) around an object's extent for the "object" regions of interest: about what
-#: DESIGN.md's regions leave around the default letters (a tight 15 mm frame starves the digital
+#: the paper's regions leave around the default letters (a tight 15 mm frame starves the digital
 #: twin, docs/evaluation.md).
 OBJECT_ROI_MARGIN_M = 0.04
 
@@ -117,8 +118,8 @@ class EvalSettings:
     n_rows: int = 130
     spacing_m: float | None = None
     device: str = "cpu"
-    #: transfer the phase without its constant + linear ramp, as ``twinfocus focus`` does by default
-    remove_phase_ramp: bool = True
+    #: the estimate's linear phase ramp before the transfer, as ``twinfocus focus --phase-ramp``
+    phase_ramp: str = "auto"
 
     def autofocus_config(self, **overrides) -> AutofocusConfig:
         kw = dict(iterations=self.iterations, basis_dtype=self.basis_dtype, precision=self.precision, device=self.device)
@@ -178,7 +179,7 @@ def object_roi(sc: Scenario, name: str, margin_m: float = OBJECT_ROI_MARGIN_M) -
 
 
 def case_grids(sc: Scenario, size: int, roi: str, margin_m: float = OBJECT_ROI_MARGIN_M) -> tuple[ImageGrid, ImageGrid]:
-    """Reference and target grids: ``roi="paper"`` the scenario's own regions (DESIGN.md's for the
+    """Reference and target grids: ``roi="paper"`` the scenario's own regions (the paper's, architecture.md s. 2, for the
     default scene), ``"object"`` each object's extent plus ``margin_m`` (:func:`object_roi`)."""
     if roi == "paper":
         return ImageGrid.from_roi(sc.reference_roi(), size), ImageGrid.from_roi(sc.target_roi(), size)
@@ -186,31 +187,6 @@ def case_grids(sc: Scenario, size: int, roi: str, margin_m: float = OBJECT_ROI_M
         return (ImageGrid.from_roi(object_roi(sc, "reference", margin_m), size),
                 ImageGrid.from_roi(object_roi(sc, "target", margin_m), size))
     raise TwinFocusError(f"roi must be 'paper' or 'object', got {roi!r}")
-
-
-def stage_template_scan(sc: Scenario, with_clutter: bool, snr_seed: int = 0, chirp: Chirp | None = None) -> Scan:
-    """The reference's motion-stage scan, optionally in the scene's cluttered room.
-
-    Same reference scatterers (and the same room clutter) as :func:`simulate_scenario` draws for
-    ``sc``: the scene seed is recovered the way it derives it. ``with_clutter=False`` with no noise
-    reproduces its template scan exactly (tests check this).
-    """
-    chirp = chirp or Chirp()
-    rng = np.random.default_rng(sc.seed)
-    scenario_positions(sc, rng)  # consumes the draws simulate_scenario makes before the scene seed
-    scene_seed = int(rng.integers(0, 2**31))
-    scene = sc.scene()
-    ref_scene = scene.select("reference", occluders=False, clutter=with_clutter)
-    ref = ref_scene.objects[0]
-    ref_scene.objects[0] = replace(ref, centre_m=np.asarray(ref.centre_m) + np.asarray(sc.template_offset_m, float))
-    stage = phase_centres(paper_raster(sc.n_columns, sc.n_rows), mmwcas_virtual_array())
-    spacing = sc.spacing_m or scatterer_spacing_m(sc.distance_m)
-    pts, amps = ref_scene.scatterers(spacing, scene_seed, speckle=sc.speckle)
-    sim_kw = {} if sc.range_step_m is None else {"range_step_m": sc.range_step_m}
-    data = simulate_if(pts, amps, stage, chirp, **sim_kw)
-    if sc.snr_db is not None:
-        data = add_thermal_noise(data, sc.snr_db, np.random.default_rng([sc.seed, snr_seed, 7]))
-    return Scan(data, stage, chirp, positions_true=stage)
 
 
 def digital_twin_points(sc: Scenario, ref_roi, seed: int) -> tuple[np.ndarray, dict]:
@@ -290,7 +266,7 @@ def prepare_scene(sc: Scenario, settings: EvalSettings, roi: str, template_envs=
             if env == "open":
                 stage = template_scan
             elif env == "cluttered":
-                stage = stage_template_scan(replace(sc, clutter=True), with_clutter=True)
+                stage = scenario_template_scan(replace(sc, clutter=True), with_clutter=True)
             else:
                 raise TwinFocusError(f"template environment must be 'open' or 'cluttered', got {env!r}")
             cache[(key, env)] = template_from_scan(stage, ref_grid, keep_phase=True, **bp)
@@ -317,21 +293,15 @@ def prepare_scene(sc: Scenario, settings: EvalSettings, roi: str, template_envs=
     return SceneCase(sc, scan, ref_grid, tgt_grid, truth, templates, centres, timings, notes)
 
 
-def draw_position_errors(sc: Scenario, timestamps_ns: np.ndarray, seed) -> np.ndarray:
-    """One tracking-error realisation (M, 3) metres for the scenario's error model and sigma.
+def draw_position_errors(sc: Scenario, timestamps_ns: np.ndarray, seed) -> tuple[np.ndarray, np.ndarray]:
+    """One tracking-error realisation for the scenario's error model and sigma: (translation (M, 3)
+    metres, rotation (M, 3) radians), :func:`twinfocus.motion.draw_errors`.
 
     The same ``seed`` gives the same underlying normal draws whatever the sigma, so a sweep over
     sigma compares like with like (common random numbers).
     """
-    m = int(np.asarray(timestamps_ns).shape[0])
-    rng = np.random.default_rng(seed)
-    if sc.error_model == "gaussian":
-        return gaussian_errors(m, sc.error_sigma_m, rng)
-    if sc.error_model == "drift":
-        return drift_errors(timestamps_ns, sc.error_sigma_m, rng=rng)
-    if sc.error_model == "vio":
-        return vio_errors(timestamps_ns, rng=rng)
-    raise TwinFocusError(f"unknown error model {sc.error_model!r}; use 'gaussian', 'drift' or 'vio'")
+    return draw_errors(sc.error_model, timestamps_ns, sc.error_sigma_m, np.random.default_rng(seed),
+                       sc.correlation_time_s, np.radians(sc.rotation_sigma_deg))
 
 
 def draw_seed(*parts) -> int:
@@ -341,7 +311,7 @@ def draw_seed(*parts) -> int:
 
 def phase_transfer_terms(true_m: np.ndarray, tracked_m: np.ndarray, ref_point: np.ndarray, tgt_point: np.ndarray,
                          wavelength_m: float) -> dict:
-    """First-order phase-transfer error of DESIGN.md section 1, r.m.s. over radar positions (rad).
+    """First-order phase-transfer error of docs/architecture.md section 1, r.m.s. over radar positions (rad).
 
     true_m, tracked_m : (M, K, 3) phase centres. Per position m (channels averaged): dp_m the
     position error, u the unit line of sight to each point. Returns ``first_order``
@@ -359,14 +329,14 @@ def phase_transfer_terms(true_m: np.ndarray, tracked_m: np.ndarray, ref_point: n
     return {"first_order": float(np.sqrt(np.mean(first**2))), "bound": float(np.sqrt(np.mean(bound**2)))}
 
 
-def transfer_phase(phase_rad: np.ndarray, tracked_m: np.ndarray, remove_ramp: bool = True) -> np.ndarray:
-    """The phase applied to the target: without its best constant + linear-in-aperture ramp (it
-    only moves the image; ``twinfocus focus``'s default, :func:`twinfocus.autofocus.fit_linear_phase`
-    on the tracked aperture) or as estimated (the source paper)."""
-    if not remove_ramp:
-        return np.asarray(phase_rad, float)
-    ramp, _ = fit_linear_phase(phase_rad, np.asarray(tracked_m, float).mean(axis=1)[:, :2])
-    return np.angle(np.exp(1j * (np.asarray(phase_rad, float) - ramp)))
+def transfer_phase(phase_rad: np.ndarray, tracked_m: np.ndarray, mode: str = "auto", registered: bool = False,
+                   range_m: float = 0.6) -> np.ndarray:
+    """The phase applied to the target, as ``twinfocus focus`` applies it
+    (:func:`twinfocus.autofocus.transfer_phase` on the tracked aperture, the reference ``range_m``
+    away; the chirp's wavelength)."""
+    aperture = np.asarray(tracked_m, float).mean(axis=1)
+    return autofocus_transfer_phase(phase_rad, aperture[:, :2], range_m - float(aperture[:, 2].mean()),
+                                    Chirp().wavelength_m, mode, registered)[0]
 
 
 @dataclass
@@ -389,7 +359,7 @@ def draw_shared(case: SceneCase, tracked_m: np.ndarray, settings: EvalSettings, 
     phase_rms_uncorrected : the target's oracle phase (the error to undo);
     transfer_floor_rad : reference oracle vs target oracle: the error a perfect reference
         estimate leaves on the target's centre (``_far``: on its corner farthest from the reference);
-    transfer_first_order_rad / transfer_bound_rad : DESIGN.md's first-order prediction of it and the bound;
+    transfer_first_order_rad / transfer_bound_rad : the first-order prediction of it (docs/architecture.md section 1) and the bound;
     ssim_oracle_target / ssim_oracle_transfer : target SSIM with the target's / the reference's
         oracle phase (the ceiling of any per-position correction / of any reference method).
     """
@@ -454,7 +424,7 @@ def evaluate_methods(case: SceneCase, bases: DrawBases, methods, settings: EvalS
                      template_env: str = "open", config_overrides: dict | None = None, keep_images: bool = False) -> list[dict]:
     """Every method on one draw: one record each with method, status ("ok" or "failed: ..."),
     ssim and hog (target vs truth), phase error r.m.s. against the target's and the reference's
-    oracle phases (rad) and autofocus_s; with ``settings.remove_phase_ramp`` also
+    oracle phases (rad) and autofocus_s; unless ``settings.phase_ramp`` is "keep", also
     ssim_as_estimated (the phase transferred with its ramp, as the source paper does); with
     ``keep_images`` also "image": the target's display image (float32 (H, W), what SSIM is taken on)."""
     cfg = settings.autofocus_config(**(config_overrides or {}))
@@ -468,11 +438,12 @@ def evaluate_methods(case: SceneCase, bases: DrawBases, methods, settings: EvalS
             records.append(rec)
             continue
         if method != "none":
-            if settings.remove_phase_ramp:
+            if settings.phase_ramp != "keep":
                 # The source paper transfers the phase as estimated: keep its score too.
                 rec["ssim_as_estimated"] = metrics.image_ssim(form_image(bases.target, phase), case.truth_target,
                                                               cfg.threshold_centre, cfg.threshold_steepness)
-            phase = transfer_phase(phase, bases.tracked_m, settings.remove_phase_ramp)
+            registered = TWIN_VARIANTS.get(method, (None, {}, False))[1].get("template_registration", "none") != "none"
+            phase = transfer_phase(phase, bases.tracked_m, settings.phase_ramp, registered, case.ref_grid.z)
         image = form_image(bases.target, phase)
         rec["ssim"] = metrics.image_ssim(image, case.truth_target, cfg.threshold_centre, cfg.threshold_steepness)
         rec["hog"] = hog_similarity(image, case.truth_target, cfg.threshold_centre, cfg.threshold_steepness)
@@ -488,4 +459,4 @@ def tracked_positions(scan: Scan, error_scenario: Scenario, seed) -> np.ndarray:
     """The scan's true phase centres plus one draw of ``error_scenario``'s tracking error (its
     ``error_model`` and ``error_sigma_m``): (M, K, 3) metres."""
     stamps = scan.timestamps_ns if scan.timestamps_ns is not None else np.arange(scan.n_positions, dtype=np.int64) * 100_000_000
-    return apply_position_errors(scan.positions_true, draw_position_errors(error_scenario, stamps, seed))
+    return apply_pose_errors(scan.positions_true, *draw_position_errors(error_scenario, stamps, seed))

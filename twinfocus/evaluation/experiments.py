@@ -11,8 +11,8 @@ physical twin captured separately with a 1 mm placement error; the digital twin 
 rendered stereo pair. Sweeps beyond the paper's range (for the limits) are marked
 ``in_paper=False``.
 
-``roi="paper"`` uses DESIGN.md's regions of interest (the baseline set); ``roi="object"`` frames
-each letter by its extent + 40 mm (about what DESIGN.md's regions leave around the default
+``roi="paper"`` uses the paper's regions of interest (docs/architecture.md section 2, the baseline set); ``roi="object"`` frames
+each letter by its extent + 40 mm (about what the paper's regions leave around the default
 letters), never past the middle of the gap between the letters, so the conditions of a sweep are
 framed alike.
 """
@@ -81,7 +81,8 @@ class Experiment:
 
     def to_dict(self) -> dict:
         return {"name": self.name, "title": self.title, "axis": self.axis, "draws": self.draws,
-                "methods": list(self.methods), "roi": self.roi if self.roi == "paper" else f"object+{self.roi_margin_m * 1e3:g}mm", "numeric": self.numeric, "seed": self.seed,
+                "methods": list(self.methods), "roi": self.roi if self.roi == "paper" else f"object+{self.roi_margin_m * 1e3:g}mm",
+                "numeric": self.numeric, "seed": self.seed,
                 "conditions": [c.to_dict() for c in self.conditions]}
 
 

@@ -1,5 +1,5 @@
 """What the source paper reports for each experiment of its evaluation (section 6), to set beside
-ours. Numbers are those printed in the paper's text and Table 1 (DESIGN.md section 2); figures
+ours. Numbers are those printed in the paper's text and Table 1 (docs/architecture.md section 2); figures
 whose values the text does not state are summarised by the paper's own claim, never read off a
 plot.
 

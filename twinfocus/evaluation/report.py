@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twinfocus.atomic import atomic_writer, write_json_atomic, write_text_atomic
 from twinfocus.evaluation.experiments import LIMIT_SWEEPS
 from twinfocus.evaluation.paper import PAPER, PAPER_TABLE1
 
@@ -158,10 +159,14 @@ def _plt():
     return plt
 
 
+def load_raw(raw_dir: Path) -> dict:
+    """{name: result} of every ``*.json`` in ``raw_dir``."""
+    return {p.stem: json.loads(p.read_text()) for p in sorted(Path(raw_dir).glob("*.json"))}
+
+
 def _save(fig, path: Path) -> None:
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=DPI, bbox_inches="tight")
-    os.replace(tmp, path)
+    with atomic_writer(path) as f:
+        fig.savefig(f, format="png", dpi=DPI, bbox_inches="tight")
     _plt().close(fig)
 
 
@@ -434,7 +439,7 @@ def _section_sweep(name: str, doc: dict, out: Path, md: Path, lines: list[str]) 
     lines += [f"### {d['title']} ({paper.get('figure', '')})", ""]
     if paper:
         lines += [f"Paper: {paper['setup']}. *{paper['claim']}.*", ""]
-    roi = "DESIGN.md's regions of interest" if d["roi"] == "paper" else \
+    roi = "the paper's regions of interest (architecture.md section 2)" if d["roi"] == "paper" else \
         f"regions of interest framing each letter with {d['roi'].split('+')[-1]} of margin (up to the middle of the gap between the letters)"
     lines += [f"Ours: {len({(r['pair'], r['condition'], r['draw']) for r in rec})} draws "
               f"({d['draws']} per pair and condition), pairs {', '.join(sorted({r['pair'] for r in rec}))}; {roi}.", ""]
@@ -536,13 +541,14 @@ def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
 def _section_limits(raw: dict, out: Path, md: Path, lines: list[str]) -> dict:
     res = {}
     lines += ["## Limits: where each method stops helping", "",
-              "DESIGN.md section 1: to first order a position error dp changes the phase of a scatterer seen along the unit "
+              "architecture.md section 1: to first order a position error dp changes the phase of a scatterer seen along the unit "
               "line of sight u by (4 pi / lambda) u . dp, so the correction estimated on the reference and applied to the "
               "target leaves (4 pi / lambda) (u_ref - u_tgt) . dp, at most (4 pi / lambda) |u_ref - u_tgt| |dp|. Every "
               "draw records this *first-order prediction* and *bound* (r.m.s. over radar positions), the *measured transfer "
               "floor* (the exact phase at the reference's centre applied to the target, against the exact phase at the "
               "target), and the SSIM a perfect reference estimate would give (*perfect reference estimate*, the ceiling of "
-              "any twin method). The gains are SSIM differences, not percentages. A method stops helping where its mean SSIM gain over no correction falls below "
+              "any twin method). The gains are SSIM differences, not percentages. A method stops helping where its mean SSIM gain over no "
+              "correction falls below "
               f"{HELP_THRESHOLD}. For the size sweep the floor is taken at the target's corner farthest from the reference.", ""]
     for name, what in LIMIT_SWEEPS.items():
         if name not in raw:
@@ -652,7 +658,8 @@ def _section_trade(doc: dict, out: Path, md: Path, lines: list[str], machine: di
     t1.append(["digital twin: visual segmentation", f"{PAPER_TABLE1['digital_twin']['visual segmentation']:.2f}", _f(stage("segmentation"), 2)])
     t1.append(["digital twin: point cloud extraction", f"{PAPER_TABLE1['digital_twin']['point cloud extraction']:.2f}", _f(stage("point_cloud"), 2)])
     t1.append(["digital twin: stereo disparity (inside the ZED SDK in the paper)", "-", _f(stage("disparity"), 2)])
-    t1.append(["digital twin: array signal simulation, exact (simulate + back-project)", f"{PAPER_TABLE1['digital_twin']['array signal simulation']:.2f}", _f(tmpl("exact"), 2)])
+    t1.append(["digital twin: array signal simulation, exact (simulate + back-project)",
+               f"{PAPER_TABLE1['digital_twin']['array signal simulation']:.2f}", _f(tmpl("exact"), 2)])
     t1.append(["digital twin: array signal simulation, PSF convolution (our default)", "-", _f(tmpl("psf"), 2)])
     hw = machine.get("cpu_model") or "this machine"
     lines += ["**Table 1 of the paper, row by row** (seconds; paper: NVIDIA RTX 4090; ours: "
@@ -662,11 +669,46 @@ def _section_trade(doc: dict, out: Path, md: Path, lines: list[str], machine: di
     return {"means": means, "presets": presets}
 
 
+def _mean_sd(recs: list, key: str) -> str:
+    vals = [r[key] for r in recs if key in r]
+    return f"{np.mean(vals):.3f} ± {np.std(vals):.3f}" if vals else "-"
+
+
+def _section_field(out: Path, lines: list) -> None:
+    """Field conditions beyond the paper's protocol, from the benchmarks' figures copied beside
+    the raw results (``field_handheld.json``: ``handheld.json`` of ``benchmarks.bench_handheld``, ``field_twin.json``
+    from ``benchmarks.bench_field_twin``), when they are there."""
+    hand, field_ = out / "field_handheld.json", out / "field_twin.json"
+    if not hand.is_file() and not field_.is_file():
+        return
+    lines += ["## Field conditions: a hand's drift and rotation, camera clouds of rough references", "",
+              "Beyond the paper's protocol (independent jitter along z). Target SSIM, mean ± sd over the draws, both "
+              "ceilings on the same draws: the reference's true per-position phase transferred as is, and the target's "
+              "own true phase. Details and commands: docs/handheld.md, docs/digital_twin.md.", ""]
+    if hand.is_file():
+        doc = json.loads(hand.read_text())
+        rows = [[cond, str(len(recs)), _mean_sd(recs, "uncorrected"), _mean_sd(recs, "closed_form_auto"),
+                 _mean_sd(recs, "default"), _mean_sd(recs, "reference_true_phase"), _mean_sd(recs, "ceiling_target_phase")]
+                for cond, recs in doc.items()]
+        lines += ["**Physical twin under a hand's drift** (H/S 16 degrees apart, 15 dB; hand = 0.8 mm Gauss-Markov drift "
+                  "on x/y/z over 2 s + 0.2 mm jitter + 0.15 degree array rotation):", ""]
+        lines += _table(["condition", "draws", "uncorrected", "one phase per position", "default (space-variant auto)",
+                         "reference's true phase", "target's own phase"], rows) + [""]
+    if field_.is_file():
+        doc = json.loads(field_.read_text())
+        rows = [[cond, str(len(recs)), _mean_sd(recs, "uncorrected"), _mean_sd(recs, "paper"), _mean_sd(recs, "old auto"),
+                 _mean_sd(recs, "default (outline)"), _mean_sd(recs, "physical twin"), _mean_sd(recs, "oracle phase")]
+                for cond, recs in doc.items()]
+        lines += ["**Digital twin from a camera cloud of a rough reference** (A: 0.5 mm z, 15 dB; B: 1 mm z, 10 dB, target "
+                  "10 cm deeper; C: 1.6 mm z, 15 dB; cloud: 1 mm noise, 25 % holes, 2 % outliers, 2.5 mm offset):", ""]
+        lines += _table(["condition", "draws", "uncorrected", "paper", "old auto", "default (outline)", "physical twin",
+                         "target's own phase"], rows) + [""]
+
+
 def write_report(out_dir, markdown_path=None) -> Path:
     """Write the report from ``out_dir/raw``. Returns the markdown path (default ``out_dir/report.md``)."""
     out = Path(out_dir)
     raw_dir = out / "raw"
-    from twinfocus.evaluation.runner import load_raw, write_json_atomic
 
     raw = load_raw(raw_dir)
     run = raw.pop("run", {})
@@ -714,11 +756,9 @@ def write_report(out_dir, markdown_path=None) -> Path:
         else:
             summary[name] = _section_sweep(name, raw[name], out, md, lines)
     summary["limits"] = _section_limits(raw, out, md, lines)
+    _section_field(out, lines)
     if "trade" in raw:
         summary["trade"] = _section_trade(raw["trade"], out, md, lines, machine)
-    md.parent.mkdir(parents=True, exist_ok=True)
-    tmp = md.with_name(f".{md.name}.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    os.replace(tmp, md)
+    write_text_atomic(md, "\n".join(lines) + "\n")
     write_json_atomic(out / "summary.json", summary)
     return md

@@ -9,7 +9,6 @@ from __future__ import annotations
 import gc
 import json
 import os
-import platform
 import sys
 import time
 from dataclasses import replace
@@ -18,40 +17,27 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus import metrics
+from twinfocus.atomic import atomic_writer, write_json_atomic
+from twinfocus.atomic import json_default as _json_default
 from twinfocus.evaluation.cases import (
-    EvalScenario, EvalSettings, evaluate_methods, draw_seed, draw_shared, needs_digital_twin, needs_reference, prepare_scene,
+    EvalScenario,
+    EvalSettings,
+    draw_seed,
+    draw_shared,
+    evaluate_methods,
+    needs_digital_twin,
+    needs_reference,
+    prepare_scene,
     tracked_positions,
 )
 from twinfocus.evaluation.experiments import Experiment
+from twinfocus.machine import machine_info
 
 
 def quick_settings() -> EvalSettings:
     """Small enough for ``make test``: 6 x 40 positions, 32 x 32 pixels, 60 iterations, scatterers
     every 2.4 mm."""
     return EvalSettings(size=32, iterations=60, n_rows=40, spacing_m=2.4e-3)
-
-
-def machine_info() -> dict:
-    """Where the numbers were measured."""
-    import numba
-    import torch
-
-    info = {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "cpu_count": os.cpu_count(),
-        "torch": torch.__version__,
-        "torch_threads": torch.get_num_threads(),
-        "numba_threads": numba.get_num_threads(),
-        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
-        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-    }
-    try:
-        with open("/proc/cpuinfo") as f:
-            info["cpu_model"] = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), None)
-    except OSError:
-        pass
-    return info
 
 
 def _log(msg: str, stream=None) -> None:
@@ -137,33 +123,6 @@ def run_experiment(exp: Experiment, settings: EvalSettings, template_cache: dict
             "seconds": time.perf_counter() - t_start, "examples": examples}
 
 
-def write_json_atomic(path: Path, doc) -> None:
-    """Write JSON to ``path`` through a temporary file and a rename (never half a file)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(doc, separators=(",", ":"), default=_json_default))
-    os.replace(tmp, path)
-
-
-def _json_default(v):
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, tuple):
-        return list(v)
-    raise TypeError(f"not JSON serialisable: {type(v).__name__}")
-
-
-def load_raw(raw_dir: Path) -> dict:
-    """{name: result} of every ``*.json`` in ``raw_dir``."""
-    out = {}
-    for p in sorted(Path(raw_dir).glob("*.json")):
-        out[p.stem] = json.loads(p.read_text())
-    return out
-
-
 def _same_run(doc: dict, exp_def: dict, settings: dict) -> bool:
     return json.loads(json.dumps(doc.get("definition"), default=_json_default)) == json.loads(json.dumps(exp_def, default=_json_default)) \
         and doc.get("settings") == settings
@@ -172,14 +131,73 @@ def _same_run(doc: dict, exp_def: dict, settings: dict) -> bool:
 def _save_examples(path: Path, examples: dict) -> None:
     arrays = {k: np.asarray(v, np.float16) for k, v in examples.items() if isinstance(v, np.ndarray)}
     meta = json.dumps({k: v for k, v in examples.items() if not isinstance(v, np.ndarray)})
-    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.npz")
-    np.savez_compressed(tmp, meta=np.array(meta), **arrays)
-    os.replace(tmp, path)
+    with atomic_writer(path) as f:
+        np.savez_compressed(f, meta=np.array(meta), **arrays)
+
+
+def _experiment_task(exp: Experiment, threads, settings: EvalSettings) -> dict:
+    """One experiment on a Dask worker (threads limited to its share of the machine)."""
+    from twinfocus.cluster import limit_threads
+
+    limit_threads(threads)
+    return run_experiment(exp, settings, None, log=lambda msg: None)
+
+
+def run_experiments(exps: list[Experiment], settings: EvalSettings, raw: Path, *, resume: bool = False, log=_log,
+                    cluster: dict | None = None, keep_examples: bool = True) -> list[dict]:
+    """Run ``exps`` into ``raw/<name>.json`` (each written as soon as it is done), skipping those
+    already there with the same definition and settings when ``resume``.
+
+    cluster : None runs them here one after the other; ``{"scheduler": ...}`` or ``{"workers": N}``
+        spreads them over Dask workers, one experiment per task. Every draw's seed comes from the
+        experiment's definition (:func:`twinfocus.evaluation.cases.draw_seed`), so the records are
+        the serial run's. A task that fails is logged and returned as {"experiment", "error"}; the
+        others go on.
+    """
+    pending = []
+    for exp in exps:
+        path = raw / f"{exp.name}.json"
+        if resume and path.exists():
+            try:
+                if _same_run(json.loads(path.read_text()), exp.to_dict(), settings.to_dict()):
+                    log(f"[{exp.name}] kept from an earlier run ({path})")
+                    continue
+            except (OSError, ValueError):
+                pass
+        pending.append(exp)
+
+    def keep(exp: Experiment, res: dict) -> None:
+        examples = res.pop("examples", None)
+        if examples and keep_examples:
+            _save_examples(raw / f"{exp.name}_examples.npz", examples)
+        write_json_atomic(raw / f"{exp.name}.json", res)
+        log(f"[{exp.name}] done in {res['seconds'] / 60:.1f} min")
+
+    failed: list[dict] = []
+    if cluster is None:
+        cache: dict = {}  # templates shared across experiments (speed only: each is deterministic)
+        for exp in pending:
+            log(f"[{exp.name}] {exp.n_draws()} draws ...")
+            keep(exp, run_experiment(exp, settings, cache, log))
+        return failed
+    from twinfocus.cluster import dask_client, run_tasks
+
+    def on_result(exp, res, err):
+        if err is not None:
+            log(f"[{exp.name}] failed: {err}")
+            failed.append({"experiment": exp.name, "error": err})
+        else:
+            keep(exp, res)
+
+    log(f"[bench] {len(pending)} experiments as Dask tasks ({sum(e.n_draws() for e in pending)} draws)")
+    with dask_client(cluster.get("scheduler"), cluster.get("workers"), log) as client:
+        run_tasks(client, _experiment_task, pending, [f"bench-{e.name}" for e in pending], on_result, extra=(settings,))
+    return failed
 
 
 def run_paper(out_dir, *, quick: bool = False, draws: int | None = None, only=None, resume: bool = False,
               markdown=None, device: str = "cpu", trade_scenes: int | None = None, command: str | None = None,
-              log=_log) -> Path:
+              log=_log, cluster: dict | None = None) -> Path:
     """``twinfocus bench paper``: run the experiments (and the speed/accuracy trade), keep their raw
     results in ``out_dir/raw`` and write the report. Returns the report's path.
 
@@ -187,6 +205,8 @@ def run_paper(out_dir, *, quick: bool = False, draws: int | None = None, only=No
         ``trade``); default all. The report covers every raw result in ``out_dir/raw``, so runs of
         parts add up.
     resume : skip experiments whose raw result exists with the same definition and settings.
+    cluster : None (one after the other, here) or ``{"scheduler": "tcp://HOST:PORT"}`` /
+        ``{"workers": N}``: the experiments run as Dask tasks (:func:`run_experiments`).
     """
     from twinfocus.evaluation.experiments import paper_experiments
     from twinfocus.evaluation.report import write_report
@@ -201,24 +221,9 @@ def run_paper(out_dir, *, quick: bool = False, draws: int | None = None, only=No
     do_trade = not only or "trade" in only
     t0 = time.perf_counter()
     run = {"command": command, "quick": quick, "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": machine_info()}
-    cache: dict = {}
-    for exp in exps:
-        path = raw / f"{exp.name}.json"
-        if resume and path.exists():
-            try:
-                if _same_run(json.loads(path.read_text()), exp.to_dict(), settings.to_dict()):
-                    log(f"[{exp.name}] kept from an earlier run ({path})")
-                    continue
-            except (OSError, ValueError):
-                pass
-        log(f"[{exp.name}] {exp.n_draws()} draws ...")
-        res = run_experiment(exp, settings, cache, log)
-        examples = res.pop("examples")
-        if examples:
-            _save_examples(raw / f"{exp.name}_examples.npz", examples)
-        write_json_atomic(path, res)
-        log(f"[{exp.name}] done in {res['seconds'] / 60:.1f} min")
-    cache.clear()
+    failed = run_experiments(exps, settings, raw, resume=resume, log=log, cluster=cluster, keep_examples=True)
+    if failed:
+        run["failed"] = failed
     if do_trade:
         path = raw / "trade.json"
         scenes = trade_scenes if trade_scenes is not None else 1

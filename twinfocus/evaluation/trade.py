@@ -26,15 +26,23 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
 from twinfocus import metrics
-from twinfocus.autofocus import form_image, twin_autofocus
+from twinfocus.autofocus import twin_autofocus
 from twinfocus.backprojection import backproject, subimage_basis
+from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.evaluation.cases import (
-    EvalScenario, EvalSettings, case_grids, digital_twin_points, draw_seed, tracked_positions, transfer_phase,
+    EvalScenario,
+    EvalSettings,
+    case_grids,
+    digital_twin_points,
+    draw_seed,
+    tracked_positions,
+    transfer_phase,
 )
 from twinfocus.evaluation.features import hog_similarity
 from twinfocus.grid import ImageGrid
@@ -45,7 +53,7 @@ from twinfocus.templates import template_from_scan
 TRADE_PAIRS = (("A", "F"), ("R", "X"))
 PRESET_TOLERANCE = {"accurate": 0.003, "fast": 0.02}
 
-FULL_KNOBS = {
+FULL_KNOBS: dict[str, list[Any]] = {
     "image size": [50, 75, 100, 200],
     "positions": [200, 400, 600, 780],
     # (iterations, Adam lr, coarse-to-fine iterations on blurred images before them)
@@ -54,7 +62,7 @@ FULL_KNOBS = {
     "precision": ["float16", "float32", "float64"],
     "digital twin": ["psf", "psf-incoherent", "exact"],
 }
-QUICK_KNOBS = {
+QUICK_KNOBS: dict[str, list[Any]] = {
     "image size": [24, 32],
     "positions": [120, 240],
     "optimiser": [(20, 0.05, 0), (60, 0.05, 0)],
@@ -81,7 +89,8 @@ def _subset(scan: Scan, idx: np.ndarray, positions: np.ndarray | None = None) ->
 
 def _knob_config(knob: str, value, settings: EvalSettings) -> dict:
     """(size, AutofocusConfig overrides, back-projection precision) of one knob value."""
-    size, over, bp_prec = settings.size, {}, settings.precision
+    size, bp_prec = settings.size, settings.precision
+    over: dict[str, Any] = {}
     if knob == "image size":
         size = int(value)
     elif knob == "optimiser":
@@ -141,7 +150,7 @@ class _Scene:
         return self._ref_bases[(size, precision)][2]
 
     def score(self, phase: np.ndarray) -> dict:
-        image = form_image(self.tgt_basis, transfer_phase(phase, self.tracked, self.settings.remove_phase_ramp))
+        image = form_image(self.tgt_basis, transfer_phase(phase, self.tracked, self.settings.phase_ramp, range_m=self.ref_grid.z))
         return {"ssim": metrics.image_ssim(image, self.truth), "hog": hog_similarity(image, self.truth)}
 
 
@@ -177,7 +186,9 @@ def _run_config(scene: _Scene, size: int, overrides: dict, bp_precision: str) ->
 def _positions_row(scene: _Scene, n: int) -> dict:
     """Array-size knob: everything (basis, template, target, truth) on the central rows only."""
     settings = scene.settings
-    idx = central_rows(scene.scan.positions_true, n)
+    truth = scene.scan.positions_true
+    assert truth is not None  # a simulated scene knows where its positions really were
+    idx = central_rows(truth, n)
     bp = settings.bp_options()
     sub = _subset(scene.scan, idx, scene.tracked)
     stage = _subset(scene.template_scan, idx)
@@ -188,7 +199,7 @@ def _positions_row(scene: _Scene, n: int) -> dict:
     res = twin_autofocus(basis, tpl, settings.autofocus_config())
     tgt = subimage_basis(sub.data, sub.positions, sub.chirp, scene.tgt_grid, **bp)
     truth = backproject(sub.data, sub.positions_true, sub.chirp, scene.tgt_grid, **bp)
-    image = form_image(tgt, transfer_phase(res.phase_rad, sub.positions, settings.remove_phase_ramp))
+    image = form_image(tgt, transfer_phase(res.phase_rad, sub.positions, settings.phase_ramp, range_m=scene.ref_grid.z))
     return {"n_positions": int(idx.size), "reference_basis_s": basis_s,
             "autofocus_s": optimiser_seconds(basis, tpl, settings.autofocus_config()), "autofocus_run_s": res.time_s,
             "ssim": metrics.image_ssim(image, truth), "hog": hog_similarity(image, truth),
@@ -218,7 +229,7 @@ def _digital_rows(scene: _Scene, values) -> list[dict]:
 
 
 def _knob_means(rows: list[dict], knob: str) -> list[dict]:
-    out = {}
+    out: dict[str, dict[str, Any]] = {}
     for r in rows:
         if r["knob"] != knob or r.get("status", "ok") != "ok":
             continue
@@ -302,5 +313,6 @@ def run_trade(settings: EvalSettings, quick: bool = False, scenes: int = 2, log=
             log(f"[trade] {scene.pair} preset {name}: SSIM {r['ssim']:.3f}, basis {r['reference_basis_s']:.1f} s, autofocus {r['autofocus_s']:.1f} s")
         for scene in scene_objs:
             scene._ref_bases = {}
-    return {"rows": rows, "presets": presets, "settings": settings.to_dict(), "knobs": {k: [list(x) if isinstance(x, tuple) else x for x in v] for k, v in knobs.items()},
+    return {"rows": rows, "presets": presets, "settings": settings.to_dict(),
+            "knobs": {k: [list(x) if isinstance(x, tuple) else x for x in v] for k, v in knobs.items()},
             "seconds": time.perf_counter() - t0}

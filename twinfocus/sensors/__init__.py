@@ -15,6 +15,8 @@ Modules
   serial port, and the ``.cfg`` file that drives it.
 - :mod:`~twinfocus.sensors.dca1000`: the DCA1000EVM capture board's UDP protocol (commands and
   raw ADC streaming) with loss/reorder detection.
+- :mod:`~twinfocus.sensors.dca1000_files`: DCA1000 capture files (mmWave Studio ``adc_data.bin``, the
+  DCA1000EVM CLI's reordered and sequence-number record files, ``_Raw_N.bin`` splits).
 - :mod:`~twinfocus.sensors.usb_devices`: which radars, capture boards and cameras are plugged in.
 - :mod:`~twinfocus.sensors.zed`: ZED 2i through the ZED SDK, or its raw UVC side-by-side stream.
 - :mod:`~twinfocus.sensors.trajectory_files`: TUM and EuRoC trajectory files.

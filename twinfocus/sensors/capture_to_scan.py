@@ -9,14 +9,15 @@ The steps of ``twinfocus convert``:
 2. poses at the frame times (linear position, slerp orientation), camera -> radar through the
    extrinsics, then (``scene_frame="aperture"``, the default) re-expressed in the *aperture
    frame*: axes of the first radar pose (x along the array, y across, z boresight), origin at
-   the mean radar position — the scene frame of DESIGN.md for a radar swept facing the scene.
+   the mean radar position — the scene frame (docs/architecture.md section 4) for a radar swept facing the scene.
 3. per frame, the 86 virtual channels (:func:`~twinfocus.sensors.frames.frame_to_virtual_channels`)
    and their phase centres (:func:`~twinfocus.trajectory.phase_centres`).
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from pathlib import Path
 
 import numpy as np
 
@@ -37,7 +38,36 @@ class ConversionReport:
     n_flagged: int = 0
     n_outside: int = 0
     time_shift_ns: int = 0
+    n_lost: int = 0
+    n_zero_filled: int = 0
+    n_device_skew: int = 0
     notes: list[str] = field(default_factory=list)
+
+    def gaps(self) -> dict:
+        """The capture's gaps as ``<scan>.capture.json`` records them (frames, by flag)."""
+        return {"frames": self.n_frames, "frames_used": self.n_used, "frames_dropped_flagged": self.n_flagged,
+                "frames_lost": self.n_lost, "frames_zero_filled": self.n_zero_filled,
+                "frames_device_skew": self.n_device_skew}
+
+
+def capture_report_path(scan_path) -> Path:
+    """Where ``twinfocus convert`` records a scan's capture gaps: ``scan.npz`` -> ``scan.capture.json``."""
+    p = Path(scan_path)
+    return p.with_name(p.stem + ".capture.json")
+
+
+def read_capture_report(scan_path) -> dict | None:
+    """The capture gaps recorded beside a converted scan (None when the scan has none), for the
+    metrics of a focus: frames, frames_used, frames_lost, frames_zero_filled, bytes_lost, ..."""
+    import json
+
+    p = capture_report_path(scan_path)
+    if not p.is_file():
+        return None
+    try:
+        return json.loads(p.read_text())
+    except ValueError:
+        raise TwinFocusError(f"{p}: damaged capture report (not JSON)") from None
 
 
 def align_times(radar_ns: np.ndarray, trajectory_ns: np.ndarray, time_offset_ns: int = 0, align: str = "auto") -> tuple[int, str | None]:
@@ -110,6 +140,9 @@ def scan_from_frames(
         stamps = np.array([f.stamp_ns for f in frames], np.int64)
         flag_list = [f.flags for f in frames]
     report = ConversionReport(n_frames=len(stamps))
+    report.n_lost = sum(1 for f in flag_list if f & FrameFlag.LOST)
+    report.n_zero_filled = sum(1 for f in flag_list if f & FrameFlag.ZERO_FILLED and not f & FrameFlag.LOST)
+    report.n_device_skew = sum(1 for f in flag_list if f & FrameFlag.DEVICE_SKEW)
     if stamps.size == 0:
         raise TwinFocusError("the capture holds no frames")
     shift, note = align_times(stamps, camera_poses.timestamps_ns, time_offset_ns, align)

@@ -26,8 +26,8 @@ import select
 import socket
 import struct
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 
@@ -181,15 +181,17 @@ class RawFrameLayout:
         """(n_loops, n_chirps, n_rx, N) -> complex64 (n_tx, n_rx, N) of one loop (None: mean)."""
         x = decoded.mean(axis=0).astype(np.complex64) if loop is None else decoded[int(loop)]
         tx = self.tx_of_chirp
+        n_tx = self.n_tx
+        assert n_tx is not None  # __post_init__ always fills it in
         if len(set(tx)) == len(tx):
-            if tx == tuple(range(self.n_tx)):
+            if tx == tuple(range(n_tx)):
                 return np.ascontiguousarray(x)
-            out = np.zeros((self.n_tx, self.n_rx, self.n_samples), np.complex64)
+            out = np.zeros((n_tx, self.n_rx, self.n_samples), np.complex64)
             out[list(tx)] = x
             return out
         # A TX that fires more than once in a loop (e.g. for Doppler) is averaged.
-        out = np.zeros((self.n_tx, self.n_rx, self.n_samples), np.complex64)
-        count = np.zeros(self.n_tx)
+        out = np.zeros((n_tx, self.n_rx, self.n_samples), np.complex64)
+        count = np.zeros(n_tx)
         for c, t in enumerate(tx):
             out[t] += x[c]
             count[t] += 1
@@ -450,7 +452,7 @@ class Dca1000:
     def config_addr(self) -> tuple[str, int]:
         return self._cfg.getsockname()
 
-    def __enter__(self) -> "Dca1000":
+    def __enter__(self) -> Dca1000:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -472,7 +474,7 @@ class Dca1000:
         while True:
             try:
                 packet, _ = self._cfg.recvfrom(2048)
-            except socket.timeout:
+            except TimeoutError:
                 raise TwinFocusError(
                     f"DCA1000 at {self.board_addr[0]}:{self.board_addr[1]} did not answer {Command(code).name} "
                     f"within {self.timeout_s:g} s (powered, cabled, host address {self.config_addr[0]}?)"

@@ -23,13 +23,14 @@ simulated (digital-twin) and a measured SAR image of the same object
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from twinfocus.atomic import write_text_atomic
 from twinfocus.errors import TwinFocusError
+from twinfocus.subpixel import parabola_vertex
 from twinfocus.trajectory import Poses, matrix_to_quat, quat_to_matrix
 
 #: A lever arm longer than this is taken for a unit mistake (millimetres instead of metres).
@@ -84,11 +85,11 @@ class RadarCameraExtrinsics:
         rot = np.einsum("mij,jk->mik", r_wc, self.rotation)
         return Poses(camera_poses.timestamps_ns, pos, matrix_to_quat(rot), camera_poses.confidence)
 
-    def inverse(self) -> "RadarCameraExtrinsics":
+    def inverse(self) -> RadarCameraExtrinsics:
         """``T_radar_camera``."""
         return RadarCameraExtrinsics(self.rotation.T, -self.rotation.T @ self.translation_m, self.radar_frame, self.camera_frame)
 
-    def corrected_by_image_offset(self, dx_m: float, dy_m: float, dz_m: float = 0.0) -> "RadarCameraExtrinsics":
+    def corrected_by_image_offset(self, dx_m: float, dy_m: float, dz_m: float = 0.0) -> RadarCameraExtrinsics:
         """The extrinsics with the translation fixed from an observed image shift.
 
         (dx, dy, dz) : how far the measured SAR image of an object lies from where the camera
@@ -109,7 +110,7 @@ class RadarCameraExtrinsics:
         }
 
     @classmethod
-    def from_dict(cls, d: dict, where: str = "extrinsics") -> "RadarCameraExtrinsics":
+    def from_dict(cls, d: dict, where: str = "extrinsics") -> RadarCameraExtrinsics:
         if not isinstance(d, dict):
             raise TwinFocusError(f"{where}: expected a mapping with translation_m and a rotation")
         known = {"camera_frame", "radar_frame", "translation_m", "rotation_xyzw", "rotation_matrix", "rotation_rpy_deg"}
@@ -144,7 +145,7 @@ class RadarCameraExtrinsics:
             raise TwinFocusError(f"{where}: values must be numbers ({exc})") from None
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "RadarCameraExtrinsics":
+    def load(cls, path: str | os.PathLike) -> RadarCameraExtrinsics:
         """Read a calibration file (YAML, see the module docstring)."""
         import yaml
 
@@ -166,18 +167,7 @@ class RadarCameraExtrinsics:
         text = "# T_camera_radar: radar body frame -> camera frame (p_camera = R p_radar + t)\n" + yaml.safe_dump(
             self.to_dict(), sort_keys=False, default_flow_style=None
         )
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "w") as f:
-                f.write(text)
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        return write_text_atomic(path, text)
 
 
 def fit_rigid_transform(points_from: np.ndarray, points_to: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -228,12 +218,8 @@ def image_offset_m(reference: np.ndarray, measured: np.ndarray, x_m: np.ndarray,
     xc = np.fft.irfft2(fb * np.conj(fa), s=(2 * h, 2 * w))
     i, j = np.unravel_index(np.argmax(xc), xc.shape)
 
-    def refine(c_m, c0, c_p):
-        den = c_m - 2 * c0 + c_p
-        return 0.0 if den == 0 else 0.5 * (c_m - c_p) / den
-
-    di = i + refine(xc[i - 1, j], xc[i, j], xc[(i + 1) % (2 * h), j])
-    dj = j + refine(xc[i, j - 1], xc[i, j], xc[i, (j + 1) % (2 * w)])
+    di = i + parabola_vertex(xc[i - 1, j], xc[i, j], xc[(i + 1) % (2 * h), j])
+    dj = j + parabola_vertex(xc[i, j - 1], xc[i, j], xc[i, (j + 1) % (2 * w)])
     di = di - 2 * h if di > h else di
     dj = dj - 2 * w if dj > w else dj
     dx = float(dj * (x_m[-1] - x_m[0]) / (w - 1))

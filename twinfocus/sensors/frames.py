@@ -3,7 +3,7 @@
 A MIMO frame holds, for one radar position, the IF samples of every TX-RX pair:
 complex64 (n_tx, n_rx, N). In TDM-MIMO each TX fires its own chirp, so pair (t, r) sees the
 bistatic path R_tx + R_rx; the monostatic-equivalent phase centre of the pair is the midpoint of
-its two antennas (DESIGN.md section 2). :func:`frame_to_virtual_channels` picks the pairs of a
+its two antennas (docs/architecture.md section 2). :func:`frame_to_virtual_channels` picks the pairs of a
 :class:`~twinfocus.radar.VirtualArray` and applies the multistatic-to-monostatic correction, giving
 the (K, N) rows of a scan file's ``data``.
 """

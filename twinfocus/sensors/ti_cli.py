@@ -104,9 +104,13 @@ class RadarCliConfig:
     n_loops: int
     n_frames: int
     frame_period_ms: float
+    #: lvdsStreamCfg (enableHeader, dataFmt, enableSW) and adcbufCfg (adcOutputFmt, SampleSwap,
+    #: ChanInterleave) when the file has them: they change the bytes on the LVDS stream.
+    lvds_stream: tuple[int, int, int] | None = None
+    adcbuf: tuple[int, int, int] | None = None
 
     @classmethod
-    def from_cfg(cls, cfg, source: str | None = None) -> "RadarCliConfig":
+    def from_cfg(cls, cfg, source: str | None = None) -> RadarCliConfig:
         """Parse a ``.cfg`` (see :func:`read_cfg`); errors name the file, line and field."""
         name = source or (str(cfg) if isinstance(cfg, (str, os.PathLike)) and "\n" not in str(cfg) else "radar configuration")
         cmds = read_cfg(cfg)
@@ -142,6 +146,12 @@ class RadarCliConfig:
                 v = nums(line_no, parts, 7, "chirpStartIdx chirpEndIdx numLoops numFrames framePeriodicity "
                          "triggerSelect frameTriggerDelay")
                 vals["frame"] = (int(v[0]), int(v[1]), int(v[2]), int(v[3]), v[4])
+            elif key == "lvdsStreamCfg":
+                v = nums(line_no, parts, 4, "subFrameIdx enableHeader dataFmt enableSW")
+                vals["lvds_stream"] = (int(v[1]), int(v[2]), int(v[3]))
+            elif key == "adcbufCfg":
+                v = nums(line_no, parts, 5, "subFrameIdx adcOutputFmt SampleSwap ChanInterleave ChirpThreshold")
+                vals["adcbuf"] = (int(v[1]), int(v[2]), int(v[3]))
         for key, what in (("rx_mask", "channelCfg"), ("adc_bits", "adcCfg"), ("frame", "frameCfg")):
             if key not in vals:
                 raise TwinFocusError(f"{name}: no {what} command; the raw frame layout cannot be known without it")
@@ -163,6 +173,8 @@ class RadarCliConfig:
             n_loops=loops,
             n_frames=n_frames,
             frame_period_ms=period,
+            lvds_stream=vals.get("lvds_stream"),
+            adcbuf=vals.get("adcbuf"),
         )
 
     @property
@@ -189,8 +201,36 @@ class RadarCliConfig:
             n_samples=p.n_samples,
         )
 
+    def check_stream_format(self) -> None:
+        """Refuse settings that change the LVDS byte layout from the one read here.
+
+        The layout read (TI SWRA581, DCA1000 data format of xWR16xx/18xx/68xx) is that of the
+        SDK demos' raw-capture settings ``lvdsStreamCfg -1 0 1 0`` (no header, ADC data only)
+        and ``adcbufCfg -1 0 1 1 1`` (complex, the demo's sample swap, non-interleaved). An HSI
+        header (``enableHeader`` 1) puts 0x0ADC-tagged headers into the stream (TI E2E 708709:
+        "starting with DC 0A DC 0A"); ``dataFmt`` other than 1 adds chirp parameter / quality
+        data; real ADC output, the other sample swap or interleaved channels reorder the
+        samples. Each is refused with the setting to use; a file without these commands passes.
+        """
+        if self.lvds_stream is not None:
+            header, fmt, _sw = self.lvds_stream
+            if header:
+                raise TwinFocusError("lvdsStreamCfg enableHeader is 1: HSI headers (0x0ADC) sit in the LVDS stream between "
+                                     "the samples; record with lvdsStreamCfg -1 0 1 0")
+            if fmt != 1:
+                raise TwinFocusError(f"lvdsStreamCfg dataFmt is {fmt}: the stream carries more than ADC samples "
+                                     "(1 = ADC only is read); record with lvdsStreamCfg -1 0 1 0")
+        if self.adcbuf is not None:
+            out_fmt, swap, interleave = self.adcbuf
+            if out_fmt != 0:
+                raise TwinFocusError(f"adcbufCfg adcOutputFmt is {out_fmt} (real); the raw layout read here is complex (0)")
+            if swap != 1 or interleave != 1:
+                raise TwinFocusError(f"adcbufCfg SampleSwap {swap} / ChanInterleave {interleave}: only the SDK demo's "
+                                     "adcbufCfg -1 0 1 1 1 (non-interleaved) layout is read")
+
     def raw_layout(self) -> RawFrameLayout:
         """How the frames arrive from the capture board (16-bit complex output only)."""
+        self.check_stream_format()
         if self.adc_bits != 2:
             raise TwinFocusError(f"adcCfg numADCBits is {self.adc_bits}; raw capture here needs 2 (16-bit samples)")
         if self.adc_format != 1:
@@ -231,7 +271,7 @@ class TiRadarCli:
                 "(the CLI is the lower-numbered of the EVM's two ports) and permissions (group dialout)"
             ) from None
 
-    def __enter__(self) -> "TiRadarCli":
+    def __enter__(self) -> TiRadarCli:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -30,9 +30,9 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -236,6 +236,233 @@ def cascade_frame_to_device_iq(frame_iq: np.ndarray, config: MmwcasConfig) -> np
     return np.ascontiguousarray(x).reshape(len(DEVICES), -1)
 
 
+# --- the capture's configuration ------------------------------------------------------------
+
+#: Units a capture's index time stamps might be in, nanoseconds per tick, and their names.
+TIMESTAMP_UNITS = {1: "ns", 1000: "us", 1_000_000: "ms"}
+
+
+def check_timestamp_unit(master_ticks: np.ndarray, unit_ns: int, frame_period_s: float | None) -> None:
+    """Refuse a time-stamp unit that does not fit the frame period, naming the one that does.
+
+    master_ticks : int64 (F,) the master's index stamps, in ticks; unit_ns : the unit assumed;
+    frame_period_s : nominal period (None: nothing to check against). The median tick spacing
+    times each candidate unit (ns, us, ms, a factor 1000 apart) is compared with the period on a
+    log scale: the assumed unit is refused when it is more than a factor 30 off (a nominal period
+    that is merely wrong, 100 ms for a 33 ms capture, passes) and the unit that lands nearest is
+    named.
+    """
+    t = np.asarray(master_ticks, np.int64)
+    if frame_period_s is None or t.size < 3:
+        return
+    step = float(np.median(np.diff(t)))
+    if step <= 0:
+        raise TwinFocusError(f"the master's index time stamps do not increase (median step {step:g} ticks)")
+
+    def off(u: int) -> float:
+        return abs(np.log10(step * u * 1e-9 / frame_period_s))
+
+    if off(int(unit_ns)) <= 1.5:
+        return
+    best = min(TIMESTAMP_UNITS, key=off)
+    have = f"{step * unit_ns * 1e-9:.6g} s per frame with {unit_ns} ns per tick"
+    if off(best) <= 1.5:
+        raise TwinFocusError(
+            f"index time stamps advance {step:.6g} ticks per frame: {have}, but the frame period is {frame_period_s * 1e3:g} ms; "
+            f"the stamps are in {TIMESTAMP_UNITS[best]} (--timestamp-unit-ns {best})"
+        )
+    raise TwinFocusError(
+        f"index time stamps advance {step:.6g} ticks per frame: {have}; no unit (ns, us, ms) fits the frame period "
+        f"{frame_period_s * 1e3:g} ms; check --frame-period-s"
+    )
+
+
+def tx_order_to_tx_of_chirp(tx_numbers) -> tuple[int, ...]:
+    """TI's ``TxToEnable`` (TX numbers 1..12 in chirp order) -> ``tx_of_chirp`` (0-based, order of
+    :mod:`twinfocus.radar`). The default ``[12 11 ... 1]`` maps chirp c to TX c, so TI TX n is
+    index 12 - n."""
+    nums = [int(n) for n in tx_numbers]
+    bad = [n for n in nums if not 1 <= n <= N_TX]
+    if bad or len(set(nums)) != len(nums) or not nums:
+        raise TwinFocusError(f"TX order must list distinct TX numbers 1..{N_TX}, got {nums}")
+    return tuple(N_TX - n for n in nums)
+
+
+def parse_tx_order(text: str) -> tuple[int, ...]:
+    """``"12,11,10"`` or ``"[12 11 10]"`` (MATLAB form) -> TX numbers."""
+    parts = re.split(r"[\s,;]+", str(text).strip().strip("[]").strip())
+    try:
+        return tuple(int(p) for p in parts if p)
+    except ValueError:
+        raise TwinFocusError(f"TX order must be TX numbers 1..12 separated by commas, got {text!r}") from None
+
+
+def _num(v) -> float:
+    return float(int(v, 16)) if isinstance(v, str) and v.lower().startswith("0x") else float(v)
+
+
+def read_studio_json(path: str | os.PathLike) -> dict:
+    """The chirp layout of an mmWave Studio configuration JSON (``*.mmwave.json``).
+
+    Keys followed (mmWave Studio's JSON export; the mmwavelink names ``rlFrameCfg_t``,
+    ``rlChirpCfg_t``, ``rlProfileCfg_t``): ``mmWaveDevices[d].rfConfig.rlFrameCfg_t``
+    (``chirpStartIdx``, ``chirpEndIdx``, ``numLoops``, ``framePeriodicity_msec``),
+    ``rlChirps[].rlChirpCfg_t`` (``chirpStartIdx``, ``chirpEndIdx``, ``txEnable``) per device,
+    ``rlProfiles[0].rlProfileCfg_t.numAdcSamples``, ``rawDataCaptureConfig.rlDevDataFmtCfg_t``.
+    Device d (``devId`` 0..3: master, slave1..3) TX bit b is cascade TX ``3 d + b + 1`` (TI's
+    cascade Lua enables TX12 as device 4's TX3 for the first chirp of the default order).
+
+    Returns {tx_numbers, n_loops, frame_period_s, n_samples, iq_swap, ch_interleave, source}.
+    """
+    path = Path(path)
+    try:
+        doc = __import__("json").loads(path.read_text())
+        devs = doc["mmWaveDevices"]
+        devs = sorted(devs, key=lambda d: int(d.get("mmWaveDeviceId", d.get("devId", 0))))
+        rf0 = devs[0]["rfConfig"]
+        frame = rf0["rlFrameCfg_t"]
+        c0, c1 = int(_num(frame["chirpStartIdx"])), int(_num(frame["chirpEndIdx"]))
+        tx_numbers = []
+        for c in range(c0, c1 + 1):
+            fired = []
+            for d, dev in enumerate(devs):
+                for ch in dev["rfConfig"].get("rlChirps", []):
+                    cc = ch.get("rlChirpCfg_t", ch)
+                    if int(_num(cc["chirpStartIdx"])) <= c <= int(_num(cc["chirpEndIdx"])):
+                        mask = int(_num(cc["txEnable"]))
+                        fired += [3 * d + b + 1 for b in range(3) if mask >> b & 1]
+            if len(fired) != 1:
+                raise TwinFocusError(f"{path}: chirp {c} fires TX {fired}; TDM-MIMO needs exactly one TX per chirp")
+            tx_numbers.append(fired[0])
+        fmt = devs[0].get("rawDataCaptureConfig", {}).get("rlDevDataFmtCfg_t", {})
+        profile = rf0["rlProfiles"][0]
+        profile = profile.get("rlProfileCfg_t", profile)
+        return {
+            "tx_numbers": tuple(tx_numbers),
+            "n_loops": int(_num(frame["numLoops"])),
+            "frame_period_s": _num(frame["framePeriodicity_msec"]) * 1e-3,
+            "n_samples": int(_num(profile["numAdcSamples"])),
+            "iq_swap": int(_num(fmt.get("iqSwapSel", 0))),
+            "ch_interleave": int(_num(fmt.get("chInterleave", 0))),
+            "source": str(path),
+        }
+    except TwinFocusError:
+        raise
+    except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
+        raise TwinFocusError(f"{path}: not a readable mmWave Studio JSON ({type(exc).__name__}: {exc})") from None
+
+
+_LUA_ASSIGN = re.compile(r"^\s*(?:local\s+)?(nchirp_loops|Inter_Frame_Interval|start_chirp_tx|end_chirp_tx|adc_samples)\s*=\s*"
+                         r"([-+0-9.eE]+)", re.M)
+_LUA_DEVICE_BLOCK = re.compile(r"\b(?:else)?if\s*\(?\s*i\s*==\s*(\d)\s*\)?\s*then")
+_LUA_CHIRP = re.compile(r"ar1\.ChirpConfig_mult\(\s*([^,]+?)\s*,\s*(\d+)\s*,\s*(\d+)\s*,(?:\s*[-+0-9.]+\s*,){5}"
+                        r"\s*(\d)\s*,\s*(\d)\s*,\s*(\d)\s*\)")
+
+
+def read_cascade_lua(path: str | os.PathLike) -> dict:
+    """The chirp layout of TI's cascade setup Lua (mmWave Studio ``Cascade_Configuration_*.lua``).
+
+    Followed as TI's script writes it: assignments ``nchirp_loops = 64``,
+    ``Inter_Frame_Interval = 100`` (ms), ``start_chirp_tx = 0``, ``end_chirp_tx = 11``,
+    ``adc_samples = 256``; chirps ``ar1.ChirpConfig_mult(RadarDeviceId, chirpStartIdx,
+    chirpEndIdx, profileId, startFreqVar, freqSlopeVar, idleTimeVar, adcStartTimeVar, tx0Enable,
+    tx1Enable, tx2Enable)`` inside ``Configure_Chirps(i)``'s ``if (i == k) then`` blocks (device
+    k - 1), or with a literal device mask 1, 2, 4, 8. Device d's TX b is cascade TX 3 d + b + 1.
+    Returns the keys of :func:`read_studio_json` that the script sets.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(errors="replace")
+    except OSError as exc:
+        raise TwinFocusError(f"{path}: cannot read ({exc.strerror})") from None
+    text = re.sub(r"--\[\[.*?\]\]", "", text, flags=re.S)  # block comments (TI's chirp table)
+    text = re.sub(r"--[^\n]*", "", text)
+    vals = {k: float(v) for k, v in _LUA_ASSIGN.findall(text)}
+    blocks = [(m.start(), int(m.group(1)) - 1) for m in _LUA_DEVICE_BLOCK.finditer(text)]
+    fired: dict[int, list[int]] = {}
+    for m in _LUA_CHIRP.finditer(text):
+        dev_arg = m.group(1).strip()
+        if dev_arg.isdigit() and int(dev_arg) in (1, 2, 4, 8):
+            dev = int(dev_arg).bit_length() - 1
+        else:
+            before = [d for pos, d in blocks if pos < m.start()]
+            if not before:
+                continue  # a call for all devices at once (e.g. TX beamforming) gives no TDM order
+            dev = before[-1]
+        for c in range(int(m.group(2)), int(m.group(3)) + 1):
+            fired.setdefault(c, [])
+            fired[c] += [3 * dev + b + 1 for b in range(3) if m.group(4 + b) == "1"]
+    c0 = int(vals.get("start_chirp_tx", min(fired) if fired else 0))
+    c1 = int(vals.get("end_chirp_tx", max(fired) if fired else -1))
+    out: dict = {"source": str(path)}
+    if fired:
+        tx = []
+        for c in range(c0, c1 + 1):
+            if len(fired.get(c, [])) != 1:
+                raise TwinFocusError(f"{path}: chirp {c} fires TX {fired.get(c, [])}; TDM-MIMO needs exactly one TX per chirp")
+            tx.append(fired[c][0])
+        out["tx_numbers"] = tuple(tx)
+    if "nchirp_loops" in vals:
+        out["n_loops"] = int(vals["nchirp_loops"])
+    if "Inter_Frame_Interval" in vals:
+        out["frame_period_s"] = vals["Inter_Frame_Interval"] * 1e-3
+    if "adc_samples" in vals:
+        out["n_samples"] = int(vals["adc_samples"])
+    return out
+
+
+def find_capture_setup(folder: str | os.PathLike) -> Path | None:
+    """The capture's configuration: an mmWave Studio ``*.mmwave.json`` in the capture folder or
+    its parent, else a cascade setup ``*.lua`` in the folder (None if none)."""
+    folder = Path(folder)
+    for where, pattern in ((folder, "*.mmwave.json"), (folder.parent, "*.mmwave.json"), (folder, "*.lua")):
+        found = sorted(where.glob(pattern))
+        if len(found) > 1:
+            raise TwinFocusError(f"{where}: several capture configurations ({', '.join(p.name for p in found)}); name one with --setup")
+        if found:
+            return found[0]
+    return None
+
+
+def read_capture_setup(path: str | os.PathLike) -> dict:
+    """:func:`read_studio_json` or :func:`read_cascade_lua` by the file's name."""
+    return read_cascade_lua(path) if str(path).endswith(".lua") else read_studio_json(path)
+
+
+def resolve_config(folder, chirp: Chirp, n_loops: int | None = None, tx_order: str | None = None,
+                   frame_period_s: float | None = None, timestamp_unit_ns: int = 1000,
+                   setup: str | os.PathLike | None = None) -> tuple[MmwcasConfig, list[str]]:
+    """The capture's :class:`MmwcasConfig`: its configuration (``setup``, else what
+    :func:`find_capture_setup` finds) where there is one, else the options; an option that
+    disagrees with the configuration wins, with a note. Returns (config, notes)."""
+    notes: list[str] = []
+    js = Path(setup) if setup else find_capture_setup(folder)
+    got = read_capture_setup(js) if js else {}
+    if js:
+        notes.append(f"chirp layout from {js}: " + ", ".join(f"{k} {v}" for k, v in got.items() if k != "source"))
+        if got.get("iq_swap") or got.get("ch_interleave"):
+            raise TwinFocusError(
+                f"{js}: rlDevDataFmtCfg_t iqSwapSel={got['iq_swap']} chInterleave={got['ch_interleave']}; only I-first, "
+                "non-interleaved samples (both 0, the cascade default) are read"
+            )
+
+    def pick(name, option, default):
+        if option is not None:
+            if name in got and got[name] != option:
+                notes.append(f"--{name.replace('_', '-')} {option} overrides the configuration's {got[name]}")
+            return option
+        return got.get(name, default)
+
+    tx_numbers = pick("tx_numbers", parse_tx_order(tx_order) if tx_order else None, tuple(range(N_TX, 0, -1)))
+    n_samples = got.get("n_samples", chirp.n_samples)
+    if n_samples != chirp.n_samples:
+        chirp = Chirp(chirp.f0_hz, chirp.slope_hz_per_s, chirp.fs_hz, n_samples)
+    tx = tx_order_to_tx_of_chirp(tx_numbers)
+    config = MmwcasConfig(chirp=chirp, n_chirps=len(tx), n_loops=pick("n_loops", n_loops, 1), tx_of_chirp=tx,
+                          timestamp_unit_ns=timestamp_unit_ns, frame_period_s=pick("frame_period_s", frame_period_s, 0.1))
+    return config, notes
+
+
 # --- captures ---------------------------------------------------------------------------------
 
 
@@ -266,7 +493,8 @@ class MmwcasCapture:
     Use as ``with MmwcasCapture(folder, cfg) as cap: for frame in cap.frames(): ...``.
     """
 
-    def __init__(self, folder: str | os.PathLike, config: MmwcasConfig | None = None, skip_first_frame: bool = True):
+    def __init__(self, folder: str | os.PathLike, config: MmwcasConfig | None = None, skip_first_frame: bool = True,
+                 skip_first_frame_of_each_slice: bool = False):
         self.folder = Path(folder)
         self.config = config or MmwcasConfig()
         self.warnings: list[str] = []
@@ -281,8 +509,8 @@ class MmwcasCapture:
         self._data_paths: list[list[Path]] = []
         self._maps: list[list[np.ndarray | None]] = []
         refs: list[_FrameRef] = []
+        raw: list[tuple[int, int, tuple[int, ...], list[int]]] = []
         fb = self.config.device_frame_bytes
-        period_ns = None if self.config.frame_period_s is None else self.config.frame_period_s * 1e9
         for pos, sid in enumerate(slices):
             idx_files, data_paths, sizes = [], [], []
             for dev in DEVICES:
@@ -302,7 +530,7 @@ class MmwcasCapture:
             counts = [len(i.entries) for i in idx_files]
             if len(set(counts)) > 1:
                 self.warnings.append(f"slice {sid}: devices index {counts} frames; only the first {n} are used")
-            for dev, idx in zip(DEVICES, idx_files):
+            for _dev, idx in zip(DEVICES, idx_files):
                 sz = idx.entries["size"][:n]
                 wrong = np.flatnonzero(sz != fb)
                 if wrong.size:
@@ -327,13 +555,32 @@ class MmwcasCapture:
                         f"slice {sid} frame {i}: time stamp {max(ticks)} does not fit nanoseconds in 64 bits "
                         f"(timestamp_unit_ns = {self.config.timestamp_unit_ns}); is the index file damaged?"
                     )
-                stamps_ns = np.array(ticks, dtype=np.int64) * int(self.config.timestamp_unit_ns)
-                flags = FrameFlag.OK
-                if period_ns is not None and stamps_ns.max() - stamps_ns.min() > period_ns / 2:
-                    flags |= FrameFlag.DEVICE_SKEW
-                refs.append(_FrameRef(pos, i, offs, int(stamps_ns[0]), flags))
-        if skip_first_frame and refs:
-            refs = refs[1:]
+                raw.append((pos, i, offs, ticks))
+        # TI's cascade processing (cascade_MIMO_signalProcessing.m) skips the first frame of every
+        # slice file it reads; the capture card writes slices back to back, so only the capture's
+        # very first frame is known bad and that is all the default drops (docs/sensors.md).
+        first_of_slice = {(pos, 0) for pos in range(len(slices))}
+        if skip_first_frame_of_each_slice:
+            raw = [r for r in raw if (r[0], r[1]) not in first_of_slice]
+        elif skip_first_frame and raw:
+            raw = raw[1:]
+        unit = int(self.config.timestamp_unit_ns)
+        master = np.array([r[3][0] for r in raw], dtype=np.int64)
+        check_timestamp_unit(master, unit, self.config.frame_period_s)
+        # A slave one frame late is one frame period off; half the period is the threshold. The
+        # period is measured from the master's stamps (median spacing) when there are enough, so
+        # a 33 ms capture is checked at 33 ms whatever the configuration's nominal period.
+        period_ns = None if self.config.frame_period_s is None else self.config.frame_period_s * 1e9
+        if master.size >= 3:
+            measured = float(np.median(np.diff(master))) * unit
+            if measured > 0:
+                period_ns = measured if period_ns is None else min(period_ns, measured)
+        for pos, i, offs, ticks in raw:
+            stamps_ns = np.array(ticks, dtype=np.int64) * unit
+            flags = FrameFlag.OK
+            if period_ns is not None and stamps_ns.max() - stamps_ns.min() > period_ns / 2:
+                flags |= FrameFlag.DEVICE_SKEW
+            refs.append(_FrameRef(pos, i, offs, int(stamps_ns[0]), flags))
         self._refs = refs
         skewed = sum(1 for r in refs if r.flags & FrameFlag.DEVICE_SKEW)
         if skewed:
@@ -346,7 +593,7 @@ class MmwcasCapture:
     def __len__(self) -> int:
         return len(self._refs)
 
-    def __enter__(self) -> "MmwcasCapture":
+    def __enter__(self) -> MmwcasCapture:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -14,12 +14,12 @@ write/read round trip is bit-exact.
 from __future__ import annotations
 
 import os
-import tempfile
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
 
+from twinfocus.atomic import write_text_atomic
 from twinfocus.errors import TwinFocusError
 from twinfocus.trajectory import Poses
 
@@ -151,22 +151,6 @@ def read_trajectory(path: str | os.PathLike, fmt: str = "auto") -> Poses:
     raise TwinFocusError(f"unknown trajectory format {fmt!r}; use 'tum', 'euroc' or 'auto'")
 
 
-def _write_atomic(path: Path, text: str) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        _umask = os.umask(0)
-        os.umask(_umask)
-        os.chmod(tmp, 0o666 & ~_umask)  # mkstemp makes 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
 def write_tum(path: str | os.PathLike, poses: Poses, confidence: bool = True) -> Path:
     """Write a TUM file (a 9th confidence column when the poses have one and ``confidence``)."""
     with_conf = confidence and poses.confidence is not None
@@ -174,9 +158,9 @@ def write_tum(path: str | os.PathLike, poses: Poses, confidence: bool = True) ->
     for m in range(len(poses)):
         vals = list(poses.position_m[m]) + list(poses.quat_xyzw[m])
         if with_conf:
-            vals.append(poses.confidence[m])
+            vals.append(poses.confidence[m])  # type: ignore[index]  # with_conf
         lines.append(" ".join([_ns_to_seconds(poses.timestamps_ns[m])] + [repr(float(v)) for v in vals]))
-    return _write_atomic(Path(path), "\n".join(lines) + "\n")
+    return write_text_atomic(path, "\n".join(lines) + "\n")
 
 
 def write_euroc(path: str | os.PathLike, poses: Poses, confidence: bool = True) -> Path:
@@ -186,6 +170,6 @@ def write_euroc(path: str | os.PathLike, poses: Poses, confidence: bool = True) 
     for m in range(len(poses)):
         x, y, z = poses.position_m[m]
         qx, qy, qz, qw = poses.quat_xyzw[m]
-        vals = [x, y, z, qw, qx, qy, qz] + ([poses.confidence[m]] if with_conf else [])
+        vals = [x, y, z, qw, qx, qy, qz] + ([poses.confidence[m]] if with_conf else [])  # type: ignore[index]
         lines.append(",".join([str(int(poses.timestamps_ns[m]))] + [repr(float(v)) for v in vals]))
-    return _write_atomic(Path(path), "\n".join(lines) + "\n")
+    return write_text_atomic(path, "\n".join(lines) + "\n")

@@ -21,9 +21,10 @@ from __future__ import annotations
 import configparser
 import os
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -93,7 +94,7 @@ class StereoCalibration:
     def baseline_m(self) -> float:
         return float(np.linalg.norm(self.translation_m))
 
-    def rectification(self) -> "StereoRectification":
+    def rectification(self) -> StereoRectification:
         """Undistort-and-rectify maps (``cv2.stereoRectify``, zero disparity at infinity, alpha 0)."""
         import cv2
 
@@ -211,7 +212,7 @@ class ZedUvcStereo:
         self.calibration = calibration
         self._rect = calibration.rectification() if calibration is not None else None
 
-    def __enter__(self) -> "ZedUvcStereo":
+    def __enter__(self) -> ZedUvcStereo:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -287,7 +288,7 @@ class ZedSdkCamera:
             self.cam.close()
             raise TwinFocusError(f"the ZED SDK could not start positional tracking: {err}")
 
-    def __enter__(self) -> "ZedSdkCamera":
+    def __enter__(self) -> ZedSdkCamera:
         return self
 
     def __exit__(self, *exc) -> None:

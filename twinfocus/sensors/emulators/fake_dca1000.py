@@ -14,7 +14,7 @@ import socket
 import struct
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -112,7 +112,7 @@ class FakeDca1000:
         """(ip, port) of the emulated board's config port."""
         return self._cfg.getsockname()
 
-    def __enter__(self) -> "FakeDca1000":
+    def __enter__(self) -> FakeDca1000:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -149,7 +149,7 @@ class FakeDca1000:
         while not self._stop.is_set():
             try:
                 packet, addr = self._cfg.recvfrom(2048)
-            except (socket.timeout, OSError):
+            except (TimeoutError, OSError):
                 continue
             try:
                 code, body = decode_command(packet)

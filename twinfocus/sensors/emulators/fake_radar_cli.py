@@ -75,7 +75,7 @@ class FakeRadarCli:
         self._thread = threading.Thread(target=self._serve, name="fake-radar-cli", daemon=True)
         self._thread.start()
 
-    def __enter__(self) -> "FakeRadarCli":
+    def __enter__(self) -> FakeRadarCli:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -1,7 +1,7 @@
 """What a TDM-MIMO radar would record from point scatterers: per TX-RX pair, the bistatic path.
 
 Used by the emulated devices (the fake capture board, the capture-folder generator) so that a
-live graph on loopback images a real scene. Model (DESIGN.md section 2 with the bistatic
+live graph on loopback images a real scene. Model (docs/architecture.md section 2 with the bistatic
 range R = (R_tx + R_rx) / 2):
 
     s[t, r, n] = sum_j a_j exp(+j k_n (|p_j - tx_t| + |p_j - rx_r|)),   k_n = 2 pi (f0 + S n / fs) / c

@@ -16,11 +16,12 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
+from twinfocus.atomic import write_text_atomic
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import Chirp
 from twinfocus.sensors.dca1000 import RawFrameLayout
@@ -123,11 +124,9 @@ class EmulatedRadar:
         return layout.encode(iq[None])
 
     def _started(self, start_ns: int) -> None:
-        tmp = self.sync_file.with_suffix(".tmp")
-        tmp.write_text(str(int(start_ns)))
-        os.replace(tmp, self.sync_file)
+        write_text_atomic(self.sync_file, str(int(start_ns)))
 
-    def __enter__(self) -> "EmulatedRadar":
+    def __enter__(self) -> EmulatedRadar:
         return self
 
     def __exit__(self, *exc) -> None:

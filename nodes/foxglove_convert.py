@@ -1,0 +1,305 @@
+"""Graph messages -> Foxglove's well-known schemas: the one conversion the bridge, ``twinfocus
+export --to foxglove`` and ``record --foxglove`` share.
+
+:class:`FoxgloveConverter` turns each typed message (``msgs.messages``) into zero or more
+:class:`FoxgloveMessage` records: a Foxglove topic, its schema (name, encoding, bytes) and the
+encoded payload. The sinks only move bytes: the bridge logs them on ``foxglove.Channel``s of its
+WebSocket server, the MCAP writers (:meth:`msgs.mcap_log.LogWriter.write_encoded`) register the
+schema and add the message. Conversions:
+
+=====================  ==================================  ====================================
+graph topic            Foxglove topic                      schema
+=====================  ==================================  ====================================
+``image/focused``      ``/image/<name>`` (``target``,      ``foxglove.CompressedImage`` PNG,
+                       ``target_uncorrected``,             ``|image| / max`` through inferno
+                       ``reference``, ...)                 (``nodes.visualizer.amplitude_png``)
+``twin/template``      ``/twin/template``                  same, of the template amplitude
+                       ``/twin/points``                    ``foxglove.PointCloud`` x y z
+                                                           intensity (float32), scene frame
+``vio/pose``           ``/vio/pose``                       ``foxglove.PoseInFrame``
+                       ``/vio/trajectory``                 ``foxglove.SceneUpdate``: the track
+                                                           so far as a line strip (every
+                                                           ``trajectory_every`` poses)
+                       ``/vio/confidence``                 JSON ``{confidence}``
+``sar/measurement``    ``/sar/phase_centres``              ``foxglove.PointCloud`` of the K
+                                                           phase centres x y z (float32)
+                       ``/sar/quality``                    JSON ``{index, pose_gap_ms}``
+``autofocus/result``   ``/autofocus/result``               JSON: ``phase_rad`` per position,
+                                                           ``loss_history``, ``metrics``,
+                                                           ``timing_s`` (plottable numbers)
+``camera/stereo``      ``/camera/left``                    ``foxglove.RawImage`` mono8 / rgb8
+``graph/status``       ``/log``                            ``foxglove.Log``: a node's state
+                                                           change, status message or new loss
+=====================  ==================================  ====================================
+
+The digital twin's point cloud travels on no topic of the graph; ``/twin/points`` shows the
+template's pixels above ``points_threshold`` of its peak on the plane ``z_m`` (for a digital
+twin that is the cloud rendered as the radar should see it). ``radar/frame`` (raw IF samples)
+has no Foxglove picture and is left out.
+
+Times: a record's ``log_time_ns`` is the caller's; Foxglove's ``timestamp`` fields carry the
+header stamp (clamped at 0: Foxglove's time is unsigned).
+"""
+from __future__ import annotations
+
+import json
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from msgs.messages import AutofocusResult, Image, NodeStatus, Pose, SarMeasurement, StereoFrame, TwinTemplate
+
+PROTOBUF = "protobuf"
+JSON = "json"
+
+#: JSON schemas of the plottable-number channels (Foxglove draws them in its Plot panel)
+JSON_SCHEMAS: dict[str, dict] = {
+    "twinfocus.AutofocusResult": {
+        "type": "object",
+        "properties": {
+            "scan_id": {"type": "string"},
+            "method": {"type": "string"},
+            "phase_rad": {"type": "array", "items": {"type": "number"}, "description": "estimated phase per radar position, rad"},
+            "loss_history": {"type": "array", "items": {"type": "number"}, "description": "loss per iteration"},
+            "metrics": {"type": "object", "additionalProperties": {"type": "number"}},
+            "timing_s": {"type": "object", "additionalProperties": {"type": "number"}},
+        },
+        "required": ["scan_id", "method", "phase_rad", "loss_history", "metrics", "timing_s"],
+    },
+    "twinfocus.PoseConfidence": {
+        "type": "object",
+        "properties": {"confidence": {"type": "number", "minimum": 0, "maximum": 1}},
+        "required": ["confidence"],
+    },
+    "twinfocus.MeasurementQuality": {
+        "type": "object",
+        "properties": {
+            "scan_id": {"type": "string"},
+            "index": {"type": "integer"},
+            "pose_gap_ms": {"type": "number", "description": "width of the pose interval the position was interpolated over"},
+        },
+        "required": ["scan_id", "index", "pose_gap_ms"],
+    },
+}
+
+
+@dataclass(frozen=True)
+class FoxgloveMessage:
+    """One Foxglove record: ``topic``, schema (``schema_name``, ``schema_encoding``
+    ``protobuf`` / ``jsonschema``, ``schema_data`` bytes), ``message_encoding`` (``protobuf`` /
+    ``json``), ``data`` (encoded payload) and ``log_time_ns``."""
+
+    topic: str
+    schema_name: str
+    schema_encoding: str
+    schema_data: bytes
+    message_encoding: str
+    data: bytes
+    log_time_ns: int
+
+
+def _stamp(stamp_ns: int):
+    from foxglove.messages import Timestamp
+
+    ns = max(0, int(stamp_ns))
+    return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+def _proto(topic: str, msg: Any, log_time_ns: int) -> FoxgloveMessage:
+    s = msg.get_schema()
+    return FoxgloveMessage(topic, s.name, s.encoding, bytes(s.data), PROTOBUF, msg.encode(), int(log_time_ns))
+
+
+def _json(topic: str, schema_name: str, value: dict, log_time_ns: int) -> FoxgloveMessage:
+    schema = json.dumps(JSON_SCHEMAS[schema_name]).encode()
+    return FoxgloveMessage(topic, schema_name, "jsonschema", schema, JSON, json.dumps(value).encode(), int(log_time_ns))
+
+
+def amplitude_image(topic: str, image: np.ndarray, stamp_ns: int, frame_id: str, log_time_ns: int) -> FoxgloveMessage:
+    """A ``foxglove.CompressedImage`` PNG of ``|image| / max`` through inferno (the visualizer's
+    pictures, pixel (i, j) = image (i, j)); ``image`` real or complex (H, W)."""
+    from foxglove.messages import CompressedImage
+
+    from nodes.visualizer import amplitude_png
+
+    msg = CompressedImage(timestamp=_stamp(stamp_ns), frame_id=frame_id, data=amplitude_png(image), format="png")
+    return _proto(topic, msg, log_time_ns)
+
+
+def point_cloud(topic: str, points_m: np.ndarray, stamp_ns: int, frame_id: str, log_time_ns: int,
+                intensity: np.ndarray | None = None) -> FoxgloveMessage:
+    """A ``foxglove.PointCloud`` of ``points_m`` (N, 3) metres, fields x y z [intensity] float32."""
+    from foxglove.messages import PackedElementField, PackedElementFieldNumericType, PointCloud, Quaternion, Vector3
+    from foxglove.messages import Pose as FPose
+
+    cols = [np.asarray(points_m, np.float32).reshape(-1, 3)]
+    names = ["x", "y", "z"]
+    if intensity is not None:
+        cols.append(np.asarray(intensity, np.float32).reshape(-1, 1))
+        names.append("intensity")
+    packed = np.ascontiguousarray(np.hstack(cols), dtype="<f4")
+    fields = [PackedElementField(name=n, offset=4 * i, type=PackedElementFieldNumericType.Float32) for i, n in enumerate(names)]
+    msg = PointCloud(
+        timestamp=_stamp(stamp_ns), frame_id=frame_id,
+        pose=FPose(position=Vector3(x=0, y=0, z=0), orientation=Quaternion(x=0, y=0, z=0, w=1)),
+        point_stride=4 * len(names), fields=fields, data=packed.tobytes(),
+    )
+    return _proto(topic, msg, log_time_ns)
+
+
+class FoxgloveConverter:
+    """Stateful converter (the trajectory so far, each node's last state) of graph messages.
+
+    ``trajectory_every``: a ``/vio/trajectory`` update after this many poses (it carries the
+    whole track, so every pose would grow quadratically); ``max_track`` poses at most.
+    ``points_threshold``: fraction of the
+    template's peak amplitude above which a pixel becomes a ``/twin/points`` point.
+    """
+
+    def __init__(self, trajectory_every: int = 10, points_threshold: float = 0.2, scene_frame: str = "scene",
+                 max_track: int = 20000):
+        self.trajectory_every = max(1, int(trajectory_every))
+        self.points_threshold = float(points_threshold)
+        self.scene_frame = scene_frame
+        self._track: deque[np.ndarray] = deque(maxlen=max_track)  # a graph that runs for hours stays bounded
+        self._n_poses = 0
+        self._node_state: dict[str, tuple[str, str, int]] = {}
+
+    def convert(self, topic: str, msg: Any, log_time_ns: int) -> list[FoxgloveMessage]:
+        """The Foxglove records of one graph message (empty for types with no picture)."""
+        if isinstance(msg, Image):
+            return [amplitude_image(f"/image/{msg.name or 'image'}", msg.image, msg.header.stamp_ns, msg.header.frame_id or self.scene_frame, log_time_ns)]
+        if isinstance(msg, TwinTemplate):
+            return self._template(msg, log_time_ns)
+        if isinstance(msg, Pose):
+            return self._pose(msg, log_time_ns)
+        if isinstance(msg, SarMeasurement):
+            frame = msg.header.frame_id or self.scene_frame
+            return [
+                point_cloud("/sar/phase_centres", msg.positions_m, msg.header.stamp_ns, frame, log_time_ns),
+                _json("/sar/quality", "twinfocus.MeasurementQuality",
+                      {"scan_id": msg.scan_id, "index": int(msg.index), "pose_gap_ms": msg.pose_gap_ns / 1e6}, log_time_ns),
+            ]
+        if isinstance(msg, AutofocusResult):
+            value = {
+                "scan_id": msg.scan_id, "method": msg.method,
+                "phase_rad": [float(v) for v in msg.phase_rad], "loss_history": [float(v) for v in msg.loss_history],
+                "metrics": {k: float(v) for k, v in msg.metrics.items() if np.isfinite(v)},
+                "timing_s": {k: float(v) for k, v in msg.timing_s.items()},
+            }
+            return [_json("/autofocus/result", "twinfocus.AutofocusResult", value, log_time_ns)]
+        if isinstance(msg, StereoFrame):
+            return [self._camera(msg, log_time_ns)]
+        if isinstance(msg, NodeStatus):
+            return self._status(msg, log_time_ns)
+        return []
+
+    def _template(self, msg: TwinTemplate, log_time_ns: int) -> list[FoxgloveMessage]:
+        frame = msg.header.frame_id or self.scene_frame
+        amp = np.abs(msg.image).astype(np.float64)
+        peak = amp.max()
+        out = [amplitude_image("/twin/template", amp, msg.header.stamp_ns, frame, log_time_ns)]
+        if peak > 0:
+            i, j = np.nonzero(amp >= self.points_threshold * peak)
+            pts = np.column_stack([msg.x_m[j], msg.y_m[i], np.full(i.size, msg.z_m)])
+            out.append(point_cloud("/twin/points", pts, msg.header.stamp_ns, frame, log_time_ns, intensity=amp[i, j] / peak))
+        return out
+
+    def _pose(self, msg: Pose, log_time_ns: int) -> list[FoxgloveMessage]:
+        from foxglove.messages import (
+            Color,
+            LinePrimitive,
+            Point3,
+            PoseInFrame,
+            Quaternion,
+            SceneEntity,
+            SceneUpdate,
+            Vector3,
+        )
+        from foxglove.messages import Pose as FPose
+
+        frame = msg.header.frame_id or self.scene_frame
+        p, q = msg.position_m, msg.quat_xyzw
+        fpose = FPose(position=Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                      orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+        out = [
+            _proto("/vio/pose", PoseInFrame(timestamp=_stamp(msg.header.stamp_ns), frame_id=frame, pose=fpose), log_time_ns),
+            _json("/vio/confidence", "twinfocus.PoseConfidence", {"confidence": float(msg.confidence)}, log_time_ns),
+        ]
+        self._track.append(np.array(p, np.float64))
+        self._n_poses += 1
+        if self._n_poses % self.trajectory_every == 0:
+            line = LinePrimitive(
+                thickness=2.0, scale_invariant=True, color=Color(r=0.2, g=0.8, b=1.0, a=1.0),
+                points=[Point3(x=float(a), y=float(b), z=float(c)) for a, b, c in self._track],
+            )
+            entity = SceneEntity(timestamp=_stamp(msg.header.stamp_ns), frame_id=frame, id="trajectory", lines=[line])
+            out.append(_proto("/vio/trajectory", SceneUpdate(entities=[entity]), log_time_ns))
+        return out
+
+    def _camera(self, msg: StereoFrame, log_time_ns: int) -> FoxgloveMessage:
+        from foxglove.messages import RawImage
+
+        img = np.ascontiguousarray(msg.left)
+        h, w = img.shape[:2]
+        enc, step = ("rgb8", 3 * w) if img.ndim == 3 else ("mono8", w)
+        raw = RawImage(timestamp=_stamp(msg.header.stamp_ns), frame_id=msg.header.frame_id or "camera",
+                       width=w, height=h, encoding=enc, step=step, data=img.tobytes())
+        return _proto("/camera/left", raw, log_time_ns)
+
+    def _status(self, msg: NodeStatus, log_time_ns: int) -> list[FoxgloveMessage]:
+        from foxglove.messages import Log, LogLevel
+
+        lost = int(sum(msg.lost.values()))
+        prev = self._node_state.get(msg.node)
+        self._node_state[msg.node] = (msg.state, msg.message, lost)
+        if prev is not None and prev == (msg.state, msg.message, lost):
+            return []
+        if msg.state == "error":
+            level, text = LogLevel.Error, f"{msg.state}: {msg.message}"
+        elif prev is not None and lost > prev[2]:
+            level, text = LogLevel.Warning, f"lost {lost - prev[2]} message(s) ({', '.join(f'{k}: {v}' for k, v in msg.lost.items() if v)})"
+        else:
+            level, text = LogLevel.Info, msg.state + (f": {msg.message}" if msg.message else "")
+        log = Log(timestamp=_stamp(msg.header.stamp_ns), level=level, message=text, name=msg.node)
+        return [_proto("/log", log, log_time_ns)]
+
+
+def export_log(src, dst, *, overwrite: bool = False, progress=None) -> dict[str, int]:
+    """Write the Foxglove records of every message of the log ``src`` into a new MCAP ``dst``
+    (schemas included: Foxglove opens it with nothing else installed); returns messages per
+    Foxglove topic. Written to a temporary file beside ``dst`` and renamed, so a failed export
+    never leaves half a file or destroys an earlier one. ``progress(done, total)`` per message.
+    """
+    import os
+    from pathlib import Path
+
+    from msgs.mcap_log import LogReader, LogWriter
+    from msgs.schema import MessageError
+    from twinfocus.errors import TwinFocusError
+
+    src, dst = Path(src), Path(dst)
+    if dst.exists() and not overwrite:
+        raise TwinFocusError(f"{dst}: already exists; choose another name or pass --overwrite")
+    reader = LogReader(src)
+    total = sum(reader.counts.values())
+    conv = FoxgloveConverter()
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
+    try:
+        with LogWriter(tmp, overwrite=True, library="twinfocus export") as writer:
+            for done, m in enumerate(reader.messages(), 1):
+                try:
+                    msg = m.decode()
+                except MessageError as exc:
+                    raise TwinFocusError(f"{src}: {exc}") from None
+                for rec in conv.convert(m.topic, msg, m.log_time_ns):
+                    writer.write_encoded(rec.topic, rec.schema_name, rec.schema_encoding, rec.schema_data,
+                                         rec.message_encoding, rec.data, rec.log_time_ns, m.publish_time_ns)
+                if progress is not None:
+                    progress(done, total)
+        os.replace(tmp, dst)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return dict(writer.counts)

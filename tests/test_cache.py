@@ -1,0 +1,131 @@
+"""The template cache: a reference is paid for once, its cached image equals the recomputed one,
+and any change of input, grid or back-projection option misses it."""
+import json
+
+import numpy as np
+import pytest
+
+from twinfocus.cache import TemplateCache, cache_dir, file_sha256, template_key
+from twinfocus.cli import main
+from twinfocus.grid import ImageGrid
+from twinfocus.scan import Scan
+from twinfocus.templates import load_template, template_from_scan
+
+REF = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
+TGT = ["0.02", "0.13", "-0.11", "0.12", "0.6"]
+
+
+@pytest.fixture(scope="module")
+def scans(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sim")
+    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"),
+                 "--columns", "2", "--rows", "30", "--quiet", "--seed", "5"]) == 0
+    return d
+
+
+def _focus(scans, out, *extra):
+    rc = main(["focus", str(scans / "scan.npz"), "--reference-roi", *REF, "--target-roi", *TGT, "--size", "40",
+               "--out", str(out), "--quiet", "--pictures", "none", *extra])
+    assert rc == 0
+    return json.loads((out / "metrics.json").read_text())
+
+
+def test_second_focus_reads_the_template_from_the_cache(scans, tmp_path, monkeypatch):
+    monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
+    tpl = ["--template-scan", str(scans / "tpl.npz")]
+    first = _focus(scans, tmp_path / "a", *tpl)
+    second = _focus(scans, tmp_path / "b", *tpl)
+    assert (first["template_cache"], second["template_cache"]) == ("miss", "hit")
+    # the same result bit for bit, and the cached image is the recomputed one exactly
+    for name in ("phase.npy", "target.npy"):
+        assert np.array_equal(np.load(tmp_path / "a" / name), np.load(tmp_path / "b" / name)), name
+    grid = ImageGrid.from_roi([float(v) for v in REF], 40)
+    fresh = template_from_scan(Scan.load(scans / "tpl.npz"), grid, keep_phase=True, oversample=16, precision="float32")
+    (entry,) = (tmp_path / "cache" / "templates").glob("*.npz")
+    cached = np.load(entry)["image"]
+    assert cached.dtype == fresh.dtype and np.array_equal(cached, fresh)
+    # a hit costs a file hash and a small read, not a back-projection
+    assert second["timings_s"]["template"] < first["timings_s"]["template"]
+    # --no-cache neither reads nor writes
+    off = _focus(scans, tmp_path / "c", *tpl, "--no-cache")
+    assert off["template_cache"] == "off"
+    assert len(list((tmp_path / "cache" / "templates").glob("*.npz"))) == 1
+
+
+def test_changed_inputs_miss_the_cache(scans, tmp_path, monkeypatch):
+    monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
+    tpl = ["--template-scan", str(scans / "tpl.npz")]
+    assert _focus(scans, tmp_path / "a", *tpl)["template_cache"] == "miss"
+    # the same reference scan with one sample changed: another file hash
+    s = Scan.load(scans / "tpl.npz")
+    data = s.data.copy()
+    data[0, 0, 0] += 1.0
+    s.with_data(data).save(tmp_path / "tpl2.npz")
+    assert _focus(scans, tmp_path / "b", "--template-scan", str(tmp_path / "tpl2.npz"))["template_cache"] == "miss"
+    # another back-projection option, then another grid
+    assert _focus(scans, tmp_path / "c", *tpl, "--oversample", "8")["template_cache"] == "miss"
+    rc = main(["focus", str(scans / "scan.npz"), "--reference-roi", *REF, "--target-roi", *TGT, "--size", "41",
+               "--out", str(tmp_path / "d"), "--quiet", "--pictures", "none", *tpl])
+    assert rc == 0 and json.loads((tmp_path / "d" / "metrics.json").read_text())["template_cache"] == "miss"
+    assert len(list((tmp_path / "cache" / "templates").glob("*.npz"))) == 4
+    assert _focus(scans, tmp_path / "e", *tpl)["template_cache"] == "hit"
+
+
+def test_save_template_is_what_template_takes(scans, tmp_path):
+    """``--save-template`` writes the template file that ``--template`` reads back: the same
+    phase to the file format's float32 amplitude/phase round-off."""
+    tpl = ["--template-scan", str(scans / "tpl.npz")]
+    a = _focus(scans, tmp_path / "a", *tpl, "--save-template", str(tmp_path / "ref_template.npz"))
+    b = _focus(scans, tmp_path / "b", "--template", str(tmp_path / "ref_template.npz"))
+    assert a["estimator"] == b["estimator"]
+    grid = ImageGrid.from_roi([float(v) for v in REF], 40)
+    fresh = template_from_scan(Scan.load(scans / "tpl.npz"), grid, keep_phase=True)
+    saved = load_template(tmp_path / "ref_template.npz", grid)
+    assert np.abs(saved - fresh).max() < 1e-5 * np.abs(fresh).max()
+    pa, pb = np.load(tmp_path / "a" / "phase.npy"), np.load(tmp_path / "b" / "phase.npy")
+    assert np.abs(np.angle(np.exp(1j * (pa - pb)))).max() < 1e-3
+
+
+def test_cache_location_and_soft_failures(tmp_path, monkeypatch):
+    monkeypatch.delenv("TWINFOCUS_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cache_dir() == tmp_path / "xdg" / "twinfocus"
+    monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "mine"))
+    assert cache_dir() == tmp_path / "mine"
+    grid = ImageGrid(-0.01, 0.01, -0.01, 0.01, 0.5, 4, 5)
+    key = template_key("template_scan", {"file_sha256": "0" * 64}, grid, {"oversample": 16})
+    assert key != template_key("template_scan", {"file_sha256": "1" + "0" * 63}, grid, {"oversample": 16})
+    # the torch device does not change the image, so it is not part of the key
+    assert key == template_key("template_scan", {"file_sha256": "0" * 64}, grid, {"oversample": 16, "device": "cuda"})
+    cache = TemplateCache()
+    image = (np.arange(20).reshape(4, 5) + 1j).astype(np.complex64)
+    cache.put(key, image, grid)
+    assert np.array_equal(cache.get(key, grid), image)
+    assert cache.get(key, ImageGrid(-0.01, 0.01, -0.01, 0.01, 0.5, 5, 4)) is None  # another grid's shape
+    cache.path(key).write_bytes(b"damaged")
+    assert cache.get(key, grid) is None  # a damaged entry is a miss, not an error
+    (tmp_path / "file").write_text("x")
+    blocked = TemplateCache(tmp_path / "file" / "cache")
+    assert blocked.put(key, image, grid) is None and "could not write" in blocked.warning
+    assert TemplateCache(enabled=False).get(key, grid) is None
+    assert len(file_sha256(tmp_path / "file")) == 64
+
+
+def test_digital_twin_template_is_cached_per_cloud_and_aperture(scans, tmp_path, monkeypatch):
+    """A digital twin's template depends on the cloud and on the scan's aperture: the same pair
+    hits, another scan (other tracked positions) misses."""
+    from twinfocus.scenario import Scenario
+
+    monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
+    pts, _ = Scenario().scene().scatterers(2e-3, 1, speckle=False)
+    np.save(tmp_path / "cloud.npy", pts[pts[:, 0] < 0.0])
+    twin = ["--digital-twin", str(tmp_path / "cloud.npy")]
+    first, second = _focus(scans, tmp_path / "a", *twin), _focus(scans, tmp_path / "b", *twin)
+    assert (first["template_cache"], second["template_cache"]) == ("miss", "hit")
+    assert np.array_equal(np.load(tmp_path / "a" / "phase.npy"), np.load(tmp_path / "b" / "phase.npy"))
+    s = Scan.load(scans / "scan.npz")
+    moved = Scan(s.data, s.positions + 1e-4, s.chirp, positions_true=s.positions_true)
+    moved.save(tmp_path / "moved.npz")
+    rc = main(["focus", str(tmp_path / "moved.npz"), "--reference-roi", *REF, "--target-roi", *TGT, "--size", "40",
+               "--out", str(tmp_path / "c"), "--quiet", "--pictures", "none", *twin])
+    assert rc == 0 and json.loads((tmp_path / "c" / "metrics.json").read_text())["template_cache"] == "miss"

@@ -1,0 +1,323 @@
+"""Foxglove output: `twinfocus export --to foxglove`, `record --foxglove` and the live bridge.
+
+Every exported message is read back with the reference `mcap` reader and decoded against the
+schema record it declares (Google's protobuf runtime building the classes from the schema's
+FileDescriptorSet; `jsonschema` for the JSON channels), then compared with the graph message it
+came from; the images are decoded as PNG and compared with matplotlib's inferno colour map.
+"""
+from __future__ import annotations
+
+import asyncio
+import base64
+import io
+import json
+import struct
+
+import numpy as np
+import pytest
+
+pytest.importorskip("foxglove")
+pb = pytest.importorskip("google.protobuf")
+
+from msgs import AutofocusResult, Image, NodeStatus, Pose, SarMeasurement, StereoFrame, TwinTemplate  # noqa: E402
+from msgs.mcap_log import LogReader, LogWriter  # noqa: E402
+from msgs.schema import Header  # noqa: E402
+
+STAMP = 1_700_000_000_123_456_789
+
+
+def _proto_class(name: str, data: bytes):
+    """The message class of ``name`` built from a FileDescriptorSet (no foxglove code involved)."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    fds = descriptor_pb2.FileDescriptorSet.FromString(data)
+    pool = descriptor_pool.DescriptorPool()
+    pending = list(fds.file)
+    while pending:  # add each file once its dependencies are in
+        left = []
+        for fd in pending:
+            try:
+                pool.Add(fd)
+            except (TypeError, KeyError):
+                left.append(fd)
+        assert len(left) < len(pending), "schema's FileDescriptorSet has unresolvable dependencies"
+        pending = left
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
+
+
+def _decode(schema_name: str, schema_encoding: str, schema_data: bytes, message_encoding: str, data: bytes):
+    if schema_encoding == "protobuf":
+        assert message_encoding == "protobuf"
+        return _proto_class(schema_name, schema_data).FromString(data)
+    import jsonschema
+
+    assert (schema_encoding, message_encoding) == ("jsonschema", "json")
+    value = json.loads(data)
+    jsonschema.validate(value, json.loads(schema_data))
+    return value
+
+
+def _png_rgb(data: bytes) -> np.ndarray:
+    from PIL import Image as PILImage
+
+    return np.asarray(PILImage.open(io.BytesIO(data)).convert("RGB"))
+
+
+def _inferno_rgb(image: np.ndarray) -> np.ndarray:
+    """Independent truth: matplotlib's inferno of |image| / max, uint8 RGB (H, W, 3)."""
+    from matplotlib import colormaps
+
+    amp = np.abs(image)
+    return np.round(255 * colormaps["inferno"](amp / amp.max())[..., :3]).astype(np.int32)
+
+
+def _scene():
+    rng = np.random.default_rng(3)
+    h, w = 12, 20  # not square: rows are y, columns x
+    img = (rng.normal(size=(h, w)) + 1j * rng.normal(size=(h, w))).astype(np.complex64) * 0.1
+    img[4, 15] = 5.0  # the peak, at a known pixel
+    x, y = np.linspace(0.0, 0.19, w), np.linspace(-0.1, 0.01, h)
+    tmpl = np.zeros((h, w), np.float32)
+    tmpl[2:5, 3:6] = 1.0
+    tmpl[7, 10] = 0.5
+    rot = np.array([0.0, 0.0, np.sin(0.2), np.cos(0.2)])
+    poses = [Pose(header=Header(STAMP + i * 1000, i, "scene"), position_m=np.array([0.01 * i, 0.002 * i, -0.5]),
+                  quat_xyzw=rot, confidence=0.5 + 0.04 * i) for i in range(10)]
+    centres = rng.normal(size=(4, 3))
+    meas = SarMeasurement(header=Header(STAMP, 0, "scene"), data=np.ones((4, 8), np.complex64), positions_m=centres,
+                          f0_hz=77e9, slope_hz_per_s=7e13, fs_hz=8e6, scan_id="s1", index=3, pose_gap_ns=2_500_000)
+    result = AutofocusResult(header=Header(STAMP, 0, "scene"), scan_id="s1", method="twin",
+                             phase_rad=rng.uniform(-3, 3, 6), loss_history=np.array([3.0, 2.0, 1.5]),
+                             metrics={"ssim_target": 0.91}, timing_s={"autofocus": 1.25})
+    status = [
+        NodeStatus(header=Header(STAMP, 0), node="solver", state="running"),
+        NodeStatus(header=Header(STAMP + 1, 1), node="solver", state="running"),  # unchanged: no line
+        NodeStatus(header=Header(STAMP + 2, 2), node="solver", state="running", lost={"sar/measurement": 3}),
+        NodeStatus(header=Header(STAMP + 3, 3), node="solver", state="error", message="boom"),
+    ]
+    images = {"target": img, "target_uncorrected": np.roll(img, 3, axis=1), "reference": img[::-1].copy(),
+              "reference_uncorrected": img * np.exp(1j * np.arange(w))}
+    left = rng.integers(0, 256, size=(6, 9, 3), dtype=np.uint8)
+    stereo = StereoFrame(header=Header(STAMP, 0, "camera"), left=left, right=left.copy(), camera_matrix=np.eye(3))
+    msgs = [
+        ("camera/stereo", stereo),
+        *[("image/focused", Image(header=Header(STAMP, 0, "scene"), name=name, scan_id="s1", image=im, x_m=x, y_m=y, z_m=0.6))
+          for name, im in images.items()],
+        ("twin/template", TwinTemplate(header=Header(STAMP, 0, "scene"), image=tmpl, x_m=x, y_m=y, z_m=0.6, kind="digital")),
+        *[("vio/pose", p) for p in poses],
+        ("sar/measurement", meas),
+        ("autofocus/result", result),
+        *[("graph/status", s) for s in status],
+    ]
+    return msgs, dict(left=left, images=images, img=img, tmpl=tmpl, x=x, y=y, poses=poses, centres=centres, result=result)
+
+
+def _read_back(path) -> dict[str, list]:
+    """topic -> decoded messages, through the reference reader and the declared schemas only."""
+    from mcap.reader import make_reader
+
+    out: dict[str, list] = {}
+    with open(path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            if channel.message_encoding == "msgpack":
+                continue
+            assert schema is not None, f"{channel.topic}: no schema record"
+            out.setdefault(channel.topic, []).append(
+                (_decode(schema.name, schema.encoding, schema.data, channel.message_encoding, message.data), message))
+    return out
+
+
+def _check_content(got: dict[str, list], truth: dict) -> None:
+    # images: PNG pixel (i, j) = inferno(|image (i, j)| / max)
+    for name, im in truth["images"].items():
+        (img_msg, _), = got[f"/image/{name}"]
+        assert img_msg.format == "png"
+        assert img_msg.timestamp.seconds * 10**9 + img_msg.timestamp.nanos == STAMP
+        rgb = _png_rgb(img_msg.data)
+        assert rgb.shape == im.shape + (3,)
+        assert np.abs(rgb.astype(np.int32) - _inferno_rgb(im)).max() <= 3
+    (tm, _), = got["/twin/template"]
+    assert np.abs(_png_rgb(tm.data).astype(np.int32) - _inferno_rgb(truth["tmpl"])).max() <= 3
+
+    # the camera's left image, row-major RGB
+    (cam, _), = got["/camera/left"]
+    assert (cam.encoding, cam.width, cam.height, cam.step) == ("rgb8", 9, 6, 27)
+    assert np.array_equal(np.frombuffer(cam.data, np.uint8).reshape(6, 9, 3), truth["left"])
+
+    # template points: every pixel above 20 % of the peak, at (x_j, y_i, z), intensity = amp / peak
+    (cloud, _), = got["/twin/points"]
+    pts = _unpack(cloud)
+    want = {(round(truth["x"][j], 6), round(truth["y"][i], 6), float(truth["tmpl"][i, j]))
+            for i, j in zip(*np.nonzero(truth["tmpl"] >= 0.2))}
+    assert {(round(float(p["x"]), 6), round(float(p["y"]), 6), round(float(p["intensity"]), 6)) for p in pts} == want
+    assert np.allclose(pts["z"], 0.6)
+
+    # poses, confidence, trajectory (after the 10th pose: the whole track)
+    poses = [m for m, _ in got["/vio/pose"]]
+    assert len(poses) == 10
+    for fp, p in zip(poses, truth["poses"]):
+        assert fp.frame_id == "scene"
+        assert np.allclose([fp.pose.position.x, fp.pose.position.y, fp.pose.position.z], p.position_m)
+        o = fp.pose.orientation
+        assert np.allclose([o.x, o.y, o.z, o.w], p.quat_xyzw)
+    assert np.allclose([m["confidence"] for m, _ in got["/vio/confidence"]], [p.confidence for p in truth["poses"]])
+    (traj, _), = got["/vio/trajectory"]
+    line = traj.entities[0].lines[0]
+    assert np.allclose([[q.x, q.y, q.z] for q in line.points], [p.position_m for p in truth["poses"]])
+
+    # phase centres as a cloud, decoded through its declared fields
+    (pc, _), = got["/sar/phase_centres"]
+    c = _unpack(pc)
+    assert np.allclose(np.column_stack([c["x"], c["y"], c["z"]]), truth["centres"], atol=1e-6)
+    (q, _), = got["/sar/quality"]
+    assert q == {"scan_id": "s1", "index": 3, "pose_gap_ms": 2.5}
+
+    # the solver's result as plottable numbers
+    (r, _), = got["/autofocus/result"]
+    assert np.allclose(r["phase_rad"], truth["result"].phase_rad) and r["metrics"] == {"ssim_target": 0.91}
+
+    # log lines: first state, the loss (a warning), the error; the unchanged heartbeat is silent
+    logs = [m for m, _ in got["/log"] if m.name == "solver"]  # a live graph adds its own nodes' lines
+    assert [(m.name, m.level) for m in logs] == [("solver", 2), ("solver", 3), ("solver", 4)]
+    assert "lost 3" in logs[1].message and "boom" in logs[2].message
+
+
+def _check_layout_names_what_exists(got: dict[str, list]) -> None:
+    """Every topic and message path of docs/foxglove_layout.json is in the export."""
+    from pathlib import Path
+
+    layout = json.loads((Path(__file__).parents[1] / "docs" / "foxglove_layout.json").read_text())
+    paths = []
+    for pid, cfg in layout["configById"].items():
+        if pid.startswith("Image!"):
+            paths.append(cfg["imageMode"]["imageTopic"])
+        elif pid.startswith("3D!"):
+            paths += list(cfg["topics"])
+        elif pid.startswith("Plot!"):
+            paths += [p["value"] for p in cfg["paths"]]
+        elif pid.startswith("RawMessages!"):
+            paths.append(cfg["topicPath"])
+    assert len(paths) >= 12
+    for path in paths:
+        topic, _, field = path.partition(".")
+        assert topic in got, f"layout names {topic}, which the export does not write"
+        if field:
+            value = got[topic][0][0]
+            name = field.split("[")[0]
+            assert name in value, f"layout plots {path}: no field {name!r}"
+    # and every panel id the tree places is configured
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+    assert sorted(leaves(layout["layout"])) == sorted(layout["configById"])
+
+
+def _unpack(cloud) -> np.ndarray:
+    """A PointCloud's data as a structured array, from its declared fields (FLOAT32 = 7)."""
+    assert all(f.type == 7 for f in cloud.fields)
+    dt = np.dtype({"names": [f.name for f in cloud.fields], "formats": ["<f4"] * len(cloud.fields),
+                   "offsets": [f.offset for f in cloud.fields], "itemsize": cloud.point_stride})
+    return np.frombuffer(cloud.data, dt)
+
+
+def test_export_writes_every_message_in_a_declared_schema(tmp_path):
+    from twinfocus.cli import main
+
+    msgs, truth = _scene()
+    log = tmp_path / "run.mcap"
+    with LogWriter(log) as w:
+        for i, (topic, m) in enumerate(msgs):
+            w.write(topic, m, log_time_ns=STAMP + i)
+    out = tmp_path / "fox.mcap"
+    assert main(["export", str(log), "--to", "foxglove", str(out), "-q"]) == 0
+    got = _read_back(out)
+    _check_content(got, truth)
+    _check_layout_names_what_exists(got)
+    # an existing result is kept unless --overwrite
+    before = out.read_bytes()
+    assert main(["export", str(log), "--to", "foxglove", str(out), "-q"]) == 2
+    assert out.read_bytes() == before
+    assert main(["export", str(tmp_path / "missing.mcap"), "--to", "foxglove", str(tmp_path / "x.mcap")]) == 2
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_record_foxglove_writes_both_and_the_log_still_plays(tmp_path):
+    from nodes.recorder import Recorder
+    from nodes.testing import Probe, local_broker, running
+
+    msgs, truth = _scene()
+    log = tmp_path / "rec.mcap"
+    topics = sorted({t for t, _ in msgs})
+    with local_broker() as ep:
+        rec = Recorder(broker=ep, params={"out": str(log), "foxglove": True, "topics": topics})
+        logged: list[bytes] = []
+        write_encoded = rec.writer.write_encoded
+
+        def spy(topic, *args, **kw):
+            if topic == "/log":
+                logged.append(args[4])  # the encoded foxglove Log
+            write_encoded(topic, *args, **kw)
+
+        rec.writer.write_encoded = spy  # type: ignore[method-assign]
+        probe = Probe(ep, publish=topics, wait_for=["recorder"])
+        with running(rec, probe):
+            for t, m in msgs:
+                probe.send(t, m)
+            assert probe.sent_all()
+            import time
+
+            deadline = time.monotonic() + 10
+            # the solver's error is the last message sent; one connection each way keeps the order
+            while not any(b"boom" in m for m in logged):
+                assert time.monotonic() < deadline, rec.writer.counts
+                time.sleep(0.05)
+    _check_content(_read_back(log), truth)
+    # our reader (player, replay) sees only the msgpack channels, all of them
+    r = LogReader(log)
+    assert set(r.channels) == set(topics) and r.counts["vio/pose"] == 10
+    assert [m.decode().scan_id for m in r.messages(["autofocus/result"])] == ["s1"]
+
+
+def test_live_bridge_serves_the_focused_image_over_websocket():
+    """A WebSocket client on 127.0.0.1 subscribes to /image/target and decodes the image (sent
+    before the client subscribed: the bridge sends a late subscriber the last image)."""
+    tornado_ws = pytest.importorskip("tornado.websocket")
+    from nodes.foxglove_bridge import FoxgloveBridge
+    from nodes.testing import Probe, local_broker, running
+
+    msgs, truth = _scene()
+    image = next(m for t, m in msgs if t == "image/focused" and m.name == "target")
+
+    async def client(port: int) -> bytes:
+        conn = await tornado_ws.websocket_connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"])
+        assert conn.selected_subprotocol == "foxglove.sdk.v1"
+        channel = None
+        while channel is None:
+            msg = await conn.read_message()
+            assert msg is not None, "server closed the connection"
+            if isinstance(msg, str):
+                op = json.loads(msg)
+                if op.get("op") == "advertise":
+                    channel = next((c for c in op["channels"] if c["topic"] == "/image/target"), None)
+        await conn.write_message(json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": channel["id"]}]}))
+        while True:
+            msg = await conn.read_message()
+            assert msg is not None, "server closed the connection"
+            if isinstance(msg, bytes) and msg[0] == 0x01:  # MessageData: opcode, u32 subscription, u64 time, payload
+                sub, _ = struct.unpack_from("<IQ", msg, 1)
+                assert sub == 7
+                conn.close()
+                return channel, msg[13:]
+
+    with local_broker() as ep:
+        bridge = FoxgloveBridge(broker=ep, params={"port": 0})
+        assert bridge.server.port > 0
+        probe = Probe(ep, publish=["image/focused"], wait_for=["foxglove_bridge"])
+        with running(bridge, probe):
+            probe.send("image/focused", image)
+            channel, payload = asyncio.run(asyncio.wait_for(client(bridge.port), 30))
+    assert channel["encoding"] == "protobuf" and channel["schemaName"] == "foxglove.CompressedImage"
+    decoded = _proto_class(channel["schemaName"], base64.b64decode(channel["schema"])).FromString(payload)
+    assert decoded.format == "png"
+    rgb = _png_rgb(decoded.data)
+    assert rgb.shape == truth["img"].shape + (3,)
+    assert np.abs(rgb.astype(np.int32) - _inferno_rgb(truth["img"])).max() <= 3

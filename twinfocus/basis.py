@@ -1,0 +1,38 @@
+"""Images from the sub-image basis: one phase per radar position, or one per position and pixel.
+
+The basis B (M, H, W) of a region (:func:`twinfocus.backprojection.subimage_basis`) holds each
+radar position's contribution to the region's image, so a correction of the positions' phases
+is a weighted sum (docs/architecture.md section 1):
+
+    image(phi) = sum_m exp(j phi_m) B_m                  (:func:`form_image`)
+    image(phi)(p) = sum_m exp(j phi_m(p)) B_m(p)         (:func:`form_image_space_variant`)
+
+Every estimator and the phase transfer use these two; they sit below them (no imports but numpy).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from twinfocus.errors import TwinFocusError
+
+
+def form_image(basis: np.ndarray, phase_rad: np.ndarray) -> np.ndarray:
+    """sum_m exp(j phi_m) B_m: complex64 (H, W) from basis (M, H, W) and phase (M,) in radians."""
+    basis = np.asarray(basis)
+    phase_rad = np.asarray(phase_rad, dtype=np.float64)
+    if phase_rad.shape != (basis.shape[0],):
+        raise TwinFocusError(f"phase must have one value per radar position ({basis.shape[0]}), got {phase_rad.shape}")
+    w = np.exp(1j * phase_rad).astype(np.complex64)
+    return np.tensordot(w, basis, axes=(0, 0)).astype(np.complex64)
+
+
+def form_image_space_variant(basis: np.ndarray, phases_rad: np.ndarray) -> np.ndarray:
+    """sum_m exp(j phi_m(p)) B_m(p): complex64 (H, W) from basis and phases (radians), both (M, H, W)."""
+    b = np.asarray(basis)
+    ph = np.asarray(phases_rad)
+    if ph.shape != b.shape:
+        raise TwinFocusError(f"per-pixel phases {ph.shape} must match the basis {b.shape}")
+    out = np.zeros(b.shape[1:], np.complex64)
+    for i in range(0, b.shape[0], 64):  # bounded temporaries: 64 positions' phasors at a time
+        out += (b[i:i + 64] * np.exp(1j * ph[i:i + 64]).astype(np.complex64)).sum(axis=0)
+    return out

@@ -1,0 +1,138 @@
+"""Content-addressed cache of reference templates: a reference is paid for once.
+
+A template scan's image (or a digital twin's template) depends only on the input files' contents,
+the reference grid and the back-projection options, so it is stored under a SHA-256 of exactly
+those and reused by every later ``focus`` (and solver) run with the same reference. A changed file
+changes its hash, so a stale entry is never found; entries are never overwritten in place.
+
+Where: ``$TWINFOCUS_CACHE_DIR``, else ``$XDG_CACHE_HOME/twinfocus``, else ``~/.cache/twinfocus``;
+one ``templates/<key>.npz`` per entry (``image`` as computed, ``roi``, ``shape``). ``twinfocus
+focus --no-cache`` bypasses it. Delete the folder to empty it. Reading and writing fail soft: a
+cache that cannot be written or an unreadable entry is a miss, never an error.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from twinfocus.grid import ImageGrid
+
+#: environment variable that relocates the cache
+ENV_DIR = "TWINFOCUS_CACHE_DIR"
+#: part of every key: bump when the back-projection or the template builders change their output
+FORMAT_VERSION = 1
+
+
+def cache_dir() -> Path:
+    """The cache folder (not created here)."""
+    if os.environ.get(ENV_DIR):
+        return Path(os.environ[ENV_DIR]).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "twinfocus"
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 of a file's bytes, hex (~0.1 s for a 140 MB scan)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:  # hashlib.file_digest is 3.11+; the project supports 3.10
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def array_sha256(*arrays: np.ndarray) -> str:
+    """SHA-256 over arrays' dtypes, shapes and bytes, hex."""
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.data)
+    return h.hexdigest()
+
+
+def template_key(kind: str, inputs: dict, grid: ImageGrid, bp_options: dict) -> str:
+    """The key of one template: ``kind`` ("template_scan", "digital_twin"), the input digests
+    (``inputs``: JSON-serialisable), the grid (region and pixels) and the back-projection options.
+    The torch device is left out: every back-end computes the same image."""
+    bp = {k: v for k, v in sorted(bp_options.items()) if k != "device"}
+    doc = {"version": FORMAT_VERSION, "kind": kind, "inputs": inputs,
+           "roi": [float(v) for v in grid.roi], "shape": list(grid.shape), "bp": bp}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def template_scan_key(path: str | os.PathLike, grid: ImageGrid, bp_options: dict) -> str:
+    """Key of a template scan's complex image (:func:`twinfocus.templates.template_from_scan`
+    with ``keep_phase=True``) on ``grid``."""
+    return template_key("template_scan", {"file_sha256": file_sha256(path), "keep_phase": True}, grid, bp_options)
+
+
+def digital_twin_key(cloud_path: str | os.PathLike, positions_m: np.ndarray, chirp, grid: ImageGrid, bp_options: dict,
+                     method: str = "psf") -> str:
+    """Key of a digital twin's template: the cloud file, the scan's aperture (positions (M, K, 3)
+    and chirp) it is simulated for, ``grid`` and the options."""
+    inputs = {"cloud_sha256": file_sha256(cloud_path), "positions_sha256": array_sha256(np.asarray(positions_m)),
+              "chirp": [chirp.f0_hz, chirp.slope_hz_per_s, chirp.fs_hz, chirp.n_samples], "method": method}
+    return template_key("digital_twin", inputs, grid, bp_options)
+
+
+class TemplateCache:
+    """Templates stored by key under ``root`` (default :func:`cache_dir`); ``enabled=False``
+    makes every lookup a miss and every store a no-op."""
+
+    def __init__(self, root: str | os.PathLike | None = None, enabled: bool = True):
+        self.root = Path(root) if root is not None else cache_dir()
+        self.enabled = enabled
+        self.warning: str | None = None  # why the last store failed, for the caller to show
+
+    def path(self, key: str) -> Path:
+        return self.root / "templates" / f"{key}.npz"
+
+    def get(self, key: str, grid: ImageGrid) -> np.ndarray | None:
+        """The stored image for ``key`` on ``grid`` (dtype as stored), or None."""
+        if not self.enabled:
+            return None
+        from twinfocus.errors import TwinFocusError
+        from twinfocus.scan import load_npz
+
+        path = self.path(key)
+        if not path.is_file():
+            return None
+        try:
+            z = load_npz(path)
+            image = z["image"]
+            ok = tuple(z["shape"]) == grid.shape and np.allclose(z["roi"], grid.roi) and np.isfinite(image).all()
+        except (TwinFocusError, KeyError):
+            ok = False
+        if not ok:  # a damaged entry is a miss; the next store replaces it
+            return None
+        return image
+
+    def get_or_compute(self, key: str | None, grid: ImageGrid, compute) -> tuple[np.ndarray, str]:
+        """(image, status): the stored image ("hit"), or ``compute()`` stored for next time
+        ("miss"), or computed alone when the cache is disabled or ``key`` is None ("off")."""
+        if not self.enabled or key is None:
+            return compute(), "off"
+        hit = self.get(key, grid)
+        if hit is not None:
+            return hit, "hit"
+        image = compute()
+        self.put(key, np.asarray(image), grid)
+        return image, "miss"
+
+    def put(self, key: str, image: np.ndarray, grid: ImageGrid) -> Path | None:
+        """Store ``image`` (as is) for ``key``; returns the file, or None when it could not be
+        written (``warning`` says why)."""
+        if not self.enabled:
+            return None
+        from twinfocus.scan import save_npz_atomic
+
+        try:
+            return save_npz_atomic(self.path(key), {"image": np.asarray(image), "roi": np.asarray(grid.roi, float),
+                                                    "shape": np.asarray(grid.shape)})
+        except OSError as exc:
+            self.warning = f"could not write the template cache {self.root} ({exc.strerror or exc})"
+            return None
