@@ -124,6 +124,8 @@ class Node:
         "hwm": Param(0, "ZeroMQ high-water mark of this node's sockets; 0 = unlimited (nothing is dropped)"),
         "linger_s": Param(10.0, "how long to keep flushing queued outgoing messages at shutdown"),
     }
+    #: parameters renamed since: old name -> what to write instead (given, they raise saying so)
+    RENAMED_PARAMS: dict[str, str] = {}
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
@@ -137,7 +139,7 @@ class Node:
     def __init__(self, name: str | None = None, params: dict | None = None, argv: list[str] | tuple = (),
                  broker: str | None = None, context: zmq.Context | None = None):
         self.name = name or self.NAME
-        self.params = resolve(self.name, self.PARAMS, params, argv)
+        self.params = resolve(self.name, self.PARAMS, params, argv, self.RENAMED_PARAMS)
         if not self.params["wait_for"] and os.environ.get(ENV_GRAPH_NODES):
             self.params["wait_for"] = [n for n in os.environ[ENV_GRAPH_NODES].split(",") if n]
         self.broker = broker_endpoint(broker)

@@ -15,6 +15,7 @@ from typing import Any
 import yaml
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.settings import Setting
 
 
 class _Required:
@@ -29,8 +30,8 @@ REQUIRED: Any = _Required()
 class Param:
     """One declared parameter.
 
-    default : the value when none is given (``REQUIRED`` for none); its type is the parameter's
-        type unless ``type`` says otherwise (``"float"``, ``"int"``, ``"str"``, ``"bool"``,
+    default : the value when none is given (``REQUIRED`` for none; None: unset, which ``null``
+        also gives); its type is the parameter's type unless ``type`` says otherwise (``"float"``, ``"int"``, ``"str"``, ``"bool"``,
         ``"list"``, ``"floats"`` (list of numbers), ``"strs"`` (list of strings), ``"any"``).
     help : one line for ``--help`` and the docs.
     choices : allowed values, if limited.
@@ -76,8 +77,22 @@ def parse_assignment(text: str) -> tuple[str, Any]:
     return name, value
 
 
+def param_of(setting: Setting) -> Param:
+    """A focus setting (:data:`twinfocus.settings.FOCUS_SETTINGS`) as a node parameter of the same
+    name, default, choices and help, so a node takes it as ``twinfocus focus`` does."""
+    def name(s: Setting) -> str:
+        return s.name
+
+    unit = f" ({setting.unit})" if setting.unit else ""
+    unset = f"; unset: {setting.default_words(name)}" if setting.default is None else ""
+    return Param(setting.default, setting.describe(name) + unit + unset, type=setting.type.__name__,
+                 choices=setting.choices)
+
+
 def _coerce(node: str, name: str, p: Param, value: Any) -> Any:
     kind = p.kind
+    if value is None and p.default is None:
+        return None
 
     def bad(expected: str):
         return TwinFocusError(f"node {node!r}: parameter {name!r} must be {expected}, got {value!r}")
@@ -132,8 +147,9 @@ def _coerce(node: str, name: str, p: Param, value: Any) -> Any:
 
 
 def resolve(node: str, declared: Mapping[str, Param], given: Mapping[str, Any] | None = None,
-            assignments: Iterable[str] = ()) -> dict[str, Any]:
-    """Final parameter values: defaults, then ``given`` (launch file), then ``name:=value`` strings."""
+            assignments: Iterable[str] = (), renamed: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """Final parameter values: defaults, then ``given`` (launch file), then ``name:=value`` strings.
+    ``renamed``: old name -> what to write instead, for a clear error where an old name is given."""
     values: dict[str, Any] = {}
     merged: dict[str, Any] = dict(given or {})
     for a in assignments:
@@ -141,6 +157,10 @@ def resolve(node: str, declared: Mapping[str, Param], given: Mapping[str, Any] |
         if k in declared and declared[k].kind == "str":
             v = a.split(":=", 1)[1]  # a string parameter keeps its text as typed ("007", "1e3")
         merged[k] = v
+    renamed = renamed or {}
+    old = sorted(set(merged) & set(renamed))
+    if old:
+        raise TwinFocusError(f"node {node!r}: parameter {old[0]!r} was renamed: use {renamed[old[0]]}")
     unknown = sorted(set(merged) - set(declared))
     if unknown:
         raise TwinFocusError(

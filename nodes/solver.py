@@ -29,9 +29,9 @@ import numpy as np
 
 from msgs import AutofocusResult, Header, Image, SarMeasurement, TwinTemplate, now_ns
 from nodes.node import Node, run_node
-from nodes.params import REQUIRED, Param
+from nodes.params import REQUIRED, Param, param_of
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import ESTIMATORS
+from twinfocus.settings import FOCUS_SETTINGS
 
 
 class _Rows:
@@ -87,29 +87,14 @@ class Solver(Node):
     """Twin-reference autofocus of each scan."""
 
     NAME = "solver"
+    RENAMED_PARAMS = {"tracking_error_m": "tracking_error_mm, in millimetres (0.5e-3 m is 0.5), as twinfocus focus"}
     PARAMS = {
         **Node.PARAMS,
         "reference_roi": Param(REQUIRED, "reference region X0 X1 Y0 Y1 Z, metres", type="floats"),
         "target_roi": Param(REQUIRED, "target region X0 X1 Y0 Y1 Z, metres", type="floats"),
-        "size": Param(100, "image size in pixels per side"),
         "method": Param("twin", "twin (needs twin/template), sharpness or none", choices=("twin", "sharpness", "none")),
-        "iterations": Param(300, "optimiser iterations"),
-        "lr": Param(5e-2, "Adam learning rate"),
-        "lr_min": Param(1e-5, "end of the cosine schedule"),
-        "threshold_centre": Param(0.4, "soft threshold centre"),
-        "threshold_steepness": Param(1.0, "soft threshold steepness"),
-        "loss_steepness": Param(0.0, "soft threshold steepness inside the loss only; 0 = the estimator's default "
-                                     "(as twinfocus focus --loss-steepness)"),
-        "estimator": Param("auto", "how the phases are found from the reference, as twinfocus focus --estimator "
-                                   "(auto: by the template and tracking_error_m)", choices=("auto",) + ESTIMATORS),
-        "precision": Param("float32", "float32 or float64 arithmetic", choices=("float32", "float64")),
-        "basis_dtype": Param("float32", "storage of the basis in the optimiser (float32 or float16)", choices=("float32", "float16")),
-        "space_variant": Param("auto", "the across-sight drift correction: auto, on or off (as twinfocus focus --space-variant)",
-                               choices=("auto", "on", "off")),
-        "phase_ramp": Param("auto", "the estimate's linear phase ramp before the transfer: auto, remove or keep (as twinfocus focus --phase-ramp)"),
-        "tracking_error_m": Param(0.5e-3, "tracker error assumed by the confidence report, metres"),
-        "oversample": Param(16, "range-profile oversampling of the back-projection"),
-        "device": Param("", "torch device; empty = cuda if present, else cpu", type="str"),
+        # the settings of `twinfocus focus`, same names and defaults (twinfocus/settings.py)
+        **{s.name: param_of(s) for s in FOCUS_SETTINGS},
         "basis": Param("stream", "stream: basis built as measurements arrive; after_scan: all at the end",
                        choices=("stream", "after_scan")),
         "truth_metrics": Param(True, "compute SSIM against the truth when measurements carry it"),
@@ -135,19 +120,8 @@ class Solver(Node):
                 raise TwinFocusError(f"node {self.name!r}: parameter {name!r} needs 5 numbers X0 X1 Y0 Y1 Z, got {p[name]}")
         self.ref_grid = ImageGrid.from_roi(p["reference_roi"], p["size"])
         self.tgt_grid = ImageGrid.from_roi(p["target_roi"], p["size"])
-        device = p["device"]
-        if not device:
-            import torch
-
-            device = "cuda" if torch.cuda.is_available() else "cpu"
-        self.cfg = AutofocusConfig(
-            iterations=p["iterations"], lr=p["lr"], lr_min=p["lr_min"], threshold_centre=p["threshold_centre"],
-            threshold_steepness=p["threshold_steepness"], precision=p["precision"], device=device,
-            basis_dtype=p["basis_dtype"],
-        )
-        self.cfg.validate()
-        if p["loss_steepness"] < 0:
-            raise TwinFocusError(f"node {self.name!r}: parameter 'loss_steepness' must be >= 0 (0: the estimator's default)")
+        self.cfg = AutofocusConfig.from_settings(p)  # the device resolved as twinfocus focus resolves it
+        device = self.cfg.device
         self.bp = {"oversample": p["oversample"], "precision": p["precision"]}
         if device != "cpu":
             self.bp.update(backend="torch", device=device)
@@ -184,8 +158,8 @@ class Solver(Node):
         if self.params["method"] != "twin" or self.template is None:
             return self.cfg
         chosen = estimator_settings(self.params["estimator"], bool(np.iscomplexobj(self.template)),
-                                    self.params["tracking_error_m"], chirp.wavelength_m)
-        if self.params["loss_steepness"] > 0:
+                                    self.params["tracking_error_mm"] * 1e-3, chirp.wavelength_m)
+        if self.params["loss_steepness"] is not None:
             chosen["loss_steepness"] = self.params["loss_steepness"]
         return replace(self.cfg, **chosen)
 
@@ -334,7 +308,7 @@ class Solver(Node):
                 out = focus_scan(scan, self.ref_grid, self.tgt_grid, template=self.template, method=self.params["method"],
                                  config=self._config(s.chirp), bp_options=self.bp, progress_factory=lambda label: progress,
                                  phase_ramp=self.params["phase_ramp"], space_variant=self.params["space_variant"],
-                                 tracking_error_m=self.params["tracking_error_m"])
+                                 tracking_error_m=self.params["tracking_error_mm"] * 1e-3)
             else:
                 out, tgt_basis = self._focus_bases(s, positions)
         except TwinFocusError as exc:
@@ -399,7 +373,7 @@ class Solver(Node):
                 s.ref_rows.array(), tgt_basis, positions, s.chirp, self.ref_grid, self.tgt_grid,
                 template=self.template, method=self.params["method"], config=self._config(s.chirp), bp_options=self.bp,
                 progress_factory=lambda label: self._progress, phase_ramp=self.params["phase_ramp"],
-                space_variant=self.params["space_variant"], tracking_error_m=self.params["tracking_error_m"],
+                space_variant=self.params["space_variant"], tracking_error_m=self.params["tracking_error_mm"] * 1e-3,
             )
         out.timings_s["focus_bases"] = time.perf_counter() - t  # autofocus and the rest of the steps
         return out, tgt_basis

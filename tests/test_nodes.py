@@ -545,7 +545,7 @@ def test_solver_picks_the_estimator_as_twinfocus_focus_does():
         solver.template = amplitude.astype(np.complex64)  # a template with its phase: the closed form
         assert solver._config(chirp).init == "correlation"
         solver = Solver(broker=ep, params={**base, "estimator": "projection-refined", "loss_steepness": 2.0,
-                                           "iterations": 40, "tracking_error_m": 2e-3})
+                                           "iterations": 40, "tracking_error_mm": 2.0})
         solver.template = amplitude
         cfg = solver._config(chirp)
         want = {**estimator_settings("projection-refined", False), "loss_steepness": 2.0}

@@ -18,15 +18,16 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.metrics import ssim, ssim_torch
+from twinfocus.settings import FOCUS_SETTINGS, config_default, resolve_device
 
 if TYPE_CHECKING:  # torch is imported where the optimiser runs: the closed-form estimators need none
     import torch
@@ -38,24 +39,27 @@ INITS = ("zero", "correlation", "projection", "outline")
 
 @dataclass
 class AutofocusConfig:
-    """Optimiser settings (defaults: the source paper)."""
+    """Optimiser settings (defaults: the source paper). The fields that ``twinfocus focus`` and the
+    solver node expose take their defaults from :data:`twinfocus.settings.FOCUS_SETTINGS`."""
 
-    iterations: int = 300
-    lr: float = 5e-2
-    lr_min: float = 1e-5
-    threshold_centre: float = 0.4
-    threshold_steepness: float = 1.0
+    iterations: int = config_default("iterations")
+    lr: float = config_default("lr")
+    lr_min: float = config_default("lr_min")
+    threshold_centre: float = config_default("threshold_centre")
+    threshold_steepness: float = config_default("threshold_steepness")
     #: steepness of the soft threshold inside the loss only (None: ``threshold_steepness``, the
     #: paper's). A steeper loss (5) lets a smooth digital-twin template match a speckled reference
     #: by its outline (docs/beyond.md); metrics keep ``threshold_steepness``.
-    loss_steepness: float | None = None
-    precision: str = "float32"
-    basis_dtype: str = "float32"
+    loss_steepness: float | None = config_default("loss_steepness")
+    precision: str = config_default("precision")
+    basis_dtype: str = config_default("basis_dtype")
+    #: the torch device, as decided (:func:`twinfocus.settings.resolve_device`, which
+    #: :meth:`from_settings` applies to the ``device`` setting); a config of its own runs on the CPU
     device: str = "cpu"
     #: coarse-to-fine: first ``coarse_iterations`` on images blurred by a Gaussian of
     #: ``coarse_blur_px`` pixels (a smoother loss with fewer local minima when phases wrap),
     #: then ``iterations`` at full resolution from there. 0 = the paper's single stage.
-    coarse_iterations: int = 0
+    coarse_iterations: int = config_default("coarse_iterations")
     coarse_blur_px: float = 2.0
     #: where the phases start: "zero" (the paper); "correlation": the closed-form per-position
     #: matched filter against a complex template (:func:`twinfocus.template_match.correlation_phase`);
@@ -66,11 +70,11 @@ class AutofocusConfig:
     #: start is the whole estimate.
     init: str = "zero"
     #: projection steps of ``init="projection"`` (~3 ms each at 780 x 100 x 100 on 2 cores)
-    projection_iterations: int = 30
+    projection_iterations: int = config_default("projection_iterations")
     #: ``init="projection"`` also from this many random starts (fixed seed); the end with the
     #: lowest loss (:func:`template_loss`) starts the optimiser. Pays past lambda/4, where the
     #: projections' local maxima differ; each costs ``projection_iterations`` steps + one loss.
-    projection_restarts: int = 0
+    projection_restarts: int = config_default("projection_restarts")
     #: prior that the hand moves smoothly: adds ``smoothness_weight`` x mean |exp(j phi_{m+1}) -
     #: exp(j phi_m)|^2 over consecutive radar positions (basis order = capture order) to the loss.
     #: A chord on the unit circle, so it never fights a wrap. 0 = the paper (no prior).
@@ -102,12 +106,26 @@ class AutofocusConfig:
         if not (np.isfinite(self.smoothness_weight) and self.smoothness_weight >= 0):
             raise TwinFocusError(f"smoothness_weight must be a non-negative number, got {self.smoothness_weight}")
         if self.loss_steepness is not None and not self.loss_steepness > 0:
-            raise TwinFocusError(f"loss_steepness must be positive, got {self.loss_steepness}")
+            raise TwinFocusError(f"loss_steepness must be positive, or unset for the estimator's default, "
+                                 f"got {self.loss_steepness}")
         if self.basis_dtype not in ("float32", "float16"):
             raise TwinFocusError(f"basis_dtype must be 'float32' or 'float16', got {self.basis_dtype!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @classmethod
+    def from_settings(cls, values: Mapping[str, Any], **overrides) -> AutofocusConfig:
+        """The config that focus settings make (``values``: name -> value for every entry of
+        :data:`~twinfocus.settings.FOCUS_SETTINGS` that has a ``config`` field, e.g. a parsed
+        ``twinfocus focus`` or the solver's parameters), then ``overrides`` (an estimator's
+        fields, :func:`~twinfocus.estimators.estimator_settings`); the device is resolved
+        (:func:`~twinfocus.settings.resolve_device`). Validated."""
+        fields = {s.config: values[s.name] for s in FOCUS_SETTINGS if s.config}
+        fields["device"] = resolve_device(fields["device"])
+        cfg = cls(**{**fields, **overrides})
+        cfg.validate()
+        return cfg
 
 
 @dataclass

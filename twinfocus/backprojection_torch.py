@@ -11,10 +11,7 @@ import torch
 
 from twinfocus.radar import Chirp, range_kernel
 from twinfocus.range_geometry import DEFAULT_OVERSAMPLE, local_frame, range_lattice, turns_per_m
-
-
-def default_device() -> str:
-    return "cuda" if torch.cuda.is_available() else "cpu"
+from twinfocus.settings import resolve_device
 
 
 def backproject_points_torch(
@@ -29,8 +26,9 @@ def backproject_points_torch(
     basis: bool = False,
     max_pairs_per_chunk: int = 2**24,
 ) -> np.ndarray:
-    """complex64 (P,) image, or (M, P) basis when ``basis`` (see backprojection module)."""
-    device = device or default_device()
+    """complex64 (P,) image, or (M, P) basis when ``basis`` (see backprojection module); ``device``
+    None: :func:`twinfocus.settings.resolve_device`'s choice."""
+    device = resolve_device(device)
     real = torch.float32 if precision == "float32" else torch.float64
     cplx = torch.complex64 if precision == "float32" else torch.complex128
     np_real = np.float32 if precision == "float32" else np.float64

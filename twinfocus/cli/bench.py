@@ -61,11 +61,9 @@ def run(args: argparse.Namespace) -> int:
         print((write_beyond_report if args.suite == "beyond" else write_report)(args.out, args.markdown))
         return 0
     only = [s.strip() for s in args.only.split(",") if s.strip()] or None
-    if args.device.startswith("cuda"):
-        import torch
+    from twinfocus.settings import resolve_device
 
-        if not torch.cuda.is_available():
-            raise TwinFocusError(f"--device {args.device}: no CUDA device is available")
+    resolve_device(args.device)  # a CUDA device that is not there fails before any work
     if args.trade_scenes is not None and args.trade_scenes < 1:
         raise TwinFocusError(f"--trade-scenes must be at least 1, got {args.trade_scenes}")
     if args.workers is not None and args.workers < 1:

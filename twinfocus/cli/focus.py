@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import ESTIMATORS
+from twinfocus.settings import add_focus_options, resolve_device
 
 #: bytes per radar position and pixel that a run holds at its peak: the two sub-image bases
 #: (complex64, 8 B each) and the optimiser's copies of the reference basis (float32 [Re | Im]
@@ -24,57 +24,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="reference region (metres)")
     p.add_argument("--target-roi", nargs=5, type=float, required=True, metavar=("X0", "X1", "Y0", "Y1", "Z"),
                    help="target region (metres)")
-    p.add_argument("--size", type=int, default=100, help="image size in pixels per side (default 100)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--template", help="template file (.npz: image, x_m, y_m, z_m)")
     src.add_argument("--template-scan", help="scan of the reference alone on accurate positions (physical twin)")
     src.add_argument("--digital-twin", help="reference point cloud (.npy, (N, 3) metres, scene frame)")
     src.add_argument("--method", choices=["sharpness", "none"], help="baseline without a template")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--iterations", type=int, default=300, help="optimiser iterations (default 300)")
-    p.add_argument("--lr", type=float, default=5e-2, help="Adam learning rate (default 5e-2)")
-    p.add_argument("--lr-min", type=float, default=1e-5, help="end of the cosine schedule (default 1e-5)")
-    p.add_argument("--threshold-centre", type=float, default=0.4, help="soft threshold centre (default 0.4)")
-    p.add_argument("--threshold-steepness", type=float, default=1.0, help="soft threshold steepness (default 1)")
-    p.add_argument("--loss-steepness", type=float, default=None,
-                   help="soft threshold steepness inside the optimiser's loss only (default: 5 with --estimator paper, "
-                        "where it lifts a digital twin from 0.89 to 0.94 SSIM (docs/beyond.md); otherwise "
-                        "--threshold-steepness, the source paper's)")
-    p.add_argument("--precision", choices=["float32", "float64"], default="float32")
-    p.add_argument("--device", default=None, help="torch device for back-projection and autofocus (default: cuda if present, else cpu)")
-    p.add_argument("--oversample", type=int, default=16, help="range-profile oversampling for interpolation (default 16)")
-    p.add_argument("--phase-ramp", choices=("auto", "remove", "keep"), default="auto",
-                   help="the estimate's constant + linear-in-aperture phase, which moves the image, before the "
-                        "transfer: auto (default) removes only what a misplaced template explains (nothing after "
-                        "registering a --template-scan; a ramp worth at most 3 mm of shift otherwise), since a "
-                        "hand's drift puts real error in it; remove: always; keep: never (the source paper)")
-    p.add_argument("--space-variant", choices=("auto", "on", "off"), default="auto",
-                   help="a smooth drift fitted to the whole reference and transferred per pixel, for a hand's drift "
-                        "(needs a physical twin): auto = only when one phase per position leaves the reference "
-                        "unmatched (metrics.json space_variant says what was done)")
-    p.add_argument("--basis-dtype", choices=["float32", "float16"], default="float32",
-                   help="storage of the sub-image basis in the optimiser (float16: ~2x faster, same result)")
-    p.add_argument("--estimator", choices=("auto",) + ESTIMATORS, default="auto",
-                   help="how the phases are found from the reference (docs/beyond.md): 'paper' = the optimiser from zero; "
-                        "'projection' = alternating projections onto the template's amplitude, no optimiser (any "
-                        "template); 'projection-refined' = that, then the optimiser (best past lambda/4, where "
-                        "phases wrap); 'registered' = the optimiser after moving the template to where the scan puts "
-                        "the reference; 'correlation' = registered + closed-form per-position phase, no optimiser "
-                        "(fastest); 'correlation-refined' = that, then the optimiser. The last three need the "
-                        "template's phase (--template-scan, or a template file with phase_rad). 'outline' = the "
-                        "reference's energy inside its outline, no texture (needs --digital-twin: rough references, "
-                        "camera clouds). auto: correlation when the template has a phase; outline for a "
-                        "--digital-twin; else projection, or projection-refined when --tracking-error-mm exceeds lambda/4")
-    p.add_argument("--projection-iterations", type=int, default=30,
-                   help="alternating-projection steps of --estimator projection (default 30, ~3 ms each)")
-    p.add_argument("--projection-restarts", type=int, default=0,
-                   help="--estimator projection also from this many random starts, the best by the loss going on "
-                        "(default 0; pays past lambda/4, ~0.1 s each at 780 x 100 x 100 on 2 cores)")
-    p.add_argument("--coarse-iterations", type=int, default=0,
-                   help="coarse-to-fine: this many optimiser iterations on blurred images before the full-resolution "
-                        "ones (default 0: the paper's single stage)")
-    p.add_argument("--tracking-error-mm", type=float, default=0.5,
-                   help="tracker position error assumed by the confidence report (default 0.5 mm)")
+    add_focus_options(p)  # the settings shared with the solver node: twinfocus/settings.py
     p.add_argument("--pictures", choices=("summary", "all", "none"), default="summary",
                    help="summary: summary.png only (default, ~0.05 s); all: also one PNG per image, loss.png and "
                         "phase.png (matplotlib, ~1-2 s more); none")
@@ -86,29 +42,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--save-template", metavar="PATH",
                    help="also write the template used as a template file (.npz) that --template takes")
     p.add_argument("--quiet", action="store_true", help="no progress output")
-
-
-def _accelerator_present() -> bool:
-    """Whether a GPU device node exists, so ``--device`` can default to the CPU without importing
-    torch (1-3 s) on the machines that have none; where it cannot tell, torch decides."""
-    dev = Path("/dev")
-    if os.name != "posix" or not dev.is_dir():
-        return True
-    return any(dev.glob("nvidia[0-9]*")) or (dev / "kfd").exists()
-
-
-def resolve_device(requested: str | None) -> str:
-    """``--device``: None -> cuda when torch sees one, else cpu; a cuda device must exist."""
-    if requested is None and not _accelerator_present():
-        return "cpu"
-    if requested is None or requested.startswith("cuda"):
-        import torch
-
-        if requested is None:
-            return "cuda" if torch.cuda.is_available() else "cpu"
-        if not torch.cuda.is_available():
-            raise TwinFocusError(f"--device {requested}: no CUDA device is available")
-    return requested
 
 
 def _check_writable_target(path: str, option: str, folder: bool) -> None:
@@ -254,11 +187,7 @@ def run(args: argparse.Namespace) -> int:
                                     has_support=support is not None)
     if args.loss_steepness is not None:
         chosen["loss_steepness"] = args.loss_steepness
-    cfg = AutofocusConfig(**{
-        "iterations": args.iterations, "lr": args.lr, "lr_min": args.lr_min, "threshold_centre": args.threshold_centre,
-        "threshold_steepness": args.threshold_steepness, "precision": args.precision, "basis_dtype": args.basis_dtype,
-        "device": device, "projection_iterations": args.projection_iterations,
-        "projection_restarts": args.projection_restarts, "coarse_iterations": args.coarse_iterations, **chosen})
+    cfg = AutofocusConfig.from_settings({**vars(args), "device": device}, **chosen)
     cfg.validate()
 
     outputs = focus_scan(scan, ref_grid, tgt_grid, template=template, support=support, method=method, config=cfg,
