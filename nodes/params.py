@@ -31,8 +31,9 @@ class Param:
     """One declared parameter.
 
     default : the value when none is given (``REQUIRED`` for none; None: unset, which ``null``
-        also gives); its type is the parameter's type unless ``type`` says otherwise (``"float"``, ``"int"``, ``"str"``, ``"bool"``,
-        ``"list"``, ``"floats"`` (list of numbers), ``"strs"`` (list of strings), ``"any"``).
+        also gives); its type is the parameter's type unless ``type`` says otherwise (``"float"``,
+        ``"int"``, ``"str"``, ``"bool"``, ``"list"``, ``"floats"`` (list of numbers), ``"strs"``
+        (list of strings), ``"any"``).
     help : one line for ``--help`` and the docs.
     choices : allowed values, if limited.
     """
