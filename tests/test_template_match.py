@@ -12,7 +12,14 @@ from twinfocus.metrics import oracle_phase, phase_error_rms
 from twinfocus.motion import apply_position_errors, gaussian_errors
 from twinfocus.radar import Chirp, mmwcas_virtual_array
 from twinfocus.simulate import simulate_if
-from twinfocus.template_match import correlation_phase, match_scores, projection_phase, register_template, shift_image
+from twinfocus.template_match import (
+    MatchScores,
+    correlation_phase,
+    match_scores,
+    projection_phase,
+    register_template,
+    shift_image,
+)
 from twinfocus.templates import load_template, save_template
 from twinfocus.trajectory import paper_raster, phase_centres
 
@@ -87,6 +94,38 @@ def test_closed_form_phase_recovers_wrapped_errors_once_registered(misplaced):
     res = twin_autofocus(basis, template, AutofocusConfig(iterations=0, init="correlation", template_registration="correlation"))
     assert phase_error_rms(res.phase_rad, oracle) == pytest.approx(err_registered, abs=1e-6)
     assert res.extra["registration"]["shift_px"][1] < 0
+
+
+def test_scores_added_as_a_scan_arrives_equal_the_whole_basis_and_register_alike(misplaced):
+    """MatchScores fed batch by batch (as the solver node does while a scan arrives) against brute
+    force sums at every stage, and the registration and estimate from them against the whole
+    basis's."""
+    ch, true, tracked, basis, template = misplaced
+    acc = MatchScores(template, max_shift_px=4)
+    flat = basis.reshape(basis.shape[0], -1)
+    cuts = [0, 1, 1, 9, 30, basis.shape[0]]  # batches of 1, 0, 8, 21 and the rest
+    for a, b in zip(cuts, cuts[1:]):
+        acc.add(basis[a:b])
+        assert acc.n_positions == b
+        for dy, dx in [(0, 0), (1, -2), (-4, 3)]:  # registration on the rows so far: the same sums
+            moved = shift_image(template, dy, dx)  # whole pixels: a plain move (the test above)
+            want = np.abs(flat[:b].conj() @ moved.reshape(-1)).sum() / np.linalg.norm(moved)
+            assert acc.scores()[4 + dy, 4 + dx] == pytest.approx(want, rel=1e-4)
+    np.testing.assert_allclose(acc.scores(), match_scores(basis, template), rtol=1e-6)
+    moved, shift, info = register_template(basis, template, scores=acc.scores())
+    moved_whole, shift_whole, info_whole = register_template(basis, template)
+    assert shift == pytest.approx(shift_whole, abs=1e-4) and info["at_limit"] == info_whole["at_limit"]
+    np.testing.assert_allclose(moved, moved_whole, atol=1e-4 * np.abs(template).max())
+    cfg = AutofocusConfig(iterations=0, init="correlation", template_registration="correlation")
+    res = twin_autofocus(basis, template, cfg, registration_scores=acc.scores())
+    res_whole = twin_autofocus(basis, template, cfg)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - res_whole.phase_rad))), 0.0, atol=1e-4)
+    with pytest.raises(TwinFocusError, match="scores must be"):
+        register_template(basis, template, max_shift_px=3, scores=acc.scores())
+    with pytest.raises(TwinFocusError, match="basis rows must be"):
+        acc.add(basis[:2, :, :31])
+    with pytest.raises(TwinFocusError, match="template's phase"):
+        MatchScores(np.abs(template))
 
 
 @pytest.fixture(scope="module")

@@ -273,6 +273,7 @@ def twin_autofocus(
     progress: ProgressFn | None = None,
     init_phase_rad: np.ndarray | None = None,
     support: np.ndarray | None = None,
+    registration_scores: np.ndarray | None = None,
 ) -> AutofocusResult:
     """Estimate per-position phases from a reference region and its template (the paper's method).
 
@@ -288,6 +289,10 @@ def twin_autofocus(
     support : bool (H, W), the reference's outline on the grid (a digital twin's
         :attr:`~twinfocus.digital_twin.condition.DigitalTwinReference.support`): what
         ``config.init="outline"`` needs.
+    registration_scores : float64 (2 S + 1, 2 S + 1), S = ``config.registration_max_shift_px``:
+        the registration's scores of ``template`` against all of ``basis``, when already at hand
+        (a :class:`~twinfocus.template_match.MatchScores` filled as a live scan arrived, so the
+        registration costs nothing after it); computed here when None.
 
     Returns
     -------
@@ -302,7 +307,8 @@ def twin_autofocus(
     if cfg.template_registration == "correlation":
         from twinfocus.template_match import register_template
 
-        template, _, extra["registration"] = register_template(basis, template, int(cfg.registration_max_shift_px))
+        template, _, extra["registration"] = register_template(basis, template, int(cfg.registration_max_shift_px),
+                                                               scores=registration_scores)
     if cfg.init == "correlation":
         from twinfocus.template_match import correlation_phase
 

@@ -152,6 +152,7 @@ def focus_bases(
     truth_target: np.ndarray | None = None,
     truth_reference: np.ndarray | None = None,
     positions_true: np.ndarray | None = None,
+    registration_scores: np.ndarray | None = None,
 ) -> FocusOutputs:
     """The focusing steps that follow the sub-image bases: autofocus, transfer, metrics.
 
@@ -187,6 +188,9 @@ def focus_bases(
     truth_target, truth_reference : complex (H, W) images formed on the true positions, and
         positions_true : float64 (M, K, 3); with all three the metrics include the SSIMs
         against the truth and the phase error against the oracle phase.
+    registration_scores : the template registration's scores against all of ``ref_basis``
+        when already accumulated (the solver node, as the scan arrives); see
+        :func:`~twinfocus.autofocus.twin_autofocus`.
 
     Returns :class:`FocusOutputs` (``timings_s`` holds ``autofocus``; ``metrics`` has no
     ``timings_s``: the caller adds its own).
@@ -204,7 +208,8 @@ def focus_bases(
 
     t = time.perf_counter()
     if method == "twin":
-        result: AutofocusResult = twin_autofocus(ref_basis, template, cfg, progress=prog("autofocus"), support=support)
+        result: AutofocusResult = twin_autofocus(ref_basis, template, cfg, progress=prog("autofocus"), support=support,
+                                                 registration_scores=registration_scores)
     elif method == "sharpness":
         result = sharpness_autofocus(tgt_basis, cfg, progress=prog("sharpness autofocus"))
     else:

@@ -43,19 +43,24 @@ from twinfocus.subpixel import parabola_vertex, shift_image
 
 def _check(basis: np.ndarray, template: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     b = np.asarray(basis)
-    t = np.asarray(template)
     if b.ndim != 3 or not np.iscomplexobj(b):
         raise TwinFocusError(f"basis must be complex (M, H, W), got {b.dtype} {b.shape}")
+    return b, _check_template(template, b.shape[1:])
+
+
+def _check_template(template: np.ndarray, shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """The template as an array, when it is complex, finite, not all zeros and (given) of ``shape``."""
+    t = np.asarray(template)
     if not np.iscomplexobj(t):
         raise TwinFocusError("this needs the template's phase (a complex image, e.g. a physical twin's "
                              "back-projected scan); an amplitude template cannot be matched per position")
-    if t.shape != b.shape[1:]:
-        raise TwinFocusError(f"template is {t.shape} but the reference region is {b.shape[1:]}")
+    if t.ndim != 2 or (shape is not None and t.shape != tuple(shape)):
+        raise TwinFocusError(f"template is {t.shape} but the reference region is {tuple(shape) if shape else '(H, W)'}")
     if not np.isfinite(t).all():
         raise TwinFocusError("template holds NaN or inf")
     if not np.any(t):
         raise TwinFocusError("template is empty (all zeros)")
-    return b, t
+    return t
 
 
 def correlation_phase(basis: np.ndarray, template: np.ndarray) -> np.ndarray:
@@ -101,50 +106,89 @@ def projection_phase(basis: np.ndarray, amplitude: np.ndarray, iterations: int =
     return phi
 
 
+class MatchScores:
+    """J(s) of :func:`match_scores`, accumulated over the basis's positions batch by batch.
+
+    J(s) = sum_m |<B_m, T(. - s)>| / ||T(. - s)|| is a sum over positions, so the rows of a scan
+    added as they arrive give, at the end, the whole basis's scores: a live scan registers its
+    template while it is captured and pays only for the last batch after it (issue 17). The
+    template's spectrum and the normaliser are computed once, here.
+
+    template : complex (H, W) on the basis's grid; max_shift_px : S, shifts |dy|, |dx| <= S.
+    """
+
+    def __init__(self, template: np.ndarray, max_shift_px: int = 4):
+        t = _check_template(template)
+        s = int(max_shift_px)
+        if s < 1:
+            raise TwinFocusError(f"max_shift_px must be >= 1, got {max_shift_px}")
+        h, w = t.shape
+        if 2 * s + 1 > min(h, w):
+            raise TwinFocusError(f"max_shift_px {s} is too large for a {h} x {w} region")
+        self.shape = t.shape
+        self.max_shift_px = s
+        self._pad = (h + s, w + s)  # enough padding that shifts up to s never wrap
+        self._spectrum = np.conj(scipy.fft.fft2(t.astype(np.complex64), self._pad))
+        self._rows = np.r_[0 : s + 1, self._pad[0] - s : self._pad[0]]
+        self._cols = np.r_[0 : s + 1, self._pad[1] - s : self._pad[1]]
+        self._sum = np.zeros((self._rows.size, self._cols.size))
+        #: positions added so far
+        self.n_positions = 0
+        # the part of the moved template that stays on the grid
+        energy = np.abs(t) ** 2
+        fe = np.conj(scipy.fft.fft2(energy, self._pad))
+        kept = np.real(scipy.fft.ifft2(scipy.fft.fft2(np.ones_like(energy), self._pad) * fe))[self._rows][:, self._cols]
+        self._norm = np.sqrt(np.maximum(np.roll(kept, s, axis=(0, 1)), 1e-30 * energy.sum()))
+
+    def add(self, rows: np.ndarray, chunk: int = 64) -> None:
+        """Add basis rows: complex (k, H, W), the next positions of the scan (any k >= 0)."""
+        b = np.asarray(rows)
+        if b.ndim != 3 or not np.iscomplexobj(b) or b.shape[1:] != self.shape:
+            raise TwinFocusError(f"basis rows must be complex (k, {self.shape[0]}, {self.shape[1]}), got {b.dtype} {b.shape}")
+        for i in range(0, b.shape[0], chunk):
+            fb = scipy.fft.fft2(b[i : i + chunk], self._pad, workers=-1)
+            xc = scipy.fft.ifft2(fb * self._spectrum[None], workers=-1)[:, self._rows][:, :, self._cols]
+            self._sum += np.abs(xc).sum(axis=0)
+        self.n_positions += b.shape[0]
+
+    def scores(self) -> np.ndarray:
+        """float64 (2 S + 1, 2 S + 1): entry [S + dy, S + dx] the score of the template moved by
+        (dy, dx) pixels over the positions added so far."""
+        # xc[u] = sum_p B(p) conj(T(p - u)): the template moved by +u, so index order -s..s after the roll
+        return np.roll(self._sum, self.max_shift_px, axis=(0, 1)) / self._norm
+
+
 def match_scores(basis: np.ndarray, template: np.ndarray, max_shift_px: int = 4, chunk: int = 64) -> np.ndarray:
     """J(s) for every integer shift s = (dy, dx) with |dy|, |dx| <= max_shift_px.
 
     Returns float64 (2 S + 1, 2 S + 1), S = max_shift_px, entry [S + dy, S + dx] the score of the
     template moved by (dy, dx) pixels (:func:`shift_image`'s convention). Computed for all shifts
-    at once by zero-padded FFT cross-correlation, ``chunk`` positions at a time.
+    at once by zero-padded FFT cross-correlation, ``chunk`` positions at a time
+    (:class:`MatchScores` over the whole basis).
     """
     b, t = _check(basis, template)
-    s = int(max_shift_px)
-    if s < 1:
-        raise TwinFocusError(f"max_shift_px must be >= 1, got {max_shift_px}")
-    h, w = t.shape
-    if 2 * s + 1 > min(h, w):
-        raise TwinFocusError(f"max_shift_px {s} is too large for a {h} x {w} region")
-    shape = (h + s, w + s)  # enough padding that shifts up to s never wrap
-    ft = np.conj(scipy.fft.fft2(t.astype(np.complex64), shape))
-    rows = np.r_[0 : s + 1, shape[0] - s : shape[0]]
-    cols = np.r_[0 : s + 1, shape[1] - s : shape[1]]
-    acc = np.zeros((rows.size, cols.size))
-    for i in range(0, b.shape[0], chunk):
-        fb = scipy.fft.fft2(b[i : i + chunk], shape, workers=-1)
-        xc = scipy.fft.ifft2(fb * ft[None], workers=-1)[:, rows][:, :, cols]
-        acc += np.abs(xc).sum(axis=0)
-    # xc[u] = sum_p B(p) conj(T(p - u)): the template moved by +u, so index order -s..s after the roll
-    acc = np.roll(acc, s, axis=(0, 1))
-    # the part of the moved template that stays on the grid
-    energy = np.abs(t) ** 2
-    ones = np.ones_like(energy)
-    fe = np.conj(scipy.fft.fft2(energy, shape))
-    kept = np.real(scipy.fft.ifft2(scipy.fft.fft2(ones, shape) * fe))[rows][:, cols]
-    kept = np.roll(kept, s, axis=(0, 1))
-    return acc / np.sqrt(np.maximum(kept, 1e-30 * energy.sum()))
+    acc = MatchScores(t, max_shift_px)
+    acc.add(b, chunk)
+    return acc.scores()
 
 
-def register_template(basis: np.ndarray, template: np.ndarray, max_shift_px: int = 4) -> tuple[np.ndarray, tuple[float, float], dict]:
+def register_template(basis: np.ndarray, template: np.ndarray, max_shift_px: int = 4,
+                      scores: np.ndarray | None = None) -> tuple[np.ndarray, tuple[float, float], dict]:
     """Move a complex template to where the scan's reference is (the peak of :func:`match_scores`,
     refined to sub-pixel by a parabola through the peak and its neighbours on each axis).
+
+    scores : J(s) of this template against this basis when already at hand (a
+    :class:`MatchScores` filled as the scan arrived); computed from ``basis`` when None.
 
     Returns (template moved, complex64 (H, W); (dy, dx) pixels applied; info with ``score_gain``
     (J at the peak over J unmoved, >= 1) and ``at_limit`` (the peak lies on the search border:
     the template is farther off than ``max_shift_px``, widen it or check the template)).
     """
-    scores = match_scores(basis, template, max_shift_px)
     s = int(max_shift_px)
+    if scores is None:
+        scores = match_scores(basis, template, max_shift_px)
+    elif scores.shape != (2 * s + 1, 2 * s + 1):
+        raise TwinFocusError(f"scores must be ({2 * s + 1}, {2 * s + 1}) for max_shift_px {s}, got {scores.shape}")
     i, j = np.unravel_index(int(np.argmax(scores)), scores.shape)
     at_limit = i in (0, 2 * s) or j in (0, 2 * s)
     fy = 0.0 if i in (0, 2 * s) else parabola_vertex(scores[i - 1, j], scores[i, j], scores[i + 1, j])
