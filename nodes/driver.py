@@ -3,7 +3,9 @@
 The backend's ``samples()`` iterator runs in a thread and fills a bounded queue (a slow
 consumer holds the backend back instead of growing memory); the node's loop takes samples
 from the queue and publishes them. A backend that is not ``live`` (file, simulation) is
-paced by its time stamps divided by ``rate`` (``rate:=0``: as fast as possible).
+paced by its time stamps divided by ``rate`` (``rate:=0``: as fast as possible): from the
+backend's ``clock_start_ns`` when it has one (the stamp the node's start stands for; samples
+stamped earlier, or simulated late, go out at once), else from its first sample's stamp.
 """
 from __future__ import annotations
 
@@ -56,6 +58,14 @@ class DriverNode(Node):
         raise NotImplementedError
 
     def on_start(self) -> None:
+        start = getattr(self.backend, "clock_start_ns", None)
+        if start is not None:
+            # Simulated sensors on one clock, started with the graph: the tracker's poses from
+            # before the radar's first frame go out at once (paced from its own first pose, every
+            # pose, and so every measurement, came 0.5 s behind its radar frame), and a radar
+            # whose first block of frames takes a while to simulate catches up instead of
+            # running that much late all sweep.
+            self._t0 = (time.monotonic(), int(start))
         t = threading.Thread(target=self._read, name=f"{self.name}-backend", daemon=True)
         t.start()
         self._reader = t

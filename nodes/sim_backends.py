@@ -73,6 +73,7 @@ class SimRadar:
         self.sc = scenario_from(options, where)
         self.frame_period_s = option(options, "frame_period_s", 0.1, float, where)
         self.t0_ns = int(option(options, "t0_ns", SIM_T0_NS, int, where))
+        self.clock_start_ns = self.t0_ns  # the first frame's stamp; SimVio paces from the same one
         self.scan_id = str(option(options, "scan_id", "sim", str, where))
         self.scans = int(option(options, "scans", 1, int, where))
         self.block = max(1, int(option(options, "block", 16, int, where)))
@@ -149,6 +150,10 @@ class SimVio:
         else:
             raise TwinFocusError(f"{where}: unknown error_model {model!r}; use vio, gaussian, drift or none")
         self.sc = sc
+        # paced on the radar's clock (its first frame's stamp starts it, nodes/driver.py): a pose
+        # goes out when the radar frame of the same stamp does, as from a live tracker; the
+        # margin's poses before it go out at once
+        self.clock_start_ns = t0
         radar = scenario_poses(sc, period, t0)
         true, tracked, _ = scenario_positions(sc, frame_period_s=period, t0_ns=t0)
         # One rigid error per radar pose (apply_position_errors adds it to every channel).
