@@ -340,6 +340,47 @@ def test_vio_driver_replays_a_tum_file_paced_by_its_stamps(tmp_path):
     assert arrival[-1] - arrival[0] > 0.3
 
 
+class ClockedPoses:
+    """A backend whose clock starts at 10 s with two poses stamped before it (as a tracker's
+    from before the radar's first frame) and one 0.3 s after."""
+
+    live = False
+    clock_start_ns = 10_000_000_000
+
+    def __init__(self, options):
+        pass
+
+    def samples(self):
+        from nodes.backends import PoseSample
+
+        for dt_s in (-0.5, -0.25, 0.0, 0.3):
+            yield PoseSample(self.clock_start_ns + int(dt_s * 1e9), np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))
+
+    def close(self):
+        pass
+
+
+def test_a_driver_paces_from_its_backends_clock_start_so_simulated_sensors_share_one_clock():
+    from nodes.sim_backends import SimRadar, SimVio
+    from nodes.vio_driver import VioDriver
+
+    with local_broker() as ep:
+        probe = Probe(ep, listen=["vio/pose"])
+        drv = VioDriver(broker=ep, params={"backend": f"{__name__}:ClockedPoses", "rate": 1.0, "wait_for": ["probe"]})
+        with running(probe):
+            with running(drv):
+                probe.wait_for("vio/pose", 4)
+                t = np.asarray(probe.arrival["vio/pose"]) - probe.arrival["vio/pose"][0]
+    # the poses stamped before the clock's start go out at once, the last one 0.3 s after it
+    # (paced from the first pose's stamp it would come 0.8 s after the first)
+    assert t[2] < 0.15 and 0.25 < t[3] < 0.6, t
+    # the simulated tracker starts its clock at the radar's first frame, not at its own first pose
+    opts = {"scenario": {"n_columns": 1, "n_rows": 3, "snr_db": None}}
+    radar, vio = SimRadar(opts), SimVio(opts)
+    first_frame = next(radar.samples()).stamp_ns
+    assert radar.clock_start_ns == vio.clock_start_ns == first_frame > next(vio.samples()).stamp_ns
+
+
 def test_unknown_backend_is_a_clear_error():
     from nodes.radar_driver import RadarDriver
 
@@ -526,6 +567,49 @@ def test_solver_streams_the_basis_and_focuses_with_the_template(tmp_path):
     assert np.array_equal(np.load(tmp_path / "out" / "p" / "target.npy"), images["target"].image)
     assert set(res.timing_s) >= {"autofocus", "basis_streamed", "last_measurement_to_result"}
     assert AutofocusConfig().iterations == 300  # the node's default is the paper's, tests ask for fewer
+
+
+def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_whole_basis():
+    """A physical twin's template (with its phase) arriving after the first half of the scan: the
+    solver scores the registration on the rows it already has, then on each batch (issue 17:
+    none of it after the last measurement but the last batch's), and gets the phase that
+    focus_bases gives on the whole scan's bases."""
+    from nodes.solver import Solver
+    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.grid import ImageGrid
+    from twinfocus.pipeline import focus_bases
+
+    scan = point_scene_scan(m_side=20)  # 40 positions: the 20 before the template are scored at once
+    ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 16), ImageGrid.from_roi(TGT_ROI, 16)
+    template = backproject(scan.data, scan.positions_true, CHIRP, ref_grid)  # complex: a physical twin's
+    msgs = measurements(scan)
+    half = len(msgs) // 2
+    with local_broker() as ep:
+        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16, "warm_up": False})
+        probe = Probe(ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"],
+                      wait_for=["solver"])
+        with running(solver, probe):
+            for m in msgs[:half]:
+                probe.send("sar/measurement", m)
+            probe.sent_all()
+            deadline = time.monotonic() + 30
+            while (solver.scan is None or solver.scan.ref_rows.n < half) and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert solver.scan.ref_rows.n == half and solver.scan.scores is None  # rows kept, no template yet
+            probe.send("twin/template", TwinTemplate(image=np.abs(template), phase_rad=np.angle(template).astype(np.float32),
+                                                     x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
+            for m in msgs[half:]:
+                probe.send("sar/measurement", m)
+            res = probe.wait_for("autofocus/result", 1, timeout_s=60, where=lambda r: not r.metrics_pending)[0]
+            cfg = solver._config(CHIRP)
+    assert cfg.template_registration == "correlation" and "registration_streamed" in res.timing_s
+    p = solver.params
+    want = focus_bases(subimage_basis(scan.data, scan.positions, CHIRP, ref_grid),
+                       subimage_basis(scan.data, scan.positions, CHIRP, tgt_grid), scan.positions, CHIRP, ref_grid,
+                       tgt_grid, template=solver.template, config=cfg, phase_ramp=p["phase_ramp"],
+                       space_variant=p["space_variant"], tracking_error_m=p["tracking_error_mm"] * 1e-3)
+    assert "template_registration" in want.metrics
+    np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
 
 
 def test_solver_picks_the_estimator_as_twinfocus_focus_does():
