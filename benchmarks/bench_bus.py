@@ -19,7 +19,7 @@
    ``target`` image does. Also reported: the solver's own ``latency_s`` (last measurement in ->
    result out, the field the visualizer shows) and its step timings.
 
-    python -m benchmarks.bench_bus --out benchmarks/results --graph-only   # part 3 alone
+    python -m benchmarks.bench_bus --out benchmarks/results --graph-only [--repeat 3]   # part 3 alone
 """
 from __future__ import annotations
 
@@ -240,15 +240,25 @@ def graph_latency_run(columns: int, rows: int, size: int, rate: float, iteration
         g = subprocess.Popen(cmd, cwd=repo, env={**os.environ, "PYTHONPATH": repo}, stdout=subprocess.DEVNULL,
                              stderr=subprocess.DEVNULL)
         try:
-            probe = Probe(f"tcp://127.0.0.1:{port}", listen=["radar/frame", "image/focused", "autofocus/result"],
-                          name="bench_graph_probe", params={"ready_timeout_s": 300})
+            probe = Probe(f"tcp://127.0.0.1:{port}", name="bench_graph_probe", params={"ready_timeout_s": 300},
+                          listen=["radar/frame", "vio/pose", "sar/measurement", "image/focused", "autofocus/result"])
             with running(probe, start_timeout_s=300):
+                load_before = os.getloadavg()
                 timeout = float(os.environ.get("BENCH_TIMEOUT", 1800))
                 probe.wait_for("image/focused", 1, timeout_s=timeout, where=lambda i: i.name == "target")
-                (res,) = probe.wait_for("autofocus/result", 1, timeout_s=60)
+                res = probe.wait_for("autofocus/result", 1, timeout_s=60)[0]  # the one published with the image
+                load_after = os.getloadavg()
+                # the truth metrics (simulation) follow in a second result
+                final = probe.wait_for("autofocus/result", 1, timeout_s=300, where=lambda r: not r.metrics_pending)[0]
                 frames = probe.received["radar/frame"]
                 last = [i for i, f in enumerate(frames) if f.last]
                 t_last = probe.arrival["radar/frame"][last[0]] if last else float("nan")
+                # the first pose at or after the last frame's stamp: what the synchronizer waits for
+                stamp = frames[last[0]].header.stamp_ns if last else None
+                after = [i for i, p in enumerate(probe.received["vio/pose"]) if stamp is not None and p.header.stamp_ns >= stamp]
+                t_pose = probe.arrival["vio/pose"][after[0]] if after else float("nan")
+                ends = [i for i, m in enumerate(probe.received["sar/measurement"]) if m.last]
+                t_meas = probe.arrival["sar/measurement"][ends[0]] if ends else float("nan")
                 names = [i.name for i in probe.received["image/focused"]]
                 t_image = probe.arrival["image/focused"][names.index("target")]
         finally:
@@ -260,15 +270,40 @@ def graph_latency_run(columns: int, rows: int, size: int, rate: float, iteration
         "image": f"{size}x{size}",
         "sensor_rate": rate,
         "last_radar_frame_to_focused_image_s": t_image - t_last,
+        # the same span cut where the probe saw each step (the pose the last frame needs, the
+        # synchronizer's last measurement, the image); a negative wait: the pose came first
+        "stages_s": {
+            "last_frame_to_its_pose": t_pose - t_last,
+            "pose_to_last_measurement": t_meas - max(t_pose, t_last),
+            "last_measurement_to_focused_image": t_image - t_meas,
+        },
         "solver_latency_s": float(res.latency_s),
         "solver_timing_s": res.timing_s,
+        "target_ssim": {k: final.metrics.get(f"target_ssim_{k}") for k in ("uncorrected", "corrected")},
+        "load_average_1min": [load_before[0], load_after[0]],
     }
 
 
-def main(out_dir: str | Path = "benchmarks/results", quick: bool = False, graph_only: bool = False) -> dict:
+def graph_latency(repeat: int, *args) -> dict:
+    """:func:`graph_latency_run` ``repeat`` times (the load of a shared machine moves the figures):
+    the mean of each time, its range over the runs (``spread_s``), and every run."""
+    runs = [graph_latency_run(*args) for _ in range(max(1, repeat))]
+    if len(runs) == 1:
+        return runs[0]
+    mean = {k: float(np.mean([r[k] for r in runs])) for k in ("last_radar_frame_to_focused_image_s", "solver_latency_s")}
+    return {
+        **{k: v for k, v in runs[0].items() if k in ("graph", "positions", "image", "sensor_rate")},
+        **mean,
+        "spread_s": {k: [float(min(r[k] for r in runs)), float(max(r[k] for r in runs))] for k in mean},
+        "stages_s": {k: float(np.mean([r["stages_s"][k] for r in runs])) for k in runs[0]["stages_s"]},
+        "runs": runs,
+    }
+
+
+def main(out_dir: str | Path = "benchmarks/results", quick: bool = False, graph_only: bool = False, repeat: int = 1) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    graph = graph_latency_run(*((2, 40, 40, 1.0) if quick else (6, 130, 100, 1.0)))
+    graph = graph_latency(repeat, *((2, 40, 40, 1.0) if quick else (6, 130, 100, 1.0)))
     if graph_only:
         prev = json.loads((out / "bus.json").read_text()) if (out / "bus.json").is_file() else {}
         prev["live_graph"] = graph
@@ -313,5 +348,6 @@ if __name__ == "__main__":
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--quick", action="store_true", help="small sizes (a minute), for checking the script")
     ap.add_argument("--graph-only", action="store_true", help="only the live graph's latency (part 3), added to bus.json")
+    ap.add_argument("--repeat", type=int, default=1, help="run the live graph this many times (mean, spread and each run)")
     a = ap.parse_args()
-    main(a.out, a.quick, a.graph_only)
+    main(a.out, a.quick, a.graph_only, a.repeat)
