@@ -3,7 +3,9 @@
 As measurements of a scan arrive, the solver back-projects each onto the reference and the
 target regions: one row B_m of the sub-image basis per radar position
 (:func:`twinfocus.backprojection.subimage_basis`, rows are independent), computed in batches of
-whatever has arrived while the previous batch ran. So when the scan's ``last`` measurement
+whatever has arrived while the previous batch ran, and, when the estimator registers a physical
+twin's template, the registration's scores of those rows
+(:class:`twinfocus.template_match.MatchScores`). So when the scan's ``last`` measurement
 arrives, the back-projection is already done and only the optimiser and the metrics remain
 (:func:`twinfocus.pipeline.focus_bases`, the steps ``twinfocus focus`` runs after its
 back-projections: ``twin``, or the baselines ``sharpness`` / ``none``). With
