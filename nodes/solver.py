@@ -22,7 +22,6 @@ are computed when the measurements carry ``positions_true_m`` (simulation).
 from __future__ import annotations
 
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -194,26 +193,13 @@ class Solver(Node):
 
     # -- template -----------------------------------------------------------------------------
     def on_template(self, msg: TwinTemplate) -> None:
-        from twinfocus.scan import save_npz_atomic
-        from twinfocus.templates import load_template
+        from twinfocus.templates import resample_template
 
-        g = self.ref_grid
-        if msg.image.shape == g.shape and np.allclose(msg.x_m, g.x_m) and np.allclose(msg.y_m, g.y_m) and abs(msg.z_m - g.z) < 1e-9:
-            self.template = np.asarray(msg.image, dtype=np.float32)
-            if msg.phase_rad is not None:
-                self.template = (self.template * np.exp(1j * np.asarray(msg.phase_rad, np.float64))).astype(np.complex64)
-        else:  # resample through the template-file reader, the project's one way to do it
-            with tempfile.TemporaryDirectory() as d:
-                path = Path(d) / "template.npz"
-                fields = {"image": msg.image, "x_m": msg.x_m, "y_m": msg.y_m, "z_m": np.float64(msg.z_m)}
-                if msg.phase_rad is not None:
-                    fields["phase_rad"] = msg.phase_rad
-                save_npz_atomic(path, fields)
-                try:
-                    self.template = load_template(path, g)
-                except TwinFocusError as exc:
-                    self.log(f"ignored a {msg.kind} template from {msg.source or '?'}: {str(exc).split(': ', 1)[-1]}")
-                    return
+        try:
+            self.template = resample_template(msg.image, msg.x_m, msg.y_m, msg.z_m, self.ref_grid, phase_rad=msg.phase_rad)
+        except TwinFocusError as exc:
+            self.log(f"ignored a {msg.kind} template from {msg.source or '?'}: {exc}")
+            return
         self.template_info = f"{msg.kind} twin from {msg.source or '?'}"
         self.log(f"template received: {self.template_info}")
         for s in list(self.waiting):

@@ -31,34 +31,48 @@ def save_template(path: str | os.PathLike, image: np.ndarray, grid: ImageGrid) -
 
 
 def load_template(path: str | os.PathLike, grid: ImageGrid, z_tolerance_m: float = 0.01) -> np.ndarray:
-    """Read a template file and resample it onto ``grid``: float32 (H, W), or complex64 (H, W)
-    when the file holds ``phase_rad``."""
+    """Read a template file and resample it onto ``grid`` (:func:`resample_template`): float32
+    (H, W), or complex64 (H, W) when the file holds ``phase_rad``."""
     z = load_npz(path)
     missing = [k for k in ("image", "x_m", "y_m", "z_m") if k not in z]
     if missing:
         raise TwinFocusError(f"{path}: not a template file, missing key(s) {', '.join(missing)}")
-    image, x, y = np.asarray(z["image"]), np.asarray(z["x_m"], float), np.asarray(z["y_m"], float)
+    try:
+        return resample_template(z["image"], z["x_m"], z["y_m"], float(z["z_m"]), grid,
+                                 phase_rad=z["phase_rad"] if "phase_rad" in z else None, z_tolerance_m=z_tolerance_m)
+    except TwinFocusError as exc:
+        raise TwinFocusError(f"{path}: {exc}") from None
+
+
+def resample_template(image: np.ndarray, x_m: np.ndarray, y_m: np.ndarray, z_m: float, grid: ImageGrid,
+                      phase_rad: np.ndarray | None = None, z_tolerance_m: float = 0.01) -> np.ndarray:
+    """A template on its own grid, checked and resampled (bilinear) onto ``grid``.
+
+    image : (Ny, Nx) amplitude (its magnitude is taken); x_m (Nx,), y_m (Ny,) increasing pixel
+    centres and z_m its plane, metres; phase_rad : optional (Ny, Nx) radians. Returns float32
+    (H, W), or complex64 (H, W) with a phase; raises :class:`TwinFocusError` naming what does not
+    fit (shape, NaN, plane, coverage of the reference region).
+    """
+    image, x, y = np.asarray(image), np.asarray(x_m, float), np.asarray(y_m, float)
     if image.ndim != 2 or image.shape != (y.size, x.size):
-        raise TwinFocusError(f"{path}: image {image.shape} does not match y_m ({y.size}) x x_m ({x.size})")
+        raise TwinFocusError(f"image {image.shape} does not match y_m ({y.size}) x x_m ({x.size})")
     if not np.isfinite(image).all():
-        raise TwinFocusError(f"{path}: template image holds NaN or inf")
-    if abs(float(z["z_m"]) - grid.z) > z_tolerance_m:
-        raise TwinFocusError(
-            f"{path}: template is on the plane z = {float(z['z_m']):.3f} m, the reference region is at z = {grid.z:.3f} m"
-        )
+        raise TwinFocusError("template image holds NaN or inf")
+    if abs(float(z_m) - grid.z) > z_tolerance_m:
+        raise TwinFocusError(f"template is on the plane z = {float(z_m):.3f} m, the reference region is at z = {grid.z:.3f} m")
     if x.size < 2 or y.size < 2 or np.any(np.diff(x) <= 0) or np.any(np.diff(y) <= 0):
-        raise TwinFocusError(f"{path}: x_m and y_m must be increasing with at least 2 values")
+        raise TwinFocusError("x_m and y_m must be increasing with at least 2 values")
     tol = 1e-9
     if grid.x0 < x[0] - tol or grid.x1 > x[-1] + tol or grid.y0 < y[0] - tol or grid.y1 > y[-1] + tol:
         raise TwinFocusError(
-            f"{path}: template covers x [{x[0]:.3f}, {x[-1]:.3f}] y [{y[0]:.3f}, {y[-1]:.3f}] m, "
+            f"template covers x [{x[0]:.3f}, {x[-1]:.3f}] y [{y[0]:.3f}, {y[-1]:.3f}] m, "
             f"which does not contain the reference region x [{grid.x0}, {grid.x1}] y [{grid.y0}, {grid.y1}]"
         )
     img = np.abs(image).astype(np.float64)
-    if "phase_rad" in z:
-        phase = np.asarray(z["phase_rad"], dtype=np.float64)
+    if phase_rad is not None:
+        phase = np.asarray(phase_rad, dtype=np.float64)
         if phase.shape != img.shape or not np.isfinite(phase).all():
-            raise TwinFocusError(f"{path}: phase_rad must be finite and of the image's shape {img.shape}, got {phase.shape}")
+            raise TwinFocusError(f"phase_rad must be finite and of the image's shape {img.shape}, got {phase.shape}")
         img = img * np.exp(1j * phase)
     out_dtype = np.complex64 if np.iscomplexobj(img) else np.float32
     if x.shape == grid.x_m.shape and y.shape == grid.y_m.shape and np.allclose(x, grid.x_m) and np.allclose(y, grid.y_m):
