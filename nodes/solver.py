@@ -32,6 +32,7 @@ import numpy as np
 from msgs import AutofocusResult, Header, Image, SarMeasurement, TwinTemplate, now_ns
 from nodes.node import Node, run_node
 from nodes.params import REQUIRED, Param, param_of
+from twinfocus.basis import BasisRows
 from twinfocus.errors import TwinFocusError
 from twinfocus.settings import FOCUS_SETTINGS
 
@@ -43,32 +44,6 @@ if TYPE_CHECKING:  # imported where used: the node starts without scipy
 _REGISTRATION_ROWS = 16
 
 
-class _Rows:
-    """Basis rows appended batch by batch into one array that doubles when full, so the whole
-    basis is there at the scan's end without a final copy (np.concatenate of the paper's two
-    bases, 2 x 62 MB, took 0.2 s on the loaded 2-core VM, all of it after the last measurement)."""
-
-    def __init__(self) -> None:
-        self.buf: np.ndarray | None = None
-        self.n = 0
-
-    def append(self, rows: np.ndarray) -> None:
-        k = rows.shape[0]
-        if self.buf is None or self.n + k > self.buf.shape[0]:
-            cap = max(64, self.n + k, 0 if self.buf is None else 2 * self.buf.shape[0])
-            grown = np.empty((cap,) + rows.shape[1:], rows.dtype)
-            if self.buf is not None:
-                grown[: self.n] = self.buf[: self.n]
-            self.buf = grown
-        self.buf[self.n : self.n + k] = rows
-        self.n += k
-
-    def array(self) -> np.ndarray:
-        """(M, H, W) the rows so far (a view)."""
-        assert self.buf is not None
-        return self.buf[: self.n]
-
-
 @dataclass
 class _Scan:
     scan_id: str
@@ -76,8 +51,8 @@ class _Scan:
     n_channels: int
     first_wall: float
     pending: list = field(default_factory=list)
-    ref_rows: _Rows = field(default_factory=_Rows)
-    tgt_rows: _Rows = field(default_factory=_Rows)
+    ref_rows: BasisRows = field(default_factory=BasisRows)
+    tgt_rows: BasisRows = field(default_factory=BasisRows)
     positions: list = field(default_factory=list)
     truth: list | None = field(default_factory=list)
     data: list = field(default_factory=list)  # basis:=after_scan, or the truth images after the result
