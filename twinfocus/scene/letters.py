@@ -22,7 +22,6 @@ FONTS: dict[str, int] = {
 }
 
 
-
 def _font(font) -> int:
     if isinstance(font, str):
         try:

@@ -22,8 +22,8 @@ def scatterer_spacing_m(range_m: float, aperture_m: float = 0.49, wavelength_m: 
     return float(fraction * wavelength_m * range_m / (2.0 * aperture_m))
 
 
-
 def random_phase(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``n`` unit phasors exp(j 2 pi U), U uniform in [0, 1): speckle, complex128 (n,)."""
     return np.exp(2j * np.pi * rng.random(n))
 
 
