@@ -12,6 +12,7 @@ import pytest
 from twinfocus import metrics
 from twinfocus.cli import main as cli_main
 from twinfocus.errors import TwinFocusError
+from twinfocus.evaluation.aggregate import crossing, method_stats, pareto_front, stops_helping
 from twinfocus.evaluation.cases import (
     EvalScenario,
     draw_position_errors,
@@ -20,7 +21,6 @@ from twinfocus.evaluation.cases import (
 )
 from twinfocus.evaluation.experiments import BASELINE_LETTERS, paper_experiments
 from twinfocus.evaluation.features import hog_descriptor, hog_similarity
-from twinfocus.evaluation.report import crossing, method_stats, pareto_front, stops_helping
 from twinfocus.evaluation.trade import central_rows
 from twinfocus.radar import Chirp, mmwcas_virtual_array
 from twinfocus.scenario import simulate_scenario

@@ -1,27 +1,46 @@
 """The evaluation report: markdown tables, PNG figures and a summary JSON from the raw results.
 
 :func:`write_report` reads ``OUT/raw/*.json`` (written by :mod:`twinfocus.evaluation.runner`),
-aggregates the records (mean SSIM and its standard error per condition and method, improvement
-over no correction as the ratio of paired means, as the paper's +23.3 % = 0.74 / 0.60 - 1), and
+aggregates the records with :mod:`twinfocus.evaluation.aggregate` (mean SSIM and its standard error
+per condition and method, improvement over no correction as the ratio of paired means, as the
+paper's +23.3 % = 0.74 / 0.60 - 1), draws the figures with :mod:`twinfocus.evaluation.figures`, and
 writes ``report.md`` (or the path given), one PNG per figure beside it and ``summary.json``.
 """
 from __future__ import annotations
 
 import json
-import math
 import os
 from pathlib import Path
 
 import numpy as np
 
-from twinfocus.atomic import atomic_writer, write_json_atomic, write_text_atomic
+from twinfocus.atomic import write_json_atomic, write_text_atomic
+from twinfocus.evaluation.aggregate import (
+    HELP_THRESHOLD,
+    METHOD_NAMES,
+    METHOD_ORDER,
+    conditions_of,
+    crossing,
+    draw_means,
+    limit_rows,
+    method_mean,
+    method_stats,
+    methods_in,
+    pair_improvements,
+    stops_helping,
+    trade_means,
+)
 from twinfocus.evaluation.experiments import LIMIT_SWEEPS
+from twinfocus.evaluation.figures import (
+    baseline_figure,
+    examples_figure,
+    limit_figure,
+    pairs_figure,
+    pareto_figure,
+    sweep_figure,
+)
 from twinfocus.evaluation.paper import PAPER, PAPER_TABLE1
 
-METHOD_ORDER = ("none", "sharpness", "digital", "physical")
-METHOD_NAMES = {"none": "no correction", "sharpness": "sharpness autofocus", "digital": "digital twin",
-                "physical": "physical twin"}
-METHOD_COLOURS = {"none": "#777777", "sharpness": "#d08c2e", "digital": "#3b7dd8", "physical": "#c23b3b"}
 SECTION_ORDER = ("baseline", "tracking_error", "separation", "distance", "size", "material", "nlos", "environment",
                  "handheld", "size_ratio")
 #: What the simulation does and does not model for an experiment, printed under its table.
@@ -38,81 +57,11 @@ SECTION_NOTES = {
     "handheld": "The true path is a simulated hand sweep (uneven speed, 2-3 mm wander, 1 deg tilt); the tracker's error "
                 "is VIO-like: random-walk drift (about 1.8 mm in z after the sweep) plus white jitter, on x, y and z.",
 }
-#: A method "stops helping" where its mean SSIM gain over no correction falls below this.
-HELP_THRESHOLD = 0.01
-DPI = 60
 
 
-# --- aggregation -----------------------------------------------------------------------------------
-
-
-def _ok(records):
-    return [r for r in records if r.get("status", "ok") == "ok" and r.get("ssim") is not None]
-
-
-def _draw_key(r) -> tuple:
-    return (r["condition"], r["pair"], r["draw"])
-
-
-def method_stats(records: list[dict], condition: str) -> dict:
-    """{method: {n, mean, sem, hog, failed, improvement_pct, gain}} for one condition.
-
-    improvement_pct = mean(method) / mean(none) - 1 over the draws where both ran (paired), in %;
-    gain = the same as a difference of means.
-    """
-    rec = [r for r in records if r["condition"] == condition]
-    none = {_draw_key(r): r["ssim"] for r in _ok(rec) if r["method"] == "none"}
-    out = {}
-    for m in METHOD_ORDER:
-        mr = [r for r in rec if r["method"] == m]
-        if not mr:
-            continue
-        ok = _ok(mr)
-        vals = np.array([r["ssim"] for r in ok], float)
-        hog = np.array([r["hog"] for r in ok if r.get("hog") is not None], float)
-        paired = [(r["ssim"], none[_draw_key(r)]) for r in ok if _draw_key(r) in none]
-        e = {"n": len(ok), "failed": len(mr) - len(ok),
-             "mean": float(vals.mean()) if vals.size else None,
-             "sem": float(vals.std(ddof=1) / math.sqrt(vals.size)) if vals.size > 1 else None,
-             "hog": float(hog.mean()) if hog.size else None}
-        if paired and m != "none":
-            a = np.array(paired)
-            e["improvement_pct"] = float((a[:, 0].mean() / a[:, 1].mean() - 1) * 100)
-            e["gain"] = float((a[:, 0] - a[:, 1]).mean())
-            e["gain_sem"] = float((a[:, 0] - a[:, 1]).std(ddof=1) / math.sqrt(len(a))) if len(a) > 1 else None
-        out[m] = e
-    return out
-
-
-def draw_means(records: list[dict], condition: str, field: str) -> float | None:
-    """Mean over the condition's draws of a per-draw field (each draw counted once)."""
-    seen = {}
-    for r in records:
-        if r["condition"] == condition and r.get(field) is not None:
-            seen[_draw_key(r)] = r[field]
-    return float(np.mean(list(seen.values()))) if seen else None
-
-
-def method_mean(records: list[dict], condition: str, method: str, field: str) -> float | None:
-    vals = [r[field] for r in _ok(records) if r["condition"] == condition and r["method"] == method and r.get(field) is not None]
-    return float(np.mean(vals)) if vals else None
-
-
-def pair_improvements(records: list[dict], method: str) -> dict:
-    """{pair: improvement % of ``method`` over no correction (paired means over its draws)}."""
-    out = {}
-    for pair in sorted({r["pair"] for r in records}):
-        rec = [r for r in records if r["pair"] == pair]
-        none = {_draw_key(r): r["ssim"] for r in _ok(rec) if r["method"] == "none"}
-        paired = [(r["ssim"], none[_draw_key(r)]) for r in _ok(rec) if r["method"] == method and _draw_key(r) in none]
-        if paired:
-            a = np.array(paired)
-            out[pair] = float((a[:, 0].mean() / a[:, 1].mean() - 1) * 100)
-    return out
-
-
-def conditions_of(doc: dict) -> list[dict]:
-    return doc["definition"]["conditions"]
+def load_raw(raw_dir: Path) -> dict:
+    """{name: result} of every ``*.json`` in ``raw_dir``."""
+    return {p.stem: json.loads(p.read_text()) for p in sorted(Path(raw_dir).glob("*.json"))}
 
 
 # --- formatting ------------------------------------------------------------------------------------
@@ -142,277 +91,6 @@ def _table(header: list[str], rows: list[list[str]]) -> list[str]:
         ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
 
 
-def _methods_in(records) -> list[str]:
-    present = {r["method"] for r in records}
-    return [m for m in METHOD_ORDER if m in present]
-
-
-# --- figures ---------------------------------------------------------------------------------------
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def load_raw(raw_dir: Path) -> dict:
-    """{name: result} of every ``*.json`` in ``raw_dir``."""
-    return {p.stem: json.loads(p.read_text()) for p in sorted(Path(raw_dir).glob("*.json"))}
-
-
-def _save(fig, path: Path) -> None:
-    with atomic_writer(path) as f:
-        fig.savefig(f, format="png", dpi=DPI, bbox_inches="tight")
-    _plt().close(fig)
-
-
-def _fig_baseline(doc: dict, path: Path) -> None:
-    plt = _plt()
-    rec = doc["records"]
-    cond = conditions_of(doc)[0]["label"]
-    st = method_stats(rec, cond)
-    methods = [m for m in METHOD_ORDER if m in st]
-    fig, ax = plt.subplots(figsize=(5.2, 3.0))
-    x = np.arange(len(methods))
-    means = [st[m]["mean"] or 0 for m in methods]
-    errs = [st[m]["sem"] or 0 for m in methods]
-    ax.bar(x, means, yerr=errs, color=[METHOD_COLOURS[m] for m in methods], capsize=3, label="ours (simulation)")
-    paper = PAPER["baseline"]["ssim"]
-    px = [i for i, m in enumerate(methods) if m in paper]
-    ax.plot(px, [paper[methods[i]] for i in px], "kD", label="paper (real data)")
-    ax.set_xticks(x, [METHOD_NAMES[m] for m in methods], fontsize=8)
-    ax.set_ylabel("mean target SSIM")
-    ax.set_ylim(0, 1)
-    ax.legend(fontsize=8, loc="lower right")
-    ax.set_title("Baseline set: our simulation vs the paper", fontsize=9)
-    _save(fig, path)
-
-
-def _fig_pairs(doc: dict, path: Path) -> None:
-    plt = _plt()
-    rec = doc["records"]
-    letters = sorted({r["reference"] for r in rec} | {r["target"] for r in rec})
-    methods = [m for m in ("digital", "physical") if any(r["method"] == m for r in rec)]
-    fig, axes = plt.subplots(1, len(methods), figsize=(3.0 * len(methods), 2.8), squeeze=False)
-    for ax, m in zip(axes[0], methods):
-        imp = pair_improvements(rec, m)
-        grid = np.full((len(letters), len(letters)), np.nan)
-        for pair, v in imp.items():
-            r, t = pair.split(">")
-            grid[letters.index(r), letters.index(t)] = v
-        im = ax.imshow(grid, cmap="RdBu", vmin=-60, vmax=60)
-        ax.set_xticks(range(len(letters)), letters)
-        ax.set_yticks(range(len(letters)), letters)
-        ax.set_xlabel("target")
-        ax.set_ylabel("reference")
-        ax.set_title(f"{METHOD_NAMES[m]}: SSIM gain %", fontsize=8)
-        for i in range(len(letters)):
-            for j in range(len(letters)):
-                if np.isfinite(grid[i, j]):
-                    ax.text(j, i, f"{grid[i, j]:.0f}", ha="center", va="center", fontsize=6)
-    fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8)
-    _save(fig, path)
-
-
-def _fig_examples(examples: dict, path: Path, title: str) -> None:
-    plt = _plt()
-    keys = ["truth"] + [m for m in METHOD_ORDER if m in examples]
-    fig, axes = plt.subplots(1, len(keys), figsize=(1.6 * len(keys), 1.9))
-    for ax, k in zip(np.atleast_1d(axes), keys):
-        ax.imshow(examples[k], cmap="gray", origin="upper")
-        ax.set_title("true positions" if k == "truth" else METHOD_NAMES[k], fontsize=7)
-        ax.axis("off")
-    fig.suptitle(title, fontsize=8)
-    _save(fig, path)
-
-
-def _fig_sweep(doc: dict, path: Path) -> None:
-    plt = _plt()
-    d = doc["definition"]
-    rec = doc["records"]
-    conds = conditions_of(doc)
-    methods = _methods_in(rec)
-    fig, ax = plt.subplots(figsize=(5.0, 3.0))
-    if d["numeric"]:
-        xs = [c["x"] for c in conds]
-        for m in methods:
-            st = [method_stats(rec, c["label"]).get(m, {}) for c in conds]
-            ys = [s.get("mean") if s else None for s in st]
-            es = [s.get("sem") or 0 if s else 0 for s in st]
-            ok = [i for i, y in enumerate(ys) if y is not None]
-            ax.errorbar([xs[i] for i in ok], [ys[i] for i in ok], yerr=[es[i] for i in ok], marker="o", ms=4, capsize=2,
-                        color=METHOD_COLOURS[m], label=METHOD_NAMES[m])
-        out = [c["x"] for c in conds if not c["in_paper"]]
-        if out:
-            inside = [c["x"] for c in conds if c["in_paper"]]
-            lo_out = [x for x in out if not inside or x > max(inside)]
-            hi_out = [x for x in out if inside and x < min(inside)]
-            if lo_out:
-                ax.axvspan(max(inside) if inside else min(lo_out), max(lo_out), color="#eeeeee", zorder=0, label="beyond the paper")
-            if hi_out:
-                ax.axvspan(min(hi_out), min(inside), color="#eeeeee", zorder=0)
-        ax.set_xlabel(d["axis"])
-    else:
-        labels = [c["label"] for c in conds]
-        w = 0.8 / max(1, len(methods))
-        for k, m in enumerate(methods):
-            st = [method_stats(rec, c["label"]).get(m, {}) for c in conds]
-            ax.bar(np.arange(len(conds)) + (k - (len(methods) - 1) / 2) * w, [s.get("mean") or 0 for s in st],
-                   w, yerr=[s.get("sem") or 0 for s in st], capsize=2, color=METHOD_COLOURS[m], label=METHOD_NAMES[m])
-        ax.set_xticks(np.arange(len(conds)), [lab.replace(", ", ",\n") for lab in labels], fontsize=7)
-    ax.set_ylabel("mean target SSIM")
-    lo = min([r["ssim"] for r in _ok(rec)] or [0.0])
-    ax.set_ylim(max(0.0, lo - 0.1), 1.0)
-    ax.legend(fontsize=7, loc="lower left")
-    ax.set_title(d["title"], fontsize=9)
-    _save(fig, path)
-
-
-def _limit_rows(doc: dict) -> list[dict]:
-    rec = doc["records"]
-    rows = []
-    far = doc["definition"]["name"] == "size_ratio"
-    for c in conditions_of(doc):
-        lab = c["label"]
-        st = method_stats(rec, lab)
-        none = st.get("none", {}).get("mean")
-        ceil = draw_means(rec, lab, "ssim_oracle_transfer")
-        rows.append({
-            "x": c["x"], "label": lab, "in_paper": c["in_paper"], "stats": st,
-            "ceiling_gain": None if (ceil is None or none is None) else ceil - none,
-            "floor": draw_means(rec, lab, "transfer_floor_far_rad" if far else "transfer_floor_rad"),
-            "first_order": draw_means(rec, lab, "transfer_first_order_far_rad" if far else "transfer_first_order_rad"),
-            "bound": draw_means(rec, lab, "transfer_bound_far_rad" if far else "transfer_bound_rad"),
-            "uncorrected": draw_means(rec, lab, "phase_rms_uncorrected"),
-            # SSIM lost to the transfer (perfect target phase vs perfect reference phase) and, per
-            # twin, to the estimate on the reference (perfect reference phase vs the twin's).
-            "transfer_loss": _diff(draw_means(rec, lab, "ssim_oracle_target"), ceil),
-            "estimation_loss": {m: _diff(ceil, st[m].get("mean")) for m in st if m != "none"},
-        })
-    return rows
-
-
-def _diff(a, b):
-    return None if a is None or b is None else a - b
-
-
-def stops_helping(rows: list[dict], method: str) -> dict:
-    """Where ``method``'s mean SSIM gain over no correction first falls below HELP_THRESHOLD:
-    {"x": value or None, "label", "gain"} (None: it helps over the whole sweep)."""
-    for r in rows:
-        g = r["stats"].get(method, {}).get("gain")
-        if g is not None and g < HELP_THRESHOLD:
-            return {"x": r["x"], "label": r["label"], "gain": g}
-    return {"x": None, "label": None, "gain": None}
-
-
-def crossing(xs, ys, level: float):
-    """First x where the piecewise-linear ys reaches ``level`` (None if never)."""
-    for (x0, y0), (x1, y1) in zip(zip(xs, ys), zip(xs[1:], ys[1:])):
-        if y0 is None or y1 is None:
-            continue
-        if y0 < level <= y1:
-            return x0 + (level - y0) * (x1 - x0) / (y1 - y0)
-    if ys and ys[0] is not None and ys[0] >= level:
-        return xs[0]
-    return None
-
-
-def _fig_limit(doc: dict, rows: list[dict], path: Path) -> None:
-    plt = _plt()
-    d = doc["definition"]
-    xs = [r["x"] for r in rows]
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(8.0, 3.0))
-    for m in ("digital", "physical"):
-        g = [r["stats"].get(m, {}).get("gain") for r in rows]
-        ok = [i for i, v in enumerate(g) if v is not None]
-        if ok:
-            a1.plot([xs[i] for i in ok], [g[i] for i in ok], "o-", ms=4, color=METHOD_COLOURS[m], label=METHOD_NAMES[m])
-    cg = [r["ceiling_gain"] for r in rows]
-    ok = [i for i, v in enumerate(cg) if v is not None]
-    a1.plot([xs[i] for i in ok], [cg[i] for i in ok], "k--", lw=1, label="perfect reference estimate")
-    a1.axhline(0, color="#999999", lw=0.8)
-    a1.axhline(HELP_THRESHOLD, color="#999999", lw=0.8, ls=":")
-    a1.set_xlabel(d["axis"])
-    a1.set_ylabel("SSIM gain over no correction")
-    a1.legend(fontsize=7)
-    for key, style, lab in (("uncorrected", "s-", "uncorrected (target oracle)"), ("floor", "^-", "transfer floor (measured)"),
-                            ("first_order", ":", "first-order prediction"), ("bound", "--", "first-order bound")):
-        v = [r[key] for r in rows]
-        ok = [i for i, y in enumerate(v) if y is not None]
-        a2.plot([xs[i] for i in ok], [v[i] for i in ok], style, ms=4, lw=1, color="#555555" if key == "uncorrected" else "k", label=lab)
-    a2.axhline(1.0, color="#999999", lw=0.8, ls=":")
-    a2.set_xlabel(d["axis"])
-    a2.set_ylabel("r.m.s. phase error on the target (rad)")
-    a2.legend(fontsize=6)
-    fig.suptitle(f"Limits: {d['title']}", fontsize=9)
-    _save(fig, path)
-
-
-def pareto_front(points: list[tuple[float, float]]) -> list[int]:
-    """Indices of the points no other point beats in both time (lower) and SSIM (higher), by time."""
-    order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
-    front, best = [], -np.inf
-    for i in order:
-        if points[i][1] > best:
-            front.append(i)
-            best = points[i][1]
-    return front
-
-
-def trade_means(rows: list[dict]) -> list[dict]:
-    """Mean over scenes per (knob, label): time_s (reference basis + autofocus), autofocus_s, ssim, hog."""
-    out: dict = {}
-    for r in rows:
-        if r.get("status", "ok") != "ok":
-            continue
-        e = out.setdefault((r["knob"], r["label"]), {"knob": r["knob"], "label": r["label"], "value": r["value"], "rows": []})
-        e["rows"].append(r)
-    res = []
-    for e in out.values():
-        rs = e["rows"]
-        res.append({"knob": e["knob"], "label": e["label"], "value": e["value"], "n": len(rs),
-                    "time_s": float(np.mean([r["reference_basis_s"] + r["autofocus_s"] + r.get("template_s", 0.0) for r in rs])),
-                    "reference_basis_s": float(np.mean([r["reference_basis_s"] for r in rs])),
-                    "autofocus_s": float(np.mean([r["autofocus_s"] for r in rs])),
-                    "template_s": float(np.mean([r["template_s"] for r in rs])) if "template_s" in rs[0] else None,
-                    "ssim": float(np.mean([r["ssim"] for r in rs])), "hog": float(np.mean([r["hog"] for r in rs])),
-                    "n_positions": rs[0].get("n_positions")})
-    return res
-
-
-def _fig_pareto(means: list[dict], path: Path) -> None:
-    plt = _plt()
-    colours = {"image size": "#3b7dd8", "optimiser": "#c23b3b", "precision": "#2e9d57", "preset": "#000000",
-               "positions": "#d08c2e", "digital twin": "#8a4fb5"}
-    pts = [m for m in means if m["knob"] in ("image size", "optimiser", "precision", "preset")]
-    fig, ax = plt.subplots(figsize=(6.0, 3.6))
-    for knob in ("image size", "optimiser", "precision", "positions", "digital twin", "preset"):
-        ks = [m for m in means if m["knob"] == knob]
-        if not ks:
-            continue
-        ax.scatter([m["time_s"] for m in ks], [m["ssim"] for m in ks], s=60 if knob == "preset" else 18,
-                   marker="*" if knob == "preset" else "o", color=colours[knob], label=knob, zorder=3)
-        for m in ks:
-            ax.annotate(m["label"], (m["time_s"], m["ssim"]), fontsize=5, xytext=(2, 2), textcoords="offset points")
-    if pts:
-        front = pareto_front([(m["time_s"], m["ssim"]) for m in pts])
-        ax.plot([pts[i]["time_s"] for i in front], [pts[i]["ssim"] for i in front], "k-", lw=0.8, zorder=2, label="Pareto front")
-    unc = [m for m in means if m["knob"] == "uncorrected"]
-    if unc:
-        ax.axhline(unc[0]["ssim"], color="#777777", ls=":", lw=1, label="no correction")
-    ax.set_xscale("log")
-    ax.set_xlabel("time from scan to phase estimate (s): reference basis + optimiser")
-    ax.set_ylabel("target SSIM (100 x 100)")
-    ax.legend(fontsize=6, loc="lower right")
-    ax.set_title("Speed/accuracy trade (physical twin)", fontsize=9)
-    _save(fig, path)
-
-
 # --- the report ------------------------------------------------------------------------------------
 
 
@@ -435,7 +113,7 @@ def _section_sweep(name: str, doc: dict, out: Path, md: Path, lines: list[str]) 
     d = doc["definition"]
     rec = doc["records"]
     paper = PAPER.get(name, {})
-    methods = _methods_in(rec)
+    methods = methods_in(rec)
     lines += [f"### {d['title']} ({paper.get('figure', '')})", ""]
     if paper:
         lines += [f"Paper: {paper['setup']}. *{paper['claim']}.*", ""]
@@ -463,7 +141,7 @@ def _section_sweep(name: str, doc: dict, out: Path, md: Path, lines: list[str]) 
         rows.append(row)
     lines += _table(header, rows) + [""]
     fig = out / f"{name}.png"
-    _fig_sweep(doc, fig)
+    sweep_figure(doc, fig)
     lines += [f"![{d['title']}]({_rel(fig, md)})", ""]
     fails = [s["notes"]["digital_error"] for s in doc.get("scenes", []) if s.get("notes", {}).get("digital_error")]
     if fails:
@@ -473,7 +151,7 @@ def _section_sweep(name: str, doc: dict, out: Path, md: Path, lines: list[str]) 
         z = dict(np.load(ex, allow_pickle=False))
         meta = json.loads(str(z.pop("meta")))
         p = out / f"{name}_examples.png"
-        _fig_examples(z, p, f"{meta['pair']}, {meta['condition']}")
+        examples_figure(z, p, f"{meta['pair']}, {meta['condition']}")
         lines += [f"![examples]({_rel(p, md)})", ""]
     return summary
 
@@ -509,7 +187,7 @@ def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
               "first removes its best constant + linear-in-aperture ramp, which only moves the image and which a misplaced "
               "template pulls in.", ""]
     fig = out / "baseline.png"
-    _fig_baseline(doc, fig)
+    baseline_figure(doc, fig)
     lines += [f"![baseline]({_rel(fig, md)})", ""]
     # Shapes (Fig. 13): per-pair improvements.
     sp = PAPER["shapes"]
@@ -526,14 +204,14 @@ def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
         lines += [f"**Shapes ({sp['figure']})**: improvement per reference-target pair.", ""]
         lines += _table(["method", "paper median", "our median", "pairs improved", "worst pair"], rows) + [""]
         fig = out / "baseline_pairs.png"
-        _fig_pairs(doc, fig)
+        pairs_figure(doc, fig)
         lines += [f"![pairs]({_rel(fig, md)})", ""]
     ex = out / "raw" / "baseline_examples.npz"
     if ex.exists():
         z = dict(np.load(ex, allow_pickle=False))
         meta = json.loads(str(z.pop("meta")))
         p = out / "baseline_examples.png"
-        _fig_examples(z, p, f"Target {meta['pair'].split('>')[1]} (reference {meta['pair'].split('>')[0]}), one draw")
+        examples_figure(z, p, f"Target {meta['pair'].split('>')[1]} (reference {meta['pair'].split('>')[0]}), one draw")
         lines += [f"![examples]({_rel(p, md)})", ""]
     return st
 
@@ -554,7 +232,7 @@ def _section_limits(raw: dict, out: Path, md: Path, lines: list[str]) -> dict:
         if name not in raw:
             continue
         doc = raw[name]
-        rows = _limit_rows(doc)
+        rows = limit_rows(doc)
         methods = [m for m in ("digital", "physical") if any(m in r["stats"] for r in rows)]
         lines += [f"### {what.capitalize()} ({doc['definition']['axis']})", ""]
         tab = []
@@ -586,7 +264,7 @@ def _section_limits(raw: dict, out: Path, md: Path, lines: list[str]) -> dict:
                   "twin's SSIM (what the estimate on the reference costs). Where the estimation loss grows while the "
                   "transfer loss stays small, the reference estimate, not the transfer, is what fails.", ""]
         fig = out / f"limits_{name}.png"
-        _fig_limit(doc, rows, fig)
+        limit_figure(doc, rows, fig)
         lines += [f"![limits {name}]({_rel(fig, md)})", ""]
     return res
 
@@ -615,7 +293,7 @@ def _section_trade(doc: dict, out: Path, md: Path, lines: list[str], machine: di
     if unc:
         lines += [f"No correction: target SSIM {unc[0]['ssim']:.3f}.", ""]
     fig = out / "pareto.png"
-    _fig_pareto(means, fig)
+    pareto_figure(means, fig)
     lines += [f"![pareto]({_rel(fig, md)})", ""]
     presets = doc.get("presets", {})
     if presets:
