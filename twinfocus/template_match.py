@@ -245,10 +245,14 @@ def outline_phase(basis: np.ndarray, support: np.ndarray, starts: int = 12, iter
     masks = np.repeat(mask.reshape(1, -1), n, axis=0).astype(np.float32)  # (S, P)
     r = int(max_shift_px)
     for rnd in range(int(rounds)):
+        # T_s is zero outside its outline, so the steps need the image only on the pixels some
+        # start's outline covers (a letter: 10-30 % of the region, as much faster)
+        cover = masks.any(axis=0)
+        sub, sub_masks = np.ascontiguousarray(flat[:, cover]), masks[:, cover]
         for _ in range(int(iterations)):
-            image = np.exp(1j * phi).astype(np.complex64) @ flat  # (S, P)
+            image = np.exp(1j * phi).astype(np.complex64) @ sub  # (S, P inside)
             # angle <B_m, T_s> = -angle (B_m . conj T_s), for all starts in one product
-            phi = -np.angle((flat @ np.conj(masks * image).T).T).astype(np.float64)
+            phi = -np.angle((sub @ np.conj(sub_masks * image).T).T).astype(np.float64)
         if rnd == int(rounds) - 1 or r == 0:
             break
         energy = np.abs(np.exp(1j * phi).astype(np.complex64) @ flat) ** 2
