@@ -4,6 +4,7 @@ Each topic kind has one message type (``TOPIC_TYPES``); every message starts wit
 :class:`Header` (stamp_ns, seq, frame_id). ``encode_frames``/``decode_frames`` are the bus form
 (arrays as separate zero-copy frames), ``encode``/``decode`` the one-blob form of MCAP logs.
 """
+
 from msgs.codec import decode, decode_frames, encode, encode_frames
 from msgs.messages import (
     TOPIC_TYPES,

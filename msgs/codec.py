@@ -15,6 +15,7 @@ Nothing is pickled: dtypes must be exactly the schema's (a string compare, never
 ``np.dtype(untrusted)``), and decoding validates every field against the message schema, raising
 :class:`~msgs.schema.MessageError` with the type, field and problem.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -89,7 +90,9 @@ def _unpack(blob: Any, where: str) -> dict:
     if not isinstance(env, dict) or "type" not in env or "fields" not in env:
         raise MessageError(f"{where}: not a TwinFocus message envelope (need 'type' and 'fields')")
     if env.get("v") != FORMAT_VERSION:
-        raise MessageError(f"{where}: unsupported message format version {env.get('v')!r} (this build reads {FORMAT_VERSION})")
+        raise MessageError(
+            f"{where}: unsupported message format version {env.get('v')!r} (this build reads {FORMAT_VERSION})"
+        )
     return env
 
 

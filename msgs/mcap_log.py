@@ -18,6 +18,7 @@ moment of publication, and a header's ``stamp_ns`` is sensor time, simulated in 
 one clock per field); the sensor time stays in the message's own header. ``sequence`` is the
 header's ``seq``. The player paces by ``log_time``.
 """
+
 from __future__ import annotations
 
 import io
@@ -54,8 +55,9 @@ class LogWriter:
     ``keep_empty=False``, closing a log that holds no message deletes it and keeps the earlier one.
     """
 
-    def __init__(self, path: str | os.PathLike, overwrite: bool = False, library: str = "twinfocus",
-                 keep_empty: bool = True):
+    def __init__(
+        self, path: str | os.PathLike, overwrite: bool = False, library: str = "twinfocus", keep_empty: bool = True
+    ):
         self.path = Path(path)
         if self.path.is_dir():
             raise TwinFocusError(f"{self.path}: is a folder; give the log file's name")
@@ -93,14 +95,25 @@ class LogWriter:
         t = log_time_ns or now_ns()
         self.write_blob(topic, msg.TYPE, encode(msg), t, t, msg.header.seq)
 
-    def write_blob(self, topic: str, type_name: str, blob: bytes, log_time_ns: int, publish_time_ns: int, seq: int) -> None:
+    def write_blob(
+        self, topic: str, type_name: str, blob: bytes, log_time_ns: int, publish_time_ns: int, seq: int
+    ) -> None:
         cid = self._channel(topic, type_name)
         self._writer.add_message(cid, int(log_time_ns), blob, max(0, int(publish_time_ns)), int(seq) & 0xFFFFFFFF)
         self._file.flush()
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
-    def write_encoded(self, topic: str, schema_name: str, schema_encoding: str, schema_data: bytes,
-                      message_encoding: str, data: bytes, log_time_ns: int, publish_time_ns: int = 0) -> None:
+    def write_encoded(
+        self,
+        topic: str,
+        schema_name: str,
+        schema_encoding: str,
+        schema_data: bytes,
+        message_encoding: str,
+        data: bytes,
+        log_time_ns: int,
+        publish_time_ns: int = 0,
+    ) -> None:
         """Append an already-encoded message of another encoding (e.g. Foxglove's protobuf
         schemas, nodes/foxglove_convert.py) on a channel with its own schema record; readers of
         this module skip such channels."""
@@ -219,8 +232,10 @@ class LogReader:
         parts = []
         if self.skipped:
             lost = sum(n for _, n in self.skipped)
-            parts.append(f"damaged: skipped {lost} unreadable byte(s) in {len(self.skipped)} place(s), "
-                         f"first at offset {self.skipped[0][0]}; read the sound records around them")
+            parts.append(
+                f"damaged: skipped {lost} unreadable byte(s) in {len(self.skipped)} place(s), "
+                f"first at offset {self.skipped[0][0]}; read the sound records around them"
+            )
         if not self.footer:
             parts.append(f"not closed cleanly: read up to byte {self.valid_bytes} of {self.size}")
         return "; ".join(parts)
@@ -237,7 +252,7 @@ class LogReader:
         if cls is None:
             return opcode, length, None
         try:
-            stream = ReadDataStream(io.BytesIO(d[pos + 9:pos + 9 + length]))
+            stream = ReadDataStream(io.BytesIO(d[pos + 9 : pos + 9 + length]))
             rec = cls.read(stream, length) if cls is Message else cls.read(stream)
         except Exception:  # any parse failure is damage
             return None
@@ -257,7 +272,7 @@ class LogReader:
             if got is not None:
                 opcode, length, rec = got
                 if opcode == Opcode.FOOTER:
-                    return index, self._data[pos + 9 + length:pos + 9 + length + 8] == _MAGIC
+                    return index, self._data[pos + 9 + length : pos + 9 + length + 8] == _MAGIC
                 if isinstance(rec, Channel):
                     self._chans[rec.id] = rec
                 # Messages are parsed again when read: keeping their data would hold the log in memory.
@@ -299,7 +314,7 @@ class LogReader:
         """(channel, message record) pairs; channels and metadata are collected on the way."""
         for opcode, pos, size, rec in self._index:
             if opcode == Opcode.MESSAGE:
-                rec = Message.read(ReadDataStream(io.BytesIO(self._data[pos + 9:pos + size])), size - 9)
+                rec = Message.read(ReadDataStream(io.BytesIO(self._data[pos + 9 : pos + size])), size - 9)
             if isinstance(rec, Channel):
                 if rec.message_encoding == MESSAGE_ENCODING:  # e.g. Foxglove channels beside ours: not ours to read
                     self.channels.setdefault(rec.topic, rec.metadata.get("type", ""))
@@ -319,7 +334,9 @@ class LogReader:
                 continue
             if start_ns is not None and rec.log_time < start_ns:
                 continue
-            yield LogMessage(ch.topic, ch.metadata.get("type", ""), rec.log_time, rec.publish_time, rec.sequence, rec.data)
+            yield LogMessage(
+                ch.topic, ch.metadata.get("type", ""), rec.log_time, rec.publish_time, rec.sequence, rec.data
+            )
 
 
 def _maybe_json(v: str) -> Any:

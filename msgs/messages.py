@@ -5,6 +5,7 @@ field declares (symbols such as K, N bind across the fields of one message). Fra
 ``"scene"`` is the scene frame of docs/architecture.md section 4 (x, y across the aperture, z into the scene);
 ``"radar"`` the radar body frame (x along the virtual array, y across, z boresight).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -41,7 +42,9 @@ class RadarFrame:
     last: bool = flag(False)
     positions_true_m: np.ndarray | None = array("float64", ("K", 3), optional=True)
     frames_lost: int = integer(0, doc="capture frames of which no byte arrived, since the stream began")
-    frames_zero_filled: int = integer(0, doc="capture frames with missing bytes (zeros stand in), since the stream began")
+    frames_zero_filled: int = integer(
+        0, doc="capture frames with missing bytes (zeros stand in), since the stream began"
+    )
     bytes_lost: int = integer(0, doc="capture bytes that never arrived, since the stream began")
 
     def check(self) -> str | None:

@@ -10,6 +10,7 @@ float32, complex128 to complex64) and validates; decoding (msgs.codec) is strict
 shape must be exactly as declared, or :class:`MessageError` names the message, the field, what
 was expected and what arrived.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -65,11 +66,14 @@ class Header:
             or not _is_int(value[1])
             or not isinstance(value[2], str)
         ):
-            raise MessageError(f"{where}: field 'header' must be [stamp_ns:int, seq:int, frame_id:str], got {value!r:.80}")
+            raise MessageError(
+                f"{where}: field 'header' must be [stamp_ns:int, seq:int, frame_id:str], got {value!r:.80}"
+            )
         return cls(int(value[0]), int(value[1]), value[2])
 
 
 # --- field specs ---------------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
 class ArraySpec:
@@ -86,7 +90,9 @@ class ArraySpec:
 
 @dataclass(frozen=True)
 class ScalarSpec:
-    pytype: str  # "int" | "float" | "str" | "bool" | "list[str]" | "dict[str,float]" | "dict[str,int]" | "dict[str,str]"
+    pytype: (
+        str  # "int" | "float" | "str" | "bool" | "list[str]" | "dict[str,float]" | "dict[str,int]" | "dict[str,str]"
+    )
 
     kind: ClassVar[str] = "scalar"
 
@@ -189,6 +195,7 @@ def schema_of(cls) -> dict:
 
 # --- validation -----------------------------------------------------------------------------
 
+
 def _is_int(v: Any) -> bool:
     return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
 
@@ -220,7 +227,7 @@ def _check_scalar(spec: ScalarSpec, value: Any, where: str, name: str, strict: b
             raise bad()
         return list(value)
     if t.startswith("dict[str,"):
-        vt = t[len("dict[str,"):-1]
+        vt = t[len("dict[str,") : -1]
         if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
             raise bad()
         sub = ScalarSpec(vt)
@@ -241,7 +248,9 @@ def _check_array(spec: ArraySpec, value: Any, where: str, name: str, strict: boo
         a = np.asarray(value)
         if a.dtype != spec.dtype:
             if a.dtype == object or not np.can_cast(a.dtype, spec.dtype, casting="same_kind"):
-                raise MessageError(f"{where}: field '{name}' must be {spec.describe()}, got dtype {a.dtype.name} (no safe cast)")
+                raise MessageError(
+                    f"{where}: field '{name}' must be {spec.describe()}, got dtype {a.dtype.name} (no safe cast)"
+                )
             a = a.astype(spec.dtype)
         value = a
     # Shape: the first alternative whose rank matches decides; symbols must agree across fields.

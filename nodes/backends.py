@@ -27,6 +27,7 @@ camera-to-radar calibration).
 device (socket, serial port, SDK call); raising :class:`~twinfocus.errors.TwinFocusError` stops
 the driver with that message.
 """
+
 from __future__ import annotations
 
 import importlib

@@ -18,6 +18,7 @@ Wiring (docs/architecture.md section 4, docs/node_graph.md):
   ``XPUB_NODROP``, so under load messages queue instead of being dropped silently; a node may
   ask for a finite ``hwm`` and then any drop shows up as a ``seq`` gap at the subscriber.
 """
+
 from __future__ import annotations
 
 import json
@@ -207,7 +208,12 @@ class Broker:
             except MessageError:
                 continue
             with self._graph_lock:
-                self._graph[st.node] = {"state": st.state, "subscribes": st.subscribes, "publishes": st.publishes, "pid": st.pid}
+                self._graph[st.node] = {
+                    "state": st.state,
+                    "subscribes": st.subscribes,
+                    "publishes": st.publishes,
+                    "pid": st.pid,
+                }
 
 
 def query_graph(endpoint: str, ctx: zmq.Context, timeout_s: float = 0.5) -> dict[str, dict]:
@@ -258,8 +264,12 @@ def discover(endpoint: str, ctx: zmq.Context, timeout_s: float, stream=None) -> 
         if not said:
             said = True
             out = stream if stream is not None else sys.stderr
-            print(f"waiting for a broker at {endpoint} (up to {timeout_s:g} s; is the graph running? another "
-                  f"broker: --broker tcp://HOST:PORT or ${ENV_BROKER})", file=out, flush=True)
+            print(
+                f"waiting for a broker at {endpoint} (up to {timeout_s:g} s; is the graph running? another "
+                f"broker: --broker tcp://HOST:PORT or ${ENV_BROKER})",
+                file=out,
+                flush=True,
+            )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -268,14 +278,18 @@ def main(argv: list[str] | None = None) -> int:
     import signal
 
     ap = argparse.ArgumentParser(prog="python -m nodes.bus", description="Run the message broker until Ctrl-C.")
-    ap.add_argument("endpoint", nargs="?", default=None, help=f"control endpoint (default $TWINFOCUS_BROKER or {DEFAULT_BROKER})")
+    ap.add_argument(
+        "endpoint", nargs="?", default=None, help=f"control endpoint (default $TWINFOCUS_BROKER or {DEFAULT_BROKER})"
+    )
     args = ap.parse_args(argv)
     try:
         broker = Broker(args.endpoint).start()
     except TwinFocusError as exc:
         print(f"broker: error: {exc}")
         return 2
-    print(f"broker on {broker.endpoint} (data ports {broker.xsub_port}, {broker.xpub_port}); Ctrl-C stops it", flush=True)
+    print(
+        f"broker on {broker.endpoint} (data ports {broker.xsub_port}, {broker.xpub_port}); Ctrl-C stops it", flush=True
+    )
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

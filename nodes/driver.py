@@ -7,6 +7,7 @@ paced by its time stamps divided by ``rate`` (``rate:=0``: as fast as possible):
 backend's ``clock_start_ns`` when it has one (the stamp the node's start stands for; samples
 stamped earlier, or simulated late, go out at once), else from its first sample's stamp.
 """
+
 from __future__ import annotations
 
 import queue

@@ -10,6 +10,7 @@
   (:func:`twinfocus.sensors.trajectory_files.read_trajectory`), shifted by ``time_offset_ns``
   onto the radar's clock.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -40,7 +41,9 @@ class ScanFileRadar:
         if array == "mmwcas":
             offsets = mmwcas_virtual_array().offsets_m
             if offsets.shape[0] != k:
-                raise TwinFocusError(f"{path}: the scan has {k} channels, the MMWCAS array {offsets.shape[0]}; use array: scan")
+                raise TwinFocusError(
+                    f"{path}: the scan has {k} channels, the MMWCAS array {offsets.shape[0]}; use array: scan"
+                )
         elif array == "scan":
             first = self.scan.positions[0]
             offsets = first - first.mean(axis=0)

@@ -12,6 +12,7 @@ lines) are live only.
 
 ``python -m nodes.foxglove_bridge port:=8766``; in a launch file, ``foxglove:=true``.
 """
+
 from __future__ import annotations
 
 import sys
@@ -34,7 +35,11 @@ class FoxgloveBridge(Node):
     NAME = "foxglove_bridge"
     PARAMS = {
         **Node.PARAMS,
-        "host": Param("127.0.0.1", "interface to listen on (loopback by default; 0.0.0.0 exposes the graph to the network)", type="str"),
+        "host": Param(
+            "127.0.0.1",
+            "interface to listen on (loopback by default; 0.0.0.0 exposes the graph to the network)",
+            type="str",
+        ),
         "port": Param(8766, "WebSocket port (0 = any free port; 8765 is the visualizer's page)", type="int"),
         "trajectory_every": Param(10, "send the whole trajectory after this many poses", type="int"),
     }
@@ -62,11 +67,16 @@ class FoxgloveBridge(Node):
 
         try:
             self.server = foxglove.start_server(
-                name="twinfocus", host=self.params["host"], port=self.params["port"],
-                server_listener=_Listener(), context=self.context,
+                name="twinfocus",
+                host=self.params["host"],
+                port=self.params["port"],
+                server_listener=_Listener(),
+                context=self.context,
             )
         except Exception as exc:  # the SDK raises its own error types for a taken port
-            raise TwinFocusError(f"node {self.name!r}: cannot serve Foxglove on {self.params['host']}:{self.params['port']} ({exc})") from None
+            raise TwinFocusError(
+                f"node {self.name!r}: cannot serve Foxglove on {self.params['host']}:{self.params['port']} ({exc})"
+            ) from None
         self.port = self.server.port
         self.create_subscription("*", self._on_message)
         self.create_timer(0.1, self._flush_resends)
@@ -84,7 +94,9 @@ class FoxgloveBridge(Node):
         ch = self._channels.get(rec.topic)
         if ch is None:
             schema = self._fox.Schema(name=rec.schema_name, encoding=rec.schema_encoding, data=rec.schema_data)
-            ch = self._fox.Channel(rec.topic, schema=schema, message_encoding=rec.message_encoding, context=self.context)
+            ch = self._fox.Channel(
+                rec.topic, schema=schema, message_encoding=rec.message_encoding, context=self.context
+            )
             self._channels[rec.topic] = ch
         ch.log(rec.data, log_time=rec.log_time_ns)
 
@@ -96,8 +108,10 @@ class FoxgloveBridge(Node):
             self._log(rec)
 
     def on_start(self) -> None:
-        self.log(f"Foxglove: open connection > Foxglove WebSocket > ws://{self.params['host']}:{self.port} "
-                 "(layout: docs/foxglove_layout.json)")
+        self.log(
+            f"Foxglove: open connection > Foxglove WebSocket > ws://{self.params['host']}:{self.port} "
+            "(layout: docs/foxglove_layout.json)"
+        )
 
     def on_shutdown(self) -> None:
         self.server.stop()

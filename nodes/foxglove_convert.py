@@ -40,6 +40,7 @@ has no Foxglove picture and is left out.
 Times: a record's ``log_time_ns`` is the caller's; Foxglove's ``timestamp`` fields carry the
 header stamp (clamped at 0: Foxglove's time is unsigned).
 """
+
 from __future__ import annotations
 
 import json
@@ -61,7 +62,11 @@ JSON_SCHEMAS: dict[str, dict] = {
         "properties": {
             "scan_id": {"type": "string"},
             "method": {"type": "string"},
-            "phase_rad": {"type": "array", "items": {"type": "number"}, "description": "estimated phase per radar position, rad"},
+            "phase_rad": {
+                "type": "array",
+                "items": {"type": "number"},
+                "description": "estimated phase per radar position, rad",
+            },
             "loss_history": {"type": "array", "items": {"type": "number"}, "description": "loss per iteration"},
             "metrics": {"type": "object", "additionalProperties": {"type": "number"}},
             "timing_s": {"type": "object", "additionalProperties": {"type": "number"}},
@@ -78,7 +83,10 @@ JSON_SCHEMAS: dict[str, dict] = {
         "properties": {
             "scan_id": {"type": "string"},
             "index": {"type": "integer"},
-            "pose_gap_ms": {"type": "number", "description": "width of the pose interval the position was interpolated over"},
+            "pose_gap_ms": {
+                "type": "number",
+                "description": "width of the pose interval the position was interpolated over",
+            },
         },
         "required": ["scan_id", "index", "pose_gap_ms"],
     },
@@ -128,8 +136,14 @@ def amplitude_image(topic: str, image: np.ndarray, stamp_ns: int, frame_id: str,
     return _proto(topic, msg, log_time_ns)
 
 
-def point_cloud(topic: str, points_m: np.ndarray, stamp_ns: int, frame_id: str, log_time_ns: int,
-                intensity: np.ndarray | None = None) -> FoxgloveMessage:
+def point_cloud(
+    topic: str,
+    points_m: np.ndarray,
+    stamp_ns: int,
+    frame_id: str,
+    log_time_ns: int,
+    intensity: np.ndarray | None = None,
+) -> FoxgloveMessage:
     """A ``foxglove.PointCloud`` of ``points_m`` (N, 3) metres, fields x y z [intensity] float32."""
     from foxglove.messages import PackedElementField, PackedElementFieldNumericType, PointCloud, Quaternion, Vector3
     from foxglove.messages import Pose as FPose
@@ -140,11 +154,17 @@ def point_cloud(topic: str, points_m: np.ndarray, stamp_ns: int, frame_id: str, 
         cols.append(np.asarray(intensity, np.float32).reshape(-1, 1))
         names.append("intensity")
     packed = np.ascontiguousarray(np.hstack(cols), dtype="<f4")
-    fields = [PackedElementField(name=n, offset=4 * i, type=PackedElementFieldNumericType.Float32) for i, n in enumerate(names)]
+    fields = [
+        PackedElementField(name=n, offset=4 * i, type=PackedElementFieldNumericType.Float32)
+        for i, n in enumerate(names)
+    ]
     msg = PointCloud(
-        timestamp=_stamp(stamp_ns), frame_id=frame_id,
+        timestamp=_stamp(stamp_ns),
+        frame_id=frame_id,
         pose=FPose(position=Vector3(x=0, y=0, z=0), orientation=Quaternion(x=0, y=0, z=0, w=1)),
-        point_stride=4 * len(names), fields=fields, data=packed.tobytes(),
+        point_stride=4 * len(names),
+        fields=fields,
+        data=packed.tobytes(),
     )
     return _proto(topic, msg, log_time_ns)
 
@@ -158,8 +178,13 @@ class FoxgloveConverter:
     template's peak amplitude above which a pixel becomes a ``/twin/points`` point.
     """
 
-    def __init__(self, trajectory_every: int = 10, points_threshold: float = 0.2, scene_frame: str = "scene",
-                 max_track: int = 20000):
+    def __init__(
+        self,
+        trajectory_every: int = 10,
+        points_threshold: float = 0.2,
+        scene_frame: str = "scene",
+        max_track: int = 20000,
+    ):
         self.trajectory_every = max(1, int(trajectory_every))
         self.points_threshold = float(points_threshold)
         self.scene_frame = scene_frame
@@ -170,7 +195,15 @@ class FoxgloveConverter:
     def convert(self, topic: str, msg: Any, log_time_ns: int) -> list[FoxgloveMessage]:
         """The Foxglove records of one graph message (empty for types with no picture)."""
         if isinstance(msg, Image):
-            return [amplitude_image(f"/image/{msg.name or 'image'}", msg.image, msg.header.stamp_ns, msg.header.frame_id or self.scene_frame, log_time_ns)]
+            return [
+                amplitude_image(
+                    f"/image/{msg.name or 'image'}",
+                    msg.image,
+                    msg.header.stamp_ns,
+                    msg.header.frame_id or self.scene_frame,
+                    log_time_ns,
+                )
+            ]
         if isinstance(msg, TwinTemplate):
             return self._template(msg, log_time_ns)
         if isinstance(msg, Pose):
@@ -179,13 +212,19 @@ class FoxgloveConverter:
             frame = msg.header.frame_id or self.scene_frame
             return [
                 point_cloud("/sar/phase_centres", msg.positions_m, msg.header.stamp_ns, frame, log_time_ns),
-                _json("/sar/quality", "twinfocus.MeasurementQuality",
-                      {"scan_id": msg.scan_id, "index": int(msg.index), "pose_gap_ms": msg.pose_gap_ns / 1e6}, log_time_ns),
+                _json(
+                    "/sar/quality",
+                    "twinfocus.MeasurementQuality",
+                    {"scan_id": msg.scan_id, "index": int(msg.index), "pose_gap_ms": msg.pose_gap_ns / 1e6},
+                    log_time_ns,
+                ),
             ]
         if isinstance(msg, AutofocusResult):
             value = {
-                "scan_id": msg.scan_id, "method": msg.method,
-                "phase_rad": [float(v) for v in msg.phase_rad], "loss_history": [float(v) for v in msg.loss_history],
+                "scan_id": msg.scan_id,
+                "method": msg.method,
+                "phase_rad": [float(v) for v in msg.phase_rad],
+                "loss_history": [float(v) for v in msg.loss_history],
                 "metrics": {k: float(v) for k, v in msg.metrics.items() if np.isfinite(v)},
                 "timing_s": {k: float(v) for k, v in msg.timing_s.items()},
             }
@@ -204,7 +243,9 @@ class FoxgloveConverter:
         if peak > 0:
             i, j = np.nonzero(amp >= self.points_threshold * peak)
             pts = np.column_stack([msg.x_m[j], msg.y_m[i], np.full(i.size, msg.z_m)])
-            out.append(point_cloud("/twin/points", pts, msg.header.stamp_ns, frame, log_time_ns, intensity=amp[i, j] / peak))
+            out.append(
+                point_cloud("/twin/points", pts, msg.header.stamp_ns, frame, log_time_ns, intensity=amp[i, j] / peak)
+            )
         return out
 
     def _pose(self, msg: Pose, log_time_ns: int) -> list[FoxgloveMessage]:
@@ -222,17 +263,23 @@ class FoxgloveConverter:
 
         frame = msg.header.frame_id or self.scene_frame
         p, q = msg.position_m, msg.quat_xyzw
-        fpose = FPose(position=Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                      orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+        fpose = FPose(
+            position=Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+            orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+        )
         out = [
-            _proto("/vio/pose", PoseInFrame(timestamp=_stamp(msg.header.stamp_ns), frame_id=frame, pose=fpose), log_time_ns),
+            _proto(
+                "/vio/pose", PoseInFrame(timestamp=_stamp(msg.header.stamp_ns), frame_id=frame, pose=fpose), log_time_ns
+            ),
             _json("/vio/confidence", "twinfocus.PoseConfidence", {"confidence": float(msg.confidence)}, log_time_ns),
         ]
         self._track.append(np.array(p, np.float64))
         self._n_poses += 1
         if self._n_poses % self.trajectory_every == 0:
             line = LinePrimitive(
-                thickness=2.0, scale_invariant=True, color=Color(r=0.2, g=0.8, b=1.0, a=1.0),
+                thickness=2.0,
+                scale_invariant=True,
+                color=Color(r=0.2, g=0.8, b=1.0, a=1.0),
                 points=[Point3(x=float(a), y=float(b), z=float(c)) for a, b, c in self._track],
             )
             entity = SceneEntity(timestamp=_stamp(msg.header.stamp_ns), frame_id=frame, id="trajectory", lines=[line])
@@ -245,8 +292,15 @@ class FoxgloveConverter:
         img = np.ascontiguousarray(msg.left)
         h, w = img.shape[:2]
         enc, step = ("rgb8", 3 * w) if img.ndim == 3 else ("mono8", w)
-        raw = RawImage(timestamp=_stamp(msg.header.stamp_ns), frame_id=msg.header.frame_id or "camera",
-                       width=w, height=h, encoding=enc, step=step, data=img.tobytes())
+        raw = RawImage(
+            timestamp=_stamp(msg.header.stamp_ns),
+            frame_id=msg.header.frame_id or "camera",
+            width=w,
+            height=h,
+            encoding=enc,
+            step=step,
+            data=img.tobytes(),
+        )
         return _proto("/camera/left", raw, log_time_ns)
 
     def _status(self, msg: NodeStatus, log_time_ns: int) -> list[FoxgloveMessage]:
@@ -260,7 +314,10 @@ class FoxgloveConverter:
         if msg.state == "error":
             level, text = LogLevel.Error, f"{msg.state}: {msg.message}"
         elif prev is not None and lost > prev[2]:
-            level, text = LogLevel.Warning, f"lost {lost - prev[2]} message(s) ({', '.join(f'{k}: {v}' for k, v in msg.lost.items() if v)})"
+            level, text = (
+                LogLevel.Warning,
+                f"lost {lost - prev[2]} message(s) ({', '.join(f'{k}: {v}' for k, v in msg.lost.items() if v)})",
+            )
         else:
             level, text = LogLevel.Info, msg.state + (f": {msg.message}" if msg.message else "")
         log = Log(timestamp=_stamp(msg.header.stamp_ns), level=level, message=text, name=msg.node)
@@ -295,8 +352,16 @@ def export_log(src, dst, *, overwrite: bool = False, progress=None) -> dict[str,
                 except MessageError as exc:
                     raise TwinFocusError(f"{src}: {exc}") from None
                 for rec in conv.convert(m.topic, msg, m.log_time_ns):
-                    writer.write_encoded(rec.topic, rec.schema_name, rec.schema_encoding, rec.schema_data,
-                                         rec.message_encoding, rec.data, rec.log_time_ns, m.publish_time_ns)
+                    writer.write_encoded(
+                        rec.topic,
+                        rec.schema_name,
+                        rec.schema_encoding,
+                        rec.schema_data,
+                        rec.message_encoding,
+                        rec.data,
+                        rec.log_time_ns,
+                        m.publish_time_ns,
+                    )
                 if progress is not None:
                     progress(done, total)
         os.replace(tmp, dst)

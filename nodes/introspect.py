@@ -5,6 +5,7 @@ and subscribes), so it also shows topics nobody is publishing on right now. ``ec
 messages (arrays summarised by dtype, shape and range). ``hz`` prints the rate, the spread of
 the intervals and the bandwidth once per window.
 """
+
 from __future__ import annotations
 
 import time
@@ -109,8 +110,10 @@ class TopicEcho(_Monitor):
             return
         published = sorted({t for st in self.graph.values() for t in st.publishes})
         if self.topic not in published:
-            self.log(f"no node publishes {self.topic!r} (yet); published now: {', '.join(published) or 'nothing'}; "
-                     "waiting (Ctrl-C to stop)")
+            self.log(
+                f"no node publishes {self.topic!r} (yet); published now: {', '.join(published) or 'nothing'}; "
+                "waiting (Ctrl-C to stop)"
+            )
 
     def _on_msg(self, msg: Any) -> None:
         self._emit(summarise(msg) + "\n---")
@@ -139,7 +142,11 @@ class TopicHz(_Monitor):
 
     def _on_msg(self, msg: Any) -> None:
         self.times.append(time.monotonic())
-        self.nbytes += sum(getattr(msg, n).nbytes for n, s in field_specs(type(msg)) if s.kind == "array" and getattr(msg, n) is not None)
+        self.nbytes += sum(
+            getattr(msg, n).nbytes
+            for n, s in field_specs(type(msg))
+            if s.kind == "array" and getattr(msg, n) is not None
+        )
 
     def _report(self) -> None:
         t = np.asarray(self.times)

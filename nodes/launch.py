@@ -41,6 +41,7 @@ parent-death signal, so no node outlives a killed launcher), prefixes their outp
 of a node whose ``on_exit`` says so: SIGTERM first, SIGKILL after ``grace_s``. Nodes also poll
 their parent pid, so they notice a dead launcher within 0.1 s even if the signal was missed.
 """
+
 from __future__ import annotations
 
 import json
@@ -98,8 +99,10 @@ def find_launch_file(name: str | os.PathLike) -> Path:
             if cand.is_file():
                 return cand
     if not LAUNCH_DIR.is_dir():
-        raise TwinFocusError(f"{name}: no such launch file (the bundled launch files come with the repository's "
-                             f"launch/ folder, which this installation lacks: give a launch file's path)")
+        raise TwinFocusError(
+            f"{name}: no such launch file (the bundled launch files come with the repository's "
+            f"launch/ folder, which this installation lacks: give a launch file's path)"
+        )
     bundled = ", ".join(sorted(q.stem for q in LAUNCH_DIR.glob("*.yaml") if _is_launch_file(q)))
     raise TwinFocusError(f"{name}: no such launch file (bundled in {LAUNCH_DIR}: {bundled})")
 
@@ -134,8 +137,9 @@ def _declarations(path: Path, doc: dict) -> dict[str, Any]:
     def add(names: dict, where: Path) -> None:
         for name, spec in names.items():
             if name in declared:
-                raise TwinFocusError(f"{where}: argument {name!r} is also declared in {source[name]}; "
-                                     "declare it in one place")
+                raise TwinFocusError(
+                    f"{where}: argument {name!r} is also declared in {source[name]}; declare it in one place"
+                )
             declared[name], source[name] = spec, where
 
     for entry in includes:
@@ -145,8 +149,10 @@ def _declarations(path: Path, doc: dict) -> dict[str, Any]:
         sub = _read_yaml(inc, "included file")
         extra = sorted(set(sub) - {"description", "arguments"}) if isinstance(sub, dict) else None
         if extra is None or extra or not isinstance(sub.get("arguments"), dict):
-            raise TwinFocusError(f"{inc}: an included file holds only 'description' and an 'arguments' mapping"
-                                 + (f" (found {', '.join(extra)})" if extra else ""))
+            raise TwinFocusError(
+                f"{inc}: an included file holds only 'description' and an 'arguments' mapping"
+                + (f" (found {', '.join(extra)})" if extra else "")
+            )
         add(sub["arguments"], inc)
     own = doc.get("arguments") or {}
     if not isinstance(own, dict):
@@ -196,7 +202,10 @@ def load(path: str | os.PathLike, assignments: list[str] | tuple = ()) -> Graph:
     given = dict(parse_assignment(a) for a in assignments)
     unknown = sorted(set(given) - set(declared))
     if unknown:
-        known = ", ".join(f"{k} (default {v.get('default')!r})" if isinstance(v, dict) and "default" in v else k for k, v in declared.items())
+        known = ", ".join(
+            f"{k} (default {v.get('default')!r})" if isinstance(v, dict) and "default" in v else k
+            for k, v in declared.items()
+        )
         raise TwinFocusError(f"{path}: unknown argument(s) {', '.join(unknown)}; known: {known}")
     args: dict[str, Any] = {}
     for name, spec in declared.items():
@@ -206,7 +215,9 @@ def load(path: str | os.PathLike, assignments: list[str] | tuple = ()) -> Graph:
         elif "default" in spec:
             args[name] = spec["default"]
         else:
-            raise TwinFocusError(f"{path}: argument {name!r} is required ({spec.get('help', 'no help')}); pass {name}:=VALUE")
+            raise TwinFocusError(
+                f"{path}: argument {name!r} is required ({spec.get('help', 'no help')}); pass {name}:=VALUE"
+            )
     broker = str(_substitute(doc.get("broker", "tcp://127.0.0.1:7447"), args, "broker"))
     nodes: list[NodeSpec] = []
     seen: set[str] = set()
@@ -325,10 +336,26 @@ class Launcher:
             self._spawn(spec)
 
     def _spawn(self, spec: NodeSpec) -> None:
-        cmd = [sys.executable, "-m", spec.module, "--name", spec.name, "--broker", self.broker.endpoint,
-               "--params", json.dumps(spec.parameters)]
-        p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                             env=self.env, start_new_session=True, preexec_fn=_pdeathsig)
+        cmd = [
+            sys.executable,
+            "-m",
+            spec.module,
+            "--name",
+            spec.name,
+            "--broker",
+            self.broker.endpoint,
+            "--params",
+            json.dumps(spec.parameters),
+        ]
+        p = subprocess.Popen(
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env=self.env,
+            start_new_session=True,
+            preexec_fn=_pdeathsig,
+        )
         self.procs[spec.name] = p
         t = threading.Thread(target=self.out.pump, args=(spec.name, p.stdout), daemon=True)
         t.start()
@@ -379,11 +406,15 @@ class Launcher:
                 if spec.respawn:
                     if respawns[name] < spec.respawn_max:
                         respawns[name] += 1
-                        self.say(f"node {name!r} {what}; respawning it in {spec.respawn_delay_s:g} s "
-                                 f"(respawn {respawns[name]} of {spec.respawn_max})")
+                        self.say(
+                            f"node {name!r} {what}; respawning it in {spec.respawn_delay_s:g} s "
+                            f"(respawn {respawns[name]} of {spec.respawn_max})"
+                        )
                         due[name] = time.monotonic() + spec.respawn_delay_s
                         continue
-                    self.say(f"node {name!r} {what} and was respawned {spec.respawn_max} time(s) already; stopping the graph")
+                    self.say(
+                        f"node {name!r} {what} and was respawned {spec.respawn_max} time(s) already; stopping the graph"
+                    )
                     self._code = 2 if code == 2 else 1
                     return
                 if code != 0:
@@ -394,8 +425,10 @@ class Launcher:
                     self.say(f"node {name!r} finished; stopping the graph (on_exit: shutdown)")
                     return
                 if spec.on_exit == "fail":
-                    self.say(f"node {name!r} ended while the graph runs, and the graph cannot work without it; "
-                             "stopping the graph (set on_exit: ignore or respawn: true in the launch file to allow it)")
+                    self.say(
+                        f"node {name!r} ended while the graph runs, and the graph cannot work without it; "
+                        "stopping the graph (set on_exit: ignore or respawn: true in the launch file to allow it)"
+                    )
                     self._code = 1
                     return
                 self.say(f"node {name!r} finished")

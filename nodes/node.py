@@ -35,6 +35,7 @@ a final ``stopped`` status goes out, the node waits for that status to come back
 broker (proof the broker has read everything it published before) and queued outgoing messages
 are flushed (both bounded by ``linger_s``).
 """
+
 from __future__ import annotations
 
 import heapq
@@ -118,7 +119,9 @@ class Node:
 
     NAME = "node"
     PARAMS: dict[str, Param] = {
-        "wait_for": Param([], "nodes that must be ready before this one starts (launcher: every node of the graph)", type="strs"),
+        "wait_for": Param(
+            [], "nodes that must be ready before this one starts (launcher: every node of the graph)", type="strs"
+        ),
         "ready_timeout_s": Param(60.0, "give up (exit 1) if the graph is not ready after this long"),
         "heartbeat_s": Param(1.0, "period of the graph/status heartbeat, seconds"),
         "hwm": Param(0, "ZeroMQ high-water mark of this node's sockets; 0 = unlimited (nothing is dropped)"),
@@ -131,13 +134,22 @@ class Node:
         super().__init_subclass__(**kw)
         # A subclass method named like one of the runtime's private ones would silently
         # replace it; refuse that when the class is defined.
-        clash = sorted(n for n, v in vars(cls).items() if n.startswith("_") and not n.startswith("__")
-                       and callable(v) and n in _RUNTIME_PRIVATE)
+        clash = sorted(
+            n
+            for n, v in vars(cls).items()
+            if n.startswith("_") and not n.startswith("__") and callable(v) and n in _RUNTIME_PRIVATE
+        )
         if clash:
             raise TypeError(f"{cls.__name__} redefines runtime method(s) {', '.join(clash)} of Node; rename them")
 
-    def __init__(self, name: str | None = None, params: dict | None = None, argv: list[str] | tuple = (),
-                 broker: str | None = None, context: zmq.Context | None = None):
+    def __init__(
+        self,
+        name: str | None = None,
+        params: dict | None = None,
+        argv: list[str] | tuple = (),
+        broker: str | None = None,
+        context: zmq.Context | None = None,
+    ):
         self.name = name or self.NAME
         self.params = resolve(self.name, self.PARAMS, params, argv, self.RENAMED_PARAMS)
         if not self.params["wait_for"] and os.environ.get(ENV_GRAPH_NODES):
@@ -356,8 +368,9 @@ class Node:
                 self._heartbeat()
 
     def _await_own_subscriptions(self) -> None:
-        self._wait_loop(lambda: self._covered(self._echo_topic),
-                        lambda: "my own subscriptions never came back through the broker")
+        self._wait_loop(
+            lambda: self._covered(self._echo_topic), lambda: "my own subscriptions never came back through the broker"
+        )
 
     def _needed(self) -> tuple[list[str], list[str]]:
         """(nodes in wait_for not ready yet, my topics a ready node subscribes that have not reached me)."""
@@ -423,7 +436,9 @@ class Node:
             pid=os.getpid(),
             publishes=pubs,
             subscribes=subs,
-            types={t: p.msg_type.TYPE for t, p in self._publishers.items() if p.msg_type is not None and t != STATUS_TOPIC},
+            types={
+                t: p.msg_type.TYPE for t, p in self._publishers.items() if p.msg_type is not None and t != STATUS_TOPIC
+            },
             received=dict(self._received),
             published={k: v for k, v in self._published.items() if k != STATUS_TOPIC},
             lost=dict(self._lost),
@@ -500,7 +515,9 @@ class Node:
                     self._count(self._lost, topic, seq)
                     self.log(f"lost {seq} message(s) on {topic} from {publisher}: the first one received has seq {seq}")
                 else:
-                    self.log(f"joined {topic} from {publisher or '?'} at seq {seq} (earlier messages were before we listened)")
+                    self.log(
+                        f"joined {topic} from {publisher or '?'} at seq {seq} (earlier messages were before we listened)"
+                    )
             return
         if seq == last + 1:
             return
@@ -573,8 +590,10 @@ class Node:
                     continue
                 if st.node == self.name and st.pid == os.getpid() and st.header.seq >= final_seq:
                     return
-        self.log(f"my last messages did not come back through the broker within linger_s={self.params['linger_s']:g} s; "
-                 "subscribers may miss the end of what I published")
+        self.log(
+            f"my last messages did not come back through the broker within linger_s={self.params['linger_s']:g} s; "
+            "subscribers may miss the end of what I published"
+        )
 
     def _shutdown_node(self) -> int:
         stop = self._stop or Shutdown(0, "")
@@ -605,10 +624,13 @@ class Node:
         return code
 
 
-_RUNTIME_PRIVATE = frozenset(n for n, v in vars(Node).items() if n.startswith("_") and not n.startswith("__") and callable(v))
+_RUNTIME_PRIVATE = frozenset(
+    n for n, v in vars(Node).items() if n.startswith("_") and not n.startswith("__") and callable(v)
+)
 
 
 # --- process entry point ---------------------------------------------------------------------
+
 
 def run_node(cls: type[Node], argv: list[str] | None = None) -> int:
     """``python -m nodes.X [--name N] [--broker URL] [--params JSON] [name:=value ...]``."""
@@ -622,7 +644,9 @@ def run_node(cls: type[Node], argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--name", default=cls.NAME, help=f"node name (default {cls.NAME})")
-    parser.add_argument("--broker", default=None, help="broker control endpoint (default $TWINFOCUS_BROKER or tcp://127.0.0.1:7447)")
+    parser.add_argument(
+        "--broker", default=None, help="broker control endpoint (default $TWINFOCUS_BROKER or tcp://127.0.0.1:7447)"
+    )
     parser.add_argument("--params", default=None, help="parameters as a JSON object (the launcher uses this)")
     parser.add_argument("assignments", nargs="*", metavar="name:=value")
     args = parser.parse_args(argv)

@@ -6,6 +6,7 @@ scalars the way ``ros2 run ... --ros-args -p`` does). The declared default fixes
 value that does not fit raises :class:`~twinfocus.errors.TwinFocusError` naming the node, the
 parameter and the expected type.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
@@ -81,13 +82,15 @@ def parse_assignment(text: str) -> tuple[str, Any]:
 def param_of(setting: Setting) -> Param:
     """A focus setting (:data:`twinfocus.settings.FOCUS_SETTINGS`) as a node parameter of the same
     name, default, choices and help, so a node takes it as ``twinfocus focus`` does."""
+
     def name(s: Setting) -> str:
         return s.name
 
     unit = f" ({setting.unit})" if setting.unit else ""
     unset = f"; unset: {setting.default_words(name)}" if setting.default is None else ""
-    return Param(setting.default, setting.describe(name) + unit + unset, type=setting.type.__name__,
-                 choices=setting.choices)
+    return Param(
+        setting.default, setting.describe(name) + unit + unset, type=setting.type.__name__, choices=setting.choices
+    )
 
 
 def _coerce(node: str, name: str, p: Param, value: Any) -> Any:
@@ -147,8 +150,13 @@ def _coerce(node: str, name: str, p: Param, value: Any) -> Any:
     return value
 
 
-def resolve(node: str, declared: Mapping[str, Param], given: Mapping[str, Any] | None = None,
-            assignments: Iterable[str] = (), renamed: Mapping[str, str] | None = None) -> dict[str, Any]:
+def resolve(
+    node: str,
+    declared: Mapping[str, Param],
+    given: Mapping[str, Any] | None = None,
+    assignments: Iterable[str] = (),
+    renamed: Mapping[str, str] | None = None,
+) -> dict[str, Any]:
     """Final parameter values: defaults, then ``given`` (launch file), then ``name:=value`` strings.
     ``renamed``: old name -> what to write instead, for a clear error where an old name is given."""
     values: dict[str, Any] = {}
@@ -175,7 +183,9 @@ def resolve(node: str, declared: Mapping[str, Param], given: Mapping[str, Any] |
         else:
             v = list(p.default) if isinstance(p.default, (list, tuple)) else p.default
         if p.choices is not None and v not in p.choices:
-            raise TwinFocusError(f"node {node!r}: parameter {name!r} must be one of {', '.join(map(str, p.choices))}, got {v!r}")
+            raise TwinFocusError(
+                f"node {node!r}: parameter {name!r} must be one of {', '.join(map(str, p.choices))}, got {v!r}"
+            )
         values[name] = v
     return values
 

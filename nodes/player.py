@@ -8,6 +8,7 @@ detect any loss on the replay itself. Logs cut short by a crash play up to their
 complete message. With ``exit_when_done`` (default) the node ends after the last message
 (once ZeroMQ has handed everything to the broker).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -32,9 +33,12 @@ class Player(Node):
         "loop": Param(False, "start again at the end"),
         "topics": Param([], "topics to play; empty = all except graph/...", type="strs"),
         "start_offset_s": Param(0.0, "skip this many seconds from the start of the log"),
-        "latched_topics": Param(["twin/template"], "topics whose latest message before start_offset_s is played first "
-                                                   "(as a latched / transient-local topic: a template published at the start)",
-                                type="strs"),
+        "latched_topics": Param(
+            ["twin/template"],
+            "topics whose latest message before start_offset_s is played first "
+            "(as a latched / transient-local topic: a template published at the start)",
+            type="strs",
+        ),
         "exit_when_done": Param(True, "end the node after the last message"),
     }
 
@@ -72,8 +76,10 @@ class Player(Node):
         note = "" if r.complete else f" ({r.condition})"
         offset = f" from {self.params['start_offset_s']:g} s in" if self.params["start_offset_s"] else ""
         latched = f" (with {len(self._latched)} latched from before it)" if self._latched else ""
-        self.log(f"playing {n} message(s){latched} on {', '.join(self.topics)} from {r.path}{offset} "
-                 f"at rate {self.params['rate']:g}{note}")
+        self.log(
+            f"playing {n} message(s){latched} on {', '.join(self.topics)} from {r.path}{offset} "
+            f"at rate {self.params['rate']:g}{note}"
+        )
         self._begin_pass()
 
     def _latched_before_start(self) -> list:

@@ -5,6 +5,7 @@ Backends are listed in :data:`nodes.backends.RADAR_BACKENDS` (``sim``: simulated
 :class:`msgs.RadarFrame` carrying the chirp and the virtual channel offsets, so every frame is
 self-describing (a log needs no side files).
 """
+
 from __future__ import annotations
 
 import sys

@@ -13,6 +13,7 @@ the ``calibration`` record, verbatim (the launch files give ``{extrinsics: T_cam
 ``twinfocus convert`` writes the same two records. On SIGINT/SIGTERM the file is closed with its
 summary.
 """
+
 from __future__ import annotations
 
 import sys
@@ -51,7 +52,10 @@ class Recorder(Node):
         "include_graph": Param(False, "with no topic list, also record graph/... (heartbeats)"),
         "overwrite": Param(False, "replace an existing file"),
         "calibration": Param({}, "calibration to store in the log's metadata (mapping)", type="any"),
-        "foxglove": Param(False, "also write Foxglove channels (images, poses, clouds, plots, log; nodes/foxglove_convert.py) so the file opens in Foxglove"),
+        "foxglove": Param(
+            False,
+            "also write Foxglove channels (images, poses, clouds, plots, log; nodes/foxglove_convert.py) so the file opens in Foxglove",
+        ),
     }
 
     def __init__(self, **kw):
@@ -91,15 +95,26 @@ class Recorder(Node):
     def _record_foxglove(self, topic: str, msg: Any) -> None:
         # graph/status feeds Foxglove's log channel even when the heartbeats themselves are not recorded
         for rec in self._foxglove.convert(topic, msg, now_ns()):
-            self.writer.write_encoded(rec.topic, rec.schema_name, rec.schema_encoding, rec.schema_data,
-                                      rec.message_encoding, rec.data, rec.log_time_ns, rec.log_time_ns)
+            self.writer.write_encoded(
+                rec.topic,
+                rec.schema_name,
+                rec.schema_encoding,
+                rec.schema_data,
+                rec.message_encoding,
+                rec.data,
+                rec.log_time_ns,
+                rec.log_time_ns,
+            )
 
     def on_start(self) -> None:
         self.log(f"recording {', '.join(self.params['topics']) or 'all topics'} to {self.writer.path}")
 
     def on_shutdown(self) -> None:
         if not self.writer.close():
-            self.log(f"recorded nothing; {self.writer.path} not written" + (" (the earlier log is kept)" if self.writer.path.exists() else ""))
+            self.log(
+                f"recorded nothing; {self.writer.path} not written"
+                + (" (the earlier log is kept)" if self.writer.path.exists() else "")
+            )
             return
         total = sum(self.writer.counts.values())
         per = ", ".join(f"{t}: {n}" for t, n in sorted(self.writer.counts.items()))

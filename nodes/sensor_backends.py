@@ -27,6 +27,7 @@ VIO (:data:`nodes.backends.VIO_BACKENDS`):
 The ZED's raw UVC stereo stream (:class:`twinfocus.sensors.zed.ZedUvcStereo`) gives images, not
 poses, so it is no VIO backend.
 """
+
 from __future__ import annotations
 
 import threading
@@ -71,29 +72,59 @@ class MmwcasRadar:
         from twinfocus.sensors.ti_mmwcas import MmwcasCapture, resolve_config
 
         where = "radar backend 'mmwcas'"
-        check_unknown(options, {"capture", "z0_m", "scan_id", "f0_hz", "slope_hz_per_s", "fs_hz", "n_samples", "n_loops",
-                                "loop", "timestamp_unit_ns", "time_offset_ns", "keep_first_frame", "keep_flagged", "tx_order",
-                                "frame_period_s", "drop_first_frame_of_each_slice", "setup"}, where)
+        check_unknown(
+            options,
+            {
+                "capture",
+                "z0_m",
+                "scan_id",
+                "f0_hz",
+                "slope_hz_per_s",
+                "fs_hz",
+                "n_samples",
+                "n_loops",
+                "loop",
+                "timestamp_unit_ns",
+                "time_offset_ns",
+                "keep_first_frame",
+                "keep_flagged",
+                "tx_order",
+                "frame_period_s",
+                "drop_first_frame_of_each_slice",
+                "setup",
+            },
+            where,
+        )
         folder = option(options, "capture", None, str, where)
         d = Chirp()
-        self.chirp = Chirp(option(options, "f0_hz", d.f0_hz, float, where), option(options, "slope_hz_per_s", d.slope_hz_per_s, float, where),
-                           option(options, "fs_hz", d.fs_hz, float, where), int(option(options, "n_samples", d.n_samples, int, where)))
+        self.chirp = Chirp(
+            option(options, "f0_hz", d.f0_hz, float, where),
+            option(options, "slope_hz_per_s", d.slope_hz_per_s, float, where),
+            option(options, "fs_hz", d.fs_hz, float, where),
+            int(option(options, "n_samples", d.n_samples, int, where)),
+        )
         loops = options.get("n_loops")
         period = options.get("frame_period_s")
         config, _notes = resolve_config(
-            folder, self.chirp, n_loops=None if loops is None else int(option(options, "n_loops", 1, int, where)),
+            folder,
+            self.chirp,
+            n_loops=None if loops is None else int(option(options, "n_loops", 1, int, where)),
             tx_order=option(options, "tx_order", "", str, where) or None,
             frame_period_s=None if period is None else option(options, "frame_period_s", 0.1, float, where),
             timestamp_unit_ns=int(option(options, "timestamp_unit_ns", 1000, int, where)),
-            setup=option(options, "setup", "", str, where) or None)
+            setup=option(options, "setup", "", str, where) or None,
+        )
         self.chirp = config.chirp
         self.loop = int(option(options, "loop", 0, int, where))
         self.z0_m = option(options, "z0_m", 0.6, float, where)
         self.offset_ns = int(option(options, "time_offset_ns", 0, int, where))
         self.scan_id = str(option(options, "scan_id", Path(folder).name, str, where))
-        self.capture = MmwcasCapture(folder, config, skip_first_frame=not option(options, "keep_first_frame", False, bool, where),
-                                     skip_first_frame_of_each_slice=bool(option(options, "drop_first_frame_of_each_slice", False,
-                                                                                bool, where)))
+        self.capture = MmwcasCapture(
+            folder,
+            config,
+            skip_first_frame=not option(options, "keep_first_frame", False, bool, where),
+            skip_first_frame_of_each_slice=bool(option(options, "drop_first_frame_of_each_slice", False, bool, where)),
+        )
         keep = bool(option(options, "keep_flagged", False, bool, where))
         self.frames = [i for i in range(len(self.capture)) if keep or FrameFlag(int(self.capture.flags[i])).usable]
         if not self.frames:
@@ -103,8 +134,13 @@ class MmwcasRadar:
     def samples(self) -> Iterator[RadarSample]:
         for m, i in enumerate(self.frames):
             (frame,) = self.capture.frames(self.loop, start=i, stop=i + 1)
-            yield RadarSample(stamp_ns=frame.stamp_ns + self.offset_ns, data=_virtual_channels(frame.data, self.chirp, self.z0_m),
-                              scan_id=self.scan_id, index=m, last=m == len(self.frames) - 1)
+            yield RadarSample(
+                stamp_ns=frame.stamp_ns + self.offset_ns,
+                data=_virtual_channels(frame.data, self.chirp, self.z0_m),
+                scan_id=self.scan_id,
+                index=m,
+                last=m == len(self.frames) - 1,
+            )
 
     def close(self) -> None:
         self.capture.close()
@@ -128,8 +164,25 @@ class Dca1000Radar:
         from twinfocus.sensors.ti_cli import RadarCliConfig
 
         where = "radar backend 'dca1000'"
-        check_unknown(options, {"cfg", "cli_port", "board", "host_ip", "config_port", "data_port", "lvds_lanes", "layout",
-                                "z0_m", "scan_id", "frames_per_scan", "idle_timeout_s", "keep_flagged"}, where)
+        check_unknown(
+            options,
+            {
+                "cfg",
+                "cli_port",
+                "board",
+                "host_ip",
+                "config_port",
+                "data_port",
+                "lvds_lanes",
+                "layout",
+                "z0_m",
+                "scan_id",
+                "frames_per_scan",
+                "idle_timeout_s",
+                "keep_flagged",
+            },
+            where,
+        )
         cfg = option(options, "cfg", None, str, where)
         if cfg == "emulated":
             from twinfocus.sensors.emulators.rig import EMULATED_CFG
@@ -148,8 +201,10 @@ class Dca1000Radar:
         else:
             raise TwinFocusError(f"{where}: layout must be 'mmwcas' or 'cfg', got {layout!r}")
         if self.layout.n_tx < 12 or self.layout.n_rx < 16:
-            raise TwinFocusError(f"{where}: the frames have {self.layout.n_tx} TX x {self.layout.n_rx} RX; the 86 virtual "
-                                 "channels of the MMWCAS array need 12 x 16 (use layout: mmwcas for the emulated rig)")
+            raise TwinFocusError(
+                f"{where}: the frames have {self.layout.n_tx} TX x {self.layout.n_rx} RX; the 86 virtual "
+                "channels of the MMWCAS array need 12 x 16 (use layout: mmwcas for the emulated rig)"
+            )
         self.cli_port = option(options, "cli_port", "", str, where)
         self.lvds_lanes = int(option(options, "lvds_lanes", 2, int, where))
         self.z0_m = option(options, "z0_m", 0.6, float, where)
@@ -160,10 +215,12 @@ class Dca1000Radar:
         self.channel_offsets_m = mmwcas_virtual_array().offsets_m
         self._stop = threading.Event()
         self._cli = None
-        self.host = Dca1000(_address(option(options, "board", f"{BOARD_IP}:{CONFIG_PORT}", str, where), where, "board"),
-                            option(options, "host_ip", HOST_IP, str, where),
-                            int(option(options, "config_port", CONFIG_PORT, int, where)),
-                            int(option(options, "data_port", DATA_PORT, int, where)))
+        self.host = Dca1000(
+            _address(option(options, "board", f"{BOARD_IP}:{CONFIG_PORT}", str, where), where, "board"),
+            option(options, "host_ip", HOST_IP, str, where),
+            int(option(options, "config_port", CONFIG_PORT, int, where)),
+            int(option(options, "data_port", DATA_PORT, int, where)),
+        )
 
     def samples(self) -> Iterator[RadarSample]:
         try:
@@ -190,17 +247,22 @@ class Dca1000Radar:
 
         scan, index, pending = 0, 0, None
         said, unsaid = 0.0, 0
-        for frame in self.host.frames(self.layout, idle_timeout_s=self.idle_timeout_s, frame_period_s=self.frame_period_s,
-                                      stop=self._stop):
+        for frame in self.host.frames(
+            self.layout, idle_timeout_s=self.idle_timeout_s, frame_period_s=self.frame_period_s, stop=self._stop
+        ):
             if not frame.flags.usable:
                 # Counted in host.stats and carried on every later frame (RadarFrame.frames_lost ...);
                 # said on stderr at most once a second so a burst does not flood the log.
                 unsaid += 1
                 if time.monotonic() - said >= 1.0:
                     lost, zero_filled, nbytes = self.gaps()
-                    print(f"[dca1000] {unsaid} flagged frame(s) ({frame.flags!r}) "
-                          f"{'kept' if self.keep_flagged else 'dropped'}; so far {lost} lost, {zero_filled} zero-filled, "
-                          f"{nbytes} bytes lost", file=sys.stderr, flush=True)
+                    print(
+                        f"[dca1000] {unsaid} flagged frame(s) ({frame.flags!r}) "
+                        f"{'kept' if self.keep_flagged else 'dropped'}; so far {lost} lost, {zero_filled} zero-filled, "
+                        f"{nbytes} bytes lost",
+                        file=sys.stderr,
+                        flush=True,
+                    )
                     said, unsaid = time.monotonic(), 0
                 if not self.keep_flagged:
                     continue
@@ -209,8 +271,14 @@ class Dca1000Radar:
                 yield pending
             scan_id = self.scan_id if not self.per_scan else f"{self.scan_id}_{scan:03d}"
             last = bool(self.per_scan) and index == self.per_scan - 1
-            pending = RadarSample(frame.stamp_ns, _virtual_channels(frame.data, self.chirp, self.z0_m), scan_id, index, last,
-                                  gaps=self.gaps())
+            pending = RadarSample(
+                frame.stamp_ns,
+                _virtual_channels(frame.data, self.chirp, self.z0_m),
+                scan_id,
+                index,
+                last,
+                gaps=self.gaps(),
+            )
             index += 1
             if last:
                 yield pending
@@ -253,8 +321,9 @@ class ZedVio:
         serial = option(options, "serial", 0, int, where) or None
         self.live = svo is None
         self._stop = threading.Event()
-        self.camera = ZedSdkCamera(option(options, "resolution", "HD720", str, where), int(option(options, "fps", 60, int, where)),
-                                   serial, svo)
+        self.camera = ZedSdkCamera(
+            option(options, "resolution", "HD720", str, where), int(option(options, "fps", 60, int, where)), serial, svo
+        )
 
     def samples(self) -> Iterator[PoseSample]:
         for s in self.camera.poses():
@@ -283,23 +352,47 @@ class EmulatedRigVio:
         from twinfocus.trajectory import paper_raster
 
         where = "VIO backend 'emulated'"
-        check_unknown(options, {"columns", "rows", "column_pitch_m", "row_pitch_m", "period_s", "config_port", "sync_file",
-                                "rate_hz", "noise_sigma_m", "start_timeout_s"}, where)
-        traj = paper_raster(int(option(options, "columns", 3, int, where)), int(option(options, "rows", 40, int, where)),
-                            option(options, "column_pitch_m", 0.082, float, where), option(options, "row_pitch_m", 0.002, float, where),
-                            frame_period_s=option(options, "period_s", 0.05, float, where))
-        sync = option(options, "sync_file", "", str, where) or default_sync_file(int(option(options, "config_port", 4096, int, where)))
+        check_unknown(
+            options,
+            {
+                "columns",
+                "rows",
+                "column_pitch_m",
+                "row_pitch_m",
+                "period_s",
+                "config_port",
+                "sync_file",
+                "rate_hz",
+                "noise_sigma_m",
+                "start_timeout_s",
+            },
+            where,
+        )
+        traj = paper_raster(
+            int(option(options, "columns", 3, int, where)),
+            int(option(options, "rows", 40, int, where)),
+            option(options, "column_pitch_m", 0.082, float, where),
+            option(options, "row_pitch_m", 0.002, float, where),
+            frame_period_s=option(options, "period_s", 0.05, float, where),
+        )
+        sync = option(options, "sync_file", "", str, where) or default_sync_file(
+            int(option(options, "config_port", 4096, int, where))
+        )
         noise = option(options, "noise_sigma_m", [0.0, 0.0, 0.0], list, where)
         self.timeout_s = option(options, "start_timeout_s", 60.0, float, where)
         self._stop = threading.Event()
-        self.vio = EmulatedVio(traj, sync_file=sync, rate_hz=option(options, "rate_hz", 60.0, float, where), noise_sigma_m=noise)
+        self.vio = EmulatedVio(
+            traj, sync_file=sync, rate_hz=option(options, "rate_hz", 60.0, float, where), noise_sigma_m=noise
+        )
 
     def samples(self) -> Iterator[PoseSample]:
         if self.vio.wait_for_start(self.timeout_s, self._stop) is None:
             if self._stop.is_set():
                 return
-            raise TwinFocusError(f"VIO backend 'emulated': the emulated radar did not start within {self.timeout_s:g} s "
-                                 f"(no {self.vio.sync_file}); is `python -m twinfocus.sensors.emulators radar` running?")
+            raise TwinFocusError(
+                f"VIO backend 'emulated': the emulated radar did not start within {self.timeout_s:g} s "
+                f"(no {self.vio.sync_file}); is `python -m twinfocus.sensors.emulators radar` running?"
+            )
         for s in self.vio.poses(stop=self._stop):
             yield PoseSample(s.stamp_ns, s.position_m, s.quat_xyzw, s.confidence)
 

@@ -17,6 +17,7 @@ processes agree on the scene and the trajectory, and the graph draws the very sc
 * :func:`template_scan` is the reference alone on the motion stage's exact raster, moved by
   the scenario's placement error: the physical twin's capture.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -52,7 +53,9 @@ def scenario_from(options: dict, where: str) -> Scenario:
     known = {f.name for f in fields(Scenario)}
     unknown = sorted(set(spec) - known)
     if unknown:
-        raise TwinFocusError(f"{where}: unknown scenario field(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+        raise TwinFocusError(
+            f"{where}: unknown scenario field(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}"
+        )
     spec = {k: tuple(v) if isinstance(v, list) else v for k, v in spec.items()}
     return Scenario(**spec)
 
@@ -85,18 +88,26 @@ class SimRadar:
         self.points, self.amps = scenario_scatterers(self.sc)
         self.power = None
         if self.sc.snr_db is not None:
-            self.power = scenario_noise_power(self.centres.shape[0], lambda idx: simulate_if(
-                self.points, self.amps, self.centres[idx], self.chirp, **simulator_options(self.sc)))
+            self.power = scenario_noise_power(
+                self.centres.shape[0],
+                lambda idx: simulate_if(
+                    self.points, self.amps, self.centres[idx], self.chirp, **simulator_options(self.sc)
+                ),
+            )
 
     def samples(self) -> Iterator[RadarSample]:
         m_total = self.centres.shape[0]
         noise = scenario_stream(self.sc, RADAR_NOISE_STREAM)  # sweep 0 is simulate_scenario's scan
-        span_ns = int(self.poses.timestamps_ns[-1] - self.poses.timestamps_ns[0]) + int(round(self.frame_period_s * 1e9))
+        span_ns = int(self.poses.timestamps_ns[-1] - self.poses.timestamps_ns[0]) + int(
+            round(self.frame_period_s * 1e9)
+        )
         for s in range(self.scans):
             scan_id = self.scan_id if self.scans == 1 else f"{self.scan_id}_{s:03d}"
             for b0 in range(0, m_total, self.block):
                 b1 = min(m_total, b0 + self.block)
-                data = simulate_if(self.points, self.amps, self.centres[b0:b1], self.chirp, **simulator_options(self.sc))
+                data = simulate_if(
+                    self.points, self.amps, self.centres[b0:b1], self.chirp, **simulator_options(self.sc)
+                )
                 if self.sc.snr_db is not None:
                     data = add_thermal_noise(data, self.sc.snr_db, noise, signal_power=self.power)
                 for i, m in enumerate(range(b0, b1)):
@@ -132,7 +143,11 @@ class SimVio:
 
     def __init__(self, options: dict):
         where = "VIO backend 'sim'"
-        check_unknown(options, {"scenario", "frame_period_s", "t0_ns", "scans", "rate_hz", "error_model", "error_sigma_m", "margin_s"}, where)
+        check_unknown(
+            options,
+            {"scenario", "frame_period_s", "t0_ns", "scans", "rate_hz", "error_model", "error_sigma_m", "margin_s"},
+            where,
+        )
         sc = scenario_from(options, where)
         period = option(options, "frame_period_s", 0.1, float, where)
         t0 = int(option(options, "t0_ns", SIM_T0_NS, int, where))

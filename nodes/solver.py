@@ -19,6 +19,7 @@ Outputs per scan: :class:`msgs.AutofocusResult` (phase, loss curve, metrics, tim
 ``out_dir/<scan_id>/`` (:func:`twinfocus.pipeline.write_outputs`). Metrics against the truth
 are computed when the measurements carry ``positions_true_m`` (simulation).
 """
+
 from __future__ import annotations
 
 import sys
@@ -82,18 +83,27 @@ class Solver(Node):
         "method": Param("twin", "twin (needs twin/template), sharpness or none", choices=("twin", "sharpness", "none")),
         # the settings of `twinfocus focus`, same names and defaults (twinfocus/settings.py)
         **{s.name: param_of(s) for s in FOCUS_SETTINGS},
-        "basis": Param("stream", "stream: basis built as measurements arrive; after_scan: all at the end",
-                       choices=("stream", "after_scan")),
+        "basis": Param(
+            "stream",
+            "stream: basis built as measurements arrive; after_scan: all at the end",
+            choices=("stream", "after_scan"),
+        ),
         "truth_metrics": Param(True, "compute SSIM against the truth when measurements carry it"),
         "template_wait_s": Param(30.0, "how long a finished scan waits for a template before it is dropped"),
-        "scan_timeout_s": Param(10.0, "a scan whose measurements stopped this long ago without its last one (an "
-                                      "incomplete log, a stopped radar) is focused with what arrived"),
+        "scan_timeout_s": Param(
+            10.0,
+            "a scan whose measurements stopped this long ago without its last one (an "
+            "incomplete log, a stopped radar) is focused with what arrived",
+        ),
         "min_positions": Param(2, "an ended scan with fewer positions than this is dropped with a message"),
         "out_dir": Param("", "write twinfocus focus's files to OUT_DIR/<scan_id>/ (empty: do not write)", type="str"),
         "pictures": Param(True, "with out_dir, also write the PNG pictures"),
         "exit_after_scans": Param(0, "end the node after this many focused scans (0: never)"),
-        "warm_up": Param(True, "run the optimiser and back-projection once on a toy problem at start-up, so the "
-                               "first scan does not pay their one-off set-up (seconds of imports and JIT loading)"),
+        "warm_up": Param(
+            True,
+            "run the optimiser and back-projection once on a toy problem at start-up, so the "
+            "first scan does not pay their one-off set-up (seconds of imports and JIT loading)",
+        ),
     }
 
     def __init__(self, **kw):
@@ -104,7 +114,9 @@ class Solver(Node):
         p = self.params
         for name in ("reference_roi", "target_roi"):
             if len(p[name]) != 5:
-                raise TwinFocusError(f"node {self.name!r}: parameter {name!r} needs 5 numbers X0 X1 Y0 Y1 Z, got {p[name]}")
+                raise TwinFocusError(
+                    f"node {self.name!r}: parameter {name!r} needs 5 numbers X0 X1 Y0 Y1 Z, got {p[name]}"
+                )
         self.ref_grid = ImageGrid.from_roi(p["reference_roi"], p["size"])
         self.tgt_grid = ImageGrid.from_roi(p["target_roi"], p["size"])
         self.cfg = AutofocusConfig.from_settings(p)  # the device resolved as twinfocus focus resolves it
@@ -131,8 +143,10 @@ class Solver(Node):
     def _check_stale(self) -> None:
         s = self.scan
         if s is not None and time.monotonic() - s.seen_wall > self.params["scan_timeout_s"]:
-            self.log(f"scan {s.scan_id!r}: no measurement for {self.params['scan_timeout_s']:g} s and no last one "
-                     f"({s.n} received); focusing what arrived")
+            self.log(
+                f"scan {s.scan_id!r}: no measurement for {self.params['scan_timeout_s']:g} s and no last one "
+                f"({s.n} received); focusing what arrived"
+            )
             self._end_scan()
 
     def _config(self, chirp):
@@ -144,8 +158,12 @@ class Solver(Node):
 
         if self.params["method"] != "twin" or self.template is None:
             return self.cfg
-        chosen = estimator_settings(self.params["estimator"], bool(np.iscomplexobj(self.template)),
-                                    self.params["tracking_error_mm"] * 1e-3, chirp.wavelength_m)
+        chosen = estimator_settings(
+            self.params["estimator"],
+            bool(np.iscomplexobj(self.template)),
+            self.params["tracking_error_mm"] * 1e-3,
+            chirp.wavelength_m,
+        )
         if self.params["loss_steepness"] is not None:
             chosen["loss_steepness"] = self.params["loss_steepness"]
         return replace(self.cfg, **chosen)
@@ -171,7 +189,9 @@ class Solver(Node):
         from twinfocus.templates import resample_template
 
         try:
-            self.template = resample_template(msg.image, msg.x_m, msg.y_m, msg.z_m, self.ref_grid, phase_rad=msg.phase_rad)
+            self.template = resample_template(
+                msg.image, msg.x_m, msg.y_m, msg.z_m, self.ref_grid, phase_rad=msg.phase_rad
+            )
         except TwinFocusError as exc:
             self.log(f"ignored a {msg.kind} template from {msg.source or '?'}: {exc}")
             return
@@ -194,7 +214,9 @@ class Solver(Node):
             s.truth = [] if self.params["truth_metrics"] else None
             self.log(f"scan {m.scan_id!r} started")
         if chirp != s.chirp or m.data.shape[0] != s.n_channels:
-            self.log(f"dropped measurement {m.index} of scan {m.scan_id!r}: its chirp or channel count differs from the scan's first")
+            self.log(
+                f"dropped measurement {m.index} of scan {m.scan_id!r}: its chirp or channel count differs from the scan's first"
+            )
             return
         s.pending.append(m)
         s.n += 1
@@ -278,11 +300,15 @@ class Solver(Node):
         if s.last_wall is None:  # ended without its last measurement: from the latest that came
             s.last_wall = s.seen_wall or time.monotonic()
         if s.n < max(1, int(self.params["min_positions"])):
-            self.log(f"dropped scan {s.scan_id!r}: {s.n} position(s) arrived, fewer than min_positions {self.params['min_positions']}")
+            self.log(
+                f"dropped scan {s.scan_id!r}: {s.n} position(s) arrived, fewer than min_positions {self.params['min_positions']}"
+            )
             self._count_done()
             return
         if self.params["method"] == "twin" and self.template is None:
-            self.log(f"scan {s.scan_id!r} complete ({s.n} positions); waiting up to {self.params['template_wait_s']:g} s for a template")
+            self.log(
+                f"scan {s.scan_id!r} complete ({s.n} positions); waiting up to {self.params['template_wait_s']:g} s for a template"
+            )
             self.waiting.append(s)
             self.call_later(self.params["template_wait_s"], lambda s=s: self._give_up(s))
             return
@@ -291,7 +317,9 @@ class Solver(Node):
     def _give_up(self, s: _Scan) -> None:
         if s in self.waiting:
             self.waiting.remove(s)
-            self.log(f"dropped scan {s.scan_id!r}: no template arrived on twin/template within {self.params['template_wait_s']:g} s")
+            self.log(
+                f"dropped scan {s.scan_id!r}: no template arrived on twin/template within {self.params['template_wait_s']:g} s"
+            )
             self._count_done()
 
     # -- focusing -----------------------------------------------------------------------------
@@ -308,10 +336,19 @@ class Solver(Node):
                 from twinfocus.pipeline import focus_scan
 
                 scan = Scan(np.concatenate(s.data), positions, s.chirp, positions_true=truth)
-                out = focus_scan(scan, self.ref_grid, self.tgt_grid, template=self.template, method=self.params["method"],
-                                 config=self._config(s.chirp), bp_options=self.bp, progress_factory=lambda label: progress,
-                                 phase_ramp=self.params["phase_ramp"], space_variant=self.params["space_variant"],
-                                 tracking_error_m=self.params["tracking_error_mm"] * 1e-3)
+                out = focus_scan(
+                    scan,
+                    self.ref_grid,
+                    self.tgt_grid,
+                    template=self.template,
+                    method=self.params["method"],
+                    config=self._config(s.chirp),
+                    bp_options=self.bp,
+                    progress_factory=lambda label: progress,
+                    phase_ramp=self.params["phase_ramp"],
+                    space_variant=self.params["space_variant"],
+                    tracking_error_m=self.params["tracking_error_mm"] * 1e-3,
+                )
             else:
                 out, tgt_basis = self._focus_bases(s, positions)
         except TwinFocusError as exc:
@@ -323,8 +360,10 @@ class Solver(Node):
         out.metrics["n_positions_expected"] = int(max(expected, s.n))
         out.metrics["n_positions_missing"] = int(max(0, expected - s.n))
         if expected > s.n:
-            self.log(f"scan {s.scan_id!r}: {expected - s.n} of its {expected} positions never arrived; "
-                     f"focused the {s.n} that did")
+            self.log(
+                f"scan {s.scan_id!r}: {expected - s.n} of its {expected} positions never arrived; "
+                f"focused the {s.n} that did"
+            )
         timing = {k: float(v) for k, v in out.timings_s.items()}
         if self.params["basis"] == "stream":
             timing["basis_streamed"] = s.basis_time_s
@@ -377,10 +416,20 @@ class Solver(Node):
         # under load, above tests/test_graph_offline.py's 1e-5).
         with threadpool_limits(1, user_api="blas"):
             out = focus_bases(
-                s.ref_rows.array(), tgt_basis, positions, s.chirp, self.ref_grid, self.tgt_grid,
-                template=self.template, method=self.params["method"], config=self._config(s.chirp), bp_options=self.bp,
-                progress_factory=lambda label: self._progress, phase_ramp=self.params["phase_ramp"],
-                space_variant=self.params["space_variant"], tracking_error_m=self.params["tracking_error_mm"] * 1e-3,
+                s.ref_rows.array(),
+                tgt_basis,
+                positions,
+                s.chirp,
+                self.ref_grid,
+                self.tgt_grid,
+                template=self.template,
+                method=self.params["method"],
+                config=self._config(s.chirp),
+                bp_options=self.bp,
+                progress_factory=lambda label: self._progress,
+                phase_ramp=self.params["phase_ramp"],
+                space_variant=self.params["space_variant"],
+                tracking_error_m=self.params["tracking_error_mm"] * 1e-3,
                 registration_scores=scores,
             )
         out.timings_s["focus_bases"] = time.perf_counter() - t  # autofocus and the rest of the steps
@@ -398,18 +447,37 @@ class Solver(Node):
         out.target_truth = backproject(data, truth, s.chirp, self.tgt_grid, progress=self._progress, **self.bp)
         self.heartbeat_if_due()
         out.reference_truth = backproject(data, truth, s.chirp, self.ref_grid, progress=self._progress, **self.bp)
-        add_truth_metrics(out, tgt_basis, positions, s.chirp, out.target_truth, out.reference_truth, truth,
-                          self.cfg.threshold_centre, self.cfg.threshold_steepness)
+        add_truth_metrics(
+            out,
+            tgt_basis,
+            positions,
+            s.chirp,
+            out.target_truth,
+            out.reference_truth,
+            truth,
+            self.cfg.threshold_centre,
+            self.cfg.threshold_steepness,
+        )
 
     def _publish_result(self, s: _Scan, out, timing: dict, latency: float, pending: bool) -> None:
-        numeric = {k: float(v) for k, v in out.metrics.items() if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)}
-        self.result_pub.publish(AutofocusResult(
-            header=Header(stamp_ns=now_ns(), frame_id="scene"),
-            scan_id=s.scan_id, method=out.method,
-            phase_rad=np.asarray(out.phase_rad, np.float64),
-            loss_history=np.asarray(out.loss_history, np.float64),
-            metrics=numeric, timing_s=dict(timing), latency_s=latency, metrics_pending=pending,
-        ))
+        numeric = {
+            k: float(v)
+            for k, v in out.metrics.items()
+            if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)
+        }
+        self.result_pub.publish(
+            AutofocusResult(
+                header=Header(stamp_ns=now_ns(), frame_id="scene"),
+                scan_id=s.scan_id,
+                method=out.method,
+                phase_rad=np.asarray(out.phase_rad, np.float64),
+                loss_history=np.asarray(out.loss_history, np.float64),
+                metrics=numeric,
+                timing_s=dict(timing),
+                latency_s=latency,
+                metrics_pending=pending,
+            )
+        )
 
     def _publish(self, s: _Scan, out, timing: dict, latency: float, pending: bool) -> None:
         """The images (target last: a viewer waiting for it has the rest), then the result."""
@@ -420,8 +488,17 @@ class Solver(Node):
             ("reference", out.reference, self.ref_grid),
             ("target", out.target, self.tgt_grid),  # last: a viewer waiting for it has the rest
         ):
-            self.image_pub.publish(Image(header=Header(stamp_ns=stamp, frame_id="scene"), name=name, scan_id=s.scan_id,
-                                         image=img, x_m=grid.x_m, y_m=grid.y_m, z_m=grid.z))
+            self.image_pub.publish(
+                Image(
+                    header=Header(stamp_ns=stamp, frame_id="scene"),
+                    name=name,
+                    scan_id=s.scan_id,
+                    image=img,
+                    x_m=grid.x_m,
+                    y_m=grid.y_m,
+                    z_m=grid.z,
+                )
+            )
         self._publish_result(s, out, timing, latency, pending)
         if not pending:
             self._log_focused(s, out, timing)
@@ -429,9 +506,15 @@ class Solver(Node):
 
     def _log_focused(self, s: _Scan, out, timing: dict) -> None:
         ssim = out.metrics.get("target_ssim_corrected")
-        tag = f", target SSIM {out.metrics.get('target_ssim_uncorrected', float('nan')):.3f} -> {ssim:.3f}" if ssim is not None else ""
-        self.log(f"focused scan {s.scan_id!r}: {out.phase_rad.size} positions, {out.method}{tag}, "
-                 f"{timing['last_measurement_to_result']:.2f} s after its last measurement")
+        tag = (
+            f", target SSIM {out.metrics.get('target_ssim_uncorrected', float('nan')):.3f} -> {ssim:.3f}"
+            if ssim is not None
+            else ""
+        )
+        self.log(
+            f"focused scan {s.scan_id!r}: {out.phase_rad.size} positions, {out.method}{tag}, "
+            f"{timing['last_measurement_to_result']:.2f} s after its last measurement"
+        )
 
     def _count_done(self) -> None:
         self.done += 1

@@ -17,6 +17,7 @@ final published one, even when the scan's final frame cannot be paired: each mea
 held back until the fate of the next frame is known (one frame of latency; a frame flagged
 ``last`` is sent at once).
 """
+
 from __future__ import annotations
 
 import sys
@@ -41,9 +42,16 @@ class Synchronizer(Node):
         **Node.PARAMS,
         "max_pose_gap_s": Param(0.2, "widest interval between two poses to interpolate across, seconds"),
         "max_wait_s": Param(2.0, "how long (wall clock) a frame waits for a later pose before it is reported unpaired"),
-        "pose_buffer_s": Param(30.0, "pose history kept before the latest radar frame paired, seconds of stamps "
-                                     "(poses ahead of the radar are all kept, so a fast tracker loses nothing)"),
-        "extrinsics": Param({}, "camera-to-radar transform for camera poses: {translation_m: [x,y,z], rotation_xyzw: [x,y,z,w]}", type="any"),
+        "pose_buffer_s": Param(
+            30.0,
+            "pose history kept before the latest radar frame paired, seconds of stamps "
+            "(poses ahead of the radar are all kept, so a fast tracker loses nothing)",
+        ),
+        "extrinsics": Param(
+            {},
+            "camera-to-radar transform for camera poses: {translation_m: [x,y,z], rotation_xyzw: [x,y,z,w]}",
+            type="any",
+        ),
     }
 
     def __init__(self, **kw):
@@ -110,7 +118,9 @@ class Synchronizer(Node):
                 why = "no pose received at all" if not self.stamps else f"no pose after it within {max_wait:g} s"
                 self._decide(frame, None, why)
             elif t < self.stamps[0]:
-                self._decide(frame, None, f"it is earlier than the oldest pose kept ({(self.stamps[0] - t) / 1e9:.3f} s before)")
+                self._decide(
+                    frame, None, f"it is earlier than the oldest pose kept ({(self.stamps[0] - t) / 1e9:.3f} s before)"
+                )
             else:
                 self._decide(frame, self._interpolate(frame), "")
                 self._prune(t)
@@ -159,7 +169,9 @@ class Synchronizer(Node):
         if result is None:
             self.unpaired += 1
             self.status_message = f"paired {self.paired}, unpaired {self.unpaired}"
-            self.log(f"cannot pair radar frame {frame.index} of scan {frame.scan_id!r} (stamp {frame.header.stamp_ns}): {why}")
+            self.log(
+                f"cannot pair radar frame {frame.index} of scan {frame.scan_id!r} (stamp {frame.header.stamp_ns}): {why}"
+            )
             if frame.last and self.held is not None and self.held.scan_id == frame.scan_id:
                 self.held.last = True
                 self._send(self.held)

@@ -30,6 +30,7 @@ and builds the template for that scan's positions
 surface model chosen by what the cloud supports). A scan that ends before any stereo frame gave a
 cloud gets no template, with a log line saying so.
 """
+
 from __future__ import annotations
 
 import sys
@@ -48,17 +49,23 @@ class TemplateBuilder(Node):
     NAME = "template_builder"
     PARAMS = {
         **Node.PARAMS,
-        "source": Param("file", "file, scan, sim, points or stereo",
-                        choices=("file", "scan", "sim", "points", "stereo")),
-        "path": Param("", "template file, template scan, point cloud (.npy) or, for stereo, camera.json (pose; "
-                          "optional)", type="str"),
+        "source": Param(
+            "file", "file, scan, sim, points or stereo", choices=("file", "scan", "sim", "points", "stereo")
+        ),
+        "path": Param(
+            "",
+            "template file, template scan, point cloud (.npy) or, for stereo, camera.json (pose; optional)",
+            type="str",
+        ),
         "stereo_every": Param(0, "for source stereo: rebuild the cloud from every n-th frame (0: the first only)"),
         "scenario": Param({}, "for source sim: the Scenario fields (as the simulated drivers)", type="any"),
         "reference_roi": Param(REQUIRED, "reference region X0 X1 Y0 Y1 Z, metres", type="floats"),
         "size": Param(100, "template size in pixels per side (the solver's size)"),
         "oversample": Param(16, "range-profile oversampling of the back-projection"),
         "precision": Param("float32", "float32 or float64", choices=("float32", "float64")),
-        "cache": Param(True, "reuse a template scan's image from the template cache (twinfocus.cache) and store it there"),
+        "cache": Param(
+            True, "reuse a template scan's image from the template cache (twinfocus.cache) and store it there"
+        ),
         "republish_s": Param(0.0, "publish the template again this often (0: once; late joiners then miss it)"),
     }
 
@@ -68,7 +75,9 @@ class TemplateBuilder(Node):
 
         p = self.params
         if len(p["reference_roi"]) != 5:
-            raise TwinFocusError(f"node {self.name!r}: reference_roi needs 5 numbers X0 X1 Y0 Y1 Z, got {p['reference_roi']}")
+            raise TwinFocusError(
+                f"node {self.name!r}: reference_roi needs 5 numbers X0 X1 Y0 Y1 Z, got {p['reference_roi']}"
+            )
         self.grid = ImageGrid.from_roi(p["reference_roi"], p["size"])
         self.bp = {"oversample": p["oversample"], "precision": p["precision"]}
         self.pub = self.create_publisher("twin/template")
@@ -88,8 +97,11 @@ class TemplateBuilder(Node):
             else:
                 from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M, StereoCamera, pose_matrix
 
-                self.pose = (StereoCamera.load(path).scene_from_left if path
-                             else pose_matrix(None, DEFAULT_LEFT_CAMERA_POSITION_M))
+                self.pose = (
+                    StereoCamera.load(path).scene_from_left
+                    if path
+                    else pose_matrix(None, DEFAULT_LEFT_CAMERA_POSITION_M)
+                )
                 self.frames = 0
                 self.cloud_info: dict = {}
                 self.create_subscription("camera/stereo", self.on_stereo)
@@ -118,13 +130,25 @@ class TemplateBuilder(Node):
             scan = template_scan(sc)
             c = scan.chirp
             # keyed by what was simulated, not by the scenario's fields: a changed simulator is a miss
-            key = template_key("template_scan", {"scan_sha256": array_sha256(scan.data, scan.positions), "keep_phase": True,
-                                                 "chirp": [c.f0_hz, c.slope_hz_per_s, c.fs_hz, c.n_samples]},
-                               self.grid, self.bp) if cache.enabled else None
+            key = (
+                template_key(
+                    "template_scan",
+                    {
+                        "scan_sha256": array_sha256(scan.data, scan.positions),
+                        "keep_phase": True,
+                        "chirp": [c.f0_hz, c.slope_hz_per_s, c.fs_hz, c.n_samples],
+                    },
+                    self.grid,
+                    self.bp,
+                )
+                if cache.enabled
+                else None
+            )
             load = lambda: scan  # noqa: E731
             source = "simulated motion-stage scan"
         image, self.cache_status = cache.get_or_compute(
-            key, self.grid, lambda: template_from_scan(load(), self.grid, keep_phase=True, **self.bp))
+            key, self.grid, lambda: template_from_scan(load(), self.grid, keep_phase=True, **self.bp)
+        )
         if self.cache_status == "hit":
             self.log(f"template scan's image from the cache ({cache.path(key)})")
         if cache.warning:
@@ -135,8 +159,16 @@ class TemplateBuilder(Node):
         g = self.grid
         image = np.asarray(image)
         phase = np.angle(image).astype(np.float32) if np.iscomplexobj(image) else None
-        return TwinTemplate(header=Header(stamp_ns=now_ns(), frame_id="scene"), image=np.abs(image).astype(np.float32),
-                            phase_rad=phase, x_m=g.x_m, y_m=g.y_m, z_m=g.z, kind=kind, source=str(source))
+        return TwinTemplate(
+            header=Header(stamp_ns=now_ns(), frame_id="scene"),
+            image=np.abs(image).astype(np.float32),
+            phase_rad=phase,
+            x_m=g.x_m,
+            y_m=g.y_m,
+            z_m=g.z,
+            kind=kind,
+            source=str(source),
+        )
 
     def on_start(self) -> None:
         if self.msg is not None:
@@ -162,7 +194,9 @@ class TemplateBuilder(Node):
             self.log(f"stereo frame {self.frames}: no reference cloud ({exc}); trying the next frame")
             return
         self.points, self.cloud_info = points, info
-        self.log(f"reference cloud from stereo frame {self.frames}: {points.shape[0]} points ({info['surface']} surface)")
+        self.log(
+            f"reference cloud from stereo frame {self.frames}: {points.shape[0]} points ({info['surface']} surface)"
+        )
 
     def on_measurement(self, m: SarMeasurement) -> None:
         from twinfocus.digital_twin.condition import digital_twin_reference
@@ -202,8 +236,9 @@ def stereo_cloud(frame: StereoFrame, scene_from_left: np.ndarray, reference_roi)
     eye = Intrinsics(float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]), int(w), int(h))
     camera = StereoCamera(eye, eye, np.eye(3), np.array([-float(frame.baseline_m), 0.0, 0.0]), scene_from_left)
     # StereoFrame carries RGB (or grey); the stages take OpenCV's BGR.
-    left, right = (cv2.cvtColor(x, cv2.COLOR_GRAY2BGR if x.ndim == 2 else cv2.COLOR_RGB2BGR)
-                   for x in (frame.left, frame.right))
+    left, right = (
+        cv2.cvtColor(x, cv2.COLOR_GRAY2BGR if x.ndim == 2 else cv2.COLOR_RGB2BGR) for x in (frame.left, frame.right)
+    )
     twin = reference_from_stereo(left, right, camera, box_from_scene_roi(list(reference_roi), camera))
     return twin.points_m, twin.summary()
 

@@ -13,6 +13,7 @@
 Each node runs its normal :meth:`~nodes.node.Node.spin` (start-up handshake, heartbeats,
 sequence checks) in a thread; :func:`running` stops and joins them and fails if one crashed.
 """
+
 from __future__ import annotations
 
 import queue
@@ -41,8 +42,15 @@ class Probe(Node):
 
     NAME = "probe"
 
-    def __init__(self, broker: str, listen: list[str] = (), publish: list[str] = (), wait_for: list[str] = (),
-                 name: str = "probe", **kw):
+    def __init__(
+        self,
+        broker: str,
+        listen: list[str] = (),
+        publish: list[str] = (),
+        wait_for: list[str] = (),
+        name: str = "probe",
+        **kw,
+    ):
         params = {"wait_for": list(wait_for), "heartbeat_s": 0.2, **kw.pop("params", {})}
         super().__init__(name=name, params=params, broker=broker, **kw)
         self.received: dict[str, list] = {t: [] for t in listen}
@@ -137,10 +145,21 @@ def write_driver_messages(writer, radar, vio, data, chirp, array) -> None:
     events += [(int(t) + 20_000_000, "radar/frame", m) for m, t in enumerate(radar.timestamps_ns)]
     for log_t, topic, i in sorted(events):
         if topic == "vio/pose":
-            msg = Pose(header=Header(int(vio.timestamps_ns[i]), i, "scene"), position_m=vio.position_m[i],
-                       quat_xyzw=vio.quat_xyzw[i])
+            msg = Pose(
+                header=Header(int(vio.timestamps_ns[i]), i, "scene"),
+                position_m=vio.position_m[i],
+                quat_xyzw=vio.quat_xyzw[i],
+            )
         else:
-            msg = RadarFrame(header=Header(int(radar.timestamps_ns[i]), i, "radar"), data=data[i], f0_hz=chirp.f0_hz,
-                             slope_hz_per_s=chirp.slope_hz_per_s, fs_hz=chirp.fs_hz, channel_offsets_m=array.offsets_m,
-                             scan_id="run", index=i, last=i == len(radar.timestamps_ns) - 1)
+            msg = RadarFrame(
+                header=Header(int(radar.timestamps_ns[i]), i, "radar"),
+                data=data[i],
+                f0_hz=chirp.f0_hz,
+                slope_hz_per_s=chirp.slope_hz_per_s,
+                fs_hz=chirp.fs_hz,
+                channel_offsets_m=array.offsets_m,
+                scan_id="run",
+                index=i,
+                last=i == len(radar.timestamps_ns) - 1,
+            )
         writer.write(topic, msg, log_time_ns=log_t)

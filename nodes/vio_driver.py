@@ -5,6 +5,7 @@ Backends are listed in :data:`nodes.backends.VIO_BACKENDS` (``sim``: the scene's
 with a ZED-like error model, ``trajectory_file``: TUM / EuRoC files); hardware backends plug in
 there.
 """
+
 from __future__ import annotations
 
 import sys

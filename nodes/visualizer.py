@@ -15,6 +15,7 @@ The page at ``http://HOST:PORT/`` (loopback by default) shows them and refreshes
 ``/state.json`` once a second; each ``<img>`` records ``data-loaded`` and its natural size
 when it has loaded (the browser test reads these).
 """
+
 from __future__ import annotations
 
 import html
@@ -127,7 +128,9 @@ class Visualizer(Node):
         "host": Param("127.0.0.1", "address the web page listens on (loopback by default)", type="str"),
         "port": Param(8765, "port of the web page; 0 = any free port (printed)"),
         "serve": Param(True, "serve the web page"),
-        "exit_after_results": Param(0, "end the node after this many focused scans (images and final result; 0: never)"),
+        "exit_after_results": Param(
+            0, "end the node after this many focused scans (images and final result; 0: never)"
+        ),
         "max_points": Param(20000, "trajectory points kept for the plot"),
     }
 
@@ -187,7 +190,9 @@ class Visualizer(Node):
         try:
             self.server = ThreadingHTTPServer((self.params["host"], int(self.params["port"])), Handler)
         except OSError as exc:
-            raise TwinFocusError(f"node {self.name!r}: cannot serve the page on {self.params['host']}:{self.params['port']} ({exc.strerror})") from None
+            raise TwinFocusError(
+                f"node {self.name!r}: cannot serve the page on {self.params['host']}:{self.params['port']} ({exc.strerror})"
+            ) from None
         self.server.daemon_threads = True
         threading.Thread(target=self.server.serve_forever, name="visualizer-http", daemon=True).start()
         host, port = self.server.server_address[:2]
@@ -197,7 +202,11 @@ class Visualizer(Node):
 
     def page_state(self) -> dict:
         with self.lock:
-            return {"versions": dict(self.versions), "status": self.status + self.gaps_text, "metrics": self.metrics_text}
+            return {
+                "versions": dict(self.versions),
+                "status": self.status + self.gaps_text,
+                "metrics": self.metrics_text,
+            }
 
     def page(self) -> str:
         with self.lock:
@@ -205,9 +214,15 @@ class Visualizer(Node):
             for name, caption in PANELS:
                 v = self.versions.get(name)
                 src = f' src="/{name}.png?v={v}" data-v="{v}"' if v is not None else ""
-                figs.append(f'<figure><img id="{name}" alt="{html.escape(caption)}"{src} onload="loaded(this)">'
-                            f"<figcaption>{html.escape(caption)}</figcaption></figure>")
-            return PAGE.format(status=html.escape(self.status + self.gaps_text), figures="\n".join(figs), metrics=html.escape(self.metrics_text))
+                figs.append(
+                    f'<figure><img id="{name}" alt="{html.escape(caption)}"{src} onload="loaded(this)">'
+                    f"<figcaption>{html.escape(caption)}</figcaption></figure>"
+                )
+            return PAGE.format(
+                status=html.escape(self.status + self.gaps_text),
+                figures="\n".join(figs),
+                metrics=html.escape(self.metrics_text),
+            )
 
     # -- outputs ------------------------------------------------------------------------------
     def _store(self, name: str, png: bytes) -> None:
@@ -235,8 +250,10 @@ class Visualizer(Node):
     def on_radar_frame(self, f) -> None:
         """Show the capture board's lost / zero-filled frames next to the status line."""
         if f.frames_lost or f.frames_zero_filled or f.bytes_lost:
-            text = (f" | capture gaps: {f.frames_lost} frame(s) lost, {f.frames_zero_filled} zero-filled, "
-                    f"{f.bytes_lost} bytes missing")
+            text = (
+                f" | capture gaps: {f.frames_lost} frame(s) lost, {f.frames_zero_filled} zero-filled, "
+                f"{f.bytes_lost} bytes missing"
+            )
             with self.lock:
                 self.gaps_text = text
 
@@ -251,7 +268,9 @@ class Visualizer(Node):
             if len(poses):
                 ax.plot(poses[:, 0] * 1e3, poses[:, 1] * 1e3, lw=0.6, color="0.6", label="tracked poses")
             if len(centres):
-                ax.plot(centres[:, 0] * 1e3, centres[:, 1] * 1e3, ".", ms=2, color="tab:orange", label="radar positions")
+                ax.plot(
+                    centres[:, 0] * 1e3, centres[:, 1] * 1e3, ".", ms=2, color="tab:orange", label="radar positions"
+                )
             ax.set_xlabel("x (mm)")
             ax.set_ylabel("y (mm)")
             ax.invert_yaxis()  # the images' convention: y down

@@ -5,6 +5,7 @@ final :func:`os.replace` is atomic) that is removed when writing fails; an earli
 same name survives a failed run. The temporary file gets the mode a plain ``open()`` would give
 (``mkstemp`` makes it 0600).
 """
+
 from __future__ import annotations
 
 import json

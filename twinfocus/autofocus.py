@@ -14,6 +14,7 @@ Speed: the basis is held as one real matrix [Re B | Im B] (M, 2P) so each iterat
 matrix products over it (forward and gradient); at the paper size (780 x 100 x 100) that is the
 whole cost (see docs/performance.md).
 """
+
 from __future__ import annotations
 
 import functools
@@ -92,11 +93,15 @@ class AutofocusConfig:
         if int(self.projection_iterations) < 1:
             raise TwinFocusError(f"projection_iterations must be >= 1, got {self.projection_iterations}")
         if self.template_registration not in ("none", "correlation"):
-            raise TwinFocusError(f"template_registration must be 'none' or 'correlation', got {self.template_registration!r}")
+            raise TwinFocusError(
+                f"template_registration must be 'none' or 'correlation', got {self.template_registration!r}"
+            )
         if int(self.registration_max_shift_px) < 1:
             raise TwinFocusError(f"registration_max_shift_px must be >= 1, got {self.registration_max_shift_px}")
         if int(self.iterations) < (1 if self.init == "zero" else 0):
-            raise TwinFocusError(f"iterations must be >= 1 (0 only with init 'correlation', 'projection' or 'outline'), got {self.iterations}")
+            raise TwinFocusError(
+                f"iterations must be >= 1 (0 only with init 'correlation', 'projection' or 'outline'), got {self.iterations}"
+            )
         if not self.lr > 0 or not self.lr_min >= 0:
             raise TwinFocusError(f"learning rates must be positive, got lr={self.lr}, lr_min={self.lr_min}")
         if self.precision not in ("float32", "float64"):
@@ -106,8 +111,9 @@ class AutofocusConfig:
         if not (np.isfinite(self.smoothness_weight) and self.smoothness_weight >= 0):
             raise TwinFocusError(f"smoothness_weight must be a non-negative number, got {self.smoothness_weight}")
         if self.loss_steepness is not None and not self.loss_steepness > 0:
-            raise TwinFocusError(f"loss_steepness must be positive, or unset for the estimator's default, "
-                                 f"got {self.loss_steepness}")
+            raise TwinFocusError(
+                f"loss_steepness must be positive, or unset for the estimator's default, got {self.loss_steepness}"
+            )
         if self.basis_dtype not in ("float32", "float16"):
             raise TwinFocusError(f"basis_dtype must be 'float32' or 'float16', got {self.basis_dtype!r}")
 
@@ -307,8 +313,9 @@ def twin_autofocus(
     if cfg.template_registration == "correlation":
         from twinfocus.template_match import register_template
 
-        template, _, extra["registration"] = register_template(basis, template, int(cfg.registration_max_shift_px),
-                                                               scores=registration_scores)
+        template, _, extra["registration"] = register_template(
+            basis, template, int(cfg.registration_max_shift_px), scores=registration_scores
+        )
     if cfg.init == "correlation":
         from twinfocus.template_match import correlation_phase
 
@@ -331,13 +338,17 @@ def twin_autofocus(
         from twinfocus.template_match import outline_phase
 
         if support is None:
-            raise TwinFocusError("the outline estimator needs the reference's outline (a digital twin from a point "
-                                 "cloud gives one: --digital-twin); choose another --estimator for this template")
+            raise TwinFocusError(
+                "the outline estimator needs the reference's outline (a digital twin from a point "
+                "cloud gives one: --digital-twin); choose another --estimator for this template"
+            )
         init_phase_rad, extra["outline"] = outline_phase(basis, support)
     if cfg.init != "zero" and int(cfg.iterations) == 0:
         loss = np.array([template_loss(basis, init_phase_rad, template, cfg)])
         extra["template"] = template
-        return AutofocusResult(init_phase_rad, loss, form_image(basis, init_phase_rad), time.perf_counter() - t0, "twin", extra)
+        return AutofocusResult(
+            init_phase_rad, loss, form_image(basis, init_phase_rad), time.perf_counter() - t0, "twin", extra
+        )
     extra["template"] = template
     import torch
 
@@ -379,7 +390,9 @@ def twin_autofocus(
     return AutofocusResult(phase, np.concatenate(history), form_image(basis, phase), elapsed, "twin", extra)
 
 
-def template_loss(basis: np.ndarray, phase_rad: np.ndarray, template: np.ndarray, config: AutofocusConfig | None = None) -> float:
+def template_loss(
+    basis: np.ndarray, phase_rad: np.ndarray, template: np.ndarray, config: AutofocusConfig | None = None
+) -> float:
     """The optimiser's loss 1 - SSIM(soft(|image(phi)|), soft(|template|)) at one phase (M,)
     radians, in float64 on the CPU: for estimates that do not come from the optimiser."""
     cfg = config or AutofocusConfig()
@@ -433,8 +446,9 @@ def no_correction(basis: np.ndarray) -> AutofocusResult:
     return AutofocusResult(phase, np.zeros(0), form_image(basis, phase), 0.0, "none")
 
 
-def fit_linear_phase(phase_rad: np.ndarray, aperture_m: np.ndarray, max_slope_rad_per_m: float = 80.0,
-                     min_coherence_sqrt_m: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+def fit_linear_phase(
+    phase_rad: np.ndarray, aperture_m: np.ndarray, max_slope_rad_per_m: float = 80.0, min_coherence_sqrt_m: float = 4.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Best constant + linear-in-aperture phase a + b . p fitted to wrapped phases.
 
     A linear phase across the aperture only moves the image (and a constant changes nothing
@@ -500,9 +514,15 @@ RAMP_MODES = ("auto", "remove", "keep")
 MAX_TEMPLATE_OFFSET_M = 3e-3
 
 
-def transfer_phase(phase_rad: np.ndarray, aperture_m: np.ndarray, range_m: float, wavelength_m: float,
-                   mode: str = "auto", registered: bool = False,
-                   max_template_offset_m: float = MAX_TEMPLATE_OFFSET_M) -> tuple[np.ndarray, dict]:
+def transfer_phase(
+    phase_rad: np.ndarray,
+    aperture_m: np.ndarray,
+    range_m: float,
+    wavelength_m: float,
+    mode: str = "auto",
+    registered: bool = False,
+    max_template_offset_m: float = MAX_TEMPLATE_OFFSET_M,
+) -> tuple[np.ndarray, dict]:
     """The phase to apply to the target, and why: the estimate with or without its constant +
     linear-in-aperture ramp (:func:`fit_linear_phase`).
 
@@ -534,12 +554,25 @@ def transfer_phase(phase_rad: np.ndarray, aperture_m: np.ndarray, range_m: float
     elif mode == "keep":
         remove, why = False, "kept on request (the source paper)"
     elif registered:
-        remove, why = False, "kept: the template was registered to the scan, so no misplacement ramp is left in the estimate"
+        remove, why = (
+            False,
+            "kept: the template was registered to the scan, so no misplacement ramp is left in the estimate",
+        )
     elif np.all(np.abs(shift) <= max_template_offset_m):
-        remove, why = True, (f"removed: it moves the image by ({shift[0] * 1e3:+.1f}, {shift[1] * 1e3:+.1f}) mm, "
-                             f"what a template misplaced by up to {max_template_offset_m * 1e3:.0f} mm explains")
+        remove, why = (
+            True,
+            (
+                f"removed: it moves the image by ({shift[0] * 1e3:+.1f}, {shift[1] * 1e3:+.1f}) mm, "
+                f"what a template misplaced by up to {max_template_offset_m * 1e3:.0f} mm explains"
+            ),
+        )
     else:
-        remove, why = False, (f"kept: it moves the image by ({shift[0] * 1e3:+.1f}, {shift[1] * 1e3:+.1f}) mm, more than "
-                              f"a template misplaced by up to {max_template_offset_m * 1e3:.0f} mm explains: tracking error")
+        remove, why = (
+            False,
+            (
+                f"kept: it moves the image by ({shift[0] * 1e3:+.1f}, {shift[1] * 1e3:+.1f}) mm, more than "
+                f"a template misplaced by up to {max_template_offset_m * 1e3:.0f} mm explains: tracking error"
+            ),
+        )
     info.update(removed=bool(remove), reason=why)
     return (np.angle(np.exp(1j * (phi - ramp))) if remove else phi), info

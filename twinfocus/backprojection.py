@@ -18,6 +18,7 @@ term h^2 max|P''| / 8 of the sinc main lobe); tests compare against the brute-fo
 Backends: ``"numba"`` (CPU, JIT-compiled, parallel over positions or pixel blocks) and
 ``"torch"`` (any torch device; the CUDA path). Both compute the same function.
 """
+
 from __future__ import annotations
 
 import math
@@ -44,6 +45,7 @@ except ImportError as exc:  # pragma: no cover
 
 ProgressFn = Callable[[int, int], None]
 
+
 def _kernel_constants(dtype, qmax: float) -> np.ndarray:
     """The constants of :func:`_accumulate_channel` as an array of the arithmetic's dtype: a
     Python float literal in jitted code is float64 and would promote every float32 operation it
@@ -52,7 +54,9 @@ def _kernel_constants(dtype, qmax: float) -> np.ndarray:
 
 
 @njit(inline="always", fastmath=True)
-def _accumulate_channel(tab, ex, ey, ez, px, py, pz, r0, inv_dr, turns_per_m, kc, out_re, out_im, p_lo, p_hi, idx, frac, cos_buf, sin_buf):
+def _accumulate_channel(
+    tab, ex, ey, ez, px, py, pz, r0, inv_dr, turns_per_m, kc, out_re, out_im, p_lo, p_hi, idx, frac, cos_buf, sin_buf
+):
     """Add one channel's matched filter to out[0:p_hi-p_lo] for pixels p_lo..p_hi.
 
     Two passes over the pixel block: distance, interpolation index and carrier (branch-free
@@ -106,8 +110,25 @@ def _basis_kernel(tab, pos, px, py, pz, r0, inv_dr, turns_per_m, kc, out_re, out
         sin_buf = np.empty(n_pix, px.dtype)
         for k in range(n_ch):
             _accumulate_channel(
-                tab[m, k], pos[m, k, 0], pos[m, k, 1], pos[m, k, 2],
-                px, py, pz, r0, inv_dr, turns_per_m, kc, out_re[m], out_im[m], 0, n_pix, idx, frac, cos_buf, sin_buf,
+                tab[m, k],
+                pos[m, k, 0],
+                pos[m, k, 1],
+                pos[m, k, 2],
+                px,
+                py,
+                pz,
+                r0,
+                inv_dr,
+                turns_per_m,
+                kc,
+                out_re[m],
+                out_im[m],
+                0,
+                n_pix,
+                idx,
+                frac,
+                cos_buf,
+                sin_buf,
             )
 
 
@@ -129,8 +150,25 @@ def _image_kernel(tab, pos, px, py, pz, r0, inv_dr, turns_per_m, kc, block, out_
         for m in range(n_pos):
             for k in range(n_ch):
                 _accumulate_channel(
-                    tab[m, k], pos[m, k, 0], pos[m, k, 1], pos[m, k, 2],
-                    px, py, pz, r0, inv_dr, turns_per_m, kc, acc_re, acc_im, lo, hi, idx, frac, cos_buf, sin_buf,
+                    tab[m, k],
+                    pos[m, k, 0],
+                    pos[m, k, 1],
+                    pos[m, k, 2],
+                    px,
+                    py,
+                    pz,
+                    r0,
+                    inv_dr,
+                    turns_per_m,
+                    kc,
+                    acc_re,
+                    acc_im,
+                    lo,
+                    hi,
+                    idx,
+                    frac,
+                    cos_buf,
+                    sin_buf,
                 )
         out_re[lo:hi] = acc_re
         out_im[lo:hi] = acc_im
@@ -196,7 +234,9 @@ def _normalise_precision(precision: str):
     return np.float32 if precision == "float32" else np.float64
 
 
-def _dispatch(numba_impl, data, positions_m, chirp: Chirp, points_m, oversample, precision, backend, device, progress, basis: bool):
+def _dispatch(
+    numba_impl, data, positions_m, chirp: Chirp, points_m, oversample, precision, backend, device, progress, basis: bool
+):
     """What :func:`backproject_points` and :func:`subimage_basis_points` share: convert and check
     the inputs, then run the torch back-end (``basis`` picks image or basis) or
     ``numba_impl(data, pos, pts, dtype, chirp, oversample, progress)`` with positions and points
@@ -247,7 +287,9 @@ def backproject_points(
     -------
     complex64 (P,) sum over positions and channels of the matched filter (unnormalised).
     """
-    return _dispatch(_image_numba, data, positions_m, chirp, points_m, oversample, precision, backend, device, progress, basis=False)
+    return _dispatch(
+        _image_numba, data, positions_m, chirp, points_m, oversample, precision, backend, device, progress, basis=False
+    )
 
 
 def _image_numba(data, pos, pts, dtype, chirp: Chirp, oversample: int, progress: ProgressFn | None) -> np.ndarray:
@@ -264,12 +306,25 @@ def _image_numba(data, pos, pts, dtype, chirp: Chirp, oversample: int, progress:
     chunk = max(1, int(4e6 // max(1, data.shape[1] * chirp.n_samples)))
     for lo in range(0, data.shape[0], chunk):
         hi = min(lo + chunk, data.shape[0])
-        pre, pim, r0, dr = prepare_profiles(data[lo:hi], pos[lo:hi].astype(np.float64), chirp, pts.astype(np.float64), oversample, dtype)
+        pre, pim, r0, dr = prepare_profiles(
+            data[lo:hi], pos[lo:hi].astype(np.float64), chirp, pts.astype(np.float64), oversample, dtype
+        )
         part_re = np.empty_like(out_re)
         part_im = np.empty_like(out_im)
-        _image_kernel(_interpolation_table(pre, pim), pos[lo:hi], pts[:, 0].copy(), pts[:, 1].copy(), pts[:, 2].copy(),
-                      dtype(r0), dtype(1.0 / dr), dtype(turns_per_m(chirp)), _kernel_constants(dtype, pre.shape[2] - 1.0001),
-                      block, part_re, part_im)
+        _image_kernel(
+            _interpolation_table(pre, pim),
+            pos[lo:hi],
+            pts[:, 0].copy(),
+            pts[:, 1].copy(),
+            pts[:, 2].copy(),
+            dtype(r0),
+            dtype(1.0 / dr),
+            dtype(turns_per_m(chirp)),
+            _kernel_constants(dtype, pre.shape[2] - 1.0001),
+            block,
+            part_re,
+            part_im,
+        )
         out_re += part_re
         out_im += part_im
         if progress is not None:
@@ -294,7 +349,9 @@ def subimage_basis_points(
     ``basis.sum(axis=0)`` equals :func:`backproject_points`; the autofocus forms
     |sum_m exp(j phi_m) B_m| from it.
     """
-    return _dispatch(_basis_numba, data, positions_m, chirp, points_m, oversample, precision, backend, device, progress, basis=True)
+    return _dispatch(
+        _basis_numba, data, positions_m, chirp, points_m, oversample, precision, backend, device, progress, basis=True
+    )
 
 
 def _basis_numba(data, pos, pts, dtype, chirp: Chirp, oversample: int, progress: ProgressFn | None) -> np.ndarray:
@@ -305,11 +362,24 @@ def _basis_numba(data, pos, pts, dtype, chirp: Chirp, oversample: int, progress:
     chunk = max(1, int(4e6 // max(1, data.shape[1] * chirp.n_samples)))
     for lo in range(0, n_pos, chunk):
         hi = min(lo + chunk, n_pos)
-        pre, pim, r0, dr = prepare_profiles(data[lo:hi], pos[lo:hi].astype(np.float64), chirp, pts.astype(np.float64), oversample, dtype)
+        pre, pim, r0, dr = prepare_profiles(
+            data[lo:hi], pos[lo:hi].astype(np.float64), chirp, pts.astype(np.float64), oversample, dtype
+        )
         o_re = np.zeros((hi - lo, pts.shape[0]), dtype)
         o_im = np.zeros((hi - lo, pts.shape[0]), dtype)
-        _basis_kernel(_interpolation_table(pre, pim), pos[lo:hi], px, py, pz, dtype(r0), dtype(1.0 / dr), dtype(turns_per_m(chirp)),
-                      _kernel_constants(dtype, pre.shape[2] - 1.0001), o_re, o_im)
+        _basis_kernel(
+            _interpolation_table(pre, pim),
+            pos[lo:hi],
+            px,
+            py,
+            pz,
+            dtype(r0),
+            dtype(1.0 / dr),
+            dtype(turns_per_m(chirp)),
+            _kernel_constants(dtype, pre.shape[2] - 1.0001),
+            o_re,
+            o_im,
+        )
         out[lo:hi].real = o_re
         out[lo:hi].imag = o_im
         if progress is not None:
@@ -331,7 +401,9 @@ def subimage_basis(data, positions_m, chirp: Chirp, grid, **kwargs) -> np.ndarra
     return basis.reshape(basis.shape[0], *grid.shape)
 
 
-def matched_filter_bruteforce(data: np.ndarray, positions_m: np.ndarray, chirp: Chirp, points_m: np.ndarray) -> np.ndarray:
+def matched_filter_bruteforce(
+    data: np.ndarray, positions_m: np.ndarray, chirp: Chirp, points_m: np.ndarray
+) -> np.ndarray:
     """Reference: the full matched-filter sum over positions, channels and samples in float64.
 
     complex128 (P,). Cost M*K*N*P: for tests on small cases only.

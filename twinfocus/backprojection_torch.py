@@ -4,6 +4,7 @@ Same function as the numba kernels: zoomed baseband range profiles, linear inter
 each pixel's range, exact carrier phase relative to the window start. Work is chunked over radar
 positions so peak memory is about ``chunk_elements x P x 40`` bytes.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -9,6 +9,7 @@ is a weighted sum (docs/architecture.md section 1):
 
 Every estimator and the phase transfer use these two; they sit below them (no imports but numpy).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -34,7 +35,7 @@ def form_image_space_variant(basis: np.ndarray, phases_rad: np.ndarray) -> np.nd
         raise TwinFocusError(f"per-pixel phases {ph.shape} must match the basis {b.shape}")
     out = np.zeros(b.shape[1:], np.complex64)
     for i in range(0, b.shape[0], 64):  # bounded temporaries: 64 positions' phasors at a time
-        out += (b[i:i + 64] * np.exp(1j * ph[i:i + 64]).astype(np.complex64)).sum(axis=0)
+        out += (b[i : i + 64] * np.exp(1j * ph[i : i + 64]).astype(np.complex64)).sum(axis=0)
     return out
 
 

@@ -10,6 +10,7 @@ one ``templates/<key>.npz`` per entry (``image`` as computed, ``roi``, ``shape``
 focus --no-cache`` bypasses it. Delete the folder to empty it. Reading and writing fail soft: a
 cache that cannot be written or an unreadable entry is a miss, never an error.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -59,8 +60,14 @@ def template_key(kind: str, inputs: dict, grid: ImageGrid, bp_options: dict) -> 
     (``inputs``: JSON-serialisable), the grid (region and pixels) and the back-projection options.
     The torch device is left out: every back-end computes the same image."""
     bp = {k: v for k, v in sorted(bp_options.items()) if k != "device"}
-    doc = {"version": FORMAT_VERSION, "kind": kind, "inputs": inputs,
-           "roi": [float(v) for v in grid.roi], "shape": list(grid.shape), "bp": bp}
+    doc = {
+        "version": FORMAT_VERSION,
+        "kind": kind,
+        "inputs": inputs,
+        "roi": [float(v) for v in grid.roi],
+        "shape": list(grid.shape),
+        "bp": bp,
+    }
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -70,12 +77,22 @@ def template_scan_key(path: str | os.PathLike, grid: ImageGrid, bp_options: dict
     return template_key("template_scan", {"file_sha256": file_sha256(path), "keep_phase": True}, grid, bp_options)
 
 
-def digital_twin_key(cloud_path: str | os.PathLike, positions_m: np.ndarray, chirp, grid: ImageGrid, bp_options: dict,
-                     method: str = "psf") -> str:
+def digital_twin_key(
+    cloud_path: str | os.PathLike,
+    positions_m: np.ndarray,
+    chirp,
+    grid: ImageGrid,
+    bp_options: dict,
+    method: str = "psf",
+) -> str:
     """Key of a digital twin's template: the cloud file, the scan's aperture (positions (M, K, 3)
     and chirp) it is simulated for, ``grid`` and the options."""
-    inputs = {"cloud_sha256": file_sha256(cloud_path), "positions_sha256": array_sha256(np.asarray(positions_m)),
-              "chirp": [chirp.f0_hz, chirp.slope_hz_per_s, chirp.fs_hz, chirp.n_samples], "method": method}
+    inputs = {
+        "cloud_sha256": file_sha256(cloud_path),
+        "positions_sha256": array_sha256(np.asarray(positions_m)),
+        "chirp": [chirp.f0_hz, chirp.slope_hz_per_s, chirp.fs_hz, chirp.n_samples],
+        "method": method,
+    }
     return template_key("digital_twin", inputs, grid, bp_options)
 
 
@@ -131,8 +148,10 @@ class TemplateCache:
         from twinfocus.scan import save_npz_atomic
 
         try:
-            return save_npz_atomic(self.path(key), {"image": np.asarray(image), "roi": np.asarray(grid.roi, float),
-                                                    "shape": np.asarray(grid.shape)})
+            return save_npz_atomic(
+                self.path(key),
+                {"image": np.asarray(image), "roi": np.asarray(grid.roi, float), "shape": np.asarray(grid.shape)},
+            )
         except OSError as exc:
             self.warning = f"could not write the template cache {self.root} ({exc.strerror or exc})"
             return None

@@ -1,6 +1,7 @@
 """The Dask cluster both ``twinfocus batch`` and ``twinfocus bench --workers/--scheduler`` use:
 the client (a local cluster or an existing scheduler), each worker's thread budget and the one
 loop that hands tasks out and collects them in the order they finish (docs/batch.md)."""
+
 from __future__ import annotations
 
 import contextlib
@@ -58,8 +59,10 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, log=No
             try:
                 client.wait_for_workers(1, timeout=60)
             except TimeoutError:
-                raise TwinFocusError(f"the Dask scheduler at {scheduler} has no workers (start some: "
-                                     f"dask worker {scheduler} --nthreads 1)") from None
+                raise TwinFocusError(
+                    f"the Dask scheduler at {scheduler} has no workers (start some: "
+                    f"dask worker {scheduler} --nthreads 1)"
+                ) from None
             log(f"[batch] scheduler {scheduler}: {len(client.scheduler_info(n_workers=-1)['workers'])} workers")
             yield client
         finally:
@@ -72,8 +75,9 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, log=No
     threads = max(1, cores // n)
     # Set before the worker processes import numba/torch/BLAS: their pools start at these sizes.
     env = {k: str(threads) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")}
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                           silence_logs=logging.ERROR, env=env)
+    cluster = LocalCluster(
+        n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.ERROR, env=env
+    )
     client = Client(cluster)
     log(f"[batch] local cluster: {n} workers x {threads} threads")
     try:
@@ -105,8 +109,14 @@ def run_tasks(client, fn, items: list, keys: list[str], on_result, *, progress=N
         return
     budget = thread_budget(client)
     run_id = uuid.uuid4().hex[:8]
-    futures = client.map(fn, items, [budget] * len(items), *[[e] * len(items) for e in extra],
-                         key=[f"{k}-{run_id}" for k in keys], pure=False)
+    futures = client.map(
+        fn,
+        items,
+        [budget] * len(items),
+        *[[e] * len(items) for e in extra],
+        key=[f"{k}-{run_id}" for k in keys],
+        pure=False,
+    )
     index = {f.key: i for i, f in enumerate(futures)}
     done = 0
     for fut in as_completed(futures):

@@ -2,12 +2,21 @@
 which :class:`~twinfocus.autofocus.AutofocusConfig` fields make each, and which one ``auto``
 takes. Plain Python, so a node can list the choices without importing the numerics.
 """
+
 from __future__ import annotations
 
 from twinfocus.errors import TwinFocusError
 
 #: how the phases are found from the reference (``twinfocus focus --estimator``; docs/beyond.md)
-ESTIMATORS = ("paper", "projection", "projection-refined", "outline", "registered", "correlation", "correlation-refined")
+ESTIMATORS = (
+    "paper",
+    "projection",
+    "projection-refined",
+    "outline",
+    "registered",
+    "correlation",
+    "correlation-refined",
+)
 #: the estimators that need the template's phase (a physical twin's complex image)
 PHASE_ESTIMATORS = ("registered", "correlation", "correlation-refined")
 
@@ -34,8 +43,13 @@ def auto_estimator(has_phase: bool, tracking_error_m: float, wavelength_m: float
     return "projection" if tracking_error_m <= wavelength_m / 4.0 else "projection-refined"
 
 
-def estimator_settings(estimator: str, has_phase: bool, tracking_error_m: float | None = None,
-                       wavelength_m: float | None = None, has_support: bool = False) -> dict:
+def estimator_settings(
+    estimator: str,
+    has_phase: bool,
+    tracking_error_m: float | None = None,
+    wavelength_m: float | None = None,
+    has_support: bool = False,
+) -> dict:
     """The :class:`~twinfocus.autofocus.AutofocusConfig` fields that make a named estimator
     (``iterations`` only where it is 0: no optimiser); ``loss_steepness`` is the default for
     it, which an explicit choice overrides. ``"auto"`` is resolved by :func:`auto_estimator`
@@ -48,18 +62,27 @@ def estimator_settings(estimator: str, has_phase: bool, tracking_error_m: float 
     if estimator not in ESTIMATORS:
         raise TwinFocusError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
     if estimator in PHASE_ESTIMATORS and not has_phase:
-        raise TwinFocusError(f"--estimator {estimator} needs the template's phase: use --template-scan or a template "
-                             "file with phase_rad (a digital twin's template has none; use --estimator projection, "
-                             "projection-refined or paper)")
+        raise TwinFocusError(
+            f"--estimator {estimator} needs the template's phase: use --template-scan or a template "
+            "file with phase_rad (a digital twin's template has none; use --estimator projection, "
+            "projection-refined or paper)"
+        )
     if estimator == "outline" and not has_support:
-        raise TwinFocusError("--estimator outline needs the reference's outline: a digital twin from a point cloud "
-                             "(--digital-twin) gives one")
-    out = {"template_registration": "correlation" if has_phase and estimator not in ("paper", "outline") else "none",
-           "init": (estimator.removesuffix("-refined") if estimator.startswith(("correlation", "projection", "outline"))
-                    else "zero"),
-           # a steeper threshold inside the loss lets a smooth amplitude template match a speckled
-           # reference by its outline (docs/evaluation.md)
-           "loss_steepness": 5.0 if estimator in ("paper", "projection", "projection-refined") else None}
+        raise TwinFocusError(
+            "--estimator outline needs the reference's outline: a digital twin from a point cloud "
+            "(--digital-twin) gives one"
+        )
+    out = {
+        "template_registration": "correlation" if has_phase and estimator not in ("paper", "outline") else "none",
+        "init": (
+            estimator.removesuffix("-refined")
+            if estimator.startswith(("correlation", "projection", "outline"))
+            else "zero"
+        ),
+        # a steeper threshold inside the loss lets a smooth amplitude template match a speckled
+        # reference by its outline (docs/evaluation.md)
+        "loss_steepness": 5.0 if estimator in ("paper", "projection", "projection-refined") else None,
+    }
     if estimator in ("correlation", "projection", "outline"):
         out["iterations"] = 0
     return out

@@ -3,6 +3,7 @@
 Pixel [i, j] of an :class:`ImageGrid` sits at x = linspace(X0, X1, W)[j],
 y = linspace(Y0, Y1, H)[i], z = Z (docs/architecture.md section 4).
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -94,7 +95,9 @@ class VolumeGrid:
 
     def __post_init__(self) -> None:
         if int(self.depth) < 1 or not (self.z1 >= self.z0 > 0):
-            raise TwinFocusError(f"volume needs 0 < z0 <= z1 and depth >= 1, got z [{self.z0}, {self.z1}] x {self.depth}")
+            raise TwinFocusError(
+                f"volume needs 0 < z0 <= z1 and depth >= 1, got z [{self.z0}, {self.z1}] x {self.depth}"
+            )
 
     @property
     def shape(self) -> tuple[int, int, int]:

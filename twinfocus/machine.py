@@ -1,4 +1,5 @@
 """Where the numbers were measured: written beside every benchmark and evaluation result."""
+
 from __future__ import annotations
 
 import os

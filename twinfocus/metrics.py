@@ -7,6 +7,7 @@ reference MATLAB code and ``skimage.metrics.structural_similarity(gaussian_weigh
 sigma=1.5, use_sample_covariance=False)``. Images smaller than 11 pixels use the largest odd
 window that fits (same sigma).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -143,7 +144,9 @@ def entropy(intensity: np.ndarray) -> float:
     return float(-(p * np.log(p)).sum())
 
 
-def oracle_phase(positions_true_m: np.ndarray, positions_m: np.ndarray, point_m: np.ndarray, chirp: Chirp) -> np.ndarray:
+def oracle_phase(
+    positions_true_m: np.ndarray, positions_m: np.ndarray, point_m: np.ndarray, chirp: Chirp
+) -> np.ndarray:
     """The per-position phase correction that is exact at ``point_m``: float64 (M,) radians.
 
     phi_m = angle( sum_k exp(-j 4 pi fc (R_true_mk - R_tracked_mk) / c) ), the correction that
@@ -165,7 +168,9 @@ def phase_error_rms(estimate_rad: np.ndarray, truth_rad: np.ndarray) -> float:
     return float(np.sqrt((d**2).mean()))
 
 
-def transfer_bound_rad(positions_m: np.ndarray, reference_m: np.ndarray, target_m: np.ndarray, wavelength_m: float, tracking_error_m: float) -> np.ndarray:
+def transfer_bound_rad(
+    positions_m: np.ndarray, reference_m: np.ndarray, target_m: np.ndarray, wavelength_m: float, tracking_error_m: float
+) -> np.ndarray:
     """First-order bound on the phase-error difference between reference and target (paper eq. 7).
 
     |dphi_ref - dphi_tgt| <= (4 pi / lambda) |u_ref - u_tgt| |dp| per radar position, with u the

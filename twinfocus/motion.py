@@ -22,6 +22,7 @@ Models
 :func:`draw_errors` picks a model by name (:data:`ERROR_MODELS`) for the simulator, the node
 graph's sim backends and the evaluation alike.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -184,8 +185,14 @@ def hand_errors(
 ERROR_MODELS = ("gaussian", "drift", "vio", "hand", "none")
 
 
-def draw_errors(model: str, timestamps_ns, sigma_m=PAPER_SIGMA_M, rng: np.random.Generator | int | None = None,
-                correlation_time_s: float = 2.0, rotation_sigma_rad: float = HAND_ROTATION_SIGMA_RAD) -> tuple[np.ndarray, np.ndarray]:
+def draw_errors(
+    model: str,
+    timestamps_ns,
+    sigma_m=PAPER_SIGMA_M,
+    rng: np.random.Generator | int | None = None,
+    correlation_time_s: float = 2.0,
+    rotation_sigma_rad: float = HAND_ROTATION_SIGMA_RAD,
+) -> tuple[np.ndarray, np.ndarray]:
     """One draw of a named error model: (translation float64 (M, 3) metres, rotation float64 (M, 3)
     radians; zeros for the models without rotation).
 
@@ -210,7 +217,9 @@ def draw_errors(model: str, timestamps_ns, sigma_m=PAPER_SIGMA_M, rng: np.random
     raise TwinFocusError(f"unknown error model {model!r}; use one of {', '.join(ERROR_MODELS)}")
 
 
-def apply_pose_errors(centres_m: np.ndarray, translation_m: np.ndarray, rotation_rad: np.ndarray | None = None) -> np.ndarray:
+def apply_pose_errors(
+    centres_m: np.ndarray, translation_m: np.ndarray, rotation_rad: np.ndarray | None = None
+) -> np.ndarray:
     """Tracked phase centres of a rigid array moved by a small pose error per radar position.
 
     Channel k of position m moves by t_m + r_m x (c_mk - cbar_m): a translation shared by the K

@@ -8,6 +8,7 @@ elsewhere (the solver node builds them batch by batch as measurements arrive).
 3. autofocus: phase per radar position from the reference (or sharpness of the target);
 4. phase transfer to the target, metrics against the truth when the scan carries it.
 """
+
 from __future__ import annotations
 
 import json
@@ -100,7 +101,9 @@ def focus_scan(
     timings: dict[str, float] = {}
 
     t = time.perf_counter()
-    ref_basis = subimage_basis(scan.data, scan.positions, scan.chirp, reference_grid, progress=prog("reference basis"), **bp)
+    ref_basis = subimage_basis(
+        scan.data, scan.positions, scan.chirp, reference_grid, progress=prog("reference basis"), **bp
+    )
     timings["reference_basis"] = time.perf_counter() - t
     # Fail before the second back-projection, not after it (focus_bases checks these again).
     check_has_signal(ref_basis.sum(axis=0), "the reference region")
@@ -114,15 +117,33 @@ def focus_scan(
     truth_tgt = truth_ref = None
     if scan.positions_true is not None:
         t = time.perf_counter()
-        truth_tgt = backproject(scan.data, scan.positions_true, scan.chirp, target_grid, progress=prog("target truth"), **bp)
-        truth_ref = backproject(scan.data, scan.positions_true, scan.chirp, reference_grid, progress=prog("reference truth"), **bp)
+        truth_tgt = backproject(
+            scan.data, scan.positions_true, scan.chirp, target_grid, progress=prog("target truth"), **bp
+        )
+        truth_ref = backproject(
+            scan.data, scan.positions_true, scan.chirp, reference_grid, progress=prog("reference truth"), **bp
+        )
         truth_time = time.perf_counter() - t
 
     out = focus_bases(
-        ref_basis, tgt_basis, scan.positions, scan.chirp, reference_grid, target_grid,
-        template=template, support=support, method=method, config=config, bp_options=bp, progress_factory=progress_factory,
-        phase_ramp=phase_ramp, space_variant=space_variant, tracking_error_m=tracking_error_m,
-        truth_target=truth_tgt, truth_reference=truth_ref, positions_true=scan.positions_true,
+        ref_basis,
+        tgt_basis,
+        scan.positions,
+        scan.chirp,
+        reference_grid,
+        target_grid,
+        template=template,
+        support=support,
+        method=method,
+        config=config,
+        bp_options=bp,
+        progress_factory=progress_factory,
+        phase_ramp=phase_ramp,
+        space_variant=space_variant,
+        tracking_error_m=tracking_error_m,
+        truth_target=truth_tgt,
+        truth_reference=truth_ref,
+        positions_true=scan.positions_true,
     )
     timings.update(out.timings_s)
     if truth_tgt is not None:
@@ -208,8 +229,14 @@ def focus_bases(
 
     t = time.perf_counter()
     if method == "twin":
-        result: AutofocusResult = twin_autofocus(ref_basis, template, cfg, progress=prog("autofocus"), support=support,
-                                                 registration_scores=registration_scores)
+        result: AutofocusResult = twin_autofocus(
+            ref_basis,
+            template,
+            cfg,
+            progress=prog("autofocus"),
+            support=support,
+            registration_scores=registration_scores,
+        )
     elif method == "sharpness":
         result = sharpness_autofocus(tgt_basis, cfg, progress=prog("sharpness autofocus"))
     else:
@@ -219,9 +246,15 @@ def focus_bases(
     phase = result.phase_rad
     m: dict = {"method": method, "n_positions": int(positions.shape[0]), "n_channels": int(positions.shape[1])}
     if method == "twin":
-        m["estimator"] = {"init": cfg.init, "template_registration": cfg.template_registration, "iterations": int(cfg.iterations)}
+        m["estimator"] = {
+            "init": cfg.init,
+            "template_registration": cfg.template_registration,
+            "iterations": int(cfg.iterations),
+        }
         if cfg.init == "projection":
-            m["estimator"].update(projection_iterations=int(cfg.projection_iterations), projection_restarts=int(cfg.projection_restarts))
+            m["estimator"].update(
+                projection_iterations=int(cfg.projection_iterations), projection_restarts=int(cfg.projection_restarts)
+            )
         for knob in ("coarse_iterations", "smoothness_weight"):
             if getattr(cfg, knob):
                 m["estimator"][knob] = getattr(cfg, knob)
@@ -236,15 +269,29 @@ def focus_bases(
     if method != "none":
         aperture = positions.mean(axis=1)
         phase, m["phase_ramp"] = transfer_phase(
-            phase, aperture[:, :2], float(reference_grid.z - aperture[:, 2].mean()), chirp.wavelength_m, phase_ramp,
-            registered="registration" in result.extra)
+            phase,
+            aperture[:, :2],
+            float(reference_grid.z - aperture[:, 2].mean()),
+            chirp.wavelength_m,
+            phase_ramp,
+            registered="registration" in result.extra,
+        )
         m["phase_ramp_removed"] = m["phase_ramp"]["removed"]
     drift = None
     if method == "twin":
         t = time.perf_counter()
-        sv = _space_variant(ref_basis, template, phase, positions, chirp, reference_grid, space_variant,
-                            registered="registration" in result.extra, ramp_removed=bool(m["phase_ramp"]["removed"]),
-                            progress=prog("space-variant fit"))
+        sv = _space_variant(
+            ref_basis,
+            template,
+            phase,
+            positions,
+            chirp,
+            reference_grid,
+            space_variant,
+            registered="registration" in result.extra,
+            ramp_removed=bool(m["phase_ramp"]["removed"]),
+            progress=prog("space-variant fit"),
+        )
         m["space_variant"] = sv.pop("info")
         if sv:
             timings["space_variant"] = time.perf_counter() - t
@@ -256,10 +303,12 @@ def focus_bases(
         from twinfocus.space_variant import lines_of_sight, pixel_phases
 
         centres = positions.mean(axis=1)
-        ref_cor = form_image_space_variant(ref_basis, pixel_phases(phase, drift, reference_grid.centre_m, centres,
-                                                                   reference_grid, chirp.wavelength_m))
-        tgt_cor = form_image_space_variant(tgt_basis, pixel_phases(phase, drift, reference_grid.centre_m, centres,
-                                                                   target_grid, chirp.wavelength_m))
+        ref_cor = form_image_space_variant(
+            ref_basis, pixel_phases(phase, drift, reference_grid.centre_m, centres, reference_grid, chirp.wavelength_m)
+        )
+        tgt_cor = form_image_space_variant(
+            tgt_basis, pixel_phases(phase, drift, reference_grid.centre_m, centres, target_grid, chirp.wavelength_m)
+        )
         # the scalar phase nearest to what the target got: the per-pixel phase at its centre
         k = 4.0 * np.pi / chirp.wavelength_m
         du = lines_of_sight(centres, target_grid.centre_m) - lines_of_sight(centres, reference_grid.centre_m)
@@ -268,8 +317,12 @@ def focus_bases(
 
     if template is not None:
         tpl_disp = metrics.display_image(template, centre, steep)
-        m["reference_ssim_vs_template_uncorrected"] = metrics.ssim(metrics.display_image(ref_unc, centre, steep), tpl_disp)
-        m["reference_ssim_vs_template_corrected"] = metrics.ssim(metrics.display_image(ref_cor, centre, steep), tpl_disp)
+        m["reference_ssim_vs_template_uncorrected"] = metrics.ssim(
+            metrics.display_image(ref_unc, centre, steep), tpl_disp
+        )
+        m["reference_ssim_vs_template_corrected"] = metrics.ssim(
+            metrics.display_image(ref_cor, centre, steep), tpl_disp
+        )
         if np.iscomplexobj(template):
             m["reference_residual"] = 1.0 - _complex_match(ref_cor, template)
     out = FocusOutputs(
@@ -290,13 +343,23 @@ def focus_bases(
     )
     m["confidence"] = confidence_report(m, positions, chirp, reference_grid, target_grid, tracking_error_m)
     if truth_target is not None and truth_reference is not None and positions_true is not None:
-        add_truth_metrics(out, tgt_basis, positions, chirp, truth_target, truth_reference, positions_true, centre, steep)
+        add_truth_metrics(
+            out, tgt_basis, positions, chirp, truth_target, truth_reference, positions_true, centre, steep
+        )
     return out
 
 
-def add_truth_metrics(out: FocusOutputs, tgt_basis: np.ndarray, positions: np.ndarray, chirp: Chirp,
-                      truth_target: np.ndarray, truth_reference: np.ndarray, positions_true: np.ndarray,
-                      centre: float, steepness: float) -> None:
+def add_truth_metrics(
+    out: FocusOutputs,
+    tgt_basis: np.ndarray,
+    positions: np.ndarray,
+    chirp: Chirp,
+    truth_target: np.ndarray,
+    truth_reference: np.ndarray,
+    positions_true: np.ndarray,
+    centre: float,
+    steepness: float,
+) -> None:
     """The metrics against the truth, into ``out.metrics`` (and the truth images and oracle phase
     into ``out``): SSIMs of the target and reference against the images formed on the true
     positions, the oracle-phase ceiling at the target's centre and the phase error against it.
@@ -310,7 +373,9 @@ def add_truth_metrics(out: FocusOutputs, tgt_basis: np.ndarray, positions: np.nd
     out.phase_oracle_rad = metrics.oracle_phase(positions_true, positions, out.target_grid.centre_m, chirp)
     m["target_ssim_uncorrected"] = metrics.image_ssim(out.target_uncorrected, truth_target, centre, steepness)
     m["target_ssim_corrected"] = metrics.image_ssim(out.target, truth_target, centre, steepness)
-    m["target_ssim_oracle_phase"] = metrics.image_ssim(form_image(tgt_basis, out.phase_oracle_rad), truth_target, centre, steepness)
+    m["target_ssim_oracle_phase"] = metrics.image_ssim(
+        form_image(tgt_basis, out.phase_oracle_rad), truth_target, centre, steepness
+    )
     m["reference_ssim_uncorrected"] = metrics.image_ssim(out.reference_uncorrected, truth_reference, centre, steepness)
     m["reference_ssim_corrected"] = metrics.image_ssim(out.reference, truth_reference, centre, steepness)
     m["phase_error_rms_rad_vs_oracle"] = metrics.phase_error_rms(out.phase_rad, out.phase_oracle_rad)
@@ -327,9 +392,18 @@ SPACE_VARIANT_MIN_GAIN = 0.3
 SPACE_VARIANT_MODES = ("auto", "on", "off")
 
 
-def _space_variant(ref_basis: np.ndarray, template: np.ndarray | None, phase: np.ndarray, positions: np.ndarray,
-                   chirp: Chirp, grid: ImageGrid, mode: str, registered: bool, ramp_removed: bool,
-                   progress=None) -> dict:
+def _space_variant(
+    ref_basis: np.ndarray,
+    template: np.ndarray | None,
+    phase: np.ndarray,
+    positions: np.ndarray,
+    chirp: Chirp,
+    grid: ImageGrid,
+    mode: str,
+    registered: bool,
+    ramp_removed: bool,
+    progress=None,
+) -> dict:
     """The space-variant step of :func:`focus_bases`: {"info": what was done and why} plus, when
     it is used, "phase" (M,) and "drift" (M, 3)."""
     if mode not in SPACE_VARIANT_MODES:
@@ -349,23 +423,44 @@ def _space_variant(ref_basis: np.ndarray, template: np.ndarray | None, phase: np
     residual = 1.0 - _complex_match(form_image(ref_basis, phase), template)
     info["residual_scalar"] = residual
     if mode == "auto" and residual <= SPACE_VARIANT_MIN_RESIDUAL:
-        return {"info": {**info, "reason": f"not needed: the scalar phase leaves {residual:.4f} of the reference "
-                                           f"unmatched (<= {SPACE_VARIANT_MIN_RESIDUAL})"}}
+        return {
+            "info": {
+                **info,
+                "reason": f"not needed: the scalar phase leaves {residual:.4f} of the reference "
+                f"unmatched (<= {SPACE_VARIANT_MIN_RESIDUAL})",
+            }
+        }
     from twinfocus.space_variant import fit_smooth_drift  # torch and scipy: only on this path
 
-    new_phase, drift, fit = fit_smooth_drift(ref_basis, template, phase, positions.mean(axis=1), grid,
-                                             chirp.wavelength_m, progress=progress)
+    new_phase, drift, fit = fit_smooth_drift(
+        ref_basis, template, phase, positions.mean(axis=1), grid, chirp.wavelength_m, progress=progress
+    )
     after = 1.0 - fit["match_after"]
-    info.update(residual_space_variant=after, knot_spacing_positions=fit["knot_spacing_positions"],
-                iterations=fit["iterations"], time_s=fit["time_s"],
-                drift_rms_mm=[float(v) for v in np.sqrt((drift[:, :2] ** 2).mean(axis=0)) * 1e3])
+    info.update(
+        residual_space_variant=after,
+        knot_spacing_positions=fit["knot_spacing_positions"],
+        iterations=fit["iterations"],
+        time_s=fit["time_s"],
+        drift_rms_mm=[float(v) for v in np.sqrt((drift[:, :2] ** 2).mean(axis=0)) * 1e3],
+    )
     gain = 1.0 - after / residual if residual > 0 else 0.0
     if mode == "auto" and gain < SPACE_VARIANT_MIN_GAIN:
-        return {"info": {**info, "reason": f"fitted but not kept: it took away {gain:.0%} of the unmatched reference "
-                                           f"(< {SPACE_VARIANT_MIN_GAIN:.0%}); the error is not a smooth drift"}}
-    info.update(used=True, reason=("on request" if mode == "on" else
-                                   f"the scalar phase left {residual:.4f} of the reference unmatched; a smooth "
-                                   f"drift takes away {gain:.0%} of it"))
+        return {
+            "info": {
+                **info,
+                "reason": f"fitted but not kept: it took away {gain:.0%} of the unmatched reference "
+                f"(< {SPACE_VARIANT_MIN_GAIN:.0%}); the error is not a smooth drift",
+            }
+        }
+    info.update(
+        used=True,
+        reason=(
+            "on request"
+            if mode == "on"
+            else f"the scalar phase left {residual:.4f} of the reference unmatched; a smooth "
+            f"drift takes away {gain:.0%} of it"
+        ),
+    )
     return {"info": info, "phase": new_phase, "drift": drift}
 
 
@@ -388,19 +483,35 @@ MIN_REFERENCE_MATCH_PHYSICAL = 0.95
 MAX_REFERENCE_RESIDUAL = 0.01
 
 
-def confidence_report(m: dict, positions: np.ndarray, chirp: Chirp, reference_grid: ImageGrid, target_grid: ImageGrid,
-                      tracking_error_m: float) -> dict:
+def confidence_report(
+    m: dict,
+    positions: np.ndarray,
+    chirp: Chirp,
+    reference_grid: ImageGrid,
+    target_grid: ImageGrid,
+    tracking_error_m: float,
+) -> dict:
     """How far to trust the correction of this scan: the reference match, the first-order
     transfer bound for this geometry (paper eq. 7) and warnings when either is poor.
 
     m : the metrics so far (reads ``reference_ssim_vs_template_corrected``); positions : float64
     (M, K, 3) phase centres, metres."""
-    bound = metrics.transfer_bound_rad(positions, reference_grid.centre_m, target_grid.centre_m,
-                                       chirp.wavelength_m, tracking_error_m)
+    bound = metrics.transfer_bound_rad(
+        positions, reference_grid.centre_m, target_grid.centre_m, chirp.wavelength_m, tracking_error_m
+    )
     centre = positions.reshape(-1, 3).mean(axis=0)
-    sep = np.degrees(np.arccos(np.clip(np.dot(
-        (reference_grid.centre_m - centre) / np.linalg.norm(reference_grid.centre_m - centre),
-        (target_grid.centre_m - centre) / np.linalg.norm(target_grid.centre_m - centre)), -1, 1)))
+    sep = np.degrees(
+        np.arccos(
+            np.clip(
+                np.dot(
+                    (reference_grid.centre_m - centre) / np.linalg.norm(reference_grid.centre_m - centre),
+                    (target_grid.centre_m - centre) / np.linalg.norm(target_grid.centre_m - centre),
+                ),
+                -1,
+                1,
+            )
+        )
+    )
     out = {
         "separation_deg": float(sep),
         "tracking_error_m_assumed": float(tracking_error_m),

@@ -5,6 +5,7 @@
 phase) use matplotlib, whose import and drawing cost ~1 s, and are written on request
 (``--pictures all``).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -18,15 +19,17 @@ PICTURES = ("summary", "all", "none")
 
 # matplotlib's "inferno" as a degree-6 polynomial per channel (within 0.034 of the table, checked
 # by tests/test_pictures.py), so the summary needs no matplotlib.
-_INFERNO = np.array([
-    [0.0002189403691192265, 0.001651004631001012, -0.01948089843709184],
-    [0.1065134194856116, 0.5639564367884091, 3.932712388889277],
-    [11.60249308247187, -3.972853965665698, -15.9423941062914],
-    [-41.70399613139459, 17.43639888205313, 44.35414519872813],
-    [77.162935699427, -33.40235894210092, -81.80730925738993],
-    [-71.31942824499214, 32.62606426397723, 73.20951985803202],
-    [25.13112622477341, -12.24266895238567, -23.07032500287172],
-])
+_INFERNO = np.array(
+    [
+        [0.0002189403691192265, 0.001651004631001012, -0.01948089843709184],
+        [0.1065134194856116, 0.5639564367884091, 3.932712388889277],
+        [11.60249308247187, -3.972853965665698, -15.9423941062914],
+        [-41.70399613139459, 17.43639888205313, 44.35414519872813],
+        [77.162935699427, -33.40235894210092, -81.80730925738993],
+        [-71.31942824499214, 32.62606426397723, 73.20951985803202],
+        [25.13112622477341, -12.24266895238567, -23.07032500287172],
+    ]
+)
 
 
 def inferno(t: np.ndarray) -> np.ndarray:
@@ -92,11 +95,15 @@ def write_summary_png(path: str | Path, panels: list[tuple[np.ndarray, ImageGrid
         w_m, h_m = grid.x1 - grid.x0, grid.y1 - grid.y0
         scale = panel_px / max(w_m, h_m)
         size = (max(1, round(w_m * scale)), max(1, round(h_m * scale)))
-        tile = Image.fromarray((inferno(amp) * 255 + 0.5).astype(np.uint8), "RGB").resize(size, Image.Resampling.BILINEAR)
+        tile = Image.fromarray((inferno(amp) * 255 + 0.5).astype(np.uint8), "RGB").resize(
+            size, Image.Resampling.BILINEAR
+        )
         x0 = (n % cols) * cell_w + pad + (panel_px - size[0]) // 2
         y0 = (n // cols) * cell_h + head
         canvas.paste(tile, (x0, y0))
-        draw.multiline_text(((n % cols) * cell_w + pad, (n // cols) * cell_h + 4), title, fill="black", font=title_font, spacing=2)
+        draw.multiline_text(
+            ((n % cols) * cell_w + pad, (n // cols) * cell_h + 4), title, fill="black", font=title_font, spacing=2
+        )
         extent = f"x {grid.x0 * 1e3:.0f}..{grid.x1 * 1e3:.0f} mm, y {grid.y0 * 1e3:.0f}..{grid.y1 * 1e3:.0f} mm, z {grid.z * 1e3:.0f} mm"
         draw.text(((n % cols) * cell_w + pad, y0 + size[1] + 3), extent, fill="dimgray", font=small)
     canvas.save(path, optimize=False)
@@ -117,7 +124,12 @@ def _show(ax, image: np.ndarray, grid: ImageGrid, title: str) -> None:
 def save_image_png(path: str | Path, image: np.ndarray, grid: ImageGrid, title: str) -> None:
     """One amplitude image (max-normalised) with axes in millimetres (matplotlib)."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(4, 4 * grid.height / grid.width * (grid.y1 - grid.y0) / (grid.x1 - grid.x0) * grid.width / grid.height + 0.6))
+    fig, ax = plt.subplots(
+        figsize=(
+            4,
+            4 * grid.height / grid.width * (grid.y1 - grid.y0) / (grid.x1 - grid.x0) * grid.width / grid.height + 0.6,
+        )
+    )
     _show(ax, image, grid, title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

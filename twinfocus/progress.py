@@ -1,4 +1,5 @@
 """Progress lines on stderr for long work (a bar on a terminal, a line every 10 % otherwise)."""
+
 from __future__ import annotations
 
 import sys

@@ -8,6 +8,7 @@ centre at distance R_j from scatterer j the IF sample n is
 with f0 the frequency of the first ADC sample and S the chirp slope. Range compression and
 back-projection are matched filters of exactly this model.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

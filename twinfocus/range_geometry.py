@@ -11,6 +11,7 @@ Note: numba's on-disk cache (``cache=True``) of a kernel that inlines :func:`cis
 on the kernel's own file, not this one: after editing this module, clear the ``__pycache__``
 ``*.nbi``/``*.nbc`` files of :mod:`twinfocus.backprojection` and :mod:`twinfocus.simulate`.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -40,8 +41,14 @@ def cis_turns(t):
     """
     r = t - int(t + 0.5)
     r2 = r * r
-    s = r * (_SIN_C[0] + r2 * (_SIN_C[1] + r2 * (_SIN_C[2] + r2 * (_SIN_C[3] + r2 * (_SIN_C[4] + r2 * (_SIN_C[5] + r2 * _SIN_C[6]))))))
-    c = _COS_C[0] + r2 * (_COS_C[1] + r2 * (_COS_C[2] + r2 * (_COS_C[3] + r2 * (_COS_C[4] + r2 * (_COS_C[5] + r2 * (_COS_C[6] + r2 * _COS_C[7]))))))
+    s = r * (
+        _SIN_C[0]
+        + r2 * (_SIN_C[1] + r2 * (_SIN_C[2] + r2 * (_SIN_C[3] + r2 * (_SIN_C[4] + r2 * (_SIN_C[5] + r2 * _SIN_C[6])))))
+    )
+    c = _COS_C[0] + r2 * (
+        _COS_C[1]
+        + r2 * (_COS_C[2] + r2 * (_COS_C[3] + r2 * (_COS_C[4] + r2 * (_COS_C[5] + r2 * (_COS_C[6] + r2 * _COS_C[7])))))
+    )
     return c, s
 
 

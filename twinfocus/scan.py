@@ -7,6 +7,7 @@ Keys of the scan file:
     positions_true  float64   (M, K, 3)  optional ground truth
     timestamps_ns   int64     (M,)       optional capture times
 """
+
 from __future__ import annotations
 
 import os
@@ -163,7 +164,11 @@ def peek_npz_shapes(path: str | os.PathLike) -> dict[str, tuple[int, ...]]:
                     continue
                 with zf.open(name) as f:
                     version = np.lib.format.read_magic(f)
-                    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                    read = (
+                        np.lib.format.read_array_header_1_0
+                        if version == (1, 0)
+                        else np.lib.format.read_array_header_2_0
+                    )
                     shape, _, _ = read(f)
                 shapes[name[:-4]] = tuple(shape)
         return shapes

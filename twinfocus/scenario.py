@@ -12,6 +12,7 @@ node graph (``nodes/sim_backends.py``, each in its own process, the radar a bloc
 a time) draw exactly the scan :func:`simulate_scenario` draws: ``twinfocus launch sim`` and
 ``twinfocus simulate`` agree for one seed (tests/test_graph_offline.py).
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
@@ -81,15 +82,25 @@ class Scenario:
 
     def scene(self) -> Scene:
         scene = paper_scene(
-            reference=self.reference, target=self.target, distance_m=self.distance_m,
-            separation_deg=self.separation_deg, height_m=self.height_m,
-            reference_material=self.reference_material, target_material=self.target_material,
-            occluder=self.occluder, clutter=self.clutter,
+            reference=self.reference,
+            target=self.target,
+            distance_m=self.distance_m,
+            separation_deg=self.separation_deg,
+            height_m=self.height_m,
+            reference_material=self.reference_material,
+            target_material=self.target_material,
+            occluder=self.occluder,
+            clutter=self.clutter,
         )
         if self.target_height_m is not None and self.target_height_m != self.height_m:
-            bigger = paper_scene(reference=self.reference, target=self.target, distance_m=self.distance_m,
-                                 separation_deg=self.separation_deg, height_m=self.target_height_m,
-                                 target_material=self.target_material)
+            bigger = paper_scene(
+                reference=self.reference,
+                target=self.target,
+                distance_m=self.distance_m,
+                separation_deg=self.separation_deg,
+                height_m=self.target_height_m,
+                target_material=self.target_material,
+            )
             scene.objects[1] = bigger.object("target")
         return _field_like(scene, self)
 
@@ -155,13 +166,19 @@ def scenario_poses(sc: Scenario, frame_period_s: float = 0.1, t0_ns: int = 0) ->
     if sc.trajectory == "raster":
         return paper_raster(sc.n_columns, sc.n_rows, frame_period_s=frame_period_s, t0_ns=t0_ns)
     if sc.trajectory == "zigzag":
-        return handheld_zigzag(sc.n_columns, sc.n_rows, frame_period_s=frame_period_s,
-                               rng=scenario_stream(sc, TRAJECTORY_STREAM), t0_ns=t0_ns)
+        return handheld_zigzag(
+            sc.n_columns,
+            sc.n_rows,
+            frame_period_s=frame_period_s,
+            rng=scenario_stream(sc, TRAJECTORY_STREAM),
+            t0_ns=t0_ns,
+        )
     raise TwinFocusError(f"unknown trajectory {sc.trajectory!r}; use 'raster' or 'zigzag'")
 
 
-def scenario_positions(sc: Scenario, rng: np.random.Generator | None = None, frame_period_s: float = 0.1,
-                       t0_ns: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def scenario_positions(
+    sc: Scenario, rng: np.random.Generator | None = None, frame_period_s: float = 0.1, t0_ns: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(true phase centres (M, K, 3), tracked phase centres (M, K, 3), timestamps_ns (M,)).
 
     rng : the tracking error's draws (default: the scenario's tracking stream)."""
@@ -169,8 +186,14 @@ def scenario_positions(sc: Scenario, rng: np.random.Generator | None = None, fra
     if rng is None:
         rng = scenario_stream(sc, TRACKING_STREAM)
     true = phase_centres(poses, mmwcas_virtual_array())
-    shift, turn = draw_errors(sc.error_model, poses.timestamps_ns, sc.error_sigma_m, rng,
-                              sc.correlation_time_s, np.radians(sc.rotation_sigma_deg))
+    shift, turn = draw_errors(
+        sc.error_model,
+        poses.timestamps_ns,
+        sc.error_sigma_m,
+        rng,
+        sc.correlation_time_s,
+        np.radians(sc.rotation_sigma_deg),
+    )
     return true, apply_pose_errors(true, shift, turn), poses.timestamps_ns
 
 
@@ -179,7 +202,9 @@ def scenario_scene_seed(sc: Scenario) -> int:
     return int(scenario_stream(sc, SCENE_STREAM).integers(0, 2**31))
 
 
-def scenario_scatterers(sc: Scenario, reference_only: bool = False, with_clutter: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def scenario_scatterers(
+    sc: Scenario, reference_only: bool = False, with_clutter: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
     """Scatterers (P, 3) metres and complex amplitudes (P,) of the whole scene, or of the reference
     alone moved by the template placement error (the same scatterers: streams are keyed by object),
     in the scene's room clutter with ``with_clutter``."""

@@ -18,6 +18,7 @@ that no entry point exposes: ``init`` and ``template_registration`` (made by
 
 Plain Python: the command's ``--help`` and a node's parameter list need no numerics.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -80,53 +81,114 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
     Setting("iterations", int, 300, "optimiser iterations", config="iterations"),
     Setting("lr", float, 5e-2, "Adam learning rate", config="lr"),
     Setting("lr_min", float, 1e-5, "end of the cosine schedule of the learning rate", config="lr_min"),
-    Setting("threshold_centre", float, 0.4, "soft threshold centre (of the max-normalised amplitude)",
-            config="threshold_centre"),
+    Setting(
+        "threshold_centre",
+        float,
+        0.4,
+        "soft threshold centre (of the max-normalised amplitude)",
+        config="threshold_centre",
+    ),
     Setting("threshold_steepness", float, 1.0, "soft threshold steepness", config="threshold_steepness"),
-    Setting("loss_steepness", float, None,
-            "soft threshold steepness inside the optimiser's loss only; a steeper loss lifts a digital twin from "
-            "0.89 to 0.94 SSIM (docs/beyond.md)", config="loss_steepness",
-            default_text="5 with {estimator} paper, projection or projection-refined, otherwise "
-                         "{threshold_steepness}, the source paper's"),
-    Setting("precision", str, "float32", "arithmetic of the back-projection and the optimiser",
-            choices=("float32", "float64"), config="precision"),
-    Setting("basis_dtype", str, "float32",
-            "storage of the sub-image basis in the optimiser (float16: ~2x faster, same result)",
-            choices=("float32", "float16"), config="basis_dtype"),
-    Setting("device", str, None, "torch device for the back-projection and the optimiser (cpu, cuda, cuda:N)",
-            config="device", default_text="cuda if present, else cpu"),
+    Setting(
+        "loss_steepness",
+        float,
+        None,
+        "soft threshold steepness inside the optimiser's loss only; a steeper loss lifts a digital twin from "
+        "0.89 to 0.94 SSIM (docs/beyond.md)",
+        config="loss_steepness",
+        default_text="5 with {estimator} paper, projection or projection-refined, otherwise "
+        "{threshold_steepness}, the source paper's",
+    ),
+    Setting(
+        "precision",
+        str,
+        "float32",
+        "arithmetic of the back-projection and the optimiser",
+        choices=("float32", "float64"),
+        config="precision",
+    ),
+    Setting(
+        "basis_dtype",
+        str,
+        "float32",
+        "storage of the sub-image basis in the optimiser (float16: ~2x faster, same result)",
+        choices=("float32", "float16"),
+        config="basis_dtype",
+    ),
+    Setting(
+        "device",
+        str,
+        None,
+        "torch device for the back-projection and the optimiser (cpu, cuda, cuda:N)",
+        config="device",
+        default_text="cuda if present, else cpu",
+    ),
     Setting("oversample", int, 16, "range-profile oversampling for the back-projection's interpolation"),
-    Setting("estimator", str, "auto",
-            "how the phases are found from the reference (docs/beyond.md): 'paper' = the optimiser from zero; "
-            "'projection' = alternating projections onto the template's amplitude, no optimiser (any template); "
-            "'projection-refined' = that, then the optimiser (best past lambda/4, where phases wrap); "
-            "'registered' = the optimiser after moving the template to where the scan puts the reference; "
-            "'correlation' = registered + closed-form per-position phase, no optimiser (fastest); "
-            "'correlation-refined' = that, then the optimiser. The last three need the template's phase (a "
-            "physical twin: a template scan, or a template file with phase_rad). 'outline' = the reference's "
-            "energy inside its outline, no texture (needs a digital twin from a point cloud: rough references, "
-            "camera clouds). auto: correlation when the template has a phase; outline for a point-cloud digital "
-            "twin; else projection, or projection-refined when {tracking_error_mm} exceeds lambda/4",
-            choices=("auto",) + ESTIMATORS),
-    Setting("projection_iterations", int, 30, "alternating-projection steps of {estimator} projection (~3 ms each)",
-            config="projection_iterations"),
-    Setting("projection_restarts", int, 0,
-            "{estimator} projection also from this many random starts, the best by the loss going on (pays past "
-            "lambda/4, ~0.1 s each at 780 x 100 x 100 on 2 cores)", config="projection_restarts"),
-    Setting("coarse_iterations", int, 0,
-            "coarse-to-fine: this many optimiser iterations on blurred images before the full-resolution ones "
-            "(0: the paper's single stage)", config="coarse_iterations"),
-    Setting("phase_ramp", str, "auto",
-            "the estimate's constant + linear-in-aperture phase, which moves the image, before the transfer: auto "
-            "removes only what a misplaced template explains (nothing after registering a physical twin; a ramp "
-            "worth at most 3 mm of shift otherwise), since a hand's drift puts real error in it; remove: always; "
-            "keep: never (the source paper)", choices=("auto", "remove", "keep")),
-    Setting("space_variant", str, "auto",
-            "a smooth drift fitted to the whole reference and transferred per pixel, for a hand's drift (needs a "
-            "physical twin): auto = only when one phase per position leaves the reference unmatched "
-            "(metrics.json space_variant says what was done)", choices=("auto", "on", "off")),
-    Setting("tracking_error_mm", float, 0.5,
-            "tracker position error assumed by the confidence report and by {estimator} auto", unit="mm"),
+    Setting(
+        "estimator",
+        str,
+        "auto",
+        "how the phases are found from the reference (docs/beyond.md): 'paper' = the optimiser from zero; "
+        "'projection' = alternating projections onto the template's amplitude, no optimiser (any template); "
+        "'projection-refined' = that, then the optimiser (best past lambda/4, where phases wrap); "
+        "'registered' = the optimiser after moving the template to where the scan puts the reference; "
+        "'correlation' = registered + closed-form per-position phase, no optimiser (fastest); "
+        "'correlation-refined' = that, then the optimiser. The last three need the template's phase (a "
+        "physical twin: a template scan, or a template file with phase_rad). 'outline' = the reference's "
+        "energy inside its outline, no texture (needs a digital twin from a point cloud: rough references, "
+        "camera clouds). auto: correlation when the template has a phase; outline for a point-cloud digital "
+        "twin; else projection, or projection-refined when {tracking_error_mm} exceeds lambda/4",
+        choices=("auto",) + ESTIMATORS,
+    ),
+    Setting(
+        "projection_iterations",
+        int,
+        30,
+        "alternating-projection steps of {estimator} projection (~3 ms each)",
+        config="projection_iterations",
+    ),
+    Setting(
+        "projection_restarts",
+        int,
+        0,
+        "{estimator} projection also from this many random starts, the best by the loss going on (pays past "
+        "lambda/4, ~0.1 s each at 780 x 100 x 100 on 2 cores)",
+        config="projection_restarts",
+    ),
+    Setting(
+        "coarse_iterations",
+        int,
+        0,
+        "coarse-to-fine: this many optimiser iterations on blurred images before the full-resolution ones "
+        "(0: the paper's single stage)",
+        config="coarse_iterations",
+    ),
+    Setting(
+        "phase_ramp",
+        str,
+        "auto",
+        "the estimate's constant + linear-in-aperture phase, which moves the image, before the transfer: auto "
+        "removes only what a misplaced template explains (nothing after registering a physical twin; a ramp "
+        "worth at most 3 mm of shift otherwise), since a hand's drift puts real error in it; remove: always; "
+        "keep: never (the source paper)",
+        choices=("auto", "remove", "keep"),
+    ),
+    Setting(
+        "space_variant",
+        str,
+        "auto",
+        "a smooth drift fitted to the whole reference and transferred per pixel, for a hand's drift (needs a "
+        "physical twin): auto = only when one phase per position leaves the reference unmatched "
+        "(metrics.json space_variant says what was done)",
+        choices=("auto", "on", "off"),
+    ),
+    Setting(
+        "tracking_error_mm",
+        float,
+        0.5,
+        "tracker position error assumed by the confidence report and by {estimator} auto",
+        unit="mm",
+    ),
 )
 
 SETTINGS_BY_NAME: dict[str, Setting] = {s.name: s for s in FOCUS_SETTINGS}
@@ -144,16 +206,19 @@ def config_default(field: str) -> Any:
 
 def add_focus_options(parser: argparse.ArgumentParser) -> None:
     """Add every focus setting to ``parser`` as ``--name-with-dashes`` (attribute ``name``)."""
+
     def option(s: Setting) -> str:
         return s.option
 
     for s in FOCUS_SETTINGS:
         text = f"{s.describe(option)} (default {s.default_words(option)})"
-        parser.add_argument(s.option, dest=s.name, type=s.type, default=s.default, choices=s.choices,
-                            help=text.replace("%", "%%"))
+        parser.add_argument(
+            s.option, dest=s.name, type=s.type, default=s.default, choices=s.choices, help=text.replace("%", "%%")
+        )
 
 
 # --- the device ------------------------------------------------------------------------------
+
 
 def _accelerator_present() -> bool:
     """Whether a GPU device node exists, so an unset device can be the CPU without importing
@@ -184,12 +249,15 @@ def resolve_device(requested: str | None) -> str:
     try:
         dev = torch.device(requested)
     except RuntimeError:
-        raise TwinFocusError(f"device {requested!r}: not a torch device (cpu, cuda, cuda:N; unset: cuda if "
-                             "present, else cpu)") from None
+        raise TwinFocusError(
+            f"device {requested!r}: not a torch device (cpu, cuda, cuda:N; unset: cuda if present, else cpu)"
+        ) from None
     if dev.type == "cuda":
         if not torch.cuda.is_available():
-            raise TwinFocusError(f"device {requested!r}: no CUDA device is available (torch sees none); use cpu, "
-                                 "or leave the device unset for cuda when present, else cpu")
+            raise TwinFocusError(
+                f"device {requested!r}: no CUDA device is available (torch sees none); use cpu, "
+                "or leave the device unset for cuda when present, else cpu"
+            )
         if dev.index is not None and dev.index >= torch.cuda.device_count():
             raise TwinFocusError(f"device {requested!r}: there are only {torch.cuda.device_count()} CUDA device(s)")
     return requested

@@ -35,6 +35,7 @@ JIT-compiled loop (~8 ns of CPU per pair, the scatter of the Q terms dominating)
 67,080 elements, 256 samples) takes ~2.4 s of CPU, 1.2 - 2.3 s wall on two shared cores,
 against ~45 minutes for the brute-force sum.
 """
+
 from __future__ import annotations
 
 import math
@@ -89,7 +90,9 @@ def _check_points(points_m, amplitudes) -> tuple[np.ndarray, np.ndarray]:
 def _check_positions(positions_m) -> np.ndarray:
     e = np.asarray(positions_m)
     if e.ndim != 3 or e.shape[2] != 3 or e.shape[0] == 0 or e.shape[1] == 0:
-        raise TwinFocusError(f"positions_m must be (M, K, 3) phase centres in metres with M, K >= 1, got shape {e.shape}")
+        raise TwinFocusError(
+            f"positions_m must be (M, K, 3) phase centres in metres with M, K >= 1, got shape {e.shape}"
+        )
     e = e.astype(np.float64)
     if not np.isfinite(e).all():
         bad = np.argwhere(~np.isfinite(e))[0]
@@ -311,8 +314,9 @@ SECONDS_PER_PAIR = 8e-9
 BYTES_PER_SAMPLE_PEAK = 56
 
 
-def simulation_cost(n_positions: int, n_channels: int, n_samples: int, n_scatterers: int,
-                    n_scans: int = 1) -> tuple[int, float]:
+def simulation_cost(
+    n_positions: int, n_channels: int, n_samples: int, n_scatterers: int, n_scans: int = 1
+) -> tuple[int, float]:
     """Up-front estimate of simulating ``n_scans`` scans of this size: (peak bytes, CPU seconds).
 
     Bytes: the finished scans (complex64) plus the noise pass of the last one; seconds:
@@ -324,8 +328,9 @@ def simulation_cost(n_positions: int, n_channels: int, n_samples: int, n_scatter
     return int(peak), float(int(n_scans) * elements * int(n_scatterers) * SECONDS_PER_PAIR)
 
 
-def add_thermal_noise(data, snr_db: float, rng: np.random.Generator | int | None = None,
-                      signal_power: float | None = None) -> np.ndarray:
+def add_thermal_noise(
+    data, snr_db: float, rng: np.random.Generator | int | None = None, signal_power: float | None = None
+) -> np.ndarray:
     """Add circular complex white Gaussian noise at a per-sample SNR.
 
     SNR definition: mean signal power over all samples, mean(|data|^2), divided by the noise
@@ -355,4 +360,3 @@ def add_thermal_noise(data, snr_db: float, rng: np.random.Generator | int | None
     gen = np.random.default_rng(rng)
     noise = gen.standard_normal(x.shape + (2,), dtype=np.float32) * np.float32(sigma)
     return (x + (noise[..., 0] + 1j * noise[..., 1])).astype(np.complex64)
-

@@ -32,6 +32,7 @@ instead, with the per-pixel model phi_m + k (u_{m,p} - u_{m,c}) . dp_m and dp sm
 capture (a hand drifts; piecewise linear between knots), recovers the across-sight drift
 (docs/handheld.md): handheld scenes 0.85 -> 0.89-0.94, the paper's protocol unchanged.
 """
+
 from __future__ import annotations
 
 import time
@@ -56,9 +57,18 @@ def lines_of_sight(centres_m: np.ndarray, points_m: np.ndarray) -> np.ndarray:
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def fit_position_errors(phases_rad: np.ndarray, weights: np.ndarray, points_m: np.ndarray, centres_m: np.ndarray,
-                        wavelength_m: float, prior_sigma_m: float = 0.5e-3, noise_rad: float = 0.3,
-                        step_sigma_m: float | None = None, absolute: bool = True, absolute_noise_rad: float = 1.0) -> np.ndarray:
+def fit_position_errors(
+    phases_rad: np.ndarray,
+    weights: np.ndarray,
+    points_m: np.ndarray,
+    centres_m: np.ndarray,
+    wavelength_m: float,
+    prior_sigma_m: float = 0.5e-3,
+    noise_rad: float = 0.3,
+    step_sigma_m: float | None = None,
+    absolute: bool = True,
+    absolute_noise_rad: float = 1.0,
+) -> np.ndarray:
     """Per-position position-error estimate dp_m (the part the references' lines of sight see).
 
     phases_rad : float (R, M) per-position phase at each reference (R >= 2), radians; reference 0
@@ -124,8 +134,14 @@ def fit_position_errors(phases_rad: np.ndarray, weights: np.ndarray, points_m: n
     return spl.spsolve(normal, big.T @ np.concatenate(rhs_all)).reshape(m, 3)
 
 
-def pixel_phases(phase0_rad: np.ndarray, dp_m: np.ndarray, point0_m: np.ndarray, centres_m: np.ndarray, grid: ImageGrid,
-                 wavelength_m: float) -> np.ndarray:
+def pixel_phases(
+    phase0_rad: np.ndarray,
+    dp_m: np.ndarray,
+    point0_m: np.ndarray,
+    centres_m: np.ndarray,
+    grid: ImageGrid,
+    wavelength_m: float,
+) -> np.ndarray:
     """phi_m(p) = phi_0,m + k (u_{m,p} - u_{0,m}) . dp_m for every pixel of ``grid``: float32 (M, H, W).
 
     phase0_rad : (M,) the scalar phase at reference 0 (at ``point0_m``); dp_m : (M, 3) from
@@ -137,9 +153,10 @@ def pixel_phases(phase0_rad: np.ndarray, dp_m: np.ndarray, point0_m: np.ndarray,
     u0 = lines_of_sight(c, np.asarray(point0_m, float))  # (M, 3)
     out = np.empty((c.shape[0],) + grid.shape, np.float32)
     for i in range(0, c.shape[0], 64):  # (64, H, W, 3) at a time
-        up = lines_of_sight(c[i:i + 64], pix)
-        out[i:i + 64] = np.asarray(phase0_rad, float)[i:i + 64, None, None] + k * np.einsum(
-            "mhwc,mc->mhw", up - u0[i:i + 64, None, None, :], np.asarray(dp_m, float)[i:i + 64])
+        up = lines_of_sight(c[i : i + 64], pix)
+        out[i : i + 64] = np.asarray(phase0_rad, float)[i : i + 64, None, None] + k * np.einsum(
+            "mhwc,mc->mhw", up - u0[i : i + 64, None, None, :], np.asarray(dp_m, float)[i : i + 64]
+        )
     return out
 
 
@@ -154,29 +171,49 @@ def knot_basis(n_positions: int, spacing: int) -> np.ndarray:
     return b / b.sum(axis=1, keepdims=True)
 
 
-def fit_smooth_drift(basis: np.ndarray, template: np.ndarray, phase0_rad: np.ndarray, centres_m: np.ndarray,
-                     grid: ImageGrid, wavelength_m: float, knot_spacing: int = 20, iterations: int = 100,
-                     step_m: float = 2e-5, phase_step_rad: float = 0.02,
-                     progress: Callable[[int, int, float], None] | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Per-position phase and smooth across-sight drift from one extended reference's image.
+def fit_smooth_drift(
+    basis: np.ndarray,
+    template: np.ndarray,
+    phase0_rad: np.ndarray,
+    centres_m: np.ndarray,
+    grid: ImageGrid,
+    wavelength_m: float,
+    knot_spacing: int = 10,
+    iterations: int = 100,
+    step_m: float = 2e-5,
+    phase_step_rad: float = 0.002,
+    progress: Callable[[int, int, float], None] | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Smooth across-sight drift (and optionally the per-position phase) from one extended
+    reference's image.
 
     Maximises the normalised complex correlation of the reference image with its template,
 
         I(p) = sum_m B_m(p) exp(j (phi_m + k (u_{m,p} - u_{m,c}) . dp_m)),  dp = S c,
 
-    over phi (one per position, from ``phase0_rad``) and the knot values c of dp's x and y
-    (S: :func:`knot_basis`; along z the line of sight barely turns over a region, so phi holds it)
-    with Adam from dp = 0. u_{m,p}: unit line of sight from position m to pixel p; u_{m,c}: to the
+    over the knot values c of dp's x and y (S: :func:`knot_basis`; along z the line of sight
+    barely turns over a region, so phi holds it) with Adam from dp = 0, and phi (one per position)
+    from ``phase0_rad`` in small steps. u_{m,p}: unit line of sight from position m to pixel p; u_{m,c}: to the
     region's centre, where phi is the phase.
+
+    phi moves in steps ten times smaller than it may: the closed-form scalar phase is already
+    near the best one phase per position, and 780 phases moving as fast as the drift fit the
+    reference's noise and pull the drift off (handheld draws 3 / 4, docs/handheld.md: 0.893 /
+    0.899 with phi steps of 0.02 rad and knots every 20 positions; 0.912 / 0.928 with phi fixed
+    and knots every 10; 0.914 / 0.932 with steps of 0.002 rad, which also take up the closed
+    form's own approximation where the positions' sub-images overlap).
 
     basis : complex (M, H, W) the reference's sub-image basis on ``grid``; template : complex
     (H, W), registered to the scan (its phase is what pins the fit); phase0_rad : float (M,) the
     scalar estimate (e.g. :func:`twinfocus.template_match.correlation_phase`); centres_m : float
     (M, 3) phase centres (channel mean), metres, in capture order (smoothness runs along it).
     knot_spacing : positions between knots (a hand's drift stays correlated over ~20 positions of
-    a 10 Hz sweep); iterations, step_m, phase_step_rad : Adam's iterations and step sizes.
+    a 10 Hz sweep, and wanders within that: knots every 10 follow it better than every 20);
+    iterations, step_m : Adam's iterations and step on the knots, metres; phase_step_rad : Adam's
+    step on phi, radians (0: phi fixed).
 
-    Returns (phase float64 (M,) radians at the region's centre, dp float64 (M, 3) metres in the
+    Returns (phase float64 (M,) radians at the region's centre (``phase0_rad`` when phi is
+    fixed), dp float64 (M, 3) metres in the
     correction's sense (z is 0), info: ``match_before`` / ``match_after`` (the correlation), ``time_s``).
     Memory: about 40 bytes per position and pixel (0.3 GB at 780 x 100 x 100).
     """
@@ -198,7 +235,7 @@ def fit_smooth_drift(basis: np.ndarray, template: np.ndarray, phase0_rad: np.nda
     u_c = lines_of_sight(c, grid.centre_m)
     a = np.empty((m, pix.shape[0], 2), np.float32)
     for i in range(0, m, 64):  # (64, P, 3) at a time
-        a[i:i + 64] = (k * (lines_of_sight(c[i:i + 64], pix) - u_c[i:i + 64, None, :]))[..., :2]
+        a[i : i + 64] = (k * (lines_of_sight(c[i : i + 64], pix) - u_c[i : i + 64, None, :]))[..., :2]
     at = torch.from_numpy(a)
     flat = b.reshape(m, -1)
     br = torch.from_numpy(np.ascontiguousarray(flat.real, np.float32))
@@ -208,8 +245,10 @@ def fit_smooth_drift(basis: np.ndarray, template: np.ndarray, phase0_rad: np.nda
     t_norm = torch.sqrt((tr * tr + ti * ti).sum())
     s = torch.from_numpy(knot_basis(m, int(knot_spacing)).astype(np.float32))
     coef = torch.zeros(s.shape[1], 2, requires_grad=True)
-    phase = torch.tensor(np.asarray(phase0_rad, np.float32), requires_grad=True)
-    opt = torch.optim.Adam([{"params": [coef], "lr": step_m}, {"params": [phase], "lr": phase_step_rad}])
+    phase = torch.tensor(np.asarray(phase0_rad, np.float32), requires_grad=phase_step_rad > 0)
+    opt = torch.optim.Adam(
+        [{"params": [coef], "lr": step_m}] + ([{"params": [phase], "lr": phase_step_rad}] if phase_step_rad > 0 else [])
+    )
 
     def match() -> torch.Tensor:
         theta = phase[:, None] + (at * (s @ coef)[:, None, :]).sum(-1)
@@ -232,6 +271,12 @@ def fit_smooth_drift(basis: np.ndarray, template: np.ndarray, phase0_rad: np.nda
         after = float(match()) if iterations else before
     dp = np.zeros((m, 3))
     dp[:, :2] = (s @ coef).detach().numpy()
-    info = {"match_before": before, "match_after": after, "knot_spacing_positions": int(knot_spacing),
-            "iterations": int(iterations), "time_s": time.perf_counter() - t0}
+    info = {
+        "match_before": before,
+        "match_after": after,
+        "knot_spacing_positions": int(knot_spacing),
+        "iterations": int(iterations),
+        "phase_fitted": phase_step_rad > 0,
+        "time_s": time.perf_counter() - t0,
+    }
     return phase.detach().numpy().astype(np.float64), dp, info

@@ -2,6 +2,7 @@
 radar-camera calibration: moving an image by a fraction of a pixel, and the vertex of the
 parabola through a sampled extremum and its two neighbours.
 """
+
 from __future__ import annotations
 
 import numpy as np

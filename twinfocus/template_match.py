@@ -31,6 +31,7 @@ chosen by that same criterion.
 
 <a, b> = sum_pixels conj(a) b throughout.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -52,8 +53,10 @@ def _check_template(template: np.ndarray, shape: tuple[int, ...] | None = None) 
     """The template as an array, when it is complex, finite, not all zeros and (given) of ``shape``."""
     t = np.asarray(template)
     if not np.iscomplexobj(t):
-        raise TwinFocusError("this needs the template's phase (a complex image, e.g. a physical twin's "
-                             "back-projected scan); an amplitude template cannot be matched per position")
+        raise TwinFocusError(
+            "this needs the template's phase (a complex image, e.g. a physical twin's "
+            "back-projected scan); an amplitude template cannot be matched per position"
+        )
     if t.ndim != 2 or (shape is not None and t.shape != tuple(shape)):
         raise TwinFocusError(f"template is {t.shape} but the reference region is {tuple(shape) if shape else '(H, W)'}")
     if not np.isfinite(t).all():
@@ -76,8 +79,9 @@ def correlation_phase(basis: np.ndarray, template: np.ndarray) -> np.ndarray:
     return -np.angle(flat @ np.conj(t.reshape(-1)).astype(flat.dtype)).astype(np.float64)
 
 
-def projection_phase(basis: np.ndarray, amplitude: np.ndarray, iterations: int = 30,
-                     init_phase_rad: np.ndarray | None = None) -> np.ndarray:
+def projection_phase(
+    basis: np.ndarray, amplitude: np.ndarray, iterations: int = 30, init_phase_rad: np.ndarray | None = None
+) -> np.ndarray:
     """Per-position phases that fit an *amplitude* template by alternating projections.
 
     Each step forms I = sum_m exp(j phi_m) B_m, gives it the template's amplitude while keeping
@@ -144,7 +148,9 @@ class MatchScores:
         """Add basis rows: complex (k, H, W), the next positions of the scan (any k >= 0)."""
         b = np.asarray(rows)
         if b.ndim != 3 or not np.iscomplexobj(b) or b.shape[1:] != self.shape:
-            raise TwinFocusError(f"basis rows must be complex (k, {self.shape[0]}, {self.shape[1]}), got {b.dtype} {b.shape}")
+            raise TwinFocusError(
+                f"basis rows must be complex (k, {self.shape[0]}, {self.shape[1]}), got {b.dtype} {b.shape}"
+            )
         for i in range(0, b.shape[0], chunk):
             fb = scipy.fft.fft2(b[i : i + chunk], self._pad, workers=-1)
             xc = scipy.fft.ifft2(fb * self._spectrum[None], workers=-1)[:, self._rows][:, :, self._cols]
@@ -172,8 +178,9 @@ def match_scores(basis: np.ndarray, template: np.ndarray, max_shift_px: int = 4,
     return acc.scores()
 
 
-def register_template(basis: np.ndarray, template: np.ndarray, max_shift_px: int = 4,
-                      scores: np.ndarray | None = None) -> tuple[np.ndarray, tuple[float, float], dict]:
+def register_template(
+    basis: np.ndarray, template: np.ndarray, max_shift_px: int = 4, scores: np.ndarray | None = None
+) -> tuple[np.ndarray, tuple[float, float], dict]:
     """Move a complex template to where the scan's reference is (the peak of :func:`match_scores`,
     refined to sub-pixel by a parabola through the peak and its neighbours on each axis).
 
@@ -195,7 +202,11 @@ def register_template(basis: np.ndarray, template: np.ndarray, max_shift_px: int
     fx = 0.0 if j in (0, 2 * s) else parabola_vertex(scores[i, j - 1], scores[i, j], scores[i, j + 1])
     dy, dx = i - s + fy, j - s + fx
     moved = shift_image(np.asarray(template, np.complex64), dy, dx)
-    info = {"shift_px": [float(dy), float(dx)], "score_gain": float(scores[i, j] / scores[s, s]), "at_limit": bool(at_limit)}
+    info = {
+        "shift_px": [float(dy), float(dx)],
+        "score_gain": float(scores[i, j] / scores[s, s]),
+        "at_limit": bool(at_limit),
+    }
     return moved, (float(dy), float(dx)), info
 
 
@@ -203,12 +214,21 @@ def _shift_mask(mask: np.ndarray, dy: int, dx: int) -> np.ndarray:
     """``mask`` moved by whole pixels (dy rows, dx columns), zero-filled (no wrap-around)."""
     out = np.zeros_like(mask)
     h, w = mask.shape
-    out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] = mask[max(-dy, 0):h + min(-dy, 0), max(-dx, 0):w + min(-dx, 0)]
+    out[max(dy, 0) : h + min(dy, 0), max(dx, 0) : w + min(dx, 0)] = mask[
+        max(-dy, 0) : h + min(-dy, 0), max(-dx, 0) : w + min(-dx, 0)
+    ]
     return out
 
 
-def outline_phase(basis: np.ndarray, support: np.ndarray, starts: int = 12, iterations: int = 20, rounds: int = 3,
-                  max_shift_px: int = 3, seed: int = 0) -> tuple[np.ndarray, dict]:
+def outline_phase(
+    basis: np.ndarray,
+    support: np.ndarray,
+    starts: int = 12,
+    iterations: int = 20,
+    rounds: int = 3,
+    max_shift_px: int = 3,
+    seed: int = 0,
+) -> tuple[np.ndarray, dict]:
     """Per-position phases that put the reference's energy inside its outline.
 
     Maximises the fraction of the image's energy inside the support S,
@@ -258,12 +278,18 @@ def outline_phase(basis: np.ndarray, support: np.ndarray, starts: int = 12, iter
         energy = np.abs(np.exp(1j * phi).astype(np.complex64) @ flat) ** 2
         for i in range(n):
             e = energy[i].reshape(mask.shape)
-            best = max((float((_shift_mask(mask, dy, dx) * e).sum()), dy, dx)
-                        for dy in range(-r, r + 1) for dx in range(-r, r + 1))
+            best = max(
+                (float((_shift_mask(mask, dy, dx) * e).sum()), dy, dx)
+                for dy in range(-r, r + 1)
+                for dx in range(-r, r + 1)
+            )
             shifts[i] = best[1:]
             masks[i] = _shift_mask(mask, *shifts[i]).reshape(-1)
     energy = np.abs(np.exp(1j * phi).astype(np.complex64) @ flat) ** 2
     inside = (masks * energy).sum(axis=1) / np.maximum(energy.sum(axis=1), 1e-300)
     chosen = int(np.argmax(inside))
-    return phi[chosen].copy(), {"energy_inside": [round(float(v), 4) for v in inside], "chosen": chosen,
-                                "support_shift_px": [int(v) for v in shifts[chosen]]}
+    return phi[chosen].copy(), {
+        "energy_inside": [round(float(v), 4) for v in inside],
+        "chosen": chosen,
+        "support_shift_px": [int(v) for v in shifts[chosen]],
+    }

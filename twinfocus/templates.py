@@ -6,6 +6,7 @@ twin's image, which lets autofocus register the template and estimate the phases
 (:mod:`twinfocus.template_match`). A template made on another grid is resampled (bilinear, on the
 complex image when it has a phase) onto the reference grid; one that does not cover it is refused.
 """
+
 from __future__ import annotations
 
 import os
@@ -38,14 +39,28 @@ def load_template(path: str | os.PathLike, grid: ImageGrid, z_tolerance_m: float
     if missing:
         raise TwinFocusError(f"{path}: not a template file, missing key(s) {', '.join(missing)}")
     try:
-        return resample_template(z["image"], z["x_m"], z["y_m"], float(z["z_m"]), grid,
-                                 phase_rad=z["phase_rad"] if "phase_rad" in z else None, z_tolerance_m=z_tolerance_m)
+        return resample_template(
+            z["image"],
+            z["x_m"],
+            z["y_m"],
+            float(z["z_m"]),
+            grid,
+            phase_rad=z["phase_rad"] if "phase_rad" in z else None,
+            z_tolerance_m=z_tolerance_m,
+        )
     except TwinFocusError as exc:
         raise TwinFocusError(f"{path}: {exc}") from None
 
 
-def resample_template(image: np.ndarray, x_m: np.ndarray, y_m: np.ndarray, z_m: float, grid: ImageGrid,
-                      phase_rad: np.ndarray | None = None, z_tolerance_m: float = 0.01) -> np.ndarray:
+def resample_template(
+    image: np.ndarray,
+    x_m: np.ndarray,
+    y_m: np.ndarray,
+    z_m: float,
+    grid: ImageGrid,
+    phase_rad: np.ndarray | None = None,
+    z_tolerance_m: float = 0.01,
+) -> np.ndarray:
     """A template on its own grid, checked and resampled (bilinear) onto ``grid``.
 
     image : (Ny, Nx) amplitude (its magnitude is taken); x_m (Nx,), y_m (Ny,) increasing pixel
@@ -59,7 +74,9 @@ def resample_template(image: np.ndarray, x_m: np.ndarray, y_m: np.ndarray, z_m: 
     if not np.isfinite(image).all():
         raise TwinFocusError("template image holds NaN or inf")
     if abs(float(z_m) - grid.z) > z_tolerance_m:
-        raise TwinFocusError(f"template is on the plane z = {float(z_m):.3f} m, the reference region is at z = {grid.z:.3f} m")
+        raise TwinFocusError(
+            f"template is on the plane z = {float(z_m):.3f} m, the reference region is at z = {grid.z:.3f} m"
+        )
     if x.size < 2 or y.size < 2 or np.any(np.diff(x) <= 0) or np.any(np.diff(y) <= 0):
         raise TwinFocusError("x_m and y_m must be increasing with at least 2 values")
     tol = 1e-9
@@ -75,7 +92,12 @@ def resample_template(image: np.ndarray, x_m: np.ndarray, y_m: np.ndarray, z_m: 
             raise TwinFocusError(f"phase_rad must be finite and of the image's shape {img.shape}, got {phase.shape}")
         img = img * np.exp(1j * phase)
     out_dtype = np.complex64 if np.iscomplexobj(img) else np.float32
-    if x.shape == grid.x_m.shape and y.shape == grid.y_m.shape and np.allclose(x, grid.x_m) and np.allclose(y, grid.y_m):
+    if (
+        x.shape == grid.x_m.shape
+        and y.shape == grid.y_m.shape
+        and np.allclose(x, grid.x_m)
+        and np.allclose(y, grid.y_m)
+    ):
         return img.astype(out_dtype)
     from scipy.ndimage import map_coordinates  # only a resample needs it (0.1 s import)
 
@@ -83,7 +105,9 @@ def resample_template(image: np.ndarray, x_m: np.ndarray, y_m: np.ndarray, z_m: 
     rows = np.interp(grid.y_m, y, np.arange(y.size))
     rr, cc = np.meshgrid(rows, cols, indexing="ij")
     if np.iscomplexobj(img):
-        out = map_coordinates(img.real, [rr, cc], order=1, mode="nearest") + 1j * map_coordinates(img.imag, [rr, cc], order=1, mode="nearest")
+        out = map_coordinates(img.real, [rr, cc], order=1, mode="nearest") + 1j * map_coordinates(
+            img.imag, [rr, cc], order=1, mode="nearest"
+        )
     else:
         out = map_coordinates(img, [rr, cc], order=1, mode="nearest")
     return out.astype(out_dtype)

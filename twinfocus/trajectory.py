@@ -9,6 +9,7 @@ the scene frame, so the identity pose looks along scene +z with the array along 
 Quaternions are stored in ROS / TUM order ``(x, y, z, w)`` (scalar last, as
 ``geometry_msgs/Quaternion`` and ``scipy.spatial.transform.Rotation`` use).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -63,9 +64,7 @@ def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     m = r.reshape(-1, 3, 3)
     tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
     # 4 q_i^2 for i = x, y, z, w
-    cand = np.stack(
-        [1 + 2 * m[:, 0, 0] - tr, 1 + 2 * m[:, 1, 1] - tr, 1 + 2 * m[:, 2, 2] - tr, 1 + tr], axis=1
-    )
+    cand = np.stack([1 + 2 * m[:, 0, 0] - tr, 1 + 2 * m[:, 1, 1] - tr, 1 + 2 * m[:, 2, 2] - tr, 1 + tr], axis=1)
     pivot = np.argmax(cand, axis=1)
     q = np.empty((m.shape[0], 4))
     for i in range(4):
@@ -187,9 +186,7 @@ class Poses:
         bad = np.abs(norm - 1.0) > _UNIT_TOLERANCE
         if np.any(bad):
             i = int(np.flatnonzero(bad)[0])
-            raise TwinFocusError(
-                f"quat_xyzw must be unit quaternions (x, y, z, w); pose {i} has norm {norm[i]:.6g}"
-            )
+            raise TwinFocusError(f"quat_xyzw must be unit quaternions (x, y, z, w); pose {i} has norm {norm[i]:.6g}")
         self.quat_xyzw = q / norm[:, None]
         if self.confidence is not None:
             c = _finite_array("confidence", self.confidence, (m,))
@@ -288,7 +285,11 @@ def paper_raster(
     n_columns, n_rows = int(n_columns), int(n_rows)
     if n_columns < 1 or n_rows < 1:
         raise TwinFocusError(f"raster needs at least one column and one row, got {n_columns} x {n_rows}")
-    for name, v in (("column_pitch_m", column_pitch_m), ("row_pitch_m", row_pitch_m), ("frame_period_s", frame_period_s)):
+    for name, v in (
+        ("column_pitch_m", column_pitch_m),
+        ("row_pitch_m", row_pitch_m),
+        ("frame_period_s", frame_period_s),
+    ):
         if not (np.isfinite(v) and v > 0):
             raise TwinFocusError(f"{name} must be a positive number, got {v!r}")
     if not np.isfinite(z_m):

@@ -4,6 +4,7 @@ Each sub-command module defines ``add_arguments(parser)`` and ``run(args) -> int
 are imported only when their command runs, so ``twinfocus --help`` stays fast and a missing
 optional dependency of one command never breaks another.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,11 +23,20 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "launch": ("twinfocus.cli.launch", "start a graph of nodes from a launch file (launch/sim.yaml, ...)"),
     "record": ("twinfocus.cli.record", "record topics of a running graph to an MCAP log"),
     "play": ("twinfocus.cli.play", "replay an MCAP log onto a running graph"),
-    "export": ("twinfocus.cli.export", "export an MCAP log for another viewer (--to foxglove: Foxglove's well-known schemas)"),
+    "export": (
+        "twinfocus.cli.export",
+        "export an MCAP log for another viewer (--to foxglove: Foxglove's well-known schemas)",
+    ),
     "topic": ("twinfocus.cli.topic", "list, echo or measure the rate of topics of a running graph"),
-    "convert": ("twinfocus.cli.convert", "convert a TI MMWCAS capture folder + trajectory file to a scan file (+ MCAP)"),
+    "convert": (
+        "twinfocus.cli.convert",
+        "convert a TI MMWCAS capture folder + trajectory file to a scan file (+ MCAP)",
+    ),
     "devices": ("twinfocus.cli.devices", "list attached radars, capture boards and cameras (USB)"),
-    "bench": ("twinfocus.cli.bench", "reproduce the paper's evaluation in simulation: report with tables, plots, limits"),
+    "bench": (
+        "twinfocus.cli.bench",
+        "reproduce the paper's evaluation in simulation: report with tables, plots, limits",
+    ),
 }
 
 
@@ -50,9 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     # Find the command first, then let its module declare its arguments.
     if argv and argv[0] in COMMANDS:
         module = importlib.import_module(COMMANDS[argv[0]][0])
-        sub_parser = argparse.ArgumentParser(
-            prog=f"twinfocus {argv[0]}", description=COMMANDS[argv[0]][1]
-        )
+        sub_parser = argparse.ArgumentParser(prog=f"twinfocus {argv[0]}", description=COMMANDS[argv[0]][1])
         module.add_arguments(sub_parser)
         args = sub_parser.parse_args(argv[1:])
         try:

@@ -1,5 +1,6 @@
 """``twinfocus batch MANIFEST --out DIR [--workers N | --scheduler tcp://HOST:PORT] [--no-resume]``:
 focus every scan of a manifest on Dask distributed (docs/batch.md)."""
+
 from __future__ import annotations
 
 import argparse
@@ -7,18 +8,28 @@ import sys
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("manifest", help="CSV or YAML: one item per scan with 'scan' and any 'twinfocus focus' option "
-                   "(reference_roi, target_roi, template / template_scan / digital_twin / method, size, ...), "
-                   "optional 'name'; relative paths from the manifest's folder")
+    p.add_argument(
+        "manifest",
+        help="CSV or YAML: one item per scan with 'scan' and any 'twinfocus focus' option "
+        "(reference_roi, target_roi, template / template_scan / digital_twin / method, size, ...), "
+        "optional 'name'; relative paths from the manifest's folder",
+    )
     p.add_argument("--out", required=True, help="output folder: items/NAME/ (focus's files), summary.csv, summary.png")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=int, default=None,
-                       help="local cluster of this many worker processes (default: one per core)")
-    where.add_argument("--scheduler", default=None,
-                       help="an existing Dask cluster (tcp://HOST:PORT of 'dask scheduler'); workers must see the "
-                            "manifest's files and --out under the same paths")
-    p.add_argument("--no-resume", action="store_true",
-                   help="focus every item again (default: items finished earlier with the same options are kept)")
+    where.add_argument(
+        "--workers", type=int, default=None, help="local cluster of this many worker processes (default: one per core)"
+    )
+    where.add_argument(
+        "--scheduler",
+        default=None,
+        help="an existing Dask cluster (tcp://HOST:PORT of 'dask scheduler'); workers must see the "
+        "manifest's files and --out under the same paths",
+    )
+    p.add_argument(
+        "--no-resume",
+        action="store_true",
+        help="focus every item again (default: items finished earlier with the same options are kept)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -27,8 +38,15 @@ def run(args: argparse.Namespace) -> int:
     from twinfocus.progress import Progress
 
     log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
-    rows = run_batch(args.manifest, args.out, scheduler=args.scheduler, workers=args.workers, resume=not args.no_resume,
-                     progress=Progress("batch", enabled=not args.quiet), log=log)
+    rows = run_batch(
+        args.manifest,
+        args.out,
+        scheduler=args.scheduler,
+        workers=args.workers,
+        resume=not args.no_resume,
+        progress=Progress("batch", enabled=not args.quiet),
+        log=log,
+    )
     failed = [r for r in rows if r.get("status") != "ok"]
     print(f"{len(rows) - len(failed)}/{len(rows)} focused; {args.out}/summary.csv")
     # Failed items are recorded, not fatal; the status still tells a script that some need a look.

@@ -13,6 +13,7 @@ Every item has ``scan`` and any ``twinfocus focus`` option spelled as its flag w
 manifest's folder. Workers read the files themselves, so every worker must see the paths (and
 ``OUT``) under the same names: a shared file system on a cluster.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,8 +35,19 @@ from twinfocus.errors import TwinFocusError
 #: focus options that name input files (resolved against the manifest's folder, checked on the worker).
 PATH_OPTIONS = ("scan", "template", "template_scan", "digital_twin")
 #: Columns of summary.csv, before the item's options.
-SUMMARY_FIELDS = ("name", "status", "error", "seconds", "worker", "peak_rss_mb", "target_ssim_uncorrected",
-                  "target_ssim_corrected", "target_ssim_oracle_phase", "warnings", "out")
+SUMMARY_FIELDS = (
+    "name",
+    "status",
+    "error",
+    "seconds",
+    "worker",
+    "peak_rss_mb",
+    "target_ssim_uncorrected",
+    "target_ssim_corrected",
+    "target_ssim_oracle_phase",
+    "warnings",
+    "out",
+)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -72,7 +84,13 @@ def _flag_values(key: str, value, actions: dict) -> list[str]:
         return [act.option_strings[0]] if on else []
     if value is None or (isinstance(value, str) and not value.strip()):
         return []
-    vals = [str(v) for v in value] if isinstance(value, (list, tuple)) else str(value).split() if act.nargs else [str(value)]
+    vals = (
+        [str(v) for v in value]
+        if isinstance(value, (list, tuple))
+        else str(value).split()
+        if act.nargs
+        else [str(value)]
+    )
     return [act.option_strings[0], *vals]
 
 
@@ -140,12 +158,15 @@ def read_manifest(path: str | os.PathLike, out_dir: str | os.PathLike) -> list[B
 
 # --- on the worker ------------------------------------------------------------------------------
 
+
 def check_visible(paths) -> None:
     """One line naming the first input file this machine cannot read."""
     for p in paths:
         if not os.path.isfile(p):
-            raise TwinFocusError(f"worker on {socket.gethostname()} cannot see {p} (every worker needs the manifest's "
-                                 f"files under the same path: a shared file system)")
+            raise TwinFocusError(
+                f"worker on {socket.gethostname()} cannot see {p} (every worker needs the manifest's "
+                f"files under the same path: a shared file system)"
+            )
 
 
 def _peak_rss_mb() -> float | None:
@@ -181,7 +202,9 @@ def focus_item(item: BatchItem, threads=None) -> dict:
         # focus's summary line and warnings; the row carries the metrics and the warnings
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
             focus.run(args)
-        row["warnings"] = " | ".join(ln.split("warning: ", 1)[1] for ln in err.getvalue().splitlines() if "warning: " in ln)
+        row["warnings"] = " | ".join(
+            ln.split("warning: ", 1)[1] for ln in err.getvalue().splitlines() if "warning: " in ln
+        )
         m = json.loads((Path(item.out) / "metrics.json").read_text())
         for k in ("target_ssim_uncorrected", "target_ssim_corrected", "target_ssim_oracle_phase"):
             row[k] = m.get(k)
@@ -210,8 +233,17 @@ def finished(item: BatchItem) -> dict | None:
 
 # --- the whole batch ----------------------------------------------------------------------------
 
-def run_batch(manifest, out_dir, *, scheduler: str | None = None, workers: int | None = None, resume: bool = True,
-              progress=None, log=None) -> list[dict]:
+
+def run_batch(
+    manifest,
+    out_dir,
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    resume: bool = True,
+    progress=None,
+    log=None,
+) -> list[dict]:
     """Focus every item of ``manifest`` into ``out_dir/items/NAME``; write ``out_dir/summary.csv`` and
     ``summary.png``. Returns the summary rows in manifest order."""
     log = log or (lambda msg: None)
@@ -229,7 +261,9 @@ def run_batch(manifest, out_dir, *, scheduler: str | None = None, workers: int |
         log(f"[batch] {len(items) - len(todo)} of {len(items)} items kept from an earlier run")
 
     def record(item, res, err):
-        rows[item.name] = res if res is not None else {"name": item.name, "status": "failed", "error": err, "out": item.out}
+        rows[item.name] = (
+            res if res is not None else {"name": item.name, "status": "failed", "error": err, "out": item.out}
+        )
         r = rows[item.name]
         if r["status"] != "ok":
             log(f"[batch] {item.name} failed: {r['error']}")
@@ -241,7 +275,9 @@ def run_batch(manifest, out_dir, *, scheduler: str | None = None, workers: int |
             run_tasks(client, focus_item, todo, [f"focus-{it.name}" for it in todo], record, progress=progress)
     write_summary(out, items, rows, figure=True)
     n_ok = sum(r.get("status") == "ok" for r in rows.values())
-    log(f"[batch] {n_ok}/{len(items)} ok, {len(todo)} focused in {time.perf_counter() - t0:.1f} s; {out / 'summary.csv'}")
+    log(
+        f"[batch] {n_ok}/{len(items)} ok, {len(todo)} focused in {time.perf_counter() - t0:.1f} s; {out / 'summary.csv'}"
+    )
     return [rows[it.name] for it in items]
 
 
@@ -257,7 +293,9 @@ def write_summary(out: Path, items: list[BatchItem], rows: dict, figure: bool = 
         w.writerow({**opts, **{k: ("" if r.get(k) is None else r.get(k)) for k in SUMMARY_FIELDS}})
     write_text_atomic(Path(out) / "summary.csv", buf.getvalue())
     if figure:
-        write_summary_figure(Path(out) / "summary.png", [rows.get(it.name, {"name": it.name, "status": "pending"}) for it in items])
+        write_summary_figure(
+            Path(out) / "summary.png", [rows.get(it.name, {"name": it.name, "status": "pending"}) for it in items]
+        )
 
 
 def write_summary_figure(path: Path, rows: list[dict]) -> None:
@@ -278,7 +316,9 @@ def write_summary_figure(path: Path, rows: list[dict]) -> None:
     ax.plot(x + 0.2, get("target_ssim_oracle_phase"), "k_", ms=10, label="oracle phase")
     for i, r in enumerate(rows):
         if r.get("status") != "ok":
-            ax.text(i, 0.02, r.get("status", "failed"), rotation=90, color="tab:red", ha="center", va="bottom", fontsize=8)
+            ax.text(
+                i, 0.02, r.get("status", "failed"), rotation=90, color="tab:red", ha="center", va="bottom", fontsize=8
+            )
     ax.set_xticks(x, [r["name"] for r in rows], rotation=60, ha="right", fontsize=7)
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("target SSIM")
@@ -291,4 +331,3 @@ def write_summary_figure(path: Path, rows: list[dict]) -> None:
     fig.savefig(tmp, dpi=110)
     plt.close(fig)
     os.replace(tmp, path)
-

@@ -7,6 +7,7 @@ beyond``: the improvements of the twin estimate beyond the paper, one row each.
     twinfocus bench beyond [--quick] [--out DIR] [--draws N] [--markdown FILE] [--resume] [--report-only]
     ... [--workers N | --scheduler tcp://HOST:PORT]: the experiments as Dask tasks (docs/batch.md)
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,27 +22,48 @@ SUITES = ("paper", "beyond")
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from twinfocus.evaluation.experiments import EXPERIMENT_NAMES
 
-    p.add_argument("suite", choices=SUITES, help="what to run: 'paper' (the source paper's evaluation) or 'beyond' "
-                   "(the twin estimate's improvements beyond the paper, docs/beyond.md)")
-    p.add_argument("--quick", action="store_true",
-                   help="smoke run: two baseline pairs and two tracking errors on small scans (240 positions, 32 x 32, 60 iterations)")
+    p.add_argument(
+        "suite",
+        choices=SUITES,
+        help="what to run: 'paper' (the source paper's evaluation) or 'beyond' "
+        "(the twin estimate's improvements beyond the paper, docs/beyond.md)",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="smoke run: two baseline pairs and two tracking errors on small scans (240 positions, 32 x 32, 60 iterations)",
+    )
     p.add_argument("--out", default=None, help="report folder (default bench_<suite>/)")
-    p.add_argument("--draws", type=int, default=None,
-                   help="tracking-error draws per pair and condition for every experiment (default 1; the paper used 5)")
-    p.add_argument("--only", default="",
-                   help=f"comma-separated experiments: {', '.join(EXPERIMENT_NAMES)}, trade (default all)")
+    p.add_argument(
+        "--draws",
+        type=int,
+        default=None,
+        help="tracking-error draws per pair and condition for every experiment (default 1; the paper used 5)",
+    )
+    p.add_argument(
+        "--only", default="", help=f"comma-separated experiments: {', '.join(EXPERIMENT_NAMES)}, trade (default all)"
+    )
     p.add_argument("--markdown", default=None, help="where to write the report markdown (default OUT/report.md)")
     p.add_argument("--resume", action="store_true", help="keep experiments already in OUT/raw with the same settings")
     p.add_argument("--report-only", action="store_true", help="only rewrite the report from the raw results in OUT/raw")
-    p.add_argument("--trade-scenes", type=int, default=None, help="scenes in the speed/accuracy trade (default 1; pairs A>F, R>X)")
+    p.add_argument(
+        "--trade-scenes", type=int, default=None, help="scenes in the speed/accuracy trade (default 1; pairs A>F, R>X)"
+    )
     p.add_argument("--device", default="cpu", help="torch device for the optimiser and back-projection (cpu, cuda)")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=int, default=None,
-                       help="spread the experiments over a local Dask cluster of this many worker processes "
-                            "(default: one after the other in this process)")
-    where.add_argument("--scheduler", default=None,
-                       help="spread the experiments over an existing Dask cluster (tcp://HOST:PORT of 'dask scheduler'; "
-                            "docs/batch.md); the results equal the serial run's")
+    where.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="spread the experiments over a local Dask cluster of this many worker processes "
+        "(default: one after the other in this process)",
+    )
+    where.add_argument(
+        "--scheduler",
+        default=None,
+        help="spread the experiments over an existing Dask cluster (tcp://HOST:PORT of 'dask scheduler'; "
+        "docs/batch.md); the results equal the serial run's",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
@@ -57,7 +79,9 @@ def run(args: argparse.Namespace) -> int:
         raise TwinFocusError("--only and --trade-scenes apply to the 'paper' suite only")
     if args.report_only:
         if not (Path(args.out) / "raw").is_dir():
-            raise TwinFocusError(f"--report-only: {Path(args.out) / 'raw'} holds no raw results; run the benchmark first")
+            raise TwinFocusError(
+                f"--report-only: {Path(args.out) / 'raw'} holds no raw results; run the benchmark first"
+            )
         print((write_beyond_report if args.suite == "beyond" else write_report)(args.out, args.markdown))
         return 0
     only = [s.strip() for s in args.only.split(",") if s.strip()] or None
@@ -69,14 +93,38 @@ def run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise TwinFocusError(f"--workers must be at least 1, got {args.workers}")
     cluster = {"scheduler": args.scheduler} if args.scheduler else {"workers": args.workers} if args.workers else None
-    command = "twinfocus bench " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["bench"] else None
+    command = (
+        "twinfocus bench " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["bench"] else None
+    )
     log = (lambda msg: None) if args.quiet else None
     kw = {} if log is None else {"log": log}
     if args.suite == "beyond":
-        print(run_beyond(args.out, draws=args.draws or 1, quick=args.quick, resume=args.resume, markdown=args.markdown,
-                         device=args.device, command=command, cluster=cluster, **kw))
+        print(
+            run_beyond(
+                args.out,
+                draws=args.draws or 1,
+                quick=args.quick,
+                resume=args.resume,
+                markdown=args.markdown,
+                device=args.device,
+                command=command,
+                cluster=cluster,
+                **kw,
+            )
+        )
         return 0
-    md = run_paper(args.out, quick=args.quick, draws=args.draws, only=only, resume=args.resume, markdown=args.markdown,
-                   device=args.device, trade_scenes=args.trade_scenes, command=command, cluster=cluster, **kw)
+    md = run_paper(
+        args.out,
+        quick=args.quick,
+        draws=args.draws,
+        only=only,
+        resume=args.resume,
+        markdown=args.markdown,
+        device=args.device,
+        trade_scenes=args.trade_scenes,
+        command=command,
+        cluster=cluster,
+        **kw,
+    )
     print(md)
     return 0

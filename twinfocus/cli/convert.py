@@ -11,6 +11,7 @@ The capture is an MMWCAS cascade folder (``master_0000_idx.bin`` ...) or a DCA10
 Beside the scan, ``<out>.capture.json`` records the capture's gaps (frames lost, zero-filled,
 bytes lost, frames dropped as flagged) for the metrics of a later ``focus``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,51 +23,99 @@ from twinfocus.errors import TwinFocusError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("capture", help="MMWCAS capture folder (master_0000_data.bin, master_0000_idx.bin, slave1_..., ...), "
-                                   "or a DCA1000 capture (adc_data.bin, <prefix>_Raw_0.bin, or their folder)")
+    p.add_argument(
+        "capture",
+        help="MMWCAS capture folder (master_0000_data.bin, master_0000_idx.bin, slave1_..., ...), "
+        "or a DCA1000 capture (adc_data.bin, <prefix>_Raw_0.bin, or their folder)",
+    )
     p.add_argument("--trajectory", required=True, help="camera (VIO) trajectory file, TUM or EuRoC format")
     p.add_argument("--trajectory-format", choices=["auto", "tum", "euroc"], default="auto")
     p.add_argument("--extrinsics", help="camera-radar calibration (YAML); default identity (radar at the camera)")
     p.add_argument("--out", required=True, help="scan file to write (.npz)")
     p.add_argument("--mcap", help="also write an MCAP log (radar/frame and vio/pose) here")
-    p.add_argument("--z0", type=float, default=0.6, help="range of the imaging plane for the multistatic correction, m (default 0.6)")
+    p.add_argument(
+        "--z0",
+        type=float,
+        default=0.6,
+        help="range of the imaging plane for the multistatic correction, m (default 0.6)",
+    )
     p.add_argument("--time-offset-s", type=float, default=0.0, help="added to radar time stamps, seconds (default 0)")
-    p.add_argument("--align", choices=["auto", "start", "none"], default="auto",
-                   help="clock alignment: 'start' puts the first frame on the first pose; 'auto' does that only when "
-                        "the clocks do not overlap (default)")
-    p.add_argument("--frame", choices=["aperture", "world"], default="aperture",
-                   help="'aperture' (default): axes of the first radar pose, origin at the mean radar position; "
-                        "'world': the VIO world frame")
+    p.add_argument(
+        "--align",
+        choices=["auto", "start", "none"],
+        default="auto",
+        help="clock alignment: 'start' puts the first frame on the first pose; 'auto' does that only when "
+        "the clocks do not overlap (default)",
+    )
+    p.add_argument(
+        "--frame",
+        choices=["aperture", "world"],
+        default="aperture",
+        help="'aperture' (default): axes of the first radar pose, origin at the mean radar position; "
+        "'world': the VIO world frame",
+    )
     p.add_argument("--keep-first-frame", action="store_true", help="keep the capture card's first frame (known bad)")
     p.add_argument("--keep-flagged", action="store_true", help="keep frames flagged as device-skewed")
-    p.add_argument("--n-samples", type=int, default=256, help="ADC samples per chirp (default 256; a capture's mmWave Studio JSON gives its own)")
+    p.add_argument(
+        "--n-samples",
+        type=int,
+        default=256,
+        help="ADC samples per chirp (default 256; a capture's mmWave Studio JSON gives its own)",
+    )
     p.add_argument("--n-loops", type=int, help="chirp loops per frame (default: the configuration's, else 1)")
     p.add_argument("--loop", type=int, default=0, help="which loop of each frame to use (default 0)")
     p.add_argument("--f0-hz", type=float, default=76.6e9, help="frequency of the first ADC sample (default 76.6e9)")
     p.add_argument("--slope-hz-per-s", type=float, default=120e12, help="chirp slope (default 120e12)")
     p.add_argument("--fs-hz", type=float, default=8e6, help="ADC sample rate (default 8e6)")
-    p.add_argument("--timestamp-unit-ns", type=int, default=1000,
-                   help="nanoseconds per tick of the index files' time stamps (default 1000: microseconds)")
+    p.add_argument(
+        "--timestamp-unit-ns",
+        type=int,
+        default=1000,
+        help="nanoseconds per tick of the index files' time stamps (default 1000: microseconds)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing --mcap file")
     g = p.add_argument_group("cascade chirp layout (read from the capture's mmWave Studio JSON / Lua setup when there)")
-    g.add_argument("--setup", help="the capture's configuration: mmWave Studio JSON (*.mmwave.json) or cascade setup Lua "
-                                   "(default: one found in the capture folder, or a .mmwave.json in its parent)")
-    g.add_argument("--tx-order", help="TxToEnable of the cascade scripts: TX numbers 1..12 in chirp order, comma separated "
-                                      "(default: from the capture's configuration, else 12,11,...,1)")
-    g.add_argument("--frame-period-s", type=float, help="frame period, s (default: from the configuration; MMWCAS 0.1, "
-                                                        "DCA1000 the .cfg's frameCfg)")
-    g.add_argument("--drop-first-frame-of-each-slice", action="store_true",
-                   help="drop the first frame of every capture slice _0000, _0001, ... as TI's cascade processing does "
-                        "(default: only the capture's first)")
+    g.add_argument(
+        "--setup",
+        help="the capture's configuration: mmWave Studio JSON (*.mmwave.json) or cascade setup Lua "
+        "(default: one found in the capture folder, or a .mmwave.json in its parent)",
+    )
+    g.add_argument(
+        "--tx-order",
+        help="TxToEnable of the cascade scripts: TX numbers 1..12 in chirp order, comma separated "
+        "(default: from the capture's configuration, else 12,11,...,1)",
+    )
+    g.add_argument(
+        "--frame-period-s",
+        type=float,
+        help="frame period, s (default: from the configuration; MMWCAS 0.1, DCA1000 the .cfg's frameCfg)",
+    )
+    g.add_argument(
+        "--drop-first-frame-of-each-slice",
+        action="store_true",
+        help="drop the first frame of every capture slice _0000, _0001, ... as TI's cascade processing does "
+        "(default: only the capture's first)",
+    )
     g = p.add_argument_group("DCA1000 capture files")
     g.add_argument("--cfg", help="mmWave SDK .cfg the radar ran (chirp, frame layout, frame period)")
-    g.add_argument("--dca-json", help="DCA1000EVM CLI JSON the capture was recorded with (reorderEnable, MSBToggle, lvdsMode); "
-                                      "default: a *.json beside the capture holding DCA1000Config")
-    g.add_argument("--dca-format", choices=["auto", "raw", "reordered", "records"], default="auto",
-                   help="byte layout: 'raw' I0 I1 Q0 Q1 (mmWave Studio adc_data.bin), 'reordered' I0 Q0 I1 Q1 (CLI with "
-                        "reorderEnable), 'records' (CLI sequence-number records); 'auto' (default) tells them apart")
-    g.add_argument("--dca-layout", choices=["mmwcas", "cfg"], default="mmwcas",
-                   help="'mmwcas' (default): 12 chirps = TX 0..11 x 16 RX as the emulated rig streams; 'cfg': from --cfg")
+    g.add_argument(
+        "--dca-json",
+        help="DCA1000EVM CLI JSON the capture was recorded with (reorderEnable, MSBToggle, lvdsMode); "
+        "default: a *.json beside the capture holding DCA1000Config",
+    )
+    g.add_argument(
+        "--dca-format",
+        choices=["auto", "raw", "reordered", "records"],
+        default="auto",
+        help="byte layout: 'raw' I0 I1 Q0 Q1 (mmWave Studio adc_data.bin), 'reordered' I0 Q0 I1 Q1 (CLI with "
+        "reorderEnable), 'records' (CLI sequence-number records); 'auto' (default) tells them apart",
+    )
+    g.add_argument(
+        "--dca-layout",
+        choices=["mmwcas", "cfg"],
+        default="mmwcas",
+        help="'mmwcas' (default): 12 chirps = TX 0..11 x 16 RX as the emulated rig streams; 'cfg': from --cfg",
+    )
     p.add_argument("--quiet", action="store_true")
 
 
@@ -113,22 +162,42 @@ def run(args: argparse.Namespace) -> int:
         else:
             frames = cap if _is_mmwcas(capture) else cap.frames
         scan, radar_traj, report = scan_from_frames(
-            frames, chirp, poses, args.z0, extrinsics, array,
-            time_offset_ns=int(round(args.time_offset_s * 1e9)), align=args.align, scene_frame=args.frame,
-            drop_flagged=not args.keep_flagged, progress=Progress("convert", enabled=not args.quiet),
+            frames,
+            chirp,
+            poses,
+            args.z0,
+            extrinsics,
+            array,
+            time_offset_ns=int(round(args.time_offset_s * 1e9)),
+            align=args.align,
+            scene_frame=args.frame,
+            drop_flagged=not args.keep_flagged,
+            progress=Progress("convert", enabled=not args.quiet),
         )
         for note in report.notes:
             say(note)
         scan.save(out)
         gaps = {**report.gaps(), **gaps}
         write_json_atomic(capture_report_path(out), {"capture": str(capture), **gaps})
-        say(f"{report.n_used} of {report.n_frames} frames -> {out} ({scan.data.shape[0]} x {scan.data.shape[1]} x {scan.data.shape[2]})")
+        say(
+            f"{report.n_used} of {report.n_frames} frames -> {out} ({scan.data.shape[0]} x {scan.data.shape[1]} x {scan.data.shape[2]})"
+        )
         if args.mcap:
             _write_mcap(Path(args.mcap), scan, radar_traj, array, chirp, extrinsics, capture.name, args.overwrite)
             say(f"log -> {args.mcap}")
-    print(json.dumps({"scan": str(out), "frames": report.n_frames, "used": report.n_used,
-                      "dropped_outside": report.n_outside, "dropped_flagged": report.n_flagged,
-                      "time_shift_s": report.time_shift_ns * 1e-9, **gaps}))
+    print(
+        json.dumps(
+            {
+                "scan": str(out),
+                "frames": report.n_frames,
+                "used": report.n_used,
+                "dropped_outside": report.n_outside,
+                "dropped_flagged": report.n_flagged,
+                "time_shift_s": report.time_shift_ns * 1e-9,
+                **gaps,
+            }
+        )
+    )
     return 0
 
 
@@ -137,13 +206,23 @@ def _open_mmwcas(args, capture: Path, say):
     from twinfocus.sensors.ti_mmwcas import MmwcasCapture, resolve_config
 
     chirp = Chirp(args.f0_hz, args.slope_hz_per_s, args.fs_hz, args.n_samples)
-    config, notes = resolve_config(capture, chirp, n_loops=args.n_loops, tx_order=args.tx_order,
-                                   frame_period_s=args.frame_period_s, timestamp_unit_ns=args.timestamp_unit_ns,
-                                   setup=args.setup)
+    config, notes = resolve_config(
+        capture,
+        chirp,
+        n_loops=args.n_loops,
+        tx_order=args.tx_order,
+        frame_period_s=args.frame_period_s,
+        timestamp_unit_ns=args.timestamp_unit_ns,
+        setup=args.setup,
+    )
     for n in notes:
         say(n)
-    cap = MmwcasCapture(capture, config, skip_first_frame=not args.keep_first_frame,
-                        skip_first_frame_of_each_slice=args.drop_first_frame_of_each_slice)
+    cap = MmwcasCapture(
+        capture,
+        config,
+        skip_first_frame=not args.keep_first_frame,
+        skip_first_frame_of_each_slice=args.drop_first_frame_of_each_slice,
+    )
     return cap, config.chirp
 
 
@@ -174,7 +253,11 @@ def _open_dca1000(args, capture: Path, say):
         cli_cfg.check_stream_format()
         chirp = cli_cfg.chirp()
         period = period or cli_cfg.frame_period_s
-        layout = cli_cfg.raw_layout() if args.dca_layout == "cfg" else RawFrameLayout(chirp.n_samples, 16, tuple(range(12)), 1, 12)
+        layout = (
+            cli_cfg.raw_layout()
+            if args.dca_layout == "cfg"
+            else RawFrameLayout(chirp.n_samples, 16, tuple(range(12)), 1, 12)
+        )
     else:
         if args.dca_layout == "cfg":
             raise TwinFocusError("--dca-layout cfg needs --cfg (the mmWave SDK .cfg the radar ran)")
@@ -185,19 +268,25 @@ def _open_dca1000(args, capture: Path, say):
     n_tx = layout.n_tx
     assert n_tx is not None  # RawFrameLayout.__post_init__ fills it in
     if n_tx < 12 or layout.n_rx < 16:
-        raise TwinFocusError(f"the frames have {n_tx} TX x {layout.n_rx} RX; the 86 virtual channels of the MMWCAS "
-                             "array need 12 x 16 (--dca-layout mmwcas for the emulated rig)")
+        raise TwinFocusError(
+            f"the frames have {n_tx} TX x {layout.n_rx} RX; the 86 virtual channels of the MMWCAS "
+            "array need 12 x 16 (--dca-layout mmwcas for the emulated rig)"
+        )
     json_path = args.dca_json or find_cli_json(capture)
     settings = read_cli_json(json_path) if json_path else None
     if json_path and not args.dca_json:
         say(f"DCA1000 CLI settings from {json_path}")
     cap = Dca1000FileCapture(capture, layout, period, args.dca_format, settings, loop=args.loop)
-    say(f"DCA1000 capture read as '{cap.format}' ({len(cap.frames)} frames of {layout.frame_bytes} bytes, "
-        f"frame period {period * 1e3:g} ms)")
+    say(
+        f"DCA1000 capture read as '{cap.format}' ({len(cap.frames)} frames of {layout.frame_bytes} bytes, "
+        f"frame period {period * 1e3:g} ms)"
+    )
     st = cap.stats
     gaps = {"frames_lost": st.frames_lost, "frames_zero_filled": st.frames_zero_filled, "bytes_lost": st.lost_bytes}
     if st.frames_lost or st.frames_zero_filled:
-        say(f"capture gaps: {st.frames_lost} frame(s) lost, {st.frames_zero_filled} zero-filled, {st.lost_bytes} bytes lost")
+        say(
+            f"capture gaps: {st.frames_lost} frame(s) lost, {st.frames_zero_filled} zero-filled, {st.lost_bytes} bytes lost"
+        )
     return _Closing(cap), chirp, gaps
 
 
@@ -217,9 +306,17 @@ def _write_mcap(path: Path, scan, radar_traj, array, chirp, extrinsics, scan_id:
     seq = {"vio/pose": 0, "radar/frame": 0}
 
     def radar_frame(stamp: int, i: int) -> RadarFrame:
-        return RadarFrame(header=Header(stamp, seq["radar/frame"], "radar"), data=scan.data[i], f0_hz=chirp.f0_hz,
-                          slope_hz_per_s=chirp.slope_hz_per_s, fs_hz=chirp.fs_hz, channel_offsets_m=array.offsets_m,
-                          scan_id=scan_id, index=i, last=i == scan.n_positions - 1)
+        return RadarFrame(
+            header=Header(stamp, seq["radar/frame"], "radar"),
+            data=scan.data[i],
+            f0_hz=chirp.f0_hz,
+            slope_hz_per_s=chirp.slope_hz_per_s,
+            fs_hz=chirp.fs_hz,
+            channel_offsets_m=array.offsets_m,
+            scan_id=scan_id,
+            index=i,
+            last=i == scan.n_positions - 1,
+        )
 
     with LogWriter(path, overwrite=overwrite) as log:
         # The recorder's records (nodes.recorder.radar_metadata; calibration as launch/live.yaml
@@ -230,8 +327,13 @@ def _write_mcap(path: Path, scan, radar_traj, array, chirp, extrinsics, scan_id:
             msg: Pose | RadarFrame
             if topic == "vio/pose":
                 conf = 1.0 if radar_traj.confidence is None else float(radar_traj.confidence[i])
-                msg = Pose(header=Header(stamp, seq[topic], "scene"), position_m=radar_traj.position_m[i],
-                           quat_xyzw=radar_traj.quat_xyzw[i], confidence=conf, child_frame_id="radar")
+                msg = Pose(
+                    header=Header(stamp, seq[topic], "scene"),
+                    position_m=radar_traj.position_m[i],
+                    quat_xyzw=radar_traj.quat_xyzw[i],
+                    confidence=conf,
+                    child_frame_id="radar",
+                )
             else:
                 msg = radar_frame(stamp, i)
             seq[topic] += 1

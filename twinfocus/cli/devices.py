@@ -1,4 +1,5 @@
 """``twinfocus devices``: the radars, capture boards and cameras attached over USB."""
+
 from __future__ import annotations
 
 import argparse

@@ -1,4 +1,5 @@
 """``twinfocus export LOG.mcap --to foxglove OUT.mcap``: a log in Foxglove's well-known schemas."""
+
 from __future__ import annotations
 
 import argparse
@@ -6,8 +7,12 @@ import argparse
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", help="MCAP log written by `twinfocus record` (or a recorder node)")
-    parser.add_argument("--to", required=True, choices=["foxglove"],
-                        help="target format: foxglove (protobuf / JSON-schema channels Foxglove draws: images, poses, clouds, plots, log)")
+    parser.add_argument(
+        "--to",
+        required=True,
+        choices=["foxglove"],
+        help="target format: foxglove (protobuf / JSON-schema channels Foxglove draws: images, poses, clouds, plots, log)",
+    )
     parser.add_argument("output", help="MCAP file to write")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
@@ -19,7 +24,12 @@ def run(args: argparse.Namespace) -> int:
     from nodes.foxglove_convert import export_log
     from twinfocus.progress import Progress
 
-    counts = export_log(args.log, args.output, overwrite=args.overwrite, progress=Progress("export", enabled=not args.quiet))
+    counts = export_log(
+        args.log, args.output, overwrite=args.overwrite, progress=Progress("export", enabled=not args.quiet)
+    )
     per = ", ".join(f"{t}: {n}" for t, n in sorted(counts.items()))
-    print(f"wrote {sum(counts.values())} Foxglove message(s) to {args.output}" + (f" ({per})" if per else ""), file=sys.stderr)
+    print(
+        f"wrote {sum(counts.values())} Foxglove message(s) to {args.output}" + (f" ({per})" if per else ""),
+        file=sys.stderr,
+    )
     return 0

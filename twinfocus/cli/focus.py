@@ -1,5 +1,6 @@
 """``twinfocus focus SCAN.npz --reference-roi ... --target-roi ... (--template | --template-scan |
 --digital-twin | --method) --out DIR`` (docs/architecture.md section 4)."""
+
 from __future__ import annotations
 
 import argparse
@@ -20,10 +21,22 @@ _BYTES_PER_POSITION_PIXEL = 32
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scan", help="scan file (.npz) to focus")
-    p.add_argument("--reference-roi", nargs=5, type=float, required=True, metavar=("X0", "X1", "Y0", "Y1", "Z"),
-                   help="reference region (metres)")
-    p.add_argument("--target-roi", nargs=5, type=float, required=True, metavar=("X0", "X1", "Y0", "Y1", "Z"),
-                   help="target region (metres)")
+    p.add_argument(
+        "--reference-roi",
+        nargs=5,
+        type=float,
+        required=True,
+        metavar=("X0", "X1", "Y0", "Y1", "Z"),
+        help="reference region (metres)",
+    )
+    p.add_argument(
+        "--target-roi",
+        nargs=5,
+        type=float,
+        required=True,
+        metavar=("X0", "X1", "Y0", "Y1", "Z"),
+        help="target region (metres)",
+    )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--template", help="template file (.npz: image, x_m, y_m, z_m)")
     src.add_argument("--template-scan", help="scan of the reference alone on accurate positions (physical twin)")
@@ -31,16 +44,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     src.add_argument("--method", choices=["sharpness", "none"], help="baseline without a template")
     p.add_argument("--out", required=True, help="output folder")
     add_focus_options(p)  # the settings shared with the solver node: twinfocus/settings.py
-    p.add_argument("--pictures", choices=("summary", "all", "none"), default="summary",
-                   help="summary: summary.png only (default, ~0.05 s); all: also one PNG per image, loss.png and "
-                        "phase.png (matplotlib, ~1-2 s more); none")
+    p.add_argument(
+        "--pictures",
+        choices=("summary", "all", "none"),
+        default="summary",
+        help="summary: summary.png only (default, ~0.05 s); all: also one PNG per image, loss.png and "
+        "phase.png (matplotlib, ~1-2 s more); none",
+    )
     p.add_argument("--no-pictures", action="store_true", help="same as --pictures none")
-    p.add_argument("--no-cache", action="store_true",
-                   help="neither read nor write the template cache (a template scan's image or a digital twin's "
-                        "template is stored by the hash of its inputs, grid and back-projection options, in "
-                        "$TWINFOCUS_CACHE_DIR, else $XDG_CACHE_HOME/twinfocus, else ~/.cache/twinfocus)")
-    p.add_argument("--save-template", metavar="PATH",
-                   help="also write the template used as a template file (.npz) that --template takes")
+    p.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="neither read nor write the template cache (a template scan's image or a digital twin's "
+        "template is stored by the hash of its inputs, grid and back-projection options, in "
+        "$TWINFOCUS_CACHE_DIR, else $XDG_CACHE_HOME/twinfocus, else ~/.cache/twinfocus)",
+    )
+    p.add_argument(
+        "--save-template",
+        metavar="PATH",
+        help="also write the template used as a template file (.npz) that --template takes",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -76,7 +99,8 @@ def check_memory(n_positions: int, size: int, available: int | None = None) -> i
         raise TwinFocusError(
             f"--size {size} needs about {need / 2**30:.1f} GiB ({n_positions} positions x {size} x {size} pixels x "
             f"{_BYTES_PER_POSITION_PIXEL} B for the sub-image bases), {available / 2**30:.1f} GiB is available; "
-            "choose a smaller --size")
+            "choose a smaller --size"
+        )
     return need
 
 
@@ -104,9 +128,11 @@ def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
         with open(cloud, "rb") as f:
             magic = f.read(4)
         if magic == b"PK\x03\x04":
-            raise TwinFocusError(f"--digital-twin {cloud}: is an .npz archive (a scan or template?); it takes a point "
-                                 "cloud .npy, (N, 3) metres (use --template-scan for a motion-stage scan, --template "
-                                 "for a template file)")
+            raise TwinFocusError(
+                f"--digital-twin {cloud}: is an .npz archive (a scan or template?); it takes a point "
+                "cloud .npy, (N, 3) metres (use --template-scan for a motion-stage scan, --template "
+                "for a template file)"
+            )
     check_memory(shapes["data"][0], args.size)
     return shapes
 
@@ -125,10 +151,16 @@ def _template(args, scan, ref_grid, bp, progress, cache) -> tuple:
         key = template_scan_key(args.template_scan, ref_grid, bp) if cache.enabled else None
 
         def compute():
-            return template_from_scan(Scan.load(args.template_scan), ref_grid, keep_phase=True, progress=progress("template"), **bp)
+            return template_from_scan(
+                Scan.load(args.template_scan), ref_grid, keep_phase=True, progress=progress("template"), **bp
+            )
     elif args.digital_twin:
         # one entry holds the template and the outline, stacked (2, H, W)
-        key = digital_twin_key(args.digital_twin, scan.positions, scan.chirp, ref_grid, bp) + "-outline" if cache.enabled else None
+        key = (
+            digital_twin_key(args.digital_twin, scan.positions, scan.chirp, ref_grid, bp) + "-outline"
+            if cache.enabled
+            else None
+        )
 
         def compute():
             from twinfocus.digital_twin.condition import digital_twin_reference_from_file
@@ -170,29 +202,47 @@ def run(args: argparse.Namespace) -> int:
     bp = {"oversample": args.oversample, "precision": args.precision}
     if device != "cpu":
         bp.update(backend="torch", device=device)
-    progress = (lambda label: Progress(label, enabled=not args.quiet))
+    progress = lambda label: Progress(label, enabled=not args.quiet)
     timings: dict[str, float] = {}
 
     t = time.perf_counter()
     scan = Scan.load(args.scan)
     timings["load_scan"] = time.perf_counter() - t
     t = time.perf_counter()
-    template, cache_status, support = _template(args, scan, ref_grid, bp, progress, TemplateCache(enabled=not args.no_cache))
+    template, cache_status, support = _template(
+        args, scan, ref_grid, bp, progress, TemplateCache(enabled=not args.no_cache)
+    )
     timings["template"] = time.perf_counter() - t
     method = "twin" if template is not None else args.method
     has_phase = template is not None and np.iscomplexobj(template)
     chosen = {}
     if method == "twin":
-        chosen = estimator_settings(args.estimator, has_phase, args.tracking_error_mm * 1e-3, scan.chirp.wavelength_m,
-                                    has_support=support is not None)
+        chosen = estimator_settings(
+            args.estimator,
+            has_phase,
+            args.tracking_error_mm * 1e-3,
+            scan.chirp.wavelength_m,
+            has_support=support is not None,
+        )
     if args.loss_steepness is not None:
         chosen["loss_steepness"] = args.loss_steepness
     cfg = AutofocusConfig.from_settings({**vars(args), "device": device}, **chosen)
     cfg.validate()
 
-    outputs = focus_scan(scan, ref_grid, tgt_grid, template=template, support=support, method=method, config=cfg,
-                         bp_options=bp, progress_factory=progress, phase_ramp=args.phase_ramp, space_variant=args.space_variant,
-                         tracking_error_m=args.tracking_error_mm * 1e-3)
+    outputs = focus_scan(
+        scan,
+        ref_grid,
+        tgt_grid,
+        template=template,
+        support=support,
+        method=method,
+        config=cfg,
+        bp_options=bp,
+        progress_factory=progress,
+        phase_ramp=args.phase_ramp,
+        space_variant=args.space_variant,
+        tracking_error_m=args.tracking_error_mm * 1e-3,
+    )
     outputs.timings_s = {**timings, **outputs.timings_s}
     outputs.metrics["timings_s"] = outputs.timings_s
     if cache_status is not None:
@@ -213,11 +263,16 @@ def run(args: argparse.Namespace) -> int:
     for warning in m["confidence"]["warnings"]:
         print(f"twinfocus focus: warning: {warning}", file=sys.stderr)
     if "target_ssim_corrected" in m:
-        print(f"target SSIM: uncorrected {m['target_ssim_uncorrected']:.3f} -> {method} {m['target_ssim_corrected']:.3f} "
-              f"(oracle phase {m['target_ssim_oracle_phase']:.3f})")
+        print(
+            f"target SSIM: uncorrected {m['target_ssim_uncorrected']:.3f} -> {method} {m['target_ssim_corrected']:.3f} "
+            f"(oracle phase {m['target_ssim_oracle_phase']:.3f})"
+        )
     if not args.quiet:
         stages = ", ".join(f"{k} {v:.2f}" for k, v in outputs.timings_s.items())
-        print(f"[focus] {time.perf_counter() - t_run:.2f} s after start-up: {stages}, writing {t_write:.2f} (s)", file=sys.stderr)
+        print(
+            f"[focus] {time.perf_counter() - t_run:.2f} s after start-up: {stages}, writing {t_write:.2f} (s)",
+            file=sys.stderr,
+        )
     saved = f", template {args.save_template}" if args.save_template and template is not None else ""
     print(f"wrote {args.out}/ (target.npy, phase.npy, metrics.json, pictures: {pictures}{saved})", file=sys.stderr)
     return 0

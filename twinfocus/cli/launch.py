@@ -2,6 +2,7 @@
 
 See :mod:`nodes.launch` for the launch-file format and the shutdown rules.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -10,10 +11,14 @@ from nodes import launch
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", help="launch file (a path, or a name in launch/: sim, replay, live); options go before it")
+    parser.add_argument(
+        "file", help="launch file (a path, or a name in launch/: sim, replay, live); options go before it"
+    )
     parser.add_argument("assignments", nargs="*", metavar="name:=value", help="launch arguments")
     parser.add_argument("--show", action="store_true", help="print the resolved graph and exit")
-    parser.add_argument("--grace", type=float, default=10.0, help="seconds a node gets to stop after Ctrl-C before SIGKILL")
+    parser.add_argument(
+        "--grace", type=float, default=10.0, help="seconds a node gets to stop after Ctrl-C before SIGKILL"
+    )
 
 
 def run(args: argparse.Namespace) -> int:

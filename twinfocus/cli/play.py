@@ -1,4 +1,5 @@
 """``twinfocus play FILE``: publish a recorded MCAP log onto a running graph."""
+
 from __future__ import annotations
 
 import argparse
@@ -11,10 +12,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=1.0, help="speed factor (default 1; 0 = as fast as possible)")
     parser.add_argument("--loop", action="store_true", help="start again at the end")
     parser.add_argument("--topics", nargs="+", default=[], help="topics to play (default: all but graph/...)")
-    parser.add_argument("--start-offset", type=float, default=0.0, metavar="S", help="skip the first S seconds of the log")
-    parser.add_argument("--wait-for", nargs="+", default=[], metavar="NODE",
-                        help="nodes that must be ready (subscribed) before the first message")
-    parser.add_argument("--broker", default=None, help="broker control endpoint (default $TWINFOCUS_BROKER or tcp://127.0.0.1:7447)")
+    parser.add_argument(
+        "--start-offset", type=float, default=0.0, metavar="S", help="skip the first S seconds of the log"
+    )
+    parser.add_argument(
+        "--wait-for",
+        nargs="+",
+        default=[],
+        metavar="NODE",
+        help="nodes that must be ready (subscribed) before the first message",
+    )
+    parser.add_argument(
+        "--broker", default=None, help="broker control endpoint (default $TWINFOCUS_BROKER or tcp://127.0.0.1:7447)"
+    )
     parser.add_argument("--name", default="player", help="node name on the graph")
 
 

@@ -1,6 +1,7 @@
 """``twinfocus render --out DIR [scene options as twinfocus simulate]``: what the tracking stereo
 camera sees of the simulated scene -- left.png, right.png, camera.json (calibration and pose in the
 scene frame) and truth.npz (left depth, labels) -- for ``twinfocus twin``."""
+
 from __future__ import annotations
 
 import argparse
@@ -23,10 +24,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--occluder", default=None, help="sheet in front of the target: polyester, paper, plastic, ...")
     p.add_argument("--width", type=int, default=1280, help="picture width (default 1280, ZED 2i HD720)")
     p.add_argument("--height-px", type=int, default=720, help="picture height (default 720)")
-    p.add_argument("--camera-position-mm", nargs=3, type=float, default=None, metavar=("X", "Y", "Z"),
-                   help="left camera position in the scene frame (default -60 -80 0)")
-    p.add_argument("--extrinsic-error-mm", nargs=3, type=float, default=[0.0, 0.0, 0.0], metavar=("DX", "DY", "DZ"),
-                   help="render from a camera this far from the pose written to camera.json (a mounting error)")
+    p.add_argument(
+        "--camera-position-mm",
+        nargs=3,
+        type=float,
+        default=None,
+        metavar=("X", "Y", "Z"),
+        help="left camera position in the scene frame (default -60 -80 0)",
+    )
+    p.add_argument(
+        "--extrinsic-error-mm",
+        nargs=3,
+        type=float,
+        default=[0.0, 0.0, 0.0],
+        metavar=("DX", "DY", "DZ"),
+        help="render from a camera this far from the pose written to camera.json (a mounting error)",
+    )
     p.add_argument("--noise-dn", type=float, default=2.0, help="sensor noise, 8-bit grey levels (default 2)")
     p.add_argument("--no-clutter", action="store_true", help="plain background instead of a cluttered one")
     p.add_argument("--seed", type=int, default=0, help="textures, clutter and noise")
@@ -42,17 +55,31 @@ def run(args: argparse.Namespace) -> int:
     if args.noise_dn < 0:
         raise TwinFocusError(f"--noise-dn must be >= 0, got {args.noise_dn}")
     sc = Scenario(
-        reference=args.reference, target=args.target, distance_m=args.distance, separation_deg=args.separation_deg,
-        height_m=args.height, target_height_m=args.target_height, reference_material=args.reference_material,
-        target_material=args.target_material, occluder=args.occluder,
+        reference=args.reference,
+        target=args.target,
+        distance_m=args.distance,
+        separation_deg=args.separation_deg,
+        height_m=args.height,
+        target_height_m=args.target_height,
+        reference_material=args.reference_material,
+        target_material=args.target_material,
+        occluder=args.occluder,
     )
-    position = DEFAULT_LEFT_CAMERA_POSITION_M if args.camera_position_mm is None else tuple(v * 1e-3 for v in args.camera_position_mm)
+    position = (
+        DEFAULT_LEFT_CAMERA_POSITION_M
+        if args.camera_position_mm is None
+        else tuple(v * 1e-3 for v in args.camera_position_mm)
+    )
     nominal = StereoCamera.zed2i(args.width, args.height_px, pose_matrix(None, position))
     true_cam = nominal.with_pose(pose_matrix(None, np.asarray(position) + np.asarray(args.extrinsic_error_mm) * 1e-3))
     rendering = render_scene(sc.scene(), true_cam, clutter=not args.no_clutter, noise_dn=args.noise_dn, seed=args.seed)
     rendering.camera = nominal  # camera.json holds what the user believes, not the hidden error
     paths = rendering.save(args.out)
-    print(json.dumps({k: str(v) for k, v in paths.items()} | {"reference_roi": list(sc.reference_roi()),
-                                                             "target_roi": list(sc.target_roi())}))
+    print(
+        json.dumps(
+            {k: str(v) for k, v in paths.items()}
+            | {"reference_roi": list(sc.reference_roi()), "target_roi": list(sc.target_roi())}
+        )
+    )
     print(f"wrote {args.out}/ (left.png, right.png, camera.json, truth.npz)", file=sys.stderr)
     return 0

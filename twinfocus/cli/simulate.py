@@ -1,5 +1,6 @@
 """``twinfocus simulate``: a simulated handheld scan of the paper's scene, and the reference's
 motion-stage template scan."""
+
 from __future__ import annotations
 
 import argparse
@@ -25,42 +26,104 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--occluder", default=None, help="sheet in front of the target: polyester, paper, plastic, ...")
     p.add_argument("--clutter", action="store_true", help="add room clutter (weak and a few strong scatterers)")
     p.add_argument("--trajectory", choices=["raster", "zigzag"], default="raster")
-    p.add_argument("--error-model", choices=[m for m in ERROR_MODELS if m != "none"], default="gaussian",
-                   help="tracking error: gaussian (the paper), drift, vio, hand (drift + jitter + array rotation)")
+    p.add_argument(
+        "--error-model",
+        choices=[m for m in ERROR_MODELS if m != "none"],
+        default="gaussian",
+        help="tracking error: gaussian (the paper), drift, vio, hand (drift + jitter + array rotation)",
+    )
     p.add_argument("--error-sigma-mm", type=float, default=0.5, help="z (range) tracking error sigma, mm (default 0.5)")
-    p.add_argument("--xy-error-sigma-mm", type=float, default=0.5, help="x and y tracking error sigma, mm (default 0.5)")
+    p.add_argument(
+        "--xy-error-sigma-mm", type=float, default=0.5, help="x and y tracking error sigma, mm (default 0.5)"
+    )
     p.add_argument("--snr-db", type=float, default=10.0, help="per-sample SNR in dB (default 10); 'inf' for none")
     p.add_argument("--no-speckle", action="store_true", help="all scatterers in phase")
-    p.add_argument("--template-offset-mm", nargs=3, type=float, default=[1.0, 0.0, 0.0], metavar=("DX", "DY", "DZ"),
-                   help="placement error of the reference in the template scan, mm (default 1 0 0)")
+    p.add_argument(
+        "--template-offset-mm",
+        nargs=3,
+        type=float,
+        default=[1.0, 0.0, 0.0],
+        metavar=("DX", "DY", "DZ"),
+        help="placement error of the reference in the template scan, mm (default 1 0 0)",
+    )
     p.add_argument("--range-step-mm", type=float, default=None, help="simulator range grid step (fidelity knob)")
     p.add_argument("--columns", type=int, default=6, help="raster columns (default 6)")
     p.add_argument("--rows", type=int, default=130, help="raster rows per column (default 130)")
     p.add_argument("--seed", type=int, default=0)
     g = p.add_argument_group("field-like scenes (rough, curved references; deeper targets)")
-    g.add_argument("--reference-roughness-deg", type=float, default=None, metavar="DEG",
-                   help="rough reference: each scatterer's phase uniform in +-DEG (about 90 for a real surface); "
-                        "replaces speckle for the reference")
-    g.add_argument("--reference-amplitude-spread", type=float, default=0.3, metavar="FRAC",
-                   help="with --reference-roughness-deg: each scatterer's amplitude x (1 +- FRAC) (default 0.3)")
-    g.add_argument("--reference-shape", choices=["plane", "cylinder", "bent"], default="plane",
-                   help="reference surface: flat, wrapped on a cylinder (axis vertical) or bent along its centre line")
-    g.add_argument("--reference-shape-parameter", type=float, default=None, metavar="P",
-                   help="cylinder radius in metres (default 0.15) or bend angle in degrees (default 30)")
-    g.add_argument("--target-depth-offset", type=float, default=0.0, metavar="M",
-                   help="put the target this many metres further than the reference, along its ray (default 0)")
+    g.add_argument(
+        "--reference-roughness-deg",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="rough reference: each scatterer's phase uniform in +-DEG (about 90 for a real surface); "
+        "replaces speckle for the reference",
+    )
+    g.add_argument(
+        "--reference-amplitude-spread",
+        type=float,
+        default=0.3,
+        metavar="FRAC",
+        help="with --reference-roughness-deg: each scatterer's amplitude x (1 +- FRAC) (default 0.3)",
+    )
+    g.add_argument(
+        "--reference-shape",
+        choices=["plane", "cylinder", "bent"],
+        default="plane",
+        help="reference surface: flat, wrapped on a cylinder (axis vertical) or bent along its centre line",
+    )
+    g.add_argument(
+        "--reference-shape-parameter",
+        type=float,
+        default=None,
+        metavar="P",
+        help="cylinder radius in metres (default 0.15) or bend angle in degrees (default 30)",
+    )
+    g.add_argument(
+        "--target-depth-offset",
+        type=float,
+        default=0.0,
+        metavar="M",
+        help="put the target this many metres further than the reference, along its ray (default 0)",
+    )
     c = p.add_argument_group("camera cloud of the reference (for focus --digital-twin)")
-    c.add_argument("--reference-cloud-out", default=None, metavar="CLOUD.npy",
-                   help="write the reference's surface as a depth camera delivers it (.npy, (N, 3) metres)")
+    c.add_argument(
+        "--reference-cloud-out",
+        default=None,
+        metavar="CLOUD.npy",
+        help="write the reference's surface as a depth camera delivers it (.npy, (N, 3) metres)",
+    )
     c.add_argument("--cloud-spacing-mm", type=float, default=1.0, help="camera sampling of the surface, mm (default 1)")
-    c.add_argument("--cloud-noise-mm", nargs="+", type=float, default=[1.0], metavar="SD",
-                   help="noise sd, mm: one for every axis or three (x y z) (default 1)")
-    c.add_argument("--cloud-holes", type=float, default=0.25, metavar="FRAC",
-                   help="fraction of the surface missing, in patches (default 0.25)")
-    c.add_argument("--cloud-outliers", type=float, default=0.02, metavar="FRAC",
-                   help="fraction of the cloud's points that are outliers around the object (default 0.02)")
-    c.add_argument("--cloud-offset-mm", nargs="+", type=float, default=[2.0], metavar="MM",
-                   help="rigid offset of the cloud: a length (random direction) or three (x y z), mm (default 2)")
+    c.add_argument(
+        "--cloud-noise-mm",
+        nargs="+",
+        type=float,
+        default=[1.0],
+        metavar="SD",
+        help="noise sd, mm: one for every axis or three (x y z) (default 1)",
+    )
+    c.add_argument(
+        "--cloud-holes",
+        type=float,
+        default=0.25,
+        metavar="FRAC",
+        help="fraction of the surface missing, in patches (default 0.25)",
+    )
+    c.add_argument(
+        "--cloud-outliers",
+        type=float,
+        default=0.02,
+        metavar="FRAC",
+        help="fraction of the cloud's points that are outliers around the object (default 0.02)",
+    )
+    c.add_argument(
+        "--cloud-offset-mm",
+        nargs="+",
+        type=float,
+        default=[2.0],
+        metavar="MM",
+        help="rigid offset of the cloud: a length (random direction) or three (x y z), mm (default 2)",
+    )
     p.add_argument("--quiet", action="store_true")
 
 
@@ -81,16 +144,30 @@ def run(args: argparse.Namespace) -> int:
             raise TwinFocusError(f"--{name.replace('_', '-')} takes one number or three (x y z)")
     snr = None if np.isinf(args.snr_db) else args.snr_db
     sc = Scenario(
-        reference=args.reference, target=args.target, distance_m=args.distance, separation_deg=args.separation_deg,
-        height_m=args.height, target_height_m=args.target_height, reference_material=args.reference_material,
-        target_material=args.target_material, occluder=args.occluder, clutter=args.clutter,
-        trajectory=args.trajectory, error_model=args.error_model,
+        reference=args.reference,
+        target=args.target,
+        distance_m=args.distance,
+        separation_deg=args.separation_deg,
+        height_m=args.height,
+        target_height_m=args.target_height,
+        reference_material=args.reference_material,
+        target_material=args.target_material,
+        occluder=args.occluder,
+        clutter=args.clutter,
+        trajectory=args.trajectory,
+        error_model=args.error_model,
         error_sigma_m=(args.xy_error_sigma_mm * 1e-3, args.xy_error_sigma_mm * 1e-3, args.error_sigma_mm * 1e-3),
-        snr_db=snr, speckle=not args.no_speckle, template_offset_m=tuple(v * 1e-3 for v in args.template_offset_mm),
-        range_step_m=None if args.range_step_mm is None else args.range_step_mm * 1e-3, seed=args.seed,
-        n_columns=args.columns, n_rows=args.rows,
-        reference_roughness_deg=args.reference_roughness_deg, reference_amplitude_spread=args.reference_amplitude_spread,
-        reference_shape=args.reference_shape, reference_shape_parameter=args.reference_shape_parameter,
+        snr_db=snr,
+        speckle=not args.no_speckle,
+        template_offset_m=tuple(v * 1e-3 for v in args.template_offset_mm),
+        range_step_m=None if args.range_step_mm is None else args.range_step_mm * 1e-3,
+        seed=args.seed,
+        n_columns=args.columns,
+        n_rows=args.rows,
+        reference_roughness_deg=args.reference_roughness_deg,
+        reference_amplitude_spread=args.reference_amplitude_spread,
+        reference_shape=args.reference_shape,
+        reference_shape_parameter=args.reference_shape_parameter,
         target_depth_offset_m=args.target_depth_offset,
     )
     _check_cost(sc, args)
@@ -101,8 +178,14 @@ def run(args: argparse.Namespace) -> int:
 
         mm = lambda v: v[0] * 1e-3 if len(v) == 1 else np.asarray(v) * 1e-3
         surface = sc.scene().object("reference").surface_points(args.cloud_spacing_mm * 1e-3)
-        cloud = camera_cloud(surface, mm(args.cloud_noise_mm), args.cloud_holes, args.cloud_outliers,
-                             mm(args.cloud_offset_mm), rng=np.random.default_rng([args.seed, 14]))
+        cloud = camera_cloud(
+            surface,
+            mm(args.cloud_noise_mm),
+            args.cloud_holes,
+            args.cloud_outliers,
+            mm(args.cloud_offset_mm),
+            rng=np.random.default_rng([args.seed, 14]),
+        )
     t0 = time.perf_counter()
     scan, template_scan = simulate_scenario(sc, progress=Progress("simulate", enabled=not args.quiet))
     scan.save(args.out)
@@ -113,9 +196,14 @@ def run(args: argparse.Namespace) -> int:
 
         save_points(args.reference_cloud_out, cloud)
     info = {
-        "scan": str(args.out), "template_scan": args.template_out, "seconds": round(time.perf_counter() - t0, 2),
-        "reference_roi": sc.reference_roi(), "target_roi": sc.target_roi(), "positions": scan.n_positions,
-        "channels": scan.n_channels, "reference_cloud": args.reference_cloud_out,
+        "scan": str(args.out),
+        "template_scan": args.template_out,
+        "seconds": round(time.perf_counter() - t0, 2),
+        "reference_roi": sc.reference_roi(),
+        "target_roi": sc.target_roi(),
+        "positions": scan.n_positions,
+        "channels": scan.n_channels,
+        "reference_cloud": args.reference_cloud_out,
         "reference_cloud_points": None if cloud is None else int(cloud.shape[0]),
     }
     print(json.dumps(info), file=sys.stderr)
@@ -135,8 +223,9 @@ def _check_cost(sc, args) -> None:
     spacing = sc.spacing_m or scatterer_spacing_m(sc.distance_m)
     n_pts = sc.scene().scatterers(spacing, 0)[0].shape[0]
     n_scans = 2 if args.template_out else 1
-    peak, cpu_s = simulation_cost(args.columns * args.rows, mmwcas_virtual_array().n_channels, Chirp().n_samples,
-                                  n_pts, n_scans)
+    peak, cpu_s = simulation_cost(
+        args.columns * args.rows, mmwcas_virtual_array().n_channels, Chirp().n_samples, n_pts, n_scans
+    )
     avail = available_memory_bytes()
     if avail is not None and peak > avail:
         raise TwinFocusError(

@@ -1,4 +1,5 @@
 """``twinfocus topic list|echo|hz``: look at the topics of a running graph."""
+
 from __future__ import annotations
 
 import argparse
@@ -8,7 +9,9 @@ from nodes.introspect import TopicEcho, TopicHz, TopicList
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--broker", default=None, help="broker control endpoint (default $TWINFOCUS_BROKER or tcp://127.0.0.1:7447)")
+    parser.add_argument(
+        "--broker", default=None, help="broker control endpoint (default $TWINFOCUS_BROKER or tcp://127.0.0.1:7447)"
+    )
     sub = parser.add_subparsers(dest="action", metavar="ACTION")
     sub.required = True
     p = sub.add_parser("list", help="topics with their types (from the nodes' heartbeats)")

@@ -10,6 +10,7 @@ With ``--calibrate-scan`` (a scan of the scene on accurate positions) it also ma
 radar-camera offset calibration (``--calibration-out``); ``--calibration`` applies a stored one.
 Every output is computed before anything is written, and each file is written atomically.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,25 +27,47 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--camera", required=True, help="stereo calibration and camera pose (camera.json)")
     seed = p.add_mutually_exclusive_group(required=True)
     seed.add_argument("--seed-point", nargs=2, type=float, metavar=("U", "V"), help="a pixel on the reference")
-    seed.add_argument("--seed-box", nargs=4, type=float, metavar=("X0", "Y0", "X1", "Y1"), help="pixel box around the reference")
-    seed.add_argument("--seed-roi", nargs=5, type=float, metavar=("X0", "X1", "Y0", "Y1", "Z"),
-                      help="radar region (metres) holding the reference, projected into the picture")
+    seed.add_argument(
+        "--seed-box", nargs=4, type=float, metavar=("X0", "Y0", "X1", "Y1"), help="pixel box around the reference"
+    )
+    seed.add_argument(
+        "--seed-roi",
+        nargs=5,
+        type=float,
+        metavar=("X0", "X1", "Y0", "Y1", "Z"),
+        help="radar region (metres) holding the reference, projected into the picture",
+    )
     seed.add_argument("--seed-nearest", action="store_true", help="the nearest sizeable object (beware occluders)")
-    p.add_argument("--segmenter", default="classical",
-                   help="classical (default), sam2:CHECKPOINT[:CONFIG] or sam:CHECKPOINT[:TYPE]")
+    p.add_argument(
+        "--segmenter",
+        default="classical",
+        help="classical (default), sam2:CHECKPOINT[:CONFIG] or sam:CHECKPOINT[:TYPE]",
+    )
     p.add_argument("--surface", choices=["auto", "plane", "raw"], default="auto", help="surface model (default auto)")
-    p.add_argument("--voxel-mm", type=float, default=None,
-                   help="point spacing; default: half the radar's resolution from --scan, else 1.0 mm")
+    p.add_argument(
+        "--voxel-mm",
+        type=float,
+        default=None,
+        help="point spacing; default: half the radar's resolution from --scan, else 1.0 mm",
+    )
     p.add_argument("--points-out", required=True, help="reference point cloud to write (.npy, (N, 3) metres)")
     p.add_argument("--mask-out", help="also write the reference mask (PNG)")
     p.add_argument("--scan", help="scan file whose aperture the template is simulated for")
-    p.add_argument("--reference-roi", nargs=5, type=float, metavar=("X0", "X1", "Y0", "Y1", "Z"),
-                   help="reference region (metres) of the template")
+    p.add_argument(
+        "--reference-roi",
+        nargs=5,
+        type=float,
+        metavar=("X0", "X1", "Y0", "Y1", "Z"),
+        help="reference region (metres) of the template",
+    )
     p.add_argument("--size", type=int, default=100, help="template size in pixels per side (default 100)")
     p.add_argument("--out", help="template file to write (.npz: image, x_m, y_m, z_m)")
     p.add_argument("--template-method", choices=["psf", "exact"], default="psf", help="psf (fast, default) or exact")
-    p.add_argument("--incoherent", action="store_true",
-                   help="a rough reference: outline-only model, template of the mean speckle amplitude")
+    p.add_argument(
+        "--incoherent",
+        action="store_true",
+        help="a rough reference: outline-only model, template of the mean speckle amplitude",
+    )
     p.add_argument("--support-out", help="with --out: also write the reference's outline on the grid (PNG)")
     p.add_argument("--calibration", help="radar-camera offset calibration to apply (JSON)")
     p.add_argument("--calibrate-scan", help="scan on accurate positions: measure the radar-camera offset")
@@ -119,8 +142,14 @@ def run(args: argparse.Namespace) -> int:
         voxel = 1.0e-3
     segmenter = load_segmenter(args.segmenter)
     say(f"segmenting and reconstructing the reference (seed: {seed.kind}, voxel {voxel * 1e3:.2f} mm)")
-    twin = reference_from_stereo(left, right, camera, seed, segmenter=segmenter,
-                                 cloud_config=PointCloudConfig(surface=args.surface, voxel_m=voxel))
+    twin = reference_from_stereo(
+        left,
+        right,
+        camera,
+        seed,
+        segmenter=segmenter,
+        cloud_config=PointCloudConfig(surface=args.surface, voxel_m=voxel),
+    )
     points = twin.points_m
     report = {"seed": {"kind": seed.kind, "values": list(seed.values)}, **twin.summary(), "voxel_m": voxel}
     timings = dict(twin.timings_s)
@@ -137,8 +166,9 @@ def run(args: argparse.Namespace) -> int:
         say("calibrating the radar-camera offset against the accurate-position scan")
         t = time.perf_counter()
         measured = np.abs(backproject(cal_scan.data, pos, cal_scan.chirp, grid))
-        sim = digital_twin_template(points, pos, cal_scan.chirp, grid, method=args.template_method,
-                                    coherent=not args.incoherent)
+        sim = digital_twin_template(
+            points, pos, cal_scan.chirp, grid, method=args.template_method, coherent=not args.incoherent
+        )
         calibration = calibrate_offset(sim, measured, grid)
         calibration.source.update({"calibrate_scan": str(args.calibrate_scan)})
         calib_offset = calibration.offset_m
@@ -152,12 +182,20 @@ def run(args: argparse.Namespace) -> int:
         from twinfocus.digital_twin.condition import ConditionConfig, digital_twin_reference
 
         assert scan is not None and grid is not None  # _check_args: --out needs --scan and --reference-roi
-        say(f"conditioning the cloud and simulating the template ({args.template_method}) over "
-            f"{scan.n_positions} x {scan.n_channels} phase centres")
+        say(
+            f"conditioning the cloud and simulating the template ({args.template_method}) over "
+            f"{scan.n_positions} x {scan.n_channels} phase centres"
+        )
         t = time.perf_counter()
         # --incoherent: a rough reference, whose radar texture no camera sees: its outline alone.
-        ref = digital_twin_reference(points_radar, scan.positions, scan.chirp, grid, method=args.template_method,
-                                     config=ConditionConfig(surface="outline" if args.incoherent else "auto"))
+        ref = digital_twin_reference(
+            points_radar,
+            scan.positions,
+            scan.chirp,
+            grid,
+            method=args.template_method,
+            config=ConditionConfig(surface="outline" if args.incoherent else "auto"),
+        )
         template = ref.template
         report["conditioning"] = ref.info
         say(f"surface model: {ref.surface} ({ref.info['surface_reason']})")
@@ -186,8 +224,18 @@ def run(args: argparse.Namespace) -> int:
         from twinfocus.atomic import write_text_atomic
 
         write_text_atomic(args.report, json.dumps(report, indent=2, default=float) + "\n")
-    say(f"{points.shape[0]} points ({twin.cloud.surface} surface), stages " +
-        ", ".join(f"{k} {v:.2f}s" for k, v in timings.items()))
-    print(json.dumps({"points": int(points.shape[0]), "points_out": str(args.points_out), "template": args.out,
-                      "timings_s": report["timings_s"]}))
+    say(
+        f"{points.shape[0]} points ({twin.cloud.surface} surface), stages "
+        + ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
+    )
+    print(
+        json.dumps(
+            {
+                "points": int(points.shape[0]),
+                "points_out": str(args.points_out),
+                "template": args.out,
+                "timings_s": report["timings_s"],
+            }
+        )
+    )
     return 0

@@ -15,6 +15,7 @@ a nearly constant translation, so:
 Registration (:func:`register_translation`) is normalised cross-correlation of the two amplitude
 images with a sub-pixel parabolic peak.
 """
+
 from __future__ import annotations
 
 import json
@@ -85,8 +86,12 @@ class RadarCameraCalibration:
         self.offset_m = off
 
     def to_dict(self) -> dict:
-        return {"kind": "twinfocus-radar-camera-offset", "offset_m": self.offset_m.tolist(),
-                "created_ns": int(self.created_ns), "source": self.source}
+        return {
+            "kind": "twinfocus-radar-camera-offset",
+            "offset_m": self.offset_m.tolist(),
+            "created_ns": int(self.created_ns),
+            "source": self.source,
+        }
 
     def save(self, path: str | os.PathLike) -> Path:
         from twinfocus.atomic import write_text_atomic
@@ -97,18 +102,23 @@ class RadarCameraCalibration:
     def load(cls, path: str | os.PathLike) -> RadarCameraCalibration:
         path = Path(path)
         if not path.is_file():
-            raise TwinFocusError(f"{path}: no such radar-camera calibration file (make one with twinfocus twin --calibrate-scan)")
+            raise TwinFocusError(
+                f"{path}: no such radar-camera calibration file (make one with twinfocus twin --calibrate-scan)"
+            )
         try:
             d = json.loads(path.read_text())
-            return cls(np.asarray(d["offset_m"], dtype=np.float64), int(d.get("created_ns", 0)), dict(d.get("source", {})))
+            return cls(
+                np.asarray(d["offset_m"], dtype=np.float64), int(d.get("created_ns", 0)), dict(d.get("source", {}))
+            )
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise TwinFocusError(f"{path}: not a radar-camera calibration file ({exc})") from None
         except TwinFocusError as exc:
             raise TwinFocusError(f"{path}: {exc}") from None
 
 
-def calibrate_offset(template: np.ndarray, focused_reference: np.ndarray, grid: ImageGrid,
-                     min_response: float = 0.05) -> RadarCameraCalibration:
+def calibrate_offset(
+    template: np.ndarray, focused_reference: np.ndarray, grid: ImageGrid, min_response: float = 0.05
+) -> RadarCameraCalibration:
     """One-time calibration: the translation that moves the simulated ``template`` onto the
     ``focused_reference`` radar image (both on ``grid``).
 
@@ -120,13 +130,16 @@ def calibrate_offset(template: np.ndarray, focused_reference: np.ndarray, grid: 
             f"the simulated template and the radar image do not correlate (peak response {resp:.3f}); "
             "check that both show the reference in the same region"
         )
-    return RadarCameraCalibration(pixels_to_metres(grid, dy, dx), time.time_ns(),
-                                  {"shift_px": [dy, dx], "response": resp, "grid_roi": list(grid.roi),
-                                   "grid_shape": list(grid.shape)})
+    return RadarCameraCalibration(
+        pixels_to_metres(grid, dy, dx),
+        time.time_ns(),
+        {"shift_px": [dy, dx], "response": resp, "grid_roi": list(grid.roi), "grid_shape": list(grid.shape)},
+    )
 
 
-def refine_template_shift(template: np.ndarray, measured_reference: np.ndarray, max_shift_px: float = 3.0,
-                          min_response: float = 0.05) -> tuple[np.ndarray, tuple[float, float]]:
+def refine_template_shift(
+    template: np.ndarray, measured_reference: np.ndarray, max_shift_px: float = 3.0, min_response: float = 0.05
+) -> tuple[np.ndarray, tuple[float, float]]:
     """Per-scan refinement: move ``template`` onto the scan's own reference image.
 
     The measured image is defocused, so only a small residual shift is trusted: a shift longer
@@ -148,8 +161,9 @@ def _parabola_vertex(lm: float, l0: float, lp: float, step: float) -> float:
     return step * parabola_vertex(lm, l0, lp, limit=1.0)
 
 
-def refine_template_shift_by_loss(basis: np.ndarray, template: np.ndarray, config=None, step_px: float = 1.0,
-                                  iterations: int = 60, progress=None) -> tuple[np.ndarray, tuple[float, float], dict]:
+def refine_template_shift_by_loss(
+    basis: np.ndarray, template: np.ndarray, config=None, step_px: float = 1.0, iterations: int = 60, progress=None
+) -> tuple[np.ndarray, tuple[float, float], dict]:
     """Per-scan sub-pixel registration of the template, measured with the autofocus's own loss.
 
     Registering the template against the scan's defocused reference image is biased (motion

@@ -17,6 +17,7 @@ Defaults (:meth:`StereoCamera.zed2i`) are those of a ZED 2i at HD720: 1280 x 720
 baseline, fx = fy = 700 px (factory calibration files of the ZED 2/2i at HD720 give fx ~ 700),
 principal point at the image centre, no distortion (the SDK delivers rectified images).
 """
+
 from __future__ import annotations
 
 import json
@@ -97,19 +98,38 @@ class Intrinsics:
         """The same camera at ``factor`` times the resolution (pixel centres stay consistent)."""
         f = float(factor)
         return Intrinsics(
-            self.fx * f, self.fy * f, (self.cx + 0.5) * f - 0.5, (self.cy + 0.5) * f - 0.5,
-            int(round(self.width * f)), int(round(self.height * f)), self.dist,
+            self.fx * f,
+            self.fy * f,
+            (self.cx + 0.5) * f - 0.5,
+            (self.cy + 0.5) * f - 0.5,
+            int(round(self.width * f)),
+            int(round(self.height * f)),
+            self.dist,
         )
 
     def to_dict(self) -> dict:
-        return {"fx": float(self.fx), "fy": float(self.fy), "cx": float(self.cx), "cy": float(self.cy),
-                "width": int(self.width), "height": int(self.height), "dist": list(self.dist)}
+        return {
+            "fx": float(self.fx),
+            "fy": float(self.fy),
+            "cx": float(self.cx),
+            "cy": float(self.cy),
+            "width": int(self.width),
+            "height": int(self.height),
+            "dist": list(self.dist),
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> Intrinsics:
         try:
-            return cls(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
-                       int(d["width"]), int(d["height"]), tuple(d.get("dist", (0.0,) * 5)))
+            return cls(
+                float(d["fx"]),
+                float(d["fy"]),
+                float(d["cx"]),
+                float(d["cy"]),
+                int(d["width"]),
+                int(d["height"]),
+                tuple(d.get("dist", (0.0,) * 5)),
+            )
         except KeyError as exc:
             raise TwinFocusError(f"camera intrinsics miss the key {exc.args[0]!r}") from None
 
@@ -192,7 +212,9 @@ class StereoCamera:
 
     def __post_init__(self) -> None:
         if self.left.size != self.right.size:
-            raise TwinFocusError(f"left and right images must have the same size, got {self.left.size} and {self.right.size}")
+            raise TwinFocusError(
+                f"left and right images must have the same size, got {self.left.size} and {self.right.size}"
+            )
         r = np.asarray(self.rotation_rl, dtype=np.float64)
         t = np.asarray(self.translation_rl_m, dtype=np.float64).reshape(-1)
         if t.shape != (3,) or not np.isfinite(t).all():
@@ -248,8 +270,11 @@ class StereoCamera:
         t = self.translation_rl_m
         return (
             np.allclose(self.rotation_rl, np.eye(3), atol=1e-9)
-            and abs(t[1]) < 1e-9 and abs(t[2]) < 1e-9 and t[0] < 0
-            and not self.left.has_distortion and not self.right.has_distortion
+            and abs(t[1]) < 1e-9
+            and abs(t[2]) < 1e-9
+            and t[0] < 0
+            and not self.left.has_distortion
+            and not self.right.has_distortion
             and np.allclose(self.left.K, self.right.K)
         )
 
@@ -259,8 +284,15 @@ class StereoCamera:
 
         size = self.left.size
         r1, r2, p1, p2, q, _, _ = cv2.stereoRectify(
-            self.left.K, np.asarray(self.left.dist), self.right.K, np.asarray(self.right.dist), size,
-            self.rotation_rl, self.translation_rl_m.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha,
+            self.left.K,
+            np.asarray(self.left.dist),
+            self.right.K,
+            np.asarray(self.right.dist),
+            size,
+            self.rotation_rl,
+            self.translation_rl_m.reshape(3, 1),
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            alpha=alpha,
         )
         map_l = cv2.initUndistortRectifyMap(self.left.K, np.asarray(self.left.dist), r1, p1, size, cv2.CV_32FC1)
         map_r = cv2.initUndistortRectifyMap(self.right.K, np.asarray(self.right.dist), r2, p2, size, cv2.CV_32FC1)
@@ -284,8 +316,10 @@ class StereoCamera:
         if missing:
             raise TwinFocusError(f"camera description misses key(s) {', '.join(missing)}")
         return cls(
-            Intrinsics.from_dict(d["left"]), Intrinsics.from_dict(d["right"]),
-            np.asarray(d["rotation_rl"], dtype=np.float64), np.asarray(d["translation_rl_m"], dtype=np.float64),
+            Intrinsics.from_dict(d["left"]),
+            Intrinsics.from_dict(d["right"]),
+            np.asarray(d["rotation_rl"], dtype=np.float64),
+            np.asarray(d["translation_rl_m"], dtype=np.float64),
             np.asarray(d["scene_from_left"], dtype=np.float64),
         )
 

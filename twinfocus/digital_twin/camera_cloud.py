@@ -6,6 +6,7 @@ the worst), 10-40 % of the surface missing in patches (specular spots, low textu
 0-5 % outliers spread around the object (flying pixels, mismatches), a rigid offset of a few mm
 from where the radar sees the object (camera-radar calibration), and no plane fitted.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -40,6 +40,7 @@ Steps (:func:`condition_cloud`):
 seen in the cloud: give the calibration's offset (``offset_m``); a residual is what the per-scan
 registration (:mod:`twinfocus.digital_twin.align`) is for.
 """
+
 from __future__ import annotations
 
 import os
@@ -98,8 +99,14 @@ class ConditionConfig:
     def validate(self) -> None:
         if self.surface not in SURFACES:
             raise TwinFocusError(f"surface model must be one of {', '.join(SURFACES)}, got {self.surface!r}")
-        for name in ("voxel_m", "plane_threshold_m", "smooth_window_m", "curvature_min_m", "surface_outlier_sigma",
-                     "max_phase_sd_rad"):
+        for name in (
+            "voxel_m",
+            "plane_threshold_m",
+            "smooth_window_m",
+            "curvature_min_m",
+            "surface_outlier_sigma",
+            "max_phase_sd_rad",
+        ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise TwinFocusError(f"{name} must be a positive number, got {v!r}")
@@ -229,8 +236,9 @@ def _disc(radius_cells: float) -> np.ndarray:
     return (x * x + y * y) <= radius_cells * radius_cells + 1e-9
 
 
-def condition_cloud(points_m, grid: ImageGrid | None = None, wavelength_m: float = 3.9e-3,
-                    config: ConditionConfig | None = None) -> ConditionedCloud:
+def condition_cloud(
+    points_m, grid: ImageGrid | None = None, wavelength_m: float = 3.9e-3, config: ConditionConfig | None = None
+) -> ConditionedCloud:
     """Condition a reference point cloud (module docstring): float (N, 3) scene metres ->
     :class:`ConditionedCloud`.
 
@@ -256,13 +264,20 @@ def condition_cloud(points_m, grid: ImageGrid | None = None, wavelength_m: float
     info["non_finite_rows"] = int((~finite).sum())
     if info["non_finite_rows"]:
         p = p[finite]
-        _warn(warn, f"reference point cloud: dropped {info['non_finite_rows']} of {info['input_points']} rows holding NaN or inf")
+        _warn(
+            warn,
+            f"reference point cloud: dropped {info['non_finite_rows']} of {info['input_points']} rows holding NaN or inf",
+        )
     if p.shape[0] < MIN_POINTS:
-        raise TwinFocusError(f"reference point cloud has only {p.shape[0]} finite points (at least {MIN_POINTS} needed)")
+        raise TwinFocusError(
+            f"reference point cloud has only {p.shape[0]} finite points (at least {MIN_POINTS} needed)"
+        )
 
     if grid is not None:
         m = cfg.region_margin_m
-        inside = ((p[:, 0] >= grid.x0 - m) & (p[:, 0] <= grid.x1 + m) & (p[:, 1] >= grid.y0 - m) & (p[:, 1] <= grid.y1 + m))
+        inside = (
+            (p[:, 0] >= grid.x0 - m) & (p[:, 0] <= grid.x1 + m) & (p[:, 1] >= grid.y0 - m) & (p[:, 1] <= grid.y1 + m)
+        )
         info["outside_region"] = int((~inside).sum())
         if not inside.any():
             lo, hi = p.min(axis=0), p.max(axis=0)
@@ -274,11 +289,16 @@ def condition_cloud(points_m, grid: ImageGrid | None = None, wavelength_m: float
         if info["outside_region"]:
             p = p[inside]
             if info["outside_region"] > 0.5 * (info["outside_region"] + p.shape[0]):
-                _warn(warn, f"reference point cloud: {info['outside_region']} of {info['outside_region'] + p.shape[0]} "
-                            "points lie outside the reference region and were dropped (is the region right?)")
+                _warn(
+                    warn,
+                    f"reference point cloud: {info['outside_region']} of {info['outside_region'] + p.shape[0]} "
+                    "points lie outside the reference region and were dropped (is the region right?)",
+                )
         if p.shape[0] < MIN_POINTS:
-            raise TwinFocusError(f"reference point cloud has only {p.shape[0]} points inside the reference region "
-                                 f"(at least {MIN_POINTS} needed)")
+            raise TwinFocusError(
+                f"reference point cloud has only {p.shape[0]} points inside the reference region "
+                f"(at least {MIN_POINTS} needed)"
+            )
 
     check_not_degenerate(p)
     if p.shape[0] > cfg.max_points:
@@ -352,16 +372,20 @@ def condition_cloud(points_m, grid: ImageGrid | None = None, wavelength_m: float
     elif maybe_curved and k2 * model_sd > cfg.max_phase_sd_rad:
         surface = "outline"
         shape = "curved" if curved else "possibly curved"
-        reason = (f"{shape} ({curvature * 1e3:.1f} mm off a plane) but the cloud's noise ({noise * 1e3:.2f} mm) leaves "
-                  f"the surface uncertain to {model_sd * 1e3:.2f} mm = {k2 * model_sd:.1f} rad of radar phase "
-                  f"(> {cfg.max_phase_sd_rad} rad)")
+        reason = (
+            f"{shape} ({curvature * 1e3:.1f} mm off a plane) but the cloud's noise ({noise * 1e3:.2f} mm) leaves "
+            f"the surface uncertain to {model_sd * 1e3:.2f} mm = {k2 * model_sd:.1f} rad of radar phase "
+            f"(> {cfg.max_phase_sd_rad} rad)"
+        )
     elif curved:
         surface = "smooth"
         reason = f"curved: the smoothed surface departs {curvature * 1e3:.1f} mm from the best plane"
     else:
         surface = "plane"
-        reason = (f"planar: the smoothed surface stays within {curvature * 1e3:.1f} mm of the plane "
-                  f"(noise {noise * 1e3:.2f} mm)")
+        reason = (
+            f"planar: the smoothed surface stays within {curvature * 1e3:.1f} mm of the plane "
+            f"(noise {noise * 1e3:.2f} mm)"
+        )
     info["surface"] = surface
     info["surface_reason"] = reason
 
@@ -392,8 +416,17 @@ def support_on_grid(points_m: np.ndarray, grid: ImageGrid) -> np.ndarray:
     return ndimage.binary_closing(mask, np.ones((3, 3), bool), border_value=0) | mask
 
 
-def digital_twin_reference(points_m, scan_positions, chirp, grid: ImageGrid, *, config: ConditionConfig | None = None,
-                           offset_m=None, method: str = "psf", **bp_options) -> DigitalTwinReference:
+def digital_twin_reference(
+    points_m,
+    scan_positions,
+    chirp,
+    grid: ImageGrid,
+    *,
+    config: ConditionConfig | None = None,
+    offset_m=None,
+    method: str = "psf",
+    **bp_options,
+) -> DigitalTwinReference:
     """Condition ``points_m`` and build the reference's template and support on ``grid``.
 
     Parameters
@@ -420,20 +453,30 @@ def digital_twin_reference(points_m, scan_positions, chirp, grid: ImageGrid, *, 
     cloud = condition_cloud(p, grid, chirp.wavelength_m, cfg)
     t0 = time.perf_counter()
     coherent = cloud.surface != "outline"
-    template = digital_twin_template(cloud.points_m, scan_positions, chirp, grid, method=method,
-                                     coherent=coherent, **bp_options)
+    template = digital_twin_template(
+        cloud.points_m, scan_positions, chirp, grid, method=method, coherent=coherent, **bp_options
+    )
     support = support_on_grid(cloud.points_m, grid)
     if not support.any():
         raise TwinFocusError("the conditioned reference covers no pixel of the reference region")
     info = dict(cloud.info)
-    info.update({"template_method": method, "template_coherent": coherent, "template_seconds": round(time.perf_counter() - t0, 4),
-                 "support_pixels": int(support.sum()), "offset_m": None if offset_m is None else [float(v) for v in off],
-                 "warnings": list(cloud.warnings), "config": asdict(cfg)})
+    info.update(
+        {
+            "template_method": method,
+            "template_coherent": coherent,
+            "template_seconds": round(time.perf_counter() - t0, 4),
+            "support_pixels": int(support.sum()),
+            "offset_m": None if offset_m is None else [float(v) for v in off],
+            "warnings": list(cloud.warnings),
+            "config": asdict(cfg),
+        }
+    )
     return DigitalTwinReference(template, support, cloud, info)
 
 
-def digital_twin_reference_from_file(path: str | os.PathLike, scan, grid: ImageGrid, *, calibration=None,
-                                     method: str = "psf", config=None, **bp_options):
+def digital_twin_reference_from_file(
+    path: str | os.PathLike, scan, grid: ImageGrid, *, calibration=None, method: str = "psf", config=None, **bp_options
+):
     """``twinfocus focus --digital-twin POINTS.npy``: the cloud in ``path`` conditioned
     (:func:`twinfocus.digital_twin.condition.digital_twin_reference`) for ``scan``'s aperture on
     ``grid``: a :class:`~twinfocus.digital_twin.condition.DigitalTwinReference` (template float32
@@ -452,14 +495,17 @@ def digital_twin_reference_from_file(path: str | os.PathLike, scan, grid: ImageG
 
         offset = RadarCameraCalibration.load(calibration).offset_m
     try:
-        return digital_twin_reference(points, scan.positions, scan.chirp, grid, config=config, offset_m=offset,
-                                      method=method, **bp_options)
+        return digital_twin_reference(
+            points, scan.positions, scan.chirp, grid, config=config, offset_m=offset, method=method, **bp_options
+        )
     except TwinFocusError as exc:
         raise TwinFocusError(f"{path}: {exc}") from None
 
 
-def digital_twin_template_from_file(path: str | os.PathLike, scan, grid: ImageGrid, *, calibration=None,
-                                    method: str = "psf", **bp_options) -> np.ndarray:
+def digital_twin_template_from_file(
+    path: str | os.PathLike, scan, grid: ImageGrid, *, calibration=None, method: str = "psf", **bp_options
+) -> np.ndarray:
     """The template of :func:`digital_twin_reference_from_file` alone: float32 (H, W)."""
-    return digital_twin_reference_from_file(path, scan, grid, calibration=calibration, method=method,
-                                            **bp_options).template
+    return digital_twin_reference_from_file(
+        path, scan, grid, calibration=calibration, method=method, **bp_options
+    ).template

@@ -6,6 +6,7 @@
 Each stage's wall time is kept in :attr:`TwinResult.timings_s` (the benchmark and ``twinfocus
 twin`` report them). The template itself is :func:`twinfocus.digital_twin.template.digital_twin_template`.
 """
+
 from __future__ import annotations
 
 import time

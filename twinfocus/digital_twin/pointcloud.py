@@ -15,6 +15,7 @@ Steps (:func:`reference_point_cloud`):
    finest cross-range resolution): finer points cost simulation time and add nothing.
 5. Transform to the scene frame with the camera's pose.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -219,7 +220,9 @@ def reference_point_cloud(
                 t = d / denom
             ok = np.isfinite(t) & (t > 0)
             if ok.sum() < MIN_POINTS:
-                raise TwinFocusError("the fitted reference plane is seen edge-on: cannot intersect the pixels' rays with it")
+                raise TwinFocusError(
+                    "the fitted reference plane is seen edge-on: cannot intersect the pixels' rays with it"
+                )
             pts = rays[ok] * t[ok, None]
             surface = "plane"
             plane = (n, d)

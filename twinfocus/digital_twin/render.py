@@ -11,6 +11,7 @@ anti-aliased like a real sensor's pixel footprint), then get Gaussian sensor noi
 (depth along the left camera's optical axis and the label of the visible surface) is ray-cast at
 the native resolution through the pixel centres.
 """
+
 from __future__ import annotations
 
 import os
@@ -90,11 +91,14 @@ class StereoRendering:
             "left": write_image_atomic(out / "left.png", self.left),
             "right": write_image_atomic(out / "right.png", self.right),
             "camera": self.camera.save(out / "camera.json"),
-            "truth": save_npz_atomic(out / "truth.npz", {
-                "depth_left": self.depth_left.astype(np.float32),
-                "labels_left": self.labels_left.astype(np.int16),
-                "label_names": np.array(self.label_names, dtype=str),
-            }),
+            "truth": save_npz_atomic(
+                out / "truth.npz",
+                {
+                    "depth_left": self.depth_left.astype(np.float32),
+                    "labels_left": self.labels_left.astype(np.int16),
+                    "label_names": np.array(self.label_names, dtype=str),
+                },
+            ),
         }
         return paths
 
@@ -126,8 +130,9 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
 # --- textures ----------------------------------------------------------------------------------
 
 
-def procedural_texture(shape: tuple[int, int], rng: np.random.Generator, contrast: float = 0.25,
-                       streak: float = 0.0) -> np.ndarray:
+def procedural_texture(
+    shape: tuple[int, int], rng: np.random.Generator, contrast: float = 0.25, streak: float = 0.0
+) -> np.ndarray:
     """Multiplicative surface texture, float32 (H, W) around 1: band-limited noise at three
     scales (grain, mottling, slow shading), optionally stretched along rows (brushed metal)."""
     import cv2
@@ -204,7 +209,9 @@ def object_surface(obj, rng: np.random.Generator, name: str | None = None) -> Su
     if given is not None:
         # A picture of the surface (uint8 BGR on the mask's raster): it is the colour; the fine
         # grain on top keeps stereo matchable where the picture is flat.
-        pic = cv2.resize(np.asarray(given, dtype=np.float32), (tex_shape[1], tex_shape[0]), interpolation=cv2.INTER_LINEAR)
+        pic = cv2.resize(
+            np.asarray(given, dtype=np.float32), (tex_shape[1], tex_shape[0]), interpolation=cv2.INTER_LINEAR
+        )
         grain = procedural_texture(tex_shape, rng, contrast=0.08)
         albedo = pic * grain[..., None]
     else:
@@ -220,13 +227,28 @@ def object_surface(obj, rng: np.random.Generator, name: str | None = None) -> Su
     )
 
 
-def background_surfaces(rng: np.random.Generator, wall_z_m: float = 1.5, n_patches: int = 12,
-                        patch_depth_m: tuple[float, float] = (0.85, 1.3), width_m: float = 4.0,
-                        height_m: float = 2.6) -> list[Surface]:
+def background_surfaces(
+    rng: np.random.Generator,
+    wall_z_m: float = 1.5,
+    n_patches: int = 12,
+    patch_depth_m: tuple[float, float] = (0.85, 1.3),
+    width_m: float = 4.0,
+    height_m: float = 2.6,
+) -> list[Surface]:
     """A cluttered wall at ``wall_z_m`` plus ``n_patches`` boxes/posters at random depths."""
     wall_px = (int(height_m / _BACKGROUND_TEXEL_M), int(width_m / _BACKGROUND_TEXEL_M))
-    out = [Surface("", np.array([0.0, 0.0, wall_z_m]), np.eye(3), None, 1.0,
-                   clutter_texture(wall_px, rng, n_shapes=900), _BACKGROUND_TEXEL_M, shade=0.85)]
+    out = [
+        Surface(
+            "",
+            np.array([0.0, 0.0, wall_z_m]),
+            np.eye(3),
+            None,
+            1.0,
+            clutter_texture(wall_px, rng, n_shapes=900),
+            _BACKGROUND_TEXEL_M,
+            shade=0.85,
+        )
+    ]
     for _ in range(int(n_patches)):
         z = rng.uniform(*patch_depth_m)
         half = np.tan(np.deg2rad(40)) * z
@@ -235,8 +257,18 @@ def background_surfaces(rng: np.random.Generator, wall_z_m: float = 1.5, n_patch
         shape = (int(size[1] / _BACKGROUND_TEXEL_M), int(size[0] / _BACKGROUND_TEXEL_M))
         angle = rng.uniform(-0.5, 0.5)
         rot = np.array([[np.cos(angle), 0.0, np.sin(angle)], [0.0, 1.0, 0.0], [-np.sin(angle), 0.0, np.cos(angle)]])
-        out.append(Surface("", centre, rot, np.ones(shape, np.float32), _BACKGROUND_TEXEL_M,
-                           clutter_texture(shape, rng, n_shapes=40), _BACKGROUND_TEXEL_M, shade=rng.uniform(0.8, 1.1)))
+        out.append(
+            Surface(
+                "",
+                centre,
+                rot,
+                np.ones(shape, np.float32),
+                _BACKGROUND_TEXEL_M,
+                clutter_texture(shape, rng, n_shapes=40),
+                _BACKGROUND_TEXEL_M,
+                shade=rng.uniform(0.8, 1.1),
+            )
+        )
     return out
 
 
@@ -245,10 +277,11 @@ def scene_surfaces(scene, rng: np.random.Generator, clutter: bool = True) -> lis
     with ``clutter``, a busy background."""
     objects = list(getattr(scene, "objects", []))
     occluders = list(getattr(scene, "occluders", []))
-    out = background_surfaces(rng) if clutter else [
-        Surface("", np.array([0.0, 0.0, 1.5]), np.eye(3), None, 1.0,
-                np.full((4, 4, 3), 128.0, np.float32), 1.0)
-    ]
+    out = (
+        background_surfaces(rng)
+        if clutter
+        else [Surface("", np.array([0.0, 0.0, 1.5]), np.eye(3), None, 1.0, np.full((4, 4, 3), 128.0, np.float32), 1.0)]
+    )
     for i, obj in enumerate(objects):
         out.append(object_surface(obj, rng, name=str(getattr(obj, "name", "") or f"object{i}")))
     for i, occ in enumerate(occluders):
@@ -259,8 +292,9 @@ def scene_surfaces(scene, rng: np.random.Generator, clutter: bool = True) -> lis
 # --- ray casting ----------------------------------------------------------------------------------
 
 
-def _plane_to_image(s: Surface, raster_shape: tuple[int, int], px_m: float, intrinsics: Intrinsics,
-                    scene_from_camera: np.ndarray) -> np.ndarray:
+def _plane_to_image(
+    s: Surface, raster_shape: tuple[int, int], px_m: float, intrinsics: Intrinsics, scene_from_camera: np.ndarray
+) -> np.ndarray:
     """Homography (3 x 3) from a surface raster's (column, row) to image pixels (u, v)."""
     rot = np.asarray(scene_from_camera[:3, :3])
     origin = np.asarray(scene_from_camera[:3, 3])
@@ -278,7 +312,9 @@ def _image_box(s: Surface, intrinsics: Intrinsics, scene_from_camera: np.ndarray
         return (0, h, 0, w)
     hc, wc = s.coverage.shape
     half = np.array([wc, hc], dtype=np.float64) * s.coverage_px_m / 2.0
-    corners = [s.centre_m + sa * half[0] * s.axes[:, 0] + sb * half[1] * s.axes[:, 1] for sa in (-1, 1) for sb in (-1, 1)]
+    corners = [
+        s.centre_m + sa * half[0] * s.axes[:, 0] + sb * half[1] * s.axes[:, 1] for sa in (-1, 1) for sb in (-1, 1)
+    ]
     rot = np.asarray(scene_from_camera[:3, :3])
     cam = (np.array(corners) - scene_from_camera[:3, 3]) @ rot
     if np.any(cam[:, 2] <= 1e-6):
@@ -292,8 +328,9 @@ def _image_box(s: Surface, intrinsics: Intrinsics, scene_from_camera: np.ndarray
     return (r0, r1, c0, c1)
 
 
-def raycast(surfaces: Sequence[Surface], intrinsics: Intrinsics, scene_from_camera: np.ndarray,
-            colour: bool = True) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+def raycast(
+    surfaces: Sequence[Surface], intrinsics: Intrinsics, scene_from_camera: np.ndarray, colour: bool = True
+) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
     """Cast one ray per pixel centre through planar surfaces (nearest hit wins).
 
     A plane maps to the image by a homography, and the inverse depth of its points is an affine
@@ -326,15 +363,21 @@ def raycast(surfaces: Sequence[Surface], intrinsics: Intrinsics, scene_from_came
         shift = np.array([[1.0, 0.0, -c0], [0.0, 1.0, -r0], [0.0, 0.0, 1.0]])
         # 1 / t = n . (R K^-1 [u, v, 1]) / dist, with t the depth along the optical axis.
         g = (n @ rot @ k_inv) / dist
-        inv_t = (np.float32(g[0]) * u[:, c0:c1] + np.float32(g[1]) * v[r0:r1] + np.float32(g[2]))
+        inv_t = np.float32(g[0]) * u[:, c0:c1] + np.float32(g[1]) * v[r0:r1] + np.float32(g[2])
         with np.errstate(divide="ignore"):
             t = np.where(inv_t > 0, 1.0 / inv_t, np.inf).astype(np.float32)
         d_view = depth[r0:r1, c0:c1]
         valid = t < d_view
         if s.coverage is not None:
             hmat = shift @ _plane_to_image(s, s.coverage.shape, s.coverage_px_m, intrinsics, scene_from_camera)
-            cov = cv2.warpPerspective(s.coverage, hmat, (c1 - c0, r1 - r0), flags=cv2.INTER_NEAREST,
-                                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            cov = cv2.warpPerspective(
+                s.coverage,
+                hmat,
+                (c1 - c0, r1 - r0),
+                flags=cv2.INTER_NEAREST,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0,
+            )
             valid &= cov >= 0.5
         if not valid.any():
             continue
@@ -342,16 +385,24 @@ def raycast(surfaces: Sequence[Surface], intrinsics: Intrinsics, scene_from_came
         index[r0:r1, c0:c1][valid] = s_idx
         if bgr is not None:  # colour
             hmat = shift @ _plane_to_image(s, s.albedo.shape[:2], s.albedo_px_m, intrinsics, scene_from_camera)
-            alb = cv2.warpPerspective(s.albedo, hmat, (c1 - c0, r1 - r0), flags=cv2.INTER_LINEAR,
-                                      borderMode=cv2.BORDER_REFLECT)
+            alb = cv2.warpPerspective(
+                s.albedo, hmat, (c1 - c0, r1 - r0), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+            )
             if s.shade != 1.0:
                 alb *= np.float32(s.shade)
             np.copyto(bgr[r0:r1, c0:c1], alb, where=valid[..., None])
     return bgr, depth, index
 
 
-def render_view(surfaces: Sequence[Surface], intrinsics: Intrinsics, scene_from_camera: np.ndarray,
-                supersample: int, noise_dn: float, rng: np.random.Generator, blur_px: float = 0.5) -> np.ndarray:
+def render_view(
+    surfaces: Sequence[Surface],
+    intrinsics: Intrinsics,
+    scene_from_camera: np.ndarray,
+    supersample: int,
+    noise_dn: float,
+    rng: np.random.Generator,
+    blur_px: float = 0.5,
+) -> np.ndarray:
     """One eye's uint8 BGR picture: supersampled ray cast, box filter, optics blur, sensor noise."""
     import cv2
 
@@ -367,8 +418,9 @@ def render_view(surfaces: Sequence[Surface], intrinsics: Intrinsics, scene_from_
     return np.clip(np.rint(bgr), 0, 255).astype(np.uint8)
 
 
-def render_surfaces(surfaces: Sequence[Surface], camera: StereoCamera, *, supersample: int = 2,
-                    noise_dn: float = 2.0, seed: int = 0) -> StereoRendering:
+def render_surfaces(
+    surfaces: Sequence[Surface], camera: StereoCamera, *, supersample: int = 2, noise_dn: float = 2.0, seed: int = 0
+) -> StereoRendering:
     """Render both eyes of ``camera`` and the left eye's truth depth and labels."""
     if not surfaces:
         raise TwinFocusError("nothing to render: the scene has no surfaces")
@@ -387,8 +439,15 @@ def render_surfaces(surfaces: Sequence[Surface], camera: StereoCamera, *, supers
     return StereoRendering(left, right, depth.astype(np.float32), labels, names, camera)
 
 
-def render_scene(scene, camera: StereoCamera | None = None, *, clutter: bool = True, supersample: int = 2,
-                 noise_dn: float = 2.0, seed: int = 0) -> StereoRendering:
+def render_scene(
+    scene,
+    camera: StereoCamera | None = None,
+    *,
+    clutter: bool = True,
+    supersample: int = 2,
+    noise_dn: float = 2.0,
+    seed: int = 0,
+) -> StereoRendering:
     """Render a ``twinfocus.scene.Scene`` (objects, occluders) seen by ``camera`` (default: the
     ZED 2i-like rig of :meth:`StereoCamera.zed2i`) on a cluttered background."""
     camera = camera or StereoCamera.zed2i()

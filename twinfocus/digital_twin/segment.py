@@ -25,6 +25,7 @@ Plug-in: any object with ``__call__(image_bgr, seed, depth_m) -> bool mask`` is 
 ``predict(point_coords, point_labels, box, multimask_output)``), and :func:`load_segmenter`
 builds one from a checkpoint on disk through the ``sam2`` or ``segment_anything`` package.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -71,7 +72,9 @@ class Seed:
         elif self.kind == "box":
             x0, y0, x1, y1 = self.values
             if x1 <= 0 or y1 <= 0 or x0 >= w or y0 >= h or x1 - x0 < 2 or y1 - y0 < 2:
-                raise TwinFocusError(f"seed box ({x0:g}, {y0:g}, {x1:g}, {y1:g}) holds no pixels of the {w}x{h} picture")
+                raise TwinFocusError(
+                    f"seed box ({x0:g}, {y0:g}, {x1:g}, {y1:g}) holds no pixels of the {w}x{h} picture"
+                )
         elif self.kind != "nearest":
             raise TwinFocusError(f"seed kind must be 'point', 'box' or 'nearest', got {self.kind!r}")
 
@@ -79,7 +82,12 @@ class Seed:
         """Integer (x0, y0, x1, y1) of a box seed, clipped to the picture."""
         h, w = shape[:2]
         x0, y0, x1, y1 = self.values
-        return (max(0, int(np.floor(x0))), max(0, int(np.floor(y0))), min(w, int(np.ceil(x1))), min(h, int(np.ceil(y1))))
+        return (
+            max(0, int(np.floor(x0))),
+            max(0, int(np.floor(y0))),
+            min(w, int(np.ceil(x1))),
+            min(h, int(np.ceil(y1))),
+        )
 
 
 def box_from_scene_roi(roi, camera, depth_margin_m: float = 0.0, margin_px: int = 10) -> Seed:
@@ -91,12 +99,16 @@ def box_from_scene_roi(roi, camera, depth_margin_m: float = 0.0, margin_px: int 
     from twinfocus.digital_twin.camera import transform_points
 
     x0, x1, y0, y1, z = (float(v) for v in roi)
-    corners = np.array([[x, y, z + dz] for x in (x0, x1) for y in (y0, y1) for dz in (-depth_margin_m, 0.0, depth_margin_m)])
+    corners = np.array(
+        [[x, y, z + dz] for x in (x0, x1) for y in (y0, y1) for dz in (-depth_margin_m, 0.0, depth_margin_m)]
+    )
     cam = transform_points(np.linalg.inv(camera.scene_from_left), corners)
     if np.any(cam[:, 2] <= 0):
         raise TwinFocusError("the reference region of interest lies behind the camera")
     uv = camera.left.project(cam)
-    return Seed.box(uv[:, 0].min() - margin_px, uv[:, 1].min() - margin_px, uv[:, 0].max() + margin_px, uv[:, 1].max() + margin_px)
+    return Seed.box(
+        uv[:, 0].min() - margin_px, uv[:, 1].min() - margin_px, uv[:, 0].max() + margin_px, uv[:, 1].max() + margin_px
+    )
 
 
 # --- the plug-in interface ----------------------------------------------------------------------------
@@ -145,8 +157,15 @@ class ClassicalSegmenter:
         if self.config.refine not in ("grabcut", "none"):
             raise TwinFocusError(f"segmentation refine must be 'grabcut' or 'none', got {self.config.refine!r}")
 
-    def __call__(self, image_bgr: np.ndarray, seed: Seed, depth_m: np.ndarray | None = None, *,
-                 right_bgr: np.ndarray | None = None, disparity_px: np.ndarray | None = None) -> np.ndarray:
+    def __call__(
+        self,
+        image_bgr: np.ndarray,
+        seed: Seed,
+        depth_m: np.ndarray | None = None,
+        *,
+        right_bgr: np.ndarray | None = None,
+        disparity_px: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Bool (H, W) mask of the reference.
 
         image_bgr : (rectified) left picture; depth_m : float (H, W) its depth, NaN where unknown.
@@ -184,12 +203,19 @@ class ClassicalSegmenter:
         region = np.zeros((h, w), bool)
         import cv2
 
-        for (v, u) in starts:
+        for v, u in starts:
             if region[v, u] or img[v, u] < 0:
                 continue
             ff = np.zeros((h + 2, w + 2), np.uint8)
-            cv2.floodFill(img, ff, (int(u), int(v)), 0, loDiff=float(step), upDiff=float(step),
-                          flags=4 | cv2.FLOODFILL_MASK_ONLY | (1 << 8))
+            cv2.floodFill(
+                img,
+                ff,
+                (int(u), int(v)),
+                0,
+                loDiff=float(step),
+                upDiff=float(step),
+                flags=4 | cv2.FLOODFILL_MASK_ONLY | (1 << 8),
+            )
             region |= ff[1:-1, 1:-1] > 0
         area = int(region.sum())
         if area < cfg.min_area_px:
@@ -210,7 +236,7 @@ class ClassicalSegmenter:
         if seed.kind == "point":
             u, v = (int(round(x)) for x in seed.values)
             u, v = min(max(u, 0), w - 1), min(max(v, 0), h - 1)
-            win = depth[max(0, v - 3):v + 4, max(0, u - 3):u + 4]
+            win = depth[max(0, v - 3) : v + 4, max(0, u - 3) : u + 4]
             wv = win[np.isfinite(win) & (win > 0)]
             if wv.size == 0:
                 raise TwinFocusError(f"no object at the seed ({u}, {v}): the stereo depth has no value there")
@@ -222,7 +248,9 @@ class ClassicalSegmenter:
             sub = depth[y0:y1, x0:x1]
             sub_valid = valid[y0:y1, x0:x1]
             if sub_valid.sum() < cfg.min_area_px:
-                raise TwinFocusError(f"no object in the seed box ({x0}, {y0}, {x1}, {y1}): too few pixels with stereo depth")
+                raise TwinFocusError(
+                    f"no object in the seed box ({x0}, {y0}, {x1}, {y1}): too few pixels with stereo depth"
+                )
             z0 = self._nearest_mode(sub[sub_valid], min_count=max(cfg.min_area_px, int(0.03 * sub_valid.sum())))
             near = sub_valid & (np.abs(sub - z0) <= cfg.band_m)
             n, lab, stats, _ = cv2.connectedComponentsWithStats(near.astype(np.uint8), connectivity=4)
@@ -268,8 +296,9 @@ class ClassicalSegmenter:
         return float(np.median(sel))
 
     # -- stage 3: photo-consistency
-    def photo_hints(self, left_bgr: np.ndarray, right_bgr: np.ndarray, disparity: np.ndarray,
-                    region: np.ndarray) -> np.ndarray | None:
+    def photo_hints(
+        self, left_bgr: np.ndarray, right_bgr: np.ndarray, disparity: np.ndarray, region: np.ndarray
+    ) -> np.ndarray | None:
         """int8 (H, W): +1 sure object, -1 sure not, 0 undecided (module docstring, step 3);
         None when the region has too few disparities to model."""
         import cv2
@@ -333,8 +362,9 @@ class ClassicalSegmenter:
         return known[iy, ix]
 
     # -- stage 4: GrabCut refinement
-    def refine(self, image_bgr: np.ndarray, depth: np.ndarray, region: np.ndarray, z0: float,
-               hints: np.ndarray | None = None) -> np.ndarray:
+    def refine(
+        self, image_bgr: np.ndarray, depth: np.ndarray, region: np.ndarray, z0: float, hints: np.ndarray | None = None
+    ) -> np.ndarray:
         import cv2
 
         cfg = self.config
@@ -416,10 +446,15 @@ class PredictorSegmenter:
         if seed.kind == "nearest":
             if depth_m is None:
                 raise TwinFocusError("a 'nearest' seed needs the depth map to find the nearest object")
-            starts, _ = ClassicalSegmenter()._starts(np.asarray(depth_m, np.float32),
-                                                      np.isfinite(depth_m) & (np.asarray(depth_m) > 0), seed)
+            starts, _ = ClassicalSegmenter()._starts(
+                np.asarray(depth_m, np.float32), np.isfinite(depth_m) & (np.asarray(depth_m) > 0), seed
+            )
             seed = Seed.point(starts[0][1], starts[0][0])
-        rgb = np.ascontiguousarray(image_bgr[..., ::-1]) if image_bgr.ndim == 3 else np.repeat(image_bgr[..., None], 3, axis=2)
+        rgb = (
+            np.ascontiguousarray(image_bgr[..., ::-1])
+            if image_bgr.ndim == 3
+            else np.repeat(image_bgr[..., None], 3, axis=2)
+        )
         self.predictor.set_image(rgb)
         kwargs: dict[str, object] = {"point_coords": None, "point_labels": None, "box": None, "multimask_output": True}
         if seed.kind == "point":
@@ -465,13 +500,17 @@ def load_segmenter(spec: str | None, device: str = "cpu") -> Segmenter:
         return ClassicalSegmenter()
     kind, _, rest = spec.partition(":")
     if kind not in ("sam2", "sam") or not rest:
-        raise TwinFocusError(f"unknown segmenter {spec!r}; use 'classical', 'sam2:CHECKPOINT[:CONFIG]' or 'sam:CHECKPOINT[:TYPE]'")
+        raise TwinFocusError(
+            f"unknown segmenter {spec!r}; use 'classical', 'sam2:CHECKPOINT[:CONFIG]' or 'sam:CHECKPOINT[:TYPE]'"
+        )
     ckpt, _, extra = rest.partition(":")
     path = Path(ckpt)
     if not path.is_file():
         raise TwinFocusError(f"{path}: segmentation checkpoint not found")
     if kind == "sam2":
-        build = _import_attr("sam2.build_sam", "build_sam2", "pip install 'git+https://github.com/facebookresearch/sam2'")
+        build = _import_attr(
+            "sam2.build_sam", "build_sam2", "pip install 'git+https://github.com/facebookresearch/sam2'"
+        )
         predictor_cls = _import_attr("sam2.sam2_image_predictor", "SAM2ImagePredictor", "the sam2 package")
         config = extra or _sam2_config_for(path.name)
         try:
@@ -496,7 +535,9 @@ def _import_attr(module: str, attr: str, hint: str):
     try:
         return getattr(importlib.import_module(module), attr)
     except (ImportError, AttributeError):
-        raise TwinFocusError(f"the {module.split('.')[0]} package is not installed ({hint}); use --segmenter classical") from None
+        raise TwinFocusError(
+            f"the {module.split('.')[0]} package is not installed ({hint}); use --segmenter classical"
+        ) from None
 
 
 def _sam2_config_for(name: str) -> str:

@@ -11,6 +11,7 @@ the disparity range, and a region of interest restricts matching to the rows and
 needs (the columns left of it that the largest disparity reaches included), so the reference
 alone costs a fraction of a full 1280 x 720 match.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -39,7 +40,9 @@ class StereoConfig:
 
     def validate(self) -> None:
         if not (0 < self.min_depth_m < self.max_depth_m):
-            raise TwinFocusError(f"stereo depth range needs 0 < min < max, got {self.min_depth_m}..{self.max_depth_m} m")
+            raise TwinFocusError(
+                f"stereo depth range needs 0 < min < max, got {self.min_depth_m}..{self.max_depth_m} m"
+            )
         if self.block_size < 1 or self.block_size % 2 == 0:
             raise TwinFocusError(f"stereo block_size must be a positive odd number, got {self.block_size}")
         if self.mode not in ("sgbm", "3way"):
@@ -75,7 +78,9 @@ def depth_from_disparity(disparity: np.ndarray, focal_px: float, baseline_m: flo
     return z
 
 
-def disparity_search_range(focal_px: float, baseline_m: float, min_depth_m: float, max_depth_m: float) -> tuple[int, int]:
+def disparity_search_range(
+    focal_px: float, baseline_m: float, min_depth_m: float, max_depth_m: float
+) -> tuple[int, int]:
     """(minDisparity, numDisparities) of SGBM covering depths min..max (numDisparities % 16 == 0)."""
     d_max = focal_px * baseline_m / min_depth_m
     d_min = focal_px * baseline_m / max_depth_m
@@ -161,10 +166,15 @@ def compute_disparity(
     bs = int(cfg.block_size)
     channels = 1
     matcher = cv2.StereoSGBM_create(
-        minDisparity=lo, numDisparities=num, blockSize=bs,
-        P1=8 * channels * bs * bs, P2=32 * channels * bs * bs,
-        disp12MaxDiff=1, uniquenessRatio=int(cfg.uniqueness_ratio),
-        speckleWindowSize=int(cfg.speckle_window), speckleRange=int(cfg.speckle_range),
+        minDisparity=lo,
+        numDisparities=num,
+        blockSize=bs,
+        P1=8 * channels * bs * bs,
+        P2=32 * channels * bs * bs,
+        disp12MaxDiff=1,
+        uniquenessRatio=int(cfg.uniqueness_ratio),
+        speckleWindowSize=int(cfg.speckle_window),
+        speckleRange=int(cfg.speckle_range),
         mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY if cfg.mode == "3way" else cv2.STEREO_SGBM_MODE_SGBM,
     )
     raw_left = matcher.compute(gl, gr)  # int16, 16 x disparity, (lo - 1) * 16 where invalid

@@ -23,6 +23,7 @@ the PSF of its own depth, and a point's residual depth within its slab enters as
 ``coherent=False`` gives the expected amplitude of a rough (speckled) surface instead,
 sqrt(|PSF|^2 * sum_j |a_j|^2 delta_j), the mean image over random scatterer phases.
 """
+
 from __future__ import annotations
 
 import os
@@ -90,8 +91,15 @@ def exact_template(points_m, positions_m, chirp: Chirp, grid: ImageGrid, amplitu
 # --- PSF model ----------------------------------------------------------------------------------------
 
 
-def point_spread_function(positions_m, chirp: Chirp, grid: ImageGrid, centre_m, half_size: tuple[int, int],
-                          element_step: tuple[int, int] = (1, 1), **bp_options) -> np.ndarray:
+def point_spread_function(
+    positions_m,
+    chirp: Chirp,
+    grid: ImageGrid,
+    centre_m,
+    half_size: tuple[int, int],
+    element_step: tuple[int, int] = (1, 1),
+    **bp_options,
+) -> np.ndarray:
     """Back-projected image of a unit scatterer at ``centre_m`` on the plane z = ``grid.z``.
 
     Sampled at offsets (i dy, j dx), |i| <= half_size[0], |j| <= half_size[1], (dy, dx) the grid's
@@ -174,8 +182,9 @@ class TemplateInfo:
     seconds: dict
 
 
-def default_half_size(grid: ImageGrid, wavelength_m: float, positions_m: np.ndarray, centre_m: np.ndarray,
-                      cells: float = 10.0) -> tuple[int, int]:
+def default_half_size(
+    grid: ImageGrid, wavelength_m: float, positions_m: np.ndarray, centre_m: np.ndarray, cells: float = 10.0
+) -> tuple[int, int]:
     """PSF half window in pixels: ``cells`` cross-range resolution cells each way (the side lobes
     beyond hold little energy), at least 8 pixels, at most the grid's size."""
     e = positions_m.reshape(-1, 3) - np.asarray(centre_m)
@@ -189,9 +198,20 @@ def default_half_size(grid: ImageGrid, wavelength_m: float, positions_m: np.ndar
     return (out[0], out[1])
 
 
-def psf_template(points_m, positions_m, chirp: Chirp, grid: ImageGrid, amplitudes=None, *, coherent: bool = True,
-                 half_size: tuple[int, int] | None = None, slab_m: float = DEFAULT_SLAB_M,
-                 element_step: tuple[int, int] | None = None, return_info: bool = False, **bp_options):
+def psf_template(
+    points_m,
+    positions_m,
+    chirp: Chirp,
+    grid: ImageGrid,
+    amplitudes=None,
+    *,
+    coherent: bool = True,
+    half_size: tuple[int, int] | None = None,
+    slab_m: float = DEFAULT_SLAB_M,
+    element_step: tuple[int, int] | None = None,
+    return_info: bool = False,
+    **bp_options,
+):
     """Amplitude template by PSF convolution (module docstring): float32 (H, W) on ``grid``.
 
     Parameters
@@ -256,8 +276,18 @@ def psf_template(points_m, positions_m, chirp: Chirp, grid: ImageGrid, amplitude
 # --- entry points ---------------------------------------------------------------------------------------
 
 
-def digital_twin_template(points_m, scan_positions, chirp: Chirp, grid: ImageGrid, *, method: str = "psf",
-                          amplitudes=None, coherent: bool = True, offset_m=None, **bp_options) -> np.ndarray:
+def digital_twin_template(
+    points_m,
+    scan_positions,
+    chirp: Chirp,
+    grid: ImageGrid,
+    *,
+    method: str = "psf",
+    amplitudes=None,
+    coherent: bool = True,
+    offset_m=None,
+    **bp_options,
+) -> np.ndarray:
     """The digital twin's amplitude template of the reference on ``grid``: float32 (H, W).
 
     Parameters

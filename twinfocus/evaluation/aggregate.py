@@ -3,6 +3,7 @@ condition and method, gains over no correction as ratios of paired means (the pa
 0.74 / 0.60 - 1), the rows of the limits sweeps and where a method stops helping, the trade study's
 means over scenes and its Pareto front. Plain functions over the records' dicts; no files, no
 figures."""
+
 from __future__ import annotations
 
 import math
@@ -11,8 +12,12 @@ import numpy as np
 
 #: The compared methods in the order the report lists them, and their names in its tables and figures.
 METHOD_ORDER = ("none", "sharpness", "digital", "physical")
-METHOD_NAMES = {"none": "no correction", "sharpness": "sharpness autofocus", "digital": "digital twin",
-                "physical": "physical twin"}
+METHOD_NAMES = {
+    "none": "no correction",
+    "sharpness": "sharpness autofocus",
+    "digital": "digital twin",
+    "physical": "physical twin",
+}
 #: A method "stops helping" where its mean SSIM gain over no correction falls below this.
 HELP_THRESHOLD = 0.01
 
@@ -43,10 +48,13 @@ def method_stats(records: list[dict], condition: str) -> dict:
         vals = np.array([r["ssim"] for r in ok], float)
         hog = np.array([r["hog"] for r in ok if r.get("hog") is not None], float)
         paired = [(r["ssim"], none[_draw_key(r)]) for r in ok if _draw_key(r) in none]
-        e = {"n": len(ok), "failed": len(mr) - len(ok),
-             "mean": float(vals.mean()) if vals.size else None,
-             "sem": float(vals.std(ddof=1) / math.sqrt(vals.size)) if vals.size > 1 else None,
-             "hog": float(hog.mean()) if hog.size else None}
+        e = {
+            "n": len(ok),
+            "failed": len(mr) - len(ok),
+            "mean": float(vals.mean()) if vals.size else None,
+            "sem": float(vals.std(ddof=1) / math.sqrt(vals.size)) if vals.size > 1 else None,
+            "hog": float(hog.mean()) if hog.size else None,
+        }
         if paired and m != "none":
             a = np.array(paired)
             e["improvement_pct"] = float((a[:, 0].mean() / a[:, 1].mean() - 1) * 100)
@@ -66,7 +74,11 @@ def draw_means(records: list[dict], condition: str, field: str) -> float | None:
 
 
 def method_mean(records: list[dict], condition: str, method: str, field: str) -> float | None:
-    vals = [r[field] for r in ok_records(records) if r["condition"] == condition and r["method"] == method and r.get(field) is not None]
+    vals = [
+        r[field]
+        for r in ok_records(records)
+        if r["condition"] == condition and r["method"] == method and r.get(field) is not None
+    ]
     return float(np.mean(vals)) if vals else None
 
 
@@ -76,7 +88,9 @@ def pair_improvements(records: list[dict], method: str) -> dict:
     for pair in sorted({r["pair"] for r in records}):
         rec = [r for r in records if r["pair"] == pair]
         none = {_draw_key(r): r["ssim"] for r in ok_records(rec) if r["method"] == "none"}
-        paired = [(r["ssim"], none[_draw_key(r)]) for r in ok_records(rec) if r["method"] == method and _draw_key(r) in none]
+        paired = [
+            (r["ssim"], none[_draw_key(r)]) for r in ok_records(rec) if r["method"] == method and _draw_key(r) in none
+        ]
         if paired:
             a = np.array(paired)
             out[pair] = float((a[:, 0].mean() / a[:, 1].mean() - 1) * 100)
@@ -105,18 +119,25 @@ def limit_rows(doc: dict) -> list[dict]:
         st = method_stats(rec, lab)
         none = st.get("none", {}).get("mean")
         ceil = draw_means(rec, lab, "ssim_oracle_transfer")
-        rows.append({
-            "x": c["x"], "label": lab, "in_paper": c["in_paper"], "stats": st,
-            "ceiling_gain": None if (ceil is None or none is None) else ceil - none,
-            "floor": draw_means(rec, lab, "transfer_floor_far_rad" if far else "transfer_floor_rad"),
-            "first_order": draw_means(rec, lab, "transfer_first_order_far_rad" if far else "transfer_first_order_rad"),
-            "bound": draw_means(rec, lab, "transfer_bound_far_rad" if far else "transfer_bound_rad"),
-            "uncorrected": draw_means(rec, lab, "phase_rms_uncorrected"),
-            # SSIM lost to the transfer (perfect target phase vs perfect reference phase) and, per
-            # twin, to the estimate on the reference (perfect reference phase vs the twin's).
-            "transfer_loss": _diff(draw_means(rec, lab, "ssim_oracle_target"), ceil),
-            "estimation_loss": {m: _diff(ceil, st[m].get("mean")) for m in st if m != "none"},
-        })
+        rows.append(
+            {
+                "x": c["x"],
+                "label": lab,
+                "in_paper": c["in_paper"],
+                "stats": st,
+                "ceiling_gain": None if (ceil is None or none is None) else ceil - none,
+                "floor": draw_means(rec, lab, "transfer_floor_far_rad" if far else "transfer_floor_rad"),
+                "first_order": draw_means(
+                    rec, lab, "transfer_first_order_far_rad" if far else "transfer_first_order_rad"
+                ),
+                "bound": draw_means(rec, lab, "transfer_bound_far_rad" if far else "transfer_bound_rad"),
+                "uncorrected": draw_means(rec, lab, "phase_rms_uncorrected"),
+                # SSIM lost to the transfer (perfect target phase vs perfect reference phase) and, per
+                # twin, to the estimate on the reference (perfect reference phase vs the twin's).
+                "transfer_loss": _diff(draw_means(rec, lab, "ssim_oracle_target"), ceil),
+                "estimation_loss": {m: _diff(ceil, st[m].get("mean")) for m in st if m != "none"},
+            }
+        )
     return rows
 
 
@@ -163,16 +184,28 @@ def trade_means(rows: list[dict]) -> list[dict]:
     for r in rows:
         if r.get("status", "ok") != "ok":
             continue
-        e = out.setdefault((r["knob"], r["label"]), {"knob": r["knob"], "label": r["label"], "value": r["value"], "rows": []})
+        e = out.setdefault(
+            (r["knob"], r["label"]), {"knob": r["knob"], "label": r["label"], "value": r["value"], "rows": []}
+        )
         e["rows"].append(r)
     res = []
     for e in out.values():
         rs = e["rows"]
-        res.append({"knob": e["knob"], "label": e["label"], "value": e["value"], "n": len(rs),
-                    "time_s": float(np.mean([r["reference_basis_s"] + r["autofocus_s"] + r.get("template_s", 0.0) for r in rs])),
-                    "reference_basis_s": float(np.mean([r["reference_basis_s"] for r in rs])),
-                    "autofocus_s": float(np.mean([r["autofocus_s"] for r in rs])),
-                    "template_s": float(np.mean([r["template_s"] for r in rs])) if "template_s" in rs[0] else None,
-                    "ssim": float(np.mean([r["ssim"] for r in rs])), "hog": float(np.mean([r["hog"] for r in rs])),
-                    "n_positions": rs[0].get("n_positions")})
+        res.append(
+            {
+                "knob": e["knob"],
+                "label": e["label"],
+                "value": e["value"],
+                "n": len(rs),
+                "time_s": float(
+                    np.mean([r["reference_basis_s"] + r["autofocus_s"] + r.get("template_s", 0.0) for r in rs])
+                ),
+                "reference_basis_s": float(np.mean([r["reference_basis_s"] for r in rs])),
+                "autofocus_s": float(np.mean([r["autofocus_s"] for r in rs])),
+                "template_s": float(np.mean([r["template_s"] for r in rs])) if "template_s" in rs[0] else None,
+                "ssim": float(np.mean([r["ssim"] for r in rs])),
+                "hog": float(np.mean([r["hog"] for r in rs])),
+                "n_positions": rs[0].get("n_positions"),
+            }
+        )
     return res

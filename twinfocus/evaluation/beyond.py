@@ -11,6 +11,7 @@ on the same scenes and error draws, with the realistic impairments of the paper 
 The report puts every variant in a row with its mean target SSIM per condition, the estimator's
 time, the two ceilings (the reference's and the target's true phase) and the issue's goals.
 """
+
 from __future__ import annotations
 
 import json
@@ -23,9 +24,21 @@ import numpy as np
 from twinfocus.errors import TwinFocusError
 from twinfocus.evaluation.experiments import Condition, Experiment, sigma3
 
-METHODS = ("none", "physical", "physical-steep", "physical-registered", "physical-correlation", "physical-correlation-refined",
-           "digital", "digital-registered", "digital-steep", "digital-projection-only", "digital-projection",
-           "digital-restarts", "digital-coarse")
+METHODS = (
+    "none",
+    "physical",
+    "physical-steep",
+    "physical-registered",
+    "physical-correlation",
+    "physical-correlation-refined",
+    "digital",
+    "digital-registered",
+    "digital-steep",
+    "digital-projection-only",
+    "digital-projection",
+    "digital-restarts",
+    "digital-coarse",
+)
 #: the temporally correlated error's condition also tries the smoothness prior (white errors have none to use)
 DRIFT_METHODS = ("none", "physical-correlation", "digital-steep", "digital-projection", "digital-smooth")
 ROW_NAMES = {
@@ -57,48 +70,101 @@ def beyond_experiments(draws: int = 1, quick: bool = False) -> list[Experiment]:
     pairs = PAIRS[:1] if quick else PAIRS
     seps = (10, 20) if quick else (10, 15, 20, 30, 40)
     return [
-        Experiment("beyond_error", "Tracking error, past lambda/4", "tracking error",
-                   [Condition("0.5 mm x/y/z", 0.5, pairs, errors={"error_sigma_m": sigma3(0.5)}),
-                    Condition("1.6 mm z", 1.6, pairs, errors={"error_sigma_m": (0.0, 0.0, 1.6e-3)}, in_paper=False),
-                    Condition("1.6 mm z drift (tau 2 s)", "1.6 drift", pairs, in_paper=False, methods=DRIFT_METHODS,
-                              errors={"error_model": "drift", "error_sigma_m": (0.0, 0.0, 1.6e-3)})],
-                   draws=draws, methods=METHODS, roi="paper", numeric=True),
-        Experiment("beyond_separation", "Reference-target angular separation", "separation (deg)",
-                   [Condition(f"{a} deg", a, (("K", "P"),), scene={"separation_deg": float(a)}, in_paper=a <= 20)
-                    for a in seps],
-                   draws=draws, methods=METHODS, numeric=True),
+        Experiment(
+            "beyond_error",
+            "Tracking error, past lambda/4",
+            "tracking error",
+            [
+                Condition("0.5 mm x/y/z", 0.5, pairs, errors={"error_sigma_m": sigma3(0.5)}),
+                Condition("1.6 mm z", 1.6, pairs, errors={"error_sigma_m": (0.0, 0.0, 1.6e-3)}, in_paper=False),
+                Condition(
+                    "1.6 mm z drift (tau 2 s)",
+                    "1.6 drift",
+                    pairs,
+                    in_paper=False,
+                    methods=DRIFT_METHODS,
+                    errors={"error_model": "drift", "error_sigma_m": (0.0, 0.0, 1.6e-3)},
+                ),
+            ],
+            draws=draws,
+            methods=METHODS,
+            roi="paper",
+            numeric=True,
+        ),
+        Experiment(
+            "beyond_separation",
+            "Reference-target angular separation",
+            "separation (deg)",
+            [
+                Condition(f"{a} deg", a, (("K", "P"),), scene={"separation_deg": float(a)}, in_paper=a <= 20)
+                for a in seps
+            ],
+            draws=draws,
+            methods=METHODS,
+            numeric=True,
+        ),
     ]
 
 
 def _rows(records: list[dict], condition: str) -> dict:
     """{row: {"mean", "sem", "n", "time_s"}} for one condition; the paper rows come from the
     ``ssim_as_estimated`` field of the ramp-removed methods' records."""
-    rec = [r for r in records if r["condition"] == condition and r.get("status", "ok") == "ok" and r.get("ssim") is not None]
+    rec = [
+        r
+        for r in records
+        if r["condition"] == condition and r.get("status", "ok") == "ok" and r.get("ssim") is not None
+    ]
     out = {}
 
     def put(row, vals, times):
         v = np.asarray(vals, float)
         if v.size:
-            out[row] = {"mean": float(v.mean()), "n": int(v.size), "time_s": float(np.mean(times)) if times else 0.0,
-                        "sem": float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else None}
+            out[row] = {
+                "mean": float(v.mean()),
+                "n": int(v.size),
+                "time_s": float(np.mean(times)) if times else 0.0,
+                "sem": float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else None,
+            }
 
     for m in METHODS + tuple(m for m in DRIFT_METHODS if m not in METHODS):
         mr = [r for r in rec if r["method"] == m]
         put(m, [r["ssim"] for r in mr], [r["autofocus_s"] for r in mr])
         if m in ("physical", "digital"):
-            put(f"{m}-paper", [r["ssim_as_estimated"] for r in mr if "ssim_as_estimated" in r], [r["autofocus_s"] for r in mr])
+            put(
+                f"{m}-paper",
+                [r["ssim_as_estimated"] for r in mr if "ssim_as_estimated" in r],
+                [r["autofocus_s"] for r in mr],
+            )
     seen = {(r["pair"], r["draw"]): r for r in rec}
     for field, row in (("ssim_oracle_transfer", "ceiling-reference"), ("ssim_oracle_target", "ceiling-target")):
         put(row, [r[field] for r in seen.values()], [])
     return out
 
 
-ROW_ORDER = ("none", "physical-paper", "physical", "physical-steep", "physical-registered", "physical-correlation",
-             "physical-correlation-refined", "digital-paper", "digital", "digital-registered", "digital-steep",
-             "digital-projection-only", "digital-projection", "digital-restarts", "digital-coarse", "digital-smooth",
-             "ceiling-reference", "ceiling-target")
-CEILING_NAMES = {"ceiling-reference": "*ceiling: the reference's true phase transferred*",
-                 "ceiling-target": "*ceiling: the target's true phase*"}
+ROW_ORDER = (
+    "none",
+    "physical-paper",
+    "physical",
+    "physical-steep",
+    "physical-registered",
+    "physical-correlation",
+    "physical-correlation-refined",
+    "digital-paper",
+    "digital",
+    "digital-registered",
+    "digital-steep",
+    "digital-projection-only",
+    "digital-projection",
+    "digital-restarts",
+    "digital-coarse",
+    "digital-smooth",
+    "ceiling-reference",
+    "ceiling-target",
+)
+CEILING_NAMES = {
+    "ceiling-reference": "*ceiling: the reference's true phase transferred*",
+    "ceiling-target": "*ceiling: the target's true phase*",
+}
 
 
 def _cell(e: dict | None) -> str:
@@ -122,20 +188,43 @@ def summarise(raw: dict) -> dict:
         cands = {k: v["mean"] for k, v in rows.items() if k.startswith(kind)}
         if cands:
             best = max(cands, key=lambda k: cands[k])
-            goals.append({"condition": cond, "twin": kind, "goal": level, "best_row": best, "best": cands[best],
-                          "met": cands[best] >= level})
+            goals.append(
+                {
+                    "condition": cond,
+                    "twin": kind,
+                    "goal": level,
+                    "best_row": best,
+                    "best": cands[best],
+                    "met": cands[best] >= level,
+                }
+            )
     sep = out.get("beyond_separation", {})
     if sep:
         labels = list(sep)
         first = sep[labels[0]]
         last20 = [lab for lab in labels if lab.split()[0].isdigit() and float(lab.split()[0]) <= 20][-1]
-        for row in ("physical", "physical-registered", "physical-correlation", "physical-correlation-refined",
-                    "digital-steep", "digital-projection-only", "digital-projection"):
+        for row in (
+            "physical",
+            "physical-registered",
+            "physical-correlation",
+            "physical-correlation-refined",
+            "digital-steep",
+            "digital-projection-only",
+            "digital-projection",
+        ):
             if row in first and row in sep[last20]:
-                loss = first[row]["mean"] - min(sep[lab][row]["mean"] for lab in labels
-                                                 if float(lab.split()[0]) <= 20 and row in sep[lab])
-                goals.append({"condition": f"{labels[0]} -> {last20}", "twin": row, "goal": f"< {SEPARATION_GOAL_LOSS}",
-                              "loss": float(loss), "met": bool(loss < SEPARATION_GOAL_LOSS)})
+                loss = first[row]["mean"] - min(
+                    sep[lab][row]["mean"] for lab in labels if float(lab.split()[0]) <= 20 and row in sep[lab]
+                )
+                goals.append(
+                    {
+                        "condition": f"{labels[0]} -> {last20}",
+                        "twin": row,
+                        "goal": f"< {SEPARATION_GOAL_LOSS}",
+                        "loss": float(loss),
+                        "met": bool(loss < SEPARATION_GOAL_LOSS),
+                    }
+                )
     out["goals"] = goals
     return out
 
@@ -156,24 +245,33 @@ def write_beyond_report(out_dir, markdown_path=None) -> Path:
     run = json.loads((out / "raw" / "run.json").read_text()) if (out / "raw" / "run.json").exists() else {}
     machine = run.get("machine", {})
     md = Path(markdown_path) if markdown_path else out / "report.md"
-    lines = ["# Beyond the paper: what each improvement of the twin estimate buys", "",
-             f"Regenerate: `{run.get('command') or 'twinfocus bench beyond'}`. Machine: {machine.get('cpu_model', '?')}, "
-             f"{machine.get('cpu_count', '?')} cores, {'GPU ' + machine['cuda'] if machine.get('cuda') else 'no GPU'}, "
-             f"torch {machine.get('torch', '?')}; started {run.get('started', '?')}, "
-             f"{run.get('seconds', 0) / 60:.1f} min in all.", "",
-             "Scenes as in the paper evaluation (docs/results.md): speckle, 10 dB thermal noise, the physical twin "
-             "captured separately 1 mm off, the digital twin from a rendered stereo pair; 780 radar positions, "
-             "100 x 100 images, the paper's optimiser (Adam, 300 iterations, float16 basis). Every row sees the same "
-             "draws. Time: the estimator alone (registration + estimate), seconds on this machine; the two sub-image "
-             "bases (about 2 x 4.5 s) come on top for every row. The drift column's error is a Gauss-Markov process "
-             "along z (correlation time 2 s, 100 ms between positions), the one kind a smoothness prior over time can "
-             "use; only the rows it was run for have a value there.", ""]
+    lines = [
+        "# Beyond the paper: what each improvement of the twin estimate buys",
+        "",
+        f"Regenerate: `{run.get('command') or 'twinfocus bench beyond'}`. Machine: {machine.get('cpu_model', '?')}, "
+        f"{machine.get('cpu_count', '?')} cores, {'GPU ' + machine['cuda'] if machine.get('cuda') else 'no GPU'}, "
+        f"torch {machine.get('torch', '?')}; started {run.get('started', '?')}, "
+        f"{run.get('seconds', 0) / 60:.1f} min in all.",
+        "",
+        "Scenes as in the paper evaluation (docs/results.md): speckle, 10 dB thermal noise, the physical twin "
+        "captured separately 1 mm off, the digital twin from a rendered stereo pair; 780 radar positions, "
+        "100 x 100 images, the paper's optimiser (Adam, 300 iterations, float16 basis). Every row sees the same "
+        "draws. Time: the estimator alone (registration + estimate), seconds on this machine; the two sub-image "
+        "bases (about 2 x 4.5 s) come on top for every row. The drift column's error is a Gauss-Markov process "
+        "along z (correlation time 2 s, 100 ms between positions), the one kind a smoothness prior over time can "
+        "use; only the rows it was run for have a value there.",
+        "",
+    ]
     for name, doc in raw.items():
         conds = [c["label"] for c in doc["definition"]["conditions"]]
         d = doc["definition"]
         n = min(len({(r["pair"], r["draw"]) for r in doc["records"] if r["condition"] == c}) for c in conds)
-        lines += [f"## {d['title']}", "",
-                  f"{n} draws per condition ({d['draws']} per pair), pairs {', '.join(sorted({r['pair'] for r in doc['records']}))}.", ""]
+        lines += [
+            f"## {d['title']}",
+            "",
+            f"{n} draws per condition ({d['draws']} per pair), pairs {', '.join(sorted({r['pair'] for r in doc['records']}))}.",
+            "",
+        ]
         header = ["estimate"] + [f"{c} SSIM" for c in conds] + ["time (s)"]
         rows = []
         for row in ROW_ORDER:
@@ -182,7 +280,11 @@ def write_beyond_report(out_dir, markdown_path=None) -> Path:
                 continue
             times = [c["time_s"] for c in cells if c]
             label = CEILING_NAMES.get(row) or ROW_NAMES[row]
-            rows.append([label] + [_cell(c) for c in cells] + ["-" if row.startswith("ceiling") or row == "none" else f"{np.mean(times):.2f}"])
+            rows.append(
+                [label]
+                + [_cell(c) for c in cells]
+                + ["-" if row.startswith("ceiling") or row == "none" else f"{np.mean(times):.2f}"]
+            )
         lines += ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
         lines += ["| " + " | ".join(r) + " |" for r in rows] + [""]
     if sv:
@@ -190,9 +292,13 @@ def write_beyond_report(out_dir, markdown_path=None) -> Path:
     lines += ["## The goals", "", "| goal | condition | best row | result | met |", "|---|---|---|---|---|"]
     for g in summary["goals"]:
         if "loss" in g:
-            lines.append(f"| separation loss {g['goal']} | {g['condition']} | {g['twin']} | {g['loss']:+.3f} | {'yes' if g['met'] else 'no'} |")
+            lines.append(
+                f"| separation loss {g['goal']} | {g['condition']} | {g['twin']} | {g['loss']:+.3f} | {'yes' if g['met'] else 'no'} |"
+            )
         else:
-            lines.append(f"| {g['twin']} twin >= {g['goal']} | {g['condition']} | {g['best_row']} | {g['best']:.3f} | {'yes' if g['met'] else 'no'} |")
+            lines.append(
+                f"| {g['twin']} twin >= {g['goal']} | {g['condition']} | {g['best_row']} | {g['best']:.3f} | {'yes' if g['met'] else 'no'} |"
+            )
     lines.append("")
     from twinfocus.atomic import write_json_atomic, write_text_atomic
 
@@ -201,8 +307,18 @@ def write_beyond_report(out_dir, markdown_path=None) -> Path:
     return md
 
 
-def run_beyond(out_dir, *, draws: int = 1, quick: bool = False, resume: bool = False, markdown=None,
-               device: str = "cpu", command: str | None = None, log=None, cluster: dict | None = None) -> Path:
+def run_beyond(
+    out_dir,
+    *,
+    draws: int = 1,
+    quick: bool = False,
+    resume: bool = False,
+    markdown=None,
+    device: str = "cpu",
+    command: str | None = None,
+    log=None,
+    cluster: dict | None = None,
+) -> Path:
     """Run the experiments into ``out_dir/raw`` and write the report; returns its path. ``cluster``:
     as :func:`twinfocus.evaluation.runner.run_paper`'s (the space-variant draws run here after)."""
     from twinfocus.atomic import write_json_atomic
@@ -218,13 +334,23 @@ def run_beyond(out_dir, *, draws: int = 1, quick: bool = False, resume: bool = F
     raw = out / "raw"
     raw.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    run: dict = {"command": command, "quick": quick, "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": machine_info()}
-    failed = run_experiments(beyond_experiments(draws, quick), settings, raw, resume=resume, log=log, cluster=cluster,
-                             keep_examples=False)
+    run: dict = {
+        "command": command,
+        "quick": quick,
+        "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "machine": machine_info(),
+    }
+    failed = run_experiments(
+        beyond_experiments(draws, quick), settings, raw, resume=resume, log=log, cluster=cluster, keep_examples=False
+    )
     if failed:
         run["failed"] = failed
     path = raw / "beyond_space_variant.json"
-    sv_def = {"conditions": [list(c) for c in SV_CONDITIONS[:1 if quick else None]], "draws": draws, "settings": settings.to_dict()}
+    sv_def = {
+        "conditions": [list(c) for c in SV_CONDITIONS[: 1 if quick else None]],
+        "draws": draws,
+        "settings": settings.to_dict(),
+    }
     keep = False
     if resume and path.exists():
         try:
@@ -236,7 +362,7 @@ def run_beyond(out_dir, *, draws: int = 1, quick: bool = False, resume: bool = F
     else:
         t1 = time.perf_counter()
         records = []
-        for label, sigma_mm, angles, letters, height in SV_CONDITIONS[:1 if quick else None]:
+        for label, sigma_mm, angles, letters, height in SV_CONDITIONS[: 1 if quick else None]:
             for r in space_variant_draws(sigma_mm, draws, angles, letters, height, settings=settings, log=log):
                 records.append({"condition": label, **r})
         write_json_atomic(path, {"definition": sv_def, "records": records, "seconds": time.perf_counter() - t1})
@@ -256,8 +382,16 @@ SV_ROWS = {
 }
 
 
-def space_variant_draws(sigma_mm: float, draws: int, angles_deg=(-20.0, 0.0, 20.0), letters=("K", "P", "M"),
-                        target_height_m: float = 0.127, settings=None, seed: int = 0, log=None) -> list[dict]:
+def space_variant_draws(
+    sigma_mm: float,
+    draws: int,
+    angles_deg=(-20.0, 0.0, 20.0),
+    letters=("K", "P", "M"),
+    target_height_m: float = 0.127,
+    settings=None,
+    seed: int = 0,
+    log=None,
+) -> list[dict]:
     """Two references (``letters[0]``, ``letters[2]``) and the target (``letters[1]``) seen at
     ``angles_deg`` from boresight, 60 cm away, speckle, 10 dB noise, physical twins of both
     references captured 1 mm off; ``draws`` x/y/z tracking-error draws of ``sigma_mm``. The
@@ -327,21 +461,30 @@ def space_variant_draws(sigma_mm: float, draws: int, angles_deg=(-20.0, 0.0, 20.
             phases.append(np.angle(c))
             weights.append(np.abs(c) ** 2)
             del basis
-        rec = lambda row, img, secs: records.append({"row": row, "draw": d, "time_s": secs,  # noqa: B023 (called in the loop)
-                                                     "ssim": metrics.image_ssim(img, truth)})
+        rec = lambda row, img, secs, d=d, truth=truth: records.append(
+            {"row": row, "draw": d, "time_s": secs, "ssim": metrics.image_ssim(img, truth)}
+        )
         rec("none", tb.sum(axis=0), 0.0)
         rec("scalar", form_image(tb, phases[near]), t_scalar / 2)
         rec("scalar-mean", form_image(tb, np.angle(np.exp(1j * phases[0]) + np.exp(1j * phases[1]))), t_scalar)
         t = time.perf_counter()
-        dp = fit_position_errors(np.array(phases), np.array(weights), np.array([centres["ref0"], centres["ref1"]]), cm, lam,
-                                 prior_sigma_m=max(sigma_mm, 0.1) * 1e-3)
+        dp = fit_position_errors(
+            np.array(phases),
+            np.array(weights),
+            np.array([centres["ref0"], centres["ref1"]]),
+            cm,
+            lam,
+            prior_sigma_m=max(sigma_mm, 0.1) * 1e-3,
+        )
         ph = pixel_phases(phases[0], dp, centres["ref0"], cm, grids["target"], lam)
         img = form_image_space_variant(tb, ph)
         rec("space-variant", img, t_scalar + time.perf_counter() - t)
         rec("ceiling-target", form_image(tb, metrics.oracle_phase(true, tracked, centres["target"], chirp)), 0.0)
         if log:
-            log(f"[beyond_space_variant] sigma {sigma_mm} mm draw {d + 1}: " +
-                " ".join(f"{r['row']} {r['ssim']:.3f}" for r in records if r["draw"] == d))
+            log(
+                f"[beyond_space_variant] sigma {sigma_mm} mm draw {d + 1}: "
+                + " ".join(f"{r['row']} {r['ssim']:.3f}" for r in records if r["draw"] == d)
+            )
     return records
 
 
@@ -357,14 +500,18 @@ SV_CONDITIONS = (
 def _space_variant_section(doc: dict) -> list[str]:
     rec = doc["records"]
     conds = [c[0] for c in doc["definition"]["conditions"]]
-    lines = ["## Space-variant correction: two references around the target", "",
-             "References K and M and the target seen at the angles of each column from boresight, 60 cm away; both "
-             "physical twins captured 1 mm off; x/y/z white tracking error; "
-             f"{doc['definition']['draws']} draw(s) per condition. The scalar phase of one reference leaves the "
-             "target k (u_tgt - u_ref) . dp; the space-variant fit (`twinfocus.space_variant`) estimates dp across "
-             "the lines of sight from the two references' closed-form phases and gives every target pixel its own "
-             "phase. The mean of the two references' phasors is right only half-way between them; the fit is right "
-             "anywhere between. Time: estimator only (registration, closed form, fit, per-pixel phases), seconds.", ""]
+    lines = [
+        "## Space-variant correction: two references around the target",
+        "",
+        "References K and M and the target seen at the angles of each column from boresight, 60 cm away; both "
+        "physical twins captured 1 mm off; x/y/z white tracking error; "
+        f"{doc['definition']['draws']} draw(s) per condition. The scalar phase of one reference leaves the "
+        "target k (u_tgt - u_ref) . dp; the space-variant fit (`twinfocus.space_variant`) estimates dp across "
+        "the lines of sight from the two references' closed-form phases and gives every target pixel its own "
+        "phase. The mean of the two references' phasors is right only half-way between them; the fit is right "
+        "anywhere between. Time: estimator only (registration, closed form, fit, per-pixel phases), seconds.",
+        "",
+    ]
     header = ["estimate"] + [f"{c} SSIM" for c in conds] + ["time (s)"]
     lines += ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     for row, name in SV_ROWS.items():
@@ -372,7 +519,16 @@ def _space_variant_section(doc: dict) -> list[str]:
         for c in conds:
             v = [r["ssim"] for r in rec if r["condition"] == c and r["row"] == row]
             times += [r["time_s"] for r in rec if r["condition"] == c and r["row"] == row]
-            cells.append(_cell({"mean": float(np.mean(v)), "sem": float(np.std(v, ddof=1) / math.sqrt(len(v))) if len(v) > 1 else None}) if v else "-")
+            cells.append(
+                _cell(
+                    {
+                        "mean": float(np.mean(v)),
+                        "sem": float(np.std(v, ddof=1) / math.sqrt(len(v))) if len(v) > 1 else None,
+                    }
+                )
+                if v
+                else "-"
+            )
         t = "-" if row in ("none", "ceiling-target") else f"{np.mean(times):.2f}"
         lines.append("| " + " | ".join([name] + cells + [t]) + " |")
     return lines + [""]

@@ -13,6 +13,7 @@ the oracle phase at the target's and at the reference's centre, the first-order 
 (4 pi / lambda) (u_ref - u_tgt) . dp of what a perfect reference correction leaves on the target,
 and the bound (4 pi / lambda) |u_ref - u_tgt| |dp| on it.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -57,9 +58,17 @@ TWIN_VARIANTS = {
     "digital-steep": ("digital", estimator_settings("paper", False), False),
     "digital-projection-only": ("digital", estimator_settings("projection", False), False),
     "digital-projection": ("digital", estimator_settings("projection-refined", False), False),
-    "digital-restarts": ("digital", {**estimator_settings("projection-refined", False), "projection_restarts": 7}, False),
+    "digital-restarts": (
+        "digital",
+        {**estimator_settings("projection-refined", False), "projection_restarts": 7},
+        False,
+    ),
     "digital-coarse": ("digital", {**estimator_settings("paper", False), "coarse_iterations": 200}, False),
-    "digital-smooth": ("digital", {**estimator_settings("projection-refined", False), "smoothness_weight": 0.02}, False),
+    "digital-smooth": (
+        "digital",
+        {**estimator_settings("projection-refined", False), "smoothness_weight": 0.02},
+        False,
+    ),
 }
 
 
@@ -70,6 +79,7 @@ def needs_reference(method: str) -> bool:
 
 def needs_digital_twin(method: str) -> bool:
     return method in TWIN_VARIANTS and TWIN_VARIANTS[method][0] == "digital"
+
 
 #: Margin (metres) around an object's extent for the "object" regions of interest: about what
 #: the paper's regions leave around the default letters (a tight 15 mm frame starves the digital
@@ -95,13 +105,24 @@ class EvalScenario(Scenario):
         scene = super().scene()
         if self.clutter and self.clutter_near_m is not None:
             d = max(self.distance_m, self.reference_distance_m or 0.0)
-            scene.clutter = Clutter((-0.4, -0.3, min(self.distance_m, self.reference_distance_m or 9.9) - self.clutter_near_m),
-                                    (0.4, 0.3, d + 0.6), n_points=2000, amplitude=0.1, n_strong=40, strong_amplitude=0.5)
+            scene.clutter = Clutter(
+                (-0.4, -0.3, min(self.distance_m, self.reference_distance_m or 9.9) - self.clutter_near_m),
+                (0.4, 0.3, d + 0.6),
+                n_points=2000,
+                amplitude=0.1,
+                n_strong=40,
+                strong_amplitude=0.5,
+            )
         if self.reference_distance_m is not None:
-            moved = paper_scene(reference=self.reference, target=self.target, distance_m=self.distance_m,
-                                separation_deg=self.separation_deg, height_m=self.height_m,
-                                reference_distance_m=self.reference_distance_m,
-                                reference_material=self.reference_material)
+            moved = paper_scene(
+                reference=self.reference,
+                target=self.target,
+                distance_m=self.distance_m,
+                separation_deg=self.separation_deg,
+                height_m=self.height_m,
+                reference_distance_m=self.reference_distance_m,
+                reference_material=self.reference_material,
+            )
             scene.objects[[o.name for o in scene.objects].index("reference")] = moved.object("reference")
         return scene
 
@@ -122,7 +143,9 @@ class EvalSettings:
     phase_ramp: str = "auto"
 
     def autofocus_config(self, **overrides) -> AutofocusConfig:
-        kw = dict(iterations=self.iterations, basis_dtype=self.basis_dtype, precision=self.precision, device=self.device)
+        kw = dict(
+            iterations=self.iterations, basis_dtype=self.basis_dtype, precision=self.precision, device=self.device
+        )
         kw.update(overrides)
         return AutofocusConfig(**kw)
 
@@ -184,8 +207,10 @@ def case_grids(sc: Scenario, size: int, roi: str, margin_m: float = OBJECT_ROI_M
     if roi == "paper":
         return ImageGrid.from_roi(sc.reference_roi(), size), ImageGrid.from_roi(sc.target_roi(), size)
     if roi == "object":
-        return (ImageGrid.from_roi(object_roi(sc, "reference", margin_m), size),
-                ImageGrid.from_roi(object_roi(sc, "target", margin_m), size))
+        return (
+            ImageGrid.from_roi(object_roi(sc, "reference", margin_m), size),
+            ImageGrid.from_roi(object_roi(sc, "target", margin_m), size),
+        )
     raise TwinFocusError(f"roi must be 'paper' or 'object', got {roi!r}")
 
 
@@ -211,8 +236,16 @@ def digital_twin_points(sc: Scenario, ref_roi, seed: int) -> tuple[np.ndarray, d
     return twin.points_m, info
 
 
-def digital_twin_for(sc: Scenario, scan_positions: np.ndarray, chirp: Chirp, ref_grid: ImageGrid, seed: int,
-                     method: str = "psf", coherent: bool = True, **bp) -> tuple[np.ndarray, dict]:
+def digital_twin_for(
+    sc: Scenario,
+    scan_positions: np.ndarray,
+    chirp: Chirp,
+    ref_grid: ImageGrid,
+    seed: int,
+    method: str = "psf",
+    coherent: bool = True,
+    **bp,
+) -> tuple[np.ndarray, dict]:
     """The digital twin's template on ``ref_grid``: :func:`digital_twin_points`, then its SAR
     amplitude simulated (:func:`twinfocus.digital_twin.template.digital_twin_template`).
 
@@ -236,8 +269,16 @@ def _data_key(scan: Scan) -> str:
     return hashlib.blake2b(np.ascontiguousarray(scan.data).view(np.uint8), digest_size=16).hexdigest()
 
 
-def prepare_scene(sc: Scenario, settings: EvalSettings, roi: str, template_envs=("open",), digital: bool = True,
-                  template_cache: dict | None = None, progress=None, roi_margin_m: float = OBJECT_ROI_MARGIN_M) -> SceneCase:
+def prepare_scene(
+    sc: Scenario,
+    settings: EvalSettings,
+    roi: str,
+    template_envs=("open",),
+    digital: bool = True,
+    template_cache: dict | None = None,
+    progress=None,
+    roi_margin_m: float = OBJECT_ROI_MARGIN_M,
+) -> SceneCase:
     """Simulate ``sc`` once and build what every draw on it needs.
 
     template_envs : which physical templates to build: ``"open"`` (the reference alone on the
@@ -300,8 +341,14 @@ def draw_position_errors(sc: Scenario, timestamps_ns: np.ndarray, seed) -> tuple
     The same ``seed`` gives the same underlying normal draws whatever the sigma, so a sweep over
     sigma compares like with like (common random numbers).
     """
-    return draw_errors(sc.error_model, timestamps_ns, sc.error_sigma_m, np.random.default_rng(seed),
-                       sc.correlation_time_s, np.radians(sc.rotation_sigma_deg))
+    return draw_errors(
+        sc.error_model,
+        timestamps_ns,
+        sc.error_sigma_m,
+        np.random.default_rng(seed),
+        sc.correlation_time_s,
+        np.radians(sc.rotation_sigma_deg),
+    )
 
 
 def draw_seed(*parts) -> int:
@@ -309,8 +356,9 @@ def draw_seed(*parts) -> int:
     return zlib.crc32("|".join(str(p) for p in parts).encode())
 
 
-def phase_transfer_terms(true_m: np.ndarray, tracked_m: np.ndarray, ref_point: np.ndarray, tgt_point: np.ndarray,
-                         wavelength_m: float) -> dict:
+def phase_transfer_terms(
+    true_m: np.ndarray, tracked_m: np.ndarray, ref_point: np.ndarray, tgt_point: np.ndarray, wavelength_m: float
+) -> dict:
     """First-order phase-transfer error of docs/architecture.md section 1, r.m.s. over radar positions (rad).
 
     true_m, tracked_m : (M, K, 3) phase centres. Per position m (channels averaged): dp_m the
@@ -329,14 +377,16 @@ def phase_transfer_terms(true_m: np.ndarray, tracked_m: np.ndarray, ref_point: n
     return {"first_order": float(np.sqrt(np.mean(first**2))), "bound": float(np.sqrt(np.mean(bound**2)))}
 
 
-def transfer_phase(phase_rad: np.ndarray, tracked_m: np.ndarray, mode: str = "auto", registered: bool = False,
-                   range_m: float = 0.6) -> np.ndarray:
+def transfer_phase(
+    phase_rad: np.ndarray, tracked_m: np.ndarray, mode: str = "auto", registered: bool = False, range_m: float = 0.6
+) -> np.ndarray:
     """The phase applied to the target, as ``twinfocus focus`` applies it
     (:func:`twinfocus.autofocus.transfer_phase` on the tracked aperture, the reference ``range_m``
     away; the chirp's wavelength)."""
     aperture = np.asarray(tracked_m, float).mean(axis=1)
-    return autofocus_transfer_phase(phase_rad, aperture[:, :2], range_m - float(aperture[:, 2].mean()),
-                                    Chirp().wavelength_m, mode, registered)[0]
+    return autofocus_transfer_phase(
+        phase_rad, aperture[:, :2], range_m - float(aperture[:, 2].mean()), Chirp().wavelength_m, mode, registered
+    )[0]
 
 
 @dataclass
@@ -352,7 +402,9 @@ class DrawBases:
     tracked_m: np.ndarray
 
 
-def draw_shared(case: SceneCase, tracked_m: np.ndarray, settings: EvalSettings, need_reference: bool = True) -> DrawBases:
+def draw_shared(
+    case: SceneCase, tracked_m: np.ndarray, settings: EvalSettings, need_reference: bool = True
+) -> DrawBases:
     """Bases of one error draw and what explains its results (all phases in radians, r.m.s. over
     radar positions after removing the best constant):
 
@@ -394,7 +446,9 @@ def draw_shared(case: SceneCase, tracked_m: np.ndarray, settings: EvalSettings, 
     return DrawBases(ref_basis, tgt_basis, oracle_t, oracle_r, shared, tracked_m)
 
 
-def estimate_phase(method: str, case: SceneCase, bases: DrawBases, cfg: AutofocusConfig, template_env: str = "open") -> tuple[np.ndarray, float]:
+def estimate_phase(
+    method: str, case: SceneCase, bases: DrawBases, cfg: AutofocusConfig, template_env: str = "open"
+) -> tuple[np.ndarray, float]:
     """Phase (M,) radians of one method and its optimiser time (s). Raises TwinFocusError when the
     method cannot run (no digital twin)."""
     if method == "none":
@@ -420,8 +474,15 @@ def estimate_phase(method: str, case: SceneCase, bases: DrawBases, cfg: Autofocu
     raise TwinFocusError(f"unknown method {method!r}; use one of {', '.join(METHODS)}")
 
 
-def evaluate_methods(case: SceneCase, bases: DrawBases, methods, settings: EvalSettings,
-                     template_env: str = "open", config_overrides: dict | None = None, keep_images: bool = False) -> list[dict]:
+def evaluate_methods(
+    case: SceneCase,
+    bases: DrawBases,
+    methods,
+    settings: EvalSettings,
+    template_env: str = "open",
+    config_overrides: dict | None = None,
+    keep_images: bool = False,
+) -> list[dict]:
     """Every method on one draw: one record each with method, status ("ok" or "failed: ..."),
     ssim and hog (target vs truth), phase error r.m.s. against the target's and the reference's
     oracle phases (rad) and autofocus_s; unless ``settings.phase_ramp`` is "keep", also
@@ -440,8 +501,9 @@ def evaluate_methods(case: SceneCase, bases: DrawBases, methods, settings: EvalS
         if method != "none":
             if settings.phase_ramp != "keep":
                 # The source paper transfers the phase as estimated: keep its score too.
-                rec["ssim_as_estimated"] = metrics.image_ssim(form_image(bases.target, phase), case.truth_target,
-                                                              cfg.threshold_centre, cfg.threshold_steepness)
+                rec["ssim_as_estimated"] = metrics.image_ssim(
+                    form_image(bases.target, phase), case.truth_target, cfg.threshold_centre, cfg.threshold_steepness
+                )
             registered = TWIN_VARIANTS.get(method, (None, {}, False))[1].get("template_registration", "none") != "none"
             phase = transfer_phase(phase, bases.tracked_m, settings.phase_ramp, registered, case.ref_grid.z)
         image = form_image(bases.target, phase)
@@ -450,7 +512,9 @@ def evaluate_methods(case: SceneCase, bases: DrawBases, methods, settings: EvalS
         rec["phase_rms_vs_target_oracle"] = metrics.phase_error_rms(phase, bases.oracle_target)
         rec["phase_rms_vs_reference_oracle"] = metrics.phase_error_rms(phase, bases.oracle_reference)
         if keep_images:
-            rec["image"] = metrics.display_image(image, cfg.threshold_centre, cfg.threshold_steepness).astype(np.float32)
+            rec["image"] = metrics.display_image(image, cfg.threshold_centre, cfg.threshold_steepness).astype(
+                np.float32
+            )
         records.append(rec)
     return records
 
@@ -458,5 +522,9 @@ def evaluate_methods(case: SceneCase, bases: DrawBases, methods, settings: EvalS
 def tracked_positions(scan: Scan, error_scenario: Scenario, seed) -> np.ndarray:
     """The scan's true phase centres plus one draw of ``error_scenario``'s tracking error (its
     ``error_model`` and ``error_sigma_m``): (M, K, 3) metres."""
-    stamps = scan.timestamps_ns if scan.timestamps_ns is not None else np.arange(scan.n_positions, dtype=np.int64) * 100_000_000
+    stamps = (
+        scan.timestamps_ns
+        if scan.timestamps_ns is not None
+        else np.arange(scan.n_positions, dtype=np.int64) * 100_000_000
+    )
     return apply_pose_errors(scan.positions_true, *draw_position_errors(error_scenario, stamps, seed))

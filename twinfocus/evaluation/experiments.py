@@ -16,6 +16,7 @@ each letter by its extent + 40 mm (about what the paper's regions leave around t
 letters), never past the middle of the gap between the letters, so the conditions of a sweep are
 framed alike.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -57,10 +58,16 @@ class Condition:
     methods: tuple | None = None
 
     def to_dict(self) -> dict:
-        return {"label": self.label, "x": self.x, "pairs": [list(p) for p in self.pairs], "scene": self.scene,
-                "errors": {k: list(v) if isinstance(v, tuple) else v for k, v in self.errors.items()},
-                "template_env": self.template_env, "in_paper": self.in_paper,
-                "methods": list(self.methods) if self.methods else None}
+        return {
+            "label": self.label,
+            "x": self.x,
+            "pairs": [list(p) for p in self.pairs],
+            "scene": self.scene,
+            "errors": {k: list(v) if isinstance(v, tuple) else v for k, v in self.errors.items()},
+            "template_env": self.template_env,
+            "in_paper": self.in_paper,
+            "methods": list(self.methods) if self.methods else None,
+        }
 
 
 @dataclass
@@ -80,60 +87,164 @@ class Experiment:
         return sum(len(c.pairs) for c in self.conditions) * self.draws
 
     def to_dict(self) -> dict:
-        return {"name": self.name, "title": self.title, "axis": self.axis, "draws": self.draws,
-                "methods": list(self.methods), "roi": self.roi if self.roi == "paper" else f"object+{self.roi_margin_m * 1e3:g}mm",
-                "numeric": self.numeric, "seed": self.seed,
-                "conditions": [c.to_dict() for c in self.conditions]}
+        return {
+            "name": self.name,
+            "title": self.title,
+            "axis": self.axis,
+            "draws": self.draws,
+            "methods": list(self.methods),
+            "roi": self.roi if self.roi == "paper" else f"object+{self.roi_margin_m * 1e3:g}mm",
+            "numeric": self.numeric,
+            "seed": self.seed,
+            "conditions": [c.to_dict() for c in self.conditions],
+        }
 
 
 def _full_experiments() -> list[Experiment]:
     kp = (("K", "P"),)
     return [
-        Experiment("baseline", "Baseline set: six letters, all ordered pairs", "set",
-                   [Condition("60 cm, 10 deg, sigma 0.5 mm", "baseline", BASELINE_PAIRS)],
-                   draws=1, methods=ALL_METHODS, roi="paper"),
-        Experiment("tracking_error", "Tracking error (x, y, z sigma)", "tracking error sigma (mm)",
-                   [Condition(f"{s:g} mm", s, TRACKING_PAIRS, errors={"error_sigma_m": sigma3(s)}, in_paper=0.5 <= s <= 2.0)
-                    for s in (0.5, 1.0, 1.5, 2.0, 3.0)],
-                   draws=1, roi="paper", numeric=True),
-        Experiment("separation", "Reference-target angular separation", "separation (deg)",
-                   [Condition(f"{a} deg", a, kp, scene={"separation_deg": float(a)}, in_paper=a <= 20)
-                    for a in (10, 15, 20, 30, 40)],
-                   draws=1, numeric=True),
-        Experiment("distance", "Object-radar distance", "distance (cm)",
-                   [Condition(f"{d} cm", d, kp, scene={"distance_m": d / 100}) for d in (40, 60, 80)],
-                   draws=1, numeric=True),
-        Experiment("size", "Target size (3 in reference N)", "target",
-                   [Condition(f"{h} in ({t})", f"{h} in", (("N", t),),
-                              scene={"height_m": 3 * INCH_M, "target_height_m": h * INCH_M})
-                    for h, t in ((4, "B"), (5, "X"), (6, "H"))],
-                   draws=1),
-        Experiment("size_ratio", "Target/reference size ratio (target H, 3 in reference N)", "size ratio",
-                   [Condition(f"{h:g} in (x{h / 3:.2f})", round(h / 3, 3), (("N", "H"),),
-                              scene={"height_m": 3 * INCH_M, "target_height_m": h * INCH_M}, in_paper=False)
-                    for h in (3, 6, 8)],
-                   draws=1, numeric=True),
-        Experiment("material", "Target material (metal reference M, target K)", "target material",
-                   [Condition(m, m, (("M", "K"),), scene={"target_material": m}) for m in ("metal", "wood", "plastic")],
-                   draws=1),
-        Experiment("nlos", "Target hidden behind a sheet (reference in line of sight at 76 cm)", "occluder",
-                   [Condition(m, m, (("M", "K"),),
-                              scene={"occluder": m, "height_m": 4 * INCH_M, "reference_distance_m": 0.76})
-                    for m in ("polyester", "paper", "plastic")],
-                   draws=1),
-        Experiment("environment", "Open vs cluttered room, templates swapped across rooms", "room / template",
-                   [Condition("open room, open template", "open/open", (("U", "G"),), scene={"clutter": False, "clutter_near_m": 0.03}),
-                    Condition("open room, cluttered-room template", "open/cluttered", (("U", "G"),), scene={"clutter": False, "clutter_near_m": 0.03},
-                              template_env="cluttered", methods=("none", "physical")),
-                    Condition("cluttered room, cluttered-room template", "cluttered/cluttered", (("U", "G"),),
-                              scene={"clutter": True, "clutter_near_m": 0.03}, template_env="cluttered"),
-                    Condition("cluttered room, open template", "cluttered/open", (("U", "G"),), scene={"clutter": True, "clutter_near_m": 0.03},
-                              methods=("none", "physical"))],
-                   draws=1),
-        Experiment("handheld", "Handheld zig-zag sweep with VIO-like drift", "trajectory",
-                   [Condition("zig-zag, VIO drift + jitter", "zigzag/vio", (("K", "P"), ("K", "M")),
-                              scene={"trajectory": "zigzag"}, errors={"error_model": "vio"})],
-                   draws=1),
+        Experiment(
+            "baseline",
+            "Baseline set: six letters, all ordered pairs",
+            "set",
+            [Condition("60 cm, 10 deg, sigma 0.5 mm", "baseline", BASELINE_PAIRS)],
+            draws=1,
+            methods=ALL_METHODS,
+            roi="paper",
+        ),
+        Experiment(
+            "tracking_error",
+            "Tracking error (x, y, z sigma)",
+            "tracking error sigma (mm)",
+            [
+                Condition(f"{s:g} mm", s, TRACKING_PAIRS, errors={"error_sigma_m": sigma3(s)}, in_paper=0.5 <= s <= 2.0)
+                for s in (0.5, 1.0, 1.5, 2.0, 3.0)
+            ],
+            draws=1,
+            roi="paper",
+            numeric=True,
+        ),
+        Experiment(
+            "separation",
+            "Reference-target angular separation",
+            "separation (deg)",
+            [
+                Condition(f"{a} deg", a, kp, scene={"separation_deg": float(a)}, in_paper=a <= 20)
+                for a in (10, 15, 20, 30, 40)
+            ],
+            draws=1,
+            numeric=True,
+        ),
+        Experiment(
+            "distance",
+            "Object-radar distance",
+            "distance (cm)",
+            [Condition(f"{d} cm", d, kp, scene={"distance_m": d / 100}) for d in (40, 60, 80)],
+            draws=1,
+            numeric=True,
+        ),
+        Experiment(
+            "size",
+            "Target size (3 in reference N)",
+            "target",
+            [
+                Condition(
+                    f"{h} in ({t})",
+                    f"{h} in",
+                    (("N", t),),
+                    scene={"height_m": 3 * INCH_M, "target_height_m": h * INCH_M},
+                )
+                for h, t in ((4, "B"), (5, "X"), (6, "H"))
+            ],
+            draws=1,
+        ),
+        Experiment(
+            "size_ratio",
+            "Target/reference size ratio (target H, 3 in reference N)",
+            "size ratio",
+            [
+                Condition(
+                    f"{h:g} in (x{h / 3:.2f})",
+                    round(h / 3, 3),
+                    (("N", "H"),),
+                    scene={"height_m": 3 * INCH_M, "target_height_m": h * INCH_M},
+                    in_paper=False,
+                )
+                for h in (3, 6, 8)
+            ],
+            draws=1,
+            numeric=True,
+        ),
+        Experiment(
+            "material",
+            "Target material (metal reference M, target K)",
+            "target material",
+            [Condition(m, m, (("M", "K"),), scene={"target_material": m}) for m in ("metal", "wood", "plastic")],
+            draws=1,
+        ),
+        Experiment(
+            "nlos",
+            "Target hidden behind a sheet (reference in line of sight at 76 cm)",
+            "occluder",
+            [
+                Condition(
+                    m, m, (("M", "K"),), scene={"occluder": m, "height_m": 4 * INCH_M, "reference_distance_m": 0.76}
+                )
+                for m in ("polyester", "paper", "plastic")
+            ],
+            draws=1,
+        ),
+        Experiment(
+            "environment",
+            "Open vs cluttered room, templates swapped across rooms",
+            "room / template",
+            [
+                Condition(
+                    "open room, open template",
+                    "open/open",
+                    (("U", "G"),),
+                    scene={"clutter": False, "clutter_near_m": 0.03},
+                ),
+                Condition(
+                    "open room, cluttered-room template",
+                    "open/cluttered",
+                    (("U", "G"),),
+                    scene={"clutter": False, "clutter_near_m": 0.03},
+                    template_env="cluttered",
+                    methods=("none", "physical"),
+                ),
+                Condition(
+                    "cluttered room, cluttered-room template",
+                    "cluttered/cluttered",
+                    (("U", "G"),),
+                    scene={"clutter": True, "clutter_near_m": 0.03},
+                    template_env="cluttered",
+                ),
+                Condition(
+                    "cluttered room, open template",
+                    "cluttered/open",
+                    (("U", "G"),),
+                    scene={"clutter": True, "clutter_near_m": 0.03},
+                    methods=("none", "physical"),
+                ),
+            ],
+            draws=1,
+        ),
+        Experiment(
+            "handheld",
+            "Handheld zig-zag sweep with VIO-like drift",
+            "trajectory",
+            [
+                Condition(
+                    "zig-zag, VIO drift + jitter",
+                    "zigzag/vio",
+                    (("K", "P"), ("K", "M")),
+                    scene={"trajectory": "zigzag"},
+                    errors={"error_model": "vio"},
+                )
+            ],
+            draws=1,
+        ),
     ]
 
 
@@ -156,7 +267,9 @@ def paper_experiments(quick: bool = False, draws: int | None = None, only=None) 
     if wanted is not None:
         unknown = sorted(set(wanted) - set(EXPERIMENT_NAMES))
         if unknown:
-            raise TwinFocusError(f"unknown experiment(s) {', '.join(unknown)}; choose from {', '.join(EXPERIMENT_NAMES + ('trade',))}")
+            raise TwinFocusError(
+                f"unknown experiment(s) {', '.join(unknown)}; choose from {', '.join(EXPERIMENT_NAMES + ('trade',))}"
+            )
         exps = [e for e in exps if e.name in wanted]
     if quick:
         out = []

@@ -14,6 +14,7 @@ central-difference gradients (zero on the border rows/columns), unsigned orienta
 [0, 180) degrees binned without interpolation, magnitudes averaged per cell, each 2 x 2-cell
 block L2-normalised, clipped at 0.2 and normalised again.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,8 +28,12 @@ HOG_BLOCK_CELLS = 2
 _EPS = 1e-5
 
 
-def hog_descriptor(image: np.ndarray, orientations: int = HOG_ORIENTATIONS, cell_px: int = HOG_CELL_PX,
-                   block_cells: int = HOG_BLOCK_CELLS) -> np.ndarray:
+def hog_descriptor(
+    image: np.ndarray,
+    orientations: int = HOG_ORIENTATIONS,
+    cell_px: int = HOG_CELL_PX,
+    block_cells: int = HOG_BLOCK_CELLS,
+) -> np.ndarray:
     """HOG feature vector of a real image (H, W): float64 (n_blocks_y * n_blocks_x * block_cells^2 * orientations,).
 
     Pixels beyond the last whole cell are ignored (as in scikit-image).
@@ -38,7 +43,9 @@ def hog_descriptor(image: np.ndarray, orientations: int = HOG_ORIENTATIONS, cell
         raise TwinFocusError(f"HOG needs a finite 2-D image, got shape {a.shape}")
     ncy, ncx = a.shape[0] // cell_px, a.shape[1] // cell_px
     if ncy < block_cells or ncx < block_cells:
-        raise TwinFocusError(f"image of {a.shape[0]} x {a.shape[1]} pixels is too small for {block_cells} x {block_cells} cells of {cell_px} px")
+        raise TwinFocusError(
+            f"image of {a.shape[0]} x {a.shape[1]} pixels is too small for {block_cells} x {block_cells} cells of {cell_px} px"
+        )
     g_row = np.zeros_like(a)
     g_col = np.zeros_like(a)
     g_row[1:-1, :] = a[2:, :] - a[:-2, :]

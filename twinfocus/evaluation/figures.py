@@ -1,6 +1,7 @@
 """The evaluation report's figures: one PNG per sweep, the baseline and its pairs, example images,
 the limits and the speed/accuracy trade, drawn with matplotlib (Agg) from the raw results and the
 aggregates of :mod:`twinfocus.evaluation.aggregate`."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -114,15 +115,29 @@ def sweep_figure(doc: dict, path: Path) -> None:
             ys = [s.get("mean") if s else None for s in st]
             es = [s.get("sem") or 0 if s else 0 for s in st]
             ok = [i for i, y in enumerate(ys) if y is not None]
-            ax.errorbar([xs[i] for i in ok], [ys[i] for i in ok], yerr=[es[i] for i in ok], marker="o", ms=4, capsize=2,
-                        color=METHOD_COLOURS[m], label=METHOD_NAMES[m])
+            ax.errorbar(
+                [xs[i] for i in ok],
+                [ys[i] for i in ok],
+                yerr=[es[i] for i in ok],
+                marker="o",
+                ms=4,
+                capsize=2,
+                color=METHOD_COLOURS[m],
+                label=METHOD_NAMES[m],
+            )
         out = [c["x"] for c in conds if not c["in_paper"]]
         if out:
             inside = [c["x"] for c in conds if c["in_paper"]]
             lo_out = [x for x in out if not inside or x > max(inside)]
             hi_out = [x for x in out if inside and x < min(inside)]
             if lo_out:
-                ax.axvspan(max(inside) if inside else min(lo_out), max(lo_out), color="#eeeeee", zorder=0, label="beyond the paper")
+                ax.axvspan(
+                    max(inside) if inside else min(lo_out),
+                    max(lo_out),
+                    color="#eeeeee",
+                    zorder=0,
+                    label="beyond the paper",
+                )
             if hi_out:
                 ax.axvspan(min(hi_out), min(inside), color="#eeeeee", zorder=0)
         ax.set_xlabel(d["axis"])
@@ -131,8 +146,15 @@ def sweep_figure(doc: dict, path: Path) -> None:
         w = 0.8 / max(1, len(methods))
         for k, m in enumerate(methods):
             st = [method_stats(rec, c["label"]).get(m, {}) for c in conds]
-            ax.bar(np.arange(len(conds)) + (k - (len(methods) - 1) / 2) * w, [s.get("mean") or 0 for s in st],
-                   w, yerr=[s.get("sem") or 0 for s in st], capsize=2, color=METHOD_COLOURS[m], label=METHOD_NAMES[m])
+            ax.bar(
+                np.arange(len(conds)) + (k - (len(methods) - 1) / 2) * w,
+                [s.get("mean") or 0 for s in st],
+                w,
+                yerr=[s.get("sem") or 0 for s in st],
+                capsize=2,
+                color=METHOD_COLOURS[m],
+                label=METHOD_NAMES[m],
+            )
         ax.set_xticks(np.arange(len(conds)), [lab.replace(", ", ",\n") for lab in labels], fontsize=7)
     ax.set_ylabel("mean target SSIM")
     lo = min([r["ssim"] for r in ok_records(rec)] or [0.0])
@@ -160,11 +182,23 @@ def limit_figure(doc: dict, rows: list[dict], path: Path) -> None:
     a1.set_xlabel(d["axis"])
     a1.set_ylabel("SSIM gain over no correction")
     a1.legend(fontsize=7)
-    for key, style, lab in (("uncorrected", "s-", "uncorrected (target oracle)"), ("floor", "^-", "transfer floor (measured)"),
-                            ("first_order", ":", "first-order prediction"), ("bound", "--", "first-order bound")):
+    for key, style, lab in (
+        ("uncorrected", "s-", "uncorrected (target oracle)"),
+        ("floor", "^-", "transfer floor (measured)"),
+        ("first_order", ":", "first-order prediction"),
+        ("bound", "--", "first-order bound"),
+    ):
         v = [r[key] for r in rows]
         ok = [i for i, y in enumerate(v) if y is not None]
-        a2.plot([xs[i] for i in ok], [v[i] for i in ok], style, ms=4, lw=1, color="#555555" if key == "uncorrected" else "k", label=lab)
+        a2.plot(
+            [xs[i] for i in ok],
+            [v[i] for i in ok],
+            style,
+            ms=4,
+            lw=1,
+            color="#555555" if key == "uncorrected" else "k",
+            label=lab,
+        )
     a2.axhline(1.0, color="#999999", lw=0.8, ls=":")
     a2.set_xlabel(d["axis"])
     a2.set_ylabel("r.m.s. phase error on the target (rad)")
@@ -175,21 +209,41 @@ def limit_figure(doc: dict, rows: list[dict], path: Path) -> None:
 
 def pareto_figure(means: list[dict], path: Path) -> None:
     plt = _plt()
-    colours = {"image size": "#3b7dd8", "optimiser": "#c23b3b", "precision": "#2e9d57", "preset": "#000000",
-               "positions": "#d08c2e", "digital twin": "#8a4fb5"}
+    colours = {
+        "image size": "#3b7dd8",
+        "optimiser": "#c23b3b",
+        "precision": "#2e9d57",
+        "preset": "#000000",
+        "positions": "#d08c2e",
+        "digital twin": "#8a4fb5",
+    }
     pts = [m for m in means if m["knob"] in ("image size", "optimiser", "precision", "preset")]
     fig, ax = plt.subplots(figsize=(6.0, 3.6))
     for knob in ("image size", "optimiser", "precision", "positions", "digital twin", "preset"):
         ks = [m for m in means if m["knob"] == knob]
         if not ks:
             continue
-        ax.scatter([m["time_s"] for m in ks], [m["ssim"] for m in ks], s=60 if knob == "preset" else 18,
-                   marker="*" if knob == "preset" else "o", color=colours[knob], label=knob, zorder=3)
+        ax.scatter(
+            [m["time_s"] for m in ks],
+            [m["ssim"] for m in ks],
+            s=60 if knob == "preset" else 18,
+            marker="*" if knob == "preset" else "o",
+            color=colours[knob],
+            label=knob,
+            zorder=3,
+        )
         for m in ks:
             ax.annotate(m["label"], (m["time_s"], m["ssim"]), fontsize=5, xytext=(2, 2), textcoords="offset points")
     if pts:
         front = pareto_front([(m["time_s"], m["ssim"]) for m in pts])
-        ax.plot([pts[i]["time_s"] for i in front], [pts[i]["ssim"] for i in front], "k-", lw=0.8, zorder=2, label="Pareto front")
+        ax.plot(
+            [pts[i]["time_s"] for i in front],
+            [pts[i]["ssim"] for i in front],
+            "k-",
+            lw=0.8,
+            zorder=2,
+            label="Pareto front",
+        )
     unc = [m for m in means if m["knob"] == "uncorrected"]
     if unc:
         ax.axhline(unc[0]["ssim"], color="#777777", ls=":", lw=1, label="no correction")

@@ -7,6 +7,7 @@ plot.
 ``claim`` (its stated finding) and optionally ``ssim`` ({method: mean SSIM}) and
 ``improvement_pct`` ({method: % over no correction}, or {condition: {method: %}}).
 """
+
 from __future__ import annotations
 
 PAPER: dict[str, dict] = {

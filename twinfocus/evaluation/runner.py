@@ -4,6 +4,7 @@ Each experiment's records go to ``OUT/raw/<name>.json`` as soon as it finishes (
 that is stopped keeps what it finished, and ``resume`` skips experiments already done with the
 same settings). The report (:mod:`twinfocus.evaluation.report`) is written from those files.
 """
+
 from __future__ import annotations
 
 import gc
@@ -53,7 +54,9 @@ def _scene_units(exp: Experiment) -> list[dict]:
     for cond in exp.conditions:
         for ref, tgt in cond.pairs:
             key = (json.dumps(cond.scene, sort_keys=True), ref, tgt)
-            units.setdefault(key, {"scene": cond.scene, "pair": (ref, tgt), "conditions": []})["conditions"].append(cond)
+            units.setdefault(key, {"scene": cond.scene, "pair": (ref, tgt), "conditions": []})["conditions"].append(
+                cond
+            )
     return list(units.values())
 
 
@@ -80,15 +83,37 @@ def run_experiment(exp: Experiment, settings: EvalSettings, template_cache: dict
     done = 0
     for i, unit in enumerate(units):
         ref, tgt = unit["pair"]
-        sc = EvalScenario(reference=ref, target=tgt, seed=exp.seed, n_columns=settings.n_columns, n_rows=settings.n_rows,
-                          spacing_m=settings.spacing_m, **unit["scene"])
+        sc = EvalScenario(
+            reference=ref,
+            target=tgt,
+            seed=exp.seed,
+            n_columns=settings.n_columns,
+            n_rows=settings.n_rows,
+            spacing_m=settings.spacing_m,
+            **unit["scene"],
+        )
         conds = unit["conditions"]
         methods_all = {m for c in conds for m in (c.methods or exp.methods)}
         envs = tuple(sorted({c.template_env for c in conds}))
-        case = prepare_scene(sc, settings, exp.roi, envs, digital=any(needs_digital_twin(m) for m in methods_all), template_cache=cache,
-                             roi_margin_m=exp.roi_margin_m)
-        scenes.append({"pair": f"{ref}>{tgt}", "scene": unit["scene"], "timings_s": case.timings_s,
-                       "notes": case.notes, "reference_roi": list(case.ref_grid.roi), "target_roi": list(case.tgt_grid.roi)})
+        case = prepare_scene(
+            sc,
+            settings,
+            exp.roi,
+            envs,
+            digital=any(needs_digital_twin(m) for m in methods_all),
+            template_cache=cache,
+            roi_margin_m=exp.roi_margin_m,
+        )
+        scenes.append(
+            {
+                "pair": f"{ref}>{tgt}",
+                "scene": unit["scene"],
+                "timings_s": case.timings_s,
+                "notes": case.notes,
+                "reference_roi": list(case.ref_grid.roi),
+                "target_roi": list(case.tgt_grid.roi),
+            }
+        )
         # Conditions with the same tracking error share each draw's positions and bases.
         by_errors: dict = {}
         for c in conds:
@@ -97,35 +122,68 @@ def run_experiment(exp: Experiment, settings: EvalSettings, template_cache: dict
             err_sc = replace(sc, **group[0].errors)
             for d in range(exp.draws):
                 tracked = tracked_positions(case.scan, err_sc, draw_seed(exp.name, ref, tgt, d))
-                bases = draw_shared(case, tracked, settings, need_reference=any(
-                    needs_reference(m) for c in group for m in (c.methods or exp.methods)))
+                bases = draw_shared(
+                    case,
+                    tracked,
+                    settings,
+                    need_reference=any(needs_reference(m) for c in group for m in (c.methods or exp.methods)),
+                )
                 for c in group:
                     keep = exp.name in EXAMPLE_EXPERIMENTS and not examples
-                    recs = evaluate_methods(case, bases, c.methods or exp.methods, settings, c.template_env, keep_images=keep)
+                    recs = evaluate_methods(
+                        case, bases, c.methods or exp.methods, settings, c.template_env, keep_images=keep
+                    )
                     if keep:
-                        examples = {"pair": f"{ref}>{tgt}", "condition": c.label,
-                                    "truth": metrics.display_image(case.truth_target).astype(np.float32),
-                                    **{r["method"]: r.pop("image") for r in recs if "image" in r}}
+                        examples = {
+                            "pair": f"{ref}>{tgt}",
+                            "condition": c.label,
+                            "truth": metrics.display_image(case.truth_target).astype(np.float32),
+                            **{r["method"]: r.pop("image") for r in recs if "image" in r},
+                        }
                     for r in recs:
-                        records.append({
-                            "experiment": exp.name, "condition": c.label, "x": c.x, "in_paper": c.in_paper,
-                            "template_env": c.template_env, "pair": f"{ref}>{tgt}", "reference": ref, "target": tgt,
-                            "draw": d, **bases.shared, **r,
-                        })
+                        records.append(
+                            {
+                                "experiment": exp.name,
+                                "condition": c.label,
+                                "x": c.x,
+                                "in_paper": c.in_paper,
+                                "template_env": c.template_env,
+                                "pair": f"{ref}>{tgt}",
+                                "reference": ref,
+                                "target": tgt,
+                                "draw": d,
+                                **bases.shared,
+                                **r,
+                            }
+                        )
                     done += 1
-                    summary = " ".join(f"{r['method']} {r['ssim']:.3f}" if r["ssim"] is not None else f"{r['method']} failed" for r in recs)
-                    log(f"[{exp.name}] {done}/{total} scene {i + 1}/{len(units)} {ref}>{tgt} {c.label} draw {d + 1}: "
-                        f"{summary} ({time.perf_counter() - t_start:.0f} s)")
+                    summary = " ".join(
+                        f"{r['method']} {r['ssim']:.3f}" if r["ssim"] is not None else f"{r['method']} failed"
+                        for r in recs
+                    )
+                    log(
+                        f"[{exp.name}] {done}/{total} scene {i + 1}/{len(units)} {ref}>{tgt} {c.label} draw {d + 1}: "
+                        f"{summary} ({time.perf_counter() - t_start:.0f} s)"
+                    )
                 del bases
         del case
         gc.collect()
-    return {"definition": exp.to_dict(), "settings": settings.to_dict(), "records": records, "scenes": scenes,
-            "seconds": time.perf_counter() - t_start, "examples": examples}
+    return {
+        "definition": exp.to_dict(),
+        "settings": settings.to_dict(),
+        "records": records,
+        "scenes": scenes,
+        "seconds": time.perf_counter() - t_start,
+        "examples": examples,
+    }
 
 
 def _same_run(doc: dict, exp_def: dict, settings: dict) -> bool:
-    return json.loads(json.dumps(doc.get("definition"), default=_json_default)) == json.loads(json.dumps(exp_def, default=_json_default)) \
+    return (
+        json.loads(json.dumps(doc.get("definition"), default=_json_default))
+        == json.loads(json.dumps(exp_def, default=_json_default))
         and doc.get("settings") == settings
+    )
 
 
 def _save_examples(path: Path, examples: dict) -> None:
@@ -143,8 +201,16 @@ def _experiment_task(exp: Experiment, threads, settings: EvalSettings) -> dict:
     return run_experiment(exp, settings, None, log=lambda msg: None)
 
 
-def run_experiments(exps: list[Experiment], settings: EvalSettings, raw: Path, *, resume: bool = False, log=_log,
-                    cluster: dict | None = None, keep_examples: bool = True) -> list[dict]:
+def run_experiments(
+    exps: list[Experiment],
+    settings: EvalSettings,
+    raw: Path,
+    *,
+    resume: bool = False,
+    log=_log,
+    cluster: dict | None = None,
+    keep_examples: bool = True,
+) -> list[dict]:
     """Run ``exps`` into ``raw/<name>.json`` (each written as soon as it is done), skipping those
     already there with the same definition and settings when ``resume``.
 
@@ -195,9 +261,20 @@ def run_experiments(exps: list[Experiment], settings: EvalSettings, raw: Path, *
     return failed
 
 
-def run_paper(out_dir, *, quick: bool = False, draws: int | None = None, only=None, resume: bool = False,
-              markdown=None, device: str = "cpu", trade_scenes: int | None = None, command: str | None = None,
-              log=_log, cluster: dict | None = None) -> Path:
+def run_paper(
+    out_dir,
+    *,
+    quick: bool = False,
+    draws: int | None = None,
+    only=None,
+    resume: bool = False,
+    markdown=None,
+    device: str = "cpu",
+    trade_scenes: int | None = None,
+    command: str | None = None,
+    log=_log,
+    cluster: dict | None = None,
+) -> Path:
     """``twinfocus bench paper``: run the experiments (and the speed/accuracy trade), keep their raw
     results in ``out_dir/raw`` and write the report. Returns the report's path.
 
@@ -220,7 +297,12 @@ def run_paper(out_dir, *, quick: bool = False, draws: int | None = None, only=No
     raw.mkdir(parents=True, exist_ok=True)
     do_trade = not only or "trade" in only
     t0 = time.perf_counter()
-    run = {"command": command, "quick": quick, "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": machine_info()}
+    run = {
+        "command": command,
+        "quick": quick,
+        "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "machine": machine_info(),
+    }
     failed = run_experiments(exps, settings, raw, resume=resume, log=log, cluster=cluster, keep_examples=True)
     if failed:
         run["failed"] = failed
@@ -231,7 +313,11 @@ def run_paper(out_dir, *, quick: bool = False, draws: int | None = None, only=No
         if resume and path.exists():
             try:
                 doc = json.loads(path.read_text())
-                keep = doc.get("settings") == settings.to_dict() and doc.get("quick") == quick and doc.get("scenes") == scenes
+                keep = (
+                    doc.get("settings") == settings.to_dict()
+                    and doc.get("quick") == quick
+                    and doc.get("scenes") == scenes
+                )
             except (OSError, ValueError):
                 keep = False
         if keep:

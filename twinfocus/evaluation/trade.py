@@ -22,6 +22,7 @@ Presets: per knob (image size, optimiser, precision) the cheapest value within `
 knob's best mean SSIM — ``tol`` 0.003 for "accurate", 0.02 for "fast" — combined and measured.
 Table 1 of the paper gets its counterpart rows from the same measurements.
 """
+
 from __future__ import annotations
 
 import time
@@ -57,8 +58,19 @@ FULL_KNOBS: dict[str, list[Any]] = {
     "image size": [50, 75, 100, 200],
     "positions": [200, 400, 600, 780],
     # (iterations, Adam lr, coarse-to-fine iterations on blurred images before them)
-    "optimiser": [(25, 0.05, 0), (50, 0.05, 0), (100, 0.05, 0), (200, 0.05, 0), (300, 0.05, 0), (500, 0.05, 0),
-                  (50, 0.2, 0), (100, 0.1, 0), (100, 0.2, 0), (300, 0.1, 0), (200, 0.05, 100)],
+    "optimiser": [
+        (25, 0.05, 0),
+        (50, 0.05, 0),
+        (100, 0.05, 0),
+        (200, 0.05, 0),
+        (300, 0.05, 0),
+        (500, 0.05, 0),
+        (50, 0.2, 0),
+        (100, 0.1, 0),
+        (100, 0.2, 0),
+        (300, 0.1, 0),
+        (200, 0.05, 100),
+    ],
     "precision": ["float16", "float32", "float64"],
     "digital twin": ["psf", "psf-incoherent", "exact"],
 }
@@ -83,8 +95,13 @@ def central_rows(positions_true: np.ndarray, n: int) -> np.ndarray:
 
 def _subset(scan: Scan, idx: np.ndarray, positions: np.ndarray | None = None) -> Scan:
     pos = scan.positions if positions is None else positions
-    return Scan(scan.data[idx], pos[idx], scan.chirp, positions_true=None if scan.positions_true is None else scan.positions_true[idx],
-                timestamps_ns=None if scan.timestamps_ns is None else scan.timestamps_ns[idx])
+    return Scan(
+        scan.data[idx],
+        pos[idx],
+        scan.chirp,
+        positions_true=None if scan.positions_true is None else scan.positions_true[idx],
+        timestamps_ns=None if scan.timestamps_ns is None else scan.timestamps_ns[idx],
+    )
 
 
 def _knob_config(knob: str, value, settings: EvalSettings) -> dict:
@@ -121,8 +138,14 @@ class _Scene:
     """One simulated scan with a tracking-error draw, and the fixed 100 x 100 evaluation."""
 
     def __init__(self, ref: str, tgt: str, settings: EvalSettings, draw: int):
-        self.sc = EvalScenario(reference=ref, target=tgt, seed=0, n_columns=settings.n_columns, n_rows=settings.n_rows,
-                               spacing_m=settings.spacing_m)
+        self.sc = EvalScenario(
+            reference=ref,
+            target=tgt,
+            seed=0,
+            n_columns=settings.n_columns,
+            n_rows=settings.n_rows,
+            spacing_m=settings.spacing_m,
+        )
         self.pair = f"{ref}>{tgt}"
         self.settings = settings
         self.scan, self.template_scan = simulate_scenario(self.sc)
@@ -150,7 +173,9 @@ class _Scene:
         return self._ref_bases[(size, precision)][2]
 
     def score(self, phase: np.ndarray) -> dict:
-        image = form_image(self.tgt_basis, transfer_phase(phase, self.tracked, self.settings.phase_ramp, range_m=self.ref_grid.z))
+        image = form_image(
+            self.tgt_basis, transfer_phase(phase, self.tracked, self.settings.phase_ramp, range_m=self.ref_grid.z)
+        )
         return {"ssim": metrics.image_ssim(image, self.truth), "hog": hog_similarity(image, self.truth)}
 
 
@@ -179,8 +204,12 @@ def _run_config(scene: _Scene, size: int, overrides: dict, bp_precision: str) ->
     tpl = scene.template(size, bp_precision)
     cfg = settings.autofocus_config(**overrides)
     res = twin_autofocus(basis, tpl, cfg)
-    return {"reference_basis_s": basis_s, "autofocus_s": optimiser_seconds(basis, tpl, cfg), "autofocus_run_s": res.time_s,
-            **scene.score(res.phase_rad)}
+    return {
+        "reference_basis_s": basis_s,
+        "autofocus_s": optimiser_seconds(basis, tpl, cfg),
+        "autofocus_run_s": res.time_s,
+        **scene.score(res.phase_rad),
+    }
 
 
 def _positions_row(scene: _Scene, n: int) -> dict:
@@ -200,10 +229,15 @@ def _positions_row(scene: _Scene, n: int) -> dict:
     tgt = subimage_basis(sub.data, sub.positions, sub.chirp, scene.tgt_grid, **bp)
     truth = backproject(sub.data, sub.positions_true, sub.chirp, scene.tgt_grid, **bp)
     image = form_image(tgt, transfer_phase(res.phase_rad, sub.positions, settings.phase_ramp, range_m=scene.ref_grid.z))
-    return {"n_positions": int(idx.size), "reference_basis_s": basis_s,
-            "autofocus_s": optimiser_seconds(basis, tpl, settings.autofocus_config()), "autofocus_run_s": res.time_s,
-            "ssim": metrics.image_ssim(image, truth), "hog": hog_similarity(image, truth),
-            "ssim_uncorrected": metrics.image_ssim(tgt.sum(axis=0), truth)}
+    return {
+        "n_positions": int(idx.size),
+        "reference_basis_s": basis_s,
+        "autofocus_s": optimiser_seconds(basis, tpl, settings.autofocus_config()),
+        "autofocus_run_s": res.time_s,
+        "ssim": metrics.image_ssim(image, truth),
+        "hog": hog_similarity(image, truth),
+        "ssim_uncorrected": metrics.image_ssim(tgt.sum(axis=0), truth),
+    }
 
 
 def _digital_rows(scene: _Scene, values) -> list[dict]:
@@ -219,12 +253,31 @@ def _digital_rows(scene: _Scene, values) -> list[dict]:
     for v in values:
         method = "exact" if v == "exact" else "psf"
         t = time.perf_counter()
-        tpl = digital_twin_template(points, scene.tracked, scene.scan.chirp, scene.ref_grid, method=method,
-                                    coherent=v != "psf-incoherent", **settings.bp_options())
+        tpl = digital_twin_template(
+            points,
+            scene.tracked,
+            scene.scan.chirp,
+            scene.ref_grid,
+            method=method,
+            coherent=v != "psf-incoherent",
+            **settings.bp_options(),
+        )
         tpl_s = time.perf_counter() - t
         res = twin_autofocus(basis, tpl, settings.autofocus_config())
-        rows.append({"knob": "digital twin", "value": v, "label": v, "status": "ok", "template_s": tpl_s,
-                     "reference_basis_s": basis_s, "autofocus_s": res.time_s, "autofocus_run_s": res.time_s, "stages_s": info, **scene.score(res.phase_rad)})
+        rows.append(
+            {
+                "knob": "digital twin",
+                "value": v,
+                "label": v,
+                "status": "ok",
+                "template_s": tpl_s,
+                "reference_basis_s": basis_s,
+                "autofocus_s": res.time_s,
+                "autofocus_run_s": res.time_s,
+                "stages_s": info,
+                **scene.score(res.phase_rad),
+            }
+        )
     return rows
 
 
@@ -237,8 +290,15 @@ def _knob_means(rows: list[dict], knob: str) -> list[dict]:
         e = out.setdefault(key, {"label": key, "value": r["value"], "ssim": [], "time": []})
         e["ssim"].append(r["ssim"])
         e["time"].append(r["reference_basis_s"] + r["autofocus_s"])
-    return [{"label": e["label"], "value": e["value"], "ssim": float(np.mean(e["ssim"])), "time_s": float(np.mean(e["time"]))}
-            for e in out.values()]
+    return [
+        {
+            "label": e["label"],
+            "value": e["value"],
+            "ssim": float(np.mean(e["ssim"])),
+            "time_s": float(np.mean(e["time"])),
+        }
+        for e in out.values()
+    ]
 
 
 def choose_presets(rows: list[dict], settings: EvalSettings, tolerance: dict | None = None) -> dict:
@@ -259,11 +319,16 @@ def choose_presets(rows: list[dict], settings: EvalSettings, tolerance: dict | N
         size = int(choice.get("image size", settings.size))
         it, lr, coarse = choice.get("optimiser", (settings.iterations, 0.05, 0))
         prec = _knob_config("precision", choice.get("precision", settings.basis_dtype), settings)
-        presets[name] = {"size": size, "iterations": int(it), "lr": float(lr), "coarse_iterations": int(coarse),
-                         "basis_dtype": prec["overrides"].get("basis_dtype", settings.basis_dtype),
-                         "precision": prec["overrides"].get("precision", settings.precision),
-                         "bp_precision": prec["bp_precision"],
-                         "choices": {k: (list(v) if isinstance(v, tuple) else v) for k, v in choice.items()}}
+        presets[name] = {
+            "size": size,
+            "iterations": int(it),
+            "lr": float(lr),
+            "coarse_iterations": int(coarse),
+            "basis_dtype": prec["overrides"].get("basis_dtype", settings.basis_dtype),
+            "precision": prec["overrides"].get("precision", settings.precision),
+            "bp_precision": prec["bp_precision"],
+            "choices": {k: (list(v) if isinstance(v, tuple) else v) for k, v in choice.items()},
+        }
     return presets
 
 
@@ -282,37 +347,80 @@ def run_trade(settings: EvalSettings, quick: bool = False, scenes: int = 2, log=
         scene_objs.append(scene)
         if i == 0:  # warm-up: the first optimiser call of a process pays torch's start-up
             basis, _ = scene.reference_basis(settings.size, settings.precision)
-            twin_autofocus(basis, scene.template(settings.size, settings.precision), settings.autofocus_config(iterations=3))
+            twin_autofocus(
+                basis, scene.template(settings.size, settings.precision), settings.autofocus_config(iterations=3)
+            )
         unc = scene.score(np.zeros(scene.scan.n_positions))
-        rows.append({"knob": "uncorrected", "value": "none", "label": "no correction", "pair": scene.pair,
-                     "reference_basis_s": 0.0, "autofocus_s": 0.0, **unc})
+        rows.append(
+            {
+                "knob": "uncorrected",
+                "value": "none",
+                "label": "no correction",
+                "pair": scene.pair,
+                "reference_basis_s": 0.0,
+                "autofocus_s": 0.0,
+                **unc,
+            }
+        )
         for knob in ("image size", "optimiser", "precision"):
             for v in knobs[knob]:
                 cfg = _knob_config(knob, v, settings)
                 r = _run_config(scene, cfg["size"], cfg["overrides"], cfg["bp_precision"])
-                rows.append({"knob": knob, "value": list(v) if isinstance(v, tuple) else v, "label": _label(knob, v), "pair": scene.pair, **r})
-                log(f"[trade] {scene.pair} {knob} {_label(knob, v)}: SSIM {r['ssim']:.3f}, basis {r['reference_basis_s']:.1f} s, "
-                    f"autofocus {r['autofocus_s']:.1f} s ({time.perf_counter() - t0:.0f} s)")
+                rows.append(
+                    {
+                        "knob": knob,
+                        "value": list(v) if isinstance(v, tuple) else v,
+                        "label": _label(knob, v),
+                        "pair": scene.pair,
+                        **r,
+                    }
+                )
+                log(
+                    f"[trade] {scene.pair} {knob} {_label(knob, v)}: SSIM {r['ssim']:.3f}, basis {r['reference_basis_s']:.1f} s, "
+                    f"autofocus {r['autofocus_s']:.1f} s ({time.perf_counter() - t0:.0f} s)"
+                )
         for n in knobs["positions"]:
             r = _positions_row(scene, n)
             rows.append({"knob": "positions", "value": n, "label": _label("positions", n), "pair": scene.pair, **r})
-            log(f"[trade] {scene.pair} positions {r['n_positions']}: SSIM {r['ssim']:.3f}, autofocus {r['autofocus_s']:.1f} s")
+            log(
+                f"[trade] {scene.pair} positions {r['n_positions']}: SSIM {r['ssim']:.3f}, autofocus {r['autofocus_s']:.1f} s"
+            )
         for r in _digital_rows(scene, knobs["digital twin"]):
             rows.append({**r, "pair": scene.pair})
             if r["status"] == "ok":
-                log(f"[trade] {scene.pair} digital twin {r['label']}: SSIM {r['ssim']:.3f}, template {r['template_s']:.1f} s")
+                log(
+                    f"[trade] {scene.pair} digital twin {r['label']}: SSIM {r['ssim']:.3f}, template {r['template_s']:.1f} s"
+                )
         # Keep only the scan and the evaluation: the reference bases are rebuilt for the presets.
         scene._ref_bases = {}
     # JSON keeps tuples as lists: normalise the values the presets are chosen from.
-    presets = choose_presets([{**r, "value": tuple(r["value"]) if isinstance(r["value"], list) else r["value"]} for r in rows], settings)
+    presets = choose_presets(
+        [{**r, "value": tuple(r["value"]) if isinstance(r["value"], list) else r["value"]} for r in rows], settings
+    )
     for name, p in presets.items():
         for scene in scene_objs:
-            r = _run_config(scene, p["size"], {"iterations": p["iterations"], "lr": p["lr"], "coarse_iterations": p["coarse_iterations"],
-                                               "basis_dtype": p["basis_dtype"], "precision": p["precision"]}, p["bp_precision"])
+            r = _run_config(
+                scene,
+                p["size"],
+                {
+                    "iterations": p["iterations"],
+                    "lr": p["lr"],
+                    "coarse_iterations": p["coarse_iterations"],
+                    "basis_dtype": p["basis_dtype"],
+                    "precision": p["precision"],
+                },
+                p["bp_precision"],
+            )
             rows.append({"knob": "preset", "value": name, "label": name, "pair": scene.pair, **r})
-            log(f"[trade] {scene.pair} preset {name}: SSIM {r['ssim']:.3f}, basis {r['reference_basis_s']:.1f} s, autofocus {r['autofocus_s']:.1f} s")
+            log(
+                f"[trade] {scene.pair} preset {name}: SSIM {r['ssim']:.3f}, basis {r['reference_basis_s']:.1f} s, autofocus {r['autofocus_s']:.1f} s"
+            )
         for scene in scene_objs:
             scene._ref_bases = {}
-    return {"rows": rows, "presets": presets, "settings": settings.to_dict(),
-            "knobs": {k: [list(x) if isinstance(x, tuple) else x for x in v] for k, v in knobs.items()},
-            "seconds": time.perf_counter() - t0}
+    return {
+        "rows": rows,
+        "presets": presets,
+        "settings": settings.to_dict(),
+        "knobs": {k: [list(x) if isinstance(x, tuple) else x for x in v] for k, v in knobs.items()},
+        "seconds": time.perf_counter() - t0,
+    }

@@ -18,6 +18,7 @@ rough-surface amplitudes), ``objects`` (:class:`PlanarObject`, :class:`PointClou
 section, bent plate), ``occluders``, ``clutter``, ``assembly`` (:class:`Scene`), ``paper`` (the
 paper's two-letter scene), ``checks`` (argument checks). Import the names from here.
 """
+
 from twinfocus.scene.assembly import Scene
 from twinfocus.scene.clutter import Clutter
 from twinfocus.scene.curved import SHAPES, bent_plate, cylinder_section, shaped

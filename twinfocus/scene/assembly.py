@@ -1,5 +1,6 @@
 """The :class:`Scene`: objects, occluders and clutter put together, and their point scatterers
 for the radar simulator (one random stream per object, occluder attenuation applied)."""
+
 from __future__ import annotations
 
 import zlib

@@ -1,5 +1,6 @@
 """Checks of the scene's arguments (positions, rotations, colours, positive numbers, roughness):
 each returns the checked value or raises TwinFocusError naming the argument."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -63,4 +64,3 @@ def checked_roughness(name: str, roughness_deg, amplitude_spread) -> tuple[float
     if not (np.isfinite(a) and 0.0 <= a < 1.0):
         raise TwinFocusError(f"object {name!r}: amplitude_spread must lie in [0, 1), got {amplitude_spread!r}")
     return roughness_deg, a
-

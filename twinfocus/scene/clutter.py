@@ -1,4 +1,5 @@
 """Clutter: random weak and strong point scatterers filling a box (a cluttered room)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -43,7 +44,9 @@ class Clutter:
         """Clutter behind and around a scene at ``distance_m``: a box 0.8 m x 0.6 m across, from
         5 cm to 60 cm behind it, with ``n_strong`` bright spots."""
         d = positive("distance_m", distance_m)
-        return cls(np.array([-0.4, -0.3, d + 0.05]), np.array([0.4, 0.3, d + 0.6]), n_points=n_points, n_strong=n_strong)
+        return cls(
+            np.array([-0.4, -0.3, d + 0.05]), np.array([0.4, 0.3, d + 0.6]), n_points=n_points, n_strong=n_strong
+        )
 
     def scatterers(self, rng: np.random.Generator | int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(points_m float64 (P, 3), amplitudes complex128 (P,)), P = n_points + n_strong."""

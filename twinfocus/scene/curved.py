@@ -1,5 +1,6 @@
 """Non-planar reference shapes: a planar object wrapped onto a cylinder or folded along its
 centre line (a depth map over its mask), and :func:`shaped` choosing one by name."""
+
 from __future__ import annotations
 
 from dataclasses import replace

@@ -1,5 +1,6 @@
 """Cut-out letters: a character rasterised from OpenCV's Hershey fonts to a boolean mask with a
 uniform stroke, and the planar object made of it."""
+
 from __future__ import annotations
 
 import cv2
@@ -118,4 +119,3 @@ def letter(
     pixel_m = height_m / 400.0 if pixel_m is None else positive("pixel_m", pixel_m)
     mask = letter_mask(char, height_m, pixel_m, font, stroke_m, width_scale)
     return PlanarObject(mask, pixel_m, centre_m, rotation, material, colour_bgr, None, name or f"letter_{char}")
-

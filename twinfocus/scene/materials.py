@@ -1,5 +1,6 @@
 """Materials of scene objects and occluders: radar reflectivity, two-way attenuation of a sheet,
 camera colour."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -41,6 +42,7 @@ MATERIALS: dict[str, Material] = {
         Material("cardboard", 0.1, 5.0, (100, 150, 190)),
     )
 }
+
 
 def material(name: str) -> Material:
     """The :class:`Material` called ``name`` (TwinFocusError listing the known ones otherwise)."""

@@ -7,6 +7,7 @@ columns, v along its mask's rows (downwards in the raster) and lies in the plane
 radar (u -> +x, v -> +y: x right, y down, z forward, the camera convention) and the plane faces
 the radar (normal towards -z).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -86,7 +87,9 @@ class PlanarObject:
                     f"object {self.name!r}: depth_m must be finite float {m.shape} (the mask's raster), got shape {d.shape}"
                 )
             self.depth_m = d
-        self.roughness_deg, self.amplitude_spread = checked_roughness(self.name, self.roughness_deg, self.amplitude_spread)
+        self.roughness_deg, self.amplitude_spread = checked_roughness(
+            self.name, self.roughness_deg, self.amplitude_spread
+        )
 
     @property
     def reflectivity(self) -> float:
@@ -227,7 +230,9 @@ class PointCloudObject:
             self.amplitudes = a
         mat = material(self.material)
         self.colour_bgr = checked_colour(self.colour_bgr, mat.colour_bgr)
-        self.roughness_deg, self.amplitude_spread = checked_roughness(self.name, self.roughness_deg, self.amplitude_spread)
+        self.roughness_deg, self.amplitude_spread = checked_roughness(
+            self.name, self.roughness_deg, self.amplitude_spread
+        )
 
     @property
     def reflectivity(self) -> float:
@@ -269,6 +274,8 @@ class PointCloudObject:
 SceneObject = PlanarObject | PointCloudObject
 
 
-def from_points(points_m, amplitudes=None, material: str = "metal", name: str = "points", colour_bgr=None) -> PointCloudObject:
+def from_points(
+    points_m, amplitudes=None, material: str = "metal", name: str = "points", colour_bgr=None
+) -> PointCloudObject:
     """A :class:`PointCloudObject` from arbitrary points (N, 3) and optional amplitudes (N,)."""
     return PointCloudObject(np.asarray(points_m), amplitudes, material, colour_bgr, name)

@@ -1,5 +1,6 @@
 """Occluders: planar sheets (cloth, paper, plastic) that attenuate the radar returns from behind
 them and hide them from the camera."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -33,14 +34,18 @@ class Occluder:
         self.centre_m = vec3_m(f"occluder {self.name!r}: centre_m", self.centre_m)
         s = np.asarray(self.size_m, dtype=np.float64)
         if s.shape != (2,) or not np.isfinite(s).all() or np.any(s <= 0):
-            raise TwinFocusError(f"occluder {self.name!r}: size_m must be 2 positive numbers (width, height), got {self.size_m!r}")
+            raise TwinFocusError(
+                f"occluder {self.name!r}: size_m must be 2 positive numbers (width, height), got {self.size_m!r}"
+            )
         self.size_m = s
         self.rotation = rotation_matrix(f"occluder {self.name!r}: rotation", self.rotation)
         mat = material(self.material)
         if self.attenuation_db is not None:
             a = float(self.attenuation_db)
             if np.isnan(a) or a < 0:
-                raise TwinFocusError(f"occluder {self.name!r}: attenuation_db must be >= 0, got {self.attenuation_db!r}")
+                raise TwinFocusError(
+                    f"occluder {self.name!r}: attenuation_db must be >= 0, got {self.attenuation_db!r}"
+                )
             self.attenuation_db = a
         self.colour_bgr = checked_colour(self.colour_bgr, mat.colour_bgr)
 

@@ -1,5 +1,6 @@
 """The source paper's scene: a reference letter and a target letter side by side, optionally
 behind a sheet and in a cluttered room."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -50,15 +51,37 @@ def paper_scene(
     if not (np.isfinite(sep) and 0 <= sep < 170):
         raise TwinFocusError(f"separation_deg must lie in [0, 170), got {separation_deg!r}")
     half = np.deg2rad(sep / 2.0)
-    ref = letter(reference, height_m, (-ref_z * np.tan(half), 0.0, ref_z), reference_material, font, stroke_m, width_scale, name="reference")
-    tgt = letter(target, height_m, (distance_m * np.tan(half), 0.0, distance_m), target_material, font, stroke_m, width_scale, name="target")
+    ref = letter(
+        reference,
+        height_m,
+        (-ref_z * np.tan(half), 0.0, ref_z),
+        reference_material,
+        font,
+        stroke_m,
+        width_scale,
+        name="reference",
+    )
+    tgt = letter(
+        target,
+        height_m,
+        (distance_m * np.tan(half), 0.0, distance_m),
+        target_material,
+        font,
+        stroke_m,
+        width_scale,
+        name="target",
+    )
     occluders = []
     if isinstance(occluder, Occluder):
         occluders.append(occluder)
     elif occluder is not None:
-        z_occ = distance_m - 0.1 if occluder_distance_m is None else positive("occluder_distance_m", occluder_distance_m)
+        z_occ = (
+            distance_m - 0.1 if occluder_distance_m is None else positive("occluder_distance_m", occluder_distance_m)
+        )
         if not z_occ < distance_m:
-            raise TwinFocusError(f"occluder_distance_m ({z_occ}) must be less than the target's distance ({distance_m})")
+            raise TwinFocusError(
+                f"occluder_distance_m ({z_occ}) must be less than the target's distance ({distance_m})"
+            )
         corners = tgt.corners_m()
         scaled = corners * (z_occ / corners[:, 2:3])  # project the target's outline onto the sheet's plane
         lo, hi = scaled[:, :2].min(axis=0), scaled[:, :2].max(axis=0)

@@ -1,4 +1,5 @@
 """Flat plates as planar objects: rectangle, credit card, disc."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -25,7 +26,9 @@ def rectangle(
     return PlanarObject(np.ones(shape, dtype=bool), pixel_m, centre_m, rotation, material, colour_bgr, None, name)
 
 
-def card(centre_m=(0.0, 0.0, 0.6), material: str = "metal", width_m: float = 0.0856, height_m: float = 0.05398, **kwargs) -> PlanarObject:
+def card(
+    centre_m=(0.0, 0.0, 0.6), material: str = "metal", width_m: float = 0.0856, height_m: float = 0.05398, **kwargs
+) -> PlanarObject:
     """A credit-card-sized plate (ISO/IEC 7810 ID-1, 85.60 x 53.98 mm), like the paper's metal card."""
     kwargs.setdefault("name", "card")
     return rectangle(width_m, height_m, centre_m, material, **kwargs)

@@ -5,6 +5,7 @@ lambda R / (2 D) = 3.9 mm * 0.6 m / (2 * 0.49 m) ~ 2.4 mm; scatterers a quarter 
 apart make a continuous surface in the image. :data:`DEFAULT_SPACING_M` is half (1.2 mm), which
 gives about 1,500-2,500 points for a 127 mm letter.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,7 +16,9 @@ from twinfocus.errors import TwinFocusError
 DEFAULT_SPACING_M = 1.2e-3
 
 
-def scatterer_spacing_m(range_m: float, aperture_m: float = 0.49, wavelength_m: float = 3.9e-3, fraction: float = 0.5) -> float:
+def scatterer_spacing_m(
+    range_m: float, aperture_m: float = 0.49, wavelength_m: float = 3.9e-3, fraction: float = 0.5
+) -> float:
     """``fraction`` of the cross-range resolution lambda R / (2 D), metres."""
     if not (range_m > 0 and aperture_m > 0 and wavelength_m > 0 and fraction > 0):
         raise TwinFocusError("range_m, aperture_m, wavelength_m and fraction must all be positive")

@@ -13,6 +13,7 @@ The steps of ``twinfocus convert``:
 3. per frame, the 86 virtual channels (:func:`~twinfocus.sensors.frames.frame_to_virtual_channels`)
    and their phase centres (:func:`~twinfocus.trajectory.phase_centres`).
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
@@ -45,9 +46,14 @@ class ConversionReport:
 
     def gaps(self) -> dict:
         """The capture's gaps as ``<scan>.capture.json`` records them (frames, by flag)."""
-        return {"frames": self.n_frames, "frames_used": self.n_used, "frames_dropped_flagged": self.n_flagged,
-                "frames_lost": self.n_lost, "frames_zero_filled": self.n_zero_filled,
-                "frames_device_skew": self.n_device_skew}
+        return {
+            "frames": self.n_frames,
+            "frames_used": self.n_used,
+            "frames_dropped_flagged": self.n_flagged,
+            "frames_lost": self.n_lost,
+            "frames_zero_filled": self.n_zero_filled,
+            "frames_device_skew": self.n_device_skew,
+        }
 
 
 def capture_report_path(scan_path) -> Path:
@@ -70,7 +76,9 @@ def read_capture_report(scan_path) -> dict | None:
         raise TwinFocusError(f"{p}: damaged capture report (not JSON)") from None
 
 
-def align_times(radar_ns: np.ndarray, trajectory_ns: np.ndarray, time_offset_ns: int = 0, align: str = "auto") -> tuple[int, str | None]:
+def align_times(
+    radar_ns: np.ndarray, trajectory_ns: np.ndarray, time_offset_ns: int = 0, align: str = "auto"
+) -> tuple[int, str | None]:
     """The shift to add to radar time stamps, and a note when it was chosen automatically.
 
     align : ``"none"`` (shift = time_offset_ns), ``"start"`` (first frame on the first pose,

@@ -19,6 +19,7 @@ will not come.
 Raw frame layout (xWR16xx/18xx/68xx, 16-bit complex, LVDS 2-lane, as in TI's ``readDCA1000.m``):
 for each loop, each chirp, each RX: N complex samples stored as I0 I1 Q0 Q1 I2 I3 Q2 Q3 ...
 """
+
 from __future__ import annotations
 
 import enum
@@ -107,7 +108,9 @@ def decode_response(packet: bytes) -> tuple[int, int]:
         raise TwinFocusError(f"DCA1000 answer is {len(packet)} bytes, expected 8")
     header, code, status, footer = struct.unpack("<HHHH", packet)
     if header != HEADER or footer != FOOTER:
-        raise TwinFocusError(f"DCA1000 answer has header 0x{header:04x} / footer 0x{footer:04x}, expected 0xa55a / 0xeeaa")
+        raise TwinFocusError(
+            f"DCA1000 answer has header 0x{header:04x} / footer 0x{footer:04x}, expected 0xa55a / 0xeeaa"
+        )
     return code, status
 
 
@@ -146,7 +149,9 @@ class RawFrameLayout:
 
     def __post_init__(self) -> None:
         if int(self.n_samples) < 2 or int(self.n_samples) % 2:
-            raise TwinFocusError(f"n_samples must be an even number >= 2 (samples travel in I/Q pairs), got {self.n_samples}")
+            raise TwinFocusError(
+                f"n_samples must be an even number >= 2 (samples travel in I/Q pairs), got {self.n_samples}"
+            )
         if int(self.n_rx) < 1 or int(self.n_loops) < 1 or not self.tx_of_chirp:
             raise TwinFocusError("a frame layout needs at least one RX, one loop and one chirp")
         tx = tuple(int(t) for t in self.tx_of_chirp)
@@ -175,7 +180,11 @@ class RawFrameLayout:
             raise TwinFocusError(f"raw frame holds {x.size} int16 values, the layout expects {self.frame_values}")
         # (.., pair, [I I Q Q]) -> (.., pair, sample-in-pair, [I Q]) -> float32 pairs -> complex64
         x = x.reshape(self.n_loops, self.n_chirps, self.n_rx, self.n_samples // 2, 2, 2).swapaxes(-1, -2)
-        return x.astype(np.float32, order="C").view(np.complex64).reshape(self.n_loops, self.n_chirps, self.n_rx, self.n_samples)
+        return (
+            x.astype(np.float32, order="C")
+            .view(np.complex64)
+            .reshape(self.n_loops, self.n_chirps, self.n_rx, self.n_samples)
+        )
 
     def to_mimo(self, decoded: np.ndarray, loop: int | None = 0) -> np.ndarray:
         """(n_loops, n_chirps, n_rx, N) -> complex64 (n_tx, n_rx, N) of one loop (None: mean)."""
@@ -389,7 +398,9 @@ class FrameAssembler:
         if p is None:
             st.frames_lost += 1
             st.lost_bytes += self.frame_bytes
-            return AssembledFrame(f, bytes(self.frame_bytes), FrameFlag.ZERO_FILLED | FrameFlag.LOST, self.frame_bytes, None)
+            return AssembledFrame(
+                f, bytes(self.frame_bytes), FrameFlag.ZERO_FILLED | FrameFlag.LOST, self.frame_bytes, None
+            )
         missing = self.frame_bytes - p.filled
         flags = FrameFlag.OK
         if missing:

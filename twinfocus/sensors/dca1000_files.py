@@ -30,6 +30,7 @@ No capture file holds a time stamp: frame ``i`` is stamped ``i`` frame periods a
 first, on a clock that starts at 0 (``twinfocus convert`` then aligns the first frame to the
 first pose unless told otherwise).
 """
+
 from __future__ import annotations
 
 import json
@@ -230,7 +231,9 @@ class Dca1000FileCapture:
 
     def __post_init__(self) -> None:
         if self.file_format not in FORMATS + ("auto",):
-            raise TwinFocusError(f"DCA1000 file format must be one of {', '.join(FORMATS)} or auto, got {self.file_format!r}")
+            raise TwinFocusError(
+                f"DCA1000 file format must be one of {', '.join(FORMATS)} or auto, got {self.file_format!r}"
+            )
         if not self.frame_period_s > 0:
             raise TwinFocusError(f"frame period must be positive, got {self.frame_period_s}")
         s = self.settings or CliCaptureSettings(reorder=False)
@@ -239,11 +242,18 @@ class Dca1000FileCapture:
                 f"{s.source}: lvdsMode gives {s.lvds_lanes} LVDS lanes; only the 2-lane layout of xWR16xx/18xx/68xx is read here"
             )
         files = capture_files(self.path)
-        data = np.concatenate([np.fromfile(f, np.uint8) for f in files]) if len(files) > 1 else np.fromfile(files[0], np.uint8)
+        data = (
+            np.concatenate([np.fromfile(f, np.uint8) for f in files])
+            if len(files) > 1
+            else np.fromfile(files[0], np.uint8)
+        )
         fmt = self.file_format
         if fmt == "auto":
-            fmt = "records" if looks_like_records(bytes(data[:4 * (RECORD_HEADER_BYTES + MAX_PAYLOAD_BYTES)])) else (
-                "reordered" if s.reorder and self.settings is not None else "raw")
+            fmt = (
+                "records"
+                if looks_like_records(bytes(data[: 4 * (RECORD_HEADER_BYTES + MAX_PAYLOAD_BYTES)]))
+                else ("reordered" if s.reorder and self.settings is not None else "raw")
+            )
         self.format = fmt
         lay = self.layout
         fb = lay.frame_bytes
@@ -274,7 +284,9 @@ class Dca1000FileCapture:
             raws = [(values[i], FrameFlag.OK) for i in range(n)]
             self.stats = AssemblerStats(bytes=int(data.size), frames=n)
         period_ns = int(round(self.frame_period_s * 1e9))
-        self.frames = [RadarFrame(i * period_ns, lay.to_mimo(lay.decode(r), self.loop), flags) for i, (r, flags) in enumerate(raws)]
+        self.frames = [
+            RadarFrame(i * period_ns, lay.to_mimo(lay.decode(r), self.loop), flags) for i, (r, flags) in enumerate(raws)
+        ]
         if not self.frames:
             raise TwinFocusError(f"{self.path}: holds no complete frame of {fb} bytes ({data.size} bytes read)")
 
@@ -292,5 +304,7 @@ def find_cli_json(path: str | os.PathLike) -> Path | None:
         if isinstance(doc, dict) and "DCA1000Config" in doc:
             found.append(p)
     if len(found) > 1:
-        raise TwinFocusError(f"{folder}: several DCA1000 CLI JSON files ({', '.join(p.name for p in found)}); name one with --dca-json")
+        raise TwinFocusError(
+            f"{folder}: several DCA1000 CLI JSON files ({', '.join(p.name for p in found)}); name one with --dca-json"
+        )
     return found[0] if found else None

@@ -20,6 +20,7 @@ corner reflectors located by both sensors, or, as the source paper does, by the 
 simulated (digital-twin) and a measured SAR image of the same object
 (:func:`image_offset_m`).
 """
+
 from __future__ import annotations
 
 import os
@@ -87,7 +88,9 @@ class RadarCameraExtrinsics:
 
     def inverse(self) -> RadarCameraExtrinsics:
         """``T_radar_camera``."""
-        return RadarCameraExtrinsics(self.rotation.T, -self.rotation.T @ self.translation_m, self.radar_frame, self.camera_frame)
+        return RadarCameraExtrinsics(
+            self.rotation.T, -self.rotation.T @ self.translation_m, self.radar_frame, self.camera_frame
+        )
 
     def corrected_by_image_offset(self, dx_m: float, dy_m: float, dz_m: float = 0.0) -> RadarCameraExtrinsics:
         """The extrinsics with the translation fixed from an observed image shift.
@@ -99,7 +102,9 @@ class RadarCameraExtrinsics:
         translation is t - R d. Valid for the usual sweep with the rig's orientation fixed.
         """
         d = np.array([dx_m, dy_m, dz_m], dtype=np.float64)
-        return RadarCameraExtrinsics(self.rotation, self.translation_m - self.rotation @ d, self.camera_frame, self.radar_frame)
+        return RadarCameraExtrinsics(
+            self.rotation, self.translation_m - self.rotation @ d, self.camera_frame, self.radar_frame
+        )
 
     def to_dict(self) -> dict:
         return {
@@ -129,7 +134,9 @@ class RadarCameraExtrinsics:
             elif rots[0] == "rotation_xyzw":
                 q = np.asarray(d["rotation_xyzw"], dtype=np.float64)
                 if q.shape != (4,) or abs(np.linalg.norm(q) - 1) > 1e-3:
-                    raise TwinFocusError(f"{where}: rotation_xyzw must be a unit quaternion (x, y, z, w), got {q.tolist()}")
+                    raise TwinFocusError(
+                        f"{where}: rotation_xyzw must be a unit quaternion (x, y, z, w), got {q.tolist()}"
+                    )
                 r = quat_to_matrix(q)
             elif rots[0] == "rotation_matrix":
                 r = np.asarray(d["rotation_matrix"], dtype=np.float64)
@@ -185,7 +192,9 @@ def fit_rigid_transform(points_from: np.ndarray, points_to: np.ndarray) -> tuple
     h = (a - ca).T @ (b - cb)
     u, s, vt = np.linalg.svd(h)
     if s[1] < 1e-9 * max(s[0], 1e-300):
-        raise TwinFocusError("the points are collinear: a rotation cannot be fitted (use 3 or more spread-out reflectors)")
+        raise TwinFocusError(
+            "the points are collinear: a rotation cannot be fitted (use 3 or more spread-out reflectors)"
+        )
     d = np.sign(np.linalg.det(vt.T @ u.T))
     r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
     t = cb - r @ ca
@@ -193,7 +202,9 @@ def fit_rigid_transform(points_from: np.ndarray, points_to: np.ndarray) -> tuple
     return r, t, rms
 
 
-def image_offset_m(reference: np.ndarray, measured: np.ndarray, x_m: np.ndarray, y_m: np.ndarray) -> tuple[float, float]:
+def image_offset_m(
+    reference: np.ndarray, measured: np.ndarray, x_m: np.ndarray, y_m: np.ndarray
+) -> tuple[float, float]:
     """How far ``measured`` is shifted from ``reference`` on the image plane, metres (dx, dy).
 
     Both are amplitude images (H, W) on the same grid (pixel [i, j] at x_m[j], y_m[i], uniformly

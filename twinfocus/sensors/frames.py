@@ -7,6 +7,7 @@ its two antennas (docs/architecture.md section 2). :func:`frame_to_virtual_chann
 :class:`~twinfocus.radar.VirtualArray` and applies the multistatic-to-monostatic correction, giving
 the (K, N) rows of a scan file's ``data``.
 """
+
 from __future__ import annotations
 
 import enum

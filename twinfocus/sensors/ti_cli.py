@@ -15,6 +15,7 @@ CLI command``; then it prints its prompt ``mmwDemo:/>``. A ``.cfg`` file lists t
 
 Source: mmWave SDK User's Guide, "Configuration (.cfg) File Format" (see ``docs/sensors.md``).
 """
+
 from __future__ import annotations
 
 import os
@@ -112,17 +113,23 @@ class RadarCliConfig:
     @classmethod
     def from_cfg(cls, cfg, source: str | None = None) -> RadarCliConfig:
         """Parse a ``.cfg`` (see :func:`read_cfg`); errors name the file, line and field."""
-        name = source or (str(cfg) if isinstance(cfg, (str, os.PathLike)) and "\n" not in str(cfg) else "radar configuration")
+        name = source or (
+            str(cfg) if isinstance(cfg, (str, os.PathLike)) and "\n" not in str(cfg) else "radar configuration"
+        )
         cmds = read_cfg(cfg)
         vals: dict = {"profiles": {}, "chirps": []}
 
         def nums(line_no, parts, n_expected, what):
             if len(parts) - 1 != n_expected:
-                raise TwinFocusError(f"{name} line {line_no}: {parts[0]} takes {n_expected} values ({what}), got {len(parts) - 1}")
+                raise TwinFocusError(
+                    f"{name} line {line_no}: {parts[0]} takes {n_expected} values ({what}), got {len(parts) - 1}"
+                )
             try:
                 return [float(p) for p in parts[1:]]
             except ValueError:
-                raise TwinFocusError(f"{name} line {line_no}: {parts[0]} values must be numbers, got {' '.join(parts[1:])!r}") from None
+                raise TwinFocusError(
+                    f"{name} line {line_no}: {parts[0]} values must be numbers, got {' '.join(parts[1:])!r}"
+                ) from None
 
         for line_no, cmd in cmds:
             parts = cmd.split()
@@ -134,17 +141,30 @@ class RadarCliConfig:
                 v = nums(line_no, parts, 2, "numADCBits adcOutputFmt")
                 vals["adc_bits"], vals["adc_format"] = int(v[0]), int(v[1])
             elif key == "profileCfg":
-                v = nums(line_no, parts, 14, "profileId startFreq idleTime adcStartTime rampEndTime txOutPower "
-                         "txPhaseShifter freqSlopeConst txStartTime numAdcSamples digOutSampleRate hpfCornerFreq1 "
-                         "hpfCornerFreq2 rxGain")
+                v = nums(
+                    line_no,
+                    parts,
+                    14,
+                    "profileId startFreq idleTime adcStartTime rampEndTime txOutPower "
+                    "txPhaseShifter freqSlopeConst txStartTime numAdcSamples digOutSampleRate hpfCornerFreq1 "
+                    "hpfCornerFreq2 rxGain",
+                )
                 vals["profiles"][int(v[0])] = Profile(v[1], v[2], v[3], v[4], v[7], int(v[9]), v[10])
             elif key == "chirpCfg":
-                v = nums(line_no, parts, 8, "startIdx endIdx profileId startFreqVar freqSlopeVar idleTimeVar "
-                         "adcStartTimeVar txEnable")
+                v = nums(
+                    line_no,
+                    parts,
+                    8,
+                    "startIdx endIdx profileId startFreqVar freqSlopeVar idleTimeVar adcStartTimeVar txEnable",
+                )
                 vals["chirps"].append(ChirpEntry(int(v[0]), int(v[1]), int(v[2]), int(v[7])))
             elif key == "frameCfg":
-                v = nums(line_no, parts, 7, "chirpStartIdx chirpEndIdx numLoops numFrames framePeriodicity "
-                         "triggerSelect frameTriggerDelay")
+                v = nums(
+                    line_no,
+                    parts,
+                    7,
+                    "chirpStartIdx chirpEndIdx numLoops numFrames framePeriodicity triggerSelect frameTriggerDelay",
+                )
                 vals["frame"] = (int(v[0]), int(v[1]), int(v[2]), int(v[3]), v[4])
             elif key == "lvdsStreamCfg":
                 v = nums(line_no, parts, 4, "subFrameIdx enableHeader dataFmt enableSW")
@@ -215,18 +235,26 @@ class RadarCliConfig:
         if self.lvds_stream is not None:
             header, fmt, _sw = self.lvds_stream
             if header:
-                raise TwinFocusError("lvdsStreamCfg enableHeader is 1: HSI headers (0x0ADC) sit in the LVDS stream between "
-                                     "the samples; record with lvdsStreamCfg -1 0 1 0")
+                raise TwinFocusError(
+                    "lvdsStreamCfg enableHeader is 1: HSI headers (0x0ADC) sit in the LVDS stream between "
+                    "the samples; record with lvdsStreamCfg -1 0 1 0"
+                )
             if fmt != 1:
-                raise TwinFocusError(f"lvdsStreamCfg dataFmt is {fmt}: the stream carries more than ADC samples "
-                                     "(1 = ADC only is read); record with lvdsStreamCfg -1 0 1 0")
+                raise TwinFocusError(
+                    f"lvdsStreamCfg dataFmt is {fmt}: the stream carries more than ADC samples "
+                    "(1 = ADC only is read); record with lvdsStreamCfg -1 0 1 0"
+                )
         if self.adcbuf is not None:
             out_fmt, swap, interleave = self.adcbuf
             if out_fmt != 0:
-                raise TwinFocusError(f"adcbufCfg adcOutputFmt is {out_fmt} (real); the raw layout read here is complex (0)")
+                raise TwinFocusError(
+                    f"adcbufCfg adcOutputFmt is {out_fmt} (real); the raw layout read here is complex (0)"
+                )
             if swap != 1 or interleave != 1:
-                raise TwinFocusError(f"adcbufCfg SampleSwap {swap} / ChanInterleave {interleave}: only the SDK demo's "
-                                     "adcbufCfg -1 0 1 1 1 (non-interleaved) layout is read")
+                raise TwinFocusError(
+                    f"adcbufCfg SampleSwap {swap} / ChanInterleave {interleave}: only the SDK demo's "
+                    "adcbufCfg -1 0 1 1 1 (non-interleaved) layout is read"
+                )
 
     def raw_layout(self) -> RawFrameLayout:
         """How the frames arrive from the capture board (16-bit complex output only)."""
@@ -245,7 +273,9 @@ class RadarCliConfig:
                     f"chirp {idx} enables TX mask {mask}: TDM-MIMO needs exactly one TX per chirp (BPM is not supported)"
                 )
             if bits[0] not in tx_bits:
-                raise TwinFocusError(f"chirp {idx} fires TX{bits[0]} which channelCfg does not enable (mask {self.tx_mask})")
+                raise TwinFocusError(
+                    f"chirp {idx} fires TX{bits[0]} which channelCfg does not enable (mask {self.tx_mask})"
+                )
             tx_of_chirp.append(tx_bits.index(bits[0]))
         n_rx = bin(self.rx_mask).count("1")
         return RawFrameLayout(self.chirp().n_samples, n_rx, tuple(tx_of_chirp), self.n_loops, len(tx_bits))
@@ -303,7 +333,7 @@ class TiRadarCli:
                 for raw in lines:
                     line = raw.decode("ascii", errors="replace").strip()
                     if line.startswith(CLI_PROMPT):
-                        line = line[len(CLI_PROMPT):].strip()
+                        line = line[len(CLI_PROMPT) :].strip()
                     if not line or line == command:
                         continue
                     if line == "Done":
@@ -315,7 +345,11 @@ class TiRadarCli:
                 got = " / ".join(reply + ([pending.decode("ascii", "replace").strip()] if pending.strip() else []))
                 raise CliCommandError(
                     f"radar did not answer {command!r} with Done within {self.timeout_s:g} s"
-                    + (f" (got: {got})" if got else " (no reply: is this the CLI port, and is the radar flashed and booted?)"),
+                    + (
+                        f" (got: {got})"
+                        if got
+                        else " (no reply: is this the CLI port, and is the radar flashed and booted?)"
+                    ),
                     command,
                     reply,
                 )

@@ -26,6 +26,7 @@ The capture card's first frame is known to be bad (TI's scripts skip it "due to 
 dropped unless ``skip_first_frame=False``. Truncated files (a capture cut short) keep their
 complete frames; what was cut is reported in :attr:`MmwcasCapture.warnings`.
 """
+
 from __future__ import annotations
 
 import os
@@ -352,11 +353,16 @@ def read_studio_json(path: str | os.PathLike) -> dict:
         raise TwinFocusError(f"{path}: not a readable mmWave Studio JSON ({type(exc).__name__}: {exc})") from None
 
 
-_LUA_ASSIGN = re.compile(r"^\s*(?:local\s+)?(nchirp_loops|Inter_Frame_Interval|start_chirp_tx|end_chirp_tx|adc_samples)\s*=\s*"
-                         r"([-+0-9.eE]+)", re.M)
+_LUA_ASSIGN = re.compile(
+    r"^\s*(?:local\s+)?(nchirp_loops|Inter_Frame_Interval|start_chirp_tx|end_chirp_tx|adc_samples)\s*=\s*"
+    r"([-+0-9.eE]+)",
+    re.M,
+)
 _LUA_DEVICE_BLOCK = re.compile(r"\b(?:else)?if\s*\(?\s*i\s*==\s*(\d)\s*\)?\s*then")
-_LUA_CHIRP = re.compile(r"ar1\.ChirpConfig_mult\(\s*([^,]+?)\s*,\s*(\d+)\s*,\s*(\d+)\s*,(?:\s*[-+0-9.]+\s*,){5}"
-                        r"\s*(\d)\s*,\s*(\d)\s*,\s*(\d)\s*\)")
+_LUA_CHIRP = re.compile(
+    r"ar1\.ChirpConfig_mult\(\s*([^,]+?)\s*,\s*(\d+)\s*,\s*(\d+)\s*,(?:\s*[-+0-9.]+\s*,){5}"
+    r"\s*(\d)\s*,\s*(\d)\s*,\s*(\d)\s*\)"
+)
 
 
 def read_cascade_lua(path: str | os.PathLike) -> dict:
@@ -399,7 +405,9 @@ def read_cascade_lua(path: str | os.PathLike) -> dict:
         tx = []
         for c in range(c0, c1 + 1):
             if len(fired.get(c, [])) != 1:
-                raise TwinFocusError(f"{path}: chirp {c} fires TX {fired.get(c, [])}; TDM-MIMO needs exactly one TX per chirp")
+                raise TwinFocusError(
+                    f"{path}: chirp {c} fires TX {fired.get(c, [])}; TDM-MIMO needs exactly one TX per chirp"
+                )
             tx.append(fired[c][0])
         out["tx_numbers"] = tuple(tx)
     if "nchirp_loops" in vals:
@@ -418,7 +426,9 @@ def find_capture_setup(folder: str | os.PathLike) -> Path | None:
     for where, pattern in ((folder, "*.mmwave.json"), (folder.parent, "*.mmwave.json"), (folder, "*.lua")):
         found = sorted(where.glob(pattern))
         if len(found) > 1:
-            raise TwinFocusError(f"{where}: several capture configurations ({', '.join(p.name for p in found)}); name one with --setup")
+            raise TwinFocusError(
+                f"{where}: several capture configurations ({', '.join(p.name for p in found)}); name one with --setup"
+            )
         if found:
             return found[0]
     return None
@@ -429,9 +439,15 @@ def read_capture_setup(path: str | os.PathLike) -> dict:
     return read_cascade_lua(path) if str(path).endswith(".lua") else read_studio_json(path)
 
 
-def resolve_config(folder, chirp: Chirp, n_loops: int | None = None, tx_order: str | None = None,
-                   frame_period_s: float | None = None, timestamp_unit_ns: int = 1000,
-                   setup: str | os.PathLike | None = None) -> tuple[MmwcasConfig, list[str]]:
+def resolve_config(
+    folder,
+    chirp: Chirp,
+    n_loops: int | None = None,
+    tx_order: str | None = None,
+    frame_period_s: float | None = None,
+    timestamp_unit_ns: int = 1000,
+    setup: str | os.PathLike | None = None,
+) -> tuple[MmwcasConfig, list[str]]:
     """The capture's :class:`MmwcasConfig`: its configuration (``setup``, else what
     :func:`find_capture_setup` finds) where there is one, else the options; an option that
     disagrees with the configuration wins, with a note. Returns (config, notes)."""
@@ -458,8 +474,14 @@ def resolve_config(folder, chirp: Chirp, n_loops: int | None = None, tx_order: s
     if n_samples != chirp.n_samples:
         chirp = Chirp(chirp.f0_hz, chirp.slope_hz_per_s, chirp.fs_hz, n_samples)
     tx = tx_order_to_tx_of_chirp(tx_numbers)
-    config = MmwcasConfig(chirp=chirp, n_chirps=len(tx), n_loops=pick("n_loops", n_loops, 1), tx_of_chirp=tx,
-                          timestamp_unit_ns=timestamp_unit_ns, frame_period_s=pick("frame_period_s", frame_period_s, 0.1))
+    config = MmwcasConfig(
+        chirp=chirp,
+        n_chirps=len(tx),
+        n_loops=pick("n_loops", n_loops, 1),
+        tx_of_chirp=tx,
+        timestamp_unit_ns=timestamp_unit_ns,
+        frame_period_s=pick("frame_period_s", frame_period_s, 0.1),
+    )
     return config, notes
 
 
@@ -493,8 +515,13 @@ class MmwcasCapture:
     Use as ``with MmwcasCapture(folder, cfg) as cap: for frame in cap.frames(): ...``.
     """
 
-    def __init__(self, folder: str | os.PathLike, config: MmwcasConfig | None = None, skip_first_frame: bool = True,
-                 skip_first_frame_of_each_slice: bool = False):
+    def __init__(
+        self,
+        folder: str | os.PathLike,
+        config: MmwcasConfig | None = None,
+        skip_first_frame: bool = True,
+        skip_first_frame_of_each_slice: bool = False,
+    ):
         self.folder = Path(folder)
         self.config = config or MmwcasConfig()
         self.warnings: list[str] = []
@@ -518,7 +545,9 @@ class MmwcasCapture:
                 dp = self.folder / f"{dev}_{sid}_data.bin"
                 for p in (ip, dp):
                     if not p.is_file():
-                        raise TwinFocusError(f"{p}: missing; a capture slice needs the data and index files of all four devices")
+                        raise TwinFocusError(
+                            f"{p}: missing; a capture slice needs the data and index files of all four devices"
+                        )
                 idx = read_index(ip)
                 self.warnings.extend(idx.warnings)
                 idx_files.append(idx)
@@ -628,7 +657,9 @@ class MmwcasCapture:
 
     def __getitem__(self, i: int) -> RadarFrame:
         """Frame ``i`` (its first loop) as a :class:`RadarFrame`."""
-        return RadarFrame(int(self.timestamps_ns[self._index(i)]), self.read_frame(i)[0], FrameFlag(int(self.flags[self._index(i)])))
+        return RadarFrame(
+            int(self.timestamps_ns[self._index(i)]), self.read_frame(i)[0], FrameFlag(int(self.flags[self._index(i)]))
+        )
 
     def _index(self, i: int) -> int:
         self._ref(i)

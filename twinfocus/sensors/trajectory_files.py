@@ -11,6 +11,7 @@ a ``confidence []`` EuRoC column. Readers take it when present; plain files read
 Times are parsed as exact decimals and numbers written with the shortest exact repr, so a
 write/read round trip is bit-exact.
 """
+
 from __future__ import annotations
 
 import os
@@ -107,8 +108,16 @@ def read_euroc(path: str | os.PathLike) -> Poses:
         where = f"{path} line {i}"
         if s.startswith("#") or s[0].isalpha():
             names = [c.strip().lstrip("#").strip() for c in s.split(",")]
-            for key, prefix in (("t", "timestamp"), ("px", "p_RS_R_x"), ("py", "p_RS_R_y"), ("pz", "p_RS_R_z"),
-                                ("qw", "q_RS_w"), ("qx", "q_RS_x"), ("qy", "q_RS_y"), ("qz", "q_RS_z")):
+            for key, prefix in (
+                ("t", "timestamp"),
+                ("px", "p_RS_R_x"),
+                ("py", "p_RS_R_y"),
+                ("pz", "p_RS_R_z"),
+                ("qw", "q_RS_w"),
+                ("qx", "q_RS_x"),
+                ("qy", "q_RS_y"),
+                ("qz", "q_RS_z"),
+            ):
                 hit = [j for j, n in enumerate(names) if n.split(" ")[0] == prefix]
                 if hit:
                     cols[key] = hit[0]
@@ -122,7 +131,9 @@ def read_euroc(path: str | os.PathLike) -> Poses:
         try:
             ts.append(int(parts[cols["t"]]))
         except ValueError:
-            raise TwinFocusError(f"{where}: EuRoC time stamps are integer nanoseconds, got {parts[cols['t']]!r}") from None
+            raise TwinFocusError(
+                f"{where}: EuRoC time stamps are integer nanoseconds, got {parts[cols['t']]!r}"
+            ) from None
         v = _floats([parts[cols[k]] for k in ("px", "py", "pz", "qx", "qy", "qz", "qw")], where)
         pos.append(v[0:3])
         quat.append(v[3:7])
@@ -143,7 +154,11 @@ def read_trajectory(path: str | os.PathLike, fmt: str = "auto") -> Poses:
                 if line.strip():
                     head = line.strip()
                     break
-        fmt = "euroc" if ("," in head and ("timestamp" in head or path.suffix == ".csv")) or path.suffix == ".csv" else "tum"
+        fmt = (
+            "euroc"
+            if ("," in head and ("timestamp" in head or path.suffix == ".csv")) or path.suffix == ".csv"
+            else "tum"
+        )
     if fmt == "tum":
         return read_tum(path)
     if fmt == "euroc":

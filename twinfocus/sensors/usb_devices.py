@@ -5,6 +5,7 @@ serial number needs permission to open it; when that is refused the device is st
 ``access == "permission denied"`` and a hint (udev rule / group). A missing libusb raises
 :class:`TwinFocusError` saying how to install it.
 """
+
 from __future__ import annotations
 
 import errno
@@ -19,7 +20,7 @@ LIBUSB_MISSING = (
 )
 PERMISSION_HINT = (
     "no permission to open it: add a udev rule such as "
-    "SUBSYSTEM==\"usb\", ATTRS{{idVendor}}==\"{vid:04x}\", MODE=\"0666\" in /etc/udev/rules.d/ "
+    'SUBSYSTEM=="usb", ATTRS{{idVendor}}=="{vid:04x}", MODE="0666" in /etc/udev/rules.d/ '
     "(then 'sudo udevadm control --reload-rules && sudo udevadm trigger'), or join the plugdev/dialout group"
 )
 
@@ -35,9 +36,21 @@ class KnownDevice:
 #: (vendor id, product id) of the hardware TwinFocus works with. Generic bridge chips (XDS110,
 #: CP2105, FT4232H) are named by what they sit on in this setup; other products use them too.
 KNOWN_DEVICES: tuple[KnownDevice, ...] = (
-    KnownDevice(0x0451, 0xBEF3, "radar", "TI XDS110 probe of a single-chip mmWave EVM (xWR14xx/16xx/18xx/68xx BOOST): CLI + data UARTs"),
-    KnownDevice(0x10C4, 0xEA70, "radar", "Silicon Labs CP2105 of a TI mmWave EVM (xWR6843ISK/AOP, xWR1843AOP): CLI + data UARTs"),
-    KnownDevice(0x0403, 0x6011, "capture_board", "FTDI FT4232H of a TI DCA1000EVM / MMWCAS-RF-EVM (radar SPI, I2C and UART control)"),
+    KnownDevice(
+        0x0451,
+        0xBEF3,
+        "radar",
+        "TI XDS110 probe of a single-chip mmWave EVM (xWR14xx/16xx/18xx/68xx BOOST): CLI + data UARTs",
+    ),
+    KnownDevice(
+        0x10C4, 0xEA70, "radar", "Silicon Labs CP2105 of a TI mmWave EVM (xWR6843ISK/AOP, xWR1843AOP): CLI + data UARTs"
+    ),
+    KnownDevice(
+        0x0403,
+        0x6011,
+        "capture_board",
+        "FTDI FT4232H of a TI DCA1000EVM / MMWCAS-RF-EVM (radar SPI, I2C and UART control)",
+    ),
     KnownDevice(0x2B03, 0xF880, "camera", "Stereolabs ZED 2i (UVC side-by-side stereo)"),
     KnownDevice(0x2B03, 0xF881, "camera_sensors", "Stereolabs ZED 2i sensors (IMU, barometer, magnetometer; HID)"),
     KnownDevice(0x2B03, 0xF780, "camera", "Stereolabs ZED 2 (UVC side-by-side stereo)"),
@@ -112,7 +125,9 @@ def list_devices(backend=None, include_unknown: bool = False) -> list[UsbDevice]
         raise TwinFocusError(LIBUSB_MISSING) from None
     except usb.core.USBError as exc:
         if exc.errno in (errno.EACCES, errno.EPERM):
-            raise TwinFocusError("no permission to list USB devices (run as a user allowed to read /dev/bus/usb)") from None
+            raise TwinFocusError(
+                "no permission to list USB devices (run as a user allowed to read /dev/bus/usb)"
+            ) from None
         raise TwinFocusError(f"listing USB devices failed: {exc}") from None
     out = []
     for dev in found:

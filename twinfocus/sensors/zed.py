@@ -16,6 +16,7 @@ Calibration file (Stereolabs, INI): sections ``[LEFT_CAM_<RES>]`` / ``[RIGHT_CAM
 (rotation vector, radians) of the right camera; OpenCV's stereo convention is R = Rodrigues(RX,
 CV, RZ), T = (-Baseline, TY, TZ) (as Stereolabs' ``zed-opencv-native`` sample does).
 """
+
 from __future__ import annotations
 
 import configparser
@@ -32,7 +33,12 @@ from twinfocus.errors import TwinFocusError
 from twinfocus.trajectory import Poses
 
 #: Per-eye image size of each ZED resolution (width, height), pixels.
-RESOLUTIONS: dict[str, tuple[int, int]] = {"2K": (2208, 1242), "FHD": (1920, 1080), "HD": (1280, 720), "VGA": (672, 376)}
+RESOLUTIONS: dict[str, tuple[int, int]] = {
+    "2K": (2208, 1242),
+    "FHD": (1920, 1080),
+    "HD": (1280, 720),
+    "VGA": (672, 376),
+}
 
 ZED_SDK_MISSING = (
     "the ZED SDK's Python module (pyzed) is not installed: install the ZED SDK from stereolabs.com and run "
@@ -100,8 +106,15 @@ class StereoCalibration:
 
         size = tuple(int(v) for v in self.image_size)
         r1, r2, p1, p2, q, _, _ = cv2.stereoRectify(
-            self.camera_matrix_left, self.dist_left, self.camera_matrix_right, self.dist_right, size,
-            self.rotation, self.translation_m.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=0,
+            self.camera_matrix_left,
+            self.dist_left,
+            self.camera_matrix_right,
+            self.dist_right,
+            size,
+            self.rotation,
+            self.translation_m.reshape(3, 1),
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            alpha=0,
         )
         lx, ly = cv2.initUndistortRectifyMap(self.camera_matrix_left, self.dist_left, r1, p1, size, cv2.CV_32FC1)
         rx, ry = cv2.initUndistortRectifyMap(self.camera_matrix_right, self.dist_right, r2, p2, size, cv2.CV_32FC1)
@@ -138,7 +151,9 @@ def load_zed_calibration(path: str | os.PathLike, resolution: str = "HD") -> Ste
     if res not in RESOLUTIONS:
         raise TwinFocusError(f"unknown ZED resolution {resolution!r}; use one of {', '.join(RESOLUTIONS)}")
     if not path.is_file():
-        raise TwinFocusError(f"{path}: no such ZED calibration file (download it from calib.stereolabs.com/?SN=<serial>)")
+        raise TwinFocusError(
+            f"{path}: no such ZED calibration file (download it from calib.stereolabs.com/?SN=<serial>)"
+        )
     cp = configparser.ConfigParser()
     try:
         cp.read_string(path.read_text(errors="replace"))
@@ -172,7 +187,9 @@ def load_zed_calibration(path: str | os.PathLike, resolution: str = "HD") -> Ste
     baseline = get("STEREO", "Baseline")
     ty = get("STEREO", f"TY_{res}", get("STEREO", "TY", 0.0))
     tz = get("STEREO", f"TZ_{res}", get("STEREO", "TZ", 0.0))
-    rotvec = np.array([get("STEREO", f"RX_{res}", 0.0), get("STEREO", f"CV_{res}", 0.0), get("STEREO", f"RZ_{res}", 0.0)])
+    rotvec = np.array(
+        [get("STEREO", f"RX_{res}", 0.0), get("STEREO", f"CV_{res}", 0.0), get("STEREO", f"RZ_{res}", 0.0)]
+    )
     import cv2
 
     rot, _ = cv2.Rodrigues(rotvec)
@@ -208,7 +225,9 @@ class ZedUvcStereo:
             self._cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.size[1])
             self._cap.set(cv2.CAP_PROP_FPS, fps)
         if calibration is not None and tuple(calibration.image_size) != tuple(self.size):
-            raise TwinFocusError(f"calibration is for {calibration.image_size} images but the stream is {self.size} per eye")
+            raise TwinFocusError(
+                f"calibration is for {calibration.image_size} images but the stream is {self.size} per eye"
+            )
         self.calibration = calibration
         self._rect = calibration.rectification() if calibration is not None else None
 
@@ -264,7 +283,9 @@ class ZedSdkCamera:
     open that camera; svo_path : replay a recording instead.
     """
 
-    def __init__(self, resolution: str = "HD720", fps: int = 60, serial: int | None = None, svo_path: str | None = None):
+    def __init__(
+        self, resolution: str = "HD720", fps: int = 60, serial: int | None = None, svo_path: str | None = None
+    ):
         sl = import_pyzed()
         self.sl = sl
         init = sl.InitParameters()
@@ -325,8 +346,11 @@ class ZedSdkCamera:
             if with_images:
                 self.cam.retrieve_image(left, sl.VIEW.LEFT)
                 self.cam.retrieve_image(right, sl.VIEW.RIGHT)
-                pair = StereoPair(sample.stamp_ns, np.ascontiguousarray(left.get_data()[..., :3]),
-                                  np.ascontiguousarray(right.get_data()[..., :3]))
+                pair = StereoPair(
+                    sample.stamp_ns,
+                    np.ascontiguousarray(left.get_data()[..., :3]),
+                    np.ascontiguousarray(right.get_data()[..., :3]),
+                )
                 yield sample, pair
             else:
                 yield sample

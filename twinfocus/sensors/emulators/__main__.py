@@ -1,4 +1,5 @@
 """``python -m twinfocus.sensors.emulators``: run the emulated radar, or write a simulated capture."""
+
 from __future__ import annotations
 
 import argparse
@@ -21,14 +22,24 @@ def _radar(args) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    with EmulatedRadar(traj, host_data_addr=(host, int(port)), config_port=args.config_port,
-                       sync_file=args.sync_file, loss=args.loss, reorder=args.reorder) as rig:
+    with EmulatedRadar(
+        traj,
+        host_data_addr=(host, int(port)),
+        config_port=args.config_port,
+        sync_file=args.sync_file,
+        loss=args.loss,
+        reorder=args.reorder,
+    ) as rig:
         link = Path(args.cli_link) if args.cli_link else None
         if link is not None:
             link.unlink(missing_ok=True)
             link.symlink_to(rig.cli_port)
-        print(f"emulated radar: CLI {link or rig.cli_port}, DCA1000 config port {rig.config_addr[0]}:{rig.config_addr[1]}, "
-              f"data to {host}:{port}, {len(traj)} frames, sync file {rig.sync_file}", file=sys.stderr, flush=True)
+        print(
+            f"emulated radar: CLI {link or rig.cli_port}, DCA1000 config port {rig.config_addr[0]}:{rig.config_addr[1]}, "
+            f"data to {host}:{port}, {len(traj)} frames, sync file {rig.sync_file}",
+            file=sys.stderr,
+            flush=True,
+        )
         try:
             stop.wait()
         finally:
@@ -50,8 +61,14 @@ def _capture(args) -> int:
     cfg = MmwcasConfig(chirp=chirp, frame_period_s=args.period)
     # Capture card clock (since DSP boot, microseconds) and camera clock (epoch) differ, as in real life.
     card_t0 = 123_456_789_000
-    traj = paper_raster(args.columns, args.rows, args.column_pitch, args.row_pitch, frame_period_s=args.period,
-                        t0_ns=1_700_000_000_000_000_000)
+    traj = paper_raster(
+        args.columns,
+        args.rows,
+        args.column_pitch,
+        args.row_pitch,
+        frame_period_s=args.period,
+        t0_ns=1_700_000_000_000_000_000,
+    )
     pts = demo_scatterers(args.z)
     frames = simulate_mimo_frames(chirp, traj, pts)
     iq = quantize_iq(frames, full_scale=float(len(pts)), headroom=0.9)

@@ -8,6 +8,7 @@ bytes back to back, cut into packets of ``u32 sequence | 48-bit byte count | <= 
 Faults to inject: ``drop_packets`` (sequence numbers never sent), ``swap_packets`` (packet s goes
 out after s + 1), ``duplicate_packets``, and random ``loss`` / ``reorder`` probabilities.
 """
+
 from __future__ import annotations
 
 import socket
@@ -229,7 +230,9 @@ class FakeDca1000:
                 # however long it took to make (receive time stamps stay on the schedule).
                 frame = self.frame_source(k, self.layout)
                 if len(frame) != self.layout.frame_bytes:
-                    raise TwinFocusError(f"frame source gave {len(frame)} bytes, layout needs {self.layout.frame_bytes}")
+                    raise TwinFocusError(
+                        f"frame source gave {len(frame)} bytes, layout needs {self.layout.frame_bytes}"
+                    )
                 if self.rate:
                     target = t0 + byte_count / self.rate
                 elif self.frame_period_s:

@@ -11,6 +11,7 @@ stops: the emulated capture board streams in between.
 
 Open the emulated port with ``TiRadarCli(fake.port)`` (any pyserial client works).
 """
+
 from __future__ import annotations
 
 import os

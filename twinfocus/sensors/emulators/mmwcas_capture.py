@@ -5,6 +5,7 @@ and ``<device>_NNNN_idx.bin`` per device, index header and entries as in
 :mod:`twinfocus.sensors.ti_mmwcas`, frames back to back. Like the real card, the first frame can
 be garbage (``bad_first_frame=True``); the reader drops it by default.
 """
+
 from __future__ import annotations
 
 import os
@@ -56,8 +57,14 @@ def write_mmwcas_capture(
         x = x[:, None]
     ts = np.asarray(timestamps_ns, dtype=np.int64)
     if x.ndim != 6 or ts.shape != (x.shape[0],):
-        raise TwinFocusError(f"frames_iq must be (F, loops, 12, 16, N, 2) with F time stamps, got {x.shape} and {ts.shape}")
-    skew = np.zeros((x.shape[0], len(DEVICES)), np.int64) if device_skew_ns is None else np.asarray(device_skew_ns, np.int64)
+        raise TwinFocusError(
+            f"frames_iq must be (F, loops, 12, 16, N, 2) with F time stamps, got {x.shape} and {ts.shape}"
+        )
+    skew = (
+        np.zeros((x.shape[0], len(DEVICES)), np.int64)
+        if device_skew_ns is None
+        else np.asarray(device_skew_ns, np.int64)
+    )
     if bad_first_frame:
         gen = np.random.default_rng(rng)
         junk = gen.integers(-32768, 32767, size=x.shape[1:], dtype=np.int16, endpoint=True)
@@ -66,8 +73,10 @@ def write_mmwcas_capture(
         ts = np.concatenate([[max(int(ts[0]) - period, 0) if ts.size else 0], ts])
         skew = np.concatenate([np.zeros((1, len(DEVICES)), np.int64), skew], axis=0)
     n = x.shape[0]
-    per_device = np.stack([cascade_frame_to_device_iq(f, config) for f in x], axis=1) if n else np.zeros(
-        (len(DEVICES), 0, config.device_frame_values), np.int16
+    per_device = (
+        np.stack([cascade_frame_to_device_iq(f, config) for f in x], axis=1)
+        if n
+        else np.zeros((len(DEVICES), 0, config.device_frame_values), np.int16)
     )
     fb = config.device_frame_bytes
     written = []

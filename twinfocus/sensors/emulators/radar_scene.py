@@ -6,6 +6,7 @@ range R = (R_tx + R_rx) / 2):
 
     s[t, r, n] = sum_j a_j exp(+j k_n (|p_j - tx_t| + |p_j - rx_r|)),   k_n = 2 pi (f0 + S n / fs) / c
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -69,7 +70,11 @@ def quantize_iq(samples: np.ndarray, full_scale: float | None = None, headroom: 
     (default the largest |I| or |Q| present). Returns int16 (..., 2).
     """
     x = np.asarray(samples)
-    peak = float(max(np.abs(x.real).max(initial=0.0), np.abs(x.imag).max(initial=0.0))) if full_scale is None else float(full_scale)
+    peak = (
+        float(max(np.abs(x.real).max(initial=0.0), np.abs(x.imag).max(initial=0.0)))
+        if full_scale is None
+        else float(full_scale)
+    )
     scale = headroom * 32767.0 / peak if peak > 0 else 1.0
     iq = np.stack([x.real, x.imag], axis=-1) * scale
     return np.clip(np.round(iq), -32768, 32767).astype(np.int16)

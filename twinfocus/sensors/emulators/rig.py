@@ -11,6 +11,7 @@ The real MMWCAS streams through its DSP board, not a DCA1000; carrying its 12 x 
 the DCA1000 protocol is an emulation convenience (the layout is a
 :class:`~twinfocus.sensors.dca1000.RawFrameLayout` like any other).
 """
+
 from __future__ import annotations
 
 import os
@@ -98,13 +99,22 @@ class EmulatedRadar:
         ts = self.trajectory.timestamps_ns
         period = frame_period_s or (float(np.median(np.diff(ts))) * 1e-9 if len(ts) > 1 else 0.1)
         if len(ts) > 1 and np.ptp(np.diff(ts)) > 0.01 * np.median(np.diff(ts)):
-            raise TwinFocusError("the emulated radar streams at a fixed frame period: give a uniformly timed trajectory")
+            raise TwinFocusError(
+                "the emulated radar streams at a fixed frame period: give a uniformly timed trajectory"
+            )
         self.layout = RawFrameLayout(self.chirp.n_samples, 16, tuple(range(12)), 1, 12)
         self._full_scale = float(self.scatterers_m.shape[0])
         self.board = FakeDca1000(
-            self.layout, frame_source=self._frame, host_data_addr=host_data_addr, frame_period_s=period,
-            n_frames=len(self.trajectory), loss=loss, reorder=reorder, sensor_running=False,
-            config_port=config_port, on_stream_start=self._started,
+            self.layout,
+            frame_source=self._frame,
+            host_data_addr=host_data_addr,
+            frame_period_s=period,
+            n_frames=len(self.trajectory),
+            loss=loss,
+            reorder=reorder,
+            sensor_running=False,
+            config_port=config_port,
+            on_stream_start=self._started,
         )
         self.sync_file = Path(sync_file) if sync_file else default_sync_file(self.board.config_addr[1])
         self.sync_file.unlink(missing_ok=True)
@@ -195,7 +205,9 @@ class EmulatedVio:
         if start is None:
             return
         ts = self.trajectory.timestamps_ns
-        rel = np.arange(-self.margin_ns, int(ts[-1] - ts[0]) + self.margin_ns + 1, int(1e9 / self.rate_hz), dtype=np.int64)
+        rel = np.arange(
+            -self.margin_ns, int(ts[-1] - ts[0]) + self.margin_ns + 1, int(1e9 / self.rate_hz), dtype=np.int64
+        )
         at = self.trajectory.interpolate(ts[0] + rel)
         pos = at.position_m.copy()
         rot = at.rotation_matrices()
