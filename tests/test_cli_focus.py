@@ -259,3 +259,21 @@ def test_pictures_of_an_earlier_run_do_not_stay_beside_new_results(small_scans, 
     assert sorted(p.name for p in out.glob("*.png")) == ["summary.png"]
     assert _focus(small_scans / "scan.npz", out, "--method", "none", "--no-pictures") == 0
     assert not list(out.glob("*.png")) and (out / "metrics.json").is_file()
+
+
+def test_capture_gaps_of_a_converted_scan_reach_metrics(small_scans, tmp_path):
+    """Issue 18 item 2: the gaps `convert` records beside a scan (<scan>.capture.json) are in the
+    metrics.json of a focus of that scan; a scan without the record has no `capture` entry."""
+    import shutil
+
+    from twinfocus.sensors.capture_to_scan import capture_report_path
+
+    scan = tmp_path / "converted.npz"
+    shutil.copy(small_scans / "scan.npz", scan)
+    gaps = {"capture": "/data/adc_data_Raw_0.bin", "frames": 122, "frames_used": 120, "frames_dropped_flagged": 2,
+            "frames_lost": 1, "frames_zero_filled": 1, "frames_device_skew": 0, "bytes_lost": 2912}
+    capture_report_path(scan).write_text(json.dumps(gaps))
+    assert _focus(scan, tmp_path / "f", "--method", "none", "--no-pictures") == 0
+    assert json.loads((tmp_path / "f" / "metrics.json").read_text())["capture"] == gaps
+    assert _focus(small_scans / "scan.npz", tmp_path / "g", "--method", "none", "--no-pictures") == 0
+    assert "capture" not in json.loads((tmp_path / "g" / "metrics.json").read_text())
