@@ -51,6 +51,7 @@ test-fast: $(STAMP)
 # Lint, types and the import layers (pyproject.toml's [tool.ruff], [tool.mypy], [tool.importlinter]).
 lint: $(STAMP)
 	$(VENV)/bin/ruff check twinfocus msgs nodes
+	$(VENV)/bin/ruff format --check twinfocus msgs nodes
 	$(VENV)/bin/mypy
 	$(VENV)/bin/lint-imports
 
