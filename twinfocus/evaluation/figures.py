@@ -21,28 +21,20 @@ from twinfocus.evaluation.aggregate import (
     pareto_front,
 )
 from twinfocus.evaluation.paper import PAPER
+from twinfocus.plotting import pyplot
 
 METHOD_COLOURS = {"none": "#777777", "sharpness": "#d08c2e", "digital": "#3b7dd8", "physical": "#c23b3b"}
 DPI = 60
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def _save(fig, path: Path) -> None:
     with atomic_writer(path) as f:
         fig.savefig(f, format="png", dpi=DPI, bbox_inches="tight")
-    _plt().close(fig)
+    pyplot().close(fig)
 
 
 def baseline_figure(doc: dict, path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     rec = doc["records"]
     cond = conditions_of(doc)[0]["label"]
     st = method_stats(rec, cond)
@@ -64,7 +56,7 @@ def baseline_figure(doc: dict, path: Path) -> None:
 
 
 def pairs_figure(doc: dict, path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     rec = doc["records"]
     letters = sorted({r["reference"] for r in rec} | {r["target"] for r in rec})
     methods = [m for m in ("digital", "physical") if any(r["method"] == m for r in rec)]
@@ -90,7 +82,7 @@ def pairs_figure(doc: dict, path: Path) -> None:
 
 
 def examples_figure(examples: dict, path: Path, title: str) -> None:
-    plt = _plt()
+    plt = pyplot()
     keys = ["truth"] + [m for m in METHOD_ORDER if m in examples]
     fig, axes = plt.subplots(1, len(keys), figsize=(1.6 * len(keys), 1.9))
     for ax, k in zip(np.atleast_1d(axes), keys):
@@ -102,7 +94,7 @@ def examples_figure(examples: dict, path: Path, title: str) -> None:
 
 
 def sweep_figure(doc: dict, path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     d = doc["definition"]
     rec = doc["records"]
     conds = conditions_of(doc)
@@ -165,7 +157,7 @@ def sweep_figure(doc: dict, path: Path) -> None:
 
 
 def limit_figure(doc: dict, rows: list[dict], path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     d = doc["definition"]
     xs = [r["x"] for r in rows]
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(8.0, 3.0))
@@ -208,7 +200,7 @@ def limit_figure(doc: dict, rows: list[dict], path: Path) -> None:
 
 
 def pareto_figure(means: list[dict], path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     colours = {
         "image size": "#3b7dd8",
         "optimiser": "#c23b3b",
