@@ -169,7 +169,7 @@ def test_focus_uses_the_space_variant_fit_only_when_the_data_ask_for_it(drifting
     if exact.drift_m is not None:
         assert np.sqrt((exact.drift_m ** 2).mean()) < 0.1e-3
     assert exact.metrics["target_ssim_corrected"] > 0.99
-    assert exact.metrics["confidence"]["trusted"]
+    assert exact.metrics["confidence"]["trusted"], (exact.metrics["confidence"]["warnings"], exact.metrics["space_variant"])
 
 
 def test_space_variant_bad_requests_are_named(drifting_scan):

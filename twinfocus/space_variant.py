@@ -30,7 +30,8 @@ reference see too short a lever, and single positions' sub-images mix scatterers
 from far across the region, which halves the apparent lever. Fitting the reference's whole image
 instead, with the per-pixel model phi_m + k (u_{m,p} - u_{m,c}) . dp_m and dp smooth over the
 capture (a hand drifts; piecewise linear between knots), recovers the across-sight drift
-(docs/handheld.md): handheld scenes 0.85 -> 0.89-0.94, the paper's protocol unchanged.
+(docs/handheld.md): handheld scenes 0.83 -> 0.92 (0.86-0.95 per draw), the paper's protocol
+unchanged.
 """
 
 from __future__ import annotations
