@@ -326,14 +326,14 @@ def twin_autofocus(
         starts = [init_phase_rad]
         # fixed seed: the same scan gives the same estimate
         rng = np.random.default_rng(0)
-        starts += [rng.uniform(-np.pi, np.pi, basis.shape[0]) for _ in range(int(cfg.projection_restarts))]
+        starts += [rng.uniform(-np.pi, np.pi, int(basis.shape[0])) for _ in range(int(cfg.projection_restarts))]
         ends = [projection_phase(basis, template, int(cfg.projection_iterations), s) for s in starts]
         init_phase_rad = ends[0]
         if len(ends) > 1:
-            losses = [template_loss(basis, e, template, cfg) for e in ends]
-            best = int(np.argmin(losses))
+            end_losses = [template_loss(basis, e, template, cfg) for e in ends]
+            best = int(np.argmin(end_losses))
             init_phase_rad = ends[best]
-            extra["projection_restarts"] = {"losses": losses, "chosen": best}
+            extra["projection_restarts"] = {"losses": end_losses, "chosen": best}
     elif cfg.init == "outline":
         from twinfocus.template_match import outline_phase
 
@@ -344,6 +344,7 @@ def twin_autofocus(
             )
         init_phase_rad, extra["outline"] = outline_phase(basis, support)
     if cfg.init != "zero" and int(cfg.iterations) == 0:
+        assert init_phase_rad is not None  # every init but "zero" has set it above
         loss = np.array([template_loss(basis, init_phase_rad, template, cfg)])
         extra["template"] = template
         return AutofocusResult(
@@ -379,7 +380,7 @@ def twin_autofocus(
         return loss_fn
 
     init = init_phase_rad
-    history = []
+    history: list[np.ndarray] = []
     if cfg.coarse_iterations > 0:
         coarse = replace(cfg, iterations=cfg.coarse_iterations)
         init, coarse_losses = _run_adam(make_loss(cfg.coarse_blur_px), basis.shape[0], coarse, dtype, progress, init)

@@ -229,6 +229,7 @@ def focus_bases(
 
     t = time.perf_counter()
     if method == "twin":
+        assert template is not None  # _check_method: "twin" needs a template
         result: AutofocusResult = twin_autofocus(
             ref_basis,
             template,
@@ -420,6 +421,7 @@ def _space_variant(
         if mode == "on":
             raise TwinFocusError(f"space-variant correction {why_not}")
         return {"info": {**info, "reason": why_not}}
+    assert template is not None  # why_not is set when it is None
     residual = 1.0 - _complex_match(form_image(ref_basis, phase), template)
     info["residual_scalar"] = residual
     if mode == "auto" and residual <= SPACE_VARIANT_MIN_RESIDUAL:
@@ -513,7 +515,7 @@ def confidence_report(
             )
         )
     )
-    out = {
+    out: dict = {
         "separation_deg": float(sep),
         "tracking_error_m_assumed": float(tracking_error_m),
         "transfer_bound_rad_max": float(bound.max()),

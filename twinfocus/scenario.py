@@ -110,13 +110,13 @@ class Scenario:
 
     def target_roi(self) -> tuple:
         if self.target_depth_offset_m:
-            tgt = _planar(self.scene(), "target")
+            tgt = planar_object(self.scene(), "target")
             # distance_m=-1 only tells _roi_around this is not the paper's geometry (no fixed ROI)
             return _roi_around(tgt, float(tgt.centre_m[2]), None, replace(self, distance_m=-1.0))
         return _roi_around(self.scene().object("target"), self.distance_m, PAPER_TARGET_ROI, self)
 
 
-def _planar(scene: Scene, name: str) -> PlanarObject:
+def planar_object(scene: Scene, name: str) -> PlanarObject:
     """The paper scene's object ``name``, which paper_scene always builds as a planar mask."""
     obj = scene.object(name)
     assert isinstance(obj, PlanarObject)
@@ -125,13 +125,13 @@ def _planar(scene: Scene, name: str) -> PlanarObject:
 
 def _field_like(scene: Scene, sc: Scenario) -> Scene:
     """The Scenario's field-like options applied to the paper scene (twinfocus.scene does the work)."""
-    ref = shaped(_planar(scene, "reference"), sc.reference_shape, sc.reference_shape_parameter)
+    ref = shaped(planar_object(scene, "reference"), sc.reference_shape, sc.reference_shape_parameter)
     if sc.reference_roughness_deg is not None:
         ref = replace(ref, roughness_deg=sc.reference_roughness_deg, amplitude_spread=sc.reference_amplitude_spread)
     scene.objects[0] = ref
     off = float(sc.target_depth_offset_m)
     if off:
-        tgt = _planar(scene, "target")
+        tgt = planar_object(scene, "target")
         c = np.asarray(tgt.centre_m, float)
         if not (np.isfinite(off) and c[2] + off > 0):
             raise TwinFocusError(f"target_depth_offset_m ({off}) must keep the target in front of the aperture")

@@ -82,9 +82,9 @@ def method_mean(records: list[dict], condition: str, method: str, field: str) ->
     return float(np.mean(vals)) if vals else None
 
 
-def pair_improvements(records: list[dict], method: str) -> dict:
+def pair_improvements(records: list[dict], method: str) -> dict[str, float]:
     """{pair: improvement % of ``method`` over no correction (paired means over its draws)}."""
-    out = {}
+    out: dict[str, float] = {}
     for pair in sorted({r["pair"] for r in records}):
         rec = [r for r in records if r["pair"] == pair]
         none = {_draw_key(r): r["ssim"] for r in ok_records(rec) if r["method"] == "none"}

@@ -20,6 +20,7 @@ import hashlib
 import time
 import zlib
 from dataclasses import asdict, dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -35,7 +36,7 @@ from twinfocus.grid import ImageGrid
 from twinfocus.motion import apply_pose_errors, draw_errors
 from twinfocus.radar import Chirp
 from twinfocus.scan import Scan
-from twinfocus.scenario import Scenario, simulate_scenario
+from twinfocus.scenario import Scenario, planar_object, simulate_scenario
 from twinfocus.scenario import template_scan as scenario_template_scan
 from twinfocus.scene import Clutter, paper_scene
 from twinfocus.templates import template_from_scan
@@ -143,7 +144,7 @@ class EvalSettings:
     phase_ramp: str = "auto"
 
     def autofocus_config(self, **overrides) -> AutofocusConfig:
-        kw = dict(
+        kw: dict[str, Any] = dict(
             iterations=self.iterations, basis_dtype=self.basis_dtype, precision=self.precision, device=self.device
         )
         kw.update(overrides)
@@ -190,7 +191,7 @@ def object_roi(sc: Scenario, name: str, margin_m: float = OBJECT_ROI_MARGIN_M) -
     scene = sc.scene()
     ext = {}
     for n in ("reference", "target"):
-        c = scene.object(n).corners_m()
+        c = planar_object(scene, n).corners_m()
         ext[n] = (c[:, :2].min(axis=0), c[:, :2].max(axis=0))
     lo, hi = ext[name][0] - margin_m, ext[name][1] + margin_m
     middle = (ext["reference"][1][0] + ext["target"][0][0]) / 2.0
@@ -198,7 +199,7 @@ def object_roi(sc: Scenario, name: str, margin_m: float = OBJECT_ROI_MARGIN_M) -
         hi[0] = min(hi[0], middle)
     else:
         lo[0] = max(lo[0], middle)
-    return (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), float(scene.object(name).centre_m[2]))
+    return (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), float(planar_object(scene, name).centre_m[2]))
 
 
 def case_grids(sc: Scenario, size: int, roi: str, margin_m: float = OBJECT_ROI_MARGIN_M) -> tuple[ImageGrid, ImageGrid]:
@@ -261,12 +262,13 @@ def digital_twin_for(
 
 
 def _far_corner(sc: Scenario, reference_centre: np.ndarray) -> np.ndarray:
-    c = sc.scene().object("target").corners_m()
+    c = planar_object(sc.scene(), "target").corners_m()
     return c[int(np.argmax(np.linalg.norm(c[:, :2] - reference_centre[:2], axis=1)))]
 
 
 def _data_key(scan: Scan) -> str:
-    return hashlib.blake2b(np.ascontiguousarray(scan.data).view(np.uint8), digest_size=16).hexdigest()
+    data = np.ascontiguousarray(scan.data).view(np.uint8)
+    return hashlib.blake2b(data, digest_size=16).hexdigest()  # type: ignore[arg-type]  # numpy's stubs give arrays __buffer__ only on Python >= 3.12
 
 
 def prepare_scene(
@@ -291,6 +293,7 @@ def prepare_scene(
     timings: dict[str, float] = {}
     t = time.perf_counter()
     scan, template_scan = simulate_scenario(sc, progress=progress)
+    assert scan.positions_true is not None  # a simulated scan knows where its positions really were
     timings["simulate"] = time.perf_counter() - t
     ref_grid, tgt_grid = case_grids(sc, settings.size, roi, roi_margin_m)
     t = time.perf_counter()
@@ -325,10 +328,10 @@ def prepare_scene(
         notes["digital_timings_s"] = info
         if err:
             notes["digital_error"] = err
-    ref_centre = np.asarray(sc.scene().object("reference").centre_m, float)
+    ref_centre = np.asarray(planar_object(sc.scene(), "reference").centre_m, float)
     centres = {
         "reference": ref_centre,
-        "target": np.asarray(sc.scene().object("target").centre_m, float),
+        "target": np.asarray(planar_object(sc.scene(), "target").centre_m, float),
         "target_far": _far_corner(sc, ref_centre),
     }
     return SceneCase(sc, scan, ref_grid, tgt_grid, truth, templates, centres, timings, notes)
@@ -425,6 +428,7 @@ def draw_shared(
     basis_s = time.perf_counter() - t
 
     true = scan.positions_true
+    assert true is not None  # a simulated scan knows where its positions really were
     oracle_t = metrics.oracle_phase(true, tracked_m, case.centres["target"], chirp)
     oracle_r = metrics.oracle_phase(true, tracked_m, case.centres["reference"], chirp)
     oracle_far = metrics.oracle_phase(true, tracked_m, case.centres["target_far"], chirp)
@@ -527,4 +531,5 @@ def tracked_positions(scan: Scan, error_scenario: Scenario, seed) -> np.ndarray:
         if scan.timestamps_ns is not None
         else np.arange(scan.n_positions, dtype=np.int64) * 100_000_000
     )
+    assert scan.positions_true is not None  # a simulated scan knows where its positions really were
     return apply_pose_errors(scan.positions_true, *draw_position_errors(error_scenario, stamps, seed))

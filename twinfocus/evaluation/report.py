@@ -259,14 +259,14 @@ def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
         imp = pair_improvements(rec, m)
         if not imp:
             continue
-        v = np.array(list(imp.values()))
-        worst = min(imp, key=imp.get)
+        gains = np.array(list(imp.values()))
+        worst = min(imp, key=imp.__getitem__)
         rows.append(
             [
                 METHOD_NAMES[m],
                 _pct(sp["median_improvement_pct"][m]),
-                _pct(float(np.median(v))),
-                f"{int((v > 0).sum())} / {v.size}",
+                _pct(float(np.median(gains))),
+                f"{int((gains > 0).sum())} / {gains.size}",
                 f"{worst} ({imp[worst]:+.1f} %)",
             ]
         )
@@ -287,7 +287,7 @@ def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
 
 
 def _section_limits(raw: dict, out: Path, md: Path, lines: list[str]) -> dict:
-    res = {}
+    res: dict = {}
     lines += [
         "## Limits: where each method stops helping",
         "",
@@ -406,7 +406,7 @@ def _section_trade(doc: dict, out: Path, md: Path, lines: list[str], machine: di
         ]
         tab = []
         for name, p in presets.items():
-            m = next((x for x in means if x["knob"] == "preset" and x["label"] == name), None)
+            measured = next((x for x in means if x["knob"] == "preset" and x["label"] == name), None)
             coarse = p.get("coarse_iterations", 0)
             cli = (
                 f"`--size {p['size']} --iterations {p['iterations']} --lr {p['lr']:g} --basis-dtype {p['basis_dtype']}`"
@@ -424,8 +424,8 @@ def _section_trade(doc: dict, out: Path, md: Path, lines: list[str], machine: di
                     f"{p['lr']:g}",
                     p["basis_dtype"],
                     p["precision"],
-                    _f(m["time_s"] if m else None, 2),
-                    _f(m["ssim"] if m else None),
+                    _f(measured["time_s"] if measured else None, 2),
+                    _f(measured["ssim"] if measured else None),
                     cli,
                 ]
             )
@@ -618,7 +618,7 @@ def write_report(out_dir, markdown_path=None) -> Path:
         f"Compute time: {total / 60:.1f} min in all ({per}). Last invocation started {run.get('started', '?')}.",
         "",
     ]
-    settings = next((doc["settings"] for doc in raw.values() if "settings" in doc), {})
+    settings: dict = next((doc["settings"] for doc in raw.values() if "settings" in doc), {})
     if settings:
         lines += [
             f"Settings: {settings.get('n_columns')} x {settings.get('n_rows')} radar positions x 86 channels, "

@@ -14,6 +14,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -190,7 +191,7 @@ def _save_examples(path: Path, examples: dict) -> None:
     arrays = {k: np.asarray(v, np.float16) for k, v in examples.items() if isinstance(v, np.ndarray)}
     meta = json.dumps({k: v for k, v in examples.items() if not isinstance(v, np.ndarray)})
     with atomic_writer(path) as f:
-        np.savez_compressed(f, meta=np.array(meta), **arrays)
+        np.savez_compressed(f, meta=np.array(meta), **arrays)  # type: ignore[arg-type]  # numpy stubs type **kwds as the flag
 
 
 def _experiment_task(exp: Experiment, threads, settings: EvalSettings) -> dict:
@@ -297,7 +298,7 @@ def run_paper(
     raw.mkdir(parents=True, exist_ok=True)
     do_trade = not only or "trade" in only
     t0 = time.perf_counter()
-    run = {
+    run: dict[str, Any] = {
         "command": command,
         "quick": quick,
         "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
