@@ -28,7 +28,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from twinfocus.atomic import write_text_atomic
+from twinfocus.atomic import atomic_writer, write_text_atomic
 from twinfocus.cluster import dask_client, limit_threads, run_tasks
 from twinfocus.errors import TwinFocusError
 
@@ -301,12 +301,11 @@ def write_summary(out: Path, items: list[BatchItem], rows: dict, figure: bool = 
 def write_summary_figure(path: Path, rows: list[dict]) -> None:
     """Target SSIM per item, uncorrected and corrected (with the oracle-phase ceiling); failed items
     marked in red."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import numpy as np
 
+    from twinfocus.plotting import pyplot
+
+    plt = pyplot()
     n = len(rows)
     x = np.arange(n)
     get = lambda k: np.array([np.nan if r.get(k) in (None, "") else float(r[k]) for r in rows])  # noqa: E731
@@ -327,7 +326,6 @@ def write_summary_figure(path: Path, rows: list[dict]) -> None:
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.png")
-    fig.savefig(tmp, dpi=110)
+    with atomic_writer(path) as f:
+        fig.savefig(f, format="png", dpi=110)
     plt.close(fig)
-    os.replace(tmp, path)
