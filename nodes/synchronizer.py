@@ -212,11 +212,9 @@ class Synchronizer(Node):
 
 def _gaps(frame: RadarFrame) -> dict:
     """The frame's capture gaps (counts since the stream began), which its measurement carries on."""
-    return {
-        "frames_lost": frame.frames_lost,
-        "frames_zero_filled": frame.frames_zero_filled,
-        "bytes_lost": frame.bytes_lost,
-    }
+    from twinfocus.sensors.capture_to_scan import stream_gaps
+
+    return stream_gaps(frame.frames_lost, frame.frames_zero_filled, frame.bytes_lost)
 
 
 def main(argv: list[str] | None = None) -> int:
