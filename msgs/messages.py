@@ -113,6 +113,8 @@ class SarMeasurement:
     scene-frame phase centres (carry the tracking error); positions_true_m : optional truth.
     pose_gap_ns : width of the pose interval the position was interpolated over (0 when a pose
     fell exactly on the frame), a quality hint.
+    frames_lost, frames_zero_filled, bytes_lost : the radar frame's capture gaps (counted since
+    the stream began, as on :class:`RadarFrame`); the solver reports each scan's share.
     """
 
     header: Header
@@ -126,6 +128,11 @@ class SarMeasurement:
     last: bool = flag(False)
     pose_gap_ns: int = integer(0)
     positions_true_m: np.ndarray | None = array("float64", ("K", 3), optional=True)
+    frames_lost: int = integer(0, doc="capture frames of which no byte arrived, since the stream began")
+    frames_zero_filled: int = integer(
+        0, doc="capture frames with missing bytes (zeros stand in), since the stream began"
+    )
+    bytes_lost: int = integer(0, doc="capture bytes that never arrived, since the stream began")
 
     def check(self) -> str | None:
         return _check_chirp(self)

@@ -51,10 +51,9 @@ class RadarDriver(DriverNode):
 
 def _gap_fields(gaps) -> dict:
     """A backend's capture gaps as the RadarFrame fields (none: the fields' defaults)."""
-    if gaps is None:
-        return {}
-    lost, zero_filled, bytes_lost = (int(v) for v in gaps)
-    return {"frames_lost": lost, "frames_zero_filled": zero_filled, "bytes_lost": bytes_lost}
+    from twinfocus.sensors.capture_to_scan import stream_gaps
+
+    return {} if gaps is None else stream_gaps(*gaps)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -17,7 +17,9 @@ Outputs per scan: :class:`msgs.AutofocusResult` (phase, loss curve, metrics, tim
 :class:`msgs.Image` on ``image/focused`` named ``target``, ``target_uncorrected``,
 ``reference``, ``reference_uncorrected``; with ``out_dir`` also ``twinfocus focus``'s files in
 ``out_dir/<scan_id>/`` (:func:`twinfocus.pipeline.write_outputs`). Metrics against the truth
-are computed when the measurements carry ``positions_true_m`` (simulation).
+are computed when the measurements carry ``positions_true_m`` (simulation). A scan whose
+measurements report capture gaps (a DCA1000 stream's lost and zero-filled frames, missing bytes)
+has them in its metrics as ``capture``, as ``twinfocus focus`` has a converted capture's.
 """
 
 from __future__ import annotations
@@ -69,6 +71,8 @@ class _Scan:
     scores: MatchScores | None = None  # the template registration's scores over the rows so far
     scores_template: np.ndarray | None = None  # the template they score (a new template starts them again)
     registration_s: float = 0.0
+    gaps_before: tuple[int, int, int] = (0, 0, 0)  # the stream's gap counts when the scan began
+    gaps: tuple[int, int, int] = (0, 0, 0)  # the stream's gap counts at its latest measurement
 
 
 class Solver(Node):
@@ -130,6 +134,7 @@ class Solver(Node):
         self.waiting: list[_Scan] = []  # finished scans waiting for a template
         self.done = 0
         self._flush_scheduled = False
+        self.stream_gaps = (0, 0, 0)  # the latest measurement's capture gap counts (since the stream began)
         self.result_pub = self.create_publisher("autofocus/result")
         self.image_pub = self.create_publisher("image/focused")
         self.create_subscription("sar/measurement", self.on_measurement)
@@ -210,7 +215,7 @@ class Solver(Node):
             self._end_scan()
             s = None
         if s is None:
-            s = self.scan = _Scan(m.scan_id, chirp, m.data.shape[0], time.monotonic())
+            s = self.scan = _Scan(m.scan_id, chirp, m.data.shape[0], time.monotonic(), gaps_before=self.stream_gaps)
             s.truth = [] if self.params["truth_metrics"] else None
             self.log(f"scan {m.scan_id!r} started")
         if chirp != s.chirp or m.data.shape[0] != s.n_channels:
@@ -220,6 +225,7 @@ class Solver(Node):
             return
         s.pending.append(m)
         s.n += 1
+        s.gaps = self.stream_gaps = (int(m.frames_lost), int(m.frames_zero_filled), int(m.bytes_lost))
         s.seen_wall = time.monotonic()
         s.max_index = max(s.max_index, int(m.index))
         s.sensor_stamp_ns = int(m.header.stamp_ns)
@@ -364,6 +370,11 @@ class Solver(Node):
                 f"scan {s.scan_id!r}: {expected - s.n} of its {expected} positions never arrived; "
                 f"focused the {s.n} that did"
             )
+        gaps = _scan_gaps(s.gaps_before, s.gaps)
+        if any(gaps):
+            from twinfocus.sensors.capture_to_scan import stream_gaps
+
+            out.metrics["capture"] = stream_gaps(*gaps)
         timing = {k: float(v) for k, v in out.timings_s.items()}
         if self.params["basis"] == "stream":
             timing["basis_streamed"] = s.basis_time_s
@@ -465,6 +476,8 @@ class Solver(Node):
             for k, v in out.metrics.items()
             if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)
         }
+        # the message's metrics are flat: metrics.json's capture entry as capture.frames_lost ...
+        numeric.update({f"capture.{k}": float(v) for k, v in out.metrics.get("capture", {}).items()})
         self.result_pub.publish(
             AutofocusResult(
                 header=Header(stamp_ns=now_ns(), frame_id="scene"),
@@ -521,6 +534,15 @@ class Solver(Node):
         n = int(self.params["exit_after_scans"])
         if n and self.done >= n:
             self.request_shutdown(f"{self.done} scan(s) done")
+
+
+def _scan_gaps(before: tuple[int, int, int], now: tuple[int, int, int]) -> tuple[int, int, int]:
+    """A scan's capture gaps from the stream's counts (since the stream began) when it began and
+    at its latest measurement; counts that went down mean the stream started again: all of them."""
+    if any(n < b for n, b in zip(now, before)):
+        return now
+    lost, zero_filled, nbytes = (n - b for n, b in zip(now, before))
+    return lost, zero_filled, nbytes
 
 
 def main(argv: list[str] | None = None) -> int:

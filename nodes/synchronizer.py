@@ -5,7 +5,8 @@ For a radar frame stamped t it waits for poses on both sides of t, interpolates 
 applies the camera-to-radar extrinsics when the poses are the camera's
 (``child_frame_id == "camera"``), places the frame's virtual channels
 (:func:`twinfocus.trajectory.phase_centres`) and publishes the frame's samples with those
-phase-centre positions.
+phase-centre positions, and the frame's capture gap counts (``frames_lost`` ...), which the
+solver turns into each scan's ``capture`` metrics.
 
 A frame is reported (stderr, heartbeat message) and dropped when it cannot be paired: it is
 earlier than the first pose, the poses around it are more than ``max_pose_gap_s`` apart, or no
@@ -161,6 +162,7 @@ class Synchronizer(Node):
             last=frame.last,
             pose_gap_ns=gap,
             positions_true_m=frame.positions_true_m,
+            **_gaps(frame),
         )
 
     def _decide(self, frame: RadarFrame, result: SarMeasurement | str | None, why: str) -> None:
@@ -174,6 +176,9 @@ class Synchronizer(Node):
             )
             if frame.last and self.held is not None and self.held.scan_id == frame.scan_id:
                 self.held.last = True
+                # the gaps counted up to the scan's end, not only up to the last frame paired
+                for k, v in _gaps(frame).items():
+                    setattr(self.held, k, v)
                 self._send(self.held)
                 self.held = None
             return
@@ -203,6 +208,13 @@ class Synchronizer(Node):
             self.held = None
         if self.paired or self.unpaired:
             self.log(f"paired {self.paired} radar frame(s), could not pair {self.unpaired}")
+
+
+def _gaps(frame: RadarFrame) -> dict:
+    """The frame's capture gaps (counts since the stream began), which its measurement carries on."""
+    from twinfocus.sensors.capture_to_scan import stream_gaps
+
+    return stream_gaps(frame.frames_lost, frame.frames_zero_filled, frame.bytes_lost)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -51,6 +51,30 @@ def test_iou_against_rendered_truth(rendered):
     assert mask_iou(twin.mask, r.mask("reference")) >= MIN_IOU[name]
 
 
+def test_the_twin_is_the_same_whatever_ran_before_and_on_any_thread():
+    """GrabCut's colour models start from OpenCV's per-thread random generator and the plane is a
+    RANSAC's: both are seeded, so a serial run and a Dask worker's thread build the same twin of
+    one scene (tests/test_batch.py compares their records exactly)."""
+    import threading
+
+    import cv2
+
+    scene = paper_scene("A", "F")
+    r = render_scene(scene, seed=1)
+    seed = box_from_scene_roi(_roi_of(scene.object("reference")), r.camera)
+    first = reference_from_stereo(r.left, r.right, r.camera, seed)
+    got = {}
+
+    def elsewhere():
+        cv2.randu(np.empty(1000, np.float32), 0, 1)  # moves this thread's generator on
+        got["twin"] = reference_from_stereo(r.left, r.right, r.camera, seed)
+
+    t = threading.Thread(target=elsewhere)
+    t.start()
+    t.join()
+    assert np.array_equal(first.mask, got["twin"].mask) and np.array_equal(first.points_m, got["twin"].points_m)
+
+
 def test_point_seed_and_depth_only_fallback():
     scene = SCENES["card"]()
     r = render_scene(scene, seed=4)

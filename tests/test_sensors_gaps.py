@@ -88,3 +88,62 @@ def test_visualizer_status_shows_gaps(tmp_path):
                 time.sleep(0.05)
             state = json.loads(urllib.request.urlopen(viz.url + "state.json", timeout=10).read())
     assert state["status"].endswith("capture gaps: 1 frame(s) lost, 2 zero-filled, 3000 bytes missing")
+
+
+def test_live_scans_carry_their_capture_gaps_to_the_solver_metrics(tmp_path):
+    """Issue 18: radar frames carrying the stream's gap counts (since the stream began) go through
+    the synchronizer and the solver; each scan's metrics (the result message and metrics.json)
+    hold the gaps counted during that scan, under `capture` as a converted scan's focus has them.
+    Scan b's last frame comes after every pose (unpaired): its counts still reach the scan."""
+    import json
+
+    from msgs import Pose
+    from nodes.solver import Solver
+    from nodes.synchronizer import Synchronizer
+    from nodes.testing import Probe, local_broker, running
+    from twinfocus.radar import Chirp
+    from twinfocus.simulate import simulate_if
+
+    chirp = Chirp(n_samples=64)
+    offsets = np.stack([np.linspace(-0.028, 0.028, 8), np.zeros(8), np.zeros(8)], axis=1)
+    period_ns = 50_000_000
+    # (frames lost, zero-filled, bytes lost) since the stream began, on each of the 12 frames
+    counts = [(0, 0, 0), (0, 1, 1000), (0, 1, 1000), (1, 1, 6000), (1, 1, 6000), (1, 1, 6000),  # scan a
+              (2, 1, 11000), (2, 1, 11000), (2, 3, 13000), (2, 3, 13000), (2, 3, 13000), (2, 4, 14000)]  # scan b
+    want = {"a": (1, 1, 6000), "b": (1, 3, 8000)}  # b: from a's last counts to its own
+    stamps = (np.arange(12) + 1) * period_ns
+
+    def y_m(t):  # both scans sweep the same 5 cm (the frames fall on poses)
+        return 0.01 * ((t / period_ns - 1) % 6)
+
+    positions = offsets[None] + np.stack([np.zeros(12), y_m(stamps), np.zeros(12)], axis=1)[:, None]
+    data = simulate_if(np.array([[0.0, 0.025, 0.3]]), np.ones(1), positions, chirp)  # a point in the region
+    frames = []
+    for i, (lost, zero_filled, nbytes) in enumerate(counts):
+        frames.append(RadarFrame(
+            header=Header(int(stamps[i]), 0, "radar"), data=data[i], f0_hz=chirp.f0_hz,
+            slope_hz_per_s=chirp.slope_hz_per_s, fs_hz=chirp.fs_hz, channel_offsets_m=offsets,
+            scan_id="a" if i < 6 else "b", index=i % 6, last=i % 6 == 5,
+            frames_lost=lost, frames_zero_filled=zero_filled, bytes_lost=nbytes))
+    pose_stamps = range(0, 11 * period_ns + period_ns // 2 + 1, period_ns // 2)  # none after the last frame
+    poses = [Pose(header=Header(t, 0, "scene"), position_m=np.array([0.0, y_m(t), 0.0]),
+                  quat_xyzw=np.array([0.0, 0.0, 0.0, 1.0])) for t in pose_stamps]
+    roi = [-0.03, 0.03, -0.005, 0.055, 0.3]
+    with local_broker() as ep:
+        sync = Synchronizer(broker=ep, params={"max_wait_s": 0.5})
+        solver = Solver(broker=ep, params={"reference_roi": roi, "target_roi": roi, "size": 16, "method": "none",
+                                           "out_dir": str(tmp_path), "pictures": False, "warm_up": False})
+        probe = Probe(ep, listen=["autofocus/result"], publish=["vio/pose", "radar/frame"],
+                      wait_for=["synchronizer", "solver"])
+        with running(sync, solver, probe):
+            for p in poses:
+                probe.send("vio/pose", p)
+            for f in frames:
+                probe.send("radar/frame", f)
+            results = probe.wait_for("autofocus/result", 2, timeout_s=60)
+    got = {r.scan_id: r for r in results}
+    assert sorted(got) == ["a", "b"] and got["b"].phase_rad.shape == (5,)
+    for scan_id, (lost, zero_filled, nbytes) in want.items():
+        entry = {"frames_lost": lost, "frames_zero_filled": zero_filled, "bytes_lost": nbytes}
+        assert json.loads((tmp_path / scan_id / "metrics.json").read_text())["capture"] == entry
+        assert {k: got[scan_id].metrics[f"capture.{k}"] for k in entry} == entry

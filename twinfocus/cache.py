@@ -25,7 +25,7 @@ from twinfocus.grid import ImageGrid
 #: environment variable that relocates the cache
 ENV_DIR = "TWINFOCUS_CACHE_DIR"
 #: part of every key: bump when the back-projection or the template builders change their output
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: digital twins with the seeded RANSAC plane and GrabCut
 
 
 def cache_dir() -> Path:

@@ -243,6 +243,7 @@ class _Closing:
 
 def _open_dca1000(args, capture: Path, say):
     from twinfocus.radar import Chirp
+    from twinfocus.sensors.capture_to_scan import stream_gaps
     from twinfocus.sensors.dca1000 import RawFrameLayout
     from twinfocus.sensors.dca1000_files import Dca1000FileCapture, find_cli_json, read_cli_json
     from twinfocus.sensors.ti_cli import RadarCliConfig
@@ -282,7 +283,7 @@ def _open_dca1000(args, capture: Path, say):
         f"frame period {period * 1e3:g} ms)"
     )
     st = cap.stats
-    gaps = {"frames_lost": st.frames_lost, "frames_zero_filled": st.frames_zero_filled, "bytes_lost": st.lost_bytes}
+    gaps = stream_gaps(st.frames_lost, st.frames_zero_filled, st.lost_bytes)
     if st.frames_lost or st.frames_zero_filled:
         say(
             f"capture gaps: {st.frames_lost} frame(s) lost, {st.frames_zero_filled} zero-filled, {st.lost_bytes} bytes lost"

@@ -212,9 +212,9 @@ def _frame_plane(points: np.ndarray, threshold_m: float, rounds: int = 4) -> tup
     """Plane that sets the frame: least squares (SVD), refitted on the points within
     max(threshold, 3 x the residuals' robust sd) of it. Returns (unit normal, centroid, inliers).
 
-    Not open3d's RANSAC ``segment_plane`` (pointcloud.fit_plane): its threads make the inlier set,
-    and with it the frame, change from run to run (measured: curvature 7.2 then 5.2 mm on one
-    cloud); the isolated outliers are already gone here, and a curved surface needs only a frame.
+    Not a RANSAC plane (pointcloud.fit_plane; with open3d's ``segment_plane`` the inlier set, and
+    with it the frame, changed from run to run: curvature 7.2 then 5.2 mm on one cloud): the
+    isolated outliers are already gone here, and a curved surface needs only a frame.
     """
     inl = np.ones(points.shape[0], dtype=bool)
     for _ in range(rounds):

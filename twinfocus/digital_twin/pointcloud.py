@@ -7,8 +7,8 @@ Steps (:func:`reference_point_cloud`):
 2. Remove outliers (open3d statistical outlier removal: points far from their neighbours).
 3. Surface model, only as much as the scene needs. A radar template is an amplitude image whose
    phase depends on depth at the scale of lambda/4 ~ 1 mm, so raw stereo depth noise of that size
-   would turn a flat plate into speckle. If a plane explains the cloud (RANSAC, open3d
-   ``segment_plane``) the points are re-made as the intersections of every masked pixel's ray with
+   would turn a flat plate into speckle. If a plane explains the cloud (RANSAC with a fixed
+   seed, :func:`fit_plane`) the points are re-made as the intersections of every masked pixel's ray with
    that plane: exact outline from the mask, no depth noise. Otherwise the measured points are
    kept ("raw").
 4. Voxel down-sampling to the spacing the radar resolves (:func:`radar_point_spacing`, half the
@@ -110,26 +110,42 @@ def voxel_down_sample(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return np.asarray(_o3d_cloud(points).voxel_down_sample(float(voxel_m)).points)
 
 
-def fit_plane(points: np.ndarray, threshold_m: float, seed: int = 0) -> tuple[np.ndarray, float, np.ndarray]:
-    """RANSAC plane (open3d ``segment_plane``) refined by least squares on its inliers.
+def fit_plane(
+    points: np.ndarray, threshold_m: float, seed: int = 0, iterations: int = 500
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """RANSAC plane (``iterations`` planes through 3 points drawn with ``seed``, the one with
+    most points within ``threshold_m`` metres kept) refined by least squares on its inliers.
 
-    Returns (unit normal (3,), offset d with n . p = d, inlier bool mask (N,)).
+    Not open3d's ``segment_plane``: its threads share out the iterations and stop early as they
+    race, so its plane, and the twin built on it, changed from run to run and with the machine's
+    load (tests/test_batch.py's serial and Dask runs of the same experiment disagreed). This one
+    gives the same plane for the same points and seed.
+
+    points : float (N, 3), metres. Returns (unit normal (3,), offset d with n . p = d, inlier
+    bool mask (N,)).
     """
     check_not_degenerate(points)
-    o3d.utility.random.seed(int(seed))
-    model, idx = _o3d_cloud(points).segment_plane(distance_threshold=float(threshold_m), ransac_n=3, num_iterations=500)
-    inl = np.zeros(points.shape[0], bool)
-    inl[np.asarray(idx, dtype=int)] = True
+    p = np.asarray(points, np.float64)
+    tri = p[np.random.default_rng(int(seed)).integers(0, p.shape[0], size=(int(iterations), 3))]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(normals, axis=1)
+    good = norm > 1e-12 * max(float(np.abs(p).max()), 1e-12) ** 2  # three distinct, non-collinear points
+    normals = normals[good] / norm[good, None]
+    offsets = np.einsum("ij,ij->i", normals, tri[good, 0])
+    counts = np.zeros(normals.shape[0], np.int64)
+    for i in range(0, normals.shape[0], 32):  # 32 planes at a time: N x 32 distances in memory
+        counts[i : i + 32] = (np.abs(p @ normals[i : i + 32].T - offsets[i : i + 32]) <= threshold_m).sum(axis=0)
+    if counts.size == 0:
+        raise TwinFocusError("reference point cloud is degenerate: no three of its points span a plane")
+    best = int(np.argmax(counts))  # the first of equals: the same plane every run
+    n, d = normals[best], float(offsets[best])
+    inl = np.abs(p @ n - d) <= threshold_m
     if inl.sum() >= 3:
-        c = points[inl].mean(axis=0)
-        _, _, vt = np.linalg.svd(points[inl] - c, full_matrices=False)
+        c = p[inl].mean(axis=0)
+        _, _, vt = np.linalg.svd(p[inl] - c, full_matrices=False)
         n = vt[2]
         d = float(n @ c)
-        inl = np.abs(points @ n - d) <= threshold_m
-    else:
-        n = np.asarray(model[:3], dtype=np.float64)
-        s = np.linalg.norm(n)
-        n, d = n / s, -float(model[3]) / s
+        inl = np.abs(p @ n - d) <= threshold_m
     return n, d, inl
 
 

@@ -398,6 +398,10 @@ class ClassicalSegmenter:
         img = np.ascontiguousarray(image_bgr[r0:r1, c0:c1])
         if img.ndim == 2:
             img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+        # GrabCut seeds its colour models with k-means on OpenCV's per-thread random generator:
+        # reset, so the mask does not depend on what this thread ran before (a Dask worker's
+        # thread and a serial run's main thread gave different twins of one scene).
+        cv2.setRNGSeed(0)
         cv2.grabCut(img, gc, None, bgd, fgd, int(cfg.grabcut_iterations), cv2.GC_INIT_WITH_MASK)
         fg = ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)) & outer
         # Keep the parts connected to the depth region (drop specks GrabCut found elsewhere).

@@ -56,6 +56,18 @@ class ConversionReport:
         }
 
 
+def stream_gaps(frames_lost: int, frames_zero_filled: int, bytes_lost: int) -> dict:
+    """A capture board's stream gaps (the DCA1000 assembler's counts: frames of which no byte
+    arrived, frames zero-filled, bytes missing) under the names of the ``capture`` entry of a
+    focus's metrics: ``twinfocus convert`` records a capture's in ``<scan>.capture.json``, the
+    solver node puts a live scan's in its metrics."""
+    return {
+        "frames_lost": int(frames_lost),
+        "frames_zero_filled": int(frames_zero_filled),
+        "bytes_lost": int(bytes_lost),
+    }
+
+
 def capture_report_path(scan_path) -> Path:
     """Where ``twinfocus convert`` records a scan's capture gaps: ``scan.npz`` -> ``scan.capture.json``."""
     p = Path(scan_path)
