@@ -124,6 +124,7 @@ class Solver(Node):
         self.ref_grid = ImageGrid.from_roi(p["reference_roi"], p["size"])
         self.tgt_grid = ImageGrid.from_roi(p["target_roi"], p["size"])
         self.cfg = AutofocusConfig.from_settings(p)  # the device resolved as twinfocus focus resolves it
+        self.tracking_error_m = p["tracking_error_mm"] * 1e-3
         device = self.cfg.device
         self.bp = {"oversample": p["oversample"], "precision": p["precision"]}
         if device != "cpu":
@@ -166,7 +167,7 @@ class Solver(Node):
         chosen = estimator_settings(
             self.params["estimator"],
             bool(np.iscomplexobj(self.template)),
-            self.params["tracking_error_mm"] * 1e-3,
+            self.tracking_error_m,
             chirp.wavelength_m,
         )
         if self.params["loss_steepness"] is not None:
@@ -353,7 +354,7 @@ class Solver(Node):
                     progress_factory=lambda label: progress,
                     phase_ramp=self.params["phase_ramp"],
                     space_variant=self.params["space_variant"],
-                    tracking_error_m=self.params["tracking_error_mm"] * 1e-3,
+                    tracking_error_m=self.tracking_error_m,
                 )
             else:
                 out, tgt_basis = self._focus_bases(s, positions)
@@ -440,7 +441,7 @@ class Solver(Node):
                 progress_factory=lambda label: self._progress,
                 phase_ramp=self.params["phase_ramp"],
                 space_variant=self.params["space_variant"],
-                tracking_error_m=self.params["tracking_error_mm"] * 1e-3,
+                tracking_error_m=self.tracking_error_m,
                 registration_scores=scores,
             )
         out.timings_s["focus_bases"] = time.perf_counter() - t  # autofocus and the rest of the steps

@@ -215,19 +215,19 @@ def run(args: argparse.Namespace) -> int:
     timings["template"] = time.perf_counter() - t
     method = "twin" if template is not None else args.method
     has_phase = template is not None and np.iscomplexobj(template)
+    tracking_error_m = args.tracking_error_mm * 1e-3
     chosen = {}
     if method == "twin":
         chosen = estimator_settings(
             args.estimator,
             has_phase,
-            args.tracking_error_mm * 1e-3,
+            tracking_error_m,
             scan.chirp.wavelength_m,
             has_support=support is not None,
         )
     if args.loss_steepness is not None:
         chosen["loss_steepness"] = args.loss_steepness
-    cfg = AutofocusConfig.from_settings({**vars(args), "device": device}, **chosen)
-    cfg.validate()
+    cfg = AutofocusConfig.from_settings({**vars(args), "device": device}, **chosen)  # validated
 
     outputs = focus_scan(
         scan,
@@ -241,7 +241,7 @@ def run(args: argparse.Namespace) -> int:
         progress_factory=progress,
         phase_ramp=args.phase_ramp,
         space_variant=args.space_variant,
-        tracking_error_m=args.tracking_error_mm * 1e-3,
+        tracking_error_m=tracking_error_m,
     )
     outputs.timings_s = {**timings, **outputs.timings_s}
     outputs.metrics["timings_s"] = outputs.timings_s
