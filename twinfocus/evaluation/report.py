@@ -510,12 +510,42 @@ def _mean_sd(recs: list, key: str) -> str:
     return f"{np.mean(vals):.3f} ± {np.std(vals):.3f}" if vals else "-"
 
 
+#: the field section's tables: (file beside the raw results, intro, [(column, record key)])
+_FIELD_TABLES = (
+    (
+        "field_handheld.json",
+        "**Physical twin under a hand's drift** (H/S 16 degrees apart, 15 dB; hand = 0.8 mm Gauss-Markov drift "
+        "on x/y/z over 2 s + 0.2 mm jitter + 0.15 degree array rotation):",
+        [
+            ("uncorrected", "uncorrected"),
+            ("one phase per position", "closed_form_auto"),
+            ("default (space-variant auto)", "default"),
+            ("reference's true phase", "reference_true_phase"),
+            ("target's own phase", "ceiling_target_phase"),
+        ],
+    ),
+    (
+        "field_twin.json",
+        "**Digital twin from a camera cloud of a rough reference** (A: 0.5 mm z, 15 dB; B: 1 mm z, 10 dB, target "
+        "10 cm deeper; C: 1.6 mm z, 15 dB; cloud: 1 mm noise, 25 % holes, 2 % outliers, 2.5 mm offset):",
+        [
+            ("uncorrected", "uncorrected"),
+            ("paper", "paper"),
+            ("old auto", "old auto"),
+            ("default (outline)", "default (outline)"),
+            ("physical twin", "physical twin"),
+            ("target's own phase", "oracle phase"),
+        ],
+    ),
+)
+
+
 def _section_field(out: Path, lines: list) -> None:
     """Field conditions beyond the paper's protocol, from the benchmarks' figures copied beside
     the raw results (``field_handheld.json``: ``handheld.json`` of ``benchmarks.bench_handheld``, ``field_twin.json``
     from ``benchmarks.bench_field_twin``), when they are there."""
-    hand, field_ = out / "field_handheld.json", out / "field_twin.json"
-    if not hand.is_file() and not field_.is_file():
+    present = [(out / name, intro, cols) for name, intro, cols in _FIELD_TABLES if (out / name).is_file()]
+    if not present:
         return
     lines += [
         "## Field conditions: a hand's drift and rotation, camera clouds of rough references",
@@ -525,70 +555,11 @@ def _section_field(out: Path, lines: list) -> None:
         "own true phase. Details and commands: docs/handheld.md, docs/digital_twin.md.",
         "",
     ]
-    if hand.is_file():
-        doc = json.loads(hand.read_text())
-        rows = [
-            [
-                cond,
-                str(len(recs)),
-                _mean_sd(recs, "uncorrected"),
-                _mean_sd(recs, "closed_form_auto"),
-                _mean_sd(recs, "default"),
-                _mean_sd(recs, "reference_true_phase"),
-                _mean_sd(recs, "ceiling_target_phase"),
-            ]
-            for cond, recs in doc.items()
-        ]
-        lines += [
-            "**Physical twin under a hand's drift** (H/S 16 degrees apart, 15 dB; hand = 0.8 mm Gauss-Markov drift "
-            "on x/y/z over 2 s + 0.2 mm jitter + 0.15 degree array rotation):",
-            "",
-        ]
-        lines += _table(
-            [
-                "condition",
-                "draws",
-                "uncorrected",
-                "one phase per position",
-                "default (space-variant auto)",
-                "reference's true phase",
-                "target's own phase",
-            ],
-            rows,
-        ) + [""]
-    if field_.is_file():
-        doc = json.loads(field_.read_text())
-        rows = [
-            [
-                cond,
-                str(len(recs)),
-                _mean_sd(recs, "uncorrected"),
-                _mean_sd(recs, "paper"),
-                _mean_sd(recs, "old auto"),
-                _mean_sd(recs, "default (outline)"),
-                _mean_sd(recs, "physical twin"),
-                _mean_sd(recs, "oracle phase"),
-            ]
-            for cond, recs in doc.items()
-        ]
-        lines += [
-            "**Digital twin from a camera cloud of a rough reference** (A: 0.5 mm z, 15 dB; B: 1 mm z, 10 dB, target "
-            "10 cm deeper; C: 1.6 mm z, 15 dB; cloud: 1 mm noise, 25 % holes, 2 % outliers, 2.5 mm offset):",
-            "",
-        ]
-        lines += _table(
-            [
-                "condition",
-                "draws",
-                "uncorrected",
-                "paper",
-                "old auto",
-                "default (outline)",
-                "physical twin",
-                "target's own phase",
-            ],
-            rows,
-        ) + [""]
+    for path, intro, cols in present:
+        doc = json.loads(path.read_text())
+        rows = [[cond, str(len(recs))] + [_mean_sd(recs, key) for _, key in cols] for cond, recs in doc.items()]
+        lines += [intro, ""]
+        lines += _table(["condition", "draws"] + [name for name, _ in cols], rows) + [""]
 
 
 def write_report(out_dir, markdown_path=None) -> Path:
