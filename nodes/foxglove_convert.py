@@ -107,6 +107,20 @@ class FoxgloveMessage:
     data: bytes
     log_time_ns: int
 
+    def write_to(self, writer, publish_time_ns: int | None = None) -> None:
+        """Append to a :class:`msgs.mcap_log.LogWriter` on its own schema's channel (publish
+        time: the log time unless given)."""
+        writer.write_encoded(
+            self.topic,
+            self.schema_name,
+            self.schema_encoding,
+            self.schema_data,
+            self.message_encoding,
+            self.data,
+            self.log_time_ns,
+            self.log_time_ns if publish_time_ns is None else publish_time_ns,
+        )
+
 
 def _stamp(stamp_ns: int):
     from foxglove.messages import Timestamp
@@ -352,16 +366,7 @@ def export_log(src, dst, *, overwrite: bool = False, progress=None) -> dict[str,
                 except MessageError as exc:
                     raise TwinFocusError(f"{src}: {exc}") from None
                 for rec in conv.convert(m.topic, msg, m.log_time_ns):
-                    writer.write_encoded(
-                        rec.topic,
-                        rec.schema_name,
-                        rec.schema_encoding,
-                        rec.schema_data,
-                        rec.message_encoding,
-                        rec.data,
-                        rec.log_time_ns,
-                        m.publish_time_ns,
-                    )
+                    rec.write_to(writer, m.publish_time_ns)
                 if progress is not None:
                     progress(done, total)
         os.replace(tmp, dst)

@@ -95,16 +95,7 @@ class Recorder(Node):
     def _record_foxglove(self, topic: str, msg: Any) -> None:
         # graph/status feeds Foxglove's log channel even when the heartbeats themselves are not recorded
         for rec in self._foxglove.convert(topic, msg, now_ns()):
-            self.writer.write_encoded(
-                rec.topic,
-                rec.schema_name,
-                rec.schema_encoding,
-                rec.schema_data,
-                rec.message_encoding,
-                rec.data,
-                rec.log_time_ns,
-                rec.log_time_ns,
-            )
+            rec.write_to(self.writer)
 
     def on_start(self) -> None:
         self.log(f"recording {', '.join(self.params['topics']) or 'all topics'} to {self.writer.path}")
