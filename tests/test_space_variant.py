@@ -88,9 +88,10 @@ def test_bad_inputs_are_named(geometry):
         fit_position_errors(np.zeros((2, m)), -np.ones((2, m)), refs, tracked.mean(axis=1), ch.wavelength_m)
 
 
-@pytest.fixture(scope="module")
-def drifting_scan():
-    """A rough extended reference and a target beside it, scanned with a smooth x/y drift."""
+def _drifting_scan(fast_mm: float = 0.0) -> dict:
+    """A rough extended reference and a target beside it, scanned with a smooth x/y drift (plus,
+    with ``fast_mm``, a wander of that amplitude over 12 positions: faster than knots every 10
+    can follow)."""
     from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.radar import VirtualArray
     from twinfocus.simulate import simulate_if_exact
@@ -102,6 +103,7 @@ def drifting_scan():
     tracked = phase_centres(paper_raster(n_columns=4, n_rows=60, row_pitch_m=0.003), array)
     t = np.arange(tracked.shape[0])
     drift = np.c_[0.8e-3 * np.sin(2 * np.pi * t / 80 + 0.3), 0.6e-3 * np.cos(2 * np.pi * t / 110), np.zeros_like(t)]
+    drift[:, :2] += fast_mm * 1e-3 * np.c_[np.sin(2 * np.pi * t / 12), np.cos(2 * np.pi * t / 12 + 1.0)]
     true = tracked + drift[:, None, :]
     rng = np.random.default_rng(3)
     gx, gy = np.meshgrid(np.linspace(-0.13, -0.03, 6), np.linspace(-0.05, 0.05, 6))
@@ -117,6 +119,11 @@ def drifting_scan():
                 ref_basis=subimage_basis(data, tracked, ch, rg), tgt_basis=subimage_basis(data, tracked, ch, tg),
                 ref_basis_true=subimage_basis(data, true, ch, rg), tgt_basis_true=subimage_basis(data, true, ch, tg),
                 truth_target=backproject(data, true, ch, tg), truth_reference=backproject(data, true, ch, rg))
+
+
+@pytest.fixture(scope="module")
+def drifting_scan():
+    return _drifting_scan()
 
 
 def test_smooth_drift_fit_recovers_an_injected_drift_and_the_targets_phase(drifting_scan):
@@ -186,3 +193,29 @@ def test_space_variant_bad_requests_are_named(drifting_scan):
     with pytest.raises(TwinFocusError, match="needs a template with phase"):
         focus_bases(*args, template=np.abs(s["template"]), config=AutofocusConfig(**estimator_settings("projection", False)),
                     space_variant="on")
+
+
+def test_per_position_refinement_follows_a_drift_faster_than_the_knots():
+    from twinfocus.space_variant import fit_smooth_drift
+    from twinfocus.template_match import correlation_phase
+
+    s = _drifting_scan(fast_mm=0.4)
+    centres = s["tracked"].mean(axis=1)
+    phi0 = correlation_phase(s["ref_basis"], s["template"])
+    args = (s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m)
+
+    def drift_error_mm(dp):
+        e = dp[:, :2] - s["drift"][:, :2]
+        return float(np.sqrt(((e - e.mean(axis=0)) ** 2).mean()) * 1e3)
+
+    _, knots_only, _ = fit_smooth_drift(*args, refine_iterations=0)
+    _, refined, info = fit_smooth_drift(*args)
+    _, stiff, _ = fit_smooth_drift(*args, smoothness_per_mm2=1.0)
+    _, free, _ = fit_smooth_drift(*args, smoothness_per_mm2=0.0)
+    # knots every 10 positions cannot follow a 12-position wander; the per-position stage can
+    assert drift_error_mm(refined) < 0.75 * drift_error_mm(knots_only)
+    # a stiff penalty holds neighbours together: the wander stays out of the estimate; none lets
+    # each position's noise in
+    assert drift_error_mm(stiff) > 1.5 * drift_error_mm(refined)
+    assert drift_error_mm(free) > 1.5 * drift_error_mm(refined)
+    assert info["refine_iterations"] == 100 and info["match_after"] > info["match_before"]

@@ -442,6 +442,8 @@ def _space_variant(
         residual_space_variant=after,
         knot_spacing_positions=fit["knot_spacing_positions"],
         iterations=fit["iterations"],
+        refine_iterations=fit["refine_iterations"],
+        smoothness_per_mm2=fit["smoothness_per_mm2"],
         time_s=fit["time_s"],
         drift_rms_mm=[float(v) for v in np.sqrt((drift[:, :2] ** 2).mean(axis=0)) * 1e3],
     )

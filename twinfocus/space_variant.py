@@ -183,6 +183,8 @@ def fit_smooth_drift(
     iterations: int = 100,
     step_m: float = 2e-5,
     phase_step_rad: float = 0.002,
+    refine_iterations: int = 100,
+    smoothness_per_mm2: float = 1e-4,
     progress: Callable[[int, int, float], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Smooth across-sight drift (and optionally the per-position phase) from one extended
@@ -195,7 +197,11 @@ def fit_smooth_drift(
     over the knot values c of dp's x and y (S: :func:`knot_basis`; along z the line of sight
     barely turns over a region, so phi holds it) with Adam from dp = 0, and phi (one per position)
     from ``phase0_rad`` in small steps. u_{m,p}: unit line of sight from position m to pixel p; u_{m,c}: to the
-    region's centre, where phi is the phase.
+    region's centre, where phi is the phase. Then dp is refined position by position, from the
+    knots' curve, with a penalty ``smoothness_per_mm2`` * sum_m |dp_{m+1} - dp_m|^2 (mm^2) on the
+    correlation: the knots' straight segments miss a hand's wander within 10 positions, and the
+    penalty keeps each position's noise out (handheld draws 1-10, docs/handheld.md: 1e-4 gains
+    0.006 on average over the knots alone; 3e-4 and more pull the drift in, 3e-5 lets noise in).
 
     phi moves in steps ten times smaller than it may: the closed-form scalar phase is already
     near the best one phase per position, and 780 phases moving as fast as the drift fit the
@@ -211,11 +217,14 @@ def fit_smooth_drift(
     knot_spacing : positions between knots (a hand's drift stays correlated over ~20 positions of
     a 10 Hz sweep, and wanders within that: knots every 10 follow it better than every 20);
     iterations, step_m : Adam's iterations and step on the knots, metres; phase_step_rad : Adam's
-    step on phi, radians (0: phi fixed).
+    step on phi, radians (0: phi fixed); refine_iterations : the per-position stage's iterations
+    (same steps; 0: the knots' curve as it is); smoothness_per_mm2 : its penalty weight, per mm^2
+    of squared step between neighbours (against a correlation of at most 1).
 
     Returns (phase float64 (M,) radians at the region's centre (``phase0_rad`` when phi is
     fixed), dp float64 (M, 3) metres in the
-    correction's sense (z is 0), info: ``match_before`` / ``match_after`` (the correlation), ``time_s``).
+    correction's sense (z is 0), info: ``match_before`` / ``match_after`` (the correlation), the
+    settings, ``time_s``).
     Memory: about 40 bytes per position and pixel (0.3 GB at 780 x 100 x 100).
     """
     import torch
@@ -251,32 +260,51 @@ def fit_smooth_drift(
         [{"params": [coef], "lr": step_m}] + ([{"params": [phase], "lr": phase_step_rad}] if phase_step_rad > 0 else [])
     )
 
-    def match() -> torch.Tensor:
-        theta = phase[:, None] + (at * (s @ coef)[:, None, :]).sum(-1)
+    def match(dp: torch.Tensor) -> torch.Tensor:
+        theta = phase[:, None] + (at * dp[:, None, :]).sum(-1)
         cs, sn = torch.cos(theta), torch.sin(theta)
         ir = (cs * br - sn * bi).sum(0)
         ii = (sn * br + cs * bi).sum(0)
         return (ir * tr + ii * ti).sum() / (torch.sqrt((ir * ir + ii * ii).sum()) * t_norm)
 
-    before = after = float("nan")
+    total = int(iterations) + int(refine_iterations)
+    before = float("nan")
     for it in range(int(iterations)):
-        corr = match()
+        corr = match(s @ coef)
         if it == 0:
             before = float(corr.detach())
         opt.zero_grad()
         (-corr).backward()
         opt.step()
         if progress is not None:
-            progress(it + 1, int(iterations), -float(corr.detach()))
+            progress(it + 1, total, -float(corr.detach()))
+    # Per-position refinement: the knots' straight segments cannot follow a drift that wanders
+    # within 10 positions; a penalty on the step between neighbours keeps the noise out.
+    drift = (s @ coef).detach().clone().requires_grad_(True)
+    opt = torch.optim.Adam(
+        [{"params": [drift], "lr": step_m}] + ([{"params": [phase], "lr": phase_step_rad}] if phase_step_rad > 0 else [])
+    )
+    for it in range(int(refine_iterations)):
+        corr = match(drift)
+        if it == 0 and not iterations:
+            before = float(corr.detach())
+        penalty = float(smoothness_per_mm2) * ((drift[1:] - drift[:-1]) * 1e3).pow(2).sum()
+        opt.zero_grad()
+        (penalty - corr).backward()
+        opt.step()
+        if progress is not None:
+            progress(int(iterations) + it + 1, total, -float(corr.detach()))
     with torch.no_grad():
-        after = float(match()) if iterations else before
+        after = float(match(drift)) if total else before
     dp = np.zeros((m, 3))
-    dp[:, :2] = (s @ coef).detach().numpy()
+    dp[:, :2] = drift.detach().numpy()
     info = {
         "match_before": before,
         "match_after": after,
         "knot_spacing_positions": int(knot_spacing),
         "iterations": int(iterations),
+        "refine_iterations": int(refine_iterations),
+        "smoothness_per_mm2": float(smoothness_per_mm2),
         "phase_fitted": phase_step_rad > 0,
         "time_s": time.perf_counter() - t0,
     }
