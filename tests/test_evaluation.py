@@ -177,6 +177,7 @@ def test_method_stats_is_the_ratio_of_paired_means():
            {**_rec("c", "A>B", 0, "digital", None), "status": "failed: no twin"}, _rec("c", "A>B", 1, "digital", 0.84)]
     st = method_stats(rec, "c")
     assert st["none"]["mean"] == pytest.approx(0.6)
+    assert st["none"]["sd"] == pytest.approx(0.1)  # population sd of 0.5 and 0.7, as every table shows
     assert st["physical"]["improvement_pct"] == pytest.approx((0.85 / 0.6 - 1) * 100)
     assert st["physical"]["gain"] == pytest.approx(0.25)
     # digital: only draw 1 ran, paired with none's draw 1
@@ -224,6 +225,10 @@ def test_quick_benchmark_end_to_end(tmp_path):
     report = (out / "report.md").read_text()
     assert "| physical twin | 0.85 | +41.7 %" in report  # the paper's number beside ours
     assert "Table 1 of the paper" in report and "## Limits" in report
+    # a row of more than one sample: mean ± sd of its records
+    vals = [r["ssim"] for r in base if r["method"] == "physical" and r["status"] == "ok"]
+    row = next(line for line in report.splitlines() if line.startswith("| physical twin |"))
+    assert len(vals) > 1 and f"| {np.mean(vals):.3f} ± {np.std(vals):.3f} |" in row
     for png in out.glob("*.png"):
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # A second call keeps finished experiments and rewrites the report.

@@ -32,7 +32,8 @@ def _draw_key(r) -> tuple:
 
 
 def method_stats(records: list[dict], condition: str) -> dict:
-    """{method: {n, mean, sem, hog, failed, improvement_pct, gain}} for one condition.
+    """{method: {n, mean, sd, sem, hog, failed, improvement_pct, gain}} for one condition (sd: the
+    samples' standard deviation, ddof 0; sem: the mean's standard error).
 
     improvement_pct = mean(method) / mean(none) - 1 over the draws where both ran (paired), in %;
     gain = the same as a difference of means.
@@ -52,6 +53,7 @@ def method_stats(records: list[dict], condition: str) -> dict:
             "n": len(ok),
             "failed": len(mr) - len(ok),
             "mean": float(vals.mean()) if vals.size else None,
+            "sd": float(vals.std()) if vals.size > 1 else None,
             "sem": float(vals.std(ddof=1) / math.sqrt(vals.size)) if vals.size > 1 else None,
             "hog": float(hog.mean()) if hog.size else None,
         }
@@ -64,13 +66,19 @@ def method_stats(records: list[dict], condition: str) -> dict:
     return out
 
 
-def draw_means(records: list[dict], condition: str, field: str) -> float | None:
-    """Mean over the condition's draws of a per-draw field (each draw counted once)."""
+def draw_values(records: list[dict], condition: str, field: str) -> np.ndarray:
+    """A per-draw field's values over the condition's draws (each draw counted once): float (n,)."""
     seen = {}
     for r in records:
         if r["condition"] == condition and r.get(field) is not None:
             seen[_draw_key(r)] = r[field]
-    return float(np.mean(list(seen.values()))) if seen else None
+    return np.array(list(seen.values()), float)
+
+
+def draw_means(records: list[dict], condition: str, field: str) -> float | None:
+    """Mean over the condition's draws of a per-draw field (each draw counted once)."""
+    v = draw_values(records, condition, field)
+    return float(v.mean()) if v.size else None
 
 
 def method_mean(records: list[dict], condition: str, method: str, field: str) -> float | None:
