@@ -256,9 +256,13 @@ def fit_smooth_drift(
     s = torch.from_numpy(knot_basis(m, int(knot_spacing)).astype(np.float32))
     coef = torch.zeros(s.shape[1], 2, requires_grad=True)
     phase = torch.tensor(np.asarray(phase0_rad, np.float32), requires_grad=phase_step_rad > 0)
-    opt = torch.optim.Adam(
-        [{"params": [coef], "lr": step_m}] + ([{"params": [phase], "lr": phase_step_rad}] if phase_step_rad > 0 else [])
-    )
+
+    def adam(drift_parameter: torch.Tensor) -> torch.optim.Adam:
+        """Adam on the drift (metres) and, when it moves, phi (radians), each at its own step."""
+        phase_group = [{"params": [phase], "lr": phase_step_rad}] if phase_step_rad > 0 else []
+        return torch.optim.Adam([{"params": [drift_parameter], "lr": step_m}] + phase_group)
+
+    opt = adam(coef)
 
     def match(dp: torch.Tensor) -> torch.Tensor:
         theta = phase[:, None] + (at * dp[:, None, :]).sum(-1)
@@ -281,9 +285,7 @@ def fit_smooth_drift(
     # Per-position refinement: the knots' straight segments cannot follow a drift that wanders
     # within 10 positions; a penalty on the step between neighbours keeps the noise out.
     drift = (s @ coef).detach().clone().requires_grad_(True)
-    opt = torch.optim.Adam(
-        [{"params": [drift], "lr": step_m}] + ([{"params": [phase], "lr": phase_step_rad}] if phase_step_rad > 0 else [])
-    )
+    opt = adam(drift)
     for it in range(int(refine_iterations)):
         corr = match(drift)
         if it == 0 and not iterations:
