@@ -132,19 +132,20 @@ def test_thread_budget_shares_each_host_among_its_workers():
 
 @pytest.mark.slow
 def test_bench_on_dask_equals_the_serial_run(tmp_path):
-    """The same experiments through two Dask workers give the records of a serial run (same seeds).
+    """The same experiments through two Dask workers, one task per scene (the baseline's two pairs
+    are two tasks, merged), give the records of a serial run (same seeds).
     The serial run is its own process, as a ``twinfocus bench`` is: a second evaluation in one
     process has been seen to differ from the first by up to 0.4 % SSIM (state a run leaves behind;
     see docs/batch.md), so comparing against this test process's history would test that instead."""
     from twinfocus.evaluation.experiments import paper_experiments
     from twinfocus.evaluation.runner import quick_settings, run_experiments
 
-    exps = paper_experiments(quick=True, only=["tracking_error"])
+    exps = paper_experiments(quick=True, only=["baseline", "tracking_error"])
     for name in ("serial", "dask"):
         (tmp_path / name).mkdir()
     code = ("import sys; from pathlib import Path; from twinfocus.evaluation.experiments import paper_experiments; "
             "from twinfocus.evaluation.runner import quick_settings, run_experiments; "
-            "sys.exit(len(run_experiments(paper_experiments(quick=True, only=['tracking_error']), quick_settings(), "
+            "sys.exit(len(run_experiments(paper_experiments(quick=True, only=['baseline', 'tracking_error']), quick_settings(), "
             "Path(sys.argv[1]), log=lambda m: None)))")
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     subprocess.run([sys.executable, "-c", code, str(tmp_path / "serial")], env=env, check=True, timeout=600)
@@ -156,6 +157,10 @@ def test_bench_on_dask_equals_the_serial_run(tmp_path):
     for exp in exps:
         a, b = (json.loads((tmp_path / n / f"{exp.name}.json").read_text()) for n in ("serial", "dask"))
         assert len(a["records"]) > 0 and strip(a) == strip(b)
+        assert [sc["pair"] for sc in a["scenes"]] == [sc["pair"] for sc in b["scenes"]]
+    # the baseline ran as one task per pair, and the merged result keeps the first pair's examples
+    base = json.loads((tmp_path / "dask" / "baseline.json").read_text())
+    assert len(base["scenes"]) >= 2 and (tmp_path / "dask" / "baseline_examples.npz").is_file()
 
 
 @pytest.mark.slow

@@ -65,9 +65,19 @@ def _scene_units(exp: Experiment) -> list[dict]:
 EXAMPLE_EXPERIMENTS = ("baseline", "nlos", "handheld")
 
 
-def run_experiment(exp: Experiment, settings: EvalSettings, template_cache: dict | None = None, log=_log) -> dict:
+def run_experiment(
+    exp: Experiment,
+    settings: EvalSettings,
+    template_cache: dict | None = None,
+    log=_log,
+    units: list[int] | None = None,
+) -> dict:
     """Run one experiment; returns {"definition", "settings", "records", "scenes", "seconds",
     "examples"}.
+
+    units : indices into the experiment's scenes (pairs and scene fields, :func:`_scene_units`) to
+    run, default all; every draw's seed comes from the definition, so the parts of a split run
+    concatenated in scene order (:func:`merge_parts`) are the whole run's records.
 
     A record is one (condition, pair, draw, method): the method's metrics plus the draw's shared
     fields (:func:`twinfocus.evaluation.cases.draw_shared`). ``examples`` (experiments of
@@ -79,10 +89,12 @@ def run_experiment(exp: Experiment, settings: EvalSettings, template_cache: dict
     records: list[dict] = []
     scenes: list[dict] = []
     examples: dict = {}
-    units = _scene_units(exp)
-    total = sum(len(u["conditions"]) for u in units) * exp.draws
+    all_units = _scene_units(exp)
+    chosen = range(len(all_units)) if units is None else units
+    total = sum(len(all_units[i]["conditions"]) for i in chosen) * exp.draws
     done = 0
-    for i, unit in enumerate(units):
+    for i in chosen:
+        unit = all_units[i]
         ref, tgt = unit["pair"]
         sc = EvalScenario(
             reference=ref,
@@ -163,7 +175,7 @@ def run_experiment(exp: Experiment, settings: EvalSettings, template_cache: dict
                         for r in recs
                     )
                     log(
-                        f"[{exp.name}] {done}/{total} scene {i + 1}/{len(units)} {ref}>{tgt} {c.label} draw {d + 1}: "
+                        f"[{exp.name}] {done}/{total} scene {i + 1}/{len(all_units)} {ref}>{tgt} {c.label} draw {d + 1}: "
                         f"{summary} ({time.perf_counter() - t_start:.0f} s)"
                     )
                 del bases
@@ -194,12 +206,25 @@ def _save_examples(path: Path, examples: dict) -> None:
         np.savez_compressed(f, meta=np.array(meta), **arrays)  # type: ignore[arg-type]  # numpy stubs type **kwds as the flag
 
 
-def _experiment_task(exp: Experiment, threads, settings: EvalSettings) -> dict:
-    """One experiment on a Dask worker (threads limited to its share of the machine)."""
+def merge_parts(parts: list[dict]) -> dict:
+    """One experiment's result from its parts (:func:`run_experiment` on disjoint ``units``), given
+    in scene order: records and scenes concatenated, the first part's examples, seconds summed
+    (compute time, not wall time)."""
+    out = dict(parts[0])
+    out["records"] = [r for p in parts for r in p["records"]]
+    out["scenes"] = [sc for p in parts for sc in p["scenes"]]
+    out["seconds"] = sum(p["seconds"] for p in parts)
+    out["examples"] = next((p["examples"] for p in parts if p.get("examples")), {})
+    return out
+
+
+def _experiment_task(part: tuple[Experiment, int], threads, settings: EvalSettings) -> dict:
+    """One scene of an experiment on a Dask worker (threads limited to its share of the machine)."""
     from twinfocus.cluster import limit_threads
 
     limit_threads(threads)
-    return run_experiment(exp, settings, None, log=lambda msg: None)
+    exp, unit = part
+    return run_experiment(exp, settings, None, log=lambda msg: None, units=[unit])
 
 
 def run_experiments(
@@ -216,7 +241,8 @@ def run_experiments(
     already there with the same definition and settings when ``resume``.
 
     cluster : None runs them here one after the other; ``{"scheduler": ...}`` or ``{"workers": N}``
-        spreads them over Dask workers, one experiment per task. Every draw's seed comes from the
+        spreads them over Dask workers, one scene (pair) of an experiment per task, merged per
+        experiment once all its scenes are back (:func:`merge_parts`). Every draw's seed comes from the
         experiment's definition (:func:`twinfocus.evaluation.cases.draw_seed`), so the records are
         the serial run's. A task that fails is logged and returned as {"experiment", "error"}; the
         others go on.
@@ -249,16 +275,30 @@ def run_experiments(
         return failed
     from twinfocus.cluster import dask_client, run_tasks
 
-    def on_result(exp, res, err):
-        if err is not None:
-            log(f"[{exp.name}] failed: {err}")
-            failed.append({"experiment": exp.name, "error": err})
-        else:
-            keep(exp, res)
+    parts = [(exp, u) for exp in pending for u in range(len(_scene_units(exp)))]
+    got: dict[str, dict[int, dict]] = {exp.name: {} for exp in pending}
+    errors: dict[str, str] = {}
 
-    log(f"[bench] {len(pending)} experiments as Dask tasks ({sum(e.n_draws() for e in pending)} draws)")
+    def on_result(part, res, err):
+        exp, unit = part
+        if err is not None:
+            log(f"[{exp.name}] scene {unit + 1} failed: {err}")
+            errors.setdefault(exp.name, err)
+            return
+        got[exp.name][unit] = res
+        n = len(_scene_units(exp))
+        if len(got[exp.name]) == n and exp.name not in errors:
+            keep(exp, merge_parts([got[exp.name][u] for u in range(n)]))
+
+    log(
+        f"[bench] {len(pending)} experiments as {len(parts)} Dask tasks, one per scene "
+        f"({sum(e.n_draws() for e in pending)} draws)"
+    )
     with dask_client(cluster.get("scheduler"), cluster.get("workers"), log) as client:
-        run_tasks(client, _experiment_task, pending, [f"bench-{e.name}" for e in pending], on_result, extra=(settings,))
+        run_tasks(
+            client, _experiment_task, parts, [f"bench-{exp.name}-{u}" for exp, u in parts], on_result, extra=(settings,)
+        )
+    failed.extend({"experiment": name, "error": err} for name, err in errors.items())
     return failed
 
 
