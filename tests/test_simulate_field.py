@@ -70,3 +70,15 @@ def test_simulation_cost_covers_the_arrays_it_makes():
     peak, secs = simulation_cost(5, 7, Chirp().n_samples, 1)
     assert peak >= data.nbytes * 2 and secs > 0  # result plus at least one noise transient
     assert simulation_cost(10, 7, 256, 1)[0] == 2 * simulation_cost(5, 7, 256, 1)[0]
+
+
+def test_render_and_simulate_read_the_same_layout_options(tmp_path, capsys):
+    """``twinfocus render`` takes the scene's layout from the options ``simulate`` takes: the regions
+    it prints are the scenario's own for the same options."""
+    layout = ["--reference", "H", "--target", "S", "--distance", "0.5", "--separation-deg", "14", "--height", "0.1"]
+    assert main(["render", "--out", str(tmp_path / "cam"), "--width", "160", "--height-px", "90", *layout]) == 0
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    sc = Scenario(reference="H", target="S", distance_m=0.5, separation_deg=14.0, height_m=0.1)
+    assert printed["reference_roi"] == pytest.approx(list(sc.reference_roi()))
+    assert printed["target_roi"] == pytest.approx(list(sc.target_roi()))
+    assert (tmp_path / "cam" / "camera.json").is_file()

@@ -8,20 +8,13 @@ import argparse
 import json
 import sys
 
+from twinfocus.cli.simulate import add_layout_arguments, layout_kwargs
 from twinfocus.errors import TwinFocusError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--reference", default="A", help="reference letter (default A)")
-    p.add_argument("--target", default="F", help="target letter (default F)")
-    p.add_argument("--distance", type=float, default=0.6, help="object distance, metres (default 0.6)")
-    p.add_argument("--separation-deg", type=float, default=10.0, help="reference-target angle (default 10)")
-    p.add_argument("--height", type=float, default=0.127, help="letter height, metres (default 0.127)")
-    p.add_argument("--target-height", type=float, default=None, help="target letter height if different")
-    p.add_argument("--reference-material", default="metal")
-    p.add_argument("--target-material", default="metal")
-    p.add_argument("--occluder", default=None, help="sheet in front of the target: polyester, paper, plastic, ...")
+    add_layout_arguments(p)
     p.add_argument("--width", type=int, default=1280, help="picture width (default 1280, ZED 2i HD720)")
     p.add_argument("--height-px", type=int, default=720, help="picture height (default 720)")
     p.add_argument(
@@ -54,17 +47,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.noise_dn < 0:
         raise TwinFocusError(f"--noise-dn must be >= 0, got {args.noise_dn}")
-    sc = Scenario(
-        reference=args.reference,
-        target=args.target,
-        distance_m=args.distance,
-        separation_deg=args.separation_deg,
-        height_m=args.height,
-        target_height_m=args.target_height,
-        reference_material=args.reference_material,
-        target_material=args.target_material,
-        occluder=args.occluder,
-    )
+    sc = Scenario(**layout_kwargs(args))
     position = (
         DEFAULT_LEFT_CAMERA_POSITION_M
         if args.camera_position_mm is None

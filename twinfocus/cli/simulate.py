@@ -12,9 +12,9 @@ from twinfocus.errors import TwinFocusError
 from twinfocus.motion import ERROR_MODELS
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", required=True, help="scan file to write (.npz)")
-    p.add_argument("--template-out", help="also write the reference's motion-stage scan here (.npz)")
+def add_layout_arguments(p: argparse.ArgumentParser) -> None:
+    """The scene's layout (letters, distance, angle, sizes, materials, occluder), shared with
+    ``twinfocus render`` so that both see the same scene from the same options."""
     p.add_argument("--reference", default="A", help="reference letter (default A)")
     p.add_argument("--target", default="F", help="target letter (default F)")
     p.add_argument("--distance", type=float, default=0.6, help="object distance, metres (default 0.6)")
@@ -24,6 +24,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reference-material", default="metal")
     p.add_argument("--target-material", default="metal")
     p.add_argument("--occluder", default=None, help="sheet in front of the target: polyester, paper, plastic, ...")
+
+
+def layout_kwargs(args: argparse.Namespace) -> dict:
+    """:class:`twinfocus.scenario.Scenario` keywords from :func:`add_layout_arguments`' options."""
+    return dict(
+        reference=args.reference,
+        target=args.target,
+        distance_m=args.distance,
+        separation_deg=args.separation_deg,
+        height_m=args.height,
+        target_height_m=args.target_height,
+        reference_material=args.reference_material,
+        target_material=args.target_material,
+        occluder=args.occluder,
+    )
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", required=True, help="scan file to write (.npz)")
+    p.add_argument("--template-out", help="also write the reference's motion-stage scan here (.npz)")
+    add_layout_arguments(p)
     p.add_argument("--clutter", action="store_true", help="add room clutter (weak and a few strong scatterers)")
     p.add_argument("--trajectory", choices=["raster", "zigzag"], default="raster")
     p.add_argument(
@@ -144,15 +165,7 @@ def run(args: argparse.Namespace) -> int:
             raise TwinFocusError(f"--{name.replace('_', '-')} takes one number or three (x y z)")
     snr = None if np.isinf(args.snr_db) else args.snr_db
     sc = Scenario(
-        reference=args.reference,
-        target=args.target,
-        distance_m=args.distance,
-        separation_deg=args.separation_deg,
-        height_m=args.height,
-        target_height_m=args.target_height,
-        reference_material=args.reference_material,
-        target_material=args.target_material,
-        occluder=args.occluder,
+        **layout_kwargs(args),
         clutter=args.clutter,
         trajectory=args.trajectory,
         error_model=args.error_model,

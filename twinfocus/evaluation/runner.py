@@ -287,6 +287,7 @@ def run_experiments(
             return
         got[exp.name][unit] = res
         n = len(_scene_units(exp))
+        log(f"[{exp.name}] {len(got[exp.name])}/{n} scenes done ({res['seconds'] / 60:.1f} min this one)")
         if len(got[exp.name]) == n and exp.name not in errors:
             keep(exp, merge_parts([got[exp.name][u] for u in range(n)]))
 
