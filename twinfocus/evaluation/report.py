@@ -579,8 +579,9 @@ def write_report(out_dir, markdown_path=None) -> Path:
     machine = run.get("machine", {})
     lines = ["# TwinFocus evaluation: the paper's experiments in simulation", ""]
     lines += [
-        "Regenerate: `make bench-paper` (= `twinfocus bench paper --out docs/results --markdown docs/results.md`; "
-        "add `--resume` to keep finished experiments, `--draws 5` for the paper's five error draws). "
+        "Regenerate: `make bench-paper` (= `twinfocus bench paper --draws 5 --workers 2 --out docs/results "
+        "--markdown docs/results.md`: the paper's five error draws on two Dask workers; add `--resume` to keep "
+        "finished experiments). "
         f"Last invocation: `{run.get('command') or 'twinfocus bench paper'}`.",
         "",
     ]
