@@ -257,13 +257,6 @@ def fit_smooth_drift(
     coef = torch.zeros(s.shape[1], 2, requires_grad=True)
     phase = torch.tensor(np.asarray(phase0_rad, np.float32), requires_grad=phase_step_rad > 0)
 
-    def adam(drift_parameter: torch.Tensor) -> torch.optim.Adam:
-        """Adam on the drift (metres) and, when it moves, phi (radians), each at its own step."""
-        phase_group = [{"params": [phase], "lr": phase_step_rad}] if phase_step_rad > 0 else []
-        return torch.optim.Adam([{"params": [drift_parameter], "lr": step_m}] + phase_group)
-
-    opt = adam(coef)
-
     def match(dp: torch.Tensor) -> torch.Tensor:
         theta = phase[:, None] + (at * dp[:, None, :]).sum(-1)
         cs, sn = torch.cos(theta), torch.sin(theta)
@@ -272,30 +265,32 @@ def fit_smooth_drift(
         return (ir * tr + ii * ti).sum() / (torch.sqrt((ir * ir + ii * ii).sum()) * t_norm)
 
     total = int(iterations) + int(refine_iterations)
-    before = float("nan")
-    for it in range(int(iterations)):
-        corr = match(s @ coef)
-        if it == 0:
-            before = float(corr.detach())
-        opt.zero_grad()
-        (-corr).backward()
-        opt.step()
-        if progress is not None:
-            progress(it + 1, total, -float(corr.detach()))
+    matches: list[float] = []  # the correlation before each step, over both stages
+
+    def descend(parameter: torch.Tensor, drift_of: Callable[[], torch.Tensor], steps: int, smoothness: float) -> None:
+        """Adam on ``parameter`` (metres) and, when it moves, phi (radians), each at its own step,
+        maximising the correlation less ``smoothness`` * sum |dp_{m+1} - dp_m|^2 (mm^2)."""
+        phase_group = [{"params": [phase], "lr": phase_step_rad}] if phase_step_rad > 0 else []
+        opt = torch.optim.Adam([{"params": [parameter], "lr": step_m}] + phase_group)
+        for _ in range(int(steps)):
+            dp = drift_of()
+            corr = match(dp)
+            matches.append(float(corr.detach()))
+            loss = -corr
+            if smoothness:
+                loss = smoothness * ((dp[1:] - dp[:-1]) * 1e3).pow(2).sum() + loss
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            if progress is not None:
+                progress(len(matches), total, -matches[-1])
+
+    descend(coef, lambda: s @ coef, iterations, 0.0)
     # Per-position refinement: the knots' straight segments cannot follow a drift that wanders
     # within 10 positions; a penalty on the step between neighbours keeps the noise out.
     drift = (s @ coef).detach().clone().requires_grad_(True)
-    opt = adam(drift)
-    for it in range(int(refine_iterations)):
-        corr = match(drift)
-        if it == 0 and not iterations:
-            before = float(corr.detach())
-        penalty = float(smoothness_per_mm2) * ((drift[1:] - drift[:-1]) * 1e3).pow(2).sum()
-        opt.zero_grad()
-        (penalty - corr).backward()
-        opt.step()
-        if progress is not None:
-            progress(int(iterations) + it + 1, total, -float(corr.detach()))
+    descend(drift, lambda: drift, refine_iterations, float(smoothness_per_mm2))
+    before = matches[0] if matches else float("nan")
     with torch.no_grad():
         after = float(match(drift)) if total else before
     dp = np.zeros((m, 3))
