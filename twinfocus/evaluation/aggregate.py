@@ -31,6 +31,13 @@ def _draw_key(r) -> tuple:
     return (r["condition"], r["pair"], r["draw"])
 
 
+def mean_sd(values: np.ndarray) -> tuple[float | None, float | None]:
+    """(mean, standard deviation with ddof 0) of ``values``; None for the mean of none and the sd
+    of fewer than two."""
+    v = np.asarray(values, float)
+    return (float(v.mean()) if v.size else None, float(v.std()) if v.size > 1 else None)
+
+
 def method_stats(records: list[dict], condition: str) -> dict:
     """{method: {n, mean, sd, sem, hog, failed, improvement_pct, gain}} for one condition (sd: the
     samples' standard deviation, ddof 0; sem: the mean's standard error).
@@ -49,11 +56,12 @@ def method_stats(records: list[dict], condition: str) -> dict:
         vals = np.array([r["ssim"] for r in ok], float)
         hog = np.array([r["hog"] for r in ok if r.get("hog") is not None], float)
         paired = [(r["ssim"], none[_draw_key(r)]) for r in ok if _draw_key(r) in none]
+        mean, sd = mean_sd(vals)
         e = {
             "n": len(ok),
             "failed": len(mr) - len(ok),
-            "mean": float(vals.mean()) if vals.size else None,
-            "sd": float(vals.std()) if vals.size > 1 else None,
+            "mean": mean,
+            "sd": sd,
             "sem": float(vals.std(ddof=1) / math.sqrt(vals.size)) if vals.size > 1 else None,
             "hog": float(hog.mean()) if hog.size else None,
         }
@@ -77,8 +85,7 @@ def draw_values(records: list[dict], condition: str, field: str) -> np.ndarray:
 
 def draw_means(records: list[dict], condition: str, field: str) -> float | None:
     """Mean over the condition's draws of a per-draw field (each draw counted once)."""
-    v = draw_values(records, condition, field)
-    return float(v.mean()) if v.size else None
+    return mean_sd(draw_values(records, condition, field))[0]
 
 
 def method_mean(records: list[dict], condition: str, method: str, field: str) -> float | None:

@@ -24,6 +24,7 @@ from twinfocus.evaluation.aggregate import (
     crossing,
     draw_values,
     limit_rows,
+    mean_sd,
     method_mean,
     method_stats,
     methods_in,
@@ -87,7 +88,7 @@ def _pct(v) -> str:
 
 
 def _mean_sd_cell(mean: float | None, sd: float | None) -> str:
-    """ "mean ± sd", or the mean alone from one sample."""
+    """The cell "mean ± sd", or the mean alone (one sample: no sd)."""
     return _f(mean) + ("" if sd is None or mean is None else f" ± {sd:.3f}")
 
 
@@ -221,15 +222,14 @@ def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
         ("ssim_oracle_transfer", "ceiling: reference's true phase transferred"),
         ("ssim_oracle_target", "ceiling: target's true phase"),
     ):
-        vals = draw_values(rec, cond, field)
-        v = float(vals.mean()) if vals.size else None
+        v, sd = mean_sd(draw_values(rec, cond, field))
         none = st.get("none", {}).get("mean")
         rows.append(
             [
                 f"*{lab}*",
                 "-",
                 "-",
-                _mean_sd_cell(v, float(vals.std()) if vals.size > 1 else None),
+                _mean_sd_cell(v, sd),
                 _pct(None if (v is None or not none) else (v / none - 1) * 100),
                 "-",
                 "-",

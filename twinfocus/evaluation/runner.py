@@ -275,7 +275,8 @@ def run_experiments(
         return failed
     from twinfocus.cluster import dask_client, run_tasks
 
-    parts = [(exp, u) for exp in pending for u in range(len(_scene_units(exp)))]
+    n_scenes = {exp.name: len(_scene_units(exp)) for exp in pending}
+    parts = [(exp, u) for exp in pending for u in range(n_scenes[exp.name])]
     got: dict[str, dict[int, dict]] = {exp.name: {} for exp in pending}
     errors: dict[str, str] = {}
 
@@ -286,7 +287,7 @@ def run_experiments(
             errors.setdefault(exp.name, err)
             return
         got[exp.name][unit] = res
-        n = len(_scene_units(exp))
+        n = n_scenes[exp.name]
         log(f"[{exp.name}] {len(got[exp.name])}/{n} scenes done ({res['seconds'] / 60:.1f} min this one)")
         if len(got[exp.name]) == n and exp.name not in errors:
             keep(exp, merge_parts([got[exp.name][u] for u in range(n)]))
