@@ -310,3 +310,9 @@ def test_report_adds_the_field_conditions_from_the_benchmarks_figures(tmp_path):
     row = next(line for line in lines if line.startswith("| hand"))
     # mean ± population sd of the draws, as every table of the report
     assert "| 2 | 0.550 ± 0.050 |" in row and "0.910 ± 0.010" in row
+    # one draw has no spread: the value alone, as in the other tables
+    (tmp_path / "field_handheld.json").write_text(json.dumps({"hand": hand["hand"][:1]}))
+    lines = []
+    _section_field(tmp_path, lines)
+    row = next(line for line in lines if line.startswith("| hand"))
+    assert "| 1 | 0.500 | 0.800 | 0.900 |" in row and "±" not in row

@@ -511,9 +511,9 @@ def _section_trade(doc: dict, out: Path, md: Path, lines: list[str], machine: di
     return {"means": means, "presets": presets}
 
 
-def _mean_sd(recs: list, key: str) -> str:
-    vals = [r[key] for r in recs if key in r]
-    return f"{np.mean(vals):.3f} ± {np.std(vals):.3f}" if vals else "-"
+def _field_cell(recs: list, key: str) -> str:
+    """The cell of ``key`` over the draws that have it: mean ± sd, the value alone for one draw."""
+    return _mean_sd_cell(*mean_sd(np.array([r[key] for r in recs if key in r])))
 
 
 #: the field section's tables: (file beside the raw results, intro, [(column, record key)])
@@ -563,7 +563,7 @@ def _section_field(out: Path, lines: list) -> None:
     ]
     for path, intro, cols in present:
         doc = json.loads(path.read_text())
-        rows = [[cond, str(len(recs))] + [_mean_sd(recs, key) for _, key in cols] for cond, recs in doc.items()]
+        rows = [[cond, str(len(recs))] + [_field_cell(recs, key) for _, key in cols] for cond, recs in doc.items()]
         lines += [intro, ""]
         lines += _table(["condition", "draws"] + [name for name, _ in cols], rows) + [""]
 
