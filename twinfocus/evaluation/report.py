@@ -526,6 +526,7 @@ _FIELD_TABLES = (
             ("uncorrected", "uncorrected"),
             ("one phase per position", "closed_form_auto"),
             ("default (space-variant auto)", "default"),
+            ("default, the scan's mean error taken out (diagnostic)", "default_mean_offset_removed"),
             ("reference's true phase", "reference_true_phase"),
             ("target's own phase", "ceiling_target_phase"),
         ],
