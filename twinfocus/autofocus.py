@@ -71,6 +71,11 @@ class AutofocusConfig:
     #: needs ``twin_autofocus(support=...)``). None needs unwrapping; with ``iterations=0`` the
     #: start is the whole estimate.
     init: str = "zero"
+    #: ``init="outline"`` also from the outlines grown from its first estimate's image, the
+    #: estimates averaged (:func:`twinfocus.template_match.averaged_outline_phase`: five outline
+    #: runs instead of one; needs ``twin_autofocus(aperture_m=...)``). A camera cloud's holes leave
+    #: its outline short; docs/digital_twin.md has what it gains.
+    outline_ensemble: bool = False
     #: projection steps of ``init="projection"`` (~3 ms each at 780 x 100 x 100 on 2 cores)
     projection_iterations: int = config_default("projection_iterations")
     #: ``init="projection"`` also from this many random starts (fixed seed); the end with the
@@ -281,6 +286,7 @@ def twin_autofocus(
     init_phase_rad: np.ndarray | None = None,
     support: np.ndarray | None = None,
     registration_scores: np.ndarray | None = None,
+    aperture_m: np.ndarray | None = None,
 ) -> AutofocusResult:
     """Estimate per-position phases from a reference region and its template (the paper's method).
 
@@ -300,12 +306,17 @@ def twin_autofocus(
         the registration's scores of ``template`` against all of ``basis``, when already at hand
         (a :class:`~twinfocus.template_match.MatchScores` filled as a live scan arrived, so the
         registration costs nothing after it); computed here when None.
+    aperture_m : float (M, 2) each radar position's (x, y) in the aperture plane, metres (the
+        mean of its channels' phase centres): ``config.outline_ensemble`` lines its estimates up
+        by their linear-in-aperture ramps.
 
     Returns
     -------
     AutofocusResult with phase_rad (M,) to apply to any region's basis; ``extra`` holds the
-    registration's shift (pixels) and score gain when it ran, and ``template``: the template
-    the phases were fitted to (moved by the registration).
+    registration's shift (pixels) and score gain when it ran, ``outline`` (the outline estimator's
+    info; with ``config.outline_ensemble`` that of the cloud's outline's run, and
+    ``outline_ensemble`` the averaged runs'), and ``template``: the template the phases were
+    fitted to (moved by the registration).
     """
     cfg = config or AutofocusConfig()
     cfg.validate()
@@ -336,14 +347,24 @@ def twin_autofocus(
             init_phase_rad = ends[best]
             extra["projection_restarts"] = {"losses": end_losses, "chosen": best}
     elif cfg.init == "outline":
-        from twinfocus.template_match import outline_phase
+        from twinfocus.template_match import averaged_outline_phase, outline_phase
 
         if support is None:
             raise TwinFocusError(
                 "the outline estimator needs the reference's outline (a digital twin from a point "
                 "cloud gives one: --digital-twin); choose another --estimator for this template"
             )
-        init_phase_rad, extra["outline"] = outline_phase(basis, support)
+        if cfg.outline_ensemble:
+            if aperture_m is None:
+                raise TwinFocusError(
+                    "outline_ensemble needs each radar position's place in the aperture (aperture_m, (M, 2) metres) "
+                    "to line the estimates up"
+                )
+            init_phase_rad, ensemble = averaged_outline_phase(basis, support, aperture_m)
+            extra["outline"] = ensemble.pop("first")
+            extra["outline_ensemble"] = ensemble
+        else:
+            init_phase_rad, extra["outline"] = outline_phase(basis, support)
     if cfg.init != "zero" and int(cfg.iterations) == 0:
         assert init_phase_rad is not None  # every init but "zero" has set it above
         loss = np.array([template_loss(basis, init_phase_rad, template, cfg)])
