@@ -334,6 +334,9 @@ def test_auto_takes_the_outline_for_a_cloud_twin_and_only_then():
 
     wl = Chirp().wavelength_m
     assert estimator_settings("auto", False, 1.6e-3, wl, has_support=True)["init"] == "outline"
+    # averaged over the grown outlines (measured on camera clouds, docs/digital_twin.md)
+    assert estimator_settings("outline", False, has_support=True)["outline_ensemble"] is True
+    assert "outline_ensemble" not in estimator_settings("projection", False)
     assert estimator_settings("auto", False, 0.5e-3, wl)["init"] == "projection"
     assert estimator_settings("auto", True, 0.5e-3, wl, has_support=True)["init"] == "correlation"
     with pytest.raises(TwinFocusError, match="outline"):

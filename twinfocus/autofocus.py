@@ -74,7 +74,8 @@ class AutofocusConfig:
     #: ``init="outline"`` also from the outlines grown from its first estimate's image, the
     #: estimates averaged (:func:`twinfocus.template_match.averaged_outline_phase`: five outline
     #: runs instead of one; needs ``twin_autofocus(aperture_m=...)``). A camera cloud's holes leave
-    #: its outline short; docs/digital_twin.md has what it gains.
+    #: its outline short; docs/digital_twin.md has what it gains. The named estimator "outline"
+    #: (:func:`twinfocus.estimators.estimator_settings`) turns it on; off, one outline run.
     outline_ensemble: bool = False
     #: projection steps of ``init="projection"`` (~3 ms each at 780 x 100 x 100 on 2 cores)
     projection_iterations: int = config_default("projection_iterations")
