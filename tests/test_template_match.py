@@ -266,11 +266,77 @@ def test_outline_phase_refuses_bad_input(placed):
         twin_autofocus(basis, np.abs(basis.sum(axis=0)), AutofocusConfig(init="outline", iterations=0))
 
 
+def test_grown_outlines_fill_a_hole_where_the_image_is_bright_and_nowhere_else():
+    from twinfocus.template_match import _shift_mask, grown_outlines
+
+    # the reference: a bar 4 px wide, 24 tall; the image bright on it, dim elsewhere, and bright on a
+    # blob 15 px away (another object: too far to be the reference's)
+    bar = np.zeros((40, 40), bool)
+    bar[8:32, 10:14] = True
+    energy = np.where(bar, 1.0, 0.01)
+    energy[18:22, 28:32] = 1.0
+    # the cloud's outline: the bar with a 3-row hole, placed 2 px left of where the radar sees it
+    holed = bar.copy()
+    holed[18:21] = False
+    support = _shift_mask(holed, 0, -2)
+    grown = grown_outlines(support, energy, shift_px=(0, 2))
+    assert len(grown) == 4
+    want = _shift_mask(bar, 0, -2)  # the whole bar, in the outline's frame
+    for g in grown:
+        assert (g | ~support).all()  # never loses a pixel of the cloud's outline
+        assert g[18:21, 9:11].all()  # the hole is filled (a closing rounds its corners: the middle columns)
+        assert not (g & ~want).any()  # nothing dim is taken, nor the far blob
+    # growth into the bright pixels fills the hole to its corners: the bar exactly
+    assert (grown[2] == want).all() and (grown[3] == want).all()
+    with pytest.raises(TwinFocusError, match="energy is"):
+        grown_outlines(support, energy[:-1])
+    with pytest.raises(TwinFocusError, match="finite"):
+        grown_outlines(support, np.full((40, 40), np.nan))
+    with pytest.raises(TwinFocusError, match="leaves the region"):
+        grown_outlines(support, energy, shift_px=(0, 40))
+
+
+def test_averaged_outlines_beat_one_outline_with_a_hole(placed):
+    from twinfocus.template_match import averaged_outline_phase, outline_phase
+
+    ch, true, tracked, basis, _ = placed
+    oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
+    ap = tracked.mean(axis=1)[:, :2]
+    err = lambda p: phase_error_rms(np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p))
+    # the 'F' with 8 mm of its stem missing (a camera cloud's hole)
+    yy, xx = np.meshgrid(GRID.y_m, GRID.x_m, indexing="ij")
+    support = _outline(GRID) & ~((np.abs(yy - 0.004) < 0.004) & (xx < -0.012))
+    one, _ = outline_phase(basis, support)
+    # as `twinfocus focus` runs the outline estimator with outline_ensemble (the aperture from the
+    # tracked positions), the reference region standing in for the target too
+    from twinfocus.pipeline import focus_bases
+
+    cfg = AutofocusConfig(init="outline", iterations=0, outline_ensemble=True)
+    out = focus_bases(basis, basis, tracked, ch, GRID, GRID, template=np.abs(basis.sum(axis=0)), support=support, config=cfg)
+    assert err(one) > 0.2  # the hole costs the single outline
+    assert err(out.phase_rad) < 0.7 * err(one)
+    est = out.metrics["estimator"]
+    info = est["outline_ensemble"]
+    assert info["outlines_px"][0] == support.sum() and min(info["outlines_px"][1:]) > support.sum()
+    assert len(info["energy_inside"]) == len(info["support_shift_px"]) == 5 and 0.9 < info["agreement"] <= 1.0
+    # the cloud's outline's run, which the confidence report reads
+    assert "energy_inside" in est["outline"] and "outline_energy_inside" in out.metrics["confidence"]
+    with pytest.raises(TwinFocusError, match="aperture"):
+        twin_autofocus(basis, np.abs(basis.sum(axis=0)), cfg, support=support)
+    with pytest.raises(TwinFocusError, match="aperture_m must be"):
+        averaged_outline_phase(basis, support, ap[:-1])
+    with pytest.raises(TwinFocusError, match="NaN"):
+        averaged_outline_phase(basis, support, np.full_like(ap, np.nan))
+
+
 def test_auto_takes_the_outline_for_a_cloud_twin_and_only_then():
     from twinfocus.estimators import estimator_settings
 
     wl = Chirp().wavelength_m
     assert estimator_settings("auto", False, 1.6e-3, wl, has_support=True)["init"] == "outline"
+    # averaged over the grown outlines (measured on camera clouds, docs/digital_twin.md)
+    assert estimator_settings("outline", False, has_support=True)["outline_ensemble"] is True
+    assert "outline_ensemble" not in estimator_settings("projection", False)
     assert estimator_settings("auto", False, 0.5e-3, wl)["init"] == "projection"
     assert estimator_settings("auto", True, 0.5e-3, wl, has_support=True)["init"] == "correlation"
     with pytest.raises(TwinFocusError, match="outline"):

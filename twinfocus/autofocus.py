@@ -28,6 +28,7 @@ import numpy as np
 from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.metrics import ssim, ssim_torch
+from twinfocus.phase_ramp import fit_linear_phase  # also found here by its callers (the transfer's ramp)
 from twinfocus.settings import FOCUS_SETTINGS, config_default, resolve_device
 
 if TYPE_CHECKING:  # torch is imported where the optimiser runs: the closed-form estimators need none
@@ -70,6 +71,12 @@ class AutofocusConfig:
     #: needs ``twin_autofocus(support=...)``). None needs unwrapping; with ``iterations=0`` the
     #: start is the whole estimate.
     init: str = "zero"
+    #: ``init="outline"`` also from the outlines grown from its first estimate's image, the
+    #: estimates averaged (:func:`twinfocus.template_match.averaged_outline_phase`: five outline
+    #: runs instead of one; needs ``twin_autofocus(aperture_m=...)``). A camera cloud's holes leave
+    #: its outline short; docs/digital_twin.md has what it gains. The named estimator "outline"
+    #: (:func:`twinfocus.estimators.estimator_settings`) turns it on; off, one outline run.
+    outline_ensemble: bool = False
     #: projection steps of ``init="projection"`` (~3 ms each at 780 x 100 x 100 on 2 cores)
     projection_iterations: int = config_default("projection_iterations")
     #: ``init="projection"`` also from this many random starts (fixed seed); the end with the
@@ -280,6 +287,7 @@ def twin_autofocus(
     init_phase_rad: np.ndarray | None = None,
     support: np.ndarray | None = None,
     registration_scores: np.ndarray | None = None,
+    aperture_m: np.ndarray | None = None,
 ) -> AutofocusResult:
     """Estimate per-position phases from a reference region and its template (the paper's method).
 
@@ -299,12 +307,17 @@ def twin_autofocus(
         the registration's scores of ``template`` against all of ``basis``, when already at hand
         (a :class:`~twinfocus.template_match.MatchScores` filled as a live scan arrived, so the
         registration costs nothing after it); computed here when None.
+    aperture_m : float (M, 2) each radar position's (x, y) in the aperture plane, metres (the
+        mean of its channels' phase centres): ``config.outline_ensemble`` lines its estimates up
+        by their linear-in-aperture ramps.
 
     Returns
     -------
     AutofocusResult with phase_rad (M,) to apply to any region's basis; ``extra`` holds the
-    registration's shift (pixels) and score gain when it ran, and ``template``: the template
-    the phases were fitted to (moved by the registration).
+    registration's shift (pixels) and score gain when it ran, ``outline`` (the outline estimator's
+    info; with ``config.outline_ensemble`` that of the cloud's outline's run, and
+    ``outline_ensemble`` the averaged runs'), and ``template``: the template the phases were
+    fitted to (moved by the registration).
     """
     cfg = config or AutofocusConfig()
     cfg.validate()
@@ -335,14 +348,24 @@ def twin_autofocus(
             init_phase_rad = ends[best]
             extra["projection_restarts"] = {"losses": end_losses, "chosen": best}
     elif cfg.init == "outline":
-        from twinfocus.template_match import outline_phase
+        from twinfocus.template_match import averaged_outline_phase, outline_phase
 
         if support is None:
             raise TwinFocusError(
                 "the outline estimator needs the reference's outline (a digital twin from a point "
                 "cloud gives one: --digital-twin); choose another --estimator for this template"
             )
-        init_phase_rad, extra["outline"] = outline_phase(basis, support)
+        if cfg.outline_ensemble:
+            if aperture_m is None:
+                raise TwinFocusError(
+                    "outline_ensemble needs each radar position's place in the aperture (aperture_m, (M, 2) metres) "
+                    "to line the estimates up"
+                )
+            init_phase_rad, ensemble = averaged_outline_phase(basis, support, aperture_m)
+            extra["outline"] = ensemble.pop("first")
+            extra["outline_ensemble"] = ensemble
+        else:
+            init_phase_rad, extra["outline"] = outline_phase(basis, support)
     if cfg.init != "zero" and int(cfg.iterations) == 0:
         assert init_phase_rad is not None  # every init but "zero" has set it above
         loss = np.array([template_loss(basis, init_phase_rad, template, cfg)])
@@ -445,67 +468,6 @@ def no_correction(basis: np.ndarray) -> AutofocusResult:
     """Baseline: phi = 0."""
     phase = np.zeros(np.asarray(basis).shape[0])
     return AutofocusResult(phase, np.zeros(0), form_image(basis, phase), 0.0, "none")
-
-
-def fit_linear_phase(
-    phase_rad: np.ndarray, aperture_m: np.ndarray, max_slope_rad_per_m: float = 80.0, min_coherence_sqrt_m: float = 4.0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Best constant + linear-in-aperture phase a + b . p fitted to wrapped phases.
-
-    A linear phase across the aperture only moves the image (and a constant changes nothing
-    visible), so this is the part of an estimate that a misplaced template pulls in. The fit
-    maximises the coherence |sum_m exp(j (phi_m - b . p_m))| — a coarse grid over the slope b,
-    then Gauss-Newton steps on the wrapped residual — so wrapping never biases it.
-
-    A ramp is taken only when it is significant: the coherence |mean exp(j (phi - ramp))| it
-    leaves must reach ``min_coherence_sqrt_m / sqrt(M)`` (random phases reach ~2.5 / sqrt(M) at
-    the best of the grid's ramps); otherwise the ramp is the constant alone and the slopes are 0.
-
-    phase_rad : (M,) radians; aperture_m : (M, 2) position of each radar position in the aperture
-    plane (x, y), metres. Returns (ramp (M,) radians, coefficients [a, bx, by] (rad, rad/m)).
-    """
-    phi = np.asarray(phase_rad, dtype=np.float64)
-    p = np.asarray(aperture_m, dtype=np.float64)
-    if p.shape != (phi.size, 2):
-        raise TwinFocusError(f"aperture_m must be ({phi.size}, 2), got {p.shape}")
-    p = p - p.mean(axis=0)
-    span = np.maximum(np.ptp(p, axis=0), 1e-9)
-    # Grid step: a quarter turn of ramp over the aperture in each axis. Slopes are searched only
-    # up to pi / (coarsest gap between sampled coordinates): beyond that a ramp aliases (the
-    # raster's columns are 82 mm apart, so +-38 rad/m in x).
-    steps = (np.pi / 2) / span
-    axes = []
-    for k in range(2):
-        if span[k] <= 1e-6:
-            axes.append(np.zeros(1))
-            continue
-        gaps = np.diff(np.unique(np.round(p[:, k], 6)))
-        limit = min(max_slope_rad_per_m, np.pi / gaps.max()) if gaps.size else max_slope_rad_per_m
-        axes.append(np.arange(-limit, limit + steps[k], steps[k]))
-    z = np.exp(1j * phi)
-    best, best_b = -1.0, np.zeros(2)
-    for bx in axes[0]:
-        # all by at once for this bx: (n_by, M)
-        ph = np.exp(-1j * (bx * p[:, 0][None, :] + axes[1][:, None] * p[:, 1][None, :]))
-        coh = np.abs(ph @ z)
-        i = int(np.argmax(coh))
-        if coh[i] > best:
-            best, best_b = coh[i], np.array([bx, axes[1][i]])
-    if best < min_coherence_sqrt_m * np.sqrt(phi.size):
-        # The phases hold no detectable ramp (errors past lambda/4 wrap them to noise: the best of
-        # the grid's ramps then only reaches ~2.5 / sqrt(M)); a fitted one would shift the image
-        # at random, so only the constant is taken.
-        a = float(np.angle(z.sum()))
-        return np.full(phi.size, a), np.array([a, 0.0, 0.0])
-    b = best_b
-    a = np.angle(np.sum(z * np.exp(-1j * (p @ b))))
-    design = np.column_stack([np.ones(phi.size), p])
-    for _ in range(5):
-        resid = np.angle(np.exp(1j * (phi - a - p @ b)))
-        da, dbx, dby = np.linalg.lstsq(design, resid, rcond=None)[0]
-        a, b = a + da, b + np.array([dbx, dby])
-    ramp = a + p @ b
-    return ramp, np.array([a, *b])
 
 
 #: how the estimated phase's constant + linear ramp is handled before the transfer (``--phase-ramp``)

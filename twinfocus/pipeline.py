@@ -237,6 +237,7 @@ def focus_bases(
             progress=prog("autofocus"),
             support=support,
             registration_scores=registration_scores,
+            aperture_m=positions.mean(axis=1)[:, :2],
         )
     elif method == "sharpness":
         result = sharpness_autofocus(tgt_basis, cfg, progress=prog("sharpness autofocus"))
@@ -261,6 +262,8 @@ def focus_bases(
                 m["estimator"][knob] = getattr(cfg, knob)
         if "outline" in result.extra:
             m["estimator"]["outline"] = result.extra["outline"]
+        if "outline_ensemble" in result.extra:
+            m["estimator"]["outline_ensemble"] = result.extra["outline_ensemble"]
         if "projection_restarts" in result.extra:
             m["projection_restarts"] = result.extra["projection_restarts"]
         if "registration" in result.extra:

@@ -12,7 +12,7 @@
 
 Not here: each entry point's inputs and outputs (the scan, the regions, the template's source,
 output folders, pictures, the solver's streaming and timeouts), and the AutofocusConfig fields
-that no entry point exposes: ``init`` and ``template_registration`` (made by
+that no entry point exposes: ``init``, ``template_registration`` and ``outline_ensemble`` (made by
 :func:`twinfocus.estimators.estimator_settings` from ``estimator``), ``smoothness_weight``,
 ``coarse_blur_px`` and ``registration_max_shift_px`` (library and benchmark use).
 
@@ -135,9 +135,10 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
         "'correlation' = registered + closed-form per-position phase, no optimiser (fastest); "
         "'correlation-refined' = that, then the optimiser. The last three need the template's phase (a "
         "physical twin: a template scan, or a template file with phase_rad). 'outline' = the reference's "
-        "energy inside its outline, no texture (needs a digital twin from a point cloud: rough references, "
-        "camera clouds). auto: correlation when the template has a phase; outline for a point-cloud digital "
-        "twin; else projection, or projection-refined when {tracking_error_mm} exceeds lambda/4",
+        "energy inside its outline, no texture, averaged over the outlines grown from its first estimate "
+        "(needs a digital twin from a point cloud: rough references, camera clouds). auto: correlation when "
+        "the template has a phase; outline for a point-cloud digital twin; else projection, or "
+        "projection-refined when {tracking_error_mm} exceeds lambda/4",
         choices=("auto",) + ESTIMATORS,
     ),
     Setting(
