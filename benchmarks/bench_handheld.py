@@ -23,7 +23,7 @@ from twinfocus.autofocus import AutofocusConfig
 from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.basis import form_image
 from twinfocus.estimators import estimator_settings
-from twinfocus.pipeline import focus_bases
+from twinfocus.pipeline import focus_bases, half_array_bases
 from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
 from twinfocus.templates import template_from_scan
 
@@ -72,7 +72,8 @@ def one_draw(kw: dict, seed: int) -> dict:
         out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template,
                           config=AutofocusConfig(**estimator_settings(est, np.iscomplexobj(template))),
                           phase_ramp=ramp, space_variant=sv, truth_target=truth_t, truth_reference=truth_r,
-                          positions_true=scan.positions_true)
+                          positions_true=scan.positions_true,
+                          half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg))
         rec[name] = out.metrics["target_ssim_corrected"]
         if name == "default":
             rec["default_time_s"] = time.perf_counter() - t0

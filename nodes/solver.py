@@ -256,9 +256,10 @@ class Solver(Node):
         s.positions.append(pos)
         if s.truth is not None:
             s.truth.append(np.stack([m.positions_true_m for m in batch]))
-        if self.params["basis"] == "after_scan" or s.truth is not None:
+        if self.params["basis"] == "after_scan" or s.truth is not None or self.params["space_variant"] != "off":
             # after_scan: the whole scan at the end; truth: its images are formed only after the
-            # result is out, so they neither slow the stream nor delay the image (issue 17)
+            # result is out, so they neither slow the stream nor delay the image (issue 17); the
+            # space-variant fit: the half-array bases, back-projected only when the fit runs
             s.data.append(data)
         if self.params["basis"] == "after_scan":
             return
@@ -413,7 +414,7 @@ class Solver(Node):
         outputs and the target basis (the oracle-phase image needs it)."""
         from threadpoolctl import threadpool_limits
 
-        from twinfocus.pipeline import focus_bases
+        from twinfocus.pipeline import focus_bases, half_array_bases
 
         tgt_basis = s.tgt_rows.array()
         self._score_registration(s, final=True)  # the rows left (all of them if the template came after the scan)
@@ -443,6 +444,17 @@ class Solver(Node):
                 space_variant=self.params["space_variant"],
                 tracking_error_m=self.tracking_error_m,
                 registration_scores=scores,
+                half_bases=half_array_bases(
+                    lambda: np.concatenate(s.data),
+                    positions,
+                    s.chirp,
+                    self.ref_grid,
+                    self.tgt_grid,
+                    self.bp,
+                    lambda label: self._progress,
+                )
+                if s.data
+                else None,
             )
         out.timings_s["focus_bases"] = time.perf_counter() - t  # autofocus and the rest of the steps
         return out, tgt_basis

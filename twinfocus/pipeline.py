@@ -16,6 +16,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -70,6 +71,42 @@ def _check_method(method: str, template: np.ndarray | None) -> None:
         raise TwinFocusError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if method == "twin" and template is None:
         raise TwinFocusError("the twin method needs a template (--template, --template-scan or --digital-twin)")
+
+
+def half_array_bases(
+    data: np.ndarray | Callable[[], np.ndarray],
+    positions: np.ndarray,
+    chirp: Chirp,
+    reference_grid: ImageGrid,
+    target_grid: ImageGrid,
+    bp_options: dict | None = None,
+    progress_factory=None,
+) -> Callable[[], tuple[np.ndarray, np.ndarray]] | None:
+    """What :func:`focus_bases` calls for the half-array bases (``half_bases``): the reference's
+    and the target's sub-image bases from the channels of
+    :func:`twinfocus.space_variant.array_half` alone, back-projected only when it is called.
+
+    data : the scan's samples (M, K, N), or a callable that gives them (the solver node keeps them
+    in batches); positions : float64 (M, K, 3). Returns None for an array with one channel or no
+    extent (no tilt to see).
+    """
+    from twinfocus.space_variant import array_half
+
+    try:
+        half = array_half(positions)
+    except TwinFocusError:
+        return None
+    prog = progress_factory or (lambda label: None)
+    bp = dict(bp_options or {})
+
+    def bases() -> tuple[np.ndarray, np.ndarray]:
+        d, p = (data() if callable(data) else data)[:, half], positions[:, half]
+        return (
+            subimage_basis(d, p, chirp, reference_grid, progress=prog("reference half-array basis"), **bp),
+            subimage_basis(d, p, chirp, target_grid, progress=prog("target half-array basis"), **bp),
+        )
+
+    return bases
 
 
 def focus_scan(
@@ -144,6 +181,9 @@ def focus_scan(
         truth_target=truth_tgt,
         truth_reference=truth_ref,
         positions_true=scan.positions_true,
+        half_bases=half_array_bases(
+            scan.data, scan.positions, scan.chirp, reference_grid, target_grid, bp, progress_factory
+        ),
     )
     timings.update(out.timings_s)
     if truth_tgt is not None:
@@ -174,6 +214,7 @@ def focus_bases(
     truth_reference: np.ndarray | None = None,
     positions_true: np.ndarray | None = None,
     registration_scores: np.ndarray | None = None,
+    half_bases: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> FocusOutputs:
     """The focusing steps that follow the sub-image bases: autofocus, transfer, metrics.
 
@@ -212,6 +253,10 @@ def focus_bases(
     registration_scores : the template registration's scores against all of ``ref_basis``
         when already accumulated (the solver node, as the scan arrives); see
         :func:`~twinfocus.autofocus.twin_autofocus`.
+    half_bases : ``() -> (reference, target)`` sub-image bases, complex (M, H, W) each, of the
+        channels on one side of the array's middle (:func:`twinfocus.space_variant.array_half`),
+        called only when the space-variant fit runs: with them it also follows the array's tilt
+        (:func:`half_array_bases` makes one from a scan).
 
     Returns :class:`FocusOutputs` (``timings_s`` holds ``autofocus``; ``metrics`` has no
     ``timings_s``: the caller adds its own).
@@ -282,6 +327,7 @@ def focus_bases(
         )
         m["phase_ramp_removed"] = m["phase_ramp"]["removed"]
     drift = None
+    ref_sv_basis, tgt_sv_basis = ref_basis, tgt_basis
     if method == "twin":
         t = time.perf_counter()
         sv = _space_variant(
@@ -295,11 +341,19 @@ def focus_bases(
             registered="registration" in result.extra,
             ramp_removed=bool(m["phase_ramp"]["removed"]),
             progress=prog("space-variant fit"),
+            half_bases=half_bases,
         )
         m["space_variant"] = sv.pop("info")
         if sv:
             timings["space_variant"] = time.perf_counter() - t
             phase, drift = sv["phase"], sv["drift"]
+            if sv["halves"] is not None:
+                from twinfocus.space_variant import tilted_basis
+
+                # the images are formed from the tilted bases; the ceiling below keeps the scan's own
+                ref_half, tgt_half = sv["halves"]
+                ref_sv_basis = tilted_basis(ref_basis, ref_half, sv["tilt"])
+                tgt_sv_basis = tilted_basis(tgt_basis, tgt_half, sv["tilt"])
     if drift is None:
         ref_cor = form_image(ref_basis, phase)
         tgt_cor = form_image(tgt_basis, phase)
@@ -308,10 +362,12 @@ def focus_bases(
 
         centres = positions.mean(axis=1)
         ref_cor = form_image_space_variant(
-            ref_basis, pixel_phases(phase, drift, reference_grid.centre_m, centres, reference_grid, chirp.wavelength_m)
+            ref_sv_basis,
+            pixel_phases(phase, drift, reference_grid.centre_m, centres, reference_grid, chirp.wavelength_m),
         )
         tgt_cor = form_image_space_variant(
-            tgt_basis, pixel_phases(phase, drift, reference_grid.centre_m, centres, target_grid, chirp.wavelength_m)
+            tgt_sv_basis,
+            pixel_phases(phase, drift, reference_grid.centre_m, centres, target_grid, chirp.wavelength_m),
         )
         # the scalar phase nearest to what the target got: the per-pixel phase at its centre
         k = 4.0 * np.pi / chirp.wavelength_m
@@ -407,9 +463,11 @@ def _space_variant(
     registered: bool,
     ramp_removed: bool,
     progress=None,
+    half_bases=None,
 ) -> dict:
     """The space-variant step of :func:`focus_bases`: {"info": what was done and why} plus, when
-    it is used, "phase" (M,) and "drift" (M, 3)."""
+    it is used, "phase" (M,), "drift" (M, 3), "tilt" (M,) and "halves" (the half-array bases of
+    the reference and the target, or None)."""
     if mode not in SPACE_VARIANT_MODES:
         raise TwinFocusError(f"space_variant must be one of {', '.join(SPACE_VARIANT_MODES)}, got {mode!r}")
     info: dict = {"mode": mode, "used": False}
@@ -437,8 +495,16 @@ def _space_variant(
         }
     from twinfocus.space_variant import fit_smooth_drift  # torch and scipy: only on this path
 
-    new_phase, drift, fit = fit_smooth_drift(
-        ref_basis, template, phase, positions.mean(axis=1), grid, chirp.wavelength_m, progress=progress
+    halves = half_bases() if half_bases is not None else None
+    new_phase, drift, tilt, fit = fit_smooth_drift(
+        ref_basis,
+        template,
+        phase,
+        positions.mean(axis=1),
+        grid,
+        chirp.wavelength_m,
+        half_basis=None if halves is None else halves[0],
+        progress=progress,
     )
     after = 1.0 - fit["match_after"]
     info.update(
@@ -449,6 +515,8 @@ def _space_variant(
         smoothness_per_mm2=fit["smoothness_per_mm2"],
         time_s=fit["time_s"],
         drift_rms_mm=[float(v) for v in np.sqrt((drift[:, :2] ** 2).mean(axis=0)) * 1e3],
+        tilt_fitted=bool(fit["tilt_fitted"]),
+        tilt_rms_rad=float(np.sqrt((tilt**2).mean())),
     )
     gain = 1.0 - after / residual if residual > 0 else 0.0
     if mode == "auto" and gain < SPACE_VARIANT_MIN_GAIN:
@@ -468,7 +536,7 @@ def _space_variant(
             f"drift takes away {gain:.0%} of it"
         ),
     )
-    return {"info": info, "phase": new_phase, "drift": drift}
+    return {"info": info, "phase": new_phase, "drift": drift, "tilt": tilt, "halves": halves}
 
 
 def _complex_match(image: np.ndarray, template: np.ndarray) -> float:

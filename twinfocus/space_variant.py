@@ -31,7 +31,8 @@ from far across the region, which halves the apparent lever. Fitting the referen
 instead, with the per-pixel model phi_m + k (u_{m,p} - u_{m,c}) . dp_m and dp smooth over the
 capture (a hand drifts; piecewise linear between knots), recovers the across-sight drift
 (docs/handheld.md): handheld scenes 0.83 -> 0.92 (0.86-0.95 per draw), the paper's protocol
-unchanged.
+unchanged. A hand also tilts the array: with the sub-images of one half of the array's channels
+(:func:`array_half`) the fit follows the halves' differential phase too (:func:`tilted_basis`).
 """
 
 from __future__ import annotations
@@ -161,6 +162,43 @@ def pixel_phases(
     return out
 
 
+def array_half(positions_m: np.ndarray) -> np.ndarray:
+    """The channels on one side of the array's middle, along its long axis: bool (K,).
+
+    positions_m : float (M, K, 3) phase centres. The axis is the principal direction of the
+    channels' mean offsets from their position's centre (the array turns by fractions of a
+    degree over a scan), so any array geometry splits the same way.
+    """
+    p = np.asarray(positions_m, float)
+    if p.ndim != 3 or p.shape[2] != 3:
+        raise TwinFocusError(f"positions must be (M, K, 3), got {p.shape}")
+    offsets = (p - p.mean(axis=1, keepdims=True)).mean(axis=0)  # (K, 3)
+    _, _, vt = np.linalg.svd(offsets, full_matrices=False)
+    along = offsets @ vt[0]
+    half = along < 0.0
+    if np.ptp(along) <= 1e-6 or half.all() or not half.any():
+        raise TwinFocusError("the array's tilt needs channels spread along the array; these have no extent")
+    return half
+
+
+def tilted_basis(basis: np.ndarray, half_basis: np.ndarray, tilt_rad: np.ndarray) -> np.ndarray:
+    """Sub-images with the array's halves phased apart: L_m exp(j psi_m) + (B_m - L_m) exp(-j psi_m).
+
+    A tilt of the array about its cross axis moves its two ends along the line of sight in
+    opposite senses; to first order the halves' sub-images turn by +-psi_m. basis : complex
+    (M, H, W) all channels; half_basis : complex (M, H, W) the channels of :func:`array_half`;
+    tilt_rad : float (M,) psi. Returns complex64 (M, H, W).
+    """
+    b = np.asarray(basis)
+    half = np.asarray(half_basis)
+    psi = np.asarray(tilt_rad, float)
+    if half.shape != b.shape or psi.shape != b.shape[:1]:
+        raise TwinFocusError(f"half basis {half.shape} and tilt {psi.shape} do not fit the basis {b.shape}")
+    e = np.exp(-1j * psi).astype(np.complex64)[:, None, None]
+    s2 = (2j * np.sin(psi)).astype(np.complex64)[:, None, None]
+    return (b * e + half * s2).astype(np.complex64)
+
+
 def knot_basis(n_positions: int, spacing: int) -> np.ndarray:
     """Piecewise-linear interpolation from knots every ``spacing`` positions: float64 (M, n_knots),
     rows sum to 1 (a smooth curve over the capture order from its values at the knots)."""
@@ -185,8 +223,10 @@ def fit_smooth_drift(
     phase_step_rad: float = 0.002,
     refine_iterations: int = 100,
     smoothness_per_mm2: float = 1e-4,
+    half_basis: np.ndarray | None = None,
+    tilt_step_rad: float = 0.01,
     progress: Callable[[int, int, float], None] | None = None,
-) -> tuple[np.ndarray, np.ndarray, dict]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Smooth across-sight drift (and optionally the per-position phase) from one extended
     reference's image.
 
@@ -221,10 +261,18 @@ def fit_smooth_drift(
     (same steps; 0: the knots' curve as it is); smoothness_per_mm2 : its penalty weight, per mm^2
     of squared step between neighbours (against a correlation of at most 1).
 
+    half_basis : complex (M, H, W) the reference's sub-images from the channels of
+    :func:`array_half` alone: the fit then also follows the array's tilt, a differential phase
+    psi_m between its halves (:func:`tilted_basis`) on the same knots, in Adam steps of
+    ``tilt_step_rad``. A hand turns the array as it drifts (0.15 degrees tilts the ends of an
+    83 mm array by 0.11 mm, +-0.17 rad between the halves' centres); left out, the fit takes the
+    halves' sub-images moving apart for a drift across the line of sight (handheld draws 3 / 5:
+    0.922 / 0.917 without, 0.948 / 0.947 with, docs/handheld.md).
+
     Returns (phase float64 (M,) radians at the region's centre (``phase0_rad`` when phi is
-    fixed), dp float64 (M, 3) metres in the
-    correction's sense (z is 0), info: ``match_before`` / ``match_after`` (the correlation), the
-    settings, ``time_s``).
+    fixed), dp float64 (M, 3) metres in the correction's sense (z is 0), tilt float64 (M,)
+    radians (zeros without ``half_basis``), info: ``match_before`` / ``match_after`` (the
+    correlation), the settings, ``time_s``).
     Memory: about 40 bytes per position and pixel (0.3 GB at 780 x 100 x 100).
     """
     import torch
@@ -237,6 +285,8 @@ def fit_smooth_drift(
         raise TwinFocusError(f"basis {b.shape}, template {tpl.shape} and grid {grid.shape} do not fit")
     if not np.iscomplexobj(tpl):
         raise TwinFocusError("the smooth-drift fit needs a template with phase (a physical twin's image)")
+    if half_basis is not None and np.shape(half_basis) != b.shape:
+        raise TwinFocusError(f"half basis {np.shape(half_basis)} does not fit the basis {b.shape}")
     c = np.asarray(centres_m, np.float64)
     if c.shape != (m, 3):
         raise TwinFocusError(f"centres must be (M, 3) = ({m}, 3), got {c.shape}")
@@ -256,12 +306,24 @@ def fit_smooth_drift(
     s = torch.from_numpy(knot_basis(m, int(knot_spacing)).astype(np.float32))
     coef = torch.zeros(s.shape[1], 2, requires_grad=True)
     phase = torch.tensor(np.asarray(phase0_rad, np.float32), requires_grad=phase_step_rad > 0)
+    tilted = half_basis is not None
+    tilt_coef = torch.zeros(s.shape[1], requires_grad=tilted)
+    if tilted:
+        half = np.asarray(half_basis).reshape(m, -1)
+        hr = torch.from_numpy(np.ascontiguousarray(half.real, np.float32))
+        hi = torch.from_numpy(np.ascontiguousarray(half.imag, np.float32))
 
     def match(dp: torch.Tensor) -> torch.Tensor:
+        er, ei = br, bi
+        if tilted:  # B exp(-j psi) + 2j sin(psi) L (tilted_basis)
+            psi = s @ tilt_coef
+            cp, sp = torch.cos(psi)[:, None], torch.sin(psi)[:, None]
+            er = br * cp + bi * sp - 2.0 * sp * hi
+            ei = bi * cp - br * sp + 2.0 * sp * hr
         theta = phase[:, None] + (at * dp[:, None, :]).sum(-1)
         cs, sn = torch.cos(theta), torch.sin(theta)
-        ir = (cs * br - sn * bi).sum(0)
-        ii = (sn * br + cs * bi).sum(0)
+        ir = (cs * er - sn * ei).sum(0)
+        ii = (sn * er + cs * ei).sum(0)
         return (ir * tr + ii * ti).sum() / (torch.sqrt((ir * ir + ii * ii).sum()) * t_norm)
 
     total = int(iterations) + int(refine_iterations)
@@ -271,7 +333,8 @@ def fit_smooth_drift(
         """Adam on ``parameter`` (metres) and, when it moves, phi (radians), each at its own step,
         maximising the correlation less ``smoothness`` * sum |dp_{m+1} - dp_m|^2 (mm^2)."""
         phase_group = [{"params": [phase], "lr": phase_step_rad}] if phase_step_rad > 0 else []
-        opt = torch.optim.Adam([{"params": [parameter], "lr": step_m}] + phase_group)
+        tilt_group = [{"params": [tilt_coef], "lr": tilt_step_rad}] if tilted else []
+        opt = torch.optim.Adam([{"params": [parameter], "lr": step_m}] + phase_group + tilt_group)
         for _ in range(int(steps)):
             dp = drift_of()
             corr = match(dp)
@@ -303,6 +366,8 @@ def fit_smooth_drift(
         "refine_iterations": int(refine_iterations),
         "smoothness_per_mm2": float(smoothness_per_mm2),
         "phase_fitted": phase_step_rad > 0,
+        "tilt_fitted": tilted,
         "time_s": time.perf_counter() - t0,
     }
-    return phase.detach().numpy().astype(np.float64), dp, info
+    tilt = (s @ tilt_coef).detach().numpy().astype(np.float64)
+    return phase.detach().numpy().astype(np.float64), dp, tilt, info
