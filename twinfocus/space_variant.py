@@ -168,14 +168,17 @@ def array_half(positions_m: np.ndarray) -> np.ndarray:
 
     positions_m : float (M, K, 3) phase centres. The axis is the principal direction of the
     channels' mean offsets from their position's centre (the array turns by fractions of a
-    degree over a scan), so any array geometry splits the same way.
+    degree over a scan), so any array geometry splits the same way; the half is the one on the
+    negative side of the axis, turned so that its largest component is positive (an array along
+    x: the channels at negative x), whatever sign the decomposition returns.
     """
     p = np.asarray(positions_m, float)
     if p.ndim != 3 or p.shape[2] != 3:
         raise TwinFocusError(f"positions must be (M, K, 3), got {p.shape}")
     offsets = (p - p.mean(axis=1, keepdims=True)).mean(axis=0)  # (K, 3)
     _, _, vt = np.linalg.svd(offsets, full_matrices=False)
-    along = offsets @ vt[0]
+    axis = vt[0] * np.sign(vt[0][np.argmax(np.abs(vt[0]))])
+    along = offsets @ axis
     half = along < 0.0
     if np.ptp(along) <= 1e-6 or half.all() or not half.any():
         raise TwinFocusError("the array's tilt needs channels spread along the array; these have no extent")
