@@ -193,6 +193,13 @@ def test_space_variant_bad_requests_are_named(drifting_scan):
     with pytest.raises(TwinFocusError, match="needs a template with phase"):
         focus_bases(*args, template=np.abs(s["template"]), config=AutofocusConfig(**estimator_settings("projection", False)),
                     space_variant="on")
+    # a half-array basis that is not the reference's shape
+    from twinfocus.space_variant import fit_smooth_drift
+
+    centres = s["tracked"].mean(axis=1)
+    with pytest.raises(TwinFocusError, match="half basis"):
+        fit_smooth_drift(s["ref_basis"], s["template"], np.zeros(len(centres)), centres, s["rg"],
+                         s["chirp"].wavelength_m, half_basis=s["ref_basis"][:, :5])
 
 
 def test_per_position_refinement_follows_a_drift_faster_than_the_knots():
