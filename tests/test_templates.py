@@ -1,10 +1,10 @@
-"""twinfocus.templates: the pure resampler against a closed form, and the file reader's errors."""
+"""twinfocus.templates: the pure resamplers against a closed form, and the file reader's errors."""
 import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
-from twinfocus.templates import load_template, resample_template, save_template
+from twinfocus.templates import load_template, resample_support, resample_template, save_template
 
 
 def _plane(x, y):
@@ -51,3 +51,35 @@ def test_what_does_not_fit_is_named(tmp_path, change, message):
     np.savez(tmp_path / "bad.npz", **{k: v for k, v in args.items() if v is not None})
     with pytest.raises(TwinFocusError, match=f"bad.npz: .*{message}"):
         load_template(tmp_path / "bad.npz", grid)
+
+
+def test_an_outline_resampled_stays_a_mask_of_the_same_shape():
+    """A disc's mask on a fine grid, resampled onto a coarser one that it covers: a bool mask equal
+    to the disc drawn on the coarse grid itself, except on pixels within a fine pixel of its edge."""
+    x, y = np.linspace(-0.1, 0.1, 201), np.linspace(-0.08, 0.08, 161)  # 1 mm pixels
+    radius = 0.04
+
+    def disc(xs, ys):
+        return np.hypot(xs[None, :] - 0.01, ys[:, None] + 0.005) <= radius
+
+    grid = ImageGrid(-0.07, 0.09, -0.06, 0.05, 0.5, 33, 23)
+    out = resample_support(disc(x, y), x, y, grid)
+    assert out.dtype == bool and out.shape == grid.shape
+    edge = np.abs(np.hypot(grid.x_m[None, :] - 0.01, grid.y_m[:, None] + 0.005) - radius) < 1.5e-3
+    want = disc(grid.x_m, grid.y_m)
+    assert np.array_equal(out[~edge], want[~edge]) and 0 < edge.sum() < 0.2 * edge.size
+    same = ImageGrid(-0.1, 0.1, -0.08, 0.08, 0.5, 161, 201)  # height, width
+    assert np.array_equal(resample_support(disc(x, y), x, y, same), disc(x, y))
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(support=np.ones((4, 6), bool)), r"support \(4, 6\) does not match y_m \(5\) x x_m \(6\)"),
+    (dict(support=np.ones((5, 6), np.uint8)), "support must be a bool mask, got uint8"),
+    (dict(x_m=np.linspace(0.0, 0.1, 6)), "does not contain the reference region"),
+])
+def test_what_does_not_fit_an_outline_is_named(change, message):
+    grid = ImageGrid(-0.04, 0.04, -0.02, 0.02, 0.5, 8, 4)
+    args = dict(support=np.ones((5, 6), bool), x_m=np.linspace(-0.05, 0.05, 6), y_m=np.linspace(-0.03, 0.03, 5))
+    args.update(change)
+    with pytest.raises(TwinFocusError, match=message):
+        resample_support(grid=grid, **args)

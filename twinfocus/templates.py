@@ -69,21 +69,12 @@ def resample_template(
     fit (shape, NaN, plane, coverage of the reference region).
     """
     image, x, y = np.asarray(image), np.asarray(x_m, float), np.asarray(y_m, float)
-    if image.ndim != 2 or image.shape != (y.size, x.size):
-        raise TwinFocusError(f"image {image.shape} does not match y_m ({y.size}) x x_m ({x.size})")
+    _check_template_grid(image.shape, x, y, "image")
     if not np.isfinite(image).all():
         raise TwinFocusError("template image holds NaN or inf")
     if abs(float(z_m) - grid.z) > z_tolerance_m:
         raise TwinFocusError(
             f"template is on the plane z = {float(z_m):.3f} m, the reference region is at z = {grid.z:.3f} m"
-        )
-    if x.size < 2 or y.size < 2 or np.any(np.diff(x) <= 0) or np.any(np.diff(y) <= 0):
-        raise TwinFocusError("x_m and y_m must be increasing with at least 2 values")
-    tol = 1e-9
-    if grid.x0 < x[0] - tol or grid.x1 > x[-1] + tol or grid.y0 < y[0] - tol or grid.y1 > y[-1] + tol:
-        raise TwinFocusError(
-            f"template covers x [{x[0]:.3f}, {x[-1]:.3f}] y [{y[0]:.3f}, {y[-1]:.3f}] m, "
-            f"which does not contain the reference region x [{grid.x0}, {grid.x1}] y [{grid.y0}, {grid.y1}]"
         )
     img = np.abs(image).astype(np.float64)
     if phase_rad is not None:
@@ -92,25 +83,57 @@ def resample_template(
             raise TwinFocusError(f"phase_rad must be finite and of the image's shape {img.shape}, got {phase.shape}")
         img = img * np.exp(1j * phase)
     out_dtype = np.complex64 if np.iscomplexobj(img) else np.float32
+    if np.iscomplexobj(img):
+        return (_bilinear(img.real, x, y, grid) + 1j * _bilinear(img.imag, x, y, grid)).astype(out_dtype)
+    return _bilinear(img, x, y, grid).astype(out_dtype)
+
+
+def resample_support(support: np.ndarray, x_m: np.ndarray, y_m: np.ndarray, grid: ImageGrid) -> np.ndarray:
+    """A reference's outline on its template's grid, resampled onto ``grid``: bool (H, W).
+
+    support : bool (Ny, Nx), True inside the outline (a digital twin's,
+    :attr:`twinfocus.digital_twin.condition.DigitalTwinReference.support`); x_m (Nx,), y_m (Ny,)
+    as :func:`resample_template`. A pixel is inside when the bilinear resample of the mask is at
+    least 0.5 (more than half of it covered), so the mask stays a mask and keeps its area; the
+    same grid gives the mask back unchanged. Raises :class:`TwinFocusError` naming what does not
+    fit (shape, axes, coverage of the reference region).
+    """
+    mask, x, y = np.asarray(support), np.asarray(x_m, float), np.asarray(y_m, float)
+    if mask.dtype != bool:
+        raise TwinFocusError(f"support must be a bool mask, got {mask.dtype}")
+    _check_template_grid(mask.shape, x, y, "support")
+    return _bilinear(mask.astype(np.float64), x, y, grid) >= 0.5
+
+
+def _check_template_grid(shape: tuple, x: np.ndarray, y: np.ndarray, name: str) -> None:
+    if len(shape) != 2 or shape != (y.size, x.size):
+        raise TwinFocusError(f"{name} {shape} does not match y_m ({y.size}) x x_m ({x.size})")
+    if x.size < 2 or y.size < 2 or np.any(np.diff(x) <= 0) or np.any(np.diff(y) <= 0):
+        raise TwinFocusError("x_m and y_m must be increasing with at least 2 values")
+
+
+def _bilinear(values: np.ndarray, x: np.ndarray, y: np.ndarray, grid: ImageGrid) -> np.ndarray:
+    """Real (Ny, Nx) ``values`` at pixel centres (x, y) sampled (bilinear) at ``grid``'s pixels;
+    the array itself when the grids agree. Refuses a grid that ``x``, ``y`` do not cover."""
+    tol = 1e-9
+    if grid.x0 < x[0] - tol or grid.x1 > x[-1] + tol or grid.y0 < y[0] - tol or grid.y1 > y[-1] + tol:
+        raise TwinFocusError(
+            f"template covers x [{x[0]:.3f}, {x[-1]:.3f}] y [{y[0]:.3f}, {y[-1]:.3f}] m, "
+            f"which does not contain the reference region x [{grid.x0}, {grid.x1}] y [{grid.y0}, {grid.y1}]"
+        )
     if (
         x.shape == grid.x_m.shape
         and y.shape == grid.y_m.shape
         and np.allclose(x, grid.x_m)
         and np.allclose(y, grid.y_m)
     ):
-        return img.astype(out_dtype)
+        return values
     from scipy.ndimage import map_coordinates  # only a resample needs it (0.1 s import)
 
     cols = np.interp(grid.x_m, x, np.arange(x.size))
     rows = np.interp(grid.y_m, y, np.arange(y.size))
     rr, cc = np.meshgrid(rows, cols, indexing="ij")
-    if np.iscomplexobj(img):
-        out = map_coordinates(img.real, [rr, cc], order=1, mode="nearest") + 1j * map_coordinates(
-            img.imag, [rr, cc], order=1, mode="nearest"
-        )
-    else:
-        out = map_coordinates(img, [rr, cc], order=1, mode="nearest")
-    return out.astype(out_dtype)
+    return map_coordinates(values, [rr, cc], order=1, mode="nearest")
 
 
 def template_from_scan(scan: Scan, grid: ImageGrid, keep_phase: bool = False, **bp_options) -> np.ndarray:
