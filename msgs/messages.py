@@ -150,6 +150,10 @@ class TwinTemplate:
     phase_rad : optional float32 (H, W) phase of the image, radians: a physical twin's
         motion-stage image has one, and with it the solver can register the template and take
         the closed-form phase (docs/beyond.md); None for an amplitude (a digital twin's).
+    support : optional bool (H, W), True inside the reference's outline: a digital twin from a
+        point cloud knows it, and with it the solver's ``estimator: auto`` takes the outline
+        estimator, as ``twinfocus focus --digital-twin`` does (docs/digital_twin.md); None for a
+        physical twin, a template file and logs written before the field existed.
     kind : ``"physical"`` (motion-stage measurement) or ``"digital"`` (from the camera).
     source : where it came from (file name, scan, ...), for the record.
     """
@@ -160,6 +164,7 @@ class TwinTemplate:
     y_m: np.ndarray = array("float64", ("H",))
     z_m: float = real()
     phase_rad: np.ndarray | None = array("float32", ("H", "W"), optional=True)
+    support: np.ndarray | None = array("bool", ("H", "W"), optional=True)
     kind: str = text("physical")
     source: str = text()
 
@@ -175,7 +180,10 @@ class AutofocusResult:
     first result for the scan (0: unknown, as in logs recorded before the field);
     metrics_pending : True on a first result published as soon as the image was ready, whose
     metrics against the truth (simulation) follow in a second result for the same scan
-    (False: this result is the scan's last, as in logs recorded before the field).
+    (False: this result is the scan's last, as in logs recorded before the field);
+    estimator : the named estimator that found the phase (``twinfocus.estimators.ESTIMATORS``,
+    ``auto`` resolved: ``outline``, ``projection``, ``correlation``, ...) for ``method`` twin; empty
+    for the baselines and in logs recorded before the field.
     """
 
     header: Header
@@ -187,6 +195,7 @@ class AutofocusResult:
     timing_s: dict = mapping("float")
     latency_s: float = real(0.0, doc="last measurement in -> result out, wall-clock seconds (0: unknown)")
     metrics_pending: bool = flag(False, doc="truth metrics follow in a later result for this scan")
+    estimator: str = text("", doc="the estimator that found the phase (method twin; empty: none or unknown)")
 
 
 @message(topic="image/focused")

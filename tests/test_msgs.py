@@ -50,9 +50,11 @@ def one_of_each():
                        last=True, pose_gap_ns=33_333_333),
         TwinTemplate(header=Header(5, 0, "scene"), image=RNG.random((30, 40)).astype(np.float32),
                      x_m=np.linspace(-0.15, 0, 40), y_m=np.linspace(-0.11, 0.12, 30), z_m=0.6, kind="physical",
-                     source="stage.npz", phase_rad=RNG.uniform(-3, 3, (30, 40)).astype(np.float32)),
+                     source="stage.npz", phase_rad=RNG.uniform(-3, 3, (30, 40)).astype(np.float32),
+                     support=RNG.random((30, 40)) > 0.5),
         AutofocusResult(header=Header(6, 0, "scene"), scan_id="s1", method="twin", phase_rad=RNG.standard_normal(780),
-                        loss_history=RNG.random(300), metrics={"ssim": 0.9, "n": 3.0}, timing_s={"autofocus": 1.5}),
+                        loss_history=RNG.random(300), metrics={"ssim": 0.9, "n": 3.0}, timing_s={"autofocus": 1.5},
+                        estimator="outline"),
         Image(header=Header(7, 0, "scene"), name="target", scan_id="s1", image=cplx(100, 100),
               x_m=np.linspace(0.02, 0.13, 100), y_m=np.linspace(-0.11, 0.12, 100), z_m=0.6),
         NodeStatus(header=Header(8, 9, ""), node="solver", state="running", pid=123, publishes=["a/b"],
@@ -129,6 +131,11 @@ def test_non_contiguous_and_castable_inputs_are_normalised():
         (lambda: TwinTemplate(image=np.zeros((2, 2), complex), x_m=np.zeros(2), y_m=np.zeros(2), z_m=1), "image"),
         (lambda: TwinTemplate(image=np.zeros((2, 2), np.float32), x_m=np.zeros(2), y_m=np.zeros(2), z_m=1,
                               phase_rad=np.zeros((2, 3), np.float32)), "phase_rad"),
+        (lambda: TwinTemplate(image=np.zeros((2, 3), np.float32), x_m=np.zeros(3), y_m=np.zeros(2), z_m=1,
+                              support=np.ones((3, 2), bool)),
+         r"field 'support' must be bool array of shape \(H, W\) or None, got shape \(3, 2\) \(already bound: H=2, W=3\)"),
+        (lambda: TwinTemplate(image=np.zeros((2, 2), np.float32), x_m=np.zeros(2), y_m=np.zeros(2), z_m=1,
+                              support=np.ones((2, 2), np.uint8)), "'support' must be bool.*uint8"),
         (lambda: NodeStatus(received={"a": 1.5}), "received"),
         (lambda: AutofocusResult(phase_rad=np.zeros(3), loss_history=np.zeros(2), metrics={"a": "x"}), "metrics"),
     ],
@@ -228,9 +235,32 @@ def test_a_result_recorded_before_latency_and_metrics_pending_decodes_with_their
     msg = AutofocusResult(header=Header(6, 0, "scene"), scan_id="old", method="twin", phase_rad=np.zeros(3),
                           loss_history=np.ones(2), latency_s=0.7, metrics_pending=True)
     env = msgpack.unpackb(encode(msg), raw=False)
-    for name in ("latency_s", "metrics_pending"):
+    for name in ("latency_s", "metrics_pending", "estimator"):
         del env["fields"][name]
     old = decode(msgpack.packb(env, use_bin_type=True), AutofocusResult)
-    assert old.latency_s == 0.0 and old.metrics_pending is False and old.scan_id == "old"
+    assert old.latency_s == 0.0 and old.metrics_pending is False and old.scan_id == "old" and old.estimator == ""
     new = decode(encode(msg), AutofocusResult)
     assert new.latency_s == 0.7 and new.metrics_pending is True
+
+
+def test_a_template_recorded_before_support_decodes_without_an_outline_and_a_bad_one_is_refused():
+    """TwinTemplate.support: absent from logs written before the field (and physical twins'), so
+    those decode with None; one that does not fit the image is refused naming the field."""
+    msg = one_of_each()[4]
+    assert isinstance(msg, TwinTemplate) and msg.support is not None
+    env = _envelope(msg)
+    del env["fields"]["support"]
+    old = decode(_pack(env), TwinTemplate)
+    assert old.support is None and np.array_equal(old.image, msg.image) and old.source == "stage.npz"
+    env = _envelope(msg)
+    env["fields"]["support"] = None  # as a physical twin's is sent
+    assert decode(_pack(env), TwinTemplate).support is None
+    env = _envelope(msg)
+    env["fields"]["support"].update(shape=[40, 30])  # same bytes, transposed shape
+    with pytest.raises(MessageError, match=r"TwinTemplate: field 'support' must be bool array of shape \(H, W\).*"
+                                           r"got shape \(40, 30\) \(already bound: H=30, W=40\)"):
+        decode(_pack(env), TwinTemplate)
+    env = _envelope(msg)
+    env["fields"]["support"]["dtype"] = "|u1"
+    with pytest.raises(MessageError, match="'support' must have dtype bool"):
+        decode(_pack(env), TwinTemplate)
