@@ -27,7 +27,9 @@ A digital twin's template depends on the aperture, so for ``points`` and ``stere
 listens to ``sar/measurement`` and, when a scan's last measurement arrives, conditions the cloud
 and builds the template for that scan's positions
 (:func:`twinfocus.digital_twin.condition.digital_twin_reference`: outliers, holes, noise, the
-surface model chosen by what the cloud supports). A scan that ends before any stereo frame gave a
+surface model chosen by what the cloud supports). The reference's outline on the grid goes with
+it (``TwinTemplate.support``), so the solver can take the outline estimator as ``twinfocus focus
+--digital-twin`` does. A scan that ends before any stereo frame gave a
 cloud gets no template, with a log line saying so.
 """
 
@@ -155,7 +157,7 @@ class TemplateBuilder(Node):
             self.log(f"warning: {cache.warning}")
         return self._message(image, "physical", source)
 
-    def _message(self, image: np.ndarray, kind: str, source: str) -> TwinTemplate:
+    def _message(self, image: np.ndarray, kind: str, source: str, support: np.ndarray | None = None) -> TwinTemplate:
         g = self.grid
         image = np.asarray(image)
         phase = np.angle(image).astype(np.float32) if np.iscomplexobj(image) else None
@@ -163,6 +165,7 @@ class TemplateBuilder(Node):
             header=Header(stamp_ns=now_ns(), frame_id="scene"),
             image=np.abs(image).astype(np.float32),
             phase_rad=phase,
+            support=support,
             x_m=g.x_m,
             y_m=g.y_m,
             z_m=g.z,
@@ -217,7 +220,10 @@ class TemplateBuilder(Node):
                 return
             source = self.params["path"] if self.params["source"] == "points" else f"camera/stereo frame {self.frames}"
             self.twin_info = ref.info
-            self.msg = self._message(ref.template, "digital", f"{source} (scan {m.scan_id}, {ref.surface} surface)")
+            # the outline travels with the template: with it the solver's auto takes the outline estimator
+            self.msg = self._message(
+                ref.template, "digital", f"{source} (scan {m.scan_id}, {ref.surface} surface)", support=ref.support
+            )
             self._send()
 
 
