@@ -13,7 +13,12 @@ back-projections: ``twin``, or the baselines ``sharpness`` / ``none``). With
 on the assembled scan at the end (the same call as ``twinfocus focus``; the benchmark's
 baseline).
 
-Outputs per scan: :class:`msgs.AutofocusResult` (phase, loss curve, metrics, timings) and
+A digital twin's template comes with the reference's outline (``TwinTemplate.support``); the
+solver resamples it with the template and hands it to the focusing steps, so ``estimator: auto``
+takes the outline estimator as ``twinfocus focus --digital-twin`` does.
+
+Outputs per scan: :class:`msgs.AutofocusResult` (phase, loss curve, metrics, timings, the
+estimator that ran) and
 :class:`msgs.Image` on ``image/focused`` named ``target``, ``target_uncorrected``,
 ``reference``, ``reference_uncorrected``; with ``out_dir`` also ``twinfocus focus``'s files in
 ``out_dir/<scan_id>/`` (:func:`twinfocus.pipeline.write_outputs`). Metrics against the truth
@@ -130,6 +135,7 @@ class Solver(Node):
         if device != "cpu":
             self.bp.update(backend="torch", device=device)
         self.template: np.ndarray | None = None
+        self.support: np.ndarray | None = None  # the reference's outline on ref_grid (a digital twin's)
         self.template_info = ""
         self.scan: _Scan | None = None
         self.waiting: list[_Scan] = []  # finished scans waiting for a template
@@ -155,6 +161,21 @@ class Solver(Node):
             )
             self._end_scan()
 
+    def _estimator(self, chirp) -> str:
+        """The named estimator for the template at hand (``auto`` resolved as ``twinfocus focus``
+        resolves it: :func:`twinfocus.estimators.resolve_estimator`); empty without one."""
+        from twinfocus.estimators import resolve_estimator
+
+        if self.params["method"] != "twin" or self.template is None:
+            return ""
+        return resolve_estimator(
+            self.params["estimator"],
+            bool(np.iscomplexobj(self.template)),
+            self.tracking_error_m,
+            chirp.wavelength_m,
+            has_support=self.support is not None,
+        )
+
     def _config(self, chirp):
         """The AutofocusConfig for the template at hand: the parameters plus the estimator's
         (:func:`twinfocus.estimators.estimator_settings`, the policy of ``twinfocus focus``)."""
@@ -165,10 +186,9 @@ class Solver(Node):
         if self.params["method"] != "twin" or self.template is None:
             return self.cfg
         chosen = estimator_settings(
-            self.params["estimator"],
+            self._estimator(chirp),
             bool(np.iscomplexobj(self.template)),
-            self.tracking_error_m,
-            chirp.wavelength_m,
+            has_support=self.support is not None,
         )
         if self.params["loss_steepness"] is not None:
             chosen["loss_steepness"] = self.params["loss_steepness"]
@@ -192,16 +212,29 @@ class Solver(Node):
 
     # -- template -----------------------------------------------------------------------------
     def on_template(self, msg: TwinTemplate) -> None:
-        from twinfocus.templates import resample_template
+        from twinfocus.templates import resample_support, resample_template
 
         try:
-            self.template = resample_template(
-                msg.image, msg.x_m, msg.y_m, msg.z_m, self.ref_grid, phase_rad=msg.phase_rad
-            )
+            template = resample_template(msg.image, msg.x_m, msg.y_m, msg.z_m, self.ref_grid, phase_rad=msg.phase_rad)
         except TwinFocusError as exc:
             self.log(f"ignored a {msg.kind} template from {msg.source or '?'}: {exc}")
             return
-        self.template_info = f"{msg.kind} twin from {msg.source or '?'}"
+        support = None
+        if msg.support is not None:
+            try:
+                support = resample_support(msg.support, msg.x_m, msg.y_m, self.ref_grid)
+                if not support.any() or support.all():
+                    raise TwinFocusError(
+                        f"on the reference grid it covers {support.mean():.0%} of the region (needs some but not all)"
+                    )
+            except TwinFocusError as exc:
+                # the template alone still focuses the scans: auto then takes what it takes without an outline
+                self.log(f"ignored the outline of the {msg.kind} template from {msg.source or '?'}: {exc}")
+                support = None
+        self.template, self.support = template, support
+        self.template_info = f"{msg.kind} twin from {msg.source or '?'}" + (
+            " with its outline" if support is not None else ""
+        )
         self.log(f"template received: {self.template_info}")
         for s in list(self.waiting):
             self.waiting.remove(s)
@@ -349,6 +382,7 @@ class Solver(Node):
                     self.ref_grid,
                     self.tgt_grid,
                     template=self.template,
+                    support=self.support,
                     method=self.params["method"],
                     config=self._config(s.chirp),
                     bp_options=self.bp,
@@ -436,6 +470,7 @@ class Solver(Node):
                 self.ref_grid,
                 self.tgt_grid,
                 template=self.template,
+                support=self.support,
                 method=self.params["method"],
                 config=self._config(s.chirp),
                 bp_options=self.bp,
@@ -502,6 +537,8 @@ class Solver(Node):
                 timing_s=dict(timing),
                 latency_s=latency,
                 metrics_pending=pending,
+                # still the template the scan was focused with: on_template waits for this callback to end
+                estimator=self._estimator(s.chirp) if out.method == "twin" else "",
             )
         )
 

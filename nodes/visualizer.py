@@ -291,7 +291,8 @@ class Visualizer(Node):
 
     def on_result(self, r: AutofocusResult) -> None:
         loss = np.asarray(r.loss_history)
-        lines = [f"scan {r.scan_id}: method {r.method}, {r.phase_rad.size} positions"]
+        estimator = f" ({r.estimator} estimator)" if r.estimator else ""
+        lines = [f"scan {r.scan_id}: method {r.method}{estimator}, {r.phase_rad.size} positions"]
         if r.latency_s > 0:
             lines.append(f"latency: {r.latency_s:.2f} s from the scan's last measurement to its focused image")
         if r.metrics_pending:

@@ -45,6 +45,22 @@ def auto_estimator(has_phase: bool, tracking_error_m: float, wavelength_m: float
     return "projection" if tracking_error_m <= wavelength_m / 4.0 else "projection-refined"
 
 
+def resolve_estimator(
+    estimator: str,
+    has_phase: bool,
+    tracking_error_m: float | None = None,
+    wavelength_m: float | None = None,
+    has_support: bool = False,
+) -> str:
+    """The named estimator that runs: ``estimator`` itself, or for ``"auto"`` the one
+    :func:`auto_estimator` takes (which needs ``tracking_error_m`` and ``wavelength_m``)."""
+    if estimator != "auto":
+        return estimator
+    if tracking_error_m is None or wavelength_m is None:
+        raise TwinFocusError("estimator 'auto' needs the tracking error and the wavelength to choose")
+    return auto_estimator(has_phase, tracking_error_m, wavelength_m, has_support)
+
+
 def estimator_settings(
     estimator: str,
     has_phase: bool,
@@ -54,13 +70,10 @@ def estimator_settings(
 ) -> dict:
     """The :class:`~twinfocus.autofocus.AutofocusConfig` fields that make a named estimator
     (``iterations`` only where it is 0: no optimiser); ``loss_steepness`` is the default for
-    it, which an explicit choice overrides. ``"auto"`` is resolved by :func:`auto_estimator`
+    it, which an explicit choice overrides. ``"auto"`` is resolved by :func:`resolve_estimator`
     and needs ``tracking_error_m`` and ``wavelength_m``; ``has_support``: the reference's outline is
     known (a digital twin from a cloud), which "outline" needs."""
-    if estimator == "auto":
-        if tracking_error_m is None or wavelength_m is None:
-            raise TwinFocusError("estimator 'auto' needs the tracking error and the wavelength to choose")
-        estimator = auto_estimator(has_phase, tracking_error_m, wavelength_m, has_support)
+    estimator = resolve_estimator(estimator, has_phase, tracking_error_m, wavelength_m, has_support)
     if estimator not in ESTIMATORS:
         raise TwinFocusError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
     if estimator in PHASE_ESTIMATORS and not has_phase:
