@@ -161,7 +161,7 @@ class Solver(Node):
             )
             self._end_scan()
 
-    def _estimator(self, chirp) -> str:
+    def _estimator(self) -> str:
         """The named estimator for the template at hand (``auto`` resolved as ``twinfocus focus``
         resolves it: :func:`twinfocus.estimators.resolve_estimator`); empty without one."""
         from twinfocus.estimators import resolve_estimator
@@ -169,11 +169,7 @@ class Solver(Node):
         if self.params["method"] != "twin" or self.template is None:
             return ""
         return resolve_estimator(
-            self.params["estimator"],
-            bool(np.iscomplexobj(self.template)),
-            self.tracking_error_m,
-            chirp.wavelength_m,
-            has_support=self.support is not None,
+            self.params["estimator"], bool(np.iscomplexobj(self.template)), has_support=self.support is not None
         )
 
     def _config(self, chirp):
@@ -186,9 +182,7 @@ class Solver(Node):
         if self.params["method"] != "twin" or self.template is None:
             return self.cfg
         chosen = estimator_settings(
-            self._estimator(chirp),
-            bool(np.iscomplexobj(self.template)),
-            has_support=self.support is not None,
+            self.params["estimator"], bool(np.iscomplexobj(self.template)), has_support=self.support is not None
         )
         if self.params["loss_steepness"] is not None:
             chosen["loss_steepness"] = self.params["loss_steepness"]
@@ -519,6 +513,8 @@ class Solver(Node):
         )
 
     def _publish_result(self, s: _Scan, out, timing: dict, latency: float, pending: bool) -> None:
+        from twinfocus.estimators import estimator_that_ran
+
         numeric = {
             k: float(v)
             for k, v in out.metrics.items()
@@ -538,7 +534,9 @@ class Solver(Node):
                 latency_s=latency,
                 metrics_pending=pending,
                 # still the template the scan was focused with: on_template waits for this callback to end
-                estimator=self._estimator(s.chirp) if out.method == "twin" else "",
+                estimator=estimator_that_ran(self._estimator(), out.metrics.get("estimator", {}))
+                if out.method == "twin"
+                else "",
             )
         )
 

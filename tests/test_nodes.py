@@ -623,9 +623,10 @@ def test_solver_picks_the_estimator_as_twinfocus_focus_does():
         amplitude = np.ones((8, 8), np.float32)
         amplitude[2:5, 3] = 4.0
         solver.template = amplitude
-        # an amplitude template, 0.5 mm of tracking error (within lambda/4): projections alone
+        # an amplitude template: the projections, the optimiser only if their phases have wrapped
         cfg = solver._config(chirp)
-        assert (cfg.init, cfg.iterations, cfg.loss_steepness) == ("projection", 0, 5.0)
+        assert (cfg.init, cfg.loss_steepness, cfg.refine_below_coherence) == ("projection", 5.0, 2.5)
+        assert cfg.iterations > 0
         solver.template = amplitude.astype(np.complex64)  # a template with its phase: the closed form
         assert solver._config(chirp).init == "correlation"
         solver = Solver(broker=ep, params={**base, "estimator": "projection-refined", "loss_steepness": 2.0,
@@ -636,8 +637,6 @@ def test_solver_picks_the_estimator_as_twinfocus_focus_does():
         assert {k: getattr(cfg, k) for k in want} == want and cfg.iterations == 40
         with pytest.raises(TwinFocusError, match="estimator"):
             Solver(broker=ep, params={**base, "estimator": "random"})
-        with pytest.raises(TwinFocusError, match="'auto' needs the tracking error"):
-            estimator_settings("auto", False)
         solver = Solver(broker=ep, params={**base, "estimator": "correlation"})
         solver.template = amplitude
         with pytest.raises(TwinFocusError, match="needs the template's phase"):

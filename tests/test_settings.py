@@ -49,10 +49,10 @@ def test_every_setting_is_a_focus_option_and_a_solver_parameter_with_the_same_de
 
 def test_help_names_other_settings_as_each_entry_point_spells_them():
     helps = {a.dest: a.help for a in _focus_parser()._actions}
-    assert "--tracking-error-mm exceeds lambda/4" in helps["estimator"]
+    assert "--estimator projection also" in helps["projection_restarts"]
     assert helps["tracking_error_mm"].endswith("(default 0.5 mm)")
     assert helps["device"].endswith("(default cuda if present, else cpu)")
-    assert "tracking_error_mm exceeds lambda/4" in Solver.PARAMS["estimator"].help
+    assert Solver.PARAMS["projection_restarts"].help.startswith("estimator projection also")
     assert not any("{" in helps[s.name] or "{" in Solver.PARAMS[s.name].help for s in FOCUS_SETTINGS)
 
 

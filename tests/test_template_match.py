@@ -48,15 +48,16 @@ _S = np.arange(-0.018, 0.0181, 0.002)
 _F_XY = [(-0.018, y) for y in _S] + [(x, 0.018) for x in _S] + [(x * 0.6, 0.0) for x in _S]
 
 
-def _letter_scene(offset_m):
-    """An 'F'-shaped speckled reference; positions with 1.6 mm z jitter (every phase wraps); the
-    template: the same scatterers moved by ``offset_m``, back-projected on exact positions."""
+def _letter_scene(offset_m, z_sigma_m=1.6e-3):
+    """An 'F'-shaped speckled reference; positions with ``z_sigma_m`` of z jitter (1.6 mm: every
+    phase wraps); the template: the same scatterers moved by ``offset_m``, back-projected on exact
+    positions."""
     rng = np.random.default_rng(3)
     pts = np.array([(x, y, Z) for x, y in _F_XY])
     amps = np.exp(2j * np.pi * rng.random(len(pts)))
     poses = paper_raster(n_columns=2, n_rows=36, column_pitch_m=0.08, row_pitch_m=0.003)
     true = phase_centres(poses, mmwcas_virtual_array())
-    tracked = apply_position_errors(true, gaussian_errors(true.shape[0], (0, 0, 1.6e-3), rng))
+    tracked = apply_position_errors(true, gaussian_errors(true.shape[0], (0, 0, z_sigma_m), rng))
     ch = Chirp()
     data = simulate_if(pts, amps, true, ch)
     stage = simulate_if(pts + np.asarray(offset_m), amps, true, ch)
@@ -329,15 +330,43 @@ def test_averaged_outlines_beat_one_outline_with_a_hole(placed):
         averaged_outline_phase(basis, support, np.full_like(ap, np.nan))
 
 
+def test_auto_runs_the_optimiser_only_where_the_projections_phases_have_wrapped(placed):
+    """auto with an amplitude template decides from the projections' own phases, not from a
+    stated tracking error: checked against the truth (the oracle phase's coherence) on a scene
+    whose errors wrap and on one whose errors hold together."""
+    from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
+
+    small = _letter_scene((0.0, 0.0, 0.0), z_sigma_m=0.15e-3)
+    for (ch, true, tracked, basis, template), wraps in ((placed, True), (small, False)):
+        oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
+        truth_coherence = np.abs(np.exp(1j * oracle).mean()) * np.sqrt(oracle.size)
+        assert (truth_coherence < AUTO_REFINE_BELOW_COHERENCE) == wraps  # the scenes are what they say
+        ap = tracked.mean(axis=1)[:, :2]
+        amplitude = np.abs(template)
+        cfg = AutofocusConfig(**{**estimator_settings("auto", False), "iterations": 20})
+        res = twin_autofocus(basis, amplitude, cfg, aperture_m=ap)
+        check = res.extra["refine_check"]
+        assert check["refined"] == wraps and (check["coherence_sqrt_m"] < AUTO_REFINE_BELOW_COHERENCE) == wraps
+        projections = twin_autofocus(basis, amplitude, AutofocusConfig(**estimator_settings("projection", False)))
+        if wraps:  # the optimiser ran from the projections
+            assert len(res.loss_history) == 20 and res.loss_history[-1] < projections.loss_history[0]
+        else:  # the projections alone, as --estimator projection gives them, and close to the truth
+            assert np.array_equal(res.phase_rad, projections.phase_rad)
+            assert phase_error_rms(res.phase_rad, oracle) < 0.3
+    with pytest.raises(TwinFocusError, match="aperture_m"):
+        twin_autofocus(basis, amplitude, cfg)
+    with pytest.raises(TwinFocusError, match="refine_below_coherence"):
+        AutofocusConfig(init="projection", refine_below_coherence=-1.0).validate()
+
+
 def test_auto_takes_the_outline_for_a_cloud_twin_and_only_then():
     from twinfocus.estimators import estimator_settings
 
-    wl = Chirp().wavelength_m
-    assert estimator_settings("auto", False, 1.6e-3, wl, has_support=True)["init"] == "outline"
+    assert estimator_settings("auto", False, has_support=True)["init"] == "outline"
     # averaged over the grown outlines (measured on camera clouds, docs/digital_twin.md)
     assert estimator_settings("outline", False, has_support=True)["outline_ensemble"] is True
     assert "outline_ensemble" not in estimator_settings("projection", False)
-    assert estimator_settings("auto", False, 0.5e-3, wl)["init"] == "projection"
-    assert estimator_settings("auto", True, 0.5e-3, wl, has_support=True)["init"] == "correlation"
+    assert estimator_settings("auto", False)["init"] == "projection"
+    assert estimator_settings("auto", True, has_support=True)["init"] == "correlation"
     with pytest.raises(TwinFocusError, match="outline"):
         estimator_settings("outline", False)

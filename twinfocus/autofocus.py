@@ -83,6 +83,14 @@ class AutofocusConfig:
     #: lowest loss (:func:`template_loss`) starts the optimiser. Pays past lambda/4, where the
     #: projections' local maxima differ; each costs ``projection_iterations`` steps + one loss.
     projection_restarts: int = config_default("projection_restarts")
+    #: ``init="projection"`` with ``iterations`` > 0: run the optimiser only when the projections'
+    #: phases have wrapped, i.e. when their coherence |mean exp(j (phi - ramp))| (the constant +
+    #: linear-in-aperture ramp taken out, :func:`fit_linear_phase`) times sqrt(M) is below this.
+    #: Within about lambda/5 of tracking error the phases hold together and the projections alone
+    #: are best (the optimiser pulls a speckled reference towards the template's texture); past
+    #: it every phase wraps and the optimiser finds what the projections miss. 0: always run it.
+    #: ``--estimator auto`` sets it for an amplitude template without an outline (docs/beyond.md).
+    refine_below_coherence: float = 0.0
     #: prior that the hand moves smoothly: adds ``smoothness_weight`` x mean |exp(j phi_{m+1}) -
     #: exp(j phi_m)|^2 over consecutive radar positions (basis order = capture order) to the loss.
     #: A chord on the unit circle, so it never fights a wrap. 0 = the paper (no prior).
@@ -97,6 +105,8 @@ class AutofocusConfig:
             raise TwinFocusError(f"init must be one of {', '.join(map(repr, INITS))}, got {self.init!r}")
         if int(self.projection_restarts) < 0:
             raise TwinFocusError(f"projection_restarts must be >= 0, got {self.projection_restarts}")
+        if not (np.isfinite(self.refine_below_coherence) and self.refine_below_coherence >= 0):
+            raise TwinFocusError(f"refine_below_coherence must be >= 0, got {self.refine_below_coherence}")
         if int(self.projection_iterations) < 1:
             raise TwinFocusError(f"projection_iterations must be >= 1, got {self.projection_iterations}")
         if self.template_registration not in ("none", "correlation"):
@@ -309,14 +319,16 @@ def twin_autofocus(
         registration costs nothing after it); computed here when None.
     aperture_m : float (M, 2) each radar position's (x, y) in the aperture plane, metres (the
         mean of its channels' phase centres): ``config.outline_ensemble`` lines its estimates up
-        by their linear-in-aperture ramps.
+        by their linear-in-aperture ramps, ``config.refine_below_coherence`` takes the ramp out of
+        the projections' phases.
 
     Returns
     -------
     AutofocusResult with phase_rad (M,) to apply to any region's basis; ``extra`` holds the
     registration's shift (pixels) and score gain when it ran, ``outline`` (the outline estimator's
     info; with ``config.outline_ensemble`` that of the cloud's outline's run, and
-    ``outline_ensemble`` the averaged runs'), and ``template``: the template the phases were
+    ``outline_ensemble`` the averaged runs'), ``refine_check`` (``config.refine_below_coherence``:
+    the projections' coherence and whether the optimiser ran), and ``template``: the template the phases were
     fitted to (moved by the registration).
     """
     cfg = config or AutofocusConfig()
@@ -347,6 +359,27 @@ def twin_autofocus(
             best = int(np.argmin(end_losses))
             init_phase_rad = ends[best]
             extra["projection_restarts"] = {"losses": end_losses, "chosen": best}
+        if cfg.refine_below_coherence > 0 and int(cfg.iterations) > 0:
+            if aperture_m is None:
+                raise TwinFocusError(
+                    "refine_below_coherence needs each radar position's place in the aperture (aperture_m, (M, 2) "
+                    "metres) to take the ramp out of the projections' phases"
+                )
+            ramp, _ = fit_linear_phase(init_phase_rad, aperture_m)
+            coherence = float(np.abs(np.exp(1j * (init_phase_rad - ramp)).mean()) * np.sqrt(init_phase_rad.size))
+            refine = coherence < cfg.refine_below_coherence
+            extra["refine_check"] = {
+                "coherence_sqrt_m": round(coherence, 3),
+                "refine_below": float(cfg.refine_below_coherence),
+                "refined": bool(refine),
+                "why": (
+                    "the projections' phases have wrapped (tracking error past about lambda/5): the optimiser ran"
+                    if refine
+                    else "the projections' phases hold together (tracking error within about lambda/5): projections alone"
+                ),
+            }
+            if not refine:
+                cfg = replace(cfg, iterations=0)
     elif cfg.init == "outline":
         from twinfocus.template_match import averaged_outline_phase, outline_phase
 

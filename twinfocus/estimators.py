@@ -21,59 +21,61 @@ ESTIMATORS = (
 PHASE_ESTIMATORS = ("registered", "correlation", "correlation-refined")
 
 
-def auto_estimator(has_phase: bool, tracking_error_m: float, wavelength_m: float, has_support: bool = False) -> str:
-    """The estimator measured best for a template (docs/beyond.md, six pairs x two draws;
-    docs/digital_twin.md for the outline):
+#: ``--estimator auto`` with an amplitude template and no outline runs the optimiser after the
+#: projections only when their phases' coherence x sqrt(M) is below this: M random phases reach
+#: 2.5 / sqrt(M) once in 500 (Rayleigh), so below it the errors wrap every phase (past about
+#: lambda/5 along the line of sight); measured in docs/beyond.md
+AUTO_REFINE_BELOW_COHERENCE = 2.5
+
+
+def auto_estimator(has_phase: bool, has_support: bool = False) -> str:
+    """The estimator measured best for a template (docs/beyond.md, docs/digital_twin.md), chosen
+    from what the template is, never from an assumed tracking error:
 
     * with the template's phase, the registered closed form ("correlation"): at the transfer
       ceiling from 0.5 to 1.6 mm of tracking error, in 0.15 s;
     * a digital twin from a point cloud, which knows the reference's outline: the outline
       estimator ("outline"), whatever the tracking error: on rough references and camera clouds
       it holds where the template's texture misleads the others; averaged over the outlines
-      grown from its first estimate (``outline_ensemble``), which fill a camera cloud's holes
-      (docs/digital_twin.md);
-    * an amplitude template (a digital twin's): alternating projections alone ("projection",
-      0.950 at 0.5 mm against the steepness-5 optimiser's 0.941, and 0.940 against 0.905 at 20
-      degrees of separation, in 0.12 s) while the tracker's error stays within lambda/4; past
-      it, where every phase wraps, the optimiser from there ("projection-refined": 0.921
-      against 0.861 at 1.6 mm along z).
+      grown from its first estimate (``outline_ensemble``), which fill a camera cloud's holes;
+    * an amplitude template without an outline (a template file): the alternating projections,
+      then the optimiser only if the projections' phases show that the errors wrap
+      ("projection-refined" with ``refine_below_coherence``, :func:`estimator_settings`): the
+      projections alone are best while the phases hold together (0.95-0.96 against 0.93 at
+      0.3 mm), the optimiser past that (0.91-0.92 against 0.86-0.90 at 0.8-1.6 mm along z).
     """
     if has_phase:
         return "correlation"
     if has_support:
         return "outline"
-    return "projection" if tracking_error_m <= wavelength_m / 4.0 else "projection-refined"
+    return "projection-refined"
 
 
-def resolve_estimator(
-    estimator: str,
-    has_phase: bool,
-    tracking_error_m: float | None = None,
-    wavelength_m: float | None = None,
-    has_support: bool = False,
-) -> str:
+def resolve_estimator(estimator: str, has_phase: bool, has_support: bool = False) -> str:
     """The named estimator that runs: ``estimator`` itself, or for ``"auto"`` the one
-    :func:`auto_estimator` takes (which needs ``tracking_error_m`` and ``wavelength_m``)."""
-    if estimator != "auto":
-        return estimator
-    if tracking_error_m is None or wavelength_m is None:
-        raise TwinFocusError("estimator 'auto' needs the tracking error and the wavelength to choose")
-    return auto_estimator(has_phase, tracking_error_m, wavelength_m, has_support)
+    :func:`auto_estimator` takes."""
+    return auto_estimator(has_phase, has_support) if estimator == "auto" else estimator
 
 
-def estimator_settings(
-    estimator: str,
-    has_phase: bool,
-    tracking_error_m: float | None = None,
-    wavelength_m: float | None = None,
-    has_support: bool = False,
-) -> dict:
+def estimator_that_ran(resolved: str, estimator_metrics: dict) -> str:
+    """The named estimator that found the phase: ``resolved`` (:func:`resolve_estimator`), except
+    that "projection-refined" whose optimiser the data skipped (``estimator_metrics``, metrics.json's
+    ``estimator``: ``refine_check.refined`` false) ran as "projection"."""
+    check = estimator_metrics.get("refine_check")
+    if resolved == "projection-refined" and check is not None and not check["refined"]:
+        return "projection"
+    return resolved
+
+
+def estimator_settings(estimator: str, has_phase: bool, has_support: bool = False) -> dict:
     """The :class:`~twinfocus.autofocus.AutofocusConfig` fields that make a named estimator
     (``iterations`` only where it is 0: no optimiser); ``loss_steepness`` is the default for
     it, which an explicit choice overrides. ``"auto"`` is resolved by :func:`resolve_estimator`
-    and needs ``tracking_error_m`` and ``wavelength_m``; ``has_support``: the reference's outline is
-    known (a digital twin from a cloud), which "outline" needs."""
-    estimator = resolve_estimator(estimator, has_phase, tracking_error_m, wavelength_m, has_support)
+    (for an amplitude template without an outline, the optimiser then runs only where the
+    projections' phases have wrapped: ``refine_below_coherence``); ``has_support``: the
+    reference's outline is known (a digital twin from a cloud), which "outline" needs."""
+    by_data = estimator == "auto" and not has_phase and not has_support
+    estimator = resolve_estimator(estimator, has_phase, has_support)
     if estimator not in ESTIMATORS:
         raise TwinFocusError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
     if estimator in PHASE_ESTIMATORS and not has_phase:
@@ -104,4 +106,6 @@ def estimator_settings(
         # averaged over the outlines grown from the first estimate: +0.010-0.019 target SSIM with
         # camera clouds, never worse on average with one impairment alone (docs/digital_twin.md)
         out["outline_ensemble"] = True
+    if by_data:
+        out["refine_below_coherence"] = AUTO_REFINE_BELOW_COHERENCE
     return out

@@ -309,6 +309,10 @@ def focus_bases(
             m["estimator"]["outline"] = result.extra["outline"]
         if "outline_ensemble" in result.extra:
             m["estimator"]["outline_ensemble"] = result.extra["outline_ensemble"]
+        if "refine_check" in result.extra:
+            m["estimator"]["refine_check"] = result.extra["refine_check"]
+            if not result.extra["refine_check"]["refined"]:
+                m["estimator"]["iterations"] = 0  # what ran: the optimiser was skipped
         if "projection_restarts" in result.extra:
             m["projection_restarts"] = result.extra["projection_restarts"]
         if "registration" in result.extra:
@@ -609,6 +613,9 @@ def confidence_report(
             "check the template, the reference region and the template's placement"
         )
     est = m.get("estimator") or {}
+    if "refine_check" in est:
+        # what auto chose for an amplitude template, from the projections' own phases
+        out["estimator_choice"] = est["refine_check"]["why"]
     if "outline" in est:
         # how sure the outline estimator is: the energy it put inside the outline, and how many of
         # its starts ended within 0.01 of the chosen one (several far-apart maxima: less sure)

@@ -137,8 +137,9 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
         "physical twin: a template scan, or a template file with phase_rad). 'outline' = the reference's "
         "energy inside its outline, no texture, averaged over the outlines grown from its first estimate "
         "(needs a digital twin from a point cloud: rough references, camera clouds). auto: correlation when "
-        "the template has a phase; outline for a point-cloud digital twin; else projection, or "
-        "projection-refined when {tracking_error_mm} exceeds lambda/4",
+        "the template has a phase; outline for a point-cloud digital twin; else the projections, then the "
+        "optimiser only when the projections' own phases show that the errors wrap (metrics.json "
+        "estimator.refine_check says which and why)",
         choices=("auto",) + ESTIMATORS,
     ),
     Setting(
@@ -187,7 +188,7 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
         "tracking_error_mm",
         float,
         0.5,
-        "tracker position error assumed by the confidence report and by {estimator} auto",
+        "tracker position error assumed by the confidence report's transfer bound",
         unit="mm",
     ),
 )

@@ -218,13 +218,7 @@ def run(args: argparse.Namespace) -> int:
     tracking_error_m = args.tracking_error_mm * 1e-3
     chosen = {}
     if method == "twin":
-        chosen = estimator_settings(
-            args.estimator,
-            has_phase,
-            tracking_error_m,
-            scan.chirp.wavelength_m,
-            has_support=support is not None,
-        )
+        chosen = estimator_settings(args.estimator, has_phase, has_support=support is not None)
     if args.loss_steepness is not None:
         chosen["loss_steepness"] = args.loss_steepness
     cfg = AutofocusConfig.from_settings({**vars(args), "device": device}, **chosen)  # validated
