@@ -267,6 +267,27 @@ def test_outline_phase_refuses_bad_input(placed):
         twin_autofocus(basis, np.abs(basis.sum(axis=0)), AutofocusConfig(init="outline", iterations=0))
 
 
+def test_outlines_run_together_give_each_outline_its_own_run(placed):
+    """outline_phases shares the matrix products between outlines; each outline's estimate must be
+    what it gets alone, shifts and all."""
+    from twinfocus.template_match import _shift_mask, outline_phase, outline_phases
+
+    basis = placed[3]
+    a = _outline(GRID)
+    b = _shift_mask(a, 2, -1) | a  # another outline, larger and moved
+    together = outline_phases(basis, [a, b], starts=3, iterations=8, rounds=2)
+    for support, (phi, info) in zip((a, b), together):
+        alone_phi, alone_info = outline_phase(basis, support, starts=3, iterations=8, rounds=2)
+        assert np.abs(np.angle(np.exp(1j * (phi - alone_phi)))).max() < 1e-4
+        assert info["chosen"] == alone_info["chosen"] and info["support_shift_px"] == alone_info["support_shift_px"]
+        assert info["energy_inside"] == pytest.approx(alone_info["energy_inside"], abs=2e-4)
+    assert not np.allclose(together[0][0], together[1][0])  # the two outlines did pull differently
+    with pytest.raises(TwinFocusError, match="at least one outline"):
+        outline_phases(basis, [])
+    with pytest.raises(TwinFocusError, match="support is"):
+        outline_phases(basis, [a, np.ones((5, 5), bool)])
+
+
 def test_grown_outlines_fill_a_hole_where_the_image_is_bright_and_nowhere_else():
     from twinfocus.template_match import _shift_mask, grown_outlines
 

@@ -250,23 +250,47 @@ def outline_phase(
     Returns (float64 (M,) radians, info: ``energy_inside`` per start, ``chosen`` start,
     ``support_shift_px`` (dy, dx) of the chosen start's outline).
     """
+    ((phi, info),) = outline_phases(basis, [support], starts, iterations, rounds, max_shift_px, seed)
+    return phi, info
+
+
+def outline_phases(
+    basis: np.ndarray,
+    supports: list[np.ndarray],
+    starts: int = 12,
+    iterations: int = 20,
+    rounds: int = 3,
+    max_shift_px: int = 3,
+    seed: int = 0,
+) -> list[tuple[np.ndarray, dict]]:
+    """:func:`outline_phase` for several outlines of one reference at once: each outline's run is
+    what :func:`outline_phase` gives for it alone (the same starts), but all the runs' starts share
+    every matrix product, which a wider product does in about half the time per start (four
+    outlines x 13 starts: 1.8x faster than four calls). supports : list of K bool (H, W). Returns
+    K (phase, info) pairs, in the order of ``supports``."""
     b = np.asarray(basis)
-    mask = np.asarray(support, dtype=bool)
     if b.ndim != 3 or not np.iscomplexobj(b):
         raise TwinFocusError(f"basis must be complex (M, H, W), got {b.dtype} {b.shape}")
-    if mask.shape != b.shape[1:]:
-        raise TwinFocusError(f"support is {mask.shape} but the reference region is {b.shape[1:]}")
-    if not mask.any() or mask.all():
-        raise TwinFocusError("the reference's outline must cover some but not all of the reference region")
+    base = [np.asarray(sup, dtype=bool) for sup in supports]
+    if not base:
+        raise TwinFocusError("outline_phases needs at least one outline")
+    for mask in base:
+        if mask.shape != b.shape[1:]:
+            raise TwinFocusError(f"support is {mask.shape} but the reference region is {b.shape[1:]}")
+        if not mask.any() or mask.all():
+            raise TwinFocusError("the reference's outline must cover some but not all of the reference region")
     if min(int(starts), int(iterations), int(rounds), int(max_shift_px)) < 0 or int(iterations) < 1 or int(rounds) < 1:
         raise TwinFocusError("outline estimator: iterations and rounds must be >= 1, starts and max_shift_px >= 0")
     m = b.shape[0]
     flat = b.reshape(m, -1)
     rng = np.random.default_rng(seed)
-    phi = np.vstack([np.zeros((1, m)), rng.uniform(-np.pi, np.pi, (int(starts), m))])  # (S, M)
+    first = np.vstack([np.zeros((1, m)), rng.uniform(-np.pi, np.pi, (int(starts), m))])  # (S, M)
+    per = first.shape[0]
+    phi = np.tile(first, (len(base), 1))  # every outline from the same starts: (K S, M)
     n = phi.shape[0]
+    owner = [i // per for i in range(n)]  # the outline each row runs for
     shifts = [(0, 0)] * n
-    masks = np.repeat(mask.reshape(1, -1), n, axis=0).astype(np.float32)  # (S, P)
+    masks = np.vstack([np.repeat(mask.reshape(1, -1), per, axis=0) for mask in base]).astype(np.float32)  # (K S, P)
     r = int(max_shift_px)
     for rnd in range(int(rounds)):
         # T_s is zero outside its outline, so the steps need the image only on the pixels some
@@ -281,6 +305,7 @@ def outline_phase(
             break
         energy = np.abs(np.exp(1j * phi).astype(np.complex64) @ flat) ** 2
         for i in range(n):
+            mask = base[owner[i]]
             e = energy[i].reshape(mask.shape)
             best = max(
                 (float((_shift_mask(mask, dy, dx) * e).sum()), dy, dx)
@@ -291,12 +316,21 @@ def outline_phase(
             masks[i] = _shift_mask(mask, *shifts[i]).reshape(-1)
     energy = np.abs(np.exp(1j * phi).astype(np.complex64) @ flat) ** 2
     inside = (masks * energy).sum(axis=1) / np.maximum(energy.sum(axis=1), 1e-300)
-    chosen = int(np.argmax(inside))
-    return phi[chosen].copy(), {
-        "energy_inside": [round(float(v), 4) for v in inside],
-        "chosen": chosen,
-        "support_shift_px": [int(v) for v in shifts[chosen]],
-    }
+    out = []
+    for k in range(len(base)):
+        rows = slice(k * per, (k + 1) * per)
+        chosen = int(np.argmax(inside[rows]))
+        out.append(
+            (
+                phi[rows][chosen].copy(),
+                {
+                    "energy_inside": [round(float(v), 4) for v in inside[rows]],
+                    "chosen": chosen,
+                    "support_shift_px": [int(v) for v in shifts[k * per + chosen]],
+                },
+            )
+        )
+    return out
 
 
 #: the outlines :func:`grown_outlines` draws from an estimate's image (docs/digital_twin.md): closings
@@ -373,7 +407,8 @@ def averaged_outline_phase(
     basis: np.ndarray, support: np.ndarray, aperture_m: np.ndarray, **outline_options
 ) -> tuple[np.ndarray, dict]:
     """:func:`outline_phase` with the cloud's outline and with the outlines grown from its estimate's
-    image (:func:`grown_outlines`), the estimates averaged.
+    image (:func:`grown_outlines`; their runs as one batch, :func:`outline_phases`), the estimates
+    averaged.
 
     Each outline puts the estimate in a maximum of the energy criterion; for outlines that differ
     by a few pixels these maxima differ, and the criterion cannot tell which is right (on camera
@@ -404,7 +439,7 @@ def averaged_outline_phase(
     first, info = outline_phase(b, support, **outline_options)
     energy = np.abs(form_image(b, first)) ** 2
     outlines = [np.asarray(support, dtype=bool), *grown_outlines(support, energy, info["support_shift_px"])]
-    runs = [(first, info)] + [outline_phase(b, m, **outline_options) for m in outlines[1:]]
+    runs = [(first, info), *outline_phases(b, outlines[1:], **outline_options)]
     acc = np.zeros(b.shape[0], np.complex128)
     for phi, _ in runs:
         ramp, _ = fit_linear_phase(phi - first, ap)
