@@ -28,6 +28,7 @@ import torch
 from twinfocus.autofocus import AutofocusConfig, twin_autofocus
 from twinfocus.backprojection import backproject, backproject_points, matched_filter_bruteforce, subimage_basis
 from twinfocus.basis import form_image
+from twinfocus.digital_twin.condition import digital_twin_reference
 from twinfocus.estimators import ESTIMATORS, PHASE_ESTIMATORS, estimator_settings
 from twinfocus.grid import ImageGrid
 from twinfocus.metrics import image_ssim
@@ -117,10 +118,16 @@ def bench_estimators(scan, template_scan, sc, quick) -> list[dict]:
         tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
         tpl = template_from_scan(template_scan, rg, keep_phase=True)
         truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
+        # the outline estimator's outline: a digital twin from the reference's own points
+        support = digital_twin_reference(sc.scene().object("reference").surface_points(1e-3), scan.positions, scan.chirp,
+                                         rg).support
+        aperture = scan.positions.mean(axis=1)[:, :2]
         for name in ESTIMATORS:
             has_phase = name in PHASE_ESTIMATORS
-            cfg = AutofocusConfig(basis_dtype="float16", **estimator_settings(name, has_phase))
-            t, r = _best(lambda: twin_autofocus(rb, tpl if has_phase else np.abs(tpl), cfg), 1)
+            outline = name == "outline"
+            cfg = AutofocusConfig(basis_dtype="float16", **estimator_settings(name, has_phase, has_support=outline))
+            t, r = _best(lambda: twin_autofocus(rb, tpl if has_phase else np.abs(tpl), cfg,
+                                                support=support if outline else None, aperture_m=aperture), 1)
             ssim = image_ssim(form_image(tb, transfer_phase(r.phase_rad, scan.positions)), truth)
             rows.append({"size": size, "estimator": name, "template": "complex" if has_phase else "amplitude",
                          "seconds": t, "ssim": ssim})
