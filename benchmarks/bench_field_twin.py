@@ -85,6 +85,7 @@ def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
         rec[f"{name} time_s"] = out.timings_s["autofocus"]
         if name == "default":
             rec["default trusted"] = out.metrics["confidence"]["trusted"]
+            rec["default phase coherence"] = out.metrics["estimator"].get("phase_coherence_sqrt_m")
             default_phase = out.phase_rad
     rec["uncorrected"] = out.metrics["target_ssim_uncorrected"]
     rec["oracle phase"] = out.metrics["target_ssim_oracle_phase"]

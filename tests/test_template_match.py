@@ -134,6 +134,12 @@ def placed():
     return _letter_scene((0.0, 0.0, 0.0))
 
 
+@pytest.fixture(scope="module")
+def coherent():
+    """The placed scene with 0.15 mm of z jitter: the phases hold together."""
+    return _letter_scene((0.0, 0.0, 0.0), z_sigma_m=0.15e-3)
+
+
 @pytest.mark.slow
 def test_projection_phase_recovers_wrapped_errors_from_the_amplitude_alone(placed):
     ch, true, tracked, basis, template = placed
@@ -351,14 +357,13 @@ def test_averaged_outlines_beat_one_outline_with_a_hole(placed):
         averaged_outline_phase(basis, support, np.full_like(ap, np.nan))
 
 
-def test_auto_runs_the_optimiser_only_where_the_projections_phases_have_wrapped(placed):
+def test_auto_runs_the_optimiser_only_where_the_projections_phases_have_wrapped(placed, coherent):
     """auto with an amplitude template decides from the projections' own phases, not from a
     stated tracking error: checked against the truth (the oracle phase's coherence) on a scene
     whose errors wrap and on one whose errors hold together."""
     from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
 
-    small = _letter_scene((0.0, 0.0, 0.0), z_sigma_m=0.15e-3)
-    for (ch, true, tracked, basis, template), wraps in ((placed, True), (small, False)):
+    for (ch, true, tracked, basis, template), wraps in ((placed, True), (coherent, False)):
         oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
         truth_coherence = np.abs(np.exp(1j * oracle).mean()) * np.sqrt(oracle.size)
         assert (truth_coherence < AUTO_REFINE_BELOW_COHERENCE) == wraps  # the scenes are what they say
@@ -378,6 +383,23 @@ def test_auto_runs_the_optimiser_only_where_the_projections_phases_have_wrapped(
         twin_autofocus(basis, amplitude, cfg)
     with pytest.raises(TwinFocusError, match="refine_below_coherence"):
         AutofocusConfig(init="projection", refine_below_coherence=-1.0).validate()
+
+
+def test_the_report_warns_that_an_outline_cannot_be_placed_once_the_phases_wrap(placed, coherent):
+    """With the phases wrapped, nothing in the scan checks where the outline put the reference, and
+    the confidence report says so; while they hold together it does not."""
+    from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
+    from twinfocus.pipeline import focus_bases
+
+    for (ch, true, tracked, basis, template), wraps in ((placed, True), (coherent, False)):
+        oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
+        assert (np.abs(np.exp(1j * oracle).mean()) * np.sqrt(oracle.size) < AUTO_REFINE_BELOW_COHERENCE) == wraps
+        out = focus_bases(basis, basis, tracked, ch, GRID, GRID, template=np.abs(template), support=_outline(GRID),
+                          config=AutofocusConfig(**estimator_settings("auto", False, has_support=True)))
+        est, conf = out.metrics["estimator"], out.metrics["confidence"]
+        assert (est["phase_coherence_sqrt_m"] < AUTO_REFINE_BELOW_COHERENCE) == wraps
+        assert any("phases have wrapped" in w for w in conf["warnings"]) == wraps
+        assert 0 < conf["outline_agreement"] <= 1
 
 
 def test_auto_takes_the_outline_for_a_cloud_twin_and_only_then():

@@ -28,7 +28,10 @@ import numpy as np
 from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.metrics import ssim, ssim_torch
-from twinfocus.phase_ramp import fit_linear_phase  # also found here by its callers (the transfer's ramp)
+from twinfocus.phase_ramp import (  # fit_linear_phase: also found here by its callers
+    fit_linear_phase,
+    ramp_free_coherence,
+)
 from twinfocus.settings import FOCUS_SETTINGS, config_default, resolve_device
 
 if TYPE_CHECKING:  # torch is imported where the optimiser runs: the closed-form estimators need none
@@ -365,8 +368,7 @@ def twin_autofocus(
                     "refine_below_coherence needs each radar position's place in the aperture (aperture_m, (M, 2) "
                     "metres) to take the ramp out of the projections' phases"
                 )
-            ramp, _ = fit_linear_phase(init_phase_rad, aperture_m)
-            coherence = float(np.abs(np.exp(1j * (init_phase_rad - ramp)).mean()) * np.sqrt(init_phase_rad.size))
+            coherence = ramp_free_coherence(init_phase_rad, aperture_m)
             refine = coherence < cfg.refine_below_coherence
             extra["refine_check"] = {
                 "coherence_sqrt_m": round(coherence, 3),

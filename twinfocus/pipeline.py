@@ -34,7 +34,9 @@ from twinfocus.autofocus import (
 from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.basis import form_image, form_image_space_variant
 from twinfocus.errors import TwinFocusError
+from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE
 from twinfocus.grid import ImageGrid
+from twinfocus.phase_ramp import ramp_free_coherence
 from twinfocus.radar import Chirp
 from twinfocus.scan import Scan
 from twinfocus.templates import check_has_signal
@@ -307,6 +309,11 @@ def focus_bases(
                 m["estimator"][knob] = getattr(cfg, knob)
         if "outline" in result.extra:
             m["estimator"]["outline"] = result.extra["outline"]
+            # the scan can check where the outline put the reference only while the phases hold
+            # together (their ramp is then seen, and the transfer takes a misplacement's out)
+            m["estimator"]["phase_coherence_sqrt_m"] = round(
+                ramp_free_coherence(phase, positions.mean(axis=1)[:, :2]), 3
+            )
         if "outline_ensemble" in result.extra:
             m["estimator"]["outline_ensemble"] = result.extra["outline_ensemble"]
         if "refine_check" in result.extra:
@@ -616,6 +623,14 @@ def confidence_report(
     if "refine_check" in est:
         # what auto chose for an amplitude template, from the projections' own phases
         out["estimator_choice"] = est["refine_check"]["why"]
+    coherence = est.get("phase_coherence_sqrt_m")
+    if coherence is not None and coherence < AUTO_REFINE_BELOW_COHERENCE:
+        out["warnings"].append(
+            f"the estimate's phases have wrapped (coherence x sqrt(M) {coherence:.1f} < {AUTO_REFINE_BELOW_COHERENCE}), "
+            "so the scan cannot check where the outline put the reference: across the axis one radar position "
+            "does not resolve it sits where the cloud puts it, and the target can be a few mm off there "
+            "(docs/digital_twin.md, 'What is left')"
+        )
     if "outline" in est:
         # how sure the outline estimator is: the energy it put inside the outline, and how many of
         # its starts ended within 0.01 of the chosen one (several far-apart maxima: less sure)
@@ -623,6 +638,8 @@ def confidence_report(
         best = max(inside)
         out["outline_energy_inside"] = best
         out["outline_starts_agreeing"] = f"{sum(v >= best - 0.01 for v in inside)}/{len(inside)}"
+        if "outline_ensemble" in est:
+            out["outline_agreement"] = est["outline_ensemble"]["agreement"]
     residual = m.get("reference_residual")
     out["reference_residual"] = residual
     if residual is not None and residual > MAX_REFERENCE_RESIDUAL:
