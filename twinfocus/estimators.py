@@ -24,7 +24,7 @@ PHASE_ESTIMATORS = ("registered", "correlation", "correlation-refined")
 #: ``--estimator auto`` with an amplitude template and no outline runs the optimiser after the
 #: projections only when their phases' coherence x sqrt(M) is below this: M random phases reach
 #: 2.5 / sqrt(M) once in 500 (Rayleigh), so below it the errors wrap every phase (past about
-#: lambda/5 along the line of sight); measured in docs/beyond.md
+#: lambda/5 along the line of sight); measured in docs/digital_twin.md
 AUTO_REFINE_BELOW_COHERENCE = 2.5
 
 
@@ -41,8 +41,9 @@ def auto_estimator(has_phase: bool, has_support: bool = False) -> str:
     * an amplitude template without an outline (a template file): the alternating projections,
       then the optimiser only if the projections' phases show that the errors wrap
       ("projection-refined" with ``refine_below_coherence``, :func:`estimator_settings`): the
-      projections alone are best while the phases hold together (0.95-0.96 against 0.93 at
-      0.3 mm), the optimiser past that (0.91-0.92 against 0.86-0.90 at 0.8-1.6 mm along z).
+      projections alone are best while the phases hold together (0.937-0.961 against
+      0.923-0.931 at 0.3 mm along z), the optimiser where they have wrapped and the projections
+      stop short (0.915-0.924 against 0.849-0.894 at 0.8 and 1.6 mm; docs/digital_twin.md).
     """
     if has_phase:
         return "correlation"
