@@ -92,7 +92,7 @@ class AutofocusConfig:
     #: Within about lambda/5 of tracking error the phases hold together and the projections alone
     #: are best (the optimiser pulls a speckled reference towards the template's texture); past
     #: it every phase wraps and the optimiser finds what the projections miss. 0: always run it.
-    #: ``--estimator auto`` sets it for an amplitude template without an outline (docs/beyond.md).
+    #: ``--estimator auto`` sets it for an amplitude template without an outline (docs/digital_twin.md).
     refine_below_coherence: float = 0.0
     #: prior that the hand moves smoothly: adds ``smoothness_weight`` x mean |exp(j phi_{m+1}) -
     #: exp(j phi_m)|^2 over consecutive radar positions (basis order = capture order) to the loss.
