@@ -273,6 +273,7 @@ def focus_bases(
     check_has_signal(ref_unc, "the reference region")
     if template is not None:
         check_has_signal(template, "the template")
+    centres = positions.mean(axis=1)  # each position's phase centre (M, 3): its place in the aperture
 
     t = time.perf_counter()
     if method == "twin":
@@ -284,7 +285,7 @@ def focus_bases(
             progress=prog("autofocus"),
             support=support,
             registration_scores=registration_scores,
-            aperture_m=positions.mean(axis=1)[:, :2],
+            aperture_m=centres[:, :2],
         )
     elif method == "sharpness":
         result = sharpness_autofocus(tgt_basis, cfg, progress=prog("sharpness autofocus"))
@@ -311,9 +312,7 @@ def focus_bases(
             m["estimator"]["outline"] = result.extra["outline"]
             # the scan can check where the outline put the reference only while the phases hold
             # together (their ramp is then seen, and the transfer takes a misplacement's out)
-            m["estimator"]["phase_coherence_sqrt_m"] = round(
-                ramp_free_coherence(phase, positions.mean(axis=1)[:, :2]), 3
-            )
+            m["estimator"]["phase_coherence_sqrt_m"] = round(ramp_free_coherence(phase, centres[:, :2]), 3)
         if "outline_ensemble" in result.extra:
             m["estimator"]["outline_ensemble"] = result.extra["outline_ensemble"]
         if "refine_check" in result.extra:
@@ -327,11 +326,10 @@ def focus_bases(
         # metrics and pictures against the template the phases were fitted to (moved when registered)
         template = result.extra.get("template", template)
     if method != "none":
-        aperture = positions.mean(axis=1)
         phase, m["phase_ramp"] = transfer_phase(
             phase,
-            aperture[:, :2],
-            float(reference_grid.z - aperture[:, 2].mean()),
+            centres[:, :2],
+            float(reference_grid.z - centres[:, 2].mean()),
             chirp.wavelength_m,
             phase_ramp,
             registered="registration" in result.extra,
@@ -371,7 +369,6 @@ def focus_bases(
     else:
         from twinfocus.space_variant import lines_of_sight, pixel_phases
 
-        centres = positions.mean(axis=1)
         ref_cor = form_image_space_variant(
             ref_sv_basis,
             pixel_phases(phase, drift, reference_grid.centre_m, centres, reference_grid, chirp.wavelength_m),
