@@ -48,7 +48,7 @@ def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
     from twinfocus.estimators import estimator_settings
     from twinfocus.metrics import image_ssim, oracle_phase
     from twinfocus.phase_ramp import fit_linear_phase
-    from twinfocus.pipeline import focus_bases
+    from twinfocus.pipeline import focus_bases, upper_band_basis
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.templates import template_from_scan
 
@@ -78,14 +78,18 @@ def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
     if full:
         runs["paper"] = (twin.template, None, estimator_settings("paper", False))
     rec: dict = {"seed": seed, "surface": twin.info.get("surface")}
+    # what `twinfocus focus` hands focus_bases: the upper half-band basis, built when a run needs it
+    upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
     for name, (template, support, settings) in runs.items():
         out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template, support=support,
-                          config=AutofocusConfig(**settings), **truth)
+                          config=AutofocusConfig(**settings), upper_band=upper, **truth)
         rec[name] = out.metrics["target_ssim_corrected"]
         rec[f"{name} time_s"] = out.timings_s["autofocus"]
         if name == "default":
             rec["default trusted"] = out.metrics["confidence"]["trusted"]
             rec["default phase coherence"] = out.metrics["estimator"].get("phase_coherence_sqrt_m")
+            rec["default ramp coherence, band halves"] = out.metrics["phase_ramp"].get("ramp_coherence_sqrt_m")
+            rec["default range errors time_s"] = out.timings_s.get("range_errors")
             default_phase = out.phase_rad
     rec["uncorrected"] = out.metrics["target_ssim_uncorrected"]
     rec["oracle phase"] = out.metrics["target_ssim_oracle_phase"]

@@ -442,7 +442,7 @@ class Solver(Node):
         outputs and the target basis (the oracle-phase image needs it)."""
         from threadpoolctl import threadpool_limits
 
-        from twinfocus.pipeline import focus_bases, half_array_bases
+        from twinfocus.pipeline import focus_bases, half_array_bases, upper_band_basis
 
         tgt_basis = s.tgt_rows.array()
         self._score_registration(s, final=True)  # the rows left (all of them if the template came after the scan)
@@ -479,6 +479,16 @@ class Solver(Node):
                     s.chirp,
                     self.ref_grid,
                     self.tgt_grid,
+                    self.bp,
+                    lambda label: self._progress,
+                )
+                if s.data
+                else None,
+                upper_band=upper_band_basis(
+                    lambda: np.concatenate(s.data),
+                    positions,
+                    s.chirp,
+                    self.ref_grid,
                     self.bp,
                     lambda label: self._progress,
                 )

@@ -81,7 +81,7 @@ def test_a_points_twin_carries_its_outline_and_the_solver_runs_the_outline_estim
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.backprojection import subimage_basis
     from twinfocus.estimators import estimator_settings
-    from twinfocus.pipeline import focus_bases
+    from twinfocus.pipeline import focus_bases, upper_band_basis
 
     data, tracked, cloud = scene
     np.save(tmp_path / "F.npy", cloud)
@@ -111,7 +111,8 @@ def test_a_points_twin_carries_its_outline_and_the_solver_runs_the_outline_estim
     cfg = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
     want = focus_bases(subimage_basis(data, tracked, CHIRP, ref_grid), subimage_basis(data, tracked, CHIRP, tgt_grid),
                        tracked, CHIRP, ref_grid, tgt_grid, template=reference.template, support=reference.support,
-                       config=cfg, phase_ramp=solver.params["phase_ramp"], space_variant=solver.params["space_variant"])
+                       config=cfg, phase_ramp=solver.params["phase_ramp"], space_variant=solver.params["space_variant"],
+                       upper_band=upper_band_basis(data, tracked, CHIRP, ref_grid))
     np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
 
 

@@ -510,6 +510,15 @@ RAMP_MODES = ("auto", "remove", "keep")
 #: the largest template misplacement ``auto`` takes a ramp for, metres: a physical twin placed by
 #: hand to ~1 mm, a digital twin's camera-to-radar offset of 2-3 mm
 MAX_TEMPLATE_OFFSET_M = 3e-3
+#: the same with the positions' range errors measured (``range_errors_m``), metres: the ramp then
+#: left is the misplacement alone, which for a camera cloud's outline is the camera's offset (2-3
+#: mm) plus the outline's shift search (3 px, ~7 mm across y on the field scenes)
+MAX_TEMPLATE_OFFSET_RANGED_M = 10e-3
+#: the coherence x sqrt(M) the ramp fitted with the range errors taken out must leave to be
+#: removed: above the fit's detection threshold (4), since moving the image by a wrong ramp costs
+#: more than leaving it; on the field scenes every draw between 4 and 5 that moved the image by
+#: more than 2 mm moved it the wrong way (docs/digital_twin.md)
+MIN_RANGED_RAMP_COHERENCE_SQRT_M = 5.0
 
 
 def transfer_phase(
@@ -520,6 +529,7 @@ def transfer_phase(
     mode: str = "auto",
     registered: bool = False,
     max_template_offset_m: float = MAX_TEMPLATE_OFFSET_M,
+    range_errors_m: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict]:
     """The phase to apply to the target, and why: the estimate with or without its constant +
     linear-in-aperture ramp (:func:`fit_linear_phase`).
@@ -537,16 +547,41 @@ def transfer_phase(
 
     ``remove`` always removes the fitted ramp, ``keep`` never does (the source paper).
 
+    Past about lambda/5 of tracking error the estimate's phases wrap and its ramp cannot be told
+    from the errors. ``range_errors_m`` (M,), each position's range error measured from the band's
+    halves (:func:`twinfocus.band_delay.position_range_errors_m`), then lets the fit see it: the
+    ramp is fitted to the estimate with those errors' phase 4 pi dR / lambda taken out, which
+    leaves the misplacement's ramp and noise; it counts only when it leaves a coherence of at
+    least ``MIN_RANGED_RAMP_COHERENCE_SQRT_M``, and ``auto`` takes it up to
+    ``MAX_TEMPLATE_OFFSET_RANGED_M`` (the tracking error is then out of it).
+
     phase_rad : float (M,) radians; aperture_m : float (M, 2) each position's (x, y), metres;
     range_m : distance from the aperture to the reference, metres. Returns (float64 (M,) radians,
-    info dict: ``mode``, ``removed``, ``reason``, ``implied_shift_m`` (x, y) of the fitted ramp).
+    info dict: ``mode``, ``removed``, ``reason``, ``implied_shift_m`` (x, y) of the fitted ramp,
+    ``from_range_errors`` and, with them, ``ramp_coherence_sqrt_m``).
     """
     if mode not in RAMP_MODES:
         raise TwinFocusError(f"phase ramp mode must be one of {', '.join(RAMP_MODES)}, got {mode!r}")
     phi = np.asarray(phase_rad, dtype=np.float64)
-    ramp, coeffs = fit_linear_phase(phi, aperture_m)
+    info: dict = {"mode": mode, "from_range_errors": range_errors_m is not None}
+    if range_errors_m is None:
+        ramp, coeffs = fit_linear_phase(phi, aperture_m)
+    else:
+        dr = np.asarray(range_errors_m, dtype=np.float64)
+        if dr.shape != phi.shape:
+            raise TwinFocusError(f"range_errors_m must have one value per radar position ({phi.size}), got {dr.shape}")
+        ranged = phi + 4.0 * np.pi / float(wavelength_m) * dr
+        ramp, coeffs = fit_linear_phase(ranged, aperture_m, min_coherence_sqrt_m=0.0)
+        coherence = float(np.abs(np.exp(1j * (ranged - ramp)).mean()) * np.sqrt(phi.size))
+        info["ramp_coherence_sqrt_m"] = round(coherence, 3)
+        if coherence < MIN_RANGED_RAMP_COHERENCE_SQRT_M:
+            coeffs = np.zeros(3)  # not clear enough to move the image by
+        # the linear part alone: the ranged fit's constant is not the estimate's
+        linear = (np.asarray(aperture_m, dtype=np.float64) - np.mean(aperture_m, axis=0)) @ coeffs[1:]
+        ramp = linear + np.angle(np.exp(1j * (phi - linear)).mean())
+        max_template_offset_m = max(max_template_offset_m, MAX_TEMPLATE_OFFSET_RANGED_M)
     shift = coeffs[1:] * float(range_m) * float(wavelength_m) / (4.0 * np.pi)
-    info = {"mode": mode, "implied_shift_m": shift.tolist(), "slope_rad_per_m": coeffs[1:].tolist()}
+    info.update(implied_shift_m=shift.tolist(), slope_rad_per_m=coeffs[1:].tolist())
     if mode == "remove":
         remove, why = True, "removed on request"
     elif mode == "keep":
@@ -555,6 +590,12 @@ def transfer_phase(
         remove, why = (
             False,
             "kept: the template was registered to the scan, so no misplacement ramp is left in the estimate",
+        )
+    elif range_errors_m is not None and not np.any(coeffs[1:]):
+        remove, why = (
+            False,
+            f"nothing to remove: with the range errors taken out no ramp stands out (coherence x sqrt(M) "
+            f"{info['ramp_coherence_sqrt_m']:.2f} < {MIN_RANGED_RAMP_COHERENCE_SQRT_M})",
         )
     elif np.all(np.abs(shift) <= max_template_offset_m):
         remove, why = (
@@ -572,5 +613,7 @@ def transfer_phase(
                 f"a template misplaced by up to {max_template_offset_m * 1e3:.0f} mm explains: tracking error"
             ),
         )
+    if range_errors_m is not None and mode != "keep" and not registered and np.any(coeffs[1:]):
+        why += " (fitted with the positions' range errors, measured from the band's halves, taken out)"
     info.update(removed=bool(remove), reason=why)
     return (np.angle(np.exp(1j * (phi - ramp))) if remove else phi), info

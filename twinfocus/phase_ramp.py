@@ -14,9 +14,16 @@ import numpy as np
 
 from twinfocus.errors import TwinFocusError
 
+#: the coherence x sqrt(M) a fitted ramp must leave to be taken (random phases reach ~2.5 at the
+#: best of the fit's grid of ramps)
+MIN_RAMP_COHERENCE_SQRT_M = 4.0
+
 
 def fit_linear_phase(
-    phase_rad: np.ndarray, aperture_m: np.ndarray, max_slope_rad_per_m: float = 80.0, min_coherence_sqrt_m: float = 4.0
+    phase_rad: np.ndarray,
+    aperture_m: np.ndarray,
+    max_slope_rad_per_m: float = 80.0,
+    min_coherence_sqrt_m: float = MIN_RAMP_COHERENCE_SQRT_M,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Best constant + linear-in-aperture phase a + b . p fitted to wrapped phases.
 

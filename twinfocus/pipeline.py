@@ -24,6 +24,8 @@ import numpy as np
 
 from twinfocus import metrics
 from twinfocus.autofocus import (
+    MAX_TEMPLATE_OFFSET_RANGED_M,
+    MIN_RANGED_RAMP_COHERENCE_SQRT_M,
     AutofocusConfig,
     AutofocusResult,
     no_correction,
@@ -31,12 +33,13 @@ from twinfocus.autofocus import (
     transfer_phase,
     twin_autofocus,
 )
-from twinfocus.backprojection import backproject, subimage_basis
+from twinfocus.backprojection import backproject, subimage_basis, subimage_basis_points
+from twinfocus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
 from twinfocus.basis import form_image, form_image_space_variant
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE
 from twinfocus.grid import ImageGrid
-from twinfocus.phase_ramp import ramp_free_coherence
+from twinfocus.phase_ramp import MIN_RAMP_COHERENCE_SQRT_M, ramp_free_coherence
 from twinfocus.radar import Chirp
 from twinfocus.scan import Scan
 from twinfocus.templates import check_has_signal
@@ -109,6 +112,41 @@ def half_array_bases(
         )
 
     return bases
+
+
+def upper_band_basis(
+    data: np.ndarray | Callable[[], np.ndarray],
+    positions: np.ndarray,
+    chirp: Chirp,
+    reference_grid: ImageGrid,
+    bp_options: dict | None = None,
+    progress_factory=None,
+) -> Callable[[np.ndarray], np.ndarray] | None:
+    """What :func:`focus_bases` calls for the reference's sub-image basis from the upper half of
+    the chirp's band (``upper_band``; the lower half's is the whole basis minus it): ``pixels`` bool
+    (H, W) on ``reference_grid`` -> complex64 (M, pixels.sum()), back-projected only when called
+    and only on those pixels (:mod:`twinfocus.band_delay`).
+
+    data : the scan's samples (M, K, N), or a callable that gives them (the solver node keeps them
+    in batches); positions : float64 (M, K, 3). Returns None for a chirp too short to halve.
+    """
+    if int(chirp.n_samples) < 4:
+        return None
+    prog = progress_factory or (lambda label: None)
+    bp = dict(bp_options or {})
+    _, high = half_band_chirps(chirp)
+
+    def basis(pixels: np.ndarray) -> np.ndarray:
+        pixels = np.asarray(pixels, dtype=bool)
+        if pixels.shape != reference_grid.shape:
+            raise TwinFocusError(f"pixels must be a {reference_grid.shape} mask, got {pixels.shape}")
+        _, d = half_band_data(data() if callable(data) else data, chirp)
+        points = reference_grid.points()[pixels.ravel()]
+        return subimage_basis_points(
+            d, positions, high, points, progress=prog("reference basis, upper half of the band"), **bp
+        )
+
+    return basis
 
 
 def focus_scan(
@@ -186,6 +224,7 @@ def focus_scan(
         half_bases=half_array_bases(
             scan.data, scan.positions, scan.chirp, reference_grid, target_grid, bp, progress_factory
         ),
+        upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, reference_grid, bp, progress_factory),
     )
     timings.update(out.timings_s)
     if truth_tgt is not None:
@@ -217,6 +256,7 @@ def focus_bases(
     positions_true: np.ndarray | None = None,
     registration_scores: np.ndarray | None = None,
     half_bases: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
+    upper_band: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> FocusOutputs:
     """The focusing steps that follow the sub-image bases: autofocus, transfer, metrics.
 
@@ -259,6 +299,13 @@ def focus_bases(
         channels on one side of the array's middle (:func:`twinfocus.space_variant.array_half`),
         called only when the space-variant fit runs: with them it also follows the array's tilt
         (:func:`half_array_bases` makes one from a scan).
+    upper_band : ``pixels -> reference basis`` complex (M, pixels.sum()) from the upper half of the
+        chirp's band on a bool (H, W) mask of ``reference_grid`` (:func:`upper_band_basis` makes
+        one), called only when a template that was not registered gives phases whose ramp cannot
+        be seen (wrapped), on the pixels holding 99 % of the estimate's image energy: the
+        positions' range errors measured from the band's halves
+        (:func:`twinfocus.band_delay.position_range_errors_m`) then let the transfer find and take
+        out the template's misplacement.
 
     Returns :class:`FocusOutputs` (``timings_s`` holds ``autofocus``; ``metrics`` has no
     ``timings_s``: the caller adds its own).
@@ -294,6 +341,9 @@ def focus_bases(
     timings = {"autofocus": time.perf_counter() - t}
 
     phase = result.phase_rad
+    # how well the estimate's phases hold together once their ramp is out (below the ramp fit's
+    # threshold its ramp, the image's place, is out of the fit's sight)
+    coherence = ramp_free_coherence(phase, centres[:, :2])
     m: dict = {"method": method, "n_positions": int(positions.shape[0]), "n_channels": int(positions.shape[1])}
     if method == "twin":
         m["estimator"] = {
@@ -312,7 +362,7 @@ def focus_bases(
             m["estimator"]["outline"] = result.extra["outline"]
             # the scan can check where the outline put the reference only while the phases hold
             # together (their ramp is then seen, and the transfer takes a misplacement's out)
-            m["estimator"]["phase_coherence_sqrt_m"] = round(ramp_free_coherence(phase, centres[:, :2]), 3)
+            m["estimator"]["phase_coherence_sqrt_m"] = round(coherence, 3)
         if "outline_ensemble" in result.extra:
             m["estimator"]["outline_ensemble"] = result.extra["outline_ensemble"]
         if "refine_check" in result.extra:
@@ -325,6 +375,20 @@ def focus_bases(
             m["template_registration"] = result.extra["registration"]
         # metrics and pictures against the template the phases were fitted to (moved when registered)
         template = result.extra.get("template", template)
+    range_errors = None
+    if (
+        method == "twin"
+        and upper_band is not None
+        and phase_ramp != "keep"
+        and "registration" not in result.extra
+        and coherence < MIN_RAMP_COHERENCE_SQRT_M
+    ):
+        # the estimate's ramp is out of sight (its phases have wrapped): measure the range errors
+        t = time.perf_counter()
+        pixels = bright_pixels(form_image(ref_basis, phase))
+        high = upper_band(pixels)
+        range_errors = position_range_errors_m(ref_basis[:, pixels] - high, high, phase, chirp)
+        timings["range_errors"] = time.perf_counter() - t
     if method != "none":
         phase, m["phase_ramp"] = transfer_phase(
             phase,
@@ -333,6 +397,7 @@ def focus_bases(
             chirp.wavelength_m,
             phase_ramp,
             registered="registration" in result.extra,
+            range_errors_m=range_errors,
         )
         m["phase_ramp_removed"] = m["phase_ramp"]["removed"]
     drift = None
@@ -621,12 +686,30 @@ def confidence_report(
         # what auto chose for an amplitude template, from the projections' own phases
         out["estimator_choice"] = est["refine_check"]["why"]
     coherence = est.get("phase_coherence_sqrt_m")
-    if coherence is not None and coherence < AUTO_REFINE_BELOW_COHERENCE:
+    ramp = m.get("phase_ramp") or {}
+    ranged = ramp.get("ramp_coherence_sqrt_m")
+    if ranged is not None:
+        # the ramp fitted with the range errors from the band's halves taken out: how clearly it
+        # stood out (below the fit's threshold nothing was taken)
+        out["placement_by_band_halves"] = {
+            "ramp_coherence_sqrt_m": ranged,
+            "implied_shift_m": ramp.get("implied_shift_m"),
+            "removed": bool(ramp.get("removed")) and ranged >= MIN_RANGED_RAMP_COHERENCE_SQRT_M,
+        }
+    placed = ranged is not None and ranged >= MIN_RANGED_RAMP_COHERENCE_SQRT_M and bool(ramp.get("removed"))
+    if coherence is not None and coherence < AUTO_REFINE_BELOW_COHERENCE and not placed:
+        tried = (
+            f"; the band's halves did not place it either (ramp coherence x sqrt(M) {ranged:.2f}, at least "
+            f"{MIN_RANGED_RAMP_COHERENCE_SQRT_M} needed, and a shift of at most "
+            f"{MAX_TEMPLATE_OFFSET_RANGED_M * 1e3:.0f} mm)"
+            if ranged is not None
+            else ""
+        )
         out["warnings"].append(
             f"the estimate's phases have wrapped (coherence x sqrt(M) {coherence:.1f} < {AUTO_REFINE_BELOW_COHERENCE}), "
             "so the scan cannot check where the outline put the reference: across the axis one radar position "
-            "does not resolve it sits where the cloud puts it, and the target can be a few mm off there "
-            "(docs/digital_twin.md, 'What is left')"
+            f"does not resolve it sits where the cloud puts it, and the target can be a few mm off there{tried} "
+            '(docs/digital_twin.md, "Placing the reference by the band\'s halves")'
         )
     if "outline" in est:
         # how sure the outline estimator is: the energy it put inside the outline, and how many of

@@ -540,7 +540,7 @@ _FIELD_TABLES = (
             ("paper", "paper"),
             ("old auto", "old auto"),
             ("one outline", "outline, one"),
-            ("default (averaged outlines)", "default"),
+            ("default (averaged outlines, placed by the band's halves)", "default"),
             ("default, the reference's position from the truth (diagnostic)", "default, position from the truth"),
             ("physical twin", "physical twin"),
             ("target's own phase", "oracle phase"),

@@ -1,0 +1,182 @@
+"""The digital twin's default on field-like draws never used while building it: seeds 6-15 of the
+field bench's scenes (benchmarks/bench_field_twin.py) and of variants of B (a cylinder and a bent
+plate as the reference, 2 mm of z error), and a hand's drift (H / S), each with the camera cloud
+(1 mm noise, 25 % holes, 2 % outliers, 2.5 mm offset) of a rough reference. Per draw: the outline
+estimate as it comes ("before": its ramp as estimated), the default (placed by the band's halves
+where its phases wrapped, docs/digital_twin.md), the same estimate placed by the truth
+(diagnostic), the physical twin (space-variant off) and the target's own phase, target SSIM.
+
+    python -m benchmarks.heldout_field_twin            (~10 min on 2 cores; docs/digital_twin.md)
+    python -m benchmarks.heldout_field_twin --figure docs/figures/band_halves.png   (one draw, ~30 s)
+
+Not one of ``make bench``'s benchmarks (no ``bench_`` prefix): it checks a default on new draws
+rather than measuring a knob. Writes ``field_twin_heldout.json`` and prints a markdown table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.bench_field_twin import ALL, SCENES
+
+HAND = dict(reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand", error_sigma_m=(0.8e-3,) * 3)
+#: condition -> (scene keywords, seeds)
+CONDITIONS = {
+    "B": (SCENES["B"], range(6, 16)),
+    "C": (SCENES["C"], range(6, 16)),
+    "A": (SCENES["A"], range(6, 9)),
+    "B cylinder": ({**SCENES["B"], "reference_shape": "cylinder"}, range(6, 11)),
+    "B bent": ({**SCENES["B"], "reference_shape": "bent"}, range(6, 9)),
+    "B 2 mm z": ({**SCENES["B"], "error_sigma_m": (0.3e-3, 0.3e-3, 2.0e-3)}, range(6, 9)),
+    "hand drift H/S": (HAND, range(6, 9)),
+}
+
+
+def one_draw(kw: dict, seed: int) -> dict:
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.basis import form_image
+    from twinfocus.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.digital_twin.condition import digital_twin_reference
+    from twinfocus.estimators import estimator_settings
+    from twinfocus.metrics import image_ssim, oracle_phase
+    from twinfocus.phase_ramp import fit_linear_phase
+    from twinfocus.pipeline import focus_bases, upper_band_basis
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.templates import template_from_scan
+
+    sc = Scenario(**kw, reference_roughness_deg=90.0, reference_amplitude_spread=0.3, seed=seed)
+    scan, tpl_scan = simulate_scenario(sc)
+    rg, tg = scenario_grids(sc, 100)
+    surface = sc.scene().object("reference").surface_points(1e-3)
+    cloud = camera_cloud(surface, *ALL, rng=np.random.default_rng([seed, 14]))
+    twin = digital_twin_reference(cloud, scan.positions, scan.chirp, rg)
+    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
+    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+    truth = dict(truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
+                 truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
+                 positions_true=scan.positions_true)
+    upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
+    config = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
+    rec: dict = {"seed": seed}
+    for name, band in (("before", None), ("default", upper)):
+        out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=twin.template, support=twin.support,
+                          config=config, upper_band=band, **truth)
+        rec[name] = out.metrics["target_ssim_corrected"]
+        rec[f"{name} trusted"] = out.metrics["confidence"]["trusted"]
+    rec["ranged coh"] = out.metrics["phase_ramp"].get("ramp_coherence_sqrt_m")
+    rec["coh"] = out.metrics["estimator"].get("phase_coherence_sqrt_m")
+    rec["shift"] = out.metrics["phase_ramp"]["implied_shift_m"]
+    rec["removed"] = out.metrics["phase_ramp"]["removed"]
+    rec["range errors time_s"] = out.timings_s.get("range_errors")
+    rec["oracle"] = out.metrics["target_ssim_oracle_phase"]
+    # diagnostic: the default's image moved to where the reference really is
+    reference_true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
+    ramp, _ = fit_linear_phase(np.angle(np.exp(1j * (out.phase_rad - reference_true))), scan.positions.mean(axis=1)[:, :2])
+    rec["truth-placed"] = image_ssim(form_image(tb, out.phase_rad - ramp), truth["truth_target"])
+    phys = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template_from_scan(tpl_scan, rg, keep_phase=True),
+                       config=AutofocusConfig(**estimator_settings("correlation", True)), space_variant="off", **truth)
+    rec["physical"] = phys.metrics["target_ssim_corrected"]
+    return rec
+
+
+def figure(path: str | os.PathLike, seed: int = 2) -> None:
+    """One draw of scene B (the bench's seed 2: the cloud's outline put the reference 6 mm off
+    across y): each position's range error from the band's halves against the truth, and the
+    target before and after the placement beside the image on the true positions."""
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.band_delay import bright_pixels, position_range_errors_m
+    from twinfocus.basis import form_image
+    from twinfocus.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.digital_twin.condition import digital_twin_reference
+    from twinfocus.estimators import estimator_settings
+    from twinfocus.metrics import image_ssim
+    from twinfocus.pipeline import focus_bases, upper_band_basis
+    from twinfocus.plotting import pyplot
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+
+    sc = Scenario(**SCENES["B"], reference_roughness_deg=90.0, reference_amplitude_spread=0.3, seed=seed)
+    scan, _ = simulate_scenario(sc)
+    rg, tg = scenario_grids(sc, 100)
+    surface = sc.scene().object("reference").surface_points(1e-3)
+    twin = digital_twin_reference(camera_cloud(surface, *ALL, rng=np.random.default_rng([seed, 14])), scan.positions, scan.chirp, rg)
+    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
+    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+    truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
+    upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
+    config = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
+    outs = {name: focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=twin.template, support=twin.support,
+                              config=config, upper_band=band) for name, band in (("before", None), ("placed", upper))}
+    phase = outs["before"].phase_rad
+    pixels = bright_pixels(form_image(rb, phase))
+    high = upper(pixels)
+    measured = position_range_errors_m(rb[:, pixels] - high, high, phase, scan.chirp)
+    centre = rg.centre_m
+    true = (np.linalg.norm(scan.positions_true - centre, axis=-1) - np.linalg.norm(scan.positions - centre, axis=-1)).mean(axis=1)
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 4, figsize=(16, 4))
+    ax = axes[0]
+    ax.scatter((true - true.mean()) * 1e3, (measured - measured.mean()) * 1e3, s=3, alpha=0.5)
+    lim = 3.5
+    ax.plot([-lim, lim], [-lim, lim], "k--", lw=0.8)
+    ax.set(xlim=(-lim, lim), ylim=(-lim, lim), xlabel="true range error (mm)", ylabel="from the band's halves (mm)",
+           title=f"each position (corr {np.corrcoef(true, measured)[0, 1]:.2f})")
+    extent = [tg.x0 * 100, tg.x1 * 100, tg.y0 * 100, tg.y1 * 100]
+    vmax = float(np.abs(truth).max())
+    for ax, (img, title) in zip(axes[1:], ((truth, "target on the true positions"),
+                                          (outs["before"].target, f"before: SSIM {image_ssim(outs['before'].target, truth):.3f}"),
+                                          (outs["placed"].target, f"placed: SSIM {image_ssim(outs['placed'].target, truth):.3f}"))):
+        ax.imshow(np.abs(img), origin="lower", extent=extent, cmap="inferno", vmin=0, vmax=vmax)
+        ax.set(title=title, xlabel="x (cm)", ylabel="y (cm)")
+    shift = np.asarray(outs["placed"].metrics["phase_ramp"]["implied_shift_m"]) * 1e3
+    fig.suptitle(f"scene B, camera cloud, seed {seed}: the placement moved the reference by ({shift[0]:+.1f}, {shift[1]:+.1f}) mm")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def table(results: dict) -> str:
+    ms = lambda a: f"{np.mean(a):.3f} ± {np.std(a):.3f}"  # noqa: E731
+    lines = ["| condition | draws | before | default | up / down (> 0.005) | placed by the truth | physical twin | target's own phase |",
+             "|---|---|---|---|---|---|---|---|"]
+    for cond, recs in results.items():
+        b = np.array([r["before"] for r in recs])
+        d = np.array([r["default"] for r in recs])
+        lines.append(f"| {cond} | {len(recs)} | {ms(b)} | {ms(d)} | {int((d - b > 0.005).sum())} / {int((b - d > 0.005).sum())} | "
+                     f"{ms([r['truth-placed'] for r in recs])} | {ms([r['physical'] for r in recs])} | {ms([r['oracle'] for r in recs])} |")
+    return "\n".join(lines)
+
+
+def main(out_dir: str | os.PathLike = "benchmarks/results", only: str | None = None) -> dict:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results: dict = {}
+    for cond, (kw, seeds) in CONDITIONS.items():
+        if only and only != cond:
+            continue
+        results[cond] = []
+        for seed in seeds:
+            print(f"[held-out field twin] {cond}, seed {seed}", file=sys.stderr, flush=True)
+            results[cond].append(one_draw(kw, seed))
+            (out_dir / "field_twin_heldout.json").write_text(json.dumps(results, indent=1))
+    print(table(results))
+    return results
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument("--only", default=None, help="one condition's name")
+    ap.add_argument("--figure", default=None, help="write this picture of one draw instead of the table")
+    a = ap.parse_args()
+    if a.figure:
+        figure(a.figure)
+    else:
+        main(a.out, a.only)

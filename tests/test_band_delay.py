@@ -1,0 +1,172 @@
+"""Range errors from the band's halves (twinfocus.band_delay) against the injected position errors,
+and the transfer that uses them to find a misplaced outline's ramp once every phase has wrapped."""
+import numpy as np
+import pytest
+
+from twinfocus.autofocus import MIN_RANGED_RAMP_COHERENCE_SQRT_M, AutofocusConfig, transfer_phase
+from twinfocus.backprojection import subimage_basis
+from twinfocus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
+from twinfocus.errors import TwinFocusError
+from twinfocus.estimators import estimator_settings
+from twinfocus.grid import ImageGrid
+from twinfocus.metrics import oracle_phase
+from twinfocus.motion import apply_position_errors, gaussian_errors
+from twinfocus.phase_ramp import fit_linear_phase
+from twinfocus.pipeline import focus_bases, upper_band_basis
+from twinfocus.radar import Chirp, mmwcas_virtual_array
+from twinfocus.simulate import simulate_if
+from twinfocus.trajectory import paper_raster, phase_centres
+
+Z = 0.4
+GRID = ImageGrid(-0.03, 0.03, -0.03, 0.03, Z, 32, 32)
+_S = np.arange(-0.018, 0.0181, 0.002)
+#: the scatterers (x, y) of an 'F' 36 mm tall, 2 mm apart, metres
+_F_XY = [(-0.018, y) for y in _S] + [(x, 0.018) for x in _S] + [(x * 0.6, 0.0) for x in _S]
+
+
+@pytest.fixture(scope="module")
+def wrapped():
+    """A rough 'F' (every scatterer its own phase) seen from 400 positions with 1 mm of z jitter:
+    every phase wraps. Returns the chirp, true and tracked positions, the samples and the basis."""
+    rng = np.random.default_rng(5)
+    pts = np.array([(x, y, Z) for x, y in _F_XY])
+    amps = np.exp(2j * np.pi * rng.random(len(pts)))
+    poses = paper_raster(n_columns=4, n_rows=100, column_pitch_m=0.08, row_pitch_m=0.001)
+    true = phase_centres(poses, mmwcas_virtual_array())
+    tracked = apply_position_errors(true, gaussian_errors(true.shape[0], (0, 0, 1e-3), rng))
+    ch = Chirp()
+    data = simulate_if(pts, amps, true, ch)
+    return ch, true, tracked, data, subimage_basis(data, tracked, ch, GRID)
+
+
+def _range_error(true, tracked, point):
+    """Each position's range error to ``point`` (true minus tracked, mean over channels), metres."""
+    return (np.linalg.norm(true - point, axis=-1) - np.linalg.norm(tracked - point, axis=-1)).mean(axis=1)
+
+
+def test_the_halves_of_the_band_tile_it():
+    ch = Chirp()
+    low, high = half_band_chirps(ch)
+    assert low.n_samples + high.n_samples == ch.n_samples
+    assert low.f0_hz == ch.f0_hz
+    # the upper half starts one sample after the lower half's last one
+    assert high.f0_hz == pytest.approx(low.frequencies_hz[-1] + ch.slope_hz_per_s / ch.fs_hz)
+    assert np.allclose(np.concatenate([low.frequencies_hz, high.frequencies_hz]), ch.frequencies_hz)
+    data = np.arange(2 * 3 * 256).reshape(2, 3, 256).astype(np.complex64)
+    lo, hi = half_band_data(data, ch)
+    assert np.array_equal(np.concatenate([lo, hi], axis=-1), data)
+    with pytest.raises(TwinFocusError, match="at least 4 samples"):
+        half_band_chirps(Chirp(n_samples=3))
+
+
+def test_bright_pixels_hold_the_asked_share_of_the_energy():
+    rng = np.random.default_rng(0)
+    image = rng.normal(size=(20, 30)) + 1j * rng.normal(size=(20, 30))
+    energy = np.abs(image) ** 2
+    for fraction in (0.5, 0.9, 0.99, 1.0):
+        got = bright_pixels(image, fraction)
+        assert energy[got].sum() >= fraction * energy.sum() - 1e-9
+        # the fewest pixels that do: without the dimmest chosen one the share falls short
+        assert energy[got].sum() - energy[got].min() < fraction * energy.sum()
+        assert energy[got].min() >= energy[~got].max(initial=0)
+    with pytest.raises(TwinFocusError, match="fraction"):
+        bright_pixels(image, 0.0)
+    with pytest.raises(TwinFocusError, match="no finite energy"):
+        bright_pixels(np.zeros((3, 3)))
+
+
+def test_range_errors_follow_the_injected_ones_and_ignore_the_images_place(wrapped):
+    ch, true, tracked, data, basis = wrapped
+    high = upper_band_basis(data, tracked, ch, GRID)(np.ones(GRID.shape, bool)).reshape(basis.shape)
+    # the halves' bases add up to the whole band's (one back-projection saved)
+    low = subimage_basis(half_band_data(data, ch)[0], tracked, half_band_chirps(ch)[0], GRID)
+    assert np.linalg.norm(basis - high - low) < 0.01 * np.linalg.norm(basis)
+    centre = np.array([0.0, 0.0, Z])
+    truth = _range_error(true, tracked, centre)
+    oracle = oracle_phase(true, tracked, centre, ch)
+    assert np.abs(np.exp(1j * oracle).mean()) * np.sqrt(oracle.size) < 2.5  # every phase wrapped
+    rng = np.random.default_rng(1)
+    phase = oracle + rng.normal(0, 0.3, oracle.size)  # an estimate good to 0.3 rad
+    ap = tracked.mean(axis=1)[:, :2]
+    ramp = 16.0 * ap[:, 1]  # what an outline 2 mm off across y pulls in (4 pi dy / (lambda R))
+    got = position_range_errors_m(basis - high, high, phase, ch)
+    moved = position_range_errors_m(basis - high, high, phase + ramp, ch)
+    assert np.corrcoef(got, truth)[0, 1] > 0.8
+    slope = np.polyfit(truth, got, 1)[0]
+    assert 0.4 < slope < 1.1  # pulled toward 0 by each position's own share of the image
+    # the image's place hardly enters (the ramp is the same in both halves; each half's image
+    # moves by its own k_c / k, a few percent apart)
+    assert np.std((moved - got) - (moved - got).mean()) < 0.15 * np.std(truth)
+    with pytest.raises(TwinFocusError, match="one shape"):
+        position_range_errors_m(basis, high[:, :5], phase, ch)
+    with pytest.raises(TwinFocusError, match="mask"):
+        upper_band_basis(data, tracked, ch, GRID)(np.ones((3, 3), bool))
+    with pytest.raises(TwinFocusError, match="one value per radar position"):
+        position_range_errors_m(basis - high, high, phase[:-1], ch)
+
+
+def test_the_transfer_finds_a_wrapped_estimates_ramp_with_the_range_errors():
+    """Synthetic: 1 mm of range error (wrapped phases) plus a misplacement's ramp; the fit sees
+    the ramp only with the range errors taken out."""
+    rng = np.random.default_rng(2)
+    lam, m = 3.9e-3, 800
+    ap = np.column_stack([rng.uniform(-0.1, 0.1, m), rng.uniform(-0.1, 0.1, m)])
+    dr = rng.normal(0, 1e-3, m)
+    slope = np.array([-6.0, 20.0])  # rad/m: the image moved by (-0.5, +1.9) mm at 0.25 m
+    phase = np.angle(np.exp(1j * (-4 * np.pi / lam * dr + ap @ slope + 0.7)))
+    measured = 0.7 * dr + rng.normal(0, 0.3e-3, m)  # what the halves give: scaled down, noisy
+    kept, info = transfer_phase(phase, ap, 0.25, lam, "auto")
+    assert not info["from_range_errors"] and np.allclose(info["slope_rad_per_m"], 0)  # the ramp is out of sight
+    out, info = transfer_phase(phase, ap, 0.25, lam, "auto", range_errors_m=measured)
+    assert info["removed"] and info["from_range_errors"] and info["ramp_coherence_sqrt_m"] > MIN_RANGED_RAMP_COHERENCE_SQRT_M
+    assert np.allclose(info["slope_rad_per_m"], slope, atol=2.0)
+    # what was taken is the ramp alone: the rest of the estimate is untouched
+    left = np.angle(np.exp(1j * (phase - out)))
+    assert fit_linear_phase(left, ap, min_coherence_sqrt_m=0)[1][1:] == pytest.approx(slope, abs=2.0)
+    assert np.std(np.angle(np.exp(1j * (left - ap @ np.asarray(info["slope_rad_per_m"]))))) < 1e-6
+    # range errors that explain nothing leave the ramp out of sight: nothing is moved
+    _, info = transfer_phase(phase, ap, 0.25, lam, "auto", range_errors_m=rng.normal(0, 1e-3, m))
+    assert info["ramp_coherence_sqrt_m"] < MIN_RANGED_RAMP_COHERENCE_SQRT_M and np.allclose(info["slope_rad_per_m"], 0)
+    # a registered template's estimate keeps its ramp whatever the range errors say
+    _, info = transfer_phase(phase, ap, 0.25, lam, "auto", registered=True, range_errors_m=measured)
+    assert not info["removed"]
+    with pytest.raises(TwinFocusError, match="range_errors_m"):
+        transfer_phase(phase, ap, 0.25, lam, "auto", range_errors_m=measured[:-1])
+
+
+def test_focus_places_a_misplaced_outline_by_the_band_halves(wrapped):
+    """An outline 2 px off across y (a camera's offset): the outline estimator keeps it there once
+    the phases wrap; with the upper band's basis the transfer moves the image back, and the
+    report no longer warns that nothing placed it."""
+    from twinfocus.template_match import _shift_mask
+
+    ch, true, tracked, data, basis = wrapped
+    xy = np.array(_F_XY)
+    yy, xx = np.meshgrid(GRID.y_m, GRID.x_m, indexing="ij")
+    support = np.hypot(xx[..., None] - xy[:, 0], yy[..., None] - xy[:, 1]).min(axis=-1) <= 2.5e-3
+    support = _shift_mask(support, 2, 0)
+    oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
+    ap = tracked.mean(axis=1)[:, :2]
+    cfg = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
+    common = dict(template=support.astype(np.float32), support=support, config=cfg)
+    calls = []
+
+    def upper(pixels):
+        calls.append(pixels.mean())
+        return upper_band_basis(data, tracked, ch, GRID)(pixels)
+
+    runs = {}
+    for name, band in (("without", None), ("with", upper)):
+        out = focus_bases(basis, basis, tracked, ch, GRID, GRID, upper_band=band, **common)
+        _, coeffs = fit_linear_phase(np.angle(np.exp(1j * (out.phase_rad - oracle))), ap, min_coherence_sqrt_m=0)
+        runs[name] = (abs(coeffs[2]) * (Z - tracked[..., 2].mean()) * ch.wavelength_m / (4 * np.pi), out.metrics)
+    assert len(calls) == 1 and 0.05 < calls[0] < 0.8  # once, on the reference's bright pixels
+    off_without, m_without = runs["without"]
+    off_with, m_with = runs["with"]
+    assert off_without > 1.5e-3  # the outline's 2 px (3.9 mm) off across y, most of it kept
+    assert off_with < 0.5 * off_without
+    assert m_with["phase_ramp"]["from_range_errors"] and m_with["phase_ramp"]["removed"]
+    placed = m_with["confidence"]["placement_by_band_halves"]
+    assert placed["removed"] and placed["ramp_coherence_sqrt_m"] >= MIN_RANGED_RAMP_COHERENCE_SQRT_M
+    assert not any("phases have wrapped" in w for w in m_with["confidence"]["warnings"])
+    assert any("phases have wrapped" in w for w in m_without["confidence"]["warnings"])
