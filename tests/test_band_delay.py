@@ -55,6 +55,11 @@ def test_the_halves_of_the_band_tile_it():
     data = np.arange(2 * 3 * 256).reshape(2, 3, 256).astype(np.complex64)
     lo, hi = half_band_data(data, ch)
     assert np.array_equal(np.concatenate([lo, hi], axis=-1), data)
+    # an odd count: the upper half takes the extra sample, and the two still tile the band
+    odd = Chirp(n_samples=255)
+    low, high = half_band_chirps(odd)
+    assert (low.n_samples, high.n_samples) == (127, 128)
+    assert np.allclose(np.concatenate([low.frequencies_hz, high.frequencies_hz]), odd.frequencies_hz)
     with pytest.raises(TwinFocusError, match="at least 4 samples"):
         half_band_chirps(Chirp(n_samples=3))
 
