@@ -24,19 +24,24 @@ _S = np.arange(-0.018, 0.0181, 0.002)
 _F_XY = [(-0.018, y) for y in _S] + [(x, 0.018) for x in _S] + [(x * 0.6, 0.0) for x in _S]
 
 
-@pytest.fixture(scope="module")
-def wrapped():
-    """A rough 'F' (every scatterer its own phase) seen from 400 positions with 1 mm of z jitter:
-    every phase wraps. Returns the chirp, true and tracked positions, the samples and the basis."""
+def _rough_f_scan(z_sigma_m):
+    """A rough 'F' (every scatterer its own phase) seen from 400 positions with ``z_sigma_m`` of z
+    jitter. Returns the chirp, true and tracked positions, the samples and the basis."""
     rng = np.random.default_rng(5)
     pts = np.array([(x, y, Z) for x, y in _F_XY])
     amps = np.exp(2j * np.pi * rng.random(len(pts)))
     poses = paper_raster(n_columns=4, n_rows=100, column_pitch_m=0.08, row_pitch_m=0.001)
     true = phase_centres(poses, mmwcas_virtual_array())
-    tracked = apply_position_errors(true, gaussian_errors(true.shape[0], (0, 0, 1e-3), rng))
+    tracked = apply_position_errors(true, gaussian_errors(true.shape[0], (0, 0, z_sigma_m), rng))
     ch = Chirp()
     data = simulate_if(pts, amps, true, ch)
     return ch, true, tracked, data, subimage_basis(data, tracked, ch, GRID)
+
+
+@pytest.fixture(scope="module")
+def wrapped():
+    """1 mm of z jitter: every phase wraps."""
+    return _rough_f_scan(1e-3)
 
 
 def _range_error(true, tracked, point):
@@ -175,3 +180,25 @@ def test_focus_places_a_misplaced_outline_by_the_band_halves(wrapped):
     assert placed["removed"] and placed["ramp_coherence_sqrt_m"] >= MIN_RANGED_RAMP_COHERENCE_SQRT_M
     assert not any("phases have wrapped" in w for w in m_with["confidence"]["warnings"])
     assert any("phases have wrapped" in w for w in m_without["confidence"]["warnings"])
+
+
+def test_focus_asks_the_band_halves_when_a_coherent_estimates_ramp_is_too_large():
+    """0.2 mm of jitter (the phases hold together) and an amplitude template 3 px (5.8 mm) off
+    across y: the plain ramp fit sees the shift but keeps it (more than the 3 mm a misplacement is
+    allowed: it could be tracking error); the range errors show it is not, and it is removed."""
+    from twinfocus.backprojection import backproject
+    from twinfocus.template_match import shift_image
+
+    ch, true, tracked, data, basis = _rough_f_scan(0.2e-3)
+    template = np.abs(shift_image(backproject(data, true, ch, GRID), 3, 0))
+    oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
+    ap = tracked.mean(axis=1)[:, :2]
+    cfg = AutofocusConfig(**estimator_settings("projection", False))
+    off = {}
+    for name, band in (("without", None), ("with", upper_band_basis(data, tracked, ch, GRID))):
+        out = focus_bases(basis, basis, tracked, ch, GRID, GRID, template=template, config=cfg, upper_band=band)
+        _, coeffs = fit_linear_phase(np.angle(np.exp(1j * (out.phase_rad - oracle))), ap, min_coherence_sqrt_m=0)
+        off[name] = (abs(coeffs[2]) * (Z - tracked[..., 2].mean()) * ch.wavelength_m / (4 * np.pi), out.metrics["phase_ramp"])
+    assert off["without"][0] > 4e-3 and not off["without"][1]["removed"]  # kept as if it were tracking error
+    assert off["with"][0] < 1e-3 and off["with"][1]["removed"]
+    assert off["with"][1]["asked_range_errors_because"] == "its ramp is larger than a misplacement explains"

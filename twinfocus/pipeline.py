@@ -11,6 +11,7 @@ elsewhere (the solver node builds them batch by batch as measurements arrive).
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -302,7 +303,8 @@ def focus_bases(
     upper_band : ``pixels -> reference basis`` complex (M, pixels.sum()) from the upper half of the
         chirp's band on a bool (H, W) mask of ``reference_grid`` (:func:`upper_band_basis` makes
         one), called only when a template that was not registered gives phases whose ramp cannot
-        be seen (wrapped), on the pixels holding 99 % of the estimate's image energy: the
+        be seen (wrapped) or is larger than a misplacement explains (``phase_ramp="auto"``), on
+        the pixels holding 99 % of the estimate's image energy: the
         positions' range errors measured from the band's halves
         (:func:`twinfocus.band_delay.position_range_errors_m`) then let the transfer find and take
         out the template's misplacement.
@@ -375,30 +377,42 @@ def focus_bases(
             m["template_registration"] = result.extra["registration"]
         # metrics and pictures against the template the phases were fitted to (moved when registered)
         template = result.extra.get("template", template)
-    range_errors = None
-    if (
-        method == "twin"
-        and upper_band is not None
-        and phase_ramp != "keep"
-        and "registration" not in result.extra
-        and coherence < MIN_RAMP_COHERENCE_SQRT_M
-    ):
-        # the estimate's ramp is out of sight (its phases have wrapped): measure the range errors
-        t = time.perf_counter()
-        pixels = bright_pixels(form_image(ref_basis, phase))
-        high = upper_band(pixels)
-        range_errors = position_range_errors_m(ref_basis[:, pixels] - high, high, phase, chirp)
-        timings["range_errors"] = time.perf_counter() - t
     if method != "none":
-        phase, m["phase_ramp"] = transfer_phase(
+        transfer = functools.partial(
+            transfer_phase,
             phase,
             centres[:, :2],
             float(reference_grid.z - centres[:, 2].mean()),
             chirp.wavelength_m,
             phase_ramp,
             registered="registration" in result.extra,
-            range_errors_m=range_errors,
         )
+        transferred, m["phase_ramp"] = transfer()
+        # The plain ramp fit cannot place the reference when the estimate's phases have wrapped
+        # (its ramp is out of sight) nor when its ramp is larger than a misplacement explains
+        # (it may be tracking error): the range errors from the band's halves take the tracking
+        # error out along the line of sight and tell (docs/digital_twin.md).
+        out_of_sight = coherence < MIN_RAMP_COHERENCE_SQRT_M
+        too_large = np.any(m["phase_ramp"]["slope_rad_per_m"]) and not m["phase_ramp"]["removed"]
+        if (
+            method == "twin"
+            and upper_band is not None
+            and phase_ramp == "auto"
+            and "registration" not in result.extra
+            and (out_of_sight or too_large)
+        ):
+            t = time.perf_counter()
+            pixels = bright_pixels(form_image(ref_basis, phase))
+            high = upper_band(pixels)
+            range_errors = position_range_errors_m(ref_basis[:, pixels] - high, high, phase, chirp)
+            timings["range_errors"] = time.perf_counter() - t
+            transferred, m["phase_ramp"] = transfer(range_errors_m=range_errors)
+            m["phase_ramp"]["asked_range_errors_because"] = (
+                "the estimate's phases have wrapped"
+                if out_of_sight
+                else "its ramp is larger than a misplacement explains"
+            )
+        phase = transferred
         m["phase_ramp_removed"] = m["phase_ramp"]["removed"]
     drift = None
     ref_sv_basis, tgt_sv_basis = ref_basis, tgt_basis

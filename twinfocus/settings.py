@@ -171,9 +171,9 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
         "auto",
         "the estimate's constant + linear-in-aperture phase, which moves the image, before the transfer: auto "
         "removes only what a misplaced template explains (nothing after registering a physical twin; a ramp "
-        "worth at most 3 mm of shift otherwise, or 10 mm when the estimate's phases have wrapped and the ramp "
-        "is fitted with the range errors measured from the band's halves taken out), since a hand's drift puts "
-        "real error in it; remove: always; keep: never (the source paper)",
+        "worth at most 3 mm of shift otherwise; when the estimate's phases have wrapped or its ramp is larger, "
+        "the ramp fitted with the range errors measured from the band's halves taken out, up to 10 mm), since a "
+        "hand's drift puts real error in it; remove: always; keep: never (the source paper)",
         choices=("auto", "remove", "keep"),
     ),
     Setting(
