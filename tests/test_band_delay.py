@@ -3,12 +3,12 @@ and the transfer that uses them to find a misplaced outline's ramp once every ph
 import numpy as np
 import pytest
 
+from tests.test_template_match import _F_XY, GRID, Z, _outline
 from twinfocus.autofocus import MIN_RANGED_RAMP_COHERENCE_SQRT_M, AutofocusConfig, transfer_phase
 from twinfocus.backprojection import subimage_basis
 from twinfocus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import estimator_settings
-from twinfocus.grid import ImageGrid
 from twinfocus.metrics import oracle_phase
 from twinfocus.motion import apply_position_errors, gaussian_errors
 from twinfocus.phase_ramp import fit_linear_phase
@@ -16,12 +16,6 @@ from twinfocus.pipeline import focus_bases, upper_band_basis
 from twinfocus.radar import Chirp, mmwcas_virtual_array
 from twinfocus.simulate import simulate_if
 from twinfocus.trajectory import paper_raster, phase_centres
-
-Z = 0.4
-GRID = ImageGrid(-0.03, 0.03, -0.03, 0.03, Z, 32, 32)
-_S = np.arange(-0.018, 0.0181, 0.002)
-#: the scatterers (x, y) of an 'F' 36 mm tall, 2 mm apart, metres
-_F_XY = [(-0.018, y) for y in _S] + [(x, 0.018) for x in _S] + [(x * 0.6, 0.0) for x in _S]
 
 
 def _rough_f_scan(z_sigma_m):
@@ -151,10 +145,7 @@ def test_focus_places_a_misplaced_outline_by_the_band_halves(wrapped):
     from twinfocus.template_match import _shift_mask
 
     ch, true, tracked, data, basis = wrapped
-    xy = np.array(_F_XY)
-    yy, xx = np.meshgrid(GRID.y_m, GRID.x_m, indexing="ij")
-    support = np.hypot(xx[..., None] - xy[:, 0], yy[..., None] - xy[:, 1]).min(axis=-1) <= 2.5e-3
-    support = _shift_mask(support, 2, 0)
+    support = _shift_mask(_outline(GRID), 2, 0)
     oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
     ap = tracked.mean(axis=1)[:, :2]
     cfg = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
