@@ -574,10 +574,11 @@ def transfer_phase(
         ramp, coeffs = fit_linear_phase(ranged, aperture_m, min_coherence_sqrt_m=0.0)
         coherence = float(np.abs(np.exp(1j * (ranged - ramp)).mean()) * np.sqrt(phi.size))
         info["ramp_coherence_sqrt_m"] = round(coherence, 3)
+        # the linear part alone (the ranged fit's constant is not the estimate's), and none when
+        # it is not clear enough to move the image by
+        linear = ramp - coeffs[0]
         if coherence < MIN_RANGED_RAMP_COHERENCE_SQRT_M:
-            coeffs = np.zeros(3)  # not clear enough to move the image by
-        # the linear part alone: the ranged fit's constant is not the estimate's
-        linear = (np.asarray(aperture_m, dtype=np.float64) - np.mean(aperture_m, axis=0)) @ coeffs[1:]
+            linear, coeffs = np.zeros_like(phi), np.zeros(3)
         ramp = linear + np.angle(np.exp(1j * (phi - linear)).mean())
         max_template_offset_m = max(max_template_offset_m, MAX_TEMPLATE_OFFSET_RANGED_M)
     shift = coeffs[1:] * float(range_m) * float(wavelength_m) / (4.0 * np.pi)

@@ -343,9 +343,9 @@ def focus_bases(
     timings = {"autofocus": time.perf_counter() - t}
 
     phase = result.phase_rad
-    # how well the estimate's phases hold together once their ramp is out (below the ramp fit's
+    # how well a twin estimate's phases hold together once their ramp is out (below the ramp fit's
     # threshold its ramp, the image's place, is out of the fit's sight)
-    coherence = ramp_free_coherence(phase, centres[:, :2])
+    coherence = ramp_free_coherence(phase, centres[:, :2]) if method == "twin" else float("inf")
     m: dict = {"method": method, "n_positions": int(positions.shape[0]), "n_channels": int(positions.shape[1])}
     if method == "twin":
         m["estimator"] = {
