@@ -3,32 +3,22 @@ and the transfer that uses them to find a misplaced outline's ramp once every ph
 import numpy as np
 import pytest
 
-from tests.test_template_match import _F_XY, GRID, Z, _outline
+from tests.test_template_match import GRID, Z, _outline, _rough_f_samples
 from twinfocus.autofocus import MIN_RANGED_RAMP_COHERENCE_SQRT_M, AutofocusConfig, transfer_phase
 from twinfocus.backprojection import subimage_basis
 from twinfocus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import estimator_settings
 from twinfocus.metrics import oracle_phase
-from twinfocus.motion import apply_position_errors, gaussian_errors
 from twinfocus.phase_ramp import fit_linear_phase
 from twinfocus.pipeline import focus_bases, upper_band_basis
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.simulate import simulate_if
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.radar import Chirp
 
 
 def _rough_f_scan(z_sigma_m):
-    """A rough 'F' (every scatterer its own phase) seen from 400 positions with ``z_sigma_m`` of z
+    """The rough 'F' of test_template_match seen from 400 positions with ``z_sigma_m`` of z
     jitter. Returns the chirp, true and tracked positions, the samples and the basis."""
-    rng = np.random.default_rng(5)
-    pts = np.array([(x, y, Z) for x, y in _F_XY])
-    amps = np.exp(2j * np.pi * rng.random(len(pts)))
-    poses = paper_raster(n_columns=4, n_rows=100, column_pitch_m=0.08, row_pitch_m=0.001)
-    true = phase_centres(poses, mmwcas_virtual_array())
-    tracked = apply_position_errors(true, gaussian_errors(true.shape[0], (0, 0, z_sigma_m), rng))
-    ch = Chirp()
-    data = simulate_if(pts, amps, true, ch)
+    _, _, ch, true, tracked, data = _rough_f_samples(5, z_sigma_m, n_columns=4, n_rows=100, row_pitch_m=0.001)
     return ch, true, tracked, data, subimage_basis(data, tracked, ch, GRID)
 
 

@@ -48,18 +48,24 @@ _S = np.arange(-0.018, 0.0181, 0.002)
 _F_XY = [(-0.018, y) for y in _S] + [(x, 0.018) for x in _S] + [(x * 0.6, 0.0) for x in _S]
 
 
+def _rough_f_samples(seed, z_sigma_m, n_columns=2, n_rows=36, row_pitch_m=0.003):
+    """The 'F' of :data:`_F_XY` with every scatterer its own phase, seen from a raster with
+    ``z_sigma_m`` of z jitter. Returns (pts, amps, chirp, true, tracked, data)."""
+    rng = np.random.default_rng(seed)
+    pts = np.array([(x, y, Z) for x, y in _F_XY])
+    amps = np.exp(2j * np.pi * rng.random(len(pts)))
+    poses = paper_raster(n_columns=n_columns, n_rows=n_rows, column_pitch_m=0.08, row_pitch_m=row_pitch_m)
+    true = phase_centres(poses, mmwcas_virtual_array())
+    tracked = apply_position_errors(true, gaussian_errors(true.shape[0], (0, 0, z_sigma_m), rng))
+    ch = Chirp()
+    return pts, amps, ch, true, tracked, simulate_if(pts, amps, true, ch)
+
+
 def _letter_scene(offset_m, z_sigma_m=1.6e-3):
     """An 'F'-shaped speckled reference; positions with ``z_sigma_m`` of z jitter (1.6 mm: every
     phase wraps); the template: the same scatterers moved by ``offset_m``, back-projected on exact
     positions."""
-    rng = np.random.default_rng(3)
-    pts = np.array([(x, y, Z) for x, y in _F_XY])
-    amps = np.exp(2j * np.pi * rng.random(len(pts)))
-    poses = paper_raster(n_columns=2, n_rows=36, column_pitch_m=0.08, row_pitch_m=0.003)
-    true = phase_centres(poses, mmwcas_virtual_array())
-    tracked = apply_position_errors(true, gaussian_errors(true.shape[0], (0, 0, z_sigma_m), rng))
-    ch = Chirp()
-    data = simulate_if(pts, amps, true, ch)
+    pts, amps, ch, true, tracked, data = _rough_f_samples(3, z_sigma_m)
     stage = simulate_if(pts + np.asarray(offset_m), amps, true, ch)
     basis = subimage_basis(data, tracked, ch, GRID)
     template = backproject(stage, true, ch, GRID)
