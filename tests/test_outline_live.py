@@ -105,7 +105,7 @@ def test_a_points_twin_carries_its_outline_and_the_solver_runs_the_outline_estim
     est = json.loads((tmp_path / "out" / "s1" / "metrics.json").read_text())["estimator"]
     assert est["init"] == "outline" and est["iterations"] == 0
     assert "energy_inside" in est["outline"] and len(est["outline_ensemble"]["outlines_px"]) > 1
-    assert est["outline_ensemble"]["outlines_px"][0] == reference.support.sum()
+    assert est["outline_ensemble"]["growth_px"][0] == reference.support.sum()
     # the phase focus_bases gives offline with the same template and outline
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, SIZE), ImageGrid.from_roi(TGT_ROI, SIZE)
     cfg = AutofocusConfig(**estimator_settings("auto", False, has_support=True))

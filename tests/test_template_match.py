@@ -351,7 +351,15 @@ def test_averaged_outlines_beat_one_outline_with_a_hole(placed):
     assert err(out.phase_rad) < 0.7 * err(one)
     est = out.metrics["estimator"]
     info = est["outline_ensemble"]
-    assert info["outlines_px"][0] == support.sum() and min(info["outlines_px"][1:]) > support.sum()
+    # the cloud's outline grown first, then the ensemble around the grown one
+    rounds = cfg.outline_growth_rounds
+    assert len(info["growth_px"]) == rounds + 1 and info["growth_px"][0] == support.sum()
+    assert np.all(np.diff(info["growth_px"]) >= 0) and info["outlines_px"][0] == info["growth_px"][-1]
+    assert min(info["outlines_px"][1:]) >= info["outlines_px"][0]
+    # growing it first brings the estimate nearer the truth than the ensemble around the cloud's outline
+    not_grown, plain = averaged_outline_phase(basis, support, ap, growth_rounds=0)
+    assert plain["growth_px"] == [support.sum()] and plain["outlines_px"][0] == support.sum()
+    assert err(out.phase_rad) < 0.85 * err(not_grown)
     assert len(info["energy_inside"]) == len(info["support_shift_px"]) == 5 and 0.9 < info["agreement"] <= 1.0
     # the cloud's outline's run, which the confidence report reads
     assert "energy_inside" in est["outline"] and "outline_energy_inside" in out.metrics["confidence"]
@@ -361,6 +369,33 @@ def test_averaged_outlines_beat_one_outline_with_a_hole(placed):
         averaged_outline_phase(basis, support, ap[:-1])
     with pytest.raises(TwinFocusError, match="NaN"):
         averaged_outline_phase(basis, support, np.full_like(ap, np.nan))
+
+
+def test_growing_the_outline_fills_a_hole_at_the_edge_and_never_drops_a_pixel(placed):
+    from twinfocus.template_match import OUTLINE_GROWTH_ROUNDS, grown_outline, grown_outlines, outline_phase
+
+    ch, true, tracked, basis, _ = placed
+    yy, xx = np.meshgrid(GRID.y_m, GRID.x_m, indexing="ij")
+    letter = _outline(GRID)
+    support = letter & ~((np.abs(yy - 0.004) < 0.004) & (xx < -0.012))  # 8 mm of the stem missing, at its edge
+    assert (letter & ~support).sum() >= 10
+    same, sizes = grown_outline(basis, support, 0)
+    assert (same == support).all() and sizes == [support.sum()]
+    grown, sizes = grown_outline(basis, support, 2)
+    assert (grown | ~support).all()  # never loses a pixel
+    assert (grown & letter).sum() == letter.sum()  # the missing stem is back
+    assert sizes[0] == support.sum() and sizes[-1] == grown.sum() and len(sizes) == 3
+    # one round is the union of grown_outlines from the cloud's outline's own estimate
+    phi, info = outline_phase(basis, support)
+    energy = np.abs(form_image(basis, phi)) ** 2
+    one, _ = grown_outline(basis, support, 1)
+    assert (one == np.logical_or.reduce(grown_outlines(support, energy, info["support_shift_px"]))).all()
+    # the estimator's default is the library's (one number, measured in docs/digital_twin.md)
+    assert AutofocusConfig().outline_growth_rounds == OUTLINE_GROWTH_ROUNDS
+    with pytest.raises(TwinFocusError, match="growth rounds"):
+        grown_outline(basis, support, -1)
+    with pytest.raises(TwinFocusError, match="outline_growth_rounds"):
+        AutofocusConfig(init="outline", iterations=0, outline_growth_rounds=-1).validate()
 
 
 def test_auto_runs_the_optimiser_only_where_the_projections_phases_have_wrapped(placed, coherent):

@@ -36,8 +36,9 @@ def auto_estimator(has_phase: bool, has_support: bool = False) -> str:
       ceiling from 0.5 to 1.6 mm of tracking error, in 0.15 s;
     * a digital twin from a point cloud, which knows the reference's outline: the outline
       estimator ("outline"), whatever the tracking error: on rough references and camera clouds
-      it holds where the template's texture misleads the others; averaged over the outlines
-      grown from its first estimate (``outline_ensemble``), which fill a camera cloud's holes;
+      it holds where the template's texture misleads the others; its outline first grown into
+      what its estimates light up, then averaged over the outlines grown from there
+      (``outline_ensemble``, ``outline_growth_rounds``), which fill a camera cloud's holes;
     * an amplitude template without an outline (a template file): the alternating projections,
       then the optimiser only if the projections' phases show that the errors wrap
       ("projection-refined" with ``refine_below_coherence``, :func:`estimator_settings`): the
