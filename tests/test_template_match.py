@@ -392,6 +392,9 @@ def test_growing_the_outline_fills_a_hole_at_the_edge_and_never_drops_a_pixel(pl
     assert (one == np.logical_or.reduce(grown_outlines(support, energy, info["support_shift_px"]))).all()
     # the estimator's default is the library's (one number, measured in docs/digital_twin.md)
     assert AutofocusConfig().outline_growth_rounds == OUTLINE_GROWTH_ROUNDS
+    # the estimator's own options pass through, its rounds included
+    fewer, _ = grown_outline(basis, support, growth_rounds=1, rounds=1, starts=2)
+    assert (fewer | ~support).all()
     with pytest.raises(TwinFocusError, match="growth rounds"):
         grown_outline(basis, support, -1)
     with pytest.raises(TwinFocusError, match="outline_growth_rounds"):

@@ -410,7 +410,7 @@ OUTLINE_GROWTH_ROUNDS = 2
 
 
 def grown_outline(
-    basis: np.ndarray, support: np.ndarray, rounds: int = OUTLINE_GROWTH_ROUNDS, **outline_options
+    basis: np.ndarray, support: np.ndarray, growth_rounds: int = OUTLINE_GROWTH_ROUNDS, **outline_options
 ) -> tuple[np.ndarray, list[int]]:
     """The cloud's outline grown round by round into the pixels its estimates light up.
 
@@ -420,14 +420,15 @@ def grown_outline(
     more of it, so the next round reaches farther (field bench, the reference's outline 1266 px:
     the cloud's covers 990-1010 of it, two rounds 1110-1220). The outline never loses a pixel.
 
-    basis : complex (M, H, W); support : bool (H, W); rounds >= 0; outline_options : passed to
-    :func:`outline_phase`. Returns (bool (H, W) outline, its pixel count before and after each round).
+    basis : complex (M, H, W); support : bool (H, W); growth_rounds >= 0; outline_options : passed
+    to :func:`outline_phase` (its own ``rounds`` among them). Returns (bool (H, W) outline, its pixel
+    count before and after each growth round).
     """
-    if int(rounds) < 0:
-        raise TwinFocusError(f"outline growth rounds must be >= 0, got {rounds}")
+    if int(growth_rounds) < 0:
+        raise TwinFocusError(f"outline growth rounds must be >= 0, got {growth_rounds}")
     mask = np.asarray(support, dtype=bool)
     sizes = [int(mask.sum())]
-    for _ in range(int(rounds)):
+    for _ in range(int(growth_rounds)):
         phi, info = outline_phase(basis, mask, **outline_options)
         energy = np.abs(form_image(basis, phi)) ** 2
         mask = np.logical_or.reduce(grown_outlines(mask, energy, info["support_shift_px"]))
