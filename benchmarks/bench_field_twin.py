@@ -4,6 +4,7 @@ surface missing in patches, 2 % outliers, 2.5 mm offset), per estimator, against
 twin and the oracle phase on the same draws, with each estimator's time.
 
     python -m benchmarks.bench_field_twin --draws 5            (docs/digital_twin.md quotes it)
+    python -m benchmarks.bench_field_twin --growth-sweep       (the outline's growth rounds)
 
 Scenes (the reference 'A', the target 'F' 10 degrees apart at 0.6 m):
   A: 0.5 mm z + 0.2 mm x/y tracking error, 15 dB;
@@ -145,10 +146,72 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, only
     return results
 
 
+#: the outline's growth rounds the sweep measures (template_match.grown_outline; the default is 2)
+GROWTH_ROUNDS = (0, 1, 2, 3, 4)
+
+
+def growth_sweep(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5) -> dict:
+    """The knob ``AutofocusConfig.outline_growth_rounds`` against what it costs: on the camera-cloud
+    scenes A, B, C (draws 1..``draws``), the averaged outline estimate after each number of growth
+    rounds, timed, its target SSIM with the image placed by the truth (the estimate alone, as the
+    diagnostic column of the main table) and the outline's size. Writes ``field_twin_growth.json``."""
+    import time
+
+    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.basis import form_image
+    from twinfocus.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.digital_twin.condition import digital_twin_reference
+    from twinfocus.metrics import image_ssim, oracle_phase
+    from twinfocus.phase_ramp import fit_linear_phase
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.template_match import averaged_outline_phase
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results: dict = {}
+    for scene in SCENES:
+        results[scene] = []
+        for seed in range(1, draws + 1):
+            print(f"[field twin, growth rounds] {scene}, draw {seed}/{draws}", file=sys.stderr, flush=True)
+            sc = Scenario(**SCENES[scene], reference_roughness_deg=90.0, reference_amplitude_spread=0.3, seed=seed)
+            scan, _ = simulate_scenario(sc)
+            rg, tg = scenario_grids(sc, 100)
+            surface = sc.scene().object("reference").surface_points(1e-3)
+            cloud = camera_cloud(surface, *ALL, rng=np.random.default_rng([seed, 14]))
+            twin = digital_twin_reference(cloud, scan.positions, scan.chirp, rg)
+            rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
+            tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+            truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
+            reference_true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
+            aperture = scan.positions.mean(axis=1)[:, :2]
+            rec: dict = {"seed": seed}
+            for rounds in GROWTH_ROUNDS:
+                t0 = time.perf_counter()
+                phase, info = averaged_outline_phase(rb, twin.support, aperture, growth_rounds=rounds)
+                took = time.perf_counter() - t0
+                ramp, _ = fit_linear_phase(np.angle(np.exp(1j * (phase - reference_true))), aperture)
+                rec[str(rounds)] = {"placed by the truth": image_ssim(form_image(tb, phase - ramp), truth),
+                                    "time_s": took, "outline_px": info["growth_px"][-1]}
+            results[scene].append(rec)
+            (out_dir / "field_twin_growth.json").write_text(json.dumps(results, indent=1))
+    print("| growth rounds | " + " | ".join(results) + " | estimate's time (s, mean) |\n|---|" + "---|" * (len(results) + 1))
+    for rounds in GROWTH_ROUNDS:
+        k = str(rounds)
+        cells = [f"{np.mean([r[k]['placed by the truth'] for r in recs]):.3f}" for recs in results.values()]
+        t = np.mean([r[k]["time_s"] for recs in results.values() for r in recs])
+        print(f"| {rounds} | " + " | ".join(cells) + f" | {t:.2f} |")
+    return results
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument("--growth-sweep", action="store_true",
+                    help="measure the outline's growth rounds instead (field_twin_growth.json, ~6 min)")
     ap.add_argument("--draws", type=int, default=5)
     ap.add_argument("--only", default=None, help="run only the conditions whose name contains this")
     a = ap.parse_args()
-    main(a.out, a.draws, a.only)
+    if a.growth_sweep:
+        growth_sweep(a.out, a.draws)
+    else:
+        main(a.out, a.draws, a.only)
