@@ -20,6 +20,7 @@ import json
 import os
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -40,29 +41,42 @@ CONDITIONS = {
 }
 
 
+def field_draw(kw: dict, seed: int, impairments: tuple = ALL) -> SimpleNamespace:
+    """One draw of a field scene as every field benchmark builds it: the rough reference's scan
+    (``scan``, and the physical twin's ``tpl_scan``), the grids ``rg`` / ``tg`` (100 x 100), the
+    reference's exact ``surface`` points, the digital ``twin`` from its camera cloud (``impairments``:
+    noise m, hole fraction, outlier fraction, offset m; the cloud drawn from ``[seed, 14]``) and the
+    sub-image bases ``rb`` / ``tb``. kw: Scenario keywords (e.g. ``SCENES["B"]``)."""
+    from twinfocus.backprojection import subimage_basis
+    from twinfocus.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.digital_twin.condition import digital_twin_reference
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+
+    sc = Scenario(**kw, reference_roughness_deg=90.0, reference_amplitude_spread=0.3, seed=seed)
+    scan, tpl_scan = simulate_scenario(sc)
+    rg, tg = scenario_grids(sc, 100)
+    surface = sc.scene().object("reference").surface_points(1e-3)
+    cloud = camera_cloud(surface, *impairments, rng=np.random.default_rng([seed, 14]))
+    twin = digital_twin_reference(cloud, scan.positions, scan.chirp, rg)
+    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
+    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+    return SimpleNamespace(sc=sc, scan=scan, tpl_scan=tpl_scan, rg=rg, tg=tg, surface=surface, twin=twin, rb=rb, tb=tb)
+
+
 def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
     from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.backprojection import backproject
     from twinfocus.basis import form_image
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
     from twinfocus.digital_twin.condition import digital_twin_reference
     from twinfocus.estimators import estimator_settings
     from twinfocus.metrics import image_ssim, oracle_phase
     from twinfocus.phase_ramp import fit_linear_phase
     from twinfocus.pipeline import focus_bases, upper_band_basis
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.templates import template_from_scan
 
-    sc = Scenario(**SCENES[scene], reference_roughness_deg=90.0, reference_amplitude_spread=0.3, seed=seed)
-    scan, tpl_scan = simulate_scenario(sc)
-    rg, tg = scenario_grids(sc, 100)
-    surface = sc.scene().object("reference").surface_points(1e-3)
-    noise, holes, outliers, offset = impairments
-    cloud = camera_cloud(surface, noise, holes, outliers, offset, rng=np.random.default_rng([seed, 14]))
-    twin = digital_twin_reference(cloud, scan.positions, scan.chirp, rg)
-    exact = digital_twin_reference(surface, scan.positions, scan.chirp, rg)
-    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
-    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+    d = field_draw(SCENES[scene], seed, impairments)
+    sc, scan, tpl_scan, rg, tg, twin, rb, tb = d.sc, d.scan, d.tpl_scan, d.rg, d.tg, d.twin, d.rb, d.tb
+    exact = digital_twin_reference(d.surface, scan.positions, scan.chirp, rg)
     truth = dict(truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
                  truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg), positions_true=scan.positions_true)
     wl = scan.chirp.wavelength_m
@@ -157,13 +171,10 @@ def growth_sweep(out_dir: str | os.PathLike = "benchmarks/results", draws: int =
     diagnostic column of the main table) and the outline's size. Writes ``field_twin_growth.json``."""
     import time
 
-    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.backprojection import backproject
     from twinfocus.basis import form_image
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.digital_twin.condition import digital_twin_reference
     from twinfocus.metrics import image_ssim, oracle_phase
     from twinfocus.phase_ramp import fit_linear_phase
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.template_match import averaged_outline_phase
 
     out_dir = Path(out_dir)
@@ -173,14 +184,8 @@ def growth_sweep(out_dir: str | os.PathLike = "benchmarks/results", draws: int =
         results[scene] = []
         for seed in range(1, draws + 1):
             print(f"[field twin, growth rounds] {scene}, draw {seed}/{draws}", file=sys.stderr, flush=True)
-            sc = Scenario(**SCENES[scene], reference_roughness_deg=90.0, reference_amplitude_spread=0.3, seed=seed)
-            scan, _ = simulate_scenario(sc)
-            rg, tg = scenario_grids(sc, 100)
-            surface = sc.scene().object("reference").surface_points(1e-3)
-            cloud = camera_cloud(surface, *ALL, rng=np.random.default_rng([seed, 14]))
-            twin = digital_twin_reference(cloud, scan.positions, scan.chirp, rg)
-            rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
-            tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+            d = field_draw(SCENES[scene], seed)
+            scan, rg, tg, twin, rb, tb = d.scan, d.rg, d.tg, d.twin, d.rb, d.tb
             truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
             reference_true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
             aperture = scan.positions.mean(axis=1)[:, :2]

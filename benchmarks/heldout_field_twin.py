@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_field_twin import ALL, SCENES
+from benchmarks.bench_field_twin import SCENES, field_draw
 
 HAND = dict(reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand", error_sigma_m=(0.8e-3,) * 3)
 #: condition -> (scene keywords, seeds)
@@ -39,25 +39,16 @@ CONDITIONS = {
 
 def one_draw(kw: dict, seed: int) -> dict:
     from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.backprojection import backproject
     from twinfocus.basis import form_image
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.digital_twin.condition import digital_twin_reference
     from twinfocus.estimators import estimator_settings
     from twinfocus.metrics import image_ssim, oracle_phase
     from twinfocus.phase_ramp import fit_linear_phase
     from twinfocus.pipeline import focus_bases, upper_band_basis
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.templates import template_from_scan
 
-    sc = Scenario(**kw, reference_roughness_deg=90.0, reference_amplitude_spread=0.3, seed=seed)
-    scan, tpl_scan = simulate_scenario(sc)
-    rg, tg = scenario_grids(sc, 100)
-    surface = sc.scene().object("reference").surface_points(1e-3)
-    cloud = camera_cloud(surface, *ALL, rng=np.random.default_rng([seed, 14]))
-    twin = digital_twin_reference(cloud, scan.positions, scan.chirp, rg)
-    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
-    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+    d = field_draw(kw, seed)
+    scan, tpl_scan, rg, tg, twin, rb, tb = d.scan, d.tpl_scan, d.rg, d.tg, d.twin, d.rb, d.tb
     truth = dict(truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
                  truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
                  positions_true=scan.positions_true)
@@ -92,24 +83,16 @@ def figure(path: str | os.PathLike, seed: int = 2) -> None:
     6 mm off across y): each position's range error from the band's halves against the truth, and
     the target before and after the placement beside the image on the true positions."""
     from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.backprojection import backproject
     from twinfocus.band_delay import bright_pixels, position_range_errors_m
     from twinfocus.basis import form_image
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.digital_twin.condition import digital_twin_reference
     from twinfocus.estimators import estimator_settings
     from twinfocus.metrics import image_ssim
     from twinfocus.pipeline import focus_bases, upper_band_basis
     from twinfocus.plotting import pyplot
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
 
-    sc = Scenario(**SCENES["B"], reference_roughness_deg=90.0, reference_amplitude_spread=0.3, seed=seed)
-    scan, _ = simulate_scenario(sc)
-    rg, tg = scenario_grids(sc, 100)
-    surface = sc.scene().object("reference").surface_points(1e-3)
-    twin = digital_twin_reference(camera_cloud(surface, *ALL, rng=np.random.default_rng([seed, 14])), scan.positions, scan.chirp, rg)
-    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
-    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+    d = field_draw(SCENES["B"], seed)
+    scan, rg, tg, twin, rb, tb = d.scan, d.rg, d.tg, d.twin, d.rb, d.tb
     truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
     upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
     # the outline as the cloud gives it (no growth first): the picture shows the placement alone
