@@ -289,10 +289,10 @@ def outline_phases(
     per = first.shape[0]
     phi = np.tile(first, (len(base), 1))  # every outline from the same starts: (K S, M)
     n = phi.shape[0]
-    owner = [i // per for i in range(n)]  # the outline each row runs for
     shifts = [(0, 0)] * n
     masks = np.vstack([np.repeat(mask.reshape(1, -1), per, axis=0) for mask in base]).astype(np.float32)  # (K S, P)
     r = int(max_shift_px)
+    offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
     for rnd in range(int(rounds)):
         # T_s is zero outside its outline, so the steps need the image only on the pixels some
         # start's outline covers (a letter: 10-30 % of the region, as much faster)
@@ -304,17 +304,22 @@ def outline_phases(
             phi = -np.angle((sub @ np.conj(sub_masks * image).T).T).astype(np.float64)
         if rnd == int(rounds) - 1 or r == 0:
             break
-        energy = np.abs(np.exp(1j * phi).astype(np.complex64) @ flat) ** 2
-        for i in range(n):
-            mask = base[owner[i]]
-            e = energy[i].reshape(mask.shape)
-            best = max(
-                (float((_shift_mask(mask, dy, dx) * e).sum()), dy, dx)
-                for dy in range(-r, r + 1)
-                for dx in range(-r, r + 1)
-            )
-            shifts[i] = best[1:]
-            masks[i] = _shift_mask(mask, *shifts[i]).reshape(-1)
+        # the energy each whole-pixel shift of each outline holds: the shifted outlines reach only
+        # the pixels within r of the unshifted ones, so the image is needed only there (a third
+        # of the region for a letter), and all shifts of one outline score in one product
+        reach = ndimage.binary_dilation(
+            np.logical_or.reduce(base), structure=np.ones((2 * r + 1, 2 * r + 1), bool)
+        ).reshape(-1)
+        energy = (np.abs(np.exp(1j * phi).astype(np.complex64) @ flat[:, reach]) ** 2).astype(np.float64)
+        for k, mask in enumerate(base):
+            shifted = np.stack([_shift_mask(mask, dy, dx).reshape(-1)[reach] for dy, dx in offsets]).astype(np.float64)
+            rows = slice(k * per, (k + 1) * per)
+            held = energy[rows] @ shifted.T  # (S, shifts)
+            # the last of equal maxima, as max() over (energy, dy, dx) in this order would pick
+            best = len(offsets) - 1 - np.argmax(held[:, ::-1], axis=1)
+            for i, j in zip(range(rows.start, rows.stop), best):
+                shifts[i] = offsets[j]
+                masks[i] = _shift_mask(mask, *offsets[j]).reshape(-1)
     energy = np.abs(np.exp(1j * phi).astype(np.complex64) @ flat) ** 2
     inside = (masks * energy).sum(axis=1) / np.maximum(energy.sum(axis=1), 1e-300)
     out = []
