@@ -5,6 +5,8 @@ twin and the oracle phase on the same draws, with each estimator's time.
 
     python -m benchmarks.bench_field_twin --draws 5            (docs/digital_twin.md quotes it)
     python -m benchmarks.bench_field_twin --growth-sweep       (the outline's growth rounds)
+    python -m benchmarks.bench_field_twin --placement-ceiling   (what placing by the scan alone can reach)
+    python -m benchmarks.bench_field_twin --range-error-floor --draws 3   (the band halves' range errors, true phase)
 
 Scenes (the reference 'A', the target 'F' 10 degrees apart at 0.6 m):
   A: 0.5 mm z + 0.2 mm x/y tracking error, 15 dB;
@@ -208,15 +210,155 @@ def growth_sweep(out_dir: str | os.PathLike = "benchmarks/results", draws: int =
     return results
 
 
+
+#: range_error_floor's cases: the reference's texture (Scenario keywords) ...
+FLOOR_TEXTURES = {"rough (the field's)": dict(reference_roughness_deg=90.0, reference_amplitude_spread=0.3),
+                  "smooth plate": dict(reference_roughness_deg=None, reference_amplitude_spread=0.0, speckle=False)}
+#: ... and the tracking error (x, y, z sigma, m) and noise
+FLOOR_ERRORS = {"none": ((0.0, 0.0, 0.0), 15), "0.5 mm z": ((0.3e-3, 0.3e-3, 0.5e-3), 15),
+                "1.6 mm z": ((0.3e-3, 0.3e-3, 1.6e-3), 15), "1.6 mm z, no noise": ((0.3e-3, 0.3e-3, 1.6e-3), None)}
+
+
+def range_error_floor(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3) -> dict:
+    """How well the band's halves read each position's range error when the estimate is exact.
+
+    On scene C's geometry, for a rough and a smooth reference and tracking errors from none to
+    1.6 mm: the range errors :func:`~twinfocus.band_delay.position_range_errors_m` reads with the
+    true phase as the estimate, on the bright pixels of the focused reference, against the true
+    ones (each position's mean over its channels of the range change to the reference's centre).
+    Reports the error's sd (mm), the slope of measured on true, and the image shift (mm) that the
+    ramp fit with them taken out asks for, which with the true phase should be none: the floor of
+    the placement by the band's halves (docs/digital_twin.md). Writes ``field_twin_range_floor.json``."""
+    from twinfocus.backprojection import backproject, subimage_basis_points
+    from twinfocus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
+    from twinfocus.metrics import oracle_phase
+    from twinfocus.phase_ramp import fit_linear_phase
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results: dict = {}
+    for texture, tkw in FLOOR_TEXTURES.items():
+        for error, (sigma, snr) in FLOOR_ERRORS.items():
+            if texture != "rough (the field's)" and snr is None:
+                continue
+            recs = results.setdefault(f"{texture}, {error}", [])
+            for seed in range(1, draws + 1):
+                print(f"[range-error floor] {texture}, {error}, draw {seed}/{draws}", file=sys.stderr, flush=True)
+                sc = Scenario(**{**SCENES["C"], "error_sigma_m": sigma, "snr_db": snr}, **tkw, seed=seed)
+                scan, _ = simulate_scenario(sc)
+                rg, _ = scenario_grids(sc, 100)
+                centre = rg.centre_m
+                true_phase = oracle_phase(scan.positions_true, scan.positions, centre, scan.chirp)
+                true_m = (np.linalg.norm(scan.positions_true - centre, axis=-1)
+                          - np.linalg.norm(scan.positions - centre, axis=-1)).mean(axis=1)
+                pixels = bright_pixels(backproject(scan.data, scan.positions_true, scan.chirp, rg)).ravel()
+                points = rg.points()[pixels]
+                halves = [subimage_basis_points(d, scan.positions, c, points)
+                          for d, c in zip(half_band_data(scan.data, scan.chirp), half_band_chirps(scan.chirp))]
+                measured = position_range_errors_m(*halves, true_phase, scan.chirp)
+                err = (measured - measured.mean()) - (true_m - true_m.mean())
+                aperture = scan.positions.mean(axis=1)[:, :2]
+                ranged = true_phase + 4.0 * np.pi / scan.chirp.wavelength_m * measured
+                ramp, coeffs = fit_linear_phase(ranged, aperture, min_coherence_sqrt_m=0.0)
+                range_m = float(np.linalg.norm(centre - scan.positions.mean(axis=(0, 1))))
+                shift = coeffs[1:] * range_m * scan.chirp.wavelength_m / (4.0 * np.pi)
+                recs.append({"seed": seed, "error_sd_mm": 1e3 * float(err.std()),
+                             "slope": float(np.polyfit(true_m, measured, 1)[0]) if true_m.std() > 0 else None,
+                             "asked_shift_mm": (1e3 * shift).tolist(),
+                             "ramp_coherence_sqrt_m": float(np.abs(np.exp(1j * (ranged - ramp)).mean()) * np.sqrt(ranged.size)),
+                             "bright_px": int(pixels.sum())})
+                (out_dir / "field_twin_range_floor.json").write_text(json.dumps(results, indent=1))
+    print("| reference, tracking error | range-error error, sd (mm) | slope "
+          "| shift asked with the true phase (mm, mean abs x, y) | coherence x sqrt(M) |")
+    print("|---|---|---|---|---|")
+    for name, recs in results.items():
+        slopes = [r["slope"] for r in recs if r["slope"] is not None]
+        shifts = np.abs([r["asked_shift_mm"] for r in recs]).mean(axis=0)
+        print(f"| {name} | {np.mean([r['error_sd_mm'] for r in recs]):.2f} | "
+              + (f"{np.mean(slopes):.2f}" if slopes else "-")
+              + f" | {shifts[0]:.1f}, {shifts[1]:.1f} | {np.mean([r['ramp_coherence_sqrt_m'] for r in recs]):.1f} |")
+    return results
+
+
+def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, heldout: int = 10) -> dict:
+    """The most a digital twin placed by the scan alone can reach on scenes A, B and C.
+
+    A constant + linear trend of the positions' range errors across the aperture moves the image
+    as a misplaced reference does, so nothing measured on the reference (its estimate, the band's
+    halves) can tell the two apart: a twin that knows where the reference is only to the camera's
+    2.5 mm takes that part of the errors for its misplacement and removes it with it. Per draw:
+    the target's SSIM formed with the reference's true phase (the physical twin's ceiling) and
+    with the same phase less the phase of the range errors' least-squares constant + linear part
+    (each position's mean over its channels of the range change to the reference's centre), and
+    the image shift (mm) that part stands for. The bench's draws (seeds 1 to ``draws``) and the
+    held-out ones (``benchmarks.heldout_field_twin``'s seeds, 6 on, ``heldout`` of them).
+    Writes ``field_twin_placement_ceiling.json``."""
+    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.basis import form_image
+    from twinfocus.metrics import image_ssim, oracle_phase
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    seeds = {"bench": list(range(1, draws + 1)), "held-out": list(range(6, 6 + heldout))}
+    results: dict = {}
+    for scene in SCENES:
+        results[scene] = []
+        for which, chosen in seeds.items():
+            for seed in chosen:
+                print(f"[field twin, placement ceiling] {scene}, {which} seed {seed}", file=sys.stderr, flush=True)
+                sc = Scenario(**SCENES[scene], reference_roughness_deg=90.0, reference_amplitude_spread=0.3, seed=seed)
+                scan, _ = simulate_scenario(sc)
+                rg, tg = scenario_grids(sc, 100)
+                tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+                truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
+                centre = rg.centre_m
+                true_phase = oracle_phase(scan.positions_true, scan.positions, centre, scan.chirp)
+                range_errors = (np.linalg.norm(scan.positions_true - centre, axis=-1)
+                                - np.linalg.norm(scan.positions - centre, axis=-1)).mean(axis=1)
+                aperture = scan.positions.mean(axis=1)[:, :2]
+                design = np.c_[np.ones(len(aperture)), aperture - aperture.mean(axis=0)]
+                coeffs, *_ = np.linalg.lstsq(design, range_errors, rcond=None)
+                trend_phase = -4.0 * np.pi / scan.chirp.wavelength_m * (design @ coeffs)
+                range_m = float(np.linalg.norm(centre - scan.positions.mean(axis=(0, 1))))
+                results[scene].append({
+                    "draws": which, "seed": seed,
+                    "true phase": image_ssim(form_image(tb, true_phase), truth),
+                    "true phase less the errors' linear part": image_ssim(form_image(tb, true_phase - trend_phase), truth),
+                    "linear part's shift_mm": (1e3 * coeffs[1:] * range_m).tolist()})
+                (out_dir / "field_twin_placement_ceiling.json").write_text(json.dumps(results, indent=1))
+    print("| scene, draws | true phase | less the range errors' linear part (mean +- sd, lowest) | its shift (mm, mean \\|x\\|, \\|y\\|) |")
+    print("|---|---|---|---|")
+    for scene, recs in results.items():
+        for which in seeds:
+            mine = [r for r in recs if r["draws"] == which]
+            if not mine:
+                continue
+            less = [r["true phase less the errors' linear part"] for r in mine]
+            shift = np.abs([r["linear part's shift_mm"] for r in mine]).mean(axis=0)
+            print(f"| {scene}, {which} ({len(mine)}) | {np.mean([r['true phase'] for r in mine]):.3f} | "
+                  f"{np.mean(less):.3f} +- {np.std(less):.3f}, {np.min(less):.3f} | {shift[0]:.2f}, {shift[1]:.2f} |")
+    return results
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--growth-sweep", action="store_true",
                     help="measure the outline's growth rounds instead (field_twin_growth.json, ~6 min)")
+    ap.add_argument("--range-error-floor", action="store_true",
+                    help="how well the band's halves read the range errors with the true phase (field_twin_range_floor.json, ~8 min)")
+    ap.add_argument("--placement-ceiling", action="store_true",
+                    help="what a twin placed by the scan alone can reach on B and C (field_twin_placement_ceiling.json, ~5 min)")
     ap.add_argument("--draws", type=int, default=5)
     ap.add_argument("--only", default=None, help="run only the conditions whose name contains this")
     a = ap.parse_args()
     if a.growth_sweep:
         growth_sweep(a.out, a.draws)
+    elif a.placement_ceiling:
+        placement_ceiling(a.out, a.draws)
+    elif a.range_error_floor:
+        range_error_floor(a.out, a.draws)
     else:
         main(a.out, a.draws, a.only)

@@ -79,7 +79,12 @@ def position_range_errors_m(
     of each value (0.56 against 0.7 mm without it at 1 mm of error) and the ramp fit after it wants
     the least noise, not an unbiased scale (a gain other than 1 on these values did not make the
     fit's coherence larger).
-    Useful while the errors stay within +-c / (4 dk) (+-37 mm for the default chirp).
+    Useful while the errors stay within +-c / (4 dk) (+-37 mm for the default chirp). Even with
+    the true phase and no tracking error the values scatter by 0.4-0.7 mm (a position's sub-image
+    holds every scatterer on its range ring, and where their delays centre depends on the
+    surface), and a constant + linear trend of the errors across the aperture is out of their
+    sight (each position is read against the image of all): docs/digital_twin.md, "What the scan
+    alone can place".
     """
     low_basis = np.asarray(low_basis)
     high_basis = np.asarray(high_basis)
