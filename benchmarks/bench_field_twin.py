@@ -210,7 +210,6 @@ def growth_sweep(out_dir: str | os.PathLike = "benchmarks/results", draws: int =
     return results
 
 
-
 #: range_error_floor's cases: the reference's texture (Scenario keywords) ...
 FLOOR_TEXTURES = {"rough (the field's)": dict(reference_roughness_deg=90.0, reference_amplitude_spread=0.3),
                   "smooth plate": dict(reference_roughness_deg=None, reference_amplitude_spread=0.0, speckle=False)}
@@ -231,7 +230,7 @@ def range_error_floor(out_dir: str | os.PathLike = "benchmarks/results", draws: 
     the placement by the band's halves (docs/digital_twin.md). Writes ``field_twin_range_floor.json``."""
     from twinfocus.backprojection import backproject, subimage_basis_points
     from twinfocus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
-    from twinfocus.metrics import oracle_phase
+    from twinfocus.metrics import oracle_phase, true_range_errors_m
     from twinfocus.phase_ramp import fit_linear_phase
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
 
@@ -250,8 +249,7 @@ def range_error_floor(out_dir: str | os.PathLike = "benchmarks/results", draws: 
                 rg, _ = scenario_grids(sc, 100)
                 centre = rg.centre_m
                 true_phase = oracle_phase(scan.positions_true, scan.positions, centre, scan.chirp)
-                true_m = (np.linalg.norm(scan.positions_true - centre, axis=-1)
-                          - np.linalg.norm(scan.positions - centre, axis=-1)).mean(axis=1)
+                true_m = true_range_errors_m(scan.positions_true, scan.positions, centre)
                 pixels = bright_pixels(backproject(scan.data, scan.positions_true, scan.chirp, rg)).ravel()
                 points = rg.points()[pixels]
                 halves = [subimage_basis_points(d, scan.positions, c, points)
@@ -296,7 +294,7 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
     Writes ``field_twin_placement_ceiling.json``."""
     from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.basis import form_image
-    from twinfocus.metrics import image_ssim, oracle_phase
+    from twinfocus.metrics import image_ssim, oracle_phase, true_range_errors_m
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
 
     out_dir = Path(out_dir)
@@ -315,8 +313,7 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
                 truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
                 centre = rg.centre_m
                 true_phase = oracle_phase(scan.positions_true, scan.positions, centre, scan.chirp)
-                range_errors = (np.linalg.norm(scan.positions_true - centre, axis=-1)
-                                - np.linalg.norm(scan.positions - centre, axis=-1)).mean(axis=1)
+                range_errors = true_range_errors_m(scan.positions_true, scan.positions, centre)
                 aperture = scan.positions.mean(axis=1)[:, :2]
                 design = np.c_[np.ones(len(aperture)), aperture - aperture.mean(axis=0)]
                 coeffs, *_ = np.linalg.lstsq(design, range_errors, rcond=None)
@@ -350,7 +347,7 @@ if __name__ == "__main__":
     ap.add_argument("--range-error-floor", action="store_true",
                     help="how well the band's halves read the range errors with the true phase (field_twin_range_floor.json, ~8 min)")
     ap.add_argument("--placement-ceiling", action="store_true",
-                    help="what a twin placed by the scan alone can reach on B and C (field_twin_placement_ceiling.json, ~5 min)")
+                    help="what a twin placed by the scan alone can reach on A, B and C (field_twin_placement_ceiling.json, ~10 min)")
     ap.add_argument("--draws", type=int, default=5)
     ap.add_argument("--only", default=None, help="run only the conditions whose name contains this")
     a = ap.parse_args()

@@ -87,7 +87,7 @@ def figure(path: str | os.PathLike, seed: int = 2) -> None:
     from twinfocus.band_delay import bright_pixels, position_range_errors_m
     from twinfocus.basis import form_image
     from twinfocus.estimators import estimator_settings
-    from twinfocus.metrics import image_ssim
+    from twinfocus.metrics import image_ssim, true_range_errors_m
     from twinfocus.pipeline import focus_bases, upper_band_basis
     from twinfocus.plotting import pyplot
 
@@ -103,8 +103,7 @@ def figure(path: str | os.PathLike, seed: int = 2) -> None:
     pixels = bright_pixels(form_image(rb, phase))
     high = upper(pixels)
     measured = position_range_errors_m(rb[:, pixels] - high, high, phase, scan.chirp)
-    centre = rg.centre_m
-    true = (np.linalg.norm(scan.positions_true - centre, axis=-1) - np.linalg.norm(scan.positions - centre, axis=-1)).mean(axis=1)
+    true = true_range_errors_m(scan.positions_true, scan.positions, rg.centre_m)
     plt = pyplot()
     fig, axes = plt.subplots(1, 4, figsize=(16, 4))
     ax = axes[0]

@@ -9,7 +9,7 @@ from twinfocus.backprojection import subimage_basis
 from twinfocus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import estimator_settings
-from twinfocus.metrics import oracle_phase
+from twinfocus.metrics import oracle_phase, true_range_errors_m
 from twinfocus.phase_ramp import fit_linear_phase
 from twinfocus.pipeline import focus_bases, upper_band_basis
 from twinfocus.radar import Chirp
@@ -26,11 +26,6 @@ def _rough_f_scan(z_sigma_m):
 def wrapped():
     """1 mm of z jitter: every phase wraps."""
     return _rough_f_scan(1e-3)
-
-
-def _range_error(true, tracked, point):
-    """Each position's range error to ``point`` (true minus tracked, mean over channels), metres."""
-    return (np.linalg.norm(true - point, axis=-1) - np.linalg.norm(tracked - point, axis=-1)).mean(axis=1)
 
 
 def test_the_halves_of_the_band_tile_it():
@@ -76,7 +71,7 @@ def test_range_errors_follow_the_injected_ones_and_ignore_the_images_place(wrapp
     low = subimage_basis(half_band_data(data, ch)[0], tracked, half_band_chirps(ch)[0], GRID)
     assert np.linalg.norm(basis - high - low) < 0.01 * np.linalg.norm(basis)
     centre = np.array([0.0, 0.0, Z])
-    truth = _range_error(true, tracked, centre)
+    truth = true_range_errors_m(true, tracked, centre)
     oracle = oracle_phase(true, tracked, centre, ch)
     assert np.abs(np.exp(1j * oracle).mean()) * np.sqrt(oracle.size) < 2.5  # every phase wrapped
     rng = np.random.default_rng(1)

@@ -3,7 +3,7 @@ import pytest
 from skimage.metrics import structural_similarity
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.metrics import image_ssim, oracle_phase, phase_error_rms, soft_threshold, ssim
+from twinfocus.metrics import image_ssim, oracle_phase, phase_error_rms, soft_threshold, ssim, true_range_errors_m
 from twinfocus.radar import C_M_PER_S, Chirp
 
 
@@ -78,6 +78,20 @@ def test_oracle_phase_closed_form_for_range_error():
     expected = np.angle(np.exp(-1j * 4 * np.pi * ch.fc_hz * dz / C_M_PER_S))
     got = oracle_phase(true, tracked, point, ch)
     assert phase_error_rms(got, expected) < 1e-3
+
+
+def test_true_range_errors_are_the_injected_ones_and_the_oracle_phases_delay():
+    ch = Chirp()
+    m, k = 50, 4
+    true = np.zeros((m, k, 3))
+    true[..., 0] = np.linspace(-1e-3, 1e-3, k)
+    dz = np.random.default_rng(2).normal(0, 2e-3, m)  # several wavelengths' worth: no wrapping here
+    tracked = true.copy()
+    tracked[..., 2] += dz[:, None]
+    point = np.array([0.0, 0.0, 0.6])
+    got = true_range_errors_m(true, tracked, point)
+    np.testing.assert_allclose(got, dz, atol=1e-8)
+    assert phase_error_rms(oracle_phase(true, tracked, point, ch), -4 * np.pi * ch.fc_hz * got / C_M_PER_S) < 1e-3
 
 
 def test_phase_error_rms_ignores_constant_and_wrapping():

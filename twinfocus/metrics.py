@@ -159,6 +159,17 @@ def oracle_phase(
     return np.angle(np.exp(1j * ph).sum(axis=1))
 
 
+def true_range_errors_m(positions_true_m: np.ndarray, positions_m: np.ndarray, point_m: np.ndarray) -> np.ndarray:
+    """Each radar position's true range error as seen from ``point_m``: float64 (M,) metres, the
+    mean over its channels of R_true - R_tracked (positions (M, K, 3), point (3,)). Unwrapped: the
+    delay :func:`oracle_phase` takes the phase of, and what
+    :func:`twinfocus.band_delay.position_range_errors_m` reads from the scan."""
+    p = np.asarray(point_m, dtype=np.float64).reshape(1, 1, 3)
+    r_true = np.linalg.norm(np.asarray(positions_true_m, dtype=np.float64) - p, axis=-1)
+    r_trk = np.linalg.norm(np.asarray(positions_m, dtype=np.float64) - p, axis=-1)
+    return (r_true - r_trk).mean(axis=1)
+
+
 def phase_error_rms(estimate_rad: np.ndarray, truth_rad: np.ndarray) -> float:
     """RMS of the wrapped difference after removing the best constant (phases are known only up
     to a constant): radians."""
