@@ -293,6 +293,15 @@ def outline_phases(
     masks = np.vstack([np.repeat(mask.reshape(1, -1), per, axis=0) for mask in base]).astype(np.float32)  # (K S, P)
     r = int(max_shift_px)
     offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
+    # the shifted outlines reach only the pixels within r of the unshifted ones, so the image is
+    # needed only there (a third of the region for a letter); every shift of each outline, on
+    # those pixels, once for all rounds
+    reach = ndimage.binary_dilation(np.logical_or.reduce(base), structure=np.ones((2 * r + 1, 2 * r + 1), bool))
+    reach = reach.reshape(-1)
+    shifted = [
+        np.stack([_shift_mask(mask, dy, dx).reshape(-1)[reach] for dy, dx in offsets]).astype(np.float64)
+        for mask in base
+    ]  # K x (shifts, reach pixels)
     for rnd in range(int(rounds)):
         # T_s is zero outside its outline, so the steps need the image only on the pixels some
         # start's outline covers (a letter: 10-30 % of the region, as much faster)
@@ -304,17 +313,11 @@ def outline_phases(
             phi = -np.angle((sub @ np.conj(sub_masks * image).T).T).astype(np.float64)
         if rnd == int(rounds) - 1 or r == 0:
             break
-        # the energy each whole-pixel shift of each outline holds: the shifted outlines reach only
-        # the pixels within r of the unshifted ones, so the image is needed only there (a third
-        # of the region for a letter), and all shifts of one outline score in one product
-        reach = ndimage.binary_dilation(
-            np.logical_or.reduce(base), structure=np.ones((2 * r + 1, 2 * r + 1), bool)
-        ).reshape(-1)
+        # the energy each whole-pixel shift of each outline holds, all shifts in one product
         energy = (np.abs(np.exp(1j * phi).astype(np.complex64) @ flat[:, reach]) ** 2).astype(np.float64)
         for k, mask in enumerate(base):
-            shifted = np.stack([_shift_mask(mask, dy, dx).reshape(-1)[reach] for dy, dx in offsets]).astype(np.float64)
             rows = slice(k * per, (k + 1) * per)
-            held = energy[rows] @ shifted.T  # (S, shifts)
+            held = energy[rows] @ shifted[k].T  # (S, shifts)
             # the last of equal maxima, as max() over (energy, dy, dx) in this order would pick
             best = len(offsets) - 1 - np.argmax(held[:, ::-1], axis=1)
             for i, j in zip(range(rows.start, rows.stop), best):
