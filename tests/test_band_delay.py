@@ -178,3 +178,35 @@ def test_focus_asks_the_band_halves_when_a_coherent_estimates_ramp_is_too_large(
     assert off["without"][0] > 4e-3 and not off["without"][1]["removed"]  # kept as if it were tracking error
     assert off["with"][0] < 1e-3 and off["with"][1]["removed"]
     assert off["with"][1]["asked_range_errors_because"] == "its ramp is larger than a misplacement explains"
+
+
+def test_place_estimate_moves_back_a_known_misplacement_of_the_exact_phase(wrapped):
+    """The true phase moved by the ramp of a 2.5 mm misplacement across y (what an outline the
+    camera put there does to an exact estimate), every phase wrapped: the plain fit alone cannot
+    see the ramp and keeps it; with the band's halves most of it is taken out, and the true phase
+    itself is moved by less than that."""
+    from twinfocus.pipeline import place_estimate
+
+    ch, true, tracked, data, basis = wrapped
+    oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
+    ap = tracked.mean(axis=1)[:, :2]
+    depth = Z - tracked[..., 2].mean()
+    k = 4 * np.pi / ch.wavelength_m
+    moved = oracle + k / depth * (ap[:, 1] - ap[:, 1].mean()) * 2.5e-3
+    band = upper_band_basis(data, tracked, ch, GRID)
+
+    def left_off_m(phase):
+        _, coeffs = fit_linear_phase(np.angle(np.exp(1j * (phase - oracle))), ap, min_coherence_sqrt_m=0)
+        return np.abs(coeffs[1:]) * depth / k
+
+    kept, info, seconds = place_estimate(moved, basis, tracked, ch, GRID)
+    assert seconds is None and not info["from_range_errors"] and not any(info["slope_rad_per_m"])
+    assert left_off_m(kept)[1] == pytest.approx(2.5e-3, abs=0.1e-3)
+    placed, info, seconds = place_estimate(moved, basis, tracked, ch, GRID, upper_band=band)
+    assert seconds is not None and info["from_range_errors"] and info["removed"]
+    assert info["asked_range_errors_because"] == "the estimate's phases have wrapped"
+    assert left_off_m(placed).max() < 0.5 * 2.5e-3  # the halves read the range errors to ~0.5 mm here
+    same, _, _ = place_estimate(oracle, basis, tracked, ch, GRID, upper_band=band)
+    # not untouched: the halves' own floor (the reference's delay texture) moves it, by less than
+    # the misplacement it takes out
+    assert left_off_m(same).max() < 0.5 * 2.5e-3

@@ -235,6 +235,56 @@ def focus_scan(
     return out
 
 
+
+def place_estimate(
+    phase: np.ndarray,
+    ref_basis: np.ndarray,
+    positions: np.ndarray,
+    chirp: Chirp,
+    reference_grid: ImageGrid,
+    phase_ramp: str = "auto",
+    *,
+    registered: bool = False,
+    upper_band: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> tuple[np.ndarray, dict, float | None]:
+    """The phase :func:`focus_bases` transfers to the target from the reference's estimate: its
+    constant + linear ramp handled by :func:`~twinfocus.autofocus.transfer_phase` (``phase_ramp``).
+
+    The plain ramp fit cannot place the reference when the estimate's phases have wrapped (its
+    ramp is out of sight) nor when its ramp is larger than a misplacement explains (it may be
+    tracking error): with ``upper_band`` (:func:`upper_band_basis`) and ``phase_ramp`` 'auto' the
+    range errors from the band's halves then take the tracking error out along the line of sight
+    and tell (docs/digital_twin.md, "Placing the reference by the band's halves").
+
+    phase : float (M,) radians; ref_basis : complex (M, H, W) on ``reference_grid``; positions :
+    float64 (M, K, 3) phase centres, metres. Returns (float64 (M,) radians, the ``phase_ramp``
+    metrics, seconds the range errors took or None when they were not read)."""
+    centres = positions.mean(axis=1)
+    transfer = functools.partial(
+        transfer_phase,
+        phase,
+        centres[:, :2],
+        float(reference_grid.z - centres[:, 2].mean()),
+        chirp.wavelength_m,
+        phase_ramp,
+        registered=registered,
+    )
+    transferred, info = transfer()
+    out_of_sight = ramp_free_coherence(phase, centres[:, :2]) < MIN_RAMP_COHERENCE_SQRT_M
+    too_large = np.any(info["slope_rad_per_m"]) and not info["removed"]
+    if upper_band is None or phase_ramp != "auto" or registered or not (out_of_sight or too_large):
+        return transferred, info, None
+    t = time.perf_counter()
+    pixels = bright_pixels(form_image(ref_basis, phase))
+    high = upper_band(pixels)
+    range_errors = position_range_errors_m(ref_basis[:, pixels] - high, high, phase, chirp)
+    seconds = time.perf_counter() - t
+    transferred, info = transfer(range_errors_m=range_errors)
+    info["asked_range_errors_because"] = (
+        "the estimate's phases have wrapped" if out_of_sight else "its ramp is larger than a misplacement explains"
+    )
+    return transferred, info, seconds
+
 def focus_bases(
     ref_basis: np.ndarray,
     tgt_basis: np.ndarray,
@@ -378,40 +428,18 @@ def focus_bases(
         # metrics and pictures against the template the phases were fitted to (moved when registered)
         template = result.extra.get("template", template)
     if method != "none":
-        transfer = functools.partial(
-            transfer_phase,
+        transferred, m["phase_ramp"], ranged_s = place_estimate(
             phase,
-            centres[:, :2],
-            float(reference_grid.z - centres[:, 2].mean()),
-            chirp.wavelength_m,
+            ref_basis,
+            positions,
+            chirp,
+            reference_grid,
             phase_ramp,
             registered="registration" in result.extra,
+            upper_band=upper_band if method == "twin" else None,
         )
-        transferred, m["phase_ramp"] = transfer()
-        # The plain ramp fit cannot place the reference when the estimate's phases have wrapped
-        # (its ramp is out of sight) nor when its ramp is larger than a misplacement explains
-        # (it may be tracking error): the range errors from the band's halves take the tracking
-        # error out along the line of sight and tell (docs/digital_twin.md).
-        out_of_sight = coherence < MIN_RAMP_COHERENCE_SQRT_M
-        too_large = np.any(m["phase_ramp"]["slope_rad_per_m"]) and not m["phase_ramp"]["removed"]
-        if (
-            method == "twin"
-            and upper_band is not None
-            and phase_ramp == "auto"
-            and "registration" not in result.extra
-            and (out_of_sight or too_large)
-        ):
-            t = time.perf_counter()
-            pixels = bright_pixels(form_image(ref_basis, phase))
-            high = upper_band(pixels)
-            range_errors = position_range_errors_m(ref_basis[:, pixels] - high, high, phase, chirp)
-            timings["range_errors"] = time.perf_counter() - t
-            transferred, m["phase_ramp"] = transfer(range_errors_m=range_errors)
-            m["phase_ramp"]["asked_range_errors_because"] = (
-                "the estimate's phases have wrapped"
-                if out_of_sight
-                else "its ramp is larger than a misplacement explains"
-            )
+        if ranged_s is not None:
+            timings["range_errors"] = ranged_s
         phase = transferred
         m["phase_ramp_removed"] = m["phase_ramp"]["removed"]
     drift = None
