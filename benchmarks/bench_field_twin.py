@@ -291,15 +291,24 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
     (each position's mean over its channels of the range change to the reference's centre), and
     the image shift (mm) that part stands for. The bench's draws (seeds 1 to ``draws``) and the
     held-out ones (``benchmarks.heldout_field_twin``'s seeds, 6 on, ``heldout`` of them).
-    Writes ``field_twin_placement_ceiling.json``."""
+
+    And what the product's own placement (:func:`twinfocus.pipeline.place_estimate`: the plain
+    ramp fit, then the band's halves) makes of an exact estimate: the true phase as it stands, and
+    moved by the ramp of that draw's camera offset (the x, y part of ``ALL``'s 2.5 mm in the
+    direction the camera cloud draws), as an outline the camera put there would move it; and that
+    moved phase kept as it is. Writes ``field_twin_placement_ceiling.json``."""
     from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.basis import form_image
+    from twinfocus.digital_twin.camera_cloud import camera_cloud
     from twinfocus.metrics import image_ssim, oracle_phase, true_range_errors_m
+    from twinfocus.pipeline import place_estimate, upper_band_basis
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     seeds = {"bench": list(range(1, draws + 1)), "held-out": list(range(6, 6 + heldout))}
+    placed = ("exact, placed by the product", "exact moved by the camera's offset, placed by the product",
+              "exact moved by the camera's offset, kept")
     results: dict = {}
     for scene in SCENES:
         results[scene] = []
@@ -319,14 +328,28 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
                 coeffs, *_ = np.linalg.lstsq(design, range_errors, rcond=None)
                 trend_phase = -4.0 * np.pi / scan.chirp.wavelength_m * (design @ coeffs)
                 range_m = float(np.linalg.norm(centre - scan.positions.mean(axis=(0, 1))))
-                results[scene].append({
-                    "draws": which, "seed": seed,
-                    "true phase": image_ssim(form_image(tb, true_phase), truth),
-                    "true phase less the errors' linear part": image_ssim(form_image(tb, true_phase - trend_phase), truth),
-                    "linear part's shift_mm": (1e3 * coeffs[1:] * range_m).tolist()})
+                rec = {"draws": which, "seed": seed,
+                       "true phase": image_ssim(form_image(tb, true_phase), truth),
+                       "true phase less the errors' linear part": image_ssim(form_image(tb, true_phase - trend_phase), truth),
+                       "linear part's shift_mm": (1e3 * coeffs[1:] * range_m).tolist()}
+                # the camera's offset as field_draw's cloud draws it (the same generator, the same order)
+                surface = sc.scene().object("reference").surface_points(1e-3)
+                _, cam = camera_cloud(surface, *ALL, rng=np.random.default_rng([seed, 14]), return_truth=True)
+                offset = np.asarray(cam["offset_m"])[:2]
+                moved = true_phase + 4.0 * np.pi / (scan.chirp.wavelength_m * range_m) * (design[:, 1:] @ offset)
+                rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
+                upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
+                for name, phase in zip(placed[:2], (true_phase, moved)):
+                    out, info, _ = place_estimate(phase, rb, scan.positions, scan.chirp, rg, upper_band=upper)
+                    rec[name] = image_ssim(form_image(tb, out), truth)
+                    rec[name + ", removed"] = bool(info["removed"])
+                rec[placed[2]] = image_ssim(form_image(tb, moved), truth)
+                rec["camera offset_mm"] = (1e3 * offset).tolist()
+                results[scene].append(rec)
                 (out_dir / "field_twin_placement_ceiling.json").write_text(json.dumps(results, indent=1))
-    print("| scene, draws | true phase | less the range errors' linear part (mean +- sd, lowest) | its shift (mm, mean \\|x\\|, \\|y\\|) |")
-    print("|---|---|---|---|")
+    print("| scene, draws | true phase | less the range errors' linear part (mean +- sd, lowest) | its shift (mm, mean \\|x\\|, \\|y\\|) | "
+          + " | ".join(placed) + " (mean +- sd, lowest) |")
+    print("|---|---|---|---|" + "---|" * len(placed))
     for scene, recs in results.items():
         for which in seeds:
             mine = [r for r in recs if r["draws"] == which]
@@ -334,8 +357,10 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
                 continue
             less = [r["true phase less the errors' linear part"] for r in mine]
             shift = np.abs([r["linear part's shift_mm"] for r in mine]).mean(axis=0)
+            cells = [[r[name] for r in mine] for name in placed]
             print(f"| {scene}, {which} ({len(mine)}) | {np.mean([r['true phase'] for r in mine]):.3f} | "
-                  f"{np.mean(less):.3f} +- {np.std(less):.3f}, {np.min(less):.3f} | {shift[0]:.2f}, {shift[1]:.2f} |")
+                  f"{np.mean(less):.3f} +- {np.std(less):.3f}, {np.min(less):.3f} | {shift[0]:.2f}, {shift[1]:.2f} | "
+                  + " | ".join(f"{np.mean(v):.3f} +- {np.std(v):.3f}, {np.min(v):.3f}" for v in cells) + " |")
     return results
 
 
@@ -347,7 +372,8 @@ if __name__ == "__main__":
     ap.add_argument("--range-error-floor", action="store_true",
                     help="how well the band's halves read the range errors with the true phase (field_twin_range_floor.json, ~8 min)")
     ap.add_argument("--placement-ceiling", action="store_true",
-                    help="what a twin placed by the scan alone can reach on A, B and C (field_twin_placement_ceiling.json, ~10 min)")
+                    help="what a twin placed by the scan alone can reach on A, B and C, and what the product's "
+                    "placement makes of an exact estimate (field_twin_placement_ceiling.json, ~25 min)")
     ap.add_argument("--draws", type=int, default=5)
     ap.add_argument("--only", default=None, help="run only the conditions whose name contains this")
     a = ap.parse_args()
