@@ -235,7 +235,6 @@ def focus_scan(
     return out
 
 
-
 def place_estimate(
     phase: np.ndarray,
     ref_basis: np.ndarray,
@@ -284,6 +283,7 @@ def place_estimate(
         "the estimate's phases have wrapped" if out_of_sight else "its ramp is larger than a misplacement explains"
     )
     return transferred, info, seconds
+
 
 def focus_bases(
     ref_basis: np.ndarray,
