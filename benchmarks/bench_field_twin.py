@@ -101,8 +101,10 @@ def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
     # what `twinfocus focus` hands focus_bases: the upper half-band basis, built when a run needs it
     upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
     for name, (template, support, settings) in runs.items():
+        # what `twinfocus focus --digital-twin` hands on of the cloud's conditioning (the confidence report reads it)
+        info = twin.info if support is twin.support else None
         out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template, support=support,
-                          config=AutofocusConfig(**settings), upper_band=upper, **truth)
+                          reference_info=info, config=AutofocusConfig(**settings), upper_band=upper, **truth)
         rec[name] = out.metrics["target_ssim_corrected"]
         rec[f"{name} time_s"] = out.timings_s["autofocus"]
         if name == "default":

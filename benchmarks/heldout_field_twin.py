@@ -57,7 +57,7 @@ def one_draw(kw: dict, seed: int) -> dict:
     rec: dict = {"seed": seed}
     for name, growth in (("before", {"outline_growth_rounds": 0}), ("default", {})):
         out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=twin.template, support=twin.support,
-                          config=AutofocusConfig(**settings, **growth), upper_band=upper, **truth)
+                          reference_info=twin.info, config=AutofocusConfig(**settings, **growth), upper_band=upper, **truth)
         rec[name] = out.metrics["target_ssim_corrected"]
         rec[f"{name} trusted"] = out.metrics["confidence"]["trusted"]
     rec["ranged coh"] = out.metrics["phase_ramp"].get("ramp_coherence_sqrt_m")
@@ -129,12 +129,15 @@ def figure(path: str | os.PathLike, seed: int = 2) -> None:
 
 def table(results: dict) -> str:
     ms = lambda a: f"{np.mean(a):.3f} ± {np.std(a):.3f}"  # noqa: E731
-    lines = ["| condition | draws | before (outline not grown) | default | up / down (> 0.005) | placed by the truth | physical twin | target's own phase |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| condition | draws | before (outline not grown) | default | up / down (> 0.005) | default trusted (draws, their mean) "
+             "| placed by the truth | physical twin | target's own phase |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for cond, recs in results.items():
         b = np.array([r["before"] for r in recs])
         d = np.array([r["default"] for r in recs])
+        trusted = [r["default"] for r in recs if r["default trusted"]]
         lines.append(f"| {cond} | {len(recs)} | {ms(b)} | {ms(d)} | {int((d - b > 0.005).sum())} / {int((b - d > 0.005).sum())} | "
+                     f"{len(trusted)}" + (f", {np.mean(trusted):.3f}" if trusted else "") + " | "
                      f"{ms([r['truth-placed'] for r in recs])} | {ms([r['physical'] for r in recs])} | {ms([r['oracle'] for r in recs])} |")
     return "\n".join(lines)
 

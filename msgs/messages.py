@@ -156,6 +156,10 @@ class TwinTemplate:
         physical twin, a template file and logs written before the field existed.
     kind : ``"physical"`` (motion-stage measurement) or ``"digital"`` (from the camera).
     source : where it came from (file name, scan, ...), for the record.
+    surface, curved, curvature_m : a digital twin's cloud conditioning: the surface model
+        (``plane`` / ``smooth`` / ``outline``), whether the reference is curved, and how far its
+        smoothed surface departs from a plane (metres); the solver's confidence report warns on a
+        curved one. Empty / False / 0 for a physical twin and older logs.
     """
 
     header: Header
@@ -167,6 +171,9 @@ class TwinTemplate:
     support: np.ndarray | None = array("bool", ("H", "W"), optional=True)
     kind: str = text("physical")
     source: str = text()
+    surface: str = text()
+    curved: bool = flag()
+    curvature_m: float = real(0.0)
 
 
 @message(topic="autofocus/result")

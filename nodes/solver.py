@@ -136,6 +136,7 @@ class Solver(Node):
             self.bp.update(backend="torch", device=device)
         self.template: np.ndarray | None = None
         self.support: np.ndarray | None = None  # the reference's outline on ref_grid (a digital twin's)
+        self.twin_info: dict | None = None  # a digital twin's conditioning (on_template)
         self.template_info = ""
         self.scan: _Scan | None = None
         self.waiting: list[_Scan] = []  # finished scans waiting for a template
@@ -226,6 +227,12 @@ class Solver(Node):
                 self.log(f"ignored the outline of the {msg.kind} template from {msg.source or '?'}: {exc}")
                 support = None
         self.template, self.support = template, support
+        # what the confidence report needs of a digital twin's conditioning (metrics.json ``digital_twin``)
+        self.twin_info = (
+            {"surface": msg.surface, "curved": bool(msg.curved), "curvature_m": float(msg.curvature_m)}
+            if msg.kind == "digital" and msg.surface
+            else None
+        )
         self.template_info = f"{msg.kind} twin from {msg.source or '?'}" + (
             " with its outline" if support is not None else ""
         )
@@ -377,6 +384,7 @@ class Solver(Node):
                     self.tgt_grid,
                     template=self.template,
                     support=self.support,
+                    reference_info=self.twin_info,
                     method=self.params["method"],
                     config=self._config(s.chirp),
                     bp_options=self.bp,
@@ -465,6 +473,7 @@ class Solver(Node):
                 self.tgt_grid,
                 template=self.template,
                 support=self.support,
+                reference_info=self.twin_info,
                 method=self.params["method"],
                 config=self._config(s.chirp),
                 bp_options=self.bp,

@@ -157,7 +157,9 @@ class TemplateBuilder(Node):
             self.log(f"warning: {cache.warning}")
         return self._message(image, "physical", source)
 
-    def _message(self, image: np.ndarray, kind: str, source: str, support: np.ndarray | None = None) -> TwinTemplate:
+    def _message(
+        self, image: np.ndarray, kind: str, source: str, support: np.ndarray | None = None, info: dict | None = None
+    ) -> TwinTemplate:
         g = self.grid
         image = np.asarray(image)
         phase = np.angle(image).astype(np.float32) if np.iscomplexobj(image) else None
@@ -171,6 +173,9 @@ class TemplateBuilder(Node):
             z_m=g.z,
             kind=kind,
             source=str(source),
+            surface=str((info or {}).get("surface", "")),
+            curved=bool((info or {}).get("curved", False)),
+            curvature_m=float((info or {}).get("curvature_m", 0.0)),
         )
 
     def on_start(self) -> None:
@@ -222,7 +227,11 @@ class TemplateBuilder(Node):
             self.twin_info = ref.info
             # the outline travels with the template: with it the solver's auto takes the outline estimator
             self.msg = self._message(
-                ref.template, "digital", f"{source} (scan {m.scan_id}, {ref.surface} surface)", support=ref.support
+                ref.template,
+                "digital",
+                f"{source} (scan {m.scan_id}, {ref.surface} surface)",
+                support=ref.support,
+                info=ref.info,
             )
             self._send()
 

@@ -116,6 +116,30 @@ def test_cache_location_and_soft_failures(tmp_path, monkeypatch):
     assert len(file_sha256(tmp_path / "file")) == 64
 
 
+def test_an_entry_keeps_its_info_and_one_stored_without_it_is_recomputed(tmp_path):
+    """A digital twin's entry carries what its conditioning chose (metrics.json); an entry stored
+    before it did is recomputed when the info is asked for, not returned without it."""
+    grid = ImageGrid(-0.01, 0.01, -0.01, 0.01, 0.5, 4, 5)
+    cache = TemplateCache(tmp_path)
+    image = np.arange(20, dtype=np.float32).reshape(4, 5)
+    cache.put("old", image, grid)
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return image + 1, {"surface": "smooth", "curved": True, "curvature_m": np.float64(6e-3)}
+
+    got, info, status = cache.get_or_compute("old", grid, compute, with_info=True)
+    assert status == "miss" and calls == [1] and np.array_equal(got, image + 1)
+    got, info, status = cache.get_or_compute("old", grid, compute, with_info=True)
+    assert status == "hit" and calls == [1] and np.array_equal(got, image + 1)
+    assert info == {"surface": "smooth", "curved": True, "curvature_m": 6e-3}
+    got, status = cache.get_or_compute("old", grid, lambda: None)
+    assert status == "hit" and np.array_equal(got, image + 1)
+    got, info, status = TemplateCache(enabled=False).get_or_compute("k", grid, compute, with_info=True)
+    assert status == "off" and info["curved"] and calls == [1, 1]
+
+
 def test_digital_twin_template_is_cached_per_cloud_and_aperture(scans, tmp_path, monkeypatch):
     """A digital twin's template depends on the cloud and on the scan's aperture: the same pair
     hits, another scan (other tracked positions) misses."""
@@ -127,6 +151,8 @@ def test_digital_twin_template_is_cached_per_cloud_and_aperture(scans, tmp_path,
     twin = ["--digital-twin", str(tmp_path / "cloud.npy")]
     first, second = _focus(scans, tmp_path / "a", *twin), _focus(scans, tmp_path / "b", *twin)
     assert (first["template_cache"], second["template_cache"]) == ("miss", "hit")
+    # what the conditioning chose and why, in metrics.json, from the cache too
+    assert first["digital_twin"] == second["digital_twin"] and first["digital_twin"]["surface_reason"]
     assert np.array_equal(np.load(tmp_path / "a" / "phase.npy"), np.load(tmp_path / "b" / "phase.npy"))
     s = Scan.load(scans / "scan.npz")
     moved = Scan(s.data, s.positions + 1e-4, s.chirp, positions_true=s.positions_true)

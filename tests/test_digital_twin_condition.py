@@ -44,6 +44,7 @@ def test_surface_model_fits_the_true_surface(shape, surface, tol_mm):
         warnings.simplefilter("error", CloudWarning)  # nothing here deserves a warning
         r = condition_cloud(cloud, grid)
     assert r.surface == surface, r.info["surface_reason"]
+    assert r.info["curved"] == (shape != "plane")  # what the confidence report reads
     err = _depth_error(r.points_m, exact)
     # Raw points are off by 1 mm sd (3 rad of phase); the model by far less.
     assert np.mean(err) < tol_mm * 1e-3

@@ -100,6 +100,12 @@ def test_a_points_twin_carries_its_outline_and_the_solver_runs_the_outline_estim
     assert template.kind == "digital" and template.support is not None
     assert template.support.dtype == bool and np.array_equal(template.support, reference.support)
     np.testing.assert_array_equal(template.image, reference.template)
+    # and what the conditioning chose travels with it into the solver's metrics.json
+    assert (template.surface, template.curved) == (reference.info["surface"], reference.info["curved"]) == ("plane", False)
+    metrics = json.loads((tmp_path / "out" / "s1" / "metrics.json").read_text())
+    assert metrics["digital_twin"] == {"surface": "plane", "curved": False,
+                                       "curvature_m": pytest.approx(reference.info["curvature_m"])}
+    assert not any("curved" in w for w in metrics["confidence"]["warnings"])
     # the solver ran the outline estimator (averaged outlines), and says so
     assert res.estimator == "outline" and res.method == "twin"
     est = json.loads((tmp_path / "out" / "s1" / "metrics.json").read_text())["estimator"]
@@ -188,3 +194,41 @@ def test_a_template_whose_outline_does_not_fit_is_dropped_and_the_waiting_scan_t
     assert "dropped a malformed message: twin/template" in err and "field 'support' must be bool array of shape (H, W)" in err
     assert f"got shape ({SIZE // 2}, {SIZE * 2}) (already bound: H={SIZE}, W={SIZE})" in err
     assert res.scan_id == "s1" and res.estimator == "outline"
+
+
+
+def test_a_curved_reference_is_reported_and_not_trusted(scene, reference):
+    """A digital twin whose conditioning found the reference curved (tests/test_digital_twin_condition:
+    a bent plate and a cylinder section are): the confidence report, offline and in the solver from
+    the twin/template's fields, says the outline estimator is not at its ceiling there and does not
+    trust the result; the flat reference's report carries no such warning."""
+    from nodes.solver import Solver
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.backprojection import subimage_basis
+    from twinfocus.estimators import estimator_settings
+    from twinfocus.pipeline import focus_bases
+
+    data, tracked, _ = scene
+    ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, SIZE), ImageGrid.from_roi(TGT_ROI, SIZE)
+    bent = {**reference.info, "surface": "smooth", "curved": True, "curvature_m": 6.3e-3}
+    rb, tb = subimage_basis(data, tracked, CHIRP, ref_grid), subimage_basis(data, tracked, CHIRP, tgt_grid)
+    cfg = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
+    reports = {}
+    for name, info in (("flat", reference.info), ("bent", bent)):
+        out = focus_bases(rb, tb, tracked, CHIRP, ref_grid, tgt_grid, template=reference.template,
+                          support=reference.support, reference_info=info, config=cfg)
+        assert out.metrics["digital_twin"] == info
+        reports[name] = ([w for w in out.metrics["confidence"]["warnings"] if "is curved" in w],
+                         out.metrics["confidence"]["trusted"])
+    assert reports["flat"][0] == [] and len(reports["bent"][0]) == 1 and not reports["bent"][1]
+    assert "departs 6.3 mm from a plane" in reports["bent"][0][0]
+    # the solver takes the same from the message's fields (an older log's template has none)
+    msg = _twin_template(reference, reference.support)
+    msg.surface, msg.curved, msg.curvature_m = "smooth", True, 6.3e-3
+    with local_broker() as ep:
+        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": SIZE,
+                                           "warm_up": False})
+        solver.on_template(msg)
+        assert solver.twin_info == {"surface": "smooth", "curved": True, "curvature_m": 6.3e-3}
+        solver.on_template(_twin_template(reference, reference.support))
+        assert solver.twin_info is None

@@ -6,7 +6,8 @@ those and reused by every later ``focus`` (and solver) run with the same referen
 changes its hash, so a stale entry is never found; entries are never overwritten in place.
 
 Where: ``$TWINFOCUS_CACHE_DIR``, else ``$XDG_CACHE_HOME/twinfocus``, else ``~/.cache/twinfocus``;
-one ``templates/<key>.npz`` per entry (``image`` as computed, ``roi``, ``shape``). ``twinfocus
+one ``templates/<key>.npz`` per entry (``image`` as computed, ``roi``, ``shape``, and for a digital
+twin ``info_json``, what its conditioning chose and why, for metrics.json). ``twinfocus
 focus --no-cache`` bypasses it. Delete the folder to empty it. Reading and writing fail soft: a
 cache that cannot be written or an unreadable entry is a miss, never an error.
 """
@@ -110,6 +111,11 @@ class TemplateCache:
 
     def get(self, key: str, grid: ImageGrid) -> np.ndarray | None:
         """The stored image for ``key`` on ``grid`` (dtype as stored), or None."""
+        entry = self._load(key, grid)
+        return None if entry is None else entry[0]
+
+    def _load(self, key: str, grid: ImageGrid) -> tuple[np.ndarray, dict | None] | None:
+        """(image, info or None when stored without), or None for a miss."""
         if not self.enabled:
             return None
         from twinfocus.errors import TwinFocusError
@@ -122,36 +128,40 @@ class TemplateCache:
             z = load_npz(path)
             image = z["image"]
             ok = tuple(z["shape"]) == grid.shape and np.allclose(z["roi"], grid.roi) and np.isfinite(image).all()
-        except (TwinFocusError, KeyError):
+            info = json.loads(str(z["info_json"])) if "info_json" in z else None
+        except (TwinFocusError, KeyError, ValueError):
             ok = False
         if not ok:  # a damaged entry is a miss; the next store replaces it
             return None
-        return image
+        return image, info
 
-    def get_or_compute(self, key: str | None, grid: ImageGrid, compute) -> tuple[np.ndarray, str]:
+    def get_or_compute(self, key: str | None, grid: ImageGrid, compute, with_info: bool = False) -> tuple:
         """(image, status): the stored image ("hit"), or ``compute()`` stored for next time
-        ("miss"), or computed alone when the cache is disabled or ``key`` is None ("off")."""
-        if not self.enabled or key is None:
-            return compute(), "off"
-        hit = self.get(key, grid)
-        if hit is not None:
-            return hit, "hit"
-        image = compute()
-        self.put(key, np.asarray(image), grid)
-        return image, "miss"
+        ("miss"), or computed alone when the cache is disabled or ``key`` is None ("off").
 
-    def put(self, key: str, image: np.ndarray, grid: ImageGrid) -> Path | None:
-        """Store ``image`` (as is) for ``key``; returns the file, or None when it could not be
-        written (``warning`` says why)."""
+        with_info : ``compute()`` returns (image, info dict) and this returns (image, info,
+        status); an entry stored without info is a miss."""
+        if not self.enabled or key is None:
+            return (*compute(), "off") if with_info else (compute(), "off")
+        hit = self._load(key, grid)
+        if hit is not None and (hit[1] is not None or not with_info):
+            return (*hit, "hit") if with_info else (hit[0], "hit")
+        image, info = compute() if with_info else (compute(), None)
+        self.put(key, np.asarray(image), grid, info)
+        return (image, info, "miss") if with_info else (image, "miss")
+
+    def put(self, key: str, image: np.ndarray, grid: ImageGrid, info: dict | None = None) -> Path | None:
+        """Store ``image`` (as is) and ``info`` (JSON) for ``key``; returns the file, or None when
+        it could not be written (``warning`` says why)."""
         if not self.enabled:
             return None
         from twinfocus.scan import save_npz_atomic
 
+        arrays = {"image": np.asarray(image), "roi": np.asarray(grid.roi, float), "shape": np.asarray(grid.shape)}
+        if info is not None:
+            arrays["info_json"] = np.asarray(json.dumps(info, default=float))
         try:
-            return save_npz_atomic(
-                self.path(key),
-                {"image": np.asarray(image), "roi": np.asarray(grid.roi, float), "shape": np.asarray(grid.shape)},
-            )
+            return save_npz_atomic(self.path(key), arrays)
         except OSError as exc:
             self.warning = f"could not write the template cache {self.root} ({exc.strerror or exc})"
             return None

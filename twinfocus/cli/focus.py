@@ -140,13 +140,14 @@ def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
 def _template(args, scan, ref_grid, bp, progress, cache) -> tuple:
     """The reference template for the chosen source, through the cache: (template or None,
     cache status "hit" / "miss" / "off", or None when there is nothing to cache, the reference's
-    outline bool (H, W) for a digital twin, else None)."""
+    outline bool (H, W) for a digital twin, else None, and for a digital twin what its cloud's
+    conditioning chose and why (``DigitalTwinReference.info``), else None)."""
     from twinfocus.cache import digital_twin_key, template_scan_key
     from twinfocus.scan import Scan
     from twinfocus.templates import load_template, template_from_scan
 
     if args.template:
-        return load_template(args.template, ref_grid), None, None
+        return load_template(args.template, ref_grid), None, None, None
     if args.template_scan:
         key = template_scan_key(args.template_scan, ref_grid, bp) if cache.enabled else None
 
@@ -168,18 +169,20 @@ def _template(args, scan, ref_grid, bp, progress, cache) -> tuple:
             ref = digital_twin_reference_from_file(args.digital_twin, scan, ref_grid, **bp)
             import numpy as np
 
-            return np.stack([ref.template, ref.support.astype(np.float32)])
+            return np.stack([ref.template, ref.support.astype(np.float32)]), ref.info
     else:
-        return None, None, None
-    template, status = cache.get_or_compute(key, ref_grid, compute)
-    support = None
+        return None, None, None, None
+    support = info = None
     if args.digital_twin:
-        template, support = template[0], template[1] > 0.5
+        stacked, info, status = cache.get_or_compute(key, ref_grid, compute, with_info=True)
+        template, support = stacked[0], stacked[1] > 0.5
+    else:
+        template, status = cache.get_or_compute(key, ref_grid, compute)
     if status == "hit" and not args.quiet:
         print(f"[template] from the cache ({cache.path(key)})", file=sys.stderr)
     if cache.warning:
         print(f"twinfocus focus: warning: {cache.warning}", file=sys.stderr)
-    return template, status, support
+    return template, status, support, info
 
 
 def run(args: argparse.Namespace) -> int:
@@ -209,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
     scan = Scan.load(args.scan)
     timings["load_scan"] = time.perf_counter() - t
     t = time.perf_counter()
-    template, cache_status, support = _template(
+    template, cache_status, support, twin_info = _template(
         args, scan, ref_grid, bp, progress, TemplateCache(enabled=not args.no_cache)
     )
     timings["template"] = time.perf_counter() - t
@@ -229,6 +232,7 @@ def run(args: argparse.Namespace) -> int:
         tgt_grid,
         template=template,
         support=support,
+        reference_info=twin_info,
         method=method,
         config=cfg,
         bp_options=bp,

@@ -388,6 +388,8 @@ def condition_cloud(
         )
     info["surface"] = surface
     info["surface_reason"] = reason
+    # the shape, whatever the model: an outline-only model of a bent plate is still bent
+    info["curved"] = bool(curved)
 
     # Model points on a voxel_m lattice over the outline, heights interpolated from the field.
     f = round(cell / cfg.voxel_m)
