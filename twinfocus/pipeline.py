@@ -247,6 +247,7 @@ def place_estimate(
     *,
     registered: bool = False,
     upper_band: Callable[[np.ndarray], np.ndarray] | None = None,
+    coherence_sqrt_m: float | None = None,
 ) -> tuple[np.ndarray, dict, float | None]:
     """The phase :func:`focus_bases` transfers to the target from the reference's estimate: its
     constant + linear ramp handled by :func:`~twinfocus.autofocus.transfer_phase` (``phase_ramp``).
@@ -258,8 +259,10 @@ def place_estimate(
     and tell (docs/digital_twin.md, "Placing the reference by the band's halves").
 
     phase : float (M,) radians; ref_basis : complex (M, H, W) on ``reference_grid``; positions :
-    float64 (M, K, 3) phase centres, metres. Returns (float64 (M,) radians, the ``phase_ramp``
-    metrics, seconds the range errors took or None when they were not read)."""
+    float64 (M, K, 3) phase centres, metres; coherence_sqrt_m : the estimate's
+    :func:`~twinfocus.phase_ramp.ramp_free_coherence` when the caller has it. Returns (float64 (M,)
+    radians, the ``phase_ramp`` metrics, seconds the range errors took or None when they were not
+    read)."""
     centres = positions.mean(axis=1)
     transfer = functools.partial(
         transfer_phase,
@@ -271,7 +274,9 @@ def place_estimate(
         registered=registered,
     )
     transferred, info = transfer()
-    out_of_sight = ramp_free_coherence(phase, centres[:, :2]) < MIN_RAMP_COHERENCE_SQRT_M
+    if coherence_sqrt_m is None:
+        coherence_sqrt_m = ramp_free_coherence(phase, centres[:, :2])
+    out_of_sight = coherence_sqrt_m < MIN_RAMP_COHERENCE_SQRT_M
     too_large = np.any(info["slope_rad_per_m"]) and not info["removed"]
     if upper_band is None or phase_ramp != "auto" or registered or not (out_of_sight or too_large):
         return transferred, info, None
@@ -445,6 +450,7 @@ def focus_bases(
             phase_ramp,
             registered="registration" in result.extra,
             upper_band=upper_band if method == "twin" else None,
+            coherence_sqrt_m=coherence,
         )
         if ranged_s is not None:
             timings["range_errors"] = ranged_s
