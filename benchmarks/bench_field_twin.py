@@ -366,6 +366,57 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
     return results
 
 
+def template_file(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5) -> dict:
+    """The two-step way (``twinfocus twin --out FILE`` then ``focus --template FILE``) on the
+    bench's camera-cloud draws: the digital twin's template written to a template file and read
+    back as focus reads it, once as the image alone (what a file held before it carried the
+    outline: ``--estimator auto`` then takes the projections of an amplitude template) and once
+    with its outline and conditioning (the outline estimator, as ``--digital-twin``). Target SSIM
+    and the autofocus stage's time per draw; writes ``field_twin_template_file.json``."""
+    import tempfile
+
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.backprojection import backproject
+    from twinfocus.estimators import estimator_settings
+    from twinfocus.metrics import image_ssim
+    from twinfocus.pipeline import focus_bases, upper_band_basis
+    from twinfocus.templates import load_template, save_template
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results: dict = {}
+    for scene in SCENES:
+        results[scene] = []
+        for seed in range(1, draws + 1):
+            print(f"[field twin, template file] {scene}, seed {seed}", file=sys.stderr, flush=True)
+            d = field_draw(SCENES[scene], seed)
+            scan, rg, tg, twin = d.scan, d.rg, d.tg, d.twin
+            truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
+            upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
+            rec: dict = {"seed": seed}
+            with tempfile.TemporaryDirectory() as tmp:
+                for name, extra in (("image alone", {}), ("with its outline", {"support": twin.support, "info": twin.info})):
+                    path = Path(tmp) / "template.npz"
+                    save_template(path, twin.template, rg, **extra)
+                    template, support, info = load_template(path, rg, with_outline=True)
+                    settings = estimator_settings("auto", False, has_support=support is not None)
+                    out = focus_bases(d.rb, d.tb, scan.positions, scan.chirp, rg, tg, template=template, support=support,
+                                      reference_info=info, config=AutofocusConfig(**settings), upper_band=upper)
+                    rec[name] = image_ssim(out.target, truth)
+                    rec[f"{name} trusted"] = out.metrics["confidence"]["trusted"]
+                    rec[f"{name} time_s"] = out.timings_s["autofocus"]
+            results[scene].append(rec)
+            (out_dir / "field_twin_template_file.json").write_text(json.dumps(results, indent=1))
+    print("| scene | template file, image alone (before) | **with its outline and conditioning** | time (s) before / now |")
+    print("|---|---|---|---|")
+    for scene, recs in results.items():
+        cells = [[r[name] for r in recs] for name in ("image alone", "with its outline")]
+        times = [np.mean([r[f"{name} time_s"] for r in recs]) for name in ("image alone", "with its outline")]
+        print(f"| {scene} ({len(recs)}) | " + " | ".join(f"{np.mean(v):.3f} +- {np.std(v):.3f}" for v in cells)
+              + f" | {times[0]:.2f} / {times[1]:.2f} |")
+    return results
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="benchmarks/results")
@@ -376,6 +427,8 @@ if __name__ == "__main__":
     ap.add_argument("--placement-ceiling", action="store_true",
                     help="what a twin placed by the scan alone can reach on A, B and C, and what the product's "
                     "placement makes of an exact estimate (field_twin_placement_ceiling.json, ~25 min)")
+    ap.add_argument("--template-file", action="store_true",
+                    help="the two-step way through a template file, before and with its outline (field_twin_template_file.json, ~8 min)")
     ap.add_argument("--draws", type=int, default=5)
     ap.add_argument("--only", default=None, help="run only the conditions whose name contains this")
     a = ap.parse_args()
@@ -383,6 +436,8 @@ if __name__ == "__main__":
         growth_sweep(a.out, a.draws)
     elif a.placement_ceiling:
         placement_ceiling(a.out, a.draws)
+    elif a.template_file:
+        template_file(a.out, a.draws)
     elif a.range_error_floor:
         range_error_floor(a.out, a.draws)
     else:

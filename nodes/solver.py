@@ -218,10 +218,6 @@ class Solver(Node):
         if msg.support is not None:
             try:
                 support = resample_support(msg.support, msg.x_m, msg.y_m, self.ref_grid)
-                if not support.any() or support.all():
-                    raise TwinFocusError(
-                        f"on the reference grid it covers {support.mean():.0%} of the region (needs some but not all)"
-                    )
             except TwinFocusError as exc:
                 # the template alone still focuses the scans: auto then takes what it takes without an outline
                 self.log(f"ignored the outline of the {msg.kind} template from {msg.source or '?'}: {exc}")

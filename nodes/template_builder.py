@@ -3,7 +3,8 @@
 Sources (``source`` parameter):
 
 * ``file``: a template file (docs/architecture.md section 4), resampled onto the reference grid
-  (:func:`twinfocus.templates.load_template`);
+  (:func:`twinfocus.templates.load_template`); a digital twin's file (``twinfocus twin --out``)
+  goes out as ``digital`` with its outline and conditioning;
 * ``scan``: a physical twin from a motion-stage scan of the reference alone
   (:func:`twinfocus.templates.template_from_scan`);
 * ``sim``: the same from a simulated motion-stage scan of the scenario's reference
@@ -119,7 +120,9 @@ class TemplateBuilder(Node):
 
         # a physical twin's phase travels with it (TwinTemplate.phase_rad): the solver's closed form needs it
         if src == "file":
-            return self._message(load_template(path, self.grid), "physical", path)
+            image, support, info = load_template(path, self.grid, with_outline=True)
+            # a digital twin's file (twinfocus twin --out) brings its outline: the solver's outline estimator
+            return self._message(image, "physical" if support is None else "digital", path, support, info)
         cache = TemplateCache(enabled=bool(self.params["cache"]))
         if src == "scan":
             key = template_scan_key(path, self.grid, self.bp) if cache.enabled else None

@@ -79,6 +79,22 @@ def test_twin_then_focus_raises_target_ssim(capture):
     # Measured 0.70 -> 0.83 (seed 0); the physical twin gets about the same on this capture.
     assert m["target_ssim_corrected"] > m["target_ssim_uncorrected"] + 0.05
 
+    # The two-step way: twin's template file carries the outline and the conditioning, so focus
+    # --template runs what --digital-twin runs (the outline estimator, not the projections of an
+    # amplitude template) and writes the same conditioning.
+    rc = main(["focus", str(d / "scan.npz"), "--reference-roi", *REF_ROI, "--target-roi", *TGT_ROI,
+               "--size", "48", "--template", str(d / "template.npz"), "--out", str(d / "focus_file"),
+               "--no-pictures", "--quiet", "--device", "cpu"])
+    assert rc == 0
+    f = json.loads((d / "focus_file" / "metrics.json").read_text())
+    assert m["estimator"]["init"] == f["estimator"]["init"] == "outline"
+    def chosen(info):  # what the conditioning chose, not how long it took
+        return {k: v for k, v in info.items() if "seconds" not in k}
+
+    assert chosen(f["digital_twin"]) == chosen(report["conditioning"]) == chosen(m["digital_twin"])
+    assert f["digital_twin"]["surface"] == "plane"
+    np.testing.assert_allclose(np.load(d / "focus_file" / "phase.npy"), np.load(d / "focus" / "phase.npy"), atol=1e-4)
+
 
 def test_twin_bad_inputs_write_nothing(capture, tmp_path, capsys):
     import cv2

@@ -437,6 +437,29 @@ def test_template_builder_publishes_the_resampled_template_file(tmp_path):
     assert t.kind == "physical" and t.source.endswith("t.npz") and t.phase_rad is None
 
 
+def test_a_digital_twins_template_file_goes_out_with_its_outline_and_conditioning(tmp_path):
+    """A template file written by twinfocus twin (outline and conditioning in it): the builder sends
+    it as a digital twin with both, so the solver runs the outline estimator and keeps the
+    conditioning its confidence report needs."""
+    from nodes.solver import Solver
+    from twinfocus.grid import ImageGrid
+    from twinfocus.templates import save_template
+
+    grid = ImageGrid.from_roi(REF_ROI, 12)
+    support = np.zeros(grid.shape, bool)
+    support[3:9, 2:8] = True
+    info = {"surface": "smooth", "curved": True, "curvature_m": 0.004, "surface_reason": "curved"}
+    save_template(tmp_path / "t.npz", support.astype(np.float32), grid, support=support, info=info)
+    t = _published_template(tmp_path / "t.npz")
+    assert t.kind == "digital" and np.array_equal(t.support, support)
+    assert (t.surface, t.curved, t.curvature_m) == ("smooth", True, 0.004)
+    with local_broker() as ep:
+        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 12, "warm_up": False})
+        solver.on_template(t)
+        assert solver._estimator() == "outline" and solver.twin_info == {"surface": "smooth", "curved": True,
+                                                                         "curvature_m": 0.004}
+
+
 def test_a_physical_twins_phase_travels_to_the_solver(tmp_path):
     """A template file with its phase: the builder sends it along (TwinTemplate.phase_rad), and the
     solver rebuilds the complex template, so auto picks the registered closed form."""

@@ -157,8 +157,8 @@ def test_the_outline_is_resampled_with_the_template_and_an_empty_one_is_dropped(
         assert solver.support is None and solver.template.shape == (17, 17)  # the template alone is kept
         assert solver._config(CHIRP).init == "projection"
     err = capfd.readouterr().err
-    assert ("ignored the outline of the digital template from F.npy: on the reference grid it covers 0% of the "
-            "region (needs some but not all)") in err
+    assert ("ignored the outline of the digital template from F.npy: the outline covers 0% of the reference "
+            "region on its grid (needs some but not all)") in err
 
 
 def test_a_template_whose_outline_does_not_fit_is_dropped_and_the_waiting_scan_takes_the_next(

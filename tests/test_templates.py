@@ -33,6 +33,31 @@ def test_same_grid_is_returned_as_is_and_the_reader_agrees(tmp_path):
     np.testing.assert_allclose(load_template(tmp_path / "t.npz", grid), direct, rtol=1e-5)  # stored as float32
 
 
+def test_a_digital_twins_outline_and_conditioning_travel_with_its_template_file(tmp_path):
+    """The outline and the conditioning written with the template come back: the outline as it
+    was on the same grid and as resample_support makes it on another, the conditioning as written;
+    a file without them gives None for both; an outline that holds none of the region is named."""
+    grid = ImageGrid(-0.05, 0.05, -0.02, 0.03, 0.6, 12, 9)
+    yy, xx = np.meshgrid(grid.y_m, grid.x_m, indexing="ij")
+    support = np.hypot(xx, yy - 0.005) < 0.025
+    info = {"surface": "outline", "curved": True, "curvature_m": 0.0021, "warnings": ["noisy"]}
+    image = np.random.default_rng(1).random(grid.shape)
+    save_template(tmp_path / "d.npz", image, grid, support=support, info=info)
+    back, outline, conditioning = load_template(tmp_path / "d.npz", grid, with_outline=True)
+    np.testing.assert_allclose(back, image.astype(np.float32))
+    assert outline.dtype == bool and np.array_equal(outline, support) and conditioning == info
+    other = ImageGrid(-0.04, 0.04, -0.015, 0.025, 0.6, 7, 5)
+    _, outline, _ = load_template(tmp_path / "d.npz", other, with_outline=True)
+    assert np.array_equal(outline, resample_support(support, grid.x_m, grid.y_m, other))
+    save_template(tmp_path / "a.npz", image, grid)
+    assert load_template(tmp_path / "a.npz", grid, with_outline=True)[1:] == (None, None)
+    with pytest.raises(TwinFocusError, match="template support is"):
+        save_template(tmp_path / "bad.npz", image, grid, support=support[:, 1:])
+    save_template(tmp_path / "empty.npz", image, grid, support=np.zeros(grid.shape, bool))
+    with pytest.raises(TwinFocusError, match=r"empty.npz: the outline covers 0% of the reference region"):
+        load_template(tmp_path / "empty.npz", grid, with_outline=True)
+
+
 @pytest.mark.parametrize("change, message", [
     (dict(z_m=0.7), "plane z = 0.700"),
     (dict(image=np.full((5, 6), np.nan)), "NaN"),

@@ -3,12 +3,16 @@
 Template file (``.npz``, docs/architecture.md section 4): ``image`` float32 (H, W) amplitude, ``x_m`` (W,),
 ``y_m`` (H,), ``z_m`` scalar, and optionally ``phase_rad`` float32 (H, W): the phase of a physical
 twin's image, which lets autofocus register the template and estimate the phases in closed form
-(:mod:`twinfocus.template_match`). A template made on another grid is resampled (bilinear, on the
-complex image when it has a phase) onto the reference grid; one that does not cover it is refused.
+(:mod:`twinfocus.template_match`); a digital twin's also ``support`` uint8 (H, W), the reference's
+outline the outline estimator needs, and ``conditioning_json``, what its cloud's conditioning
+chose (:attr:`twinfocus.digital_twin.condition.DigitalTwinReference.info`). A template made on
+another grid is resampled (bilinear, on the complex image when it has a phase) onto the reference
+grid; one that does not cover it is refused.
 """
 
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
@@ -19,27 +23,47 @@ from twinfocus.grid import ImageGrid
 from twinfocus.scan import Scan, load_npz, save_npz_atomic
 
 
-def save_template(path: str | os.PathLike, image: np.ndarray, grid: ImageGrid) -> None:
+def save_template(
+    path: str | os.PathLike,
+    image: np.ndarray,
+    grid: ImageGrid,
+    *,
+    support: np.ndarray | None = None,
+    info: dict | None = None,
+) -> None:
     """Write a template file for ``grid``: a float image is stored as the amplitude, a complex one
-    as amplitude and ``phase_rad``."""
+    as amplitude and ``phase_rad``; a digital twin's outline ``support`` bool (H, W) and its
+    conditioning ``info`` travel with it, so ``focus --template`` runs what ``--digital-twin`` runs."""
     image = np.asarray(image)
     if image.shape != grid.shape:
         raise TwinFocusError(f"template image is {image.shape}, grid is {grid.shape}")
     arrays = {"image": np.abs(image).astype(np.float32), "x_m": grid.x_m, "y_m": grid.y_m, "z_m": np.float64(grid.z)}
     if np.iscomplexobj(image):
         arrays["phase_rad"] = np.angle(image).astype(np.float32)
+    if support is not None:
+        if np.shape(support) != grid.shape:
+            raise TwinFocusError(f"template support is {np.shape(support)}, grid is {grid.shape}")
+        arrays["support"] = np.asarray(support, dtype=bool).astype(np.uint8)
+    if info is not None:
+        arrays["conditioning_json"] = np.asarray(json.dumps(info, default=float))
     save_npz_atomic(path, arrays)
 
 
-def load_template(path: str | os.PathLike, grid: ImageGrid, z_tolerance_m: float = 0.01) -> np.ndarray:
+def load_template(
+    path: str | os.PathLike, grid: ImageGrid, z_tolerance_m: float = 0.01, *, with_outline: bool = False
+) -> np.ndarray | tuple[np.ndarray, np.ndarray | None, dict | None]:
     """Read a template file and resample it onto ``grid`` (:func:`resample_template`): float32
-    (H, W), or complex64 (H, W) when the file holds ``phase_rad``."""
+    (H, W), or complex64 (H, W) when the file holds ``phase_rad``.
+
+    with_outline : return (image, the outline bool (H, W) resampled onto ``grid``
+    (:func:`resample_support`) or None, the conditioning dict or None) instead: what a digital
+    twin's file carries besides its image."""
     z = load_npz(path)
     missing = [k for k in ("image", "x_m", "y_m", "z_m") if k not in z]
     if missing:
         raise TwinFocusError(f"{path}: not a template file, missing key(s) {', '.join(missing)}")
     try:
-        return resample_template(
+        image = resample_template(
             z["image"],
             z["x_m"],
             z["y_m"],
@@ -48,8 +72,16 @@ def load_template(path: str | os.PathLike, grid: ImageGrid, z_tolerance_m: float
             phase_rad=z["phase_rad"] if "phase_rad" in z else None,
             z_tolerance_m=z_tolerance_m,
         )
+        if not with_outline:
+            return image
+        support = resample_support(z["support"] > 0, z["x_m"], z["y_m"], grid) if "support" in z else None
     except TwinFocusError as exc:
         raise TwinFocusError(f"{path}: {exc}") from None
+    try:
+        info = json.loads(str(z["conditioning_json"])) if "conditioning_json" in z else None
+    except json.JSONDecodeError as exc:
+        raise TwinFocusError(f"{path}: conditioning_json is not JSON ({exc})") from None
+    return image, support, info
 
 
 def resample_template(
@@ -96,13 +128,19 @@ def resample_support(support: np.ndarray, x_m: np.ndarray, y_m: np.ndarray, grid
     as :func:`resample_template`. A pixel is inside when the bilinear resample of the mask is at
     least 0.5 (more than half of it covered), so the mask stays a mask and keeps its area; the
     same grid gives the mask back unchanged. Raises :class:`TwinFocusError` naming what does not
-    fit (shape, axes, coverage of the reference region).
+    fit (shape, axes, coverage of the reference region, an outline that on ``grid`` holds none or
+    all of the region: no outline to place the reference by).
     """
     mask, x, y = np.asarray(support), np.asarray(x_m, float), np.asarray(y_m, float)
     if mask.dtype != bool:
         raise TwinFocusError(f"support must be a bool mask, got {mask.dtype}")
     _check_template_grid(mask.shape, x, y, "support")
-    return _bilinear(mask.astype(np.float64), x, y, grid) >= 0.5
+    out = _bilinear(mask.astype(np.float64), x, y, grid) >= 0.5
+    if not out.any() or out.all():
+        raise TwinFocusError(
+            f"the outline covers {out.mean():.0%} of the reference region on its grid (needs some but not all)"
+        )
+    return out
 
 
 def _check_template_grid(shape: tuple, x: np.ndarray, y: np.ndarray, name: str) -> None:

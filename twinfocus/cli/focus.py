@@ -38,7 +38,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="target region (metres)",
     )
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--template", help="template file (.npz: image, x_m, y_m, z_m)")
+    src.add_argument(
+        "--template",
+        help="template file (.npz: image, x_m, y_m, z_m; a digital twin's, from twinfocus twin --out, also its "
+        "outline and conditioning)",
+    )
     src.add_argument("--template-scan", help="scan of the reference alone on accurate positions (physical twin)")
     src.add_argument("--digital-twin", help="reference point cloud (.npy, (N, 3) metres, scene frame)")
     src.add_argument("--method", choices=["sharpness", "none"], help="baseline without a template")
@@ -147,7 +151,9 @@ def _template(args, scan, ref_grid, bp, progress, cache) -> tuple:
     from twinfocus.templates import load_template, template_from_scan
 
     if args.template:
-        return load_template(args.template, ref_grid), None, None, None
+        # a digital twin's file (twinfocus twin --out, --save-template) carries its outline and conditioning
+        template, support, info = load_template(args.template, ref_grid, with_outline=True)
+        return template, None, support, info
     if args.template_scan:
         key = template_scan_key(args.template_scan, ref_grid, bp) if cache.enabled else None
 
@@ -253,7 +259,7 @@ def run(args: argparse.Namespace) -> int:
     if args.save_template and template is not None:
         from twinfocus.templates import save_template
 
-        save_template(args.save_template, template, ref_grid)
+        save_template(args.save_template, template, ref_grid, support=support, info=twin_info)
     t = time.perf_counter()
     write_outputs(args.out, outputs, pictures=pictures)
     t_write = time.perf_counter() - t

@@ -61,7 +61,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="reference region (metres) of the template",
     )
     p.add_argument("--size", type=int, default=100, help="template size in pixels per side (default 100)")
-    p.add_argument("--out", help="template file to write (.npz: image, x_m, y_m, z_m)")
+    p.add_argument(
+        "--out", help="template file to write (.npz: image, x_m, y_m, z_m, the outline and the conditioning)"
+    )
     p.add_argument("--template-method", choices=["psf", "exact"], default="psf", help="psf (fast, default) or exact")
     p.add_argument(
         "--incoherent",
@@ -217,7 +219,8 @@ def run(args: argparse.Namespace) -> int:
         from twinfocus.templates import save_template
 
         assert grid is not None  # a template is made only on a grid
-        save_template(args.out, template, grid)
+        # the outline and the conditioning travel with it: focus --template runs the outline estimator
+        save_template(args.out, template, grid, support=ref.support, info=ref.info)
         if args.support_out:
             write_image_atomic(args.support_out, ref.support.astype(np.uint8) * 255)
     if args.report:
