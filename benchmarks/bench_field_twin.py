@@ -168,6 +168,16 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, only
 GROWTH_ROUNDS = (0, 1, 2, 3, 4)
 
 
+def bench_draws(label: str, draws: int, results: dict):
+    """(scene, seed, :func:`field_draw`) for the camera-cloud scenes A, B, C, draws 1..``draws``,
+    each announced on stderr; ``results`` gets an empty list per scene for its records."""
+    for scene in SCENES:
+        results[scene] = []
+        for seed in range(1, draws + 1):
+            print(f"[field twin, {label}] {scene}, draw {seed}/{draws}", file=sys.stderr, flush=True)
+            yield scene, seed, field_draw(SCENES[scene], seed)
+
+
 def growth_sweep(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5) -> dict:
     """The knob ``AutofocusConfig.outline_growth_rounds`` against what it costs: on the camera-cloud
     scenes A, B, C (draws 1..``draws``), the averaged outline estimate after each number of growth
@@ -184,25 +194,21 @@ def growth_sweep(out_dir: str | os.PathLike = "benchmarks/results", draws: int =
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     results: dict = {}
-    for scene in SCENES:
-        results[scene] = []
-        for seed in range(1, draws + 1):
-            print(f"[field twin, growth rounds] {scene}, draw {seed}/{draws}", file=sys.stderr, flush=True)
-            d = field_draw(SCENES[scene], seed)
-            scan, rg, tg, twin, rb, tb = d.scan, d.rg, d.tg, d.twin, d.rb, d.tb
-            truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
-            reference_true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
-            aperture = scan.positions.mean(axis=1)[:, :2]
-            rec: dict = {"seed": seed}
-            for rounds in GROWTH_ROUNDS:
-                t0 = time.perf_counter()
-                phase, info = averaged_outline_phase(rb, twin.support, aperture, growth_rounds=rounds)
-                took = time.perf_counter() - t0
-                ramp, _ = fit_linear_phase(np.angle(np.exp(1j * (phase - reference_true))), aperture)
-                rec[str(rounds)] = {"placed by the truth": image_ssim(form_image(tb, phase - ramp), truth),
-                                    "time_s": took, "outline_px": info["growth_px"][-1]}
-            results[scene].append(rec)
-            (out_dir / "field_twin_growth.json").write_text(json.dumps(results, indent=1))
+    for scene, seed, d in bench_draws("growth rounds", draws, results):
+        scan, rg, tg, twin, rb, tb = d.scan, d.rg, d.tg, d.twin, d.rb, d.tb
+        truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
+        reference_true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
+        aperture = scan.positions.mean(axis=1)[:, :2]
+        rec: dict = {"seed": seed}
+        for rounds in GROWTH_ROUNDS:
+            t0 = time.perf_counter()
+            phase, info = averaged_outline_phase(rb, twin.support, aperture, growth_rounds=rounds)
+            took = time.perf_counter() - t0
+            ramp, _ = fit_linear_phase(np.angle(np.exp(1j * (phase - reference_true))), aperture)
+            rec[str(rounds)] = {"placed by the truth": image_ssim(form_image(tb, phase - ramp), truth),
+                                "time_s": took, "outline_px": info["growth_px"][-1]}
+        results[scene].append(rec)
+        (out_dir / "field_twin_growth.json").write_text(json.dumps(results, indent=1))
     print("| growth rounds | " + " | ".join(results) + " | estimate's time (s, mean) |\n|---|" + "---|" * (len(results) + 1))
     for rounds in GROWTH_ROUNDS:
         k = str(rounds)
@@ -385,28 +391,24 @@ def template_file(out_dir: str | os.PathLike = "benchmarks/results", draws: int 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     results: dict = {}
-    for scene in SCENES:
-        results[scene] = []
-        for seed in range(1, draws + 1):
-            print(f"[field twin, template file] {scene}, seed {seed}", file=sys.stderr, flush=True)
-            d = field_draw(SCENES[scene], seed)
-            scan, rg, tg, twin = d.scan, d.rg, d.tg, d.twin
-            truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
-            upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
-            rec: dict = {"seed": seed}
-            with tempfile.TemporaryDirectory() as tmp:
-                for name, extra in (("image alone", {}), ("with its outline", {"support": twin.support, "info": twin.info})):
-                    path = Path(tmp) / "template.npz"
-                    save_template(path, twin.template, rg, **extra)
-                    template, support, info = load_template(path, rg, with_outline=True)
-                    settings = estimator_settings("auto", False, has_support=support is not None)
-                    out = focus_bases(d.rb, d.tb, scan.positions, scan.chirp, rg, tg, template=template, support=support,
-                                      reference_info=info, config=AutofocusConfig(**settings), upper_band=upper)
-                    rec[name] = image_ssim(out.target, truth)
-                    rec[f"{name} trusted"] = out.metrics["confidence"]["trusted"]
-                    rec[f"{name} time_s"] = out.timings_s["autofocus"]
-            results[scene].append(rec)
-            (out_dir / "field_twin_template_file.json").write_text(json.dumps(results, indent=1))
+    for scene, seed, d in bench_draws("template file", draws, results):
+        scan, rg, tg, twin = d.scan, d.rg, d.tg, d.twin
+        truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
+        upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
+        rec: dict = {"seed": seed}
+        with tempfile.TemporaryDirectory() as tmp:
+            for name, extra in (("image alone", {}), ("with its outline", {"support": twin.support, "info": twin.info})):
+                path = Path(tmp) / "template.npz"
+                save_template(path, twin.template, rg, **extra)
+                template, support, info = load_template(path, rg, with_outline=True)
+                settings = estimator_settings("auto", False, has_support=support is not None)
+                out = focus_bases(d.rb, d.tb, scan.positions, scan.chirp, rg, tg, template=template, support=support,
+                                  reference_info=info, config=AutofocusConfig(**settings), upper_band=upper)
+                rec[name] = image_ssim(out.target, truth)
+                rec[f"{name} trusted"] = out.metrics["confidence"]["trusted"]
+                rec[f"{name} time_s"] = out.timings_s["autofocus"]
+        results[scene].append(rec)
+        (out_dir / "field_twin_template_file.json").write_text(json.dumps(results, indent=1))
     print("| scene | template file, image alone (before) | **with its outline and conditioning** | time (s) before / now |")
     print("|---|---|---|---|")
     for scene, recs in results.items():
