@@ -430,7 +430,7 @@ if __name__ == "__main__":
                     help="what a twin placed by the scan alone can reach on A, B and C, and what the product's "
                     "placement makes of an exact estimate (field_twin_placement_ceiling.json, ~25 min)")
     ap.add_argument("--template-file", action="store_true",
-                    help="the two-step way through a template file, before and with its outline (field_twin_template_file.json, ~8 min)")
+                    help="the two-step way through a template file, before and with its outline (field_twin_template_file.json, ~3 min)")
     ap.add_argument("--draws", type=int, default=5)
     ap.add_argument("--only", default=None, help="run only the conditions whose name contains this")
     a = ap.parse_args()
