@@ -56,6 +56,11 @@ def test_a_digital_twins_outline_and_conditioning_travel_with_its_template_file(
     save_template(tmp_path / "empty.npz", image, grid, support=np.zeros(grid.shape, bool))
     with pytest.raises(TwinFocusError, match=r"empty.npz: the outline covers 0% of the reference region"):
         load_template(tmp_path / "empty.npz", grid, with_outline=True)
+    arrays = {"image": image, "x_m": grid.x_m, "y_m": grid.y_m, "z_m": grid.z}
+    for text, message in (("{surface", "conditioning_json is not JSON"), ("[1, 2]", "conditioning_json must be a JSON object, got list")):
+        np.savez(tmp_path / "info.npz", conditioning_json=np.asarray(text), **arrays)
+        with pytest.raises(TwinFocusError, match=f"info.npz: {message}"):
+            load_template(tmp_path / "info.npz", grid, with_outline=True)
 
 
 @pytest.mark.parametrize("change, message", [

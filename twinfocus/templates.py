@@ -81,6 +81,8 @@ def load_template(
         info = json.loads(str(z["conditioning_json"])) if "conditioning_json" in z else None
     except json.JSONDecodeError as exc:
         raise TwinFocusError(f"{path}: conditioning_json is not JSON ({exc})") from None
+    if info is not None and not isinstance(info, dict):
+        raise TwinFocusError(f"{path}: conditioning_json must be a JSON object, got {type(info).__name__}")
     return image, support, info
 
 
