@@ -30,6 +30,7 @@ poses, so it is no VIO backend.
 
 from __future__ import annotations
 
+import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -57,7 +58,8 @@ def _virtual_channels(frame: np.ndarray, chirp: Chirp, z0_m: float) -> np.ndarra
 class MmwcasRadar:
     """Options: ``capture`` (folder, required), ``z0_m`` (0.6: range of the multistatic
     correction), ``scan_id`` (default the folder name), ``f0_hz`` ``slope_hz_per_s`` ``fs_hz``
-    ``n_samples`` (the chirp; default :class:`~twinfocus.radar.Chirp`'s), ``n_loops`` (1), ``loop``
+    ``n_samples`` (the chirp; default the capture configuration's profile, else
+    :class:`~twinfocus.radar.Chirp`'s; one given overrides the configuration, with a note), ``n_loops`` (1), ``loop``
     (0), ``timestamp_unit_ns`` (1000), ``time_offset_ns`` (0: added to every stamp, onto the
     poses' clock), ``keep_first_frame`` (False), ``keep_flagged`` (False); the chirp layout
     (``tx_order``: TI's TxToEnable, e.g. "12,11,...,1"; ``n_loops``; ``frame_period_s``) comes
@@ -97,23 +99,26 @@ class MmwcasRadar:
         )
         folder = option(options, "capture", None, str, where)
         d = Chirp()
-        self.chirp = Chirp(
-            option(options, "f0_hz", d.f0_hz, float, where),
-            option(options, "slope_hz_per_s", d.slope_hz_per_s, float, where),
-            option(options, "fs_hz", d.fs_hz, float, where),
-            int(option(options, "n_samples", d.n_samples, int, where)),
-        )
+
+        def given(name, default, kind):  # a chirp option the user set, else None (the capture's own)
+            return None if options.get(name) is None else kind(option(options, name, default, kind, where))
+
         loops = options.get("n_loops")
         period = options.get("frame_period_s")
-        config, _notes = resolve_config(
+        config, notes = resolve_config(
             folder,
-            self.chirp,
+            f0_hz=given("f0_hz", d.f0_hz, float),
+            slope_hz_per_s=given("slope_hz_per_s", d.slope_hz_per_s, float),
+            fs_hz=given("fs_hz", d.fs_hz, float),
+            n_samples=given("n_samples", d.n_samples, int),
             n_loops=None if loops is None else int(option(options, "n_loops", 1, int, where)),
             tx_order=option(options, "tx_order", "", str, where) or None,
             frame_period_s=None if period is None else option(options, "frame_period_s", 0.1, float, where),
             timestamp_unit_ns=int(option(options, "timestamp_unit_ns", 1000, int, where)),
             setup=option(options, "setup", "", str, where) or None,
         )
+        for note in notes:
+            print(f"{where}: {note}", file=sys.stderr)
         self.chirp = config.chirp
         self.loop = int(option(options, "loop", 0, int, where))
         self.z0_m = option(options, "z0_m", 0.6, float, where)
@@ -140,7 +145,16 @@ class MmwcasRadar:
                 scan_id=self.scan_id,
                 index=m,
                 last=m == len(self.frames) - 1,
+                gaps=self._gaps(i),
             )
+
+    def _gaps(self, i: int) -> tuple[int, int, int]:
+        """The capture's gaps up to frame i, as a stream's: (frames missing from every device,
+        frames holding only zeros, 0 bytes)."""
+        from twinfocus.sensors.frames import FrameFlag
+
+        zero = int(np.count_nonzero(self.capture.flags[: i + 1] & int(FrameFlag.ZERO_FILLED)))
+        return int(self.capture.frames_missing_before[i]), zero, 0
 
     def close(self) -> None:
         self.capture.close()

@@ -104,7 +104,7 @@ def test_device_skew_is_flagged(tmp_path):
     cfg = MmwcasConfig(chirp=Chirp(n_samples=4))
     skew = np.zeros((3, 4), np.int64)
     skew[1, 2] = 60_000_000  # slave2 late by more than half of the 100 ms period
-    write_mmwcas_capture(tmp_path, np.zeros((3, 12, 16, 4, 2), np.int16), np.arange(3) * 100_000_000, cfg,
+    write_mmwcas_capture(tmp_path, np.ones((3, 12, 16, 4, 2), np.int16), np.arange(3) * 100_000_000, cfg,
                          device_skew_ns=skew)
     with MmwcasCapture(tmp_path, cfg) as cap:
         assert [f.flags for f in cap.frames()] == [FrameFlag.OK, FrameFlag.DEVICE_SKEW, FrameFlag.OK]

@@ -59,14 +59,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--n-samples",
         type=int,
-        default=256,
-        help="ADC samples per chirp (default 256; a capture's mmWave Studio JSON gives its own)",
+        help="ADC samples per chirp (default: the capture's configuration, else 256)",
     )
     p.add_argument("--n-loops", type=int, help="chirp loops per frame (default: the configuration's, else 1)")
     p.add_argument("--loop", type=int, default=0, help="which loop of each frame to use (default 0)")
-    p.add_argument("--f0-hz", type=float, default=76.6e9, help="frequency of the first ADC sample (default 76.6e9)")
-    p.add_argument("--slope-hz-per-s", type=float, default=120e12, help="chirp slope (default 120e12)")
-    p.add_argument("--fs-hz", type=float, default=8e6, help="ADC sample rate (default 8e6)")
+    p.add_argument(
+        "--f0-hz",
+        type=float,
+        help="frequency of the first ADC sample (default: the configuration's start + slope x ADC start, else 76.6e9)",
+    )
+    p.add_argument("--slope-hz-per-s", type=float, help="chirp slope (default: the configuration's, else 120e12)")
+    p.add_argument("--fs-hz", type=float, help="ADC sample rate (default: the configuration's, else 8e6)")
     p.add_argument(
         "--timestamp-unit-ns",
         type=int,
@@ -74,7 +77,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="nanoseconds per tick of the index files' time stamps (default 1000: microseconds)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing --mcap file")
-    g = p.add_argument_group("cascade chirp layout (read from the capture's mmWave Studio JSON / Lua setup when there)")
+    g = p.add_argument_group(
+        "cascade chirp and layout (read from the capture's mmWave Studio JSON / Lua setup when there; "
+        "the chirp options above override it, with a note)"
+    )
     g.add_argument(
         "--setup",
         help="the capture's configuration: mmWave Studio JSON (*.mmwave.json) or cascade setup Lua "
@@ -149,9 +155,9 @@ def run(args: argparse.Namespace) -> int:
     array = mmwcas_virtual_array()
     gaps: dict = {}
     if _is_mmwcas(capture):
-        cap, chirp = _open_mmwcas(args, capture, say)
+        cap, chirp, chirp_record = _open_mmwcas(args, capture, say)
     else:
-        cap, chirp, gaps = _open_dca1000(args, capture, say)
+        cap, chirp, gaps, chirp_record = _open_dca1000(args, capture, say)
     with cap:
         for w in cap.warnings:
             say(f"warning: {w}")
@@ -173,12 +179,13 @@ def run(args: argparse.Namespace) -> int:
             scene_frame=args.frame,
             drop_flagged=not args.keep_flagged,
             progress=Progress("convert", enabled=not args.quiet),
+            frames_missing=getattr(cap, "frames_missing", 0),
         )
         for note in report.notes:
             say(note)
         scan.save(out)
         gaps = {**report.gaps(), **gaps}
-        write_json_atomic(capture_report_path(out), {"capture": str(capture), **gaps})
+        write_json_atomic(capture_report_path(out), {"capture": str(capture), **gaps, "chirp": chirp_record})
         say(
             f"{report.n_used} of {report.n_frames} frames -> {out} ({scan.data.shape[0]} x {scan.data.shape[1]} x {scan.data.shape[2]})"
         )
@@ -202,13 +209,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _open_mmwcas(args, capture: Path, say):
-    from twinfocus.radar import Chirp
-    from twinfocus.sensors.ti_mmwcas import MmwcasCapture, resolve_config
+    from twinfocus.sensors.chirp_profile import chirp_record
+    from twinfocus.sensors.ti_mmwcas import MmwcasCapture, find_capture_setup, resolve_config
 
-    chirp = Chirp(args.f0_hz, args.slope_hz_per_s, args.fs_hz, args.n_samples)
     config, notes = resolve_config(
         capture,
-        chirp,
+        f0_hz=args.f0_hz,
+        slope_hz_per_s=args.slope_hz_per_s,
+        fs_hz=args.fs_hz,
+        n_samples=args.n_samples,
         n_loops=args.n_loops,
         tx_order=args.tx_order,
         frame_period_s=args.frame_period_s,
@@ -223,7 +232,8 @@ def _open_mmwcas(args, capture: Path, say):
         skip_first_frame=not args.keep_first_frame,
         skip_first_frame_of_each_slice=args.drop_first_frame_of_each_slice,
     )
-    return cap, config.chirp
+    setup = args.setup or find_capture_setup(capture)
+    return cap, config.chirp, chirp_record(config.chirp, config.profile, setup)
 
 
 class _Closing:
@@ -242,8 +252,8 @@ class _Closing:
 
 
 def _open_dca1000(args, capture: Path, say):
-    from twinfocus.radar import Chirp
     from twinfocus.sensors.capture_to_scan import stream_gaps
+    from twinfocus.sensors.chirp_profile import chirp_record, resolve_chirp
     from twinfocus.sensors.dca1000 import RawFrameLayout
     from twinfocus.sensors.dca1000_files import Dca1000FileCapture, find_cli_json, read_cli_json
     from twinfocus.sensors.ti_cli import RadarCliConfig
@@ -252,7 +262,11 @@ def _open_dca1000(args, capture: Path, say):
     if args.cfg:
         cli_cfg = RadarCliConfig.from_cfg(args.cfg)
         cli_cfg.check_stream_format()
-        chirp = cli_cfg.chirp()
+        chirp, profile, notes = resolve_chirp(
+            cli_cfg.profile().to_dict(), args.cfg, args.f0_hz, args.slope_hz_per_s, args.fs_hz, args.n_samples
+        )
+        for n in notes:
+            say(n)
         period = period or cli_cfg.frame_period_s
         layout = (
             cli_cfg.raw_layout()
@@ -262,7 +276,7 @@ def _open_dca1000(args, capture: Path, say):
     else:
         if args.dca_layout == "cfg":
             raise TwinFocusError("--dca-layout cfg needs --cfg (the mmWave SDK .cfg the radar ran)")
-        chirp = Chirp(args.f0_hz, args.slope_hz_per_s, args.fs_hz, args.n_samples)
+        chirp, profile, _ = resolve_chirp({}, None, args.f0_hz, args.slope_hz_per_s, args.fs_hz, args.n_samples)
         layout = RawFrameLayout(chirp.n_samples, 16, tuple(range(12)), args.n_loops or 1, 12)
     if not period:
         raise TwinFocusError(f"{capture}: a DCA1000 capture holds no time stamps; give --frame-period-s or --cfg")
@@ -288,7 +302,7 @@ def _open_dca1000(args, capture: Path, say):
         say(
             f"capture gaps: {st.frames_lost} frame(s) lost, {st.frames_zero_filled} zero-filled, {st.lost_bytes} bytes lost"
         )
-    return _Closing(cap), chirp, gaps
+    return _Closing(cap), chirp, gaps, chirp_record(chirp, profile if args.cfg else None, args.cfg)
 
 
 def _write_mcap(path: Path, scan, radar_traj, array, chirp, extrinsics, scan_id: str, overwrite: bool) -> None:

@@ -139,11 +139,14 @@ def scan_from_frames(
     scene_frame: str = "aperture",
     drop_flagged: bool = True,
     progress: Callable[[int, int], None] | None = None,
+    frames_missing: int = 0,
 ) -> tuple[Scan, Poses, ConversionReport]:
     """Build a :class:`~twinfocus.scan.Scan` from radar frames and camera poses.
 
     frames : a sequence or iterable of :class:`RadarFrame`; an :class:`~twinfocus.sensors.ti_mmwcas.MmwcasCapture`
         is read lazily (one frame in memory at a time).
+    frames_missing : frames the capture knows were never written (an MMWCAS capture's time-stamp
+        jumps), counted with the lost ones.
     Returns (scan, radar poses of the trajectory in the scan's frame, report). The scan's
     ``timestamps_ns`` are the frames' aligned stamps (the trajectory's clock).
     """
@@ -160,7 +163,7 @@ def scan_from_frames(
         stamps = np.array([f.stamp_ns for f in frames], np.int64)
         flag_list = [f.flags for f in frames]
     report = ConversionReport(n_frames=len(stamps))
-    report.n_lost = sum(1 for f in flag_list if f & FrameFlag.LOST)
+    report.n_lost = sum(1 for f in flag_list if f & FrameFlag.LOST) + int(frames_missing)
     report.n_zero_filled = sum(1 for f in flag_list if f & FrameFlag.ZERO_FILLED and not f & FrameFlag.LOST)
     report.n_device_skew = sum(1 for f in flag_list if f & FrameFlag.DEVICE_SKEW)
     if stamps.size == 0:

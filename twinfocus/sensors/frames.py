@@ -30,7 +30,8 @@ class FrameFlag(enum.IntFlag):
     """What went wrong while a frame was captured (0 = nothing)."""
 
     OK = 0
-    #: Some bytes of the frame never arrived; zeros stand in for them.
+    #: Some bytes of the frame never arrived; zeros stand in for them (MMWCAS: a device's
+    #: samples of the frame are all zero).
     ZERO_FILLED = 1
     #: No byte of the frame arrived at all (the frame is all zeros).
     LOST = 2

@@ -26,6 +26,7 @@ from pathlib import Path
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import Chirp
+from twinfocus.sensors.chirp_profile import Profile, profile_chirp
 from twinfocus.sensors.dca1000 import RawFrameLayout
 
 CLI_PROMPT = "mmwDemo:/>"
@@ -64,17 +65,6 @@ def read_cfg(cfg: str | os.PathLike | list[str]) -> list[tuple[int, str]]:
         if s and not s.startswith("%"):
             out.append((i, " ".join(s.split())))
     return out
-
-
-@dataclass(frozen=True)
-class Profile:
-    start_freq_ghz: float
-    idle_time_us: float
-    adc_start_time_us: float
-    ramp_end_time_us: float
-    slope_mhz_per_us: float
-    n_samples: int
-    sample_rate_ksps: float
 
 
 @dataclass(frozen=True)
@@ -207,19 +197,16 @@ class RadarCliConfig:
                 return c
         raise TwinFocusError(f"frameCfg uses chirp {idx} but no chirpCfg covers it")
 
-    def chirp(self) -> Chirp:
-        """The chirp of the frame's first chirp profile (first ADC sample at start + slope x ADC start)."""
+    def profile(self) -> Profile:
+        """The chirp profile of the frame's first chirp."""
         entry = self._chirp_entry(self.frame_chirp_start)
         if entry.profile_id not in self.profiles:
             raise TwinFocusError(f"chirpCfg uses profile {entry.profile_id} but no profileCfg defines it")
-        p = self.profiles[entry.profile_id]
-        slope = p.slope_mhz_per_us * 1e12
-        return Chirp(
-            f0_hz=p.start_freq_ghz * 1e9 + slope * p.adc_start_time_us * 1e-6,
-            slope_hz_per_s=slope,
-            fs_hz=p.sample_rate_ksps * 1e3,
-            n_samples=p.n_samples,
-        )
+        return self.profiles[entry.profile_id]
+
+    def chirp(self) -> Chirp:
+        """The chirp of the frame's first chirp profile (first ADC sample at start + slope x ADC start)."""
+        return profile_chirp(self.profile())
 
     def check_stream_format(self) -> None:
         """Refuse settings that change the LVDS byte layout from the one read here.

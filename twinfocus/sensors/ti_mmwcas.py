@@ -39,6 +39,13 @@ import numpy as np
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import Chirp
+from twinfocus.sensors.chirp_profile import (
+    Profile,
+    describe_chirp,
+    profile_fields_from_lua,
+    profile_fields_from_studio_json,
+    resolve_chirp,
+)
 from twinfocus.sensors.frames import FrameFlag, RadarFrame
 
 DEVICES: tuple[str, ...] = ("master", "slave1", "slave2", "slave3")
@@ -87,6 +94,7 @@ class MmwcasConfig:
     timestamp_unit_ns : nanoseconds per tick of the index files' time stamps (default 1000:
         microseconds, the TDA2 Vision SDK's buffer time stamps).
     frame_period_s : nominal frame period (0.1 s in the paper); used to flag device skew.
+    profile : the chirp profile of the capture's configuration (None: there was none).
     """
 
     chirp: Chirp = field(default_factory=Chirp)
@@ -95,6 +103,7 @@ class MmwcasConfig:
     tx_of_chirp: tuple[int, ...] = tuple(range(N_TX))
     timestamp_unit_ns: int = 1000
     frame_period_s: float | None = 0.1
+    profile: Profile | None = None
 
     def __post_init__(self) -> None:
         if int(self.n_chirps) < 1 or int(self.n_loops) < 1:
@@ -309,11 +318,13 @@ def read_studio_json(path: str | os.PathLike) -> dict:
     ``rlChirpCfg_t``, ``rlProfileCfg_t``): ``mmWaveDevices[d].rfConfig.rlFrameCfg_t``
     (``chirpStartIdx``, ``chirpEndIdx``, ``numLoops``, ``framePeriodicity_msec``),
     ``rlChirps[].rlChirpCfg_t`` (``chirpStartIdx``, ``chirpEndIdx``, ``txEnable``) per device,
-    ``rlProfiles[0].rlProfileCfg_t.numAdcSamples``, ``rawDataCaptureConfig.rlDevDataFmtCfg_t``.
+    the chirps' profile in ``rlProfiles[].rlProfileCfg_t`` (:mod:`twinfocus.sensors.chirp_profile`),
+    ``rawDataCaptureConfig.rlDevDataFmtCfg_t``.
     Device d (``devId`` 0..3: master, slave1..3) TX bit b is cascade TX ``3 d + b + 1`` (TI's
     cascade Lua enables TX12 as device 4's TX3 for the first chirp of the default order).
 
-    Returns {tx_numbers, n_loops, frame_period_s, n_samples, iq_swap, ch_interleave, source}.
+    Returns {tx_numbers, n_loops, frame_period_s, n_samples, profile (the chirp profile's fields),
+    iq_swap, ch_interleave, source}.
     """
     path = Path(path)
     try:
@@ -324,25 +335,27 @@ def read_studio_json(path: str | os.PathLike) -> dict:
         frame = rf0["rlFrameCfg_t"]
         c0, c1 = int(_num(frame["chirpStartIdx"])), int(_num(frame["chirpEndIdx"]))
         tx_numbers = []
+        profile_ids = []
         for c in range(c0, c1 + 1):
             fired = []
             for d, dev in enumerate(devs):
                 for ch in dev["rfConfig"].get("rlChirps", []):
                     cc = ch.get("rlChirpCfg_t", ch)
                     if int(_num(cc["chirpStartIdx"])) <= c <= int(_num(cc["chirpEndIdx"])):
+                        profile_ids.append(int(_num(cc.get("profileId", 0))))
                         mask = int(_num(cc["txEnable"]))
                         fired += [3 * d + b + 1 for b in range(3) if mask >> b & 1]
             if len(fired) != 1:
                 raise TwinFocusError(f"{path}: chirp {c} fires TX {fired}; TDM-MIMO needs exactly one TX per chirp")
             tx_numbers.append(fired[0])
         fmt = devs[0].get("rawDataCaptureConfig", {}).get("rlDevDataFmtCfg_t", {})
-        profile = rf0["rlProfiles"][0]
-        profile = profile.get("rlProfileCfg_t", profile)
+        profile = profile_fields_from_studio_json(rf0, profile_ids[0] if len(set(profile_ids)) == 1 else None)
         return {
             "tx_numbers": tuple(tx_numbers),
             "n_loops": int(_num(frame["numLoops"])),
             "frame_period_s": _num(frame["framePeriodicity_msec"]) * 1e-3,
-            "n_samples": int(_num(profile["numAdcSamples"])),
+            "n_samples": int(profile["n_samples"]),
+            "profile": profile,
             "iq_swap": int(_num(fmt.get("iqSwapSel", 0))),
             "ch_interleave": int(_num(fmt.get("chInterleave", 0))),
             "source": str(path),
@@ -370,7 +383,8 @@ def read_cascade_lua(path: str | os.PathLike) -> dict:
 
     Followed as TI's script writes it: assignments ``nchirp_loops = 64``,
     ``Inter_Frame_Interval = 100`` (ms), ``start_chirp_tx = 0``, ``end_chirp_tx = 11``,
-    ``adc_samples = 256``; chirps ``ar1.ChirpConfig_mult(RadarDeviceId, chirpStartIdx,
+    ``adc_samples = 256``; the chirp profile of ``ar1.ProfileConfig_mult`` / ``ar1.ProfileConfig``
+    (:func:`~twinfocus.sensors.chirp_profile.profile_fields_from_lua`); chirps ``ar1.ChirpConfig_mult(RadarDeviceId, chirpStartIdx,
     chirpEndIdx, profileId, startFreqVar, freqSlopeVar, idleTimeVar, adcStartTimeVar, tx0Enable,
     tx1Enable, tx2Enable)`` inside ``Configure_Chirps(i)``'s ``if (i == k) then`` blocks (device
     k - 1), or with a literal device mask 1, 2, 4, 8. Device d's TX b is cascade TX 3 d + b + 1.
@@ -414,7 +428,12 @@ def read_cascade_lua(path: str | os.PathLike) -> dict:
         out["n_loops"] = int(vals["nchirp_loops"])
     if "Inter_Frame_Interval" in vals:
         out["frame_period_s"] = vals["Inter_Frame_Interval"] * 1e-3
-    if "adc_samples" in vals:
+    profile = profile_fields_from_lua(text, str(path))
+    if profile:
+        out["profile"] = profile
+    if "n_samples" in profile:
+        out["n_samples"] = int(profile["n_samples"])
+    elif "adc_samples" in vals:
         out["n_samples"] = int(vals["adc_samples"])
     return out
 
@@ -441,21 +460,31 @@ def read_capture_setup(path: str | os.PathLike) -> dict:
 
 def resolve_config(
     folder,
-    chirp: Chirp,
+    chirp: Chirp | None = None,
     n_loops: int | None = None,
     tx_order: str | None = None,
     frame_period_s: float | None = None,
     timestamp_unit_ns: int = 1000,
     setup: str | os.PathLike | None = None,
+    f0_hz: float | None = None,
+    slope_hz_per_s: float | None = None,
+    fs_hz: float | None = None,
+    n_samples: int | None = None,
 ) -> tuple[MmwcasConfig, list[str]]:
     """The capture's :class:`MmwcasConfig`: its configuration (``setup``, else what
     :func:`find_capture_setup` finds) where there is one, else the options; an option that
-    disagrees with the configuration wins, with a note. Returns (config, notes)."""
+    disagrees with the configuration wins, with a note. The chirp is the configuration's
+    profile (:func:`~twinfocus.sensors.chirp_profile.resolve_chirp`); ``f0_hz`` ...
+    ``n_samples`` are its options, and a ``chirp`` given stands for all four of them.
+    Returns (config, notes)."""
     notes: list[str] = []
     js = Path(setup) if setup else find_capture_setup(folder)
     got = read_capture_setup(js) if js else {}
     if js:
-        notes.append(f"chirp layout from {js}: " + ", ".join(f"{k} {v}" for k, v in got.items() if k != "source"))
+        notes.append(
+            f"chirp layout from {js}: "
+            + ", ".join(f"{k} {v}" for k, v in got.items() if k not in ("source", "profile"))
+        )
         if got.get("iq_swap") or got.get("ch_interleave"):
             raise TwinFocusError(
                 f"{js}: rlDevDataFmtCfg_t iqSwapSel={got['iq_swap']} chInterleave={got['ch_interleave']}; only I-first, "
@@ -470,12 +499,24 @@ def resolve_config(
         return got.get(name, default)
 
     tx_numbers = pick("tx_numbers", parse_tx_order(tx_order) if tx_order else None, tuple(range(N_TX, 0, -1)))
-    n_samples = got.get("n_samples", chirp.n_samples)
-    if n_samples != chirp.n_samples:
-        chirp = Chirp(chirp.f0_hz, chirp.slope_hz_per_s, chirp.fs_hz, n_samples)
+    fields = dict(got.get("profile", {}))
+    if "n_samples" in got:
+        fields.setdefault("n_samples", got["n_samples"])
+    if chirp is not None:
+        f0_hz = chirp.f0_hz if f0_hz is None else f0_hz
+        slope_hz_per_s = chirp.slope_hz_per_s if slope_hz_per_s is None else slope_hz_per_s
+        fs_hz = chirp.fs_hz if fs_hz is None else fs_hz
+        n_samples = chirp.n_samples if n_samples is None else n_samples
+    the_chirp, profile, chirp_notes = resolve_chirp(
+        fields, str(js) if js else None, f0_hz, slope_hz_per_s, fs_hz, n_samples
+    )
+    if js:
+        notes.append(f"chirp from {js}: {describe_chirp(the_chirp)}")
+    notes += chirp_notes
     tx = tx_order_to_tx_of_chirp(tx_numbers)
     config = MmwcasConfig(
-        chirp=chirp,
+        chirp=the_chirp,
+        profile=profile if js else None,
         n_chirps=len(tx),
         n_loops=pick("n_loops", n_loops, 1),
         tx_of_chirp=tx,
@@ -486,6 +527,25 @@ def resolve_config(
 
 
 # --- captures ---------------------------------------------------------------------------------
+
+
+def _missing_before(stamps_ns: np.ndarray, frame_period_s: float | None) -> np.ndarray:
+    """Frames missing before each frame, cumulative: int64 (F,).
+
+    stamps_ns : int64 (F,) the frames' time stamps. A step of k frame periods (k >= 2, rounded)
+    between two frames means k - 1 frames were never written. The period is the median step when
+    there are at least three frames (a nominal period that is wrong does not count frames), else
+    ``frame_period_s`` (None: nothing is counted).
+    """
+    t = np.asarray(stamps_ns, np.int64)
+    if t.size < 2:
+        return np.zeros(t.size, np.int64)
+    steps = np.diff(t).astype(np.float64)
+    period = float(np.median(steps)) if t.size >= 3 else (frame_period_s or 0.0) * 1e9
+    if not period > 0:
+        return np.zeros(t.size, np.int64)
+    lost = np.where(steps >= 1.5 * period, np.rint(steps / period) - 1, 0).astype(np.int64)
+    return np.concatenate([[0], np.cumsum(lost)])
 
 
 @dataclass(frozen=True)
@@ -589,6 +649,14 @@ class MmwcasCapture:
         # slice file it reads; the capture card writes slices back to back, so only the capture's
         # very first frame is known bad and that is all the default drops (docs/sensors.md).
         first_of_slice = {(pos, 0) for pos in range(len(slices))}
+        # Frames dropped on purpose are not gaps: missing frames are counted over the frames the
+        # card indexed, less only the capture's first.
+        indexed = raw[1:] if (skip_first_frame or skip_first_frame_of_each_slice) else list(raw)
+        missing_before = _missing_before(
+            np.array([r[3][0] for r in indexed], dtype=np.int64) * int(self.config.timestamp_unit_ns),
+            self.config.frame_period_s,
+        )
+        missing_of = {(r[0], r[1]): int(n) for r, n in zip(indexed, missing_before)}
         if skip_first_frame_of_each_slice:
             raw = [r for r in raw if (r[0], r[1]) not in first_of_slice]
         elif skip_first_frame and raw:
@@ -610,12 +678,37 @@ class MmwcasCapture:
             if period_ns is not None and stamps_ns.max() - stamps_ns.min() > period_ns / 2:
                 flags |= FrameFlag.DEVICE_SKEW
             refs.append(_FrameRef(pos, i, offs, int(stamps_ns[0]), flags))
-        self._refs = refs
+        self._refs = [self._flag_if_zero(r) for r in refs]
+        refs = self._refs
         skewed = sum(1 for r in refs if r.flags & FrameFlag.DEVICE_SKEW)
         if skewed:
             self.warnings.append(f"{skewed} frame(s) have device time stamps more than half a frame period apart")
+        zero = [k for k, r in enumerate(refs) if r.flags & FrameFlag.ZERO_FILLED]
+        if zero:
+            self.warnings.append(
+                f"{len(zero)} frame(s) hold only zeros on some device (frame {', '.join(map(str, zero[:5]))}"
+                f"{', ...' if len(zero) > 5 else ''}): the capture card wrote them without data"
+            )
         self.timestamps_ns = np.array([r.stamp_ns for r in refs], dtype=np.int64)
         self.flags = np.array([int(r.flags) for r in refs], dtype=np.int64)
+        #: int64 (F,): frames missing from every device (time stamps two or more frame periods
+        #: apart) between the capture's start and frame i.
+        self.frames_missing_before = np.array([missing_of.get((r.slice_pos, r.local), 0) for r in refs], np.int64)
+        self.frames_missing = int(missing_before[-1]) if missing_before.size else 0
+        if self.frames_missing:
+            self.warnings.append(
+                f"{self.frames_missing} frame(s) missing from every device (index time stamps jump by two or more "
+                "frame periods)"
+            )
+
+    def _flag_if_zero(self, ref: _FrameRef) -> _FrameRef:
+        """The frame, flagged ZERO_FILLED when a device's first loop is all zeros (a real ADC
+        frame always holds noise). Only the first loop is read, to keep opening a long capture cheap."""
+        n = int(self.config.n_chirps) * self.config.n_samples * RX_PER_DEVICE * 4
+        for d in range(len(DEVICES)):
+            if not np.asarray(self._map(ref.slice_pos, d)[ref.offsets[d] : ref.offsets[d] + n]).any():
+                return _FrameRef(ref.slice_pos, ref.local, ref.offsets, ref.stamp_ns, ref.flags | FrameFlag.ZERO_FILLED)
+        return ref
 
     # -- access --------------------------------------------------------------------------------
 
