@@ -38,8 +38,9 @@ from pathlib import Path
 import numpy as np
 
 from nodes.backends import PoseSample, RadarSample, check_unknown, option
+from twinfocus.board import load_board
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp, mmwcas_virtual_array
+from twinfocus.radar import Chirp, VirtualArray, mmwcas_virtual_array
 
 
 def _address(value: str, where: str, name: str) -> tuple[str, int]:
@@ -49,10 +50,10 @@ def _address(value: str, where: str, name: str) -> tuple[str, int]:
     return host, int(port)
 
 
-def _virtual_channels(frame: np.ndarray, chirp: Chirp, z0_m: float) -> np.ndarray:
+def _virtual_channels(frame: np.ndarray, chirp: Chirp, z0_m: float, array: VirtualArray | None = None) -> np.ndarray:
     from twinfocus.sensors.frames import frame_to_virtual_channels
 
-    return frame_to_virtual_channels(frame, chirp, z0_m).astype(np.complex64, copy=False)
+    return frame_to_virtual_channels(frame, chirp, z0_m, array).astype(np.complex64, copy=False)
 
 
 class MmwcasRadar:
@@ -65,7 +66,8 @@ class MmwcasRadar:
     (``tx_order``: TI's TxToEnable, e.g. "12,11,...,1"; ``n_loops``; ``frame_period_s``) comes
     from the capture's mmWave Studio JSON when it has one, these options otherwise;
     ``setup`` (the configuration file, default the one found), ``drop_first_frame_of_each_slice``
-    (False) as TI's cascade processing does."""
+    (False) as TI's cascade processing does; ``board`` (a board file of the antenna layout,
+    default TI's MMWCAS-RF-EVM)."""
 
     live = False
 
@@ -94,10 +96,13 @@ class MmwcasRadar:
                 "frame_period_s",
                 "drop_first_frame_of_each_slice",
                 "setup",
+                "board",
             },
             where,
         )
         folder = option(options, "capture", None, str, where)
+        board = load_board(option(options, "board", "", str, where) or None)
+        self.array = mmwcas_virtual_array(board)
         d = Chirp()
 
         def given(name, default, kind):  # a chirp option the user set, else None (the capture's own)
@@ -134,14 +139,14 @@ class MmwcasRadar:
         self.frames = [i for i in range(len(self.capture)) if keep or FrameFlag(int(self.capture.flags[i])).usable]
         if not self.frames:
             raise TwinFocusError(f"{where}: {folder} holds no usable frame")
-        self.channel_offsets_m = mmwcas_virtual_array().offsets_m
+        self.channel_offsets_m = self.array.offsets_m
 
     def samples(self) -> Iterator[RadarSample]:
         for m, i in enumerate(self.frames):
             (frame,) = self.capture.frames(self.loop, start=i, stop=i + 1)
             yield RadarSample(
                 stamp_ns=frame.stamp_ns + self.offset_ns,
-                data=_virtual_channels(frame.data, self.chirp, self.z0_m),
+                data=_virtual_channels(frame.data, self.chirp, self.z0_m, self.array),
                 scan_id=self.scan_id,
                 index=m,
                 last=m == len(self.frames) - 1,

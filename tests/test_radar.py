@@ -4,7 +4,6 @@ import pytest
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import (
     C_M_PER_S,
-    DESIGN_WAVELENGTH_M,
     Chirp,
     mmwcas_rx_positions_m,
     mmwcas_tx_positions_m,
@@ -57,7 +56,9 @@ def test_mmwcas_virtual_line_is_86_channels_at_quarter_wavelength():
     va = mmwcas_virtual_array()
     assert va.n_channels == 86
     steps = np.diff(va.offsets_m[:, 0])
-    np.testing.assert_allclose(steps, DESIGN_WAVELENGTH_M / 4, rtol=1e-9)
+    # lambda/4 at TI's design frequency of the board's antennas, 76.8 GHz (module_param.m)
+    np.testing.assert_allclose(steps, C_M_PER_S / 76.8e9 / 4, rtol=1e-9)
+    assert steps[0] == pytest.approx(0.9759e-3, abs=1e-7)
     assert np.ptp(va.offsets_m[:, 1]) == 0  # one line
     # each channel sits at the midpoint of its TX and RX
     tx, rx = mmwcas_tx_positions_m(), mmwcas_rx_positions_m()

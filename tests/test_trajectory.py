@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import DESIGN_WAVELENGTH_M, mmwcas_virtual_array
+from twinfocus.board import default_board
+from twinfocus.radar import mmwcas_virtual_array
 from twinfocus.trajectory import (
     Poses,
     handheld_zigzag,
@@ -173,7 +174,7 @@ def test_handheld_zigzag_coverage_and_seed():
 def test_phase_centres_mmwcas_pitch_and_rotation():
     arr = mmwcas_virtual_array()
     assert arr.n_channels == 86
-    quarter = DESIGN_WAVELENGTH_M / 4
+    quarter = default_board().design_wavelength_m / 4
     pos = np.array([[0.1, -0.2, 0.05], [0.0, 0.0, 0.0]])
     q = np.stack([[0, 0, 0, 1.0], _axis_angle_quat([0, 0, 1], np.pi / 2)])
     c = phase_centres(Poses(np.array([0, 1]), pos, q), arr)

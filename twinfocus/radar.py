@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from twinfocus.board import C_M_PER_S as C_M_PER_S  # the speed of light, defined with the board's units
+from twinfocus.board import RX_ARRAY_ORDER, TX_ARRAY_ORDER, Board, default_board
 from twinfocus.errors import TwinFocusError
-
-C_M_PER_S = 299_792_458.0
 
 
 @dataclass(frozen=True)
@@ -161,27 +161,21 @@ def range_profiles_at(data: np.ndarray, chirp: Chirp, ranges_m: np.ndarray) -> n
 
 
 # --- MMWCAS-RF-EVM: 4 cascaded AWR2243, 12 TX x 16 RX ---------------------------------------
-
-#: Wavelength that fixes the antenna spacing of the board (c / 76 GHz), metres.
-DESIGN_WAVELENGTH_M = C_M_PER_S / 76e9
-
-_RX_ALONG_HALF_LAMBDA = np.array([0, 1, 2, 3, 11, 12, 13, 14, 46, 47, 48, 49, 50, 51, 52, 53], dtype=float)
-_TX_ALONG_HALF_LAMBDA = np.array([0, 4, 8, 12, 16, 20, 24, 28, 32, 9, 10, 11], dtype=float)
-_TX_ACROSS_MINUS_HALF_LAMBDA = np.array([0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 4, 6], dtype=float)
+# The antenna layout comes from a board file (twinfocus.board; default TI's MMWCAS-RF-EVM). The
+# order of this module: TX t is TI's TX 12 - t (TI's default chirp order fires TX12 first), RX a
+# is the a-th RX along the board (data channel RX_ARRAY_ORDER[a]).
 
 
-def mmwcas_tx_positions_m() -> np.ndarray:
+def mmwcas_tx_positions_m(board: Board | None = None) -> np.ndarray:
     """TX antenna positions in the board frame, float64 (12, 2): (along, across) metres."""
-    half = DESIGN_WAVELENGTH_M / 2.0
-    along = _TX_ALONG_HALF_LAMBDA * half + 8.0 * DESIGN_WAVELENGTH_M
-    across = -_TX_ACROSS_MINUS_HALF_LAMBDA * half + 17.0 * DESIGN_WAVELENGTH_M
-    return np.stack([along, across], axis=1)
+    board = default_board() if board is None else board
+    return board.tx_positions_m()[TX_ARRAY_ORDER]
 
 
-def mmwcas_rx_positions_m() -> np.ndarray:
+def mmwcas_rx_positions_m(board: Board | None = None) -> np.ndarray:
     """RX antenna positions in the board frame, float64 (16, 2): (along, across) metres."""
-    half = DESIGN_WAVELENGTH_M / 2.0
-    return np.stack([_RX_ALONG_HALF_LAMBDA * half, np.zeros(16)], axis=1)
+    board = default_board() if board is None else board
+    return board.rx_positions_m()[RX_ARRAY_ORDER]
 
 
 @dataclass(frozen=True)
@@ -207,17 +201,21 @@ class VirtualArray:
         return int(self.offsets_m.shape[0])
 
 
-def mmwcas_virtual_array() -> VirtualArray:
-    """The 86 non-overlapping virtual channels on one line at pitch lambda/4 (~0.97 mm).
+def mmwcas_virtual_array(board: Board | None = None) -> VirtualArray:
+    """The virtual channels on one line at pitch lambda/4 of the board's design frequency (86 at
+    0.9759 mm for the MMWCAS-RF-EVM's 76.8 GHz).
 
-    Of the 192 TX-RX pairs, the nine TX on the common line give 86 distinct midpoints; for each
-    midpoint the first pair in TX order is kept. Offsets are centred on the line's middle.
+    Of the 192 TX-RX pairs, the TX on the azimuth row (the across position most TX share: nine on
+    the MMWCAS) give the distinct midpoints; for each midpoint the first pair in TX order is kept.
+    Offsets are centred on the line's middle.
     """
-    tx = mmwcas_tx_positions_m()
-    rx = mmwcas_rx_positions_m()
-    on_line = np.flatnonzero(_TX_ACROSS_MINUS_HALF_LAMBDA == 0)
+    board = default_board() if board is None else board
+    tx = mmwcas_tx_positions_m(board)
+    rx = mmwcas_rx_positions_m(board)
+    rows, counts = np.unique(np.round(tx[:, 1], 12), return_counts=True)
+    on_line = np.flatnonzero(np.round(tx[:, 1], 12) == rows[counts.argmax()])
     seen: dict[int, tuple[int, int]] = {}
-    quarter = DESIGN_WAVELENGTH_M / 4.0
+    quarter = board.design_wavelength_m / 4.0
     for t in on_line:
         for r in range(rx.shape[0]):
             key = int(round((tx[t, 0] + rx[r, 0]) / 2.0 / quarter))

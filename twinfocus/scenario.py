@@ -19,10 +19,11 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from twinfocus.board import load_board
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
 from twinfocus.motion import apply_pose_errors, draw_errors
-from twinfocus.radar import Chirp, mmwcas_virtual_array
+from twinfocus.radar import Chirp, VirtualArray, mmwcas_virtual_array
 from twinfocus.scan import Scan
 from twinfocus.scene import PlanarObject, Scene, paper_scene, scatterer_spacing_m, shaped
 from twinfocus.simulate import add_thermal_noise, simulate_if
@@ -76,6 +77,8 @@ class Scenario:
     reference_shape: str = "plane"
     reference_shape_parameter: float | None = None
     target_depth_offset_m: float = 0.0
+    #: board file of the radar's antenna layout (twinfocus.board; None: TI's MMWCAS-RF-EVM)
+    board: str | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -176,6 +179,11 @@ def scenario_poses(sc: Scenario, frame_period_s: float = 0.1, t0_ns: int = 0) ->
     raise TwinFocusError(f"unknown trajectory {sc.trajectory!r}; use 'raster' or 'zigzag'")
 
 
+def scenario_array(sc: Scenario) -> VirtualArray:
+    """The virtual array of the scenario's board (TI's MMWCAS-RF-EVM unless ``sc.board`` names a file)."""
+    return mmwcas_virtual_array(None if sc.board is None else load_board(sc.board))
+
+
 def scenario_positions(
     sc: Scenario, rng: np.random.Generator | None = None, frame_period_s: float = 0.1, t0_ns: int = 0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -185,7 +193,7 @@ def scenario_positions(
     poses = scenario_poses(sc, frame_period_s, t0_ns)
     if rng is None:
         rng = scenario_stream(sc, TRACKING_STREAM)
-    true = phase_centres(poses, mmwcas_virtual_array())
+    true = phase_centres(poses, scenario_array(sc))
     shift, turn = draw_errors(
         sc.error_model,
         poses.timestamps_ns,
@@ -234,7 +242,7 @@ def template_scan(sc: Scenario, chirp: Chirp | None = None, with_clutter: bool =
     """The reference alone on the motion stage's raster (exact positions): the physical twin's
     capture; ``with_clutter``: in the scene's cluttered room (the evaluation's swapped rooms)."""
     chirp = chirp or Chirp()
-    stage = phase_centres(paper_raster(sc.n_columns, sc.n_rows), mmwcas_virtual_array())
+    stage = phase_centres(paper_raster(sc.n_columns, sc.n_rows), scenario_array(sc))
     pts, amps = scenario_scatterers(sc, reference_only=True, with_clutter=with_clutter)
     data = simulate_if(pts, amps, stage, chirp, **simulator_options(sc))
     if sc.snr_db is not None:

@@ -122,6 +122,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="mmwcas",
         help="'mmwcas' (default): 12 chirps = TX 0..11 x 16 RX as the emulated rig streams; 'cfg': from --cfg",
     )
+    p.add_argument(
+        "--board",
+        help="board file (YAML) of the radar's antenna layout (default: TI's MMWCAS-RF-EVM, "
+        "twinfocus/boards/mmwcas_rf_evm.yaml; docs/real_array.md)",
+    )
     p.add_argument("--quiet", action="store_true")
 
 
@@ -130,6 +135,7 @@ def _is_mmwcas(path: Path) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    from twinfocus.board import load_board
     from twinfocus.evaluation.runner import write_json_atomic
     from twinfocus.progress import Progress
     from twinfocus.radar import mmwcas_virtual_array
@@ -147,12 +153,13 @@ def run(args: argparse.Namespace) -> int:
     capture = Path(args.capture)
     if not capture.exists():
         raise TwinFocusError(f"{capture}: no such capture file or folder")
+    board = load_board(args.board)
     poses = read_trajectory(args.trajectory, args.trajectory_format)
     extrinsics = RadarCameraExtrinsics.load(args.extrinsics) if args.extrinsics else RadarCameraExtrinsics()
     say = (lambda *a: None) if args.quiet else (lambda msg: print(f"[convert] {msg}", file=sys.stderr))
     if not args.extrinsics:
         say("no --extrinsics: the radar is taken to sit at the camera (identity transform)")
-    array = mmwcas_virtual_array()
+    array = mmwcas_virtual_array(board)
     gaps: dict = {}
     if _is_mmwcas(capture):
         cap, chirp, chirp_record = _open_mmwcas(args, capture, say)
@@ -185,7 +192,9 @@ def run(args: argparse.Namespace) -> int:
             say(note)
         scan.save(out)
         gaps = {**report.gaps(), **gaps}
-        write_json_atomic(capture_report_path(out), {"capture": str(capture), **gaps, "chirp": chirp_record})
+        write_json_atomic(
+            capture_report_path(out), {"capture": str(capture), **gaps, "chirp": chirp_record, "board": board.to_dict()}
+        )
         say(
             f"{report.n_used} of {report.n_frames} frames -> {out} ({scan.data.shape[0]} x {scan.data.shape[1]} x {scan.data.shape[2]})"
         )

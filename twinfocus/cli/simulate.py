@@ -46,6 +46,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--template-out", help="also write the reference's motion-stage scan here (.npz)")
     add_layout_arguments(p)
     p.add_argument("--clutter", action="store_true", help="add room clutter (weak and a few strong scatterers)")
+    p.add_argument(
+        "--board",
+        help="board file (YAML) of the radar's antenna layout (default: TI's MMWCAS-RF-EVM; docs/real_array.md)",
+    )
     p.add_argument("--trajectory", choices=["raster", "zigzag"], default="raster")
     p.add_argument(
         "--error-model",
@@ -182,7 +186,12 @@ def run(args: argparse.Namespace) -> int:
         reference_shape=args.reference_shape,
         reference_shape_parameter=args.reference_shape_parameter,
         target_depth_offset_m=args.target_depth_offset,
+        board=args.board,
     )
+    if args.board:
+        from twinfocus.board import load_board
+
+        load_board(args.board)  # a bad board file is refused before the (long) simulation
     _check_cost(sc, args)
     cloud = None
     if args.reference_cloud_out is not None:

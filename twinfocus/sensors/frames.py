@@ -15,6 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from twinfocus.board import Board
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import (
     Chirp,
@@ -62,8 +63,11 @@ class RadarFrame(NamedTuple):
     flags: FrameFlag
 
 
-def mmwcas_antenna_positions_body_m(array: VirtualArray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """TX and RX antenna positions of the MMWCAS board in the radar body frame.
+def mmwcas_antenna_positions_body_m(
+    array: VirtualArray | None = None, board: Board | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """TX and RX antenna positions of the MMWCAS board (``board``: a board file's, default TI's)
+    in the radar body frame; ``array`` default the board's :func:`~twinfocus.radar.mmwcas_virtual_array`.
 
     The body frame is the one of :func:`twinfocus.radar.mmwcas_virtual_array`: x along the array,
     y across it, z along boresight, origin at the middle of the virtual line (so the midpoint of
@@ -71,9 +75,9 @@ def mmwcas_antenna_positions_body_m(array: VirtualArray | None = None) -> tuple[
 
     Returns (tx float64 (12, 3), rx float64 (16, 3)), metres, z = 0.
     """
-    array = mmwcas_virtual_array() if array is None else array
-    tx2 = mmwcas_tx_positions_m()
-    rx2 = mmwcas_rx_positions_m()
+    array = mmwcas_virtual_array(board) if array is None else array
+    tx2 = mmwcas_tx_positions_m(board)
+    rx2 = mmwcas_rx_positions_m(board)
     mid = (tx2[array.tx_index] + rx2[array.rx_index]) / 2.0
     centre = mid.mean(axis=0)
     tx = np.zeros((tx2.shape[0], 3))

@@ -37,11 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
+from twinfocus.board import RX_ARRAY_ORDER as BOARD_RX_ARRAY_ORDER
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import Chirp
 from twinfocus.sensors.chirp_profile import (
     Profile,
     describe_chirp,
+    profile_chirp,
     profile_fields_from_lua,
     profile_fields_from_studio_json,
     resolve_chirp,
@@ -55,7 +57,7 @@ N_RX = 16
 
 #: Array RX a (0-based, ascending along the board, the order of twinfocus.radar) is data channel
 #: RX_ARRAY_ORDER[a] (0-based; data channel = 4 * device + device RX). TI: TI_Cascade_RX_ID - 1.
-RX_ARRAY_ORDER = np.array([13, 14, 15, 16, 1, 2, 3, 4, 9, 10, 11, 12, 5, 6, 7, 8]) - 1
+RX_ARRAY_ORDER = BOARD_RX_ARRAY_ORDER
 
 IDX_HEADER_DTYPE = np.dtype(
     [("tag", "<u4"), ("version", "<u4"), ("flags", "<u4"), ("num_idx", "<u4"), ("data_file_size", "<u8")]
@@ -511,7 +513,7 @@ def resolve_config(
         fields, str(js) if js else None, f0_hz, slope_hz_per_s, fs_hz, n_samples
     )
     if js:
-        notes.append(f"chirp from {js}: {describe_chirp(the_chirp)}")
+        notes.append(f"chirp from {js}: {describe_chirp(profile_chirp(profile))}")
     notes += chirp_notes
     tx = tx_order_to_tx_of_chirp(tx_numbers)
     config = MmwcasConfig(
