@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import C_M_PER_S, Chirp, range_compress
+from twinfocus.radar import Chirp, range_compress
 from twinfocus.sensors.chirp_profile import profile_fields_from_lua, resolve_chirp
 from twinfocus.sensors.ti_mmwcas import read_cascade_lua, read_studio_json, resolve_config
 
@@ -199,3 +199,18 @@ def test_convert_option_overrides_the_capture_profile_with_a_note(tmp_path, caps
     err = capsys.readouterr().err
     assert rc == 0 and "--f0-hz 7.7e+10 overrides the capture configuration's 7.736e+10" in err
     assert Scan.load(tmp_path / "s.npz").chirp == Chirp(77e9, 60e12, 5e6, 128)
+
+
+def test_live_mmwcas_backend_takes_the_capture_profile(tmp_path, capfd):
+    from nodes.backends import RADAR_BACKENDS, load_backend
+
+    _scene_capture(tmp_path, frames=3)
+    studio_json(tmp_path / "cap" / "capture.mmwave.json")
+    cls = load_backend(RADAR_BACKENDS, "mmwcas", "radar")
+    b = cls({"capture": str(tmp_path / "cap")})
+    b.close()
+    assert b.chirp == TRUE_CHIRP
+    b = cls({"capture": str(tmp_path / "cap"), "fs_hz": 5.5e6})
+    b.close()
+    assert b.chirp == Chirp(TRUE_CHIRP.f0_hz, 60e12, 5.5e6, 128)
+    assert "--fs-hz 5.5e+06 overrides the capture configuration's 5e+06" in capfd.readouterr().err

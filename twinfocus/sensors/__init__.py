@@ -11,6 +11,8 @@ Modules
   frame (TX x RX x samples) to the monostatic-equivalent virtual channels of a scan.
 - :mod:`~twinfocus.sensors.ti_mmwcas`: TI MMWCAS-RF-EVM cascade captures (``master_0000_data.bin``
   / ``_idx.bin`` and the three slaves), as written by the MMWCAS-DSP-EVM (TDA2) capture card.
+- :mod:`~twinfocus.sensors.chirp_profile`: the chirp a capture was taken with, from the TI chirp
+  profile of its configuration (mmWave Studio JSON or Lua, mmWave SDK ``.cfg``).
 - :mod:`~twinfocus.sensors.ti_cli`: the mmWave SDK command line of single-chip radars over a
   serial port, and the ``.cfg`` file that drives it.
 - :mod:`~twinfocus.sensors.dca1000`: the DCA1000EVM capture board's UDP protocol (commands and

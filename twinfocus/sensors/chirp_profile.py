@@ -10,10 +10,13 @@ slope (MHz/us), ADC samples, ADC sample rate (ksps). The forms read here:
 - mmWave Studio Lua: ``ar1.ProfileConfig(profileId, startFreq, idleTime, adcStartTime, rampEndTime,
   tx0PowerBackoff, tx1PowerBackoff, tx2PowerBackoff, tx0PhaseShifter, tx1PhaseShifter,
   tx2PhaseShifter, freqSlope, txStartTime, numAdcSamples, sampleRate, hpfCornerFreq1,
-  hpfCornerFreq2, rxGain)`` (18 arguments), and the cascade form ``ar1.ProfileConfig_mult`` with the
-  device map first, as TI's ``Cascade_Configuration_MIMO.lua`` calls it with its
-  ``start_freq``, ``idle_time``, ``adc_start_time``, ``ramp_end_time``, ``slope``,
-  ``adc_samples``, ``sample_freq`` variables;
+  hpfCornerFreq2, rxGain)`` (18 arguments, the order of mmwavelink's ``rlProfileCfg_t`` with the
+  three TX backoffs and phase shifters spelled out), and the cascade form
+  ``ar1.ProfileConfig_mult`` with the device map first, as mmWave Studio's
+  ``Scripts/Cascade/Cascade_Configuration_MIMO.lua`` calls it:
+  ``ar1.ProfileConfig_mult(deviceMapOverall, 0, start_freq, idle_time, adc_start_time,
+  ramp_end_time, 0, 0, 0, 0, 0, 0, slope, 0, adc_samples, sample_freq, 0, 0, rx_gain)`` with the
+  script's ``local start_freq = 77 -- GHz`` ... ``local sample_freq = 8000 -- ksps``;
 - mmWave SDK ``.cfg`` ``profileCfg`` (:mod:`twinfocus.sensors.ti_cli`).
 
 The first ADC sample is taken ``adcStartTime`` after the ramp starts, so the chirp's ``f0_hz``

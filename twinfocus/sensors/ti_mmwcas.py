@@ -514,6 +514,13 @@ def resolve_config(
     )
     if js:
         notes.append(f"chirp from {js}: {describe_chirp(profile_chirp(profile))}")
+        lacking = [
+            k
+            for k in ("start_freq_ghz", "adc_start_time_us", "slope_mhz_per_us", "sample_rate_ksps")
+            if k not in fields
+        ]
+        if lacking:
+            notes.append(f"{js} gives no {', '.join(lacking)}: the chirp options or the defaults stand in for them")
     notes += chirp_notes
     tx = tx_order_to_tx_of_chirp(tx_numbers)
     config = MmwcasConfig(
