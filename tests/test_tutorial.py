@@ -51,7 +51,9 @@ def test_the_tutorial_runs_as_written(tmp_path: Path) -> None:
     for lang, body in blocks(text):
         if lang != "sh":
             continue
-        run = subprocess.run(["bash", "-euo", "pipefail", "-c", body], cwd=work, env=env, capture_output=True, text=True)
+        run = subprocess.run(
+            ["bash", "-euo", "pipefail", "-c", body], cwd=work, env=env, capture_output=True, text=True
+        )
         assert run.returncode == 0, f"step failed:\n{body}\n{run.stderr[-3000:]}"
         printed += run.stdout + run.stderr
 
@@ -72,3 +74,12 @@ def test_the_tutorial_runs_as_written(tmp_path: Path) -> None:
     for key in ("separation_deg", "transfer_bound_rad_max", "reference_match_ssim"):
         assert report[key] == pytest.approx(quoted[key], abs=0.01), key
     assert json.loads((work / "focused_2mm" / "metrics.json").read_text())["confidence"]["trusted"] is False
+
+    # every key the run wrote is in the metrics.json reference
+    written = json.loads((work / "focused" / "metrics.json").read_text())
+    page = (ROOT / "docs" / "reference" / "metrics.md").read_text(encoding="utf-8")
+    keys = [*written, *(f"confidence.{k}" for k in written["confidence"])]
+    undocumented = [
+        k for k in keys if f"`{k}`" not in page and f"`{k}." not in page and f"`{k.split('.')[-1]}`" not in page
+    ]
+    assert not undocumented, f"docs/reference/metrics.md does not describe {undocumented}"
