@@ -88,3 +88,11 @@ def test_the_walker_sees_links_pictures_and_code_paths() -> None:
     got = sorted(rel for rel, _ in _named_paths(ROOT / "docs" / "probe.md", text))
     assert got == ["README.md", "docs/architecture.md", "docs/images/x.png", "launch/sim.yaml"]
     assert not _exists("docs/images/x.png", _tracked())
+
+
+def test_the_index_lists_every_page() -> None:
+    """docs/README.md is the way in: every page under docs/ is linked from it."""
+    index = ROOT / "docs" / "README.md"
+    linked = {rel for rel, _ in _named_paths(index)}
+    pages = {p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*.md") if p != index}
+    assert not sorted(pages - linked), f"pages the index does not list: {sorted(pages - linked)}"
