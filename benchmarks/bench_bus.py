@@ -13,7 +13,7 @@
    radar's rate and focuses it; the time from sending the last measurement to receiving the
    focused target image, with the sub-image basis accumulated as measurements arrive
    (``basis:=stream``) and computed after the scan (``basis:=after_scan``).
-3. Live graph latency (issue 17): ``launch/sim.yaml`` at the paper's size (780 positions x 86
+3. Live graph latency: ``launch/sim.yaml`` at the paper's size (780 positions x 86
    channels, 100 x 100) with the simulated sensors at real time (``rate:=1``); a probe on the
    bus takes the wall time the sweep's last ``radar/frame`` reaches it and the time the focused
    ``target`` image does. Also reported: the solver's own ``latency_s`` (last measurement in ->

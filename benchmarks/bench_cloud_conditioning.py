@@ -1,6 +1,6 @@
 """Cloud conditioning benchmark (twinfocus.digital_twin.condition): what it makes of camera clouds.
 
-For each reference shape (plane, cylinder, bent plate) and each camera of issue 14's field scenes
+For each reference shape (plane, cylinder, bent plate) and each camera of the field-like scenes
 (A: 0.5 mm z / 0.2 mm x, y; B: 1 mm z / 0.3 mm; C: 1.6 mm z / 0.3 mm; each with a quarter of the
 surface missing in patches and 3 % outliers; plus a worst case: 2 mm on every axis, 40 % holes,
 5 % outliers), ``draws`` clouds: the surface model chosen, the measured noise, the model's depth

@@ -288,7 +288,7 @@ class Solver(Node):
             s.truth.append(np.stack([m.positions_true_m for m in batch]))
         if self.params["basis"] == "after_scan" or s.truth is not None or self.params["space_variant"] != "off":
             # after_scan: the whole scan at the end; truth: its images are formed only after the
-            # result is out, so they neither slow the stream nor delay the image (issue 17); the
+            # result is out, so they neither slow the stream nor delay the image; the
             # space-variant fit: the half-array bases, back-projected only when the fit runs
             s.data.append(data)
         if self.params["basis"] == "after_scan":

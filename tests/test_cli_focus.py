@@ -205,7 +205,7 @@ def _one_line_error(capsys, *needles):
 
 
 def test_inputs_are_checked_before_any_work(small_scans, tmp_path, capsys):
-    """Issue 15 item 7: each bad input is one line, exit 2, before any back-projection (each
+    """Each bad input is one line, exit 2, before any back-projection (each
     answer comes in well under the time one back-projection would take)."""
     import time
 
@@ -269,7 +269,7 @@ def test_pictures_of_an_earlier_run_do_not_stay_beside_new_results(small_scans, 
 
 
 def test_capture_gaps_of_a_converted_scan_reach_metrics(small_scans, tmp_path):
-    """Issue 18 item 2: the gaps `convert` records beside a scan (<scan>.capture.json) are in the
+    """The gaps `convert` records beside a scan (<scan>.capture.json) are in the
     metrics.json of a focus of that scan; a scan without the record has no `capture` entry."""
     import shutil
 

@@ -38,7 +38,7 @@ def _depth_error(points, exact):
                                                   ("bent", "smooth", 0.6)])
 def test_surface_model_fits_the_true_surface(shape, surface, tol_mm):
     grid, exact = _case(shape)
-    # Issue 14's scene B camera: 1 mm depth noise, 0.3 mm across, a quarter missing, 3 % outliers.
+    # The field-like scene B's camera: 1 mm depth noise, 0.3 mm across, a quarter missing, 3 % outliers.
     cloud = camera_cloud(exact[::4], (0.3e-3, 0.3e-3, 1e-3), 0.25, 0.03, 0.0, rng=1)
     with warnings.catch_warnings():
         warnings.simplefilter("error", CloudWarning)  # nothing here deserves a warning
@@ -131,7 +131,7 @@ def test_reference_result_template_support_offset():
     assert outline.info["template_coherent"] is False
 
 
-# --- stability at the extremes (issue 14 item 5) --------------------------------------------------
+# --- stability at the extremes -----------------------------------------------------------------------
 
 
 def test_ten_points_is_a_clear_error():

@@ -123,7 +123,7 @@ def test_twin_bad_inputs_write_nothing(capture, tmp_path, capsys):
 
 
 def test_focus_digital_twin_extreme_clouds_one_line(capture, tmp_path, capsys):
-    """Issue 14 item 5 through the command: each bad cloud is one line (exit 2) naming the file, and
+    """Through the command: each bad cloud is one line (exit 2) naming the file, and
     a cloud with NaN rows is focused with a warning."""
     d = capture
     ref = paper_scene().object("reference")

@@ -15,7 +15,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: Paths the docs name that another branch adds; each entry is removed when that branch is merged.
 #: The test fails once an entry exists, so the list cannot go stale.
-KNOWN_MISSING: set[str] = set()
+KNOWN_MISSING: set[str] = {
+    "docs/calibration.md",
+    "docs/real_array.md",
+    "docs/troubleshooting.md",
+    "docs/logs.md",
+    "docs/model_ladder.md",
+    "docs/digital_twin_field.md",
+    "docs/reference_free.md",
+}
 
 _LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
 _CODE_PATH = re.compile(r"`((?:docs|benchmarks|launch)/[A-Za-z0-9_./-]+)`")
@@ -80,3 +88,11 @@ def test_the_walker_sees_links_pictures_and_code_paths() -> None:
     got = sorted(rel for rel, _ in _named_paths(ROOT / "docs" / "probe.md", text))
     assert got == ["README.md", "docs/architecture.md", "docs/images/x.png", "launch/sim.yaml"]
     assert not _exists("docs/images/x.png", _tracked())
+
+
+def test_the_index_lists_every_page() -> None:
+    """docs/README.md is the way in: every page under docs/ is linked from it."""
+    index = ROOT / "docs" / "README.md"
+    linked = {rel for rel, _ in _named_paths(index)}
+    pages = {p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*.md") if p != index}
+    assert not sorted(pages - linked), f"pages the index does not list: {sorted(pages - linked)}"

@@ -1,4 +1,4 @@
-"""Fault injection on the node graph (issue 15's "done when"): every fault ends or recovers
+"""Fault injection on the node graph : every fault ends or recovers
 within a bounded time, with one clear line, and loses no earlier log or result.
 
 Faults: SIGTERM / SIGKILL to each node and to the launcher, a truncated log and a log damaged

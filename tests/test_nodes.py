@@ -574,7 +574,7 @@ def test_solver_streams_the_basis_and_focuses_with_the_template(tmp_path):
                 probe.send("sar/measurement", m)
             first, res = probe.wait_for("autofocus/result", 2, timeout_s=60)
             images = {i.name: i for i in probe.wait_for("image/focused", 4)}
-    # The image and a first result go out before the metrics against the truth (issue 17); the
+    # The image and a first result go out before the metrics against the truth; the
     # second result adds them to the same phase.
     assert first.metrics_pending and not res.metrics_pending and first.latency_s > 0
     assert "target_ssim_corrected" not in first.metrics and np.array_equal(first.phase_rad, res.phase_rad)
@@ -594,8 +594,8 @@ def test_solver_streams_the_basis_and_focuses_with_the_template(tmp_path):
 
 def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_whole_basis():
     """A physical twin's template (with its phase) arriving after the first half of the scan: the
-    solver scores the registration on the rows it already has, then on each batch (issue 17:
-    none of it after the last measurement but the last batch's), and gets the phase that
+    solver scores the registration on the rows it already has, then on each batch
+    (none of it after the last measurement but the last batch's), and gets the phase that
     focus_bases gives on the whole scan's bases."""
     from nodes.solver import Solver
     from twinfocus.backprojection import backproject, subimage_basis

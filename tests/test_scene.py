@@ -212,7 +212,7 @@ def test_point_cloud_thinning():
     np.testing.assert_array_equal(p_all, pts)
 
 
-# --- field-like objects: rough surfaces, non-planar shapes (issue 14) --------------------------
+# --- field-like objects: rough surfaces, non-planar shapes -----------------------------------
 
 
 @pytest.mark.parametrize("deg,spread", [(90.0, 0.3), (30.0, 0.1)])

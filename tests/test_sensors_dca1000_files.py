@@ -83,7 +83,7 @@ def test_every_sample_lands_in_place(tmp_path, form):
 
 
 def test_reordered_file_read_as_raw_is_wrong(tmp_path):
-    """The issue's trap: a CLI file cut into frames as if it were Studio's raw form."""
+    """The trap: a CLI file cut into frames as if it were Studio's raw form."""
     (tmp_path / "adc_data.bin").write_bytes(stream_values(1, "reordered"))
     cap = Dca1000FileCapture(tmp_path, LAYOUT, 0.05, "raw")
     assert not np.array_equal(cap.frames[0].data, expected_mimo(0))

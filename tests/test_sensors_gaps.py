@@ -91,7 +91,7 @@ def test_visualizer_status_shows_gaps(tmp_path):
 
 
 def test_live_scans_carry_their_capture_gaps_to_the_solver_metrics(tmp_path):
-    """Issue 18: radar frames carrying the stream's gap counts (since the stream began) go through
+    """Radar frames carrying the stream's gap counts (since the stream began) go through
     the synchronizer and the solver; each scan's metrics (the result message and metrics.json)
     hold the gaps counted during that scan, under `capture` as a converted scan's focus has them.
     Scan b's last frame comes after every pose (unpaired): its counts still reach the scan."""

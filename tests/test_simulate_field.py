@@ -1,4 +1,4 @@
-"""Field-like scenarios (issue 14): Scenario fields and ``twinfocus simulate`` options."""
+"""Field-like scenarios: Scenario fields and ``twinfocus simulate`` options."""
 import json
 
 import numpy as np

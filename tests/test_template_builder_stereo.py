@@ -1,4 +1,4 @@
-"""The template-builder node's live digital twin (issue 15 item 2): camera/stereo -> cloud ->
+"""The template-builder node's live digital twin: camera/stereo -> cloud ->
 conditioned template for the scan's aperture, over the node runtime."""
 import time
 

@@ -68,7 +68,7 @@ class Scenario:
     n_rows: int = 130
     seed: int = 0
     extra: dict = field(default_factory=dict)
-    # Field-like references (issue 14): a rough surface (per-scatterer phase uniform in
+    # Field-like references: a rough surface (per-scatterer phase uniform in
     # +-reference_roughness_deg, magnitude x (1 +- reference_amplitude_spread)); a non-planar
     # shape (twinfocus.scene.SHAPES: 'plane', 'cylinder' radius m, 'bent' degrees; parameter None:
     # the shape's default); a target further from the aperture than the reference, along its ray.

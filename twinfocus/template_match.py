@@ -120,7 +120,7 @@ class MatchScores:
 
     J(s) = sum_m |<B_m, T(. - s)>| / ||T(. - s)|| is a sum over positions, so the rows of a scan
     added as they arrive give, at the end, the whole basis's scores: a live scan registers its
-    template while it is captured and pays only for the last batch after it (issue 17). The
+    template while it is captured and pays only for the last batch after it. The
     template's spectrum and the normaliser are computed once, here.
 
     template : complex (H, W) on the basis's grid; max_shift_px : S, shifts |dy|, |dx| <= S.

@@ -233,8 +233,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _check_cost(sc, args) -> None:
-    """Refuse, before any work, a simulation that cannot fit in memory (issue 15: ``--rows
-    100000`` ran for minutes and died); say how long a large one will take."""
+    """Refuse, before any work, a simulation that cannot fit in memory (``--rows
+    100000`` would run for minutes and die); say how long a large one will take."""
     from twinfocus.machine import available_memory_bytes
     from twinfocus.radar import Chirp, mmwcas_virtual_array
     from twinfocus.scene import scatterer_spacing_m

@@ -1,7 +1,7 @@
 """A reference's point cloud as a depth camera delivers it: the impairments of a ZED, a RealSense,
 a phone's LiDAR or photogrammetry, applied to exact surface points (for the simulator and tests).
 
-What such clouds have (issue 14's field scenes): noise of 0.5-2 mm on every axis (depth usually
+What such clouds have (the field-like scenes of docs/simulation.md): noise of 0.5-2 mm on every axis (depth usually
 the worst), 10-40 % of the surface missing in patches (specular spots, low texture, occlusion),
 0-5 % outliers spread around the object (flying pixels, mismatches), a rigid offset of a few mm
 from where the radar sees the object (camera-radar calibration), and no plane fitted.

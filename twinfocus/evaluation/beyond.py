@@ -9,7 +9,7 @@ on the same scenes and error draws, with the realistic impairments of the paper 
 * angular separation of reference and target, 10 to 40 degrees (K > P), 0.5 mm x/y/z.
 
 The report puts every variant in a row with its mean target SSIM per condition, the estimator's
-time, the two ceilings (the reference's and the target's true phase) and the issue's goals.
+time, the two ceilings (the reference's and the target's true phase) and the goals each condition must reach.
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ ROW_NAMES = {
     "digital-smooth": "steepness 5 + projection start + a smoothness prior over time (weight 0.02)",
 }
 PAIRS = (("A", "C"), ("C", "F"), ("F", "R"), ("R", "X"), ("X", "Z"), ("Z", "A"))
-#: the issue's goals: (condition, row, minimum mean SSIM)
+#: the goals each condition must reach: (condition, row, minimum mean SSIM)
 GOALS = (("0.5 mm x/y/z", "physical", 0.95), ("1.6 mm z", "physical", 0.93), ("0.5 mm x/y/z", "digital", 0.90))
 SEPARATION_GOAL_LOSS = 0.03
 
@@ -177,7 +177,7 @@ def _cell(e: dict | None) -> str:
 
 
 def summarise(raw: dict) -> dict:
-    """{experiment: {condition: rows}} plus "goals": the issue's checks with the best variant."""
+    """{experiment: {condition: rows}} plus "goals": the goals' checks with the best variant."""
     out: dict = {}
     for name, doc in raw.items():
         out[name] = {c["label"]: _rows(doc["records"], c["label"]) for c in doc["definition"]["conditions"]}

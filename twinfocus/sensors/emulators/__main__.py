@@ -6,6 +6,7 @@ import argparse
 import signal
 import sys
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +53,7 @@ def _capture(args) -> int:
     from twinfocus.radar import Chirp
     from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
     from twinfocus.sensors.emulators.radar_scene import quantize_iq, simulate_mimo_frames
-    from twinfocus.sensors.emulators.rig import demo_scatterers
+    from twinfocus.sensors.emulators.rig import N_REFERENCE_SCATTERERS, demo_scatterers
     from twinfocus.sensors.ti_mmwcas import MmwcasConfig
     from twinfocus.sensors.trajectory_files import write_tum
     from twinfocus.trajectory import paper_raster
@@ -70,11 +71,17 @@ def _capture(args) -> int:
         t0_ns=1_700_000_000_000_000_000,
     )
     pts = demo_scatterers(args.z)
+    if args.reference_only:
+        pts = pts[:N_REFERENCE_SCATTERERS]
     frames = simulate_mimo_frames(chirp, traj, pts)
     iq = quantize_iq(frames, full_scale=float(len(pts)), headroom=0.9)
     stamps = card_t0 + (traj.timestamps_ns - traj.timestamps_ns[0])
     out = Path(args.folder)
     write_mmwcas_capture(out, iq, stamps, cfg)
+    if args.tracking_error_mm > 0:
+        # The camera's track, not the radar's true path: what a hand-held capture's trajectory file holds.
+        noise = np.random.default_rng(args.seed).normal(scale=args.tracking_error_mm * 1e-3, size=traj.position_m.shape)
+        traj = replace(traj, position_m=traj.position_m + noise)
     write_tum(out / "trajectory.txt", traj)
     np.save(out / "scatterers.npy", pts)
     print(f"wrote {len(traj)} frames to {out} and its trajectory to {out / 'trajectory.txt'}", file=sys.stderr)
@@ -101,6 +108,14 @@ def main(argv=None) -> int:
     c.add_argument("folder")
     c.add_argument("--n-samples", type=int, default=256)
     c.add_argument("--z", type=float, default=0.6)
+    c.add_argument(
+        "--tracking-error-mm",
+        type=float,
+        default=0.0,
+        help="Gaussian error per axis of the trajectory file's positions, mm (default 0: the true path)",
+    )
+    c.add_argument("--seed", type=int, default=0, help="seed of the tracking error")
+    c.add_argument("--reference-only", action="store_true", help="only the reference (the T), as on a motion stage")
     args = p.parse_args(argv)
     try:
         return _radar(args) if args.what == "radar" else _capture(args)

@@ -56,6 +56,10 @@ sensorStart
 """
 
 
+#: The first rows of :func:`demo_scatterers` are the reference 'T'; the rest the target 'L'.
+N_REFERENCE_SCATTERERS = 11
+
+
 def demo_scatterers(z_m: float = 0.6) -> np.ndarray:
     """A small 'T' of point scatterers (reference) and an 'L' (target) on the plane z, float64 (J, 3)."""
     s = 0.012
