@@ -96,7 +96,7 @@ class Recorder(Node):
         if self.params["foxglove"]:
             from nodes.foxglove_convert import FoxgloveConverter
 
-            self._foxglove = FoxgloveConverter()
+            self._foxglove = FoxgloveConverter(extrinsics=(calib or {}).get("extrinsics") or None)
         topics = self.params["topics"]
         if topics:
             for t in topics:
