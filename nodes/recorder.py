@@ -80,23 +80,24 @@ class Recorder(Node):
 
     def __init__(self, **kw):
         super().__init__(**kw)
-        self.writer = LogWriter(self.params["out"], overwrite=self.params["overwrite"], keep_empty=False)
-        self._radar_done = False
-        self._last_state: dict[str, tuple] = {}
-        self._signalled_ns: int | None = None
-        self._handlers: dict[int, Any] = {}
-        calib = self.params["calibration"]
-        if calib:
-            if not isinstance(calib, dict):
-                from twinfocus.errors import TwinFocusError
+        # Every parameter is checked before the log file is opened: a refused start leaves no file.
+        calib = self.params["calibration"] or {}
+        if not isinstance(calib, dict):
+            from twinfocus.errors import TwinFocusError
 
-                raise TwinFocusError(f"node {self.name!r}: parameter 'calibration' must be a mapping, got {calib!r}")
-            self.writer.add_metadata("calibration", calib)
+            raise TwinFocusError(f"node {self.name!r}: parameter 'calibration' must be a mapping, got {calib!r}")
         self._foxglove = None
         if self.params["foxglove"]:
             from nodes.foxglove_convert import FoxgloveConverter
 
-            self._foxglove = FoxgloveConverter(extrinsics=(calib or {}).get("extrinsics") or None)
+            self._foxglove = FoxgloveConverter(extrinsics=calib.get("extrinsics") or None)
+        self._radar_done = False
+        self._last_state: dict[str, tuple] = {}
+        self._signalled_ns: int | None = None
+        self._handlers: dict[int, Any] = {}
+        self.writer = LogWriter(self.params["out"], overwrite=self.params["overwrite"], keep_empty=False)
+        if calib:
+            self.writer.add_metadata("calibration", calib)
         topics = self.params["topics"]
         if topics:
             for t in topics:

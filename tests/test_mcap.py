@@ -47,9 +47,12 @@ def test_the_reference_mcap_reader_reads_our_files(tmp_path):
     msgs = one_of_each()
     path = write_log(tmp_path / "b.mcap", msgs)
     with open(path, "rb") as f:
-        reader = make_reader(f)
+        reader = make_reader(f, validate_crcs=True)
         summary = reader.get_summary()
         assert summary.statistics.message_count == len(msgs)
+        # indexed, one message per chunk (a crash loses at most one), each chunk with its CRC
+        assert len(summary.chunk_indexes) == summary.statistics.chunk_count == len(msgs)
+        assert all(ci.message_index_offsets for ci in summary.chunk_indexes)
         assert {c.topic for c in summary.channels.values()} == {m.TOPIC for m in msgs}
         assert all(c.message_encoding == "msgpack" for c in summary.channels.values())
         got = list(reader.iter_messages())
@@ -89,6 +92,14 @@ def test_writer_refuses_to_overwrite_and_reader_rejects_non_mcap(tmp_path):
         LogReader(p)
     with pytest.raises(TwinFocusError, match="no such file"):
         LogReader(tmp_path / "missing.mcap")
+
+
+def test_a_recorder_refused_at_start_leaves_no_file(tmp_path):
+    from nodes.recorder import Recorder
+
+    with pytest.raises(TwinFocusError, match="calibration' must be a mapping"):
+        Recorder(params={"out": str(tmp_path / "r.mcap"), "calibration": [1, 2]}, broker="tcp://127.0.0.1:1")
+    assert list(tmp_path.iterdir()) == []
 
 
 class _Ticker(Node):
