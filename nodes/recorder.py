@@ -94,6 +94,7 @@ class Recorder(Node):
         self._radar_done = False
         self._last_state: dict[str, tuple] = {}
         self._signalled_ns: int | None = None
+        self._gone_at_signal: set[str] | None = None
         self._handlers: dict[int, Any] = {}
         self.writer = LogWriter(self.params["out"], overwrite=self.params["overwrite"], keep_empty=False)
         if calib:
@@ -133,6 +134,9 @@ class Recorder(Node):
     def _note_signal(self, signum, frame) -> None:
         if self._signalled_ns is None:
             self._signalled_ns = now_ns()
+            # The launcher stops the graph only after a failed node has ended: a node already
+            # gone now ended before the stop; the nodes stopped with us are still running.
+            self._gone_at_signal = {n for n, st in self.graph.items() if st.pid and not _running(st.pid)}
         self._handlers[signum](signum, frame)
 
     def _drain(self, budget_s: float = 1.0) -> None:
@@ -150,9 +154,11 @@ class Recorder(Node):
 
     def unplanned_stop(self) -> str:
         """Why this recording did not end as its run planned ("" when it did): the recorder's own
-        stop (a crash, a dead launcher) or, under a launcher, a node that had failed (last status
-        ``error``, stamped before the launcher's signal reached the recorder: the nodes that the
-        launcher itself stops report ``error`` too, later) or fallen silent."""
+        stop (a crash, a dead launcher) or, under a launcher, a node that had failed or fallen
+        silent before the launcher stopped the graph. Failed: last status ``error`` stamped
+        before the stop signal reached the recorder, and, when that error is itself a signal
+        (``received SIGTERM``: the launcher stops every node that way too), the node's process
+        already gone at that moment."""
         stop = self._stop
         code, reason = (stop.code, stop.reason) if stop is not None else (0, "")
         if self.launcher_gone():
@@ -163,10 +169,12 @@ class Recorder(Node):
             return ""  # started by hand: Ctrl-C or SIGTERM is how a recording ends
         others = {n: st for n, st in self.graph.items() if n != self.name}
         before = self._signalled_ns if self._signalled_ns is not None else now_ns()
+        gone = self._gone_at_signal if self._gone_at_signal is not None else set(others)
         failed = [
             f"{n} ({st.message or 'error'})"
             for n, st in sorted(others.items())
-            if st.state == "error" and st.header.stamp_ns < before
+            if st.state == "error"
+            and (n in gone or (st.header.stamp_ns < before and not st.message.startswith("received SIG")))
         ]
         if failed:
             return f"node {', '.join(failed)} failed"
@@ -217,6 +225,21 @@ class Recorder(Node):
         else:
             per = ", ".join(f"{t}: {n}" for t, n in sorted(w.counts.items()))
             self.log(f"wrote {total} message(s) to {where} ({per})")
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie (Linux: /proc; elsewhere: exists)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[-1].split()[0] != "Z"
+    except OSError:
+        return True
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -302,14 +302,19 @@ def test_a_silent_node_marks_the_stop_unplanned(tmp_path, monkeypatch):
         "finished": NodeStatus(header=Header(now - 60 * 10**9, 3), node="finished", state="stopped"),
     })
     rec._signalled_ns = now
+    rec._gone_at_signal = set()  # every node still running when the launcher's signal came
     rec._stop = Shutdown(128 + signal.SIGTERM, "received SIGTERM")
     assert rec.unplanned_stop() == ""
     rec.graph["synchronizer"] = NodeStatus(header=Header(now - 5 * 10**9, 3), node="synchronizer", state="running")
     assert rec.unplanned_stop() == "node synchronizer (silent 5.0 s) stopped answering"
     # an error stamped after the launcher's signal is the launcher's own stop, not a failure
     del rec.graph["synchronizer"]
-    rec.graph["vio"] = NodeStatus(header=Header(now + 10**6, 4), node="vio", state="error", message="received SIGTERM")
+    rec.graph["vio"] = NodeStatus(header=Header(now - 10**6, 4), node="vio", state="error", message="received SIGTERM")
     assert rec.unplanned_stop() == ""
+    # ... unless the node had already ended when the launcher stopped the graph: it was stopped first
+    rec._gone_at_signal = {"vio"}
+    assert rec.unplanned_stop() == "node vio (received SIGTERM) failed"
+    rec._gone_at_signal = set()
     rec.graph["solver"] = NodeStatus(header=Header(now - 10**6, 4), node="solver", state="error", message="crashed")
     assert rec.unplanned_stop() == "node solver (crashed) failed"
     rec.writer.discard()
