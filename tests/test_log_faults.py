@@ -285,6 +285,24 @@ def test_a_run_that_ends_as_planned_replaces_the_earlier_log(tmp_path, good_log)
     assert _partials(out.parent) == []
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(400)
+def test_ctrl_c_ends_a_run_as_planned_and_replaces_the_earlier_log(tmp_path, good_log):
+    """Run until Ctrl-C is the plan of `launch sim` without exit_after: the log is the recording."""
+    src, out, before = good_log
+    g = Launched(str(_graph(tmp_path, src, out, rate=0.5)), f"port:={free_port()}")
+    try:
+        _wait_frames_recorded(g, out.parent, 10)
+        g.proc.send_signal(signal.SIGINT)
+        code = g.wait(120)
+    finally:
+        g.kill()
+    assert code == 0, g.text
+    assert _partials(out.parent) == [], g.text
+    assert out.read_bytes() != before and 10 <= LogReader(out).counts["radar/frame"] < 100, g.text
+    assert "stopped before the run ended as planned" not in g.text, g.text
+
+
 def test_a_silent_node_marks_the_stop_unplanned(tmp_path, monkeypatch):
     """The recorder's own judgement, from heartbeats: a node not heard from for silent_s before
     the launcher stopped the graph had hung."""
