@@ -376,6 +376,8 @@ class LogReader:
             return opcode, length, None
         if cls is Message and self._chunked:
             return None  # a chunked log has no top-level messages: this is the inside of a damaged chunk
+        if cls is Chunk and not _chunk_fits(d, pos, length):
+            return None  # checked in place: copying a bogus length's worth of bytes would be slow
         try:
             stream = ReadDataStream(io.BytesIO(d[pos + 9 : pos + 9 + length]))
             rec = cls.read(stream, length) if cls is Message else cls.read(stream)
@@ -511,6 +513,20 @@ class LogReader:
             yield LogMessage(
                 ch.topic, ch.metadata.get("type", ""), rec.log_time, rec.publish_time, rec.sequence, rec.data
             )
+
+
+def _chunk_fits(d, pos: int, length: int) -> bool:
+    """Whether the chunk header at ``pos`` accounts for exactly ``length`` bytes: start and end
+    times, uncompressed size (u64 each), CRC (u32), compression (u32 length + text, short) and
+    the data (u64 length + bytes)."""
+    head = pos + 9 + 28
+    if length < 40 or head + 4 > len(d):
+        return False
+    (clen,) = struct.unpack_from("<I", d, head)
+    if clen > 16 or head + 4 + clen + 8 > len(d):
+        return False
+    (dlen,) = struct.unpack_from("<Q", d, head + 4 + clen)
+    return 28 + 4 + clen + 8 + dlen == length
 
 
 def _note_index(d: Damage, idx: MessageIndex) -> None:
