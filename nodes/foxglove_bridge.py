@@ -1,16 +1,20 @@
 """Foxglove bridge node: the running graph served over Foxglove's WebSocket protocol.
 
 Subscribes to every topic (``graph/status`` included, for the log panel), converts each message
-with :class:`nodes.foxglove_convert.FoxgloveConverter` and logs the records on ``foxglove.Channel``s
-of a ``foxglove-sdk`` WebSocket server (loopback by default). Open Foxglove, "Open connection" >
-"Foxglove WebSocket" > the printed ``ws://`` address, and import ``docs/foxglove_layout.json``.
+with :class:`nodes.foxglove_convert.FoxgloveConverter` (one clock, ``/tf`` frames) and logs the
+records on ``foxglove.Channel``s of a ``foxglove-sdk`` WebSocket server (loopback by default).
+The server speaks the WebSocket subprotocol ``foxglove.sdk.v1`` only (Foxglove's app offers it;
+clients written for the older ``foxglove.websocket.v1`` must ask for the new one). Open
+Foxglove, "Open connection" > "Foxglove WebSocket" > the printed ``ws://`` address, and import
+``docs/foxglove_layout.json``.
 
-Images, the template, its points, the trajectory and the solver's result arrive once per scan,
-so the bridge keeps the last record of each such topic and sends it again when a client
-subscribes (a viewer opened after the scan still sees it); streams (poses, phase centres, log
-lines) are live only.
+The bridge keeps the latest record of every channel and sends it again when a client
+subscribes: a viewer opened after the scan still sees its images and result, and one opened
+before the graph started, which subscribes when a channel first appears, still gets that
+channel's first message (clients already subscribed may see that record twice).
 
-``python -m nodes.foxglove_bridge port:=8766``; in a launch file, ``foxglove:=true``.
+``python -m nodes.foxglove_bridge port:=8766``; in a launch file, ``foxglove:=true
+foxglove_port:=8766``.
 """
 
 from __future__ import annotations
@@ -24,9 +28,6 @@ from nodes.foxglove_convert import FoxgloveConverter, FoxgloveMessage
 from nodes.node import Node, run_node
 from nodes.params import Param
 from twinfocus.errors import TwinFocusError
-
-#: Foxglove topics whose last record is sent again to a client that subscribes late
-LATCHED_PREFIXES = ("/image/", "/twin/", "/vio/trajectory", "/autofocus/")
 
 
 class FoxgloveBridge(Node):
@@ -42,6 +43,11 @@ class FoxgloveBridge(Node):
         ),
         "port": Param(8766, "WebSocket port (0 = any free port; 8765 is the visualizer's page)", type="int"),
         "trajectory_every": Param(10, "send the whole trajectory after this many poses", type="int"),
+        "calibration": Param(
+            {},
+            "calibration as the recorder takes it ({extrinsics: T_camera_radar}): the radar -> camera frame",
+            type="any",
+        ),
     }
 
     def __init__(self, **kw):
@@ -51,7 +57,12 @@ class FoxgloveBridge(Node):
 
         self._fox = foxglove
         self.context = foxglove.Context()
-        self.converter = FoxgloveConverter(trajectory_every=self.params["trajectory_every"])
+        calib = self.params["calibration"]
+        if not isinstance(calib, dict):
+            raise TwinFocusError(f"node {self.name!r}: parameter 'calibration' must be a mapping, got {calib!r}")
+        self.converter = FoxgloveConverter(
+            trajectory_every=self.params["trajectory_every"], extrinsics=calib.get("extrinsics") or None
+        )
         self._channels: dict[str, Any] = {}
         self._latched: dict[str, FoxgloveMessage] = {}
         self._resend: list[str] = []
@@ -86,9 +97,8 @@ class FoxgloveBridge(Node):
             return
         for rec in self.converter.convert(topic, msg, now_ns()):
             self._log(rec)
-            if rec.topic.startswith(LATCHED_PREFIXES):
-                with self._lock:
-                    self._latched[rec.topic] = rec
+            with self._lock:
+                self._latched[rec.topic] = rec
 
     def _log(self, rec: FoxgloveMessage) -> None:
         ch = self._channels.get(rec.topic)

@@ -30,6 +30,9 @@ graph topic            Foxglove topic                      schema
 ``camera/stereo``      ``/camera/left``                    ``foxglove.RawImage`` mono8 / rgb8
 ``graph/status``       ``/log``                            ``foxglove.Log``: a node's state
                                                            change, status message or new loss
+``vio/pose``           ``/tf``                             ``foxglove.FrameTransform``: scene
+(and calibration)                                          -> radar (the pose), radar -> camera
+                                                           (``calibration``'s extrinsics, once)
 =====================  ==================================  ====================================
 
 The digital twin's point cloud travels on no topic of the graph; ``/twin/points`` shows the
@@ -37,8 +40,13 @@ template's pixels above ``points_threshold`` of its peak on the plane ``z_m`` (f
 twin that is the cloud rendered as the radar should see it). ``radar/frame`` (raw IF samples)
 has no Foxglove picture and is left out.
 
-Times: a record's ``log_time_ns`` is the caller's; Foxglove's ``timestamp`` fields carry the
-header stamp (clamped at 0: Foxglove's time is unsigned).
+One clock (:class:`SensorClock`): every record's MCAP log time, publish time and Foxglove
+``timestamp`` field (JSON channels: ``timestamp`` ``{sec, nsec}``) are the same time, the
+sensors' clock. A sensor message (radar frame, pose, camera frame, measurement) is at its header
+stamp; a simulation's stamps start at 0, so they are shifted to put the first sensor message at
+the wall-clock time it was logged (a viewer shows 1970 otherwise). A computed message (images,
+the template, the solver's result, node states) is at the sensor time of the latest sensor
+message before it.
 """
 
 from __future__ import annotations
@@ -50,16 +58,33 @@ from typing import Any
 
 import numpy as np
 
-from msgs.messages import AutofocusResult, Image, NodeStatus, Pose, SarMeasurement, StereoFrame, TwinTemplate
+from msgs.messages import (
+    AutofocusResult,
+    Image,
+    NodeStatus,
+    Pose,
+    RadarFrame,
+    SarMeasurement,
+    StereoFrame,
+    TwinTemplate,
+)
 
 PROTOBUF = "protobuf"
 JSON = "json"
+
+#: a Foxglove time in a JSON message
+_TIME_SCHEMA = {
+    "type": "object",
+    "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0}},
+    "required": ["sec", "nsec"],
+}
 
 #: JSON schemas of the plottable-number channels (Foxglove draws them in its Plot panel)
 JSON_SCHEMAS: dict[str, dict] = {
     "twinfocus.AutofocusResult": {
         "type": "object",
         "properties": {
+            "timestamp": _TIME_SCHEMA,
             "scan_id": {"type": "string"},
             "method": {"type": "string"},
             "phase_rad": {
@@ -71,16 +96,17 @@ JSON_SCHEMAS: dict[str, dict] = {
             "metrics": {"type": "object", "additionalProperties": {"type": "number"}},
             "timing_s": {"type": "object", "additionalProperties": {"type": "number"}},
         },
-        "required": ["scan_id", "method", "phase_rad", "loss_history", "metrics", "timing_s"],
+        "required": ["timestamp", "scan_id", "method", "phase_rad", "loss_history", "metrics", "timing_s"],
     },
     "twinfocus.PoseConfidence": {
         "type": "object",
-        "properties": {"confidence": {"type": "number", "minimum": 0, "maximum": 1}},
-        "required": ["confidence"],
+        "properties": {"timestamp": _TIME_SCHEMA, "confidence": {"type": "number", "minimum": 0, "maximum": 1}},
+        "required": ["timestamp", "confidence"],
     },
     "twinfocus.MeasurementQuality": {
         "type": "object",
         "properties": {
+            "timestamp": _TIME_SCHEMA,
             "scan_id": {"type": "string"},
             "index": {"type": "integer"},
             "pose_gap_ms": {
@@ -88,7 +114,7 @@ JSON_SCHEMAS: dict[str, dict] = {
                 "description": "width of the pose interval the position was interpolated over",
             },
         },
-        "required": ["scan_id", "index", "pose_gap_ms"],
+        "required": ["timestamp", "scan_id", "index", "pose_gap_ms"],
     },
 }
 
@@ -134,9 +160,39 @@ def _proto(topic: str, msg: Any, log_time_ns: int) -> FoxgloveMessage:
     return FoxgloveMessage(topic, s.name, s.encoding, bytes(s.data), PROTOBUF, msg.encode(), int(log_time_ns))
 
 
-def _json(topic: str, schema_name: str, value: dict, log_time_ns: int) -> FoxgloveMessage:
+def _json(topic: str, schema_name: str, value: dict, time_ns: int) -> FoxgloveMessage:
+    """A JSON record, its ``timestamp`` ``{sec, nsec}`` first."""
+    ns = max(0, int(time_ns))
+    value = {"timestamp": {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}, **value}
     schema = json.dumps(JSON_SCHEMAS[schema_name]).encode()
-    return FoxgloveMessage(topic, schema_name, "jsonschema", schema, JSON, json.dumps(value).encode(), int(log_time_ns))
+    return FoxgloveMessage(topic, schema_name, "jsonschema", schema, JSON, json.dumps(value).encode(), ns)
+
+
+#: messages whose header stamp is a sensor's clock (the others are stamped when computed)
+SENSOR_TYPES = (RadarFrame, Pose, StereoFrame, SarMeasurement)
+_DAY_NS = 86_400 * 10**9
+
+
+class SensorClock:
+    """The one time base of a Foxglove stream (module docstring): :meth:`time_ns` of each
+    message, in log order. The offset added to sensor stamps is 0 when the first sensor stamp is
+    within a day of its log time (the sensors stamp with the wall clock), else the difference
+    (a simulation's clock, starting at 0)."""
+
+    def __init__(self) -> None:
+        self.offset_ns: int | None = None
+        self.now_ns: int | None = None  # the latest sensor time seen
+
+    def time_ns(self, msg: Any, log_time_ns: int) -> int:
+        """Nanoseconds on the sensors' clock for ``msg``, logged at ``log_time_ns`` (wall clock)."""
+        if isinstance(msg, SENSOR_TYPES):
+            stamp = int(msg.header.stamp_ns)
+            if self.offset_ns is None:
+                self.offset_ns = 0 if abs(int(log_time_ns) - stamp) < _DAY_NS else int(log_time_ns) - stamp
+            t = stamp + self.offset_ns
+            self.now_ns = t if self.now_ns is None else max(self.now_ns, t)
+            return t
+        return self.now_ns if self.now_ns is not None else int(log_time_ns)
 
 
 def amplitude_image(topic: str, image: np.ndarray, stamp_ns: int, frame_id: str, log_time_ns: int) -> FoxgloveMessage:
@@ -183,6 +239,22 @@ def point_cloud(
     return _proto(topic, msg, log_time_ns)
 
 
+def frame_transform(parent: str, child: str, translation_m, quat_xyzw, t: int) -> FoxgloveMessage:
+    """A ``foxglove.FrameTransform`` on ``/tf``: the pose of ``child`` in ``parent``
+    (``translation_m`` (3,) metres, ``quat_xyzw`` (4,) child -> parent rotation)."""
+    from foxglove.messages import FrameTransform, Quaternion, Vector3
+
+    p, q = [float(v) for v in translation_m], [float(v) for v in quat_xyzw]
+    msg = FrameTransform(
+        timestamp=_stamp(t),
+        parent_frame_id=parent,
+        child_frame_id=child,
+        translation=Vector3(x=p[0], y=p[1], z=p[2]),
+        rotation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
+    )
+    return _proto("/tf", msg, t)
+
+
 class FoxgloveConverter:
     """Stateful converter (the trajectory so far, each node's last state) of graph messages.
 
@@ -190,6 +262,9 @@ class FoxgloveConverter:
     whole track, so every pose would grow quadratically); ``max_track`` poses at most.
     ``points_threshold``: fraction of the
     template's peak amplitude above which a pixel becomes a ``/twin/points`` point.
+    ``extrinsics``: ``T_camera_radar`` as a calibration file gives it (mapping,
+    :meth:`twinfocus.sensors.extrinsics.RadarCameraExtrinsics.from_dict`; a log's
+    ``calibration`` metadata holds it as ``extrinsics``), for the radar -> camera transform.
     """
 
     def __init__(
@@ -198,7 +273,13 @@ class FoxgloveConverter:
         points_threshold: float = 0.2,
         scene_frame: str = "scene",
         max_track: int = 20000,
+        extrinsics: dict | None = None,
     ):
+        from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
+
+        self.clock = SensorClock()
+        self.extrinsics = RadarCameraExtrinsics.from_dict(extrinsics) if extrinsics else None
+        self._static_sent = False
         self.trajectory_every = max(1, int(trajectory_every))
         self.points_threshold = float(points_threshold)
         self.scene_frame = scene_frame
@@ -207,30 +288,32 @@ class FoxgloveConverter:
         self._node_state: dict[str, tuple[str, str, int]] = {}
 
     def convert(self, topic: str, msg: Any, log_time_ns: int) -> list[FoxgloveMessage]:
-        """The Foxglove records of one graph message (empty for types with no picture)."""
+        """The Foxglove records of one graph message (empty for types with no picture), all at
+        its time on the one clock (:class:`SensorClock`); call in log order."""
+        t = self.clock.time_ns(msg, log_time_ns)
         if isinstance(msg, Image):
             return [
                 amplitude_image(
                     f"/image/{msg.name or 'image'}",
                     msg.image,
-                    msg.header.stamp_ns,
+                    t,
                     msg.header.frame_id or self.scene_frame,
-                    log_time_ns,
+                    t,
                 )
             ]
         if isinstance(msg, TwinTemplate):
-            return self._template(msg, log_time_ns)
+            return self._template(msg, t)
         if isinstance(msg, Pose):
-            return self._pose(msg, log_time_ns)
+            return self._pose(msg, t)
         if isinstance(msg, SarMeasurement):
             frame = msg.header.frame_id or self.scene_frame
             return [
-                point_cloud("/sar/phase_centres", msg.positions_m, msg.header.stamp_ns, frame, log_time_ns),
+                point_cloud("/sar/phase_centres", msg.positions_m, t, frame, t),
                 _json(
                     "/sar/quality",
                     "twinfocus.MeasurementQuality",
                     {"scan_id": msg.scan_id, "index": int(msg.index), "pose_gap_ms": msg.pose_gap_ns / 1e6},
-                    log_time_ns,
+                    t,
                 ),
             ]
         if isinstance(msg, AutofocusResult):
@@ -242,27 +325,25 @@ class FoxgloveConverter:
                 "metrics": {k: float(v) for k, v in msg.metrics.items() if np.isfinite(v)},
                 "timing_s": {k: float(v) for k, v in msg.timing_s.items()},
             }
-            return [_json("/autofocus/result", "twinfocus.AutofocusResult", value, log_time_ns)]
+            return [_json("/autofocus/result", "twinfocus.AutofocusResult", value, t)]
         if isinstance(msg, StereoFrame):
-            return [self._camera(msg, log_time_ns)]
+            return [self._camera(msg, t)]
         if isinstance(msg, NodeStatus):
-            return self._status(msg, log_time_ns)
+            return self._status(msg, t)
         return []
 
-    def _template(self, msg: TwinTemplate, log_time_ns: int) -> list[FoxgloveMessage]:
+    def _template(self, msg: TwinTemplate, t: int) -> list[FoxgloveMessage]:
         frame = msg.header.frame_id or self.scene_frame
         amp = np.abs(msg.image).astype(np.float64)
         peak = amp.max()
-        out = [amplitude_image("/twin/template", amp, msg.header.stamp_ns, frame, log_time_ns)]
+        out = [amplitude_image("/twin/template", amp, t, frame, t)]
         if peak > 0:
             i, j = np.nonzero(amp >= self.points_threshold * peak)
             pts = np.column_stack([msg.x_m[j], msg.y_m[i], np.full(i.size, msg.z_m)])
-            out.append(
-                point_cloud("/twin/points", pts, msg.header.stamp_ns, frame, log_time_ns, intensity=amp[i, j] / peak)
-            )
+            out.append(point_cloud("/twin/points", pts, t, frame, t, intensity=amp[i, j] / peak))
         return out
 
-    def _pose(self, msg: Pose, log_time_ns: int) -> list[FoxgloveMessage]:
+    def _pose(self, msg: Pose, t: int) -> list[FoxgloveMessage]:
         from foxglove.messages import (
             Color,
             LinePrimitive,
@@ -282,11 +363,16 @@ class FoxgloveConverter:
             orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
         )
         out = [
-            _proto(
-                "/vio/pose", PoseInFrame(timestamp=_stamp(msg.header.stamp_ns), frame_id=frame, pose=fpose), log_time_ns
-            ),
-            _json("/vio/confidence", "twinfocus.PoseConfidence", {"confidence": float(msg.confidence)}, log_time_ns),
+            _proto("/vio/pose", PoseInFrame(timestamp=_stamp(t), frame_id=frame, pose=fpose), t),
+            _json("/vio/confidence", "twinfocus.PoseConfidence", {"confidence": float(msg.confidence)}, t),
+            frame_transform(frame, msg.child_frame_id or "radar", p, q, t),
         ]
+        if self.extrinsics is not None and not self._static_sent:
+            self._static_sent = True
+            # The pose's body is the radar (or the camera); the calibration hangs the other below it.
+            e = self.extrinsics.inverse() if (msg.child_frame_id or "radar") == "radar" else self.extrinsics
+            body, other = ("radar", "camera") if (msg.child_frame_id or "radar") == "radar" else ("camera", "radar")
+            out.append(frame_transform(body, other, e.translation_m, e.quat_xyzw, t))
         self._track.append(np.array(p, np.float64))
         self._n_poses += 1
         if self._n_poses % self.trajectory_every == 0:
@@ -296,18 +382,18 @@ class FoxgloveConverter:
                 color=Color(r=0.2, g=0.8, b=1.0, a=1.0),
                 points=[Point3(x=float(a), y=float(b), z=float(c)) for a, b, c in self._track],
             )
-            entity = SceneEntity(timestamp=_stamp(msg.header.stamp_ns), frame_id=frame, id="trajectory", lines=[line])
-            out.append(_proto("/vio/trajectory", SceneUpdate(entities=[entity]), log_time_ns))
+            entity = SceneEntity(timestamp=_stamp(t), frame_id=frame, id="trajectory", lines=[line])
+            out.append(_proto("/vio/trajectory", SceneUpdate(entities=[entity]), t))
         return out
 
-    def _camera(self, msg: StereoFrame, log_time_ns: int) -> FoxgloveMessage:
+    def _camera(self, msg: StereoFrame, t: int) -> FoxgloveMessage:
         from foxglove.messages import RawImage
 
         img = np.ascontiguousarray(msg.left)
         h, w = img.shape[:2]
         enc, step = ("rgb8", 3 * w) if img.ndim == 3 else ("mono8", w)
         raw = RawImage(
-            timestamp=_stamp(msg.header.stamp_ns),
+            timestamp=_stamp(t),
             frame_id=msg.header.frame_id or "camera",
             width=w,
             height=h,
@@ -315,9 +401,9 @@ class FoxgloveConverter:
             step=step,
             data=img.tobytes(),
         )
-        return _proto("/camera/left", raw, log_time_ns)
+        return _proto("/camera/left", raw, t)
 
-    def _status(self, msg: NodeStatus, log_time_ns: int) -> list[FoxgloveMessage]:
+    def _status(self, msg: NodeStatus, t: int) -> list[FoxgloveMessage]:
         from foxglove.messages import Log, LogLevel
 
         lost = int(sum(msg.lost.values()))
@@ -334,17 +420,21 @@ class FoxgloveConverter:
             )
         else:
             level, text = LogLevel.Info, msg.state + (f": {msg.message}" if msg.message else "")
-        log = Log(timestamp=_stamp(msg.header.stamp_ns), level=level, message=text, name=msg.node)
-        return [_proto("/log", log, log_time_ns)]
+        log = Log(timestamp=_stamp(t), level=level, message=text, name=msg.node)
+        return [_proto("/log", log, t)]
 
 
-def export_log(src, dst, *, overwrite: bool = False, progress=None) -> dict[str, int]:
+def export_log(src, dst, *, overwrite: bool = False, progress=None, say=None) -> dict[str, int]:
     """Write the Foxglove records of every message of the log ``src`` into a new MCAP ``dst``
-    (schemas included: Foxglove opens it with nothing else installed); returns messages per
-    Foxglove topic. Written to a temporary file beside ``dst`` and renamed, so a failed export
-    never leaves half a file or destroys an earlier one. ``progress(done, total)`` per message.
+    (schemas included: Foxglove opens it with nothing else installed), chunked (1 MiB, zstd) and
+    indexed, on one clock (:class:`SensorClock`), with ``/tf`` from the poses and the log's
+    ``calibration``; returns messages per Foxglove topic. ``progress(done, total)`` per message;
+    ``say(line)`` for what was skipped (damage in ``src``).
+
+    Written under a partial name beside ``dst`` and moved onto it only when finished: a failed
+    export (an error, Ctrl-C, a full disk) leaves no file behind and an earlier ``dst`` as it
+    was. A log with nothing to show (no message, or none with a Foxglove picture) is refused.
     """
-    import os
     from pathlib import Path
 
     from msgs.mcap_log import LogReader, LogWriter
@@ -356,20 +446,48 @@ def export_log(src, dst, *, overwrite: bool = False, progress=None) -> dict[str,
         raise TwinFocusError(f"{dst}: already exists; choose another name or pass --overwrite")
     reader = LogReader(src)
     total = sum(reader.counts.values())
-    conv = FoxgloveConverter()
-    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
+    kept = f" ({dst} left as it was)" if dst.exists() else ""
+    if total == 0:
+        raise TwinFocusError(f"{src}: the log holds no messages; nothing to export{kept}")
+    shown = sorted(t for t in reader.channels if t in CONVERTED_TOPICS)
+    if not shown:
+        raise TwinFocusError(
+            f"{src}: none of its topics ({', '.join(sorted(reader.channels))}) has a Foxglove picture; "
+            f"nothing to export{kept}"
+        )
+    if say is not None and not reader.complete:
+        say(f"{src}: {reader.condition}")
+    extrinsics = (reader.metadata.get("calibration") or {}).get("extrinsics")
     try:
-        with LogWriter(tmp, overwrite=True, library="twinfocus export") as writer:
-            for done, m in enumerate(reader.messages(), 1):
-                try:
-                    msg = m.decode()
-                except MessageError as exc:
-                    raise TwinFocusError(f"{src}: {exc}") from None
-                for rec in conv.convert(m.topic, msg, m.log_time_ns):
-                    rec.write_to(writer, m.publish_time_ns)
-                if progress is not None:
-                    progress(done, total)
-        os.replace(tmp, dst)
-    finally:
-        tmp.unlink(missing_ok=True)
+        conv = FoxgloveConverter(extrinsics=extrinsics if isinstance(extrinsics, dict) else None)
+    except TwinFocusError as exc:
+        if say is not None:
+            say(f"{src}: calibration not usable, no radar -> camera transform ({exc})")
+        conv = FoxgloveConverter()
+    skipped = 0
+    with LogWriter(dst, overwrite=True, library="twinfocus export", chunk_bytes=1 << 20, compression="zstd") as writer:
+        for done, m in enumerate(reader.messages(), 1):
+            try:
+                msg = m.decode()
+            except MessageError as exc:
+                skipped += 1
+                if say is not None:
+                    say(f"{src}: skipped a damaged message: {exc}")
+                continue
+            for rec in conv.convert(m.topic, msg, m.log_time_ns):
+                rec.write_to(writer)
+            if progress is not None:
+                progress(done, total)
     return dict(writer.counts)
+
+
+#: graph topics :class:`FoxgloveConverter` draws
+CONVERTED_TOPICS = (
+    "image/focused",
+    "twin/template",
+    "vio/pose",
+    "sar/measurement",
+    "autofocus/result",
+    "camera/stereo",
+    "graph/status",
+)

@@ -7,6 +7,15 @@ is ready before its first message, and it numbers ``seq`` afresh per topic, so s
 detect any loss on the replay itself. Logs cut short by a crash play up to their last
 complete message. With ``exit_when_done`` (default) the node ends after the last message
 (once ZeroMQ has handed everything to the broker).
+
+Damage: the reader checks every chunk's CRC and skips what fails (named in the start line:
+bytes, topics, time range); a message that does not decode, or a radar frame or measurement
+whose samples hold NaN or inf (logs written before chunks had CRCs), is skipped and named too.
+Nothing damaged is published. A message missing from the log shows as a gap in the ``seq``
+numbers the log kept; radar frames (and measurements) published after such a gap carry the
+frames missing so far in ``frames_lost`` (capture frames of which no byte arrived, since the
+stream began), so the solver's ``capture.frames_lost`` metric and ``n_positions_missing`` count
+them: a damaged frame costs that frame, not the scan.
 """
 
 from __future__ import annotations
@@ -14,6 +23,9 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
+from typing import Any
+
+import numpy as np
 
 from msgs import MESSAGE_TYPES, MessageError
 from msgs.mcap_log import LogReader
@@ -68,6 +80,9 @@ class Player(Node):
         self.start_ns = self.reader.start_ns + int(round(p["start_offset_s"] * 1e9))
         self.sent = 0
         self.passes = 0
+        self.skipped = 0  # messages that did not decode or held NaN / inf
+        self.missing: dict[str, int] = {}  # topic -> messages missing from the log (seq gaps)
+        self._last_seq: dict[str, int] = {}
 
     def on_start(self) -> None:
         r = self.reader
@@ -98,9 +113,11 @@ class Player(Node):
         import itertools
 
         self.passes += 1
+        self._last_seq = {}
         self._iter = itertools.chain(
-            # Latched messages go out first, at the start's log time (no pause before them).
-            ((dataclasses.replace(m, log_time_ns=self.start_ns)) for m in self._latched),
+            # Latched messages go out first, at the start's log time (no pause before them),
+            # with sequence -1: they stand outside the stream whose gaps are counted.
+            ((dataclasses.replace(m, log_time_ns=self.start_ns, sequence=-1)) for m in self._latched),
             self.reader.messages(self.topics, start_ns=self.start_ns),
         )
         self._wall0 = time.monotonic()
@@ -126,21 +143,56 @@ class Player(Node):
                     self._held = m
                     self.call_later(wait, self._step)
                     return
-            try:
-                msg = m.decode()
-            except MessageError as exc:
-                self.log(f"skipped a malformed message in the log: {exc}")
+            msg = self._sound(m)
+            if msg is None:
                 continue
             self._publishers[m.topic].publish(msg)
             self.sent += 1
             budget -= 1
         self.call_later(0, self._step)
 
+    def _sound(self, m) -> Any:
+        """The decoded message, with the frames missing so far in ``frames_lost``; None (said
+        in a line) when it is damaged."""
+        try:
+            msg = m.decode()
+        except MessageError as exc:
+            self.skipped += 1
+            self.log(f"skipped a damaged message in the log: {exc}")
+            return None
+        data = getattr(msg, "data", None)
+        if isinstance(data, np.ndarray) and data.dtype.kind in "fc" and not np.isfinite(data).all():
+            self.skipped += 1
+            self.log(
+                f"skipped a damaged message in the log: {m.topic} seq {m.sequence} at "
+                f"{(m.log_time_ns - self.reader.start_ns) / 1e9:.3f} s into the log: its samples hold NaN or inf"
+            )
+            return None
+        if m.sequence >= 0:
+            last = self._last_seq.get(m.topic)
+            self._last_seq[m.topic] = m.sequence
+            if last is not None and m.sequence > last + 1:
+                gap = m.sequence - last - 1
+                self.missing[m.topic] = self.missing.get(m.topic, 0) + gap
+                self.log(
+                    f"{m.topic}: {gap} message(s) missing from the log before seq {m.sequence} "
+                    f"({(m.log_time_ns - self.reader.start_ns) / 1e9:.3f} s into the log)"
+                )
+        lost = self.missing.get(m.topic, 0)
+        if lost and hasattr(msg, "frames_lost"):
+            msg = dataclasses.replace(msg, frames_lost=int(msg.frames_lost) + lost)
+        return msg
+
     def _end_of_pass(self) -> None:
         if self.params["loop"]:
             self._begin_pass()
             return
-        self.log(f"end of log: published {self.sent} message(s)")
+        lost = {t: n for t, n in self.missing.items() if n}
+        note = ""
+        if lost or self.skipped:
+            note = "; missing from the log or damaged: " + ", ".join(f"{t}: {n}" for t, n in sorted(lost.items()))
+            note += f" ({self.skipped} skipped as damaged)" if self.skipped else ""
+        self.log(f"end of log: published {self.sent} message(s){note}")
         self.status_message = f"done: {self.sent} messages"
         if self.params["exit_when_done"]:
             self.request_shutdown("end of log")

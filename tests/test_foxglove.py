@@ -127,12 +127,14 @@ def _read_back(path) -> dict[str, list]:
     return out
 
 
-def _check_content(got: dict[str, list], truth: dict) -> None:
+def _check_content(got: dict[str, list], truth: dict, stamp: int | None = STAMP) -> None:
+    """``stamp``: the time the images must carry (None: a live recording, on the clock of
+    the moment it ran)."""
     # images: PNG pixel (i, j) = inferno(|image (i, j)| / max)
     for name, im in truth["images"].items():
         (img_msg, _), = got[f"/image/{name}"]
         assert img_msg.format == "png"
-        assert img_msg.timestamp.seconds * 10**9 + img_msg.timestamp.nanos == STAMP
+        assert stamp is None or img_msg.timestamp.seconds * 10**9 + img_msg.timestamp.nanos == stamp
         rgb = _png_rgb(img_msg.data)
         assert rgb.shape == im.shape + (3,)
         assert np.abs(rgb.astype(np.int32) - _inferno_rgb(im)).max() <= 3
@@ -170,7 +172,7 @@ def _check_content(got: dict[str, list], truth: dict) -> None:
     c = _unpack(pc)
     assert np.allclose(np.column_stack([c["x"], c["y"], c["z"]]), truth["centres"], atol=1e-6)
     (q, _), = got["/sar/quality"]
-    assert q == {"scan_id": "s1", "index": 3, "pose_gap_ms": 2.5}
+    assert {k: v for k, v in q.items() if k != "timestamp"} == {"scan_id": "s1", "index": 3, "pose_gap_ms": 2.5}
 
     # the solver's result as plottable numbers
     (r, _), = got["/autofocus/result"]
@@ -180,6 +182,31 @@ def _check_content(got: dict[str, list], truth: dict) -> None:
     logs = [m for m, _ in got["/log"] if m.name == "solver"]  # a live graph adds its own nodes' lines
     assert [(m.name, m.level) for m in logs] == [("solver", 2), ("solver", 3), ("solver", 4)]
     assert "lost 3" in logs[1].message and "boom" in logs[2].message
+
+
+def _time_of(topic: str, decoded) -> int:
+    """The Foxglove ``timestamp`` a record carries (ns), however its schema places it."""
+    if isinstance(decoded, dict):
+        return decoded["timestamp"]["sec"] * 10**9 + decoded["timestamp"]["nsec"]
+    ts = decoded.entities[0].timestamp if topic == "/vio/trajectory" else decoded.timestamp
+    return ts.seconds * 10**9 + ts.nanos
+
+
+def _check_indexed_one_clock(path, got: dict[str, list], only_foxglove: bool = True) -> None:
+    """Chunked and indexed (summary with chunk indexes, message indexes), per-channel sequence
+    numbers 0, 1, ..., and one clock: every record's log time = publish time = its timestamp."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.chunk_indexes, "no summary or no chunk indexes"
+    assert all(ci.message_index_offsets for ci in summary.chunk_indexes), "chunks without message indexes"
+    if only_foxglove:
+        assert summary.statistics.message_count == sum(len(v) for v in got.values())
+    for topic, recs in got.items():
+        assert [m.sequence for _, m in recs] == list(range(len(recs))), topic
+        for decoded, m in recs:
+            assert m.log_time == m.publish_time == _time_of(topic, decoded), topic
 
 
 def _check_layout_names_what_exists(got: dict[str, list]) -> None:
@@ -232,12 +259,58 @@ def test_export_writes_every_message_in_a_declared_schema(tmp_path):
     got = _read_back(out)
     _check_content(got, truth)
     _check_layout_names_what_exists(got)
+    _check_indexed_one_clock(out, got)
     # an existing result is kept unless --overwrite
     before = out.read_bytes()
     assert main(["export", str(log), "--to", "foxglove", str(out), "-q"]) == 2
     assert out.read_bytes() == before
     assert main(["export", str(tmp_path / "missing.mcap"), "--to", "foxglove", str(tmp_path / "x.mcap")]) == 2
     assert not (tmp_path / "x.mcap").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fox.mcap", "run.mcap"]  # nothing half-written beside
+
+
+def test_export_puts_a_simulated_clock_on_the_wall_clock_and_draws_the_frame_tree(tmp_path):
+    """Sensor stamps from 0 (a simulation) are shifted to the first one's log time; computed
+    messages take the latest sensor time; /tf holds scene -> radar per pose and radar -> camera
+    from the calibration, the inverse of T_camera_radar."""
+    from scipy.spatial.transform import Rotation
+
+    from twinfocus.cli import main
+
+    wall = 1_780_000_000_000_000_000  # when the run was logged
+    rot = Rotation.from_euler("z", 30, degrees=True).as_quat()  # x y z w
+    poses = [Pose(header=Header(i * 50_000_000, i, "scene"), position_m=np.array([0.01 * i, 0.0, -0.5]),
+                  quat_xyzw=rot, confidence=0.9) for i in range(4)]
+    result = AutofocusResult(header=Header(wall + 9_999, 0, "scene"), scan_id="s", method="twin",
+                             phase_rad=np.zeros(3), loss_history=np.ones(2), metrics={}, timing_s={})
+    log = tmp_path / "sim.mcap"
+    t_cr = {"translation_m": [0.0, 0.085, 0.012], "rotation_rpy_deg": [0.0, 0.0, 90.0]}
+    with LogWriter(log) as w:
+        w.add_metadata("calibration", {"extrinsics": t_cr})
+        for i, p in enumerate(poses):  # logged 25 ms apart: the simulation runs at 2x
+            w.write("vio/pose", p, log_time_ns=wall + i * 25_000_000)
+        w.write("autofocus/result", result, log_time_ns=wall + 200_000_000)
+    out = tmp_path / "fox.mcap"
+    assert main(["export", str(log), "--to", "foxglove", str(out), "-q"]) == 0
+    got = _read_back(out)
+    _check_indexed_one_clock(out, got)
+    want = [wall + i * 50_000_000 for i in range(4)]
+    assert [m.log_time for _, m in got["/vio/pose"]] == want
+    (res, m), = got["/autofocus/result"]
+    assert m.log_time == want[-1]  # the latest sensor time, not its own (wall-clock) stamp
+    tf = [d for d, _ in got["/tf"]]
+    body = [d for d in tf if d.parent_frame_id == "scene"]
+    assert [d.child_frame_id for d in body] == ["radar"] * 4
+    assert np.allclose([[d.translation.x, d.translation.y, d.translation.z] for d in body], [p.position_m for p in poses])
+    assert np.allclose([d.rotation.x for d in body], rot[0]) and np.allclose([d.rotation.w for d in body], rot[3])
+    (cam,) = [d for d in tf if d.parent_frame_id == "radar"]
+    assert cam.child_frame_id == "camera"
+    # the camera's origin in the radar frame: -R^T t, R = 90 deg about z
+    r = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    assert np.allclose([cam.translation.x, cam.translation.y, cam.translation.z], -r.T @ np.array(t_cr["translation_m"]))
+    q = Rotation.from_matrix(r.T).as_quat()
+    got_q = np.array([cam.rotation.x, cam.rotation.y, cam.rotation.z, cam.rotation.w])
+    assert np.allclose(got_q, q) or np.allclose(got_q, -q)
 
 
 def test_record_foxglove_writes_both_and_the_log_still_plays(tmp_path):
@@ -270,7 +343,9 @@ def test_record_foxglove_writes_both_and_the_log_still_plays(tmp_path):
             while not any(b"boom" in m for m in logged):
                 assert time.monotonic() < deadline, rec.writer.counts
                 time.sleep(0.05)
-    _check_content(_read_back(log), truth)
+    got = _read_back(log)
+    _check_content(got, truth, stamp=None)
+    _check_indexed_one_clock(log, got, only_foxglove=False)
     # our reader (player, replay) sees only the msgpack channels, all of them
     r = LogReader(log)
     assert set(r.channels) == set(topics) and r.counts["vio/pose"] == 10
@@ -321,3 +396,41 @@ def test_live_bridge_serves_the_focused_image_over_websocket():
     rgb = _png_rgb(decoded.data)
     assert rgb.shape == truth["img"].shape + (3,)
     assert np.abs(rgb.astype(np.int32) - _inferno_rgb(truth["img"])).max() <= 3
+
+
+def test_a_client_connected_before_the_first_message_still_gets_it():
+    """A viewer opened before the graph starts: it subscribes when /vio/pose first appears, after
+    that first pose was logged; the bridge sends it the channel's latest record then."""
+    tornado_ws = pytest.importorskip("tornado.websocket")
+    from nodes.foxglove_bridge import FoxgloveBridge
+    from nodes.testing import Probe, local_broker, running
+
+    msgs, truth = _scene()
+    pose = truth["poses"][0]
+
+    async def client(port: int, send) -> bytes:
+        conn = await tornado_ws.websocket_connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"])
+        channel = None
+        while channel is None:
+            msg = await conn.read_message()
+            assert msg is not None, "server closed the connection"
+            op = json.loads(msg) if isinstance(msg, str) else {}
+            if op.get("op") == "serverInfo":
+                send()  # connected: now the graph publishes its first pose
+            if op.get("op") == "advertise":
+                channel = next((c for c in op["channels"] if c["topic"] == "/vio/pose"), None)
+        await conn.write_message(json.dumps({"op": "subscribe", "subscriptions": [{"id": 3, "channelId": channel["id"]}]}))
+        while True:
+            msg = await conn.read_message()
+            assert msg is not None, "server closed the connection"
+            if isinstance(msg, bytes) and msg[0] == 0x01:
+                conn.close()
+                return channel, msg[13:]
+
+    with local_broker() as ep:
+        bridge = FoxgloveBridge(broker=ep, params={"port": 0})
+        probe = Probe(ep, publish=["vio/pose"], wait_for=["foxglove_bridge"])
+        with running(bridge, probe):
+            channel, payload = asyncio.run(asyncio.wait_for(client(bridge.port, lambda: probe.send("vio/pose", pose)), 30))
+    decoded = _proto_class(channel["schemaName"], base64.b64decode(channel["schema"])).FromString(payload)
+    assert np.allclose([decoded.pose.position.x, decoded.pose.position.y, decoded.pose.position.z], pose.position_m)

@@ -25,7 +25,11 @@ def run(args: argparse.Namespace) -> int:
     from twinfocus.progress import Progress
 
     counts = export_log(
-        args.log, args.output, overwrite=args.overwrite, progress=Progress("export", enabled=not args.quiet)
+        args.log,
+        args.output,
+        overwrite=args.overwrite,
+        progress=Progress("export", enabled=not args.quiet),
+        say=lambda line: print(line, file=sys.stderr),
     )
     per = ", ".join(f"{t}: {n}" for t, n in sorted(counts.items()))
     print(
