@@ -48,10 +48,30 @@ def _address(value: str, where: str, name: str) -> tuple[str, int]:
     return host, int(port)
 
 
-def _virtual_channels(frame: np.ndarray, chirp: Chirp, z0_m: float) -> np.ndarray:
+def _virtual_channels(frame: np.ndarray, chirp: Chirp, z0_m: float, correction: np.ndarray | None) -> np.ndarray:
     from twinfocus.sensors.frames import frame_to_virtual_channels
 
-    return frame_to_virtual_channels(frame, chirp, z0_m).astype(np.complex64, copy=False)
+    x = frame_to_virtual_channels(frame, chirp, z0_m)
+    return (x if correction is None else x * correction).astype(np.complex64, copy=False)
+
+
+def _channel_calibration(options: dict, chirp: Chirp, where: str) -> np.ndarray | None:
+    """The ``calibration`` option's correction (K, N) (``twinfocus calibrate``), refused when made
+    for another array or chirp; none: a one-line warning, the channels uncorrected."""
+    import sys
+
+    path = option(options, "calibration", "", str, where)
+    if not path:
+        print(
+            f"[{where}] warning: no 'calibration': the channels' own phase, gain and delay errors stay in the data",
+            file=sys.stderr,
+            flush=True,
+        )
+        return None
+    from twinfocus.calibration import calibration_for
+
+    correction, _ = calibration_for(path, chirp, mmwcas_virtual_array())
+    return correction
 
 
 class MmwcasRadar:
@@ -63,7 +83,8 @@ class MmwcasRadar:
     (``tx_order``: TI's TxToEnable, e.g. "12,11,...,1"; ``n_loops``; ``frame_period_s``) comes
     from the capture's mmWave Studio JSON when it has one, these options otherwise;
     ``setup`` (the configuration file, default the one found), ``drop_first_frame_of_each_slice``
-    (False) as TI's cascade processing does."""
+    (False) as TI's cascade processing does; ``calibration`` (a ``twinfocus calibrate`` file;
+    none: a warning)."""
 
     live = False
 
@@ -92,6 +113,7 @@ class MmwcasRadar:
                 "frame_period_s",
                 "drop_first_frame_of_each_slice",
                 "setup",
+                "calibration",
             },
             where,
         )
@@ -130,13 +152,14 @@ class MmwcasRadar:
         if not self.frames:
             raise TwinFocusError(f"{where}: {folder} holds no usable frame")
         self.channel_offsets_m = mmwcas_virtual_array().offsets_m
+        self.correction = _channel_calibration(options, self.chirp, where)
 
     def samples(self) -> Iterator[RadarSample]:
         for m, i in enumerate(self.frames):
             (frame,) = self.capture.frames(self.loop, start=i, stop=i + 1)
             yield RadarSample(
                 stamp_ns=frame.stamp_ns + self.offset_ns,
-                data=_virtual_channels(frame.data, self.chirp, self.z0_m),
+                data=_virtual_channels(frame.data, self.chirp, self.z0_m, self.correction),
                 scan_id=self.scan_id,
                 index=m,
                 last=m == len(self.frames) - 1,
@@ -155,7 +178,8 @@ class Dca1000Radar:
     ``cfg``: from the ``.cfg``, which must then describe a 12 TX x 16 RX radar), ``z0_m`` (0.6),
     ``scan_id`` ("live"), ``frames_per_scan`` (0: one scan until the stream ends; N: every N
     frames end a scan, the next gets ``scan_id_001``...), ``idle_timeout_s`` (5: the stream has
-    ended after this long without packets), ``keep_flagged`` (False)."""
+    ended after this long without packets), ``keep_flagged`` (False), ``calibration`` (a
+    ``twinfocus calibrate`` file; none: a warning)."""
 
     live = True
 
@@ -180,6 +204,7 @@ class Dca1000Radar:
                 "frames_per_scan",
                 "idle_timeout_s",
                 "keep_flagged",
+                "calibration",
             },
             where,
         )
@@ -213,6 +238,7 @@ class Dca1000Radar:
         self.idle_timeout_s = option(options, "idle_timeout_s", 5.0, float, where)
         self.keep_flagged = bool(option(options, "keep_flagged", False, bool, where))
         self.channel_offsets_m = mmwcas_virtual_array().offsets_m
+        self.correction = _channel_calibration(options, self.chirp, where)
         self._stop = threading.Event()
         self._cli = None
         self.host = Dca1000(
@@ -273,7 +299,7 @@ class Dca1000Radar:
             last = bool(self.per_scan) and index == self.per_scan - 1
             pending = RadarSample(
                 frame.stamp_ns,
-                _virtual_channels(frame.data, self.chirp, self.z0_m),
+                _virtual_channels(frame.data, self.chirp, self.z0_m, self.correction),
                 scan_id,
                 index,
                 last,

@@ -269,3 +269,86 @@ def test_autofocused_target_through_calibrated_array_matches_perfect_array():
     r = calibration_case(seed=1, n_columns=2, n_rows=40, size=48)
     assert abs(r["calibrated"] - r["perfect"]) < 0.02, r
     assert r["uncalibrated"] < r["perfect"] - 0.2, r
+
+
+# --- the simulator's imperfect array ---------------------------------------------------------------
+
+
+def test_beam_pattern_follows_cos_power_and_fast_simulator_agrees():
+    from twinfocus.simulate import simulate_if, simulate_if_exact
+
+    q = TYPICAL.pattern_exponent
+    assert np.cos(np.radians(30)) ** q == pytest.approx(0.5)  # half power 30 degrees off boresight
+    pos = np.zeros((1, 1, 3))
+    on, off = np.array([[0.0, 0.0, 0.6]]), np.array([[0.6 * np.tan(np.radians(40)), 0.0, 0.6]])
+    ratio = (
+        np.abs(simulate_if_exact(off, None, pos, CHIRP, pattern_exponent=q)).mean()
+        / np.abs(simulate_if_exact(on, None, pos, CHIRP, pattern_exponent=q)).mean()
+    )
+    assert ratio == pytest.approx(np.cos(np.radians(40)) ** q, rel=1e-4)
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(-0.3, 0.3, 50), rng.uniform(-0.2, 0.2, 50), rng.uniform(0.5, 0.7, 50)])
+    centres = np.stack(np.meshgrid(np.linspace(-0.1, 0.1, 4), np.linspace(-0.05, 0.05, 3), [0.0]), -1).reshape(3, 4, 3)
+    exact = simulate_if_exact(pts, None, centres, CHIRP, pattern_exponent=q)
+    fast = simulate_if(pts, None, centres, CHIRP, pattern_exponent=q)
+    assert np.linalg.norm(fast - exact) / np.linalg.norm(exact) < 1e-3
+    assert np.linalg.norm(exact - simulate_if_exact(pts, None, centres, CHIRP)) > 0.1 * np.linalg.norm(exact)
+
+
+def test_iq_imbalance_makes_the_closed_form_image_tone():
+    """Q' = g (sin psi I + cos psi Q) turns a tone into mu tone + nu conj(tone)."""
+    from twinfocus.array_errors import iq_imbalance
+
+    g, psi = 10 ** (1 / 20), np.radians(2.0)
+    tone = np.exp(1j * 0.3 * np.arange(64))[None]
+    mu, nu = (1 + g * np.exp(1j * psi)) / 2, (1 - g * np.exp(-1j * psi)) / 2
+    np.testing.assert_allclose(iq_imbalance(tone, [g], [psi]), mu * tone + nu * np.conj(tone), atol=1e-6)
+
+
+def test_simulate_array_errors_switch(tmp_path, capsys):
+    """--array-errors typical changes the data, not the scene's draws; none is the perfect array;
+    a knob alone adds only its effect (leakage: a tone at the antennas' separation, near zero range)."""
+    common = ["simulate", "--columns", "1", "--rows", "3", "--snr-db", "inf", "--quiet"]
+    scans = {}
+    for name, extra in {
+        "perfect": [],
+        "typical": ["--array-errors", "typical"],
+        "leak": ["--leakage-db", "10"],
+    }.items():
+        rc, _, err = _run(
+            capsys, *common, "--out", tmp_path / f"{name}.npz", "--template-out", tmp_path / f"t{name}.npz", *extra
+        )
+        assert rc == 0, err
+        scans[name] = Scan.load(tmp_path / f"{name}.npz")
+    p, t, leak = scans["perfect"], scans["typical"], scans["leak"]
+    np.testing.assert_array_equal(p.positions, t.positions)
+    assert np.linalg.norm(t.data - p.data) > 0.5 * np.linalg.norm(p.data)
+    from twinfocus.radar import range_compress
+
+    extra = np.abs(range_compress(leak.data - p.data, CHIRP, window="hann")).mean(axis=(0, 1))
+    assert CHIRP.range_axis_m()[np.argmax(extra)] < 0.15
+    rc, _, err = _run(capsys, *common, "--out", tmp_path / "x.npz", "--beamwidth-deg", "200")
+    _refused(rc, err, [tmp_path / "x.npz"], "beamwidth_deg")
+
+
+def test_live_radar_backend_applies_the_calibration(captures, tmp_path, capsys):
+    """The radar driver's ``calibration`` option gives the channels `convert --calibration` gives;
+    one of another chirp is refused; none warns."""
+    from nodes.backends import RADAR_BACKENDS, load_backend
+
+    cal = _calibration(captures, tmp_path, capsys)
+    cls = load_backend(RADAR_BACKENDS, "mmwcas", "radar")
+    b = cls({"capture": str(captures["scene"]), "calibration": str(tmp_path / "good.npz")})
+    try:
+        first = next(iter(b.samples()))
+        raw = b.capture.read_frame(b.frames[0])[0]
+    finally:
+        b.close()
+    expected = frame_to_virtual_channels(raw, CHIRP, 0.6) * cal.correction()
+    np.testing.assert_allclose(first.data, expected, rtol=1e-5, atol=1e-3)
+    replace(cal, chirp=Chirp(fs_hz=10e6)).save(tmp_path / "other.npz")
+    with pytest.raises(TwinFocusError, match="another chirp"):
+        cls({"capture": str(captures["scene"]), "calibration": str(tmp_path / "other.npz")})
+    capsys.readouterr()
+    cls({"capture": str(captures["scene"])}).close()
+    assert "warning: no 'calibration'" in capsys.readouterr().err

@@ -206,6 +206,11 @@ def draw_array_errors(levels: ArrayErrorLevels, rng: np.random.Generator | int |
     )
 
 
+def array_errors_stream(seed: int) -> np.random.Generator:
+    """The random stream of a scenario seed's array draw (independent of its other streams)."""
+    return np.random.default_rng([int(seed), 38])
+
+
 def iq_imbalance(x: np.ndarray, gain: np.ndarray, phase_rad: np.ndarray) -> np.ndarray:
     """I/Q imbalance of receivers: Q' = g (sin(psi) I + cos(psi) Q), I' = I.
 

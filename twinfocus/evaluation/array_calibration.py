@@ -1,9 +1,10 @@
 """One simulated case of channel calibration: the same scene and tracking errors focused through a
 perfect array, an imperfect one, and the imperfect one after a corner calibration.
 
-The scene scan and the physical twin's motion-stage scan are simulated once
-(:func:`twinfocus.scenario.simulate_scenario`); the imperfect array's errors
-(:mod:`twinfocus.array_errors`, on the virtual channels) are applied to both; a still capture of a
+The scene scan and the physical twin's motion-stage scan are simulated through the perfect array
+and through an imperfect one (:func:`twinfocus.scenario.simulate_scenario`, the same scene,
+tracking errors and noise; :mod:`twinfocus.array_errors`, ``twinfocus simulate --array-errors``);
+a still capture of a
 corner reflector on the array's axis through the same array gives the calibration
 (:func:`twinfocus.calibration.make_calibration`, the path of ``twinfocus calibrate SCAN.npz``).
 Every target image is scored against the perfect array's image on the true positions.
@@ -13,7 +14,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinfocus.array_errors import TYPICAL, ArrayErrorLevels, apply_array_errors_to_channels, draw_array_errors
+from twinfocus.array_errors import (
+    TYPICAL,
+    ArrayErrorLevels,
+    apply_array_errors_to_channels,
+    array_errors_stream,
+    draw_array_errors,
+)
 from twinfocus.backprojection import backproject
 from twinfocus.calibration import apply_calibration, find_corner, make_calibration
 from twinfocus.errors import TwinFocusError
@@ -47,16 +54,15 @@ def calibration_case(
     then the image without autofocus), "residual_phase_deg_rms", "phase_spread_before_deg"}.
     """
     sc = Scenario(n_columns=n_columns, n_rows=n_rows, seed=seed)
+    errors = draw_array_errors(levels, array_errors_stream(seed))
     scan, template_scan = simulate_scenario(sc)
+    bad_scan, bad_template = simulate_scenario(sc, array_errors=errors)
     chirp = scan.chirp
     array = mmwcas_virtual_array()
-    errors = draw_array_errors(levels, np.random.default_rng([seed, 38]))
-
-    def through_array(s: Scan) -> Scan:
-        return s.with_data(apply_array_errors_to_channels(s.data, chirp, errors, array, sc.distance_m))
-
     still = np.broadcast_to(array.offsets_m, (CORNER_FRAMES, *array.offsets_m.shape)).copy()
-    corner = simulate_if_exact(np.array([[0.0, 0.0, corner_range_m]]), None, still, chirp)
+    corner = simulate_if_exact(
+        np.array([[0.0, 0.0, corner_range_m]]), None, still, chirp, pattern_exponent=errors.pattern_exponent
+    )
     corner = add_thermal_noise(corner, CORNER_SNR_DB, np.random.default_rng([seed, 39]))
     corner = apply_array_errors_to_channels(corner, chirp, errors, array, corner_range_m)
     peak = find_corner(corner, chirp, corner_range_m)
@@ -69,8 +75,8 @@ def calibration_case(
     ref_grid, tgt_grid = scenario_grids(sc, size)
     variants = {
         "perfect": (scan, template_scan),
-        "uncalibrated": (through_array(scan), through_array(template_scan)),
-        "calibrated": (calibrated(through_array(scan)), calibrated(through_array(template_scan))),
+        "uncalibrated": (bad_scan, bad_template),
+        "calibrated": (calibrated(bad_scan), calibrated(bad_template)),
     }
     out: dict = {}
     truth = None
