@@ -50,10 +50,32 @@ def _address(value: str, where: str, name: str) -> tuple[str, int]:
     return host, int(port)
 
 
-def _virtual_channels(frame: np.ndarray, chirp: Chirp, z0_m: float, array: VirtualArray | None = None) -> np.ndarray:
+def _virtual_channels(
+    frame: np.ndarray, chirp: Chirp, z0_m: float, array: VirtualArray | None = None, correction: np.ndarray | None = None
+) -> np.ndarray:
     from twinfocus.sensors.frames import frame_to_virtual_channels
 
-    return frame_to_virtual_channels(frame, chirp, z0_m, array).astype(np.complex64, copy=False)
+    x = frame_to_virtual_channels(frame, chirp, z0_m, array)
+    return (x if correction is None else x * correction).astype(np.complex64, copy=False)
+
+
+def _channel_calibration(options: dict, chirp: Chirp, array: VirtualArray, where: str) -> np.ndarray | None:
+    """The ``calibration`` option's correction (K, N) (``twinfocus calibrate``), refused when made
+    for another array or chirp; none: a one-line warning, the channels uncorrected."""
+    import sys
+
+    path = option(options, "calibration", "", str, where)
+    if not path:
+        print(
+            f"[{where}] warning: no 'calibration': the channels' own phase, gain and delay errors stay in the data",
+            file=sys.stderr,
+            flush=True,
+        )
+        return None
+    from twinfocus.calibration import calibration_for
+
+    correction, _ = calibration_for(path, chirp, array)
+    return correction
 
 
 class MmwcasRadar:
@@ -67,7 +89,7 @@ class MmwcasRadar:
     from the capture's mmWave Studio JSON when it has one, these options otherwise;
     ``setup`` (the configuration file, default the one found), ``drop_first_frame_of_each_slice``
     (False) as TI's cascade processing does; ``board`` (a board file of the antenna layout,
-    default TI's MMWCAS-RF-EVM)."""
+    default TI's MMWCAS-RF-EVM); ``calibration`` (a ``twinfocus calibrate`` file; none: a warning)."""
 
     live = False
 
@@ -97,6 +119,7 @@ class MmwcasRadar:
                 "drop_first_frame_of_each_slice",
                 "setup",
                 "board",
+                "calibration",
             },
             where,
         )
@@ -140,13 +163,14 @@ class MmwcasRadar:
         if not self.frames:
             raise TwinFocusError(f"{where}: {folder} holds no usable frame")
         self.channel_offsets_m = self.array.offsets_m
+        self.correction = _channel_calibration(options, self.chirp, self.array, where)
 
     def samples(self) -> Iterator[RadarSample]:
         for m, i in enumerate(self.frames):
             (frame,) = self.capture.frames(self.loop, start=i, stop=i + 1)
             yield RadarSample(
                 stamp_ns=frame.stamp_ns + self.offset_ns,
-                data=_virtual_channels(frame.data, self.chirp, self.z0_m, self.array),
+                data=_virtual_channels(frame.data, self.chirp, self.z0_m, self.array, self.correction),
                 scan_id=self.scan_id,
                 index=m,
                 last=m == len(self.frames) - 1,
@@ -174,7 +198,8 @@ class Dca1000Radar:
     ``cfg``: from the ``.cfg``, which must then describe a 12 TX x 16 RX radar), ``z0_m`` (0.6),
     ``scan_id`` ("live"), ``frames_per_scan`` (0: one scan until the stream ends; N: every N
     frames end a scan, the next gets ``scan_id_001``...), ``idle_timeout_s`` (5: the stream has
-    ended after this long without packets), ``keep_flagged`` (False)."""
+    ended after this long without packets), ``keep_flagged`` (False), ``calibration`` (a
+    ``twinfocus calibrate`` file; none: a warning)."""
 
     live = True
 
@@ -199,6 +224,7 @@ class Dca1000Radar:
                 "frames_per_scan",
                 "idle_timeout_s",
                 "keep_flagged",
+                "calibration",
             },
             where,
         )
@@ -231,7 +257,9 @@ class Dca1000Radar:
         self.per_scan = int(option(options, "frames_per_scan", 0, int, where))
         self.idle_timeout_s = option(options, "idle_timeout_s", 5.0, float, where)
         self.keep_flagged = bool(option(options, "keep_flagged", False, bool, where))
-        self.channel_offsets_m = mmwcas_virtual_array().offsets_m
+        self.array = mmwcas_virtual_array()
+        self.channel_offsets_m = self.array.offsets_m
+        self.correction = _channel_calibration(options, self.chirp, self.array, where)
         self._stop = threading.Event()
         self._cli = None
         self.host = Dca1000(
@@ -292,7 +320,7 @@ class Dca1000Radar:
             last = bool(self.per_scan) and index == self.per_scan - 1
             pending = RadarSample(
                 frame.stamp_ns,
-                _virtual_channels(frame.data, self.chirp, self.z0_m),
+                _virtual_channels(frame.data, self.chirp, self.z0_m, self.array, self.correction),
                 scan_id,
                 index,
                 last,

@@ -6,6 +6,7 @@ Keys of the scan file:
     f0_hz, slope_hz_per_s, fs_hz         scalars (N is data.shape[-1])
     positions_true  float64   (M, K, 3)  optional ground truth
     timestamps_ns   int64     (M,)       optional capture times
+    calibration     str                  optional JSON: the channel calibration applied (file, sha256)
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ class Scan:
     chirp : the :class:`~twinfocus.radar.Chirp`; ``chirp.n_samples == N``.
     positions_true : optional float64 (M, K, 3), the positions the data were really taken at.
     timestamps_ns : optional int64 (M,).
+    calibration : optional JSON text naming the channel calibration the data went through
+        (``twinfocus convert --calibration``: file name, SHA-256, quality figures).
     """
 
     data: np.ndarray
@@ -41,6 +44,7 @@ class Scan:
     chirp: Chirp
     positions_true: np.ndarray | None = None
     timestamps_ns: np.ndarray | None = None
+    calibration: str | None = None
 
     def __post_init__(self) -> None:
         self.data = np.asarray(self.data)
@@ -101,6 +105,8 @@ class Scan:
             arrays["positions_true"] = self.positions_true.astype(np.float64, copy=False)
         if self.timestamps_ns is not None:
             arrays["timestamps_ns"] = self.timestamps_ns.astype(np.int64, copy=False)
+        if self.calibration is not None:
+            arrays["calibration"] = np.array(self.calibration)
         return save_npz_atomic(path, arrays)
 
     @classmethod
@@ -121,6 +127,7 @@ class Scan:
                 chirp=chirp,
                 positions_true=z.get("positions_true"),
                 timestamps_ns=z.get("timestamps_ns"),
+                calibration=str(z["calibration"]) if "calibration" in z else None,
             )
         except TwinFocusError as exc:
             raise TwinFocusError(f"{path}: {exc}") from None

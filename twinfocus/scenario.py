@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from twinfocus.array_errors import ArrayErrors, apply_array_errors_to_channels
 from twinfocus.board import load_board
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
@@ -238,33 +239,51 @@ def scenario_noise_power(n_positions: int, samples_at) -> float:
     return float(np.mean(np.abs(x.astype(np.complex128)) ** 2))
 
 
-def template_scan(sc: Scenario, chirp: Chirp | None = None, with_clutter: bool = False) -> Scan:
+def template_scan(
+    sc: Scenario, chirp: Chirp | None = None, with_clutter: bool = False, array_errors: ArrayErrors | None = None
+) -> Scan:
     """The reference alone on the motion stage's raster (exact positions): the physical twin's
-    capture; ``with_clutter``: in the scene's cluttered room (the evaluation's swapped rooms)."""
+    capture; ``with_clutter``: in the scene's cluttered room (the evaluation's swapped rooms);
+    ``array_errors``: through that imperfect array (:func:`simulate_scenario`)."""
     chirp = chirp or Chirp()
     stage = phase_centres(paper_raster(sc.n_columns, sc.n_rows), scenario_array(sc))
     pts, amps = scenario_scatterers(sc, reference_only=True, with_clutter=with_clutter)
-    data = simulate_if(pts, amps, stage, chirp, **simulator_options(sc))
+    data = simulate_if(pts, amps, stage, chirp, **simulator_options(sc), **_pattern(array_errors))
     if sc.snr_db is not None:
         data = add_thermal_noise(data, sc.snr_db, scenario_stream(sc, TEMPLATE_NOISE_STREAM))
-    return Scan(data, stage, chirp, positions_true=stage)
+    return Scan(_through(data, chirp, array_errors, sc), stage, chirp, positions_true=stage)
 
 
-def simulate_scenario(sc: Scenario, chirp: Chirp | None = None, progress=None) -> tuple[Scan, Scan]:
+def simulate_scenario(
+    sc: Scenario, chirp: Chirp | None = None, progress=None, array_errors: ArrayErrors | None = None
+) -> tuple[Scan, Scan]:
     """Simulate the handheld scan of the whole scene and the reference's motion-stage scan.
 
     Returns (scan, template_scan). ``scan.positions`` are the tracked (erroneous) positions,
-    ``scan.positions_true`` the truth; the template scan's positions are exact.
+    ``scan.positions_true`` the truth; the template scan's positions are exact. ``array_errors``
+    (:mod:`twinfocus.array_errors`; None: the perfect array): both scans through that imperfect
+    array, the beam pattern on every scatterer, the channel errors, leakage, DC offset and I/Q
+    imbalance on the channels (the same draws of scene, tracking and noise as the perfect array).
     """
     chirp = chirp or Chirp()
     true, tracked, stamps = scenario_positions(sc)
     pts, amps = scenario_scatterers(sc)
-    data = simulate_if(pts, amps, true, chirp, progress=progress, **simulator_options(sc))
+    data = simulate_if(pts, amps, true, chirp, progress=progress, **simulator_options(sc), **_pattern(array_errors))
     if sc.snr_db is not None:
         power = scenario_noise_power(data.shape[0], lambda idx: data[idx])
         data = add_thermal_noise(data, sc.snr_db, scenario_stream(sc, RADAR_NOISE_STREAM), signal_power=power)
-    scan = Scan(data, tracked, chirp, positions_true=true, timestamps_ns=stamps)
-    return scan, template_scan(sc, chirp)
+    scan = Scan(_through(data, chirp, array_errors, sc), tracked, chirp, positions_true=true, timestamps_ns=stamps)
+    return scan, template_scan(sc, chirp, array_errors=array_errors)
+
+
+def _pattern(array_errors: ArrayErrors | None) -> dict:
+    return {"pattern_exponent": array_errors.pattern_exponent} if array_errors and array_errors.pattern_exponent else {}
+
+
+def _through(data: np.ndarray, chirp: Chirp, array_errors: ArrayErrors | None, sc: Scenario) -> np.ndarray:
+    if array_errors is None:
+        return data
+    return apply_array_errors_to_channels(data, chirp, array_errors, mmwcas_virtual_array(), sc.distance_m)
 
 
 def scenario_grids(sc: Scenario, size: int = PAPER_IMAGE_SIZE) -> tuple[ImageGrid, ImageGrid]:

@@ -32,6 +32,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "twinfocus.cli.convert",
         "convert a TI MMWCAS capture folder + trajectory file to a scan file (+ MCAP)",
     ),
+    "calibrate": (
+        "twinfocus.cli.calibrate",
+        "a capture of one corner reflector -> the array's channel calibration (for convert --calibration)",
+    ),
     "devices": ("twinfocus.cli.devices", "list attached radars, capture boards and cameras (USB)"),
     "bench": (
         "twinfocus.cli.bench",

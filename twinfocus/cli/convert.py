@@ -77,6 +77,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="nanoseconds per tick of the index files' time stamps (default 1000: microseconds)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing --mcap file")
+    p.add_argument(
+        "--calibration",
+        help="channel calibration to apply (.npz from `twinfocus calibrate`); without one a warning is printed",
+    )
     g = p.add_argument_group(
         "cascade chirp and layout (read from the capture's mmWave Studio JSON / Lua setup when there; "
         "the chirp options above override it, with a note)"
@@ -190,10 +194,12 @@ def run(args: argparse.Namespace) -> int:
         )
         for note in report.notes:
             say(note)
+        calibration = _calibrate(args, scan, array, say)
         scan.save(out)
         gaps = {**report.gaps(), **gaps}
         write_json_atomic(
-            capture_report_path(out), {"capture": str(capture), **gaps, "chirp": chirp_record, "board": board.to_dict()}
+            capture_report_path(out),
+            {"capture": str(capture), **gaps, "chirp": chirp_record, "board": board.to_dict(), "calibration": calibration},
         )
         say(
             f"{report.n_used} of {report.n_frames} frames -> {out} ({scan.data.shape[0]} x {scan.data.shape[1]} x {scan.data.shape[2]})"
@@ -215,6 +221,24 @@ def run(args: argparse.Namespace) -> int:
         )
     )
     return 0
+
+
+def _calibrate(args, scan, array, say) -> dict | None:
+    """Apply --calibration to the scan in place; its record (file, SHA-256), or None with a warning."""
+    if not args.calibration:
+        print(
+            "[convert] warning: no --calibration: the channels' own phase, gain and delay errors stay in the data "
+            "(make one with `twinfocus calibrate`, docs/calibration.md)",
+            file=sys.stderr,
+        )
+        return None
+    from twinfocus.calibration import apply_calibration, calibration_for
+
+    correction, record = calibration_for(args.calibration, scan.chirp, array)
+    scan.data = apply_calibration(scan.data, correction)
+    scan.calibration = json.dumps(record)
+    say(f"channel calibration {record['file']} applied (sha256 {record['sha256'][:12]})")
+    return record
 
 
 def _open_mmwcas(args, capture: Path, say):

@@ -149,7 +149,48 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="MM",
         help="rigid offset of the cloud: a length (random direction) or three (x y z), mm (default 2)",
     )
+    a = p.add_argument_group(
+        "the array as hardware is (docs/calibration.md): a level, then any knob replaces its value"
+    )
+    a.add_argument(
+        "--array-errors",
+        choices=["none", "typical"],
+        default="none",
+        help="'none' (default): the perfect array; 'typical': published magnitudes (twinfocus.array_errors)",
+    )
+    a.add_argument("--array-seed", type=int, help="draw of the array's errors (default: from --seed)")
+    a.add_argument("--channel-phase-deg", type=float, help="per-TX/RX phase spread (180: uniform; typical 180)")
+    a.add_argument("--channel-amplitude-db", type=float, help="per-TX/RX gain sd, dB (typical 1)")
+    a.add_argument("--channel-delay-mm", type=float, help="per-TX/RX range offset sd, mm (typical 3)")
+    a.add_argument("--leakage-db", type=float, help="TX-to-RX leakage re the mean return, dB (typical 0)")
+    a.add_argument("--dc-offset-db", type=float, help="receiver DC offset re the mean return, dB (typical -20)")
+    a.add_argument("--iq-gain-db", type=float, help="I/Q gain mismatch bound, dB (typical 1)")
+    a.add_argument("--iq-phase-deg", type=float, help="I/Q phase mismatch bound, degrees (typical 2)")
+    a.add_argument("--beamwidth-deg", type=float, help="antenna half-power beam width, degrees (typical 60)")
     p.add_argument("--quiet", action="store_true")
+
+
+_ARRAY_KNOBS = (
+    "channel_phase_deg",
+    "channel_amplitude_db",
+    "channel_delay_mm",
+    "leakage_db",
+    "dc_offset_db",
+    "iq_gain_db",
+    "iq_phase_deg",
+    "beamwidth_deg",
+)
+
+
+def array_errors_from_args(args: argparse.Namespace):
+    """The :class:`~twinfocus.array_errors.ArrayErrors` draw the options ask for (None: the perfect array)."""
+    from twinfocus.array_errors import NONE, array_error_levels, array_errors_stream, draw_array_errors
+
+    levels = array_error_levels(args.array_errors, **{k: getattr(args, k) for k in _ARRAY_KNOBS})
+    if levels == NONE:
+        return None, levels
+    seed = args.seed if args.array_seed is None else args.array_seed
+    return draw_array_errors(levels, array_errors_stream(seed)), levels
 
 
 def run(args: argparse.Namespace) -> int:
@@ -193,6 +234,7 @@ def run(args: argparse.Namespace) -> int:
 
         load_board(args.board)  # a bad board file is refused before the (long) simulation
     _check_cost(sc, args)
+    array_errors, levels = array_errors_from_args(args)
     cloud = None
     if args.reference_cloud_out is not None:
         # Made before the (long) simulation so a bad impairment option fails at once.
@@ -209,7 +251,9 @@ def run(args: argparse.Namespace) -> int:
             rng=np.random.default_rng([args.seed, 14]),
         )
     t0 = time.perf_counter()
-    scan, template_scan = simulate_scenario(sc, progress=Progress("simulate", enabled=not args.quiet))
+    scan, template_scan = simulate_scenario(
+        sc, progress=Progress("simulate", enabled=not args.quiet), array_errors=array_errors
+    )
     scan.save(args.out)
     if args.template_out:
         template_scan.save(args.template_out)
@@ -227,6 +271,7 @@ def run(args: argparse.Namespace) -> int:
         "channels": scan.n_channels,
         "reference_cloud": args.reference_cloud_out,
         "reference_cloud_points": None if cloud is None else int(cloud.shape[0]),
+        "array_errors": None if array_errors is None else levels.to_dict(),
     }
     print(json.dumps(info), file=sys.stderr)
     return 0

@@ -50,13 +50,14 @@ def _radar(args) -> int:
 
 
 def _capture(args) -> int:
+    from twinfocus.array_errors import array_error_levels, draw_array_errors
     from twinfocus.radar import Chirp
     from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
-    from twinfocus.sensors.emulators.radar_scene import quantize_iq, simulate_mimo_frames
+    from twinfocus.sensors.emulators.radar_scene import imperfect_mimo_frames, quantize_iq, simulate_mimo_frames
     from twinfocus.sensors.emulators.rig import N_REFERENCE_SCATTERERS, demo_scatterers
     from twinfocus.sensors.ti_mmwcas import MmwcasConfig
     from twinfocus.sensors.trajectory_files import write_tum
-    from twinfocus.trajectory import paper_raster
+    from twinfocus.trajectory import Poses, paper_raster
 
     chirp = Chirp(n_samples=args.n_samples)
     cfg = MmwcasConfig(chirp=chirp, frame_period_s=args.period)
@@ -70,11 +71,23 @@ def _capture(args) -> int:
         frame_period_s=args.period,
         t0_ns=1_700_000_000_000_000_000,
     )
-    pts = demo_scatterers(args.z)
-    if args.reference_only:
-        pts = pts[:N_REFERENCE_SCATTERERS]
-    frames = simulate_mimo_frames(chirp, traj, pts)
-    iq = quantize_iq(frames, full_scale=float(len(pts)), headroom=0.9)
+    if args.corner is not None:
+        # A still radar facing one corner reflector on its axis: a calibration capture.
+        traj = Poses(
+            traj.timestamps_ns[: args.frames], np.zeros((args.frames, 3)), np.tile([0.0, 0, 0, 1], (args.frames, 1))
+        )
+        pts = np.array([[0.0, 0.0, args.corner]])
+    else:
+        pts = demo_scatterers(args.z)
+        if args.reference_only:
+            pts = pts[:N_REFERENCE_SCATTERERS]
+    if args.array_errors == "none":
+        frames = simulate_mimo_frames(chirp, traj, pts)
+    else:
+        errors = draw_array_errors(array_error_levels(args.array_errors), args.array_seed)
+        frames = imperfect_mimo_frames(chirp, traj, pts, errors, snr_db=args.snr_db, rng=args.array_seed + 1)
+    # Leakage and DC can exceed the scene's own full scale: the imperfect array's is its peak.
+    iq = quantize_iq(frames, full_scale=float(len(pts)) if args.array_errors == "none" else None, headroom=0.9)
     stamps = card_t0 + (traj.timestamps_ns - traj.timestamps_ns[0])
     out = Path(args.folder)
     write_mmwcas_capture(out, iq, stamps, cfg)
@@ -116,6 +129,13 @@ def main(argv=None) -> int:
     )
     c.add_argument("--seed", type=int, default=0, help="seed of the tracking error")
     c.add_argument("--reference-only", action="store_true", help="only the reference (the T), as on a motion stage")
+    c.add_argument("--corner", type=float, help="instead of the scene: one corner reflector at this range, radar still")
+    c.add_argument("--frames", type=int, default=8, help="with --corner: frames to capture (default 8)")
+    c.add_argument(
+        "--array-errors", choices=["none", "typical"], default="none", help="the array as hardware is (default none)"
+    )
+    c.add_argument("--array-seed", type=int, default=0, help="draw of the array's errors (default 0)")
+    c.add_argument("--snr-db", type=float, default=None, help="with --array-errors: per-sample SNR (default none)")
     args = p.parse_args(argv)
     try:
         return _radar(args) if args.what == "radar" else _capture(args)

@@ -25,12 +25,15 @@ def simulate_mimo_frames(
     tx_body_m: np.ndarray | None = None,
     rx_body_m: np.ndarray | None = None,
     chunk: int = 8,
+    pattern_exponent: float = 0.0,
 ) -> np.ndarray:
     """IF samples of every TX-RX pair at every radar pose.
 
     chirp : the chirp; poses : radar body poses (M) in the scene frame;
     scatterers_m : float (J, 3) scene-frame points; amplitudes : complex (J,), default 1;
-    tx_body_m, rx_body_m : antenna positions in the body frame (default the MMWCAS board).
+    tx_body_m, rx_body_m : antenna positions in the body frame (default the MMWCAS board);
+    pattern_exponent : q of each antenna's power pattern cos(theta)^q, theta off the body's z
+        axis (0, the default: isotropic antennas; see :mod:`twinfocus.array_errors`).
     Returns complex64 (M, n_tx, n_rx, N).
     """
     pts = np.asarray(scatterers_m, dtype=np.float64)
@@ -58,7 +61,15 @@ def simulate_mimo_frames(
             r_tx = np.linalg.norm(tx - pts[j], axis=-1)  # (m, T)
             r_rx = np.linalg.norm(rx - pts[j], axis=-1)  # (m, R)
             path = r_tx[:, :, None] + r_rx[:, None, :]
-            acc += amp[j] * np.exp(1j * path[..., None] * k)
+            term = amp[j] * np.exp(1j * path[..., None] * k)
+            if pattern_exponent:
+                # Amplitude cos(theta)^(q/2) per antenna, theta between boresight and the ray.
+                bore = rot[sl][:, :, 2]  # (m, 3) body z in the scene frame
+                cos_t = np.einsum("mti,mi->mt", pts[j] - tx, bore) / r_tx
+                cos_r = np.einsum("mri,mi->mr", pts[j] - rx, bore) / r_rx
+                g = np.clip(cos_t, 0, 1)[:, :, None] * np.clip(cos_r, 0, 1)[:, None, :]
+                term = term * (g ** (pattern_exponent / 2))[..., None]
+            acc += term
         out[sl] = acc
     return out
 
@@ -95,3 +106,34 @@ def monostatic_if(chirp: Chirp, centres_m: np.ndarray, scatterers_m: np.ndarray,
         r = np.linalg.norm(c - pts[j], axis=-1)
         out += amp[j] * np.exp(1j * 2 * np.pi * f * 2 * r[..., None] / C_M_PER_S)
     return out
+
+
+def imperfect_mimo_frames(
+    chirp: Chirp,
+    poses: Poses,
+    scatterers_m: np.ndarray,
+    errors,
+    amplitudes: np.ndarray | None = None,
+    snr_db: float | None = None,
+    rng: np.random.Generator | int | None = 0,
+) -> np.ndarray:
+    """:func:`simulate_mimo_frames` through the MMWCAS board as hardware is.
+
+    errors : a :class:`twinfocus.array_errors.ArrayErrors` (its beam pattern, channel errors,
+    leakage, DC offset and I/Q imbalance; leakage and DC refer to the scene's mean return);
+    snr_db : per-sample SNR of thermal noise added before the receivers' imperfections (None:
+    none). Returns complex64 (M, 12, 16, N).
+    """
+    from twinfocus.array_errors import apply_array_errors
+
+    tx, rx = mmwcas_antenna_positions_body_m()
+    clean = simulate_mimo_frames(
+        chirp, poses, scatterers_m, amplitudes, tx, rx, pattern_exponent=errors.pattern_exponent
+    )
+    power = float(np.mean(np.abs(clean) ** 2))
+    x = clean
+    if snr_db is not None:
+        g = np.random.default_rng(rng)
+        sd = np.sqrt(power / 10 ** (snr_db / 10) / 2)
+        x = clean + (sd * (g.standard_normal(clean.shape) + 1j * g.standard_normal(clean.shape))).astype(np.complex64)
+    return apply_array_errors(x, chirp, errors, tx, rx, reference_power=power)
