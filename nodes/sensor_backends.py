@@ -51,7 +51,11 @@ def _address(value: str, where: str, name: str) -> tuple[str, int]:
 
 
 def _virtual_channels(
-    frame: np.ndarray, chirp: Chirp, z0_m: float, array: VirtualArray | None = None, correction: np.ndarray | None = None
+    frame: np.ndarray,
+    chirp: Chirp,
+    z0_m: float,
+    array: VirtualArray | None = None,
+    correction: np.ndarray | None = None,
 ) -> np.ndarray:
     from twinfocus.sensors.frames import frame_to_virtual_channels
 

@@ -37,9 +37,6 @@ _NOT_FOR_CALIBRATION = {
     "calibration",
 }
 
-#: The board a capture comes from (a calibration is refused on another).
-BOARD = "MMWCAS-RF-EVM"
-
 
 def _convert_parser() -> argparse.ArgumentParser:
     from twinfocus.cli import convert
@@ -71,6 +68,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from twinfocus.board import load_board
     from twinfocus.calibration import find_corner, make_calibration, pair_array, save_calibration_png
     from twinfocus.radar import mmwcas_virtual_array
     from twinfocus.sensors.frames import frame_to_virtual_channels, mmwcas_antenna_positions_body_m
@@ -87,14 +85,16 @@ def run(args: argparse.Namespace) -> int:
     if not capture.exists():
         raise TwinFocusError(f"{capture}: no such capture file or folder")
     say = (lambda *a: None) if args.quiet else (lambda msg: print(f"[calibrate] {msg}", file=sys.stderr))
-    array = mmwcas_virtual_array()
+    # The board a capture comes from (--board, as convert takes it): a calibration is refused on another.
+    board = load_board(getattr(args, "board", None))
+    array = mmwcas_virtual_array(board)
     if capture.suffix == ".npz":
         from twinfocus.scan import Scan
 
         scan = Scan.load(capture)
         if scan.n_channels != array.n_channels:
             raise TwinFocusError(
-                f"{capture}: the scan has {scan.n_channels} channels, the {BOARD} array {array.n_channels}"
+                f"{capture}: the scan has {scan.n_channels} channels, the {board.name} array {array.n_channels}"
             )
         chirp = scan.chirp
         data = scan.data[: args.max_frames]
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         say(f"scan {capture}: {data.shape[0]} positions x {data.shape[1]} channels")
     else:
         frames, chirp = _read_frames(args, capture, say)
-        tx, rx = mmwcas_antenna_positions_body_m(array)
+        tx, rx = mmwcas_antenna_positions_body_m(array, board)
         pairs = pair_array(tx, rx)
         peak = find_corner(
             frame_to_virtual_channels(frames, chirp, args.range_m, pairs), chirp, args.range_m, args.window_m
@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
         centres = pairs.offsets_m
         origin = np.zeros(3)
         say(f"{capture}: {frames.shape[0]} frames x {pairs.n_channels} TX-RX pairs")
-    cal, report = make_calibration(data, centres, chirp, peak, pairs, array, BOARD, args.reference_channel, origin)
+    cal, report = make_calibration(data, centres, chirp, peak, pairs, array, board.name, args.reference_channel, origin)
     cal.save(out)
     save_calibration_png(picture, cal, report)
     q = cal.quality
@@ -157,10 +157,10 @@ def _read_frames(args, capture: Path, say):
         if hasattr(cargs, k) and k not in ("capture", "out", "quiet"):
             setattr(cargs, k, v)
     if convert._is_mmwcas(capture):
-        cap, chirp = convert._open_mmwcas(cargs, capture, say)
+        cap, chirp, _ = convert._open_mmwcas(cargs, capture, say)
         source = lambda: cap.frames(loop=cargs.loop)
     else:
-        cap, chirp, _ = convert._open_dca1000(cargs, capture, say)
+        cap, chirp, _, _ = convert._open_dca1000(cargs, capture, say)
         source = lambda: iter(cap.frames)
     with cap:
         for w in cap.warnings:

@@ -199,7 +199,13 @@ def run(args: argparse.Namespace) -> int:
         gaps = {**report.gaps(), **gaps}
         write_json_atomic(
             capture_report_path(out),
-            {"capture": str(capture), **gaps, "chirp": chirp_record, "board": board.to_dict(), "calibration": calibration},
+            {
+                "capture": str(capture),
+                **gaps,
+                "chirp": chirp_record,
+                "board": board.to_dict(),
+                "calibration": calibration,
+            },
         )
         say(
             f"{report.n_used} of {report.n_frames} frames -> {out} ({scan.data.shape[0]} x {scan.data.shape[1]} x {scan.data.shape[2]})"
