@@ -21,13 +21,18 @@ Start-up protocol (why no message is lost to ZeroMQ's slow-joiner drop):
    subscribes to its topics and to ``graph/status``, and finally to a private echo topic.
    Subscriptions travel in order over one connection, so when the echo subscription comes
    back to the node's own XPUB (through the broker), every earlier subscription is
-   registered at the broker.
+   registered at the broker. Only that exact subscription counts: a subscriber of every topic
+   (the recorder) covers the echo topic by prefix as soon as the node connects.
 2. ``ready``: the node says so on ``graph/status`` (heartbeat, with the topics it publishes
    and subscribes) and waits until every node named in ``wait_for`` is ready too and, for each
    topic it publishes that one of them subscribes, the subscription has reached its own XPUB
    (from then on ZeroMQ will not filter that topic away). Messages that arrive meanwhile are
    queued, not handled.
 3. ``running``: :meth:`on_start` runs, queued messages are handled, timers start.
+
+A latched publisher (``create_publisher(topic, latched=True)``: the template) sends its latest
+message again when a node that subscribes to it reports ready after it went out, so a node
+started or restarted late still gets it.
 
 Every subscriber counts messages per (topic, publisher) by ``header.seq`` and reports gaps on
 stderr and in its heartbeat (``lost``). SIGINT/SIGTERM end the loop; :meth:`on_shutdown` runs,

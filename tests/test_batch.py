@@ -126,10 +126,17 @@ def test_summary_lists_pending_items_from_the_start_and_the_local_cluster_opens_
     from twinfocus.cli.batch_jobs import run_batch
     from twinfocus.cluster import dask_client
 
+    import urllib.error
+    import urllib.request
+
     with dask_client(workers=1) as client:
         port = client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.http_server.port)
-        services = client.run_on_scheduler(lambda dask_scheduler: sorted(dask_scheduler.services))
-    assert port != 8787 and "dashboard" not in services
+        # the scheduler's own health page on a free loopback port, and no dashboard behind it
+        assert urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=30).read() == b"ok"
+        with pytest.raises(urllib.error.HTTPError) as e:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=30)
+        assert e.value.code == 404
+    assert port != 8787
     items = [{"name": f"n{i}", "scan": "scan3.npz", "method": "none", "reference_roi": REF, "target_roi": TGT,
               "size": "16", "no_pictures": "true"} for i in range(2)]
     manifest = _write_csv(scans / "pending.csv", items)
@@ -155,14 +162,16 @@ def test_ctrl_c_stops_a_batch_with_one_line(scans, tmp_path):
     # its own process group, as a terminal's foreground job: Ctrl-C reaches every process in it
     p = subprocess.Popen([sys.executable, "-c", "import sys; from twinfocus.cli import main; sys.exit(main())", "batch", str(manifest), "--out", str(out),
                           "--workers", "2"], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                         start_new_session=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+                         start_new_session=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                         # as from a terminal: SIGINT not ignored (a background shell job ignores it)
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines = []
     for line in p.stderr:  # waits on the batch's own word that the cluster is up
         lines.append(line)
         if "local cluster" in line:
             break
     os.killpg(p.pid, signal.SIGINT)
-    rest, _ = p.communicate(timeout=240)
+    _, rest = p.communicate(timeout=240)
     assert p.returncode == 130, rest
     said = [ln for ln in rest.splitlines() if ln.strip() and not ln.startswith("[batch] ")]
     assert len(said) == 1 and said[0].startswith("twinfocus batch: interrupted:"), rest

@@ -6,7 +6,7 @@
   reason;
 * a node that stops answering (SIGSTOP) is named within seconds and the graph ends non-zero with
   the result marked incomplete, or the node is restarted where the launch file says ``respawn``;
-* a memory check refuses before it allocates (``twinfocus simulate --height 1000``).
+* a memory check refuses before it allocates (``twinfocus simulate --height 1000``, ``render``).
 
 Time bounds here are outer limits that keep a broken build from hanging the suite; what each
 test asserts is a status, a line or a count.
@@ -261,11 +261,17 @@ def test_a_stopped_node_that_may_respawn_is_replaced_and_the_graph_focuses(tmp_p
 
 
 @pytest.mark.timeout(120)
-def test_a_simulation_too_large_for_memory_is_refused_before_it_allocates(tmp_path):
-    out = tmp_path / "s.npz"
-    r = subprocess.run([*CLI, "simulate", "--out", str(out), "--height", "1000"], capture_output=True, text=True,
-                       timeout=100, cwd=REPO)
+@pytest.mark.parametrize("command, words", [
+    (["simulate", "--out", "{tmp}/s.npz", "--height", "1000"], "GiB just to place them"),
+    (["render", "--out", "{tmp}/r", "--height", "1000"], "this rendering needs about"),
+    (["render", "--out", "{tmp}/r", "--width", "1000000", "--height-px", "1000000"], "this rendering needs about"),
+], ids=["simulate-height", "render-height", "render-picture"])
+def test_what_cannot_fit_in_memory_is_refused_before_it_allocates(tmp_path, command, words):
+    """Terabytes asked for: one line, status 2, nothing written (before, the check itself
+    allocated them and ended in a traceback)."""
+    argv = [a.format(tmp=tmp_path) for a in command]
+    r = subprocess.run([*CLI, *argv], capture_output=True, text=True, timeout=100, cwd=REPO)
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and "GiB just to place them" in lines[0] and "--height" in lines[0], r.stderr
-    assert not out.exists()
+    assert len(lines) == 1 and words in lines[0] and "GiB is available" in lines[0], r.stderr
+    assert list(tmp_path.iterdir()) == []
