@@ -148,7 +148,7 @@ class Solver(Node):
         self.waiting: list[_Scan] = []  # finished scans waiting for a template
         self.done = 0
         self.failed = 0  # scans dropped (not focused)
-        self._template_stamp: tuple[int, str] | None = None  # of the template in use (a latched resend repeats it)
+        self._template_msg: TwinTemplate | None = None  # the template in use, as received
         self._radar_frames_before = 0  # radar frames published for the scans before the current one
         self._flush_scheduled = False
         self.stream_gaps = (0, 0, 0)  # the latest measurement's capture gap counts (since the stream began)
@@ -220,8 +220,7 @@ class Solver(Node):
     def on_template(self, msg: TwinTemplate) -> None:
         from twinfocus.templates import resample_support, resample_template
 
-        stamp = (int(msg.header.stamp_ns), msg.source)
-        if stamp == self._template_stamp:  # the same template again (sent to a node that started later)
+        if self._same_template(msg):  # the same template again (sent for a node that started later)
             return
         try:
             template = resample_template(msg.image, msg.x_m, msg.y_m, msg.z_m, self.ref_grid, phase_rad=msg.phase_rad)
@@ -237,7 +236,7 @@ class Solver(Node):
                 self.log(f"ignored the outline of the {msg.kind} template from {msg.source or '?'}: {exc}")
                 support = None
         self.template, self.support = template, support
-        self._template_stamp = stamp
+        self._template_msg = msg
         # what the confidence report needs of a digital twin's conditioning (metrics.json ``digital_twin``)
         self.twin_info = (
             {"surface": msg.surface, "curved": bool(msg.curved), "curvature_m": float(msg.curvature_m)}
@@ -251,6 +250,27 @@ class Solver(Node):
         for s in list(self.waiting):
             self.waiting.remove(s)
             self._finish(s)
+
+    def _same_template(self, msg: TwinTemplate) -> bool:
+        """Whether ``msg`` repeats the template in use, field for field (the sequence number
+        aside): the latched topic sends it again when another subscriber starts later, and
+        handling it again would only redo the work."""
+        import dataclasses
+
+        old = self._template_msg
+        if old is None:
+            return False
+        for f in dataclasses.fields(msg):
+            a, b = getattr(old, f.name), getattr(msg, f.name)
+            if f.name == "header":
+                if (a.stamp_ns, a.frame_id) != (b.stamp_ns, b.frame_id):
+                    return False
+            elif isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+                if a is None or b is None or not np.array_equal(a, b):
+                    return False
+            elif a != b:
+                return False
+        return True
 
     # -- measurements -------------------------------------------------------------------------
     def on_measurement(self, m: SarMeasurement) -> None:
@@ -351,6 +371,7 @@ class Solver(Node):
         if s is None:
             return
         self._flush()
+        self._count_positions(s)
         if s.last_wall is None:  # ended without its last measurement: from the latest that came
             s.last_wall = s.seen_wall or time.monotonic()
         if s.n < max(1, int(self.params["min_positions"])):
@@ -422,8 +443,7 @@ class Solver(Node):
         except TwinFocusError as exc:
             self._drop(s, f"could not focus it: {exc}")
             return
-        expected = s.expected if s.expected is not None else max(s.max_index + 1, self._radar_frames(s))
-        self._radar_frames_before += int(max(expected, s.n))
+        expected = s.expected if s.expected is not None else s.max_index + 1
         out.metrics["n_positions_expected"] = int(max(expected, s.n))
         out.metrics["n_positions_missing"] = int(max(0, expected - s.n))
         out.metrics["complete"] = not s.incomplete
@@ -646,6 +666,14 @@ class Solver(Node):
             else:
                 self.request_shutdown(f"{self.done} scan(s) done")
 
+    def _count_positions(self, s: _Scan) -> None:
+        """At a scan's end: the positions it should have had (``s.expected``; for a scan without
+        its last measurement, the radar frames published for it), and those frames counted off
+        before the next scan."""
+        if s.expected is None:
+            s.expected = max(s.max_index + 1, self._radar_frames(s))
+        self._radar_frames_before += max(s.expected, s.n)
+
     def _radar_frames(self, s: _Scan) -> int:
         """Radar frames published for the scan so far, by the radar drivers' heartbeats (0 where no
         node publishes radar/frame, as in a replay of measurements): what an unfinished scan should
@@ -663,9 +691,10 @@ class Solver(Node):
             return
         s.incomplete = f"the graph stopped ({self._stop.reason if self._stop else 'stop'}) before its last measurement"
         self.log(f"scan {s.scan_id!r}: {s.incomplete}; focusing the {s.n} position(s) that arrived")
-        s.truth = None  # the graph is stopping: the image and its own metrics, not the simulation's truth
         try:
             self._flush()
+            self._count_positions(s)
+            s.truth = None  # the graph is stopping: the image and its own metrics, not the simulation's truth
             self.scan = None
             s.last_wall = s.last_wall or s.seen_wall or time.monotonic()
             self._finish(s)
