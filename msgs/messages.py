@@ -190,7 +190,10 @@ class AutofocusResult:
     (False: this result is the scan's last, as in logs recorded before the field);
     estimator : the named estimator that found the phase (``twinfocus.estimators.ESTIMATORS``,
     ``auto`` resolved: ``outline``, ``projection``, ``correlation``, ...) for ``method`` twin; empty
-    for the baselines and in logs recorded before the field.
+    for the baselines and in logs recorded before the field;
+    dropped : non-empty when the scan was not focused, saying why (no template in time, too few
+    positions, the focusing refused the data); ``phase_rad`` is then empty. Empty in logs recorded
+    before the field.
     """
 
     header: Header
@@ -203,6 +206,7 @@ class AutofocusResult:
     latency_s: float = real(0.0, doc="last measurement in -> result out, wall-clock seconds (0: unknown)")
     metrics_pending: bool = flag(False, doc="truth metrics follow in a later result for this scan")
     estimator: str = text("", doc="the estimator that found the phase (method twin; empty: none or unknown)")
+    dropped: str = text("", doc="why the scan was not focused (empty: it was)")
 
 
 @message(topic="image/focused")

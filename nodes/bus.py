@@ -213,7 +213,15 @@ class Broker:
                     "subscribes": st.subscribes,
                     "publishes": st.publishes,
                     "pid": st.pid,
+                    "message": st.message,
+                    "heard_s": time.monotonic(),  # when it arrived: the launcher's hang watch
                 }
+
+    def heartbeats(self) -> dict[str, dict]:
+        """A copy of the latest heartbeat of every node heard from (``state``, ``pid``,
+        ``message``, ``heard_s``: ``time.monotonic()`` when it arrived), by node name."""
+        with self._graph_lock:
+            return {k: dict(v) for k, v in self._graph.items()}
 
 
 def query_graph(endpoint: str, ctx: zmq.Context, timeout_s: float = 0.5) -> dict[str, dict]:

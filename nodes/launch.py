@@ -38,8 +38,16 @@ value), ``$(env NAME)`` / ``$(env NAME default)`` by an environment variable.
 so a terminal's Ctrl-C reaches only the launcher, which then stops the nodes in order; and a
 parent-death signal, so no node outlives a killed launcher), prefixes their output with
 ``[name]``, and stops everything on Ctrl-C, SIGTERM, a node crash (non-zero exit) or the end
-of a node whose ``on_exit`` says so: SIGTERM first, SIGKILL after ``grace_s``. Nodes also poll
-their parent pid, so they notice a dead launcher within 0.1 s even if the signal was missed.
+of a node whose ``on_exit`` says so: SIGTERM first, SIGKILL once a node has been silent (no
+heartbeat) for ``grace_s`` -- a node still heartbeating while it ends (the solver focusing the part
+of a scan that arrived) is given up to ``max_stop_s``. Nodes also poll their parent pid, so they
+notice a dead launcher within 0.1 s even if the signal was missed.
+
+Hung nodes: the broker keeps every node's latest heartbeat (nodes send one every ``heartbeat_s``,
+also from long computations). A node silent for ``stall_s`` (at least three periods) whose process
+is stopped (SIGSTOP) or has used no CPU time for another ``stall_s`` (blocked) is hung; a node that
+computes is given ``hang_s`` of silence. A hung node is named in one line, killed, and respawned
+where the launch file says ``respawn``; otherwise the graph stops with status 1.
 """
 
 from __future__ import annotations
@@ -302,9 +310,21 @@ def _pdeathsig() -> None:  # runs in the child before exec
 class Launcher:
     """Runs a :class:`Graph`; :meth:`run` blocks until the graph stops and returns an exit code."""
 
-    def __init__(self, graph: Graph, grace_s: float = 10.0, stream=None):
+    def __init__(
+        self,
+        graph: Graph,
+        grace_s: float = 10.0,
+        stream=None,
+        stall_s: float = 3.0,
+        hang_s: float = 60.0,
+        max_stop_s: float = 120.0,
+    ):
         self.graph = graph
         self.grace_s = grace_s
+        self.stall_s = stall_s
+        self.hang_s = hang_s
+        self.max_stop_s = max(max_stop_s, grace_s)
+        self._quiet: dict[str, tuple[float, int]] = {}  # silent node -> (since, its CPU ticks then)
         self.out = _Output(stream)
         self.out.width = max(len(n.name) for n in graph.nodes + [NodeSpec("launch", "")])
         self.procs: dict[str, subprocess.Popen] = {}
@@ -387,6 +407,28 @@ class Launcher:
         running = set(self.procs)
         respawns = {name: 0 for name in specs}
         due: dict[str, float] = {}  # node -> when to respawn it
+
+        def respawn_or_stop(name: str, what: str, code: int) -> bool:
+            """Schedule a respawn where the launch file allows one; else say why the graph stops.
+            True: the graph goes on."""
+            spec = specs[name]
+            if spec.respawn and respawns[name] < spec.respawn_max:
+                respawns[name] += 1
+                self.say(
+                    f"node {name!r} {what}; respawning it in {spec.respawn_delay_s:g} s "
+                    f"(respawn {respawns[name]} of {spec.respawn_max})"
+                )
+                due[name] = time.monotonic() + spec.respawn_delay_s
+                return True
+            if spec.respawn:
+                self.say(
+                    f"node {name!r} {what} and was respawned {spec.respawn_max} time(s) already; stopping the graph"
+                )
+            else:
+                self.say(f"node {name!r} {what}; stopping the graph")
+            self._code = 2 if code == 2 else 1
+            return False
+
         while running or due:
             if self._stop_reason is not None:
                 self.say(f"{self._stop_reason}: stopping the graph")
@@ -396,31 +438,27 @@ class Launcher:
                     del due[name]
                     self._spawn(specs[name])
                     running.add(name)
+            beats = self.broker.heartbeats() if self.broker is not None else {}
             for name in sorted(running):
-                code = self.procs[name].poll()
+                p = self.procs[name]
+                code = p.poll()
                 if code is None:
+                    why = self._hang(name, specs[name], p, beats.get(name))
+                    if why is None:
+                        continue
+                    p.kill()  # a stopped or blocked process cannot act on SIGTERM
+                    p.wait()
+                    running.discard(name)
+                    if not respawn_or_stop(name, f"stopped answering ({why})", 1):
+                        return
                     continue
                 running.discard(name)
                 spec = specs[name]
-                what = _exit_text(code)
-                if spec.respawn:
-                    if respawns[name] < spec.respawn_max:
-                        respawns[name] += 1
-                        self.say(
-                            f"node {name!r} {what}; respawning it in {spec.respawn_delay_s:g} s "
-                            f"(respawn {respawns[name]} of {spec.respawn_max})"
-                        )
-                        due[name] = time.monotonic() + spec.respawn_delay_s
-                        continue
-                    self.say(
-                        f"node {name!r} {what} and was respawned {spec.respawn_max} time(s) already; stopping the graph"
-                    )
-                    self._code = 2 if code == 2 else 1
-                    return
-                if code != 0:
-                    self.say(f"node {name!r} {what}; stopping the graph")
-                    self._code = 2 if code == 2 else 1
-                    return
+                what = _exit_text(code) + self._last_word(name, p.pid)
+                if spec.respawn or code != 0:
+                    if not respawn_or_stop(name, what, code):
+                        return
+                    continue
                 if spec.on_exit == "shutdown":
                     self.say(f"node {name!r} finished; stopping the graph (on_exit: shutdown)")
                     return
@@ -435,24 +473,92 @@ class Launcher:
             time.sleep(0.05)
         self.say("every node finished")
 
+    def _last_word(self, name: str, pid: int) -> str:
+        """': <reason>' from the final heartbeat of a node that ended with a reason (as the
+        visualizer that counted a dropped scan), else ''."""
+        deadline = time.monotonic() + 0.5  # its final heartbeat may still be on its way to the broker
+        while self.broker is not None:
+            hb = self.broker.heartbeats().get(name) or {}
+            if hb.get("pid") == pid and hb.get("state") in ("stopped", "error"):
+                msg = str(hb.get("message") or "")
+                return f": {msg}" if msg and not msg.startswith("received SIG") else ""
+            if time.monotonic() > deadline:
+                return ""
+            time.sleep(0.02)
+        return ""
+
+    def _hang(self, name: str, spec: NodeSpec, proc: subprocess.Popen, hb: dict | None) -> str | None:
+        """Why the live node ``name`` counts as hung, or None.
+
+        A node heartbeats every ``heartbeat_s`` from its loop and from long computations. Silent
+        for ``stall_s`` (at least three periods) it is hung when its process is stopped (SIGSTOP,
+        a debugger) or has used no CPU time for another ``stall_s`` (blocked); a busy node is given
+        ``hang_s`` of silence, so a long computation on a loaded machine is not mistaken for a hang.
+        """
+        if hb is None or hb.get("pid") != proc.pid or hb.get("state") in ("stopped", "error"):
+            self._quiet.pop(name, None)  # not heard from yet (starting), or its end is on its way
+            return None
+        now = time.monotonic()
+        silent = now - float(hb["heard_s"])
+        try:
+            period = float(spec.parameters.get("heartbeat_s", 1.0))
+        except (TypeError, ValueError):
+            period = 1.0
+        if silent < max(self.stall_s, 3 * period):
+            self._quiet.pop(name, None)
+            return None
+        st = _proc_state(proc.pid)
+        if st is None:  # it has just ended: the exit is handled on the next pass
+            return None
+        state, ticks = st
+        if state in "Tt":
+            return f"no heartbeat for {silent:.1f} s; its process is stopped (SIGSTOP or a debugger)"
+        since, ticks0 = self._quiet.setdefault(name, (now, ticks))
+        if ticks != ticks0:
+            self._quiet[name] = (now, ticks)
+        elif hb.get("state") != "stopping" and now - since >= self.stall_s:
+            return f"no heartbeat for {silent:.1f} s and no CPU time used for {now - since:.1f} s (blocked)"
+        if silent > self.hang_s:
+            return f"no heartbeat for {silent:.1f} s though it computes (a loop that never returns?)"
+        return None
+
     def _stop_all(self) -> None:
         alive = {n: p for n, p in self.procs.items() if p.poll() is None}
         # SIGTERM, not SIGINT: a node still importing dies of it quietly, where SIGINT would print
         # a KeyboardInterrupt traceback; a running node stops cleanly on either.
-        for sig, wait in ((signal.SIGTERM, self.grace_s), (signal.SIGKILL, 3.0)):
-            if not alive:
-                break
-            if sig == signal.SIGKILL:
-                self.say(f"killing {', '.join(alive)} (did not stop in time)")
-            for p in alive.values():
-                try:
-                    p.send_signal(sig)
-                except ProcessLookupError:
-                    pass
-            deadline = time.monotonic() + wait
-            while alive and time.monotonic() < deadline:
-                alive = {n: p for n, p in alive.items() if p.poll() is None}
-                time.sleep(0.05)
+        for p in alive.values():
+            try:
+                p.send_signal(signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+        start = time.monotonic()
+        killed: dict[str, subprocess.Popen] = {}
+        while alive:
+            now = time.monotonic()
+            beats = self.broker.heartbeats() if self.broker is not None else {}
+            late = []
+            for n, p in alive.items():
+                hb = beats.get(n) or {}
+                heard = float(hb["heard_s"]) if hb.get("pid") == p.pid and "heard_s" in hb else start
+                # grace_s of silence, not of time: a node still heartbeating (the solver focusing
+                # what arrived) finishes, up to max_stop_s
+                if now - max(start, heard) > self.grace_s or now - start > self.max_stop_s:
+                    late.append(n)
+            if late:
+                self.say(f"killing {', '.join(late)} (did not stop in time)")
+                for n in late:
+                    try:
+                        alive[n].kill()
+                    except ProcessLookupError:
+                        pass
+                    killed[n] = alive.pop(n)
+            alive = {n: p for n, p in alive.items() if p.poll() is None}
+            time.sleep(0.05)
+        for p in killed.values():
+            try:
+                p.wait(3.0)
+            except subprocess.TimeoutExpired:
+                pass
         for t in self.pumps:
             t.join(timeout=2)
         if self.broker is not None:
@@ -460,6 +566,16 @@ class Launcher:
             self.broker = None
         if self.procs:
             self.say("graph stopped")
+
+
+def _proc_state(pid: int) -> tuple[str, int] | None:
+    """(state letter, user + system CPU ticks) of process ``pid`` from /proc, None if gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return fields[0], int(fields[11]) + int(fields[12])
 
 
 def run(path: str | os.PathLike, assignments: list[str] | tuple = (), grace_s: float = 10.0) -> int:

@@ -21,13 +21,18 @@ Start-up protocol (why no message is lost to ZeroMQ's slow-joiner drop):
    subscribes to its topics and to ``graph/status``, and finally to a private echo topic.
    Subscriptions travel in order over one connection, so when the echo subscription comes
    back to the node's own XPUB (through the broker), every earlier subscription is
-   registered at the broker.
+   registered at the broker. Only that exact subscription counts: a subscriber of every topic
+   (the recorder) covers the echo topic by prefix as soon as the node connects.
 2. ``ready``: the node says so on ``graph/status`` (heartbeat, with the topics it publishes
    and subscribes) and waits until every node named in ``wait_for`` is ready too and, for each
    topic it publishes that one of them subscribes, the subscription has reached its own XPUB
    (from then on ZeroMQ will not filter that topic away). Messages that arrive meanwhile are
    queued, not handled.
 3. ``running``: :meth:`on_start` runs, queued messages are handled, timers start.
+
+A latched publisher (``create_publisher(topic, latched=True)``: the template) sends its latest
+message again when a node that subscribes to it reports ready after it went out, so a node
+started or restarted late still gets it.
 
 Every subscriber counts messages per (topic, publisher) by ``header.seq`` and reports gaps on
 stderr and in its heartbeat (``lost``). SIGINT/SIGTERM end the loop; :meth:`on_shutdown` runs,
@@ -63,7 +68,8 @@ ENV_GRAPH_NODES = "TWINFOCUS_GRAPH_NODES"  # set by the launcher: every node of 
 ENV_LAUNCHED = "TWINFOCUS_LAUNCHED"  # set by the launcher: it prefixes output with node names
 ENV_LAUNCHER_PID = "TWINFOCUS_LAUNCHER_PID"  # set by the launcher: its pid, our parent while it lives
 READY_STATES = ("ready", "running")
-GONE_STATES = ("stopped", "error")  # a node that has ended no longer holds anyone up
+WAIT_WORD_S = 5.0  # a node waiting for the graph says why after this long, then every twice that
+GONE_STATES = ("stopping", "stopped", "error")  # a node that is ending no longer holds anyone up
 
 
 class Shutdown(Exception):
@@ -76,15 +82,23 @@ class Shutdown(Exception):
 
 
 class Publisher:
-    """Publishes one topic; sets ``header.seq`` (0, 1, 2, ...) on every message it sends."""
+    """Publishes one topic; sets ``header.seq`` (0, 1, 2, ...) on every message it sends.
 
-    def __init__(self, node: Node, topic: str, msg_type: type | None):
+    A ``latched`` publisher keeps its latest message and sends it again to every subscriber that
+    becomes ready after it went out (a late or restarted node), as a ROS 2 transient-local topic.
+    """
+
+    def __init__(self, node: Node, topic: str, msg_type: type | None, latched: bool = False):
         check_topic(topic)
         self.node = node
         self.topic = topic
         self.msg_type = msg_type or TOPIC_TYPES.get(topic)
         self._frame = topic_frame(topic)
         self.seq = 0
+        self.latched = latched
+        self.latest: Any = None
+        # (node, pid) of the subscribers the latest message has reached (latched topics only)
+        self.served: set[tuple[str, int]] = set()
 
     def publish(self, msg: Any) -> None:
         if self.msg_type is not None and not isinstance(msg, self.msg_type):
@@ -94,6 +108,12 @@ class Publisher:
         frames = encode_frames(msg, self.node.name)
         self.node._send_frames([self._frame, *frames])
         self.node._count(self.node._published, self.topic)
+        if self.latched:
+            self.latest = msg
+            # Ready subscribers have their subscriptions at the broker; if any subscription
+            # reached us the message left, so each of them got it. The others get it again
+            # when their ready heartbeat arrives (Node._serve_latched).
+            self.served = self.node._ready_subscribers(self.topic) if self.has_subscribers else set()
 
     @property
     def has_subscribers(self) -> bool:
@@ -178,6 +198,7 @@ class Node:
         self._last_seq: dict[tuple[str, str], int] = {}
         self._graph: dict[str, NodeStatus] = {}
         self._pending: deque = deque()
+        self._latched_due: set[str] = set()  # latched topics a newly ready subscriber has not had
         self._next_heartbeat = 0.0
         self._status_pub: Publisher | None = None
         self._echo_topic = f"graph/echo/{self.name.lower().replace('-', '_')}_{os.getpid()}_{id(self) % 100000}"
@@ -194,10 +215,12 @@ class Node:
         except (BrokenPipeError, ValueError):  # the launcher that read our output is gone
             pass
 
-    def create_publisher(self, topic: str, msg_type: type | None = None) -> Publisher:
+    def create_publisher(self, topic: str, msg_type: type | None = None, latched: bool = False) -> Publisher:
+        """A publisher of ``topic``; ``latched``: its latest message also reaches subscribers that
+        start later (the template, a configuration)."""
         if topic in self._publishers:
             return self._publishers[topic]
-        pub = Publisher(self, topic, msg_type)
+        pub = Publisher(self, topic, msg_type, latched)
         self._publishers[topic] = pub
         return pub
 
@@ -248,6 +271,14 @@ class Node:
             raise Shutdown(1, "the launcher is gone")
         if time.monotonic() >= self._next_heartbeat:
             self._heartbeat()
+
+    def read_heartbeats(self) -> dict[str, NodeStatus]:
+        """Take in the heartbeats that have arrived (from inside a long callback or
+        :meth:`on_shutdown`, where the loop does not run); other messages wait their turn.
+        Returns :attr:`graph`."""
+        if self._sub_sock is not None:
+            self._poll(0, queue_only=True)
+        return self._graph
 
     def launcher_gone(self) -> bool:
         """True when this node was started by a launcher that has died since."""
@@ -356,20 +387,32 @@ class Node:
         return any(f.startswith(s) for s in self._seen_subs)
 
     def _wait_loop(self, done: Callable[[], bool], explain: Callable[[], str]) -> None:
-        deadline = time.monotonic() + float(self.params["ready_timeout_s"])
+        start = time.monotonic()
+        deadline = start + float(self.params["ready_timeout_s"])
+        next_word = start + WAIT_WORD_S
         while not done():
             if self._stop is not None:
                 raise self._stop
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now > deadline:
                 self.log(f"error: graph not ready after {self.params['ready_timeout_s']:g} s: {explain()}")
                 raise Shutdown(1, "graph not ready")
+            if now >= next_word:  # no silent wait: say what holds us up
+                next_word = now + 2 * WAIT_WORD_S
+                self.log(
+                    f"waiting {now - start:.0f} s for the graph: {explain()} "
+                    f"(giving up after {self.params['ready_timeout_s']:g} s)"
+                )
             self._poll(min(100, self._ms_to_heartbeat()), queue_only=True)
             if time.monotonic() >= self._next_heartbeat:
                 self._heartbeat()
 
     def _await_own_subscriptions(self) -> None:
+        # Exactly our echo: a subscriber of every topic (recorder, bridge) covers the echo topic
+        # by prefix long before our own subscriptions have reached the broker.
+        echo = topic_frame(self._echo_topic)
         self._wait_loop(
-            lambda: self._covered(self._echo_topic), lambda: "my own subscriptions never came back through the broker"
+            lambda: echo in self._seen_subs, lambda: "my subscriptions have not come back through the broker yet"
         )
 
     def _needed(self) -> tuple[list[str], list[str]]:
@@ -475,6 +518,14 @@ class Node:
                 self.log(f"dropped a malformed heartbeat: {exc}")
                 return True
             self._graph[st.node] = st
+            if st.state in READY_STATES and st.node != self.name:
+                self._latched_due.update(
+                    p.topic
+                    for p in self._publishers.values()
+                    if p.latest is not None
+                    and (p.topic in st.subscribes or "*" in st.subscribes)
+                    and (st.node, st.pid) not in p.served
+                )
             # Consumed here unless the node asked for heartbeats (recorder, monitors).
             return not self._wildcard and STATUS_TOPIC not in self._subs
         return False
@@ -546,6 +597,8 @@ class Node:
 
     def _loop(self) -> None:
         while self._stop is None:
+            while self._pending and self._stop is None:  # queued by read_heartbeats
+                self._dispatch(self._pending.popleft())
             now = time.monotonic()
             wait = self._next_heartbeat - now
             if self._timers:
@@ -556,8 +609,32 @@ class Node:
                 self.request_shutdown("the launcher is gone", 1)
                 break
             self._run_timers()
+            if self._latched_due:
+                self._serve_latched()
             if time.monotonic() >= self._next_heartbeat:
                 self._heartbeat()
+
+    def _ready_subscribers(self, topic: str) -> set[tuple[str, int]]:
+        return {
+            (st.node, st.pid)
+            for st in self._graph.values()
+            if st.node != self.name and st.state in READY_STATES and (topic in st.subscribes or "*" in st.subscribes)
+        }
+
+    def _serve_latched(self) -> None:
+        """Send each latched topic's latest message again for the subscribers that became ready
+        after it went out, once their subscription has reached us (before that ZeroMQ would drop
+        it here)."""
+        for topic in sorted(self._latched_due):
+            pub = self._publishers[topic]
+            if not pub.has_subscribers:
+                continue
+            self._latched_due.discard(topic)
+            new = self._ready_subscribers(topic) - pub.served
+            if new:
+                served = pub.served | new
+                pub.publish(pub.latest)
+                pub.served = served
 
     def _flush_through_broker(self) -> None:
         """Wait (up to ``linger_s``) until our final heartbeat comes back through the broker.
@@ -598,6 +675,14 @@ class Node:
     def _shutdown_node(self) -> int:
         stop = self._stop or Shutdown(0, "")
         code = stop.code
+        if self._pub_sock is not None and not self.launcher_gone():
+            # Heartbeats may pause while on_shutdown works: tell the launcher's watch that the
+            # silence that follows is an ending, not a hang.
+            self.state = "stopping"
+            try:
+                self._heartbeat()
+            except Exception:
+                pass
         try:
             self.on_shutdown()
         except Exception:

@@ -21,7 +21,10 @@ Outputs per scan: :class:`msgs.AutofocusResult` (phase, loss curve, metrics, tim
 estimator that ran) and
 :class:`msgs.Image` on ``image/focused`` named ``target``, ``target_uncorrected``,
 ``reference``, ``reference_uncorrected``; with ``out_dir`` also ``twinfocus focus``'s files in
-``out_dir/<scan_id>/`` (:func:`twinfocus.pipeline.write_outputs`). Metrics against the truth
+``out_dir/<scan_id>/`` (:func:`twinfocus.pipeline.write_outputs`); a scan that ended without its
+last measurement (its source went quiet, the graph was stopped) goes to
+``out_dir/<scan_id>.incomplete/`` with ``complete: false`` and ``incomplete_reason`` in its metrics,
+so it never replaces a whole scan's result. Metrics against the truth
 are computed when the measurements carry ``positions_true_m`` (simulation). A scan whose
 measurements report capture gaps (a DCA1000 stream's lost and zero-filled frames, missing bytes)
 has them in its metrics as ``capture``, as ``twinfocus focus`` has a converted capture's.
@@ -38,7 +41,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from msgs import AutofocusResult, Header, Image, SarMeasurement, TwinTemplate, now_ns
-from nodes.node import Node, run_node
+from nodes.node import Node, Shutdown, run_node
 from nodes.params import REQUIRED, Param, param_of
 from twinfocus.basis import BasisRows
 from twinfocus.errors import TwinFocusError
@@ -48,6 +51,8 @@ if TYPE_CHECKING:  # imported where used: the node starts without scipy
     from twinfocus.template_match import MatchScores
 
 
+#: seconds of focusing work between two progress lines
+PROGRESS_EVERY_S = 5.0
 #: fewest reference rows a streamed registration step scores at once (see _score_registration)
 _REGISTRATION_ROWS = 16
 
@@ -78,6 +83,7 @@ class _Scan:
     registration_s: float = 0.0
     gaps_before: tuple[int, int, int] = (0, 0, 0)  # the stream's gap counts when the scan began
     gaps: tuple[int, int, int] = (0, 0, 0)  # the stream's gap counts at its latest measurement
+    incomplete: str = ""  # why the scan ended without its last measurement (empty: it did not)
 
 
 class Solver(Node):
@@ -141,6 +147,9 @@ class Solver(Node):
         self.scan: _Scan | None = None
         self.waiting: list[_Scan] = []  # finished scans waiting for a template
         self.done = 0
+        self.failed = 0  # scans dropped (not focused)
+        self._template_msg: TwinTemplate | None = None  # the template in use, as received
+        self._radar_frames_before = 0  # radar frames published for the scans before the current one
         self._flush_scheduled = False
         self.stream_gaps = (0, 0, 0)  # the latest measurement's capture gap counts (since the stream began)
         self.result_pub = self.create_publisher("autofocus/result")
@@ -148,7 +157,11 @@ class Solver(Node):
         self.create_subscription("sar/measurement", self.on_measurement)
         self.create_subscription("twin/template", self.on_template)
         if p["warm_up"]:
+            self.log("warming up the optimiser and the back-projection (one-off, seconds on a busy machine)")
+            t = time.perf_counter()
             self._warm_up()
+            self.log(f"warmed up in {time.perf_counter() - t:.1f} s; joining the graph")
+        self._said_at = self._step_t0 = 0.0  # when the latest progress line went out; the step began
 
     def on_start(self) -> None:
         self.create_timer(min(1.0, max(0.05, self.params["scan_timeout_s"] / 4)), self._check_stale)
@@ -156,10 +169,8 @@ class Solver(Node):
     def _check_stale(self) -> None:
         s = self.scan
         if s is not None and time.monotonic() - s.seen_wall > self.params["scan_timeout_s"]:
-            self.log(
-                f"scan {s.scan_id!r}: no measurement for {self.params['scan_timeout_s']:g} s and no last one "
-                f"({s.n} received); focusing what arrived"
-            )
+            s.incomplete = f"no measurement for {self.params['scan_timeout_s']:g} s and no last one"
+            self.log(f"scan {s.scan_id!r}: {s.incomplete} ({s.n} received); focusing what arrived")
             self._end_scan()
 
     def _estimator(self) -> str:
@@ -209,6 +220,8 @@ class Solver(Node):
     def on_template(self, msg: TwinTemplate) -> None:
         from twinfocus.templates import resample_support, resample_template
 
+        if self._same_template(msg):  # the same template again (sent for a node that started later)
+            return
         try:
             template = resample_template(msg.image, msg.x_m, msg.y_m, msg.z_m, self.ref_grid, phase_rad=msg.phase_rad)
         except TwinFocusError as exc:
@@ -223,6 +236,7 @@ class Solver(Node):
                 self.log(f"ignored the outline of the {msg.kind} template from {msg.source or '?'}: {exc}")
                 support = None
         self.template, self.support = template, support
+        self._template_msg = msg
         # what the confidence report needs of a digital twin's conditioning (metrics.json ``digital_twin``)
         self.twin_info = (
             {"surface": msg.surface, "curved": bool(msg.curved), "curvature_m": float(msg.curvature_m)}
@@ -237,11 +251,33 @@ class Solver(Node):
             self.waiting.remove(s)
             self._finish(s)
 
+    def _same_template(self, msg: TwinTemplate) -> bool:
+        """Whether ``msg`` repeats the template in use, field for field (the sequence number
+        aside): the latched topic sends it again when another subscriber starts later, and
+        handling it again would only redo the work."""
+        import dataclasses
+
+        old = self._template_msg
+        if old is None:
+            return False
+        for f in dataclasses.fields(msg):
+            a, b = getattr(old, f.name), getattr(msg, f.name)
+            if f.name == "header":
+                if (a.stamp_ns, a.frame_id) != (b.stamp_ns, b.frame_id):
+                    return False
+            elif isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+                if a is None or b is None or not np.array_equal(a, b):
+                    return False
+            elif a != b:
+                return False
+        return True
+
     # -- measurements -------------------------------------------------------------------------
     def on_measurement(self, m: SarMeasurement) -> None:
         chirp = m.chirp()
         s = self.scan
         if s is not None and s.scan_id != m.scan_id:
+            s.incomplete = f"scan {m.scan_id!r} began before its last measurement"
             self.log(f"scan {s.scan_id!r} ended without its last measurement ({s.n} received); focusing what arrived")
             self._end_scan()
             s = None
@@ -335,13 +371,11 @@ class Solver(Node):
         if s is None:
             return
         self._flush()
+        self._count_positions(s)
         if s.last_wall is None:  # ended without its last measurement: from the latest that came
             s.last_wall = s.seen_wall or time.monotonic()
         if s.n < max(1, int(self.params["min_positions"])):
-            self.log(
-                f"dropped scan {s.scan_id!r}: {s.n} position(s) arrived, fewer than min_positions {self.params['min_positions']}"
-            )
-            self._count_done()
+            self._drop(s, f"{s.n} position(s) arrived, fewer than min_positions {self.params['min_positions']}")
             return
         if self.params["method"] == "twin" and self.template is None:
             self.log(
@@ -355,16 +389,31 @@ class Solver(Node):
     def _give_up(self, s: _Scan) -> None:
         if s in self.waiting:
             self.waiting.remove(s)
-            self.log(
-                f"dropped scan {s.scan_id!r}: no template arrived on twin/template within {self.params['template_wait_s']:g} s"
+            self._drop(s, f"no template arrived on twin/template within {self.params['template_wait_s']:g} s")
+
+    def _drop(self, s: _Scan, reason: str) -> None:
+        """The scan is not focused: say why in one line and in a result with ``dropped`` set, so
+        whoever waits for the scan's result (the visualizer's ``exit_after_results``) ends."""
+        self.log(f"dropped scan {s.scan_id!r}: {reason}")
+        self.status_message = f"dropped scan {s.scan_id!r}: {reason}"
+        self.result_pub.publish(
+            AutofocusResult(
+                header=Header(stamp_ns=now_ns(), frame_id="scene"),
+                scan_id=s.scan_id,
+                method=self.params["method"],
+                phase_rad=np.zeros(0),
+                loss_history=np.zeros(0),
+                metrics={"n_positions": float(s.n)},
+                dropped=reason,
             )
-            self._count_done()
+        )
+        self._count_done(failed=True)
 
     # -- focusing -----------------------------------------------------------------------------
     def _finish(self, s: _Scan) -> None:
         from twinfocus.scan import Scan
 
-        t_start = time.monotonic()
+        t_start = self._said_at = time.monotonic()
         positions = np.concatenate(s.positions)
         truth = np.concatenate(s.truth) if s.truth else None
         progress = self._progress
@@ -392,13 +441,14 @@ class Solver(Node):
             else:
                 out, tgt_basis = self._focus_bases(s, positions)
         except TwinFocusError as exc:
-            self.log(f"could not focus scan {s.scan_id!r}: {exc}")
-            self.status_message = f"could not focus scan {s.scan_id!r}: {exc}"
-            self._count_done()
+            self._drop(s, f"could not focus it: {exc}")
             return
         expected = s.expected if s.expected is not None else s.max_index + 1
         out.metrics["n_positions_expected"] = int(max(expected, s.n))
         out.metrics["n_positions_missing"] = int(max(0, expected - s.n))
+        out.metrics["complete"] = not s.incomplete
+        if s.incomplete:
+            out.metrics["incomplete_reason"] = s.incomplete
         if expected > s.n:
             self.log(
                 f"scan {s.scan_id!r}: {expected - s.n} of its {expected} positions never arrived; "
@@ -432,12 +482,26 @@ class Solver(Node):
             from twinfocus.pipeline import write_outputs
 
             out.metrics["timings_s"] = timing
-            d = write_outputs(Path(self.params["out_dir"]) / s.scan_id, out, pictures=self.params["pictures"])
+            # a scan that did not end never replaces the result of one that did
+            name = s.scan_id + (".incomplete" if s.incomplete else "")
+            d = write_outputs(Path(self.params["out_dir"]) / name, out, pictures=self.params["pictures"])
             self.log(f"wrote {d}/")
         self._count_done()
 
-    def _progress(self, *args) -> None:
+    def _progress(self, done: int = 0, total: int = 0, *extra) -> None:
+        """The focusing steps' progress: heartbeats, and a line when focusing has gone on for a
+        while without one (no silent stretch of more than a few seconds), with what is left of the
+        current step at its pace so far."""
+        from twinfocus.progress import remaining_text
+
         self.heartbeat_if_due()
+        now = time.monotonic()
+        if done <= 1:
+            self._step_t0 = now
+        elif now - self._said_at >= PROGRESS_EVERY_S and done < total:
+            self._said_at = now
+            left = (now - self._step_t0) * (total - done) / done
+            self.log(f"focusing: {done} of {total} of the current step, about {remaining_text(left)} left")
 
     def _focus_bases(self, s: _Scan, positions: np.ndarray):
         """:func:`twinfocus.pipeline.focus_bases` on the streamed bases (the same call as
@@ -592,11 +656,50 @@ class Solver(Node):
             f"{timing['last_measurement_to_result']:.2f} s after its last measurement"
         )
 
-    def _count_done(self) -> None:
+    def _count_done(self, failed: bool = False) -> None:
         self.done += 1
+        self.failed += int(failed)
         n = int(self.params["exit_after_scans"])
         if n and self.done >= n:
-            self.request_shutdown(f"{self.done} scan(s) done")
+            if self.failed:
+                self.request_shutdown(f"{self.failed} of {self.done} scan(s) dropped: {self.status_message}", 1)
+            else:
+                self.request_shutdown(f"{self.done} scan(s) done")
+
+    def _count_positions(self, s: _Scan) -> None:
+        """At a scan's end: the positions it should have had (``s.expected``; for a scan without
+        its last measurement, the radar frames published for it), and those frames counted off
+        before the next scan."""
+        if s.expected is None:
+            s.expected = max(s.max_index + 1, self._radar_frames(s))
+        self._radar_frames_before += max(s.expected, s.n)
+
+    def _radar_frames(self, s: _Scan) -> int:
+        """Radar frames published for the scan so far, by the radar drivers' heartbeats (0 where no
+        node publishes radar/frame, as in a replay of measurements): what an unfinished scan should
+        have had, had every frame reached the solver."""
+        total = sum(st.published.get("radar/frame", 0) for st in self.read_heartbeats().values())
+        return max(0, total - self._radar_frames_before)
+
+    def on_shutdown(self) -> None:
+        """A graph stopped mid-scan (a node hung, Ctrl-C) still gets the scan's image from what
+        arrived, marked incomplete (metrics.json ``complete: false``, ``n_positions_missing``)."""
+        s = self.scan
+        if s is None or s.n < max(1, int(self.params["min_positions"])) or self.launcher_gone():
+            return
+        if self.params["method"] == "twin" and self.template is None:
+            return
+        s.incomplete = f"the graph stopped ({self._stop.reason if self._stop else 'stop'}) before its last measurement"
+        self.log(f"scan {s.scan_id!r}: {s.incomplete}; focusing the {s.n} position(s) that arrived")
+        try:
+            self._flush()
+            self._count_positions(s)
+            s.truth = None  # the graph is stopping: the image and its own metrics, not the simulation's truth
+            self.scan = None
+            s.last_wall = s.last_wall or s.seen_wall or time.monotonic()
+            self._finish(s)
+        except Shutdown:  # the launcher died meanwhile: nothing can be delivered
+            pass
 
 
 def _scan_gaps(before: tuple[int, int, int], now: tuple[int, int, int]) -> tuple[int, int, int]:

@@ -69,7 +69,9 @@ class TemplateBuilder(Node):
         "cache": Param(
             True, "reuse a template scan's image from the template cache (twinfocus.cache) and store it there"
         ),
-        "republish_s": Param(0.0, "publish the template again this often (0: once; late joiners then miss it)"),
+        "republish_s": Param(
+            0.0, "publish the template again this often (0: once; the topic is latched, so late joiners still get it)"
+        ),
     }
 
     def __init__(self, **kw):
@@ -83,7 +85,8 @@ class TemplateBuilder(Node):
             )
         self.grid = ImageGrid.from_roi(p["reference_roi"], p["size"])
         self.bp = {"oversample": p["oversample"], "precision": p["precision"]}
-        self.pub = self.create_publisher("twin/template")
+        # latched: a node that starts (or restarts) after the template went out still gets it
+        self.pub = self.create_publisher("twin/template", latched=True)
         self.msg: TwinTemplate | None = None
         self.cache_status: str | None = None  # of a template scan's image: "hit", "miss" or "off"
         src, path = p["source"], p["path"]

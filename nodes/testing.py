@@ -16,6 +16,7 @@ sequence checks) in a thread; :func:`running` stops and joins them and fails if 
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 import time
@@ -25,6 +26,24 @@ from typing import Any
 
 from nodes.bus import Broker, topic_frame
 from nodes.node import Node
+
+
+def patience(seconds: float) -> float:
+    """An outer time bound for a wait, stretched by how busy the machine is.
+
+    Waits end as soon as what they wait for happens; the bound only keeps a broken build from
+    hanging. On a machine whose run queue is longer than its cores (another build, a CPU-bound
+    process beside the tests) everything takes that many times longer, so the bound is multiplied
+    by the 1-minute load per core (at least 1, at most 5), or by ``$TWINFOCUS_TEST_PATIENCE``.
+    """
+    given = os.environ.get("TWINFOCUS_TEST_PATIENCE")
+    if given:
+        return seconds * float(given)
+    try:
+        per_core = os.getloadavg()[0] / (os.cpu_count() or 1)
+    except OSError:
+        per_core = 1.0
+    return seconds * min(5.0, max(1.0, per_core))
 
 
 @contextmanager
@@ -94,13 +113,15 @@ class Probe(Node):
         self._outbox.put((topic, list(frames)))
 
     def sent_all(self, timeout_s: float = 10.0) -> bool:
-        deadline = time.monotonic() + timeout_s
+        deadline = time.monotonic() + patience(timeout_s)
         while not self._outbox.empty() and time.monotonic() < deadline:
             time.sleep(0.005)
         return self._outbox.empty()
 
     def wait_for(self, topic: str, count: int = 1, timeout_s: float = 10.0, where=None) -> list:
-        """Block until ``count`` messages (optionally matching ``where(msg)``) arrived on ``topic``."""
+        """Block until ``count`` messages (optionally matching ``where(msg)``) arrived on ``topic``
+        (``timeout_s`` stretched by :func:`patience`)."""
+        timeout_s = patience(timeout_s)
         deadline = time.monotonic() + timeout_s
         with self._cond:
             while True:
@@ -115,7 +136,9 @@ class Probe(Node):
 
 @contextmanager
 def running(*nodes: Node, start_timeout_s: float = 30.0, stop_timeout_s: float = 30.0) -> Iterator[tuple[Node, ...]]:
-    """Spin ``nodes`` in threads; on exit stop them, join, and raise if one failed."""
+    """Spin ``nodes`` in threads; on exit stop them, join, and raise if one failed (the time
+    limits stretched by :func:`patience`)."""
+    start_timeout_s, stop_timeout_s = patience(start_timeout_s), patience(stop_timeout_s)
     codes: dict[str, int] = {}
     threads = []
     for n in nodes:

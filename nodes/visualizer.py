@@ -129,7 +129,9 @@ class Visualizer(Node):
         "port": Param(8765, "port of the web page; 0 = any free port (printed)"),
         "serve": Param(True, "serve the web page"),
         "exit_after_results": Param(
-            0, "end the node after this many focused scans (images and final result; 0: never)"
+            0,
+            "end the node after this many scans (images and final result, or the solver's word that "
+            "it dropped one: then with status 1; 0: never)",
         ),
         "max_points": Param(20000, "trajectory points kept for the plot"),
     }
@@ -147,6 +149,7 @@ class Visualizer(Node):
         self.centres: list[np.ndarray] = []
         self.trajectory_dirty = False
         self.results = 0
+        self.dropped: list[str] = []  # why each scan that was not focused was not
         self.server: ThreadingHTTPServer | None = None
         self.create_subscription("vio/pose", self.on_pose)
         self.create_subscription("sar/measurement", self.on_measurement)
@@ -290,6 +293,12 @@ class Visualizer(Node):
                 self.status = f"scan {msg.scan_id!r} focused"
 
     def on_result(self, r: AutofocusResult) -> None:
+        if r.dropped:  # the scan will have no image: it still counts, and ends a run waiting for it
+            with self.lock:
+                self.status = f"scan {r.scan_id!r} not focused: {r.dropped}"
+            self.dropped.append(f"scan {r.scan_id!r} not focused: {r.dropped}")
+            self._count_result()
+            return
         loss = np.asarray(r.loss_history)
         estimator = f" ({r.estimator} estimator)" if r.estimator else ""
         lines = [f"scan {r.scan_id}: method {r.method}{estimator}, {r.phase_rad.size} positions"]
@@ -311,9 +320,16 @@ class Visualizer(Node):
 
         self._store("loss", _figure_png(draw))
         if not r.metrics_pending:  # the scan's last result: its images came before it
-            self.results += 1
-            n = int(self.params["exit_after_results"])
-            if n and self.results >= n:
+            self._count_result()
+
+    def _count_result(self) -> None:
+        self.results += 1
+        n = int(self.params["exit_after_results"])
+        if n and self.results >= n:
+            if self.dropped:  # a run that stops here did not give what it was run for
+                self.log(f"error: {self.dropped[-1]}")
+                self.request_shutdown(self.dropped[-1], 1)
+            else:
                 self.request_shutdown(f"{self.results} focused scan(s) shown")
 
     def on_shutdown(self) -> None:

@@ -94,7 +94,9 @@ def test_batch_on_a_two_worker_local_cluster_equals_separate_focus_runs(scans, t
     assert main(["batch", str(manifest), "--out", str(out), "--workers", "2", "--quiet"]) == 1  # one item failed
     rows = _summary(out)
     assert [rows[n]["status"] for n in ("phys3", "phys4", "none4", "lost")] == ["ok", "ok", "ok", "failed"]
-    assert "cannot see" in rows["lost"]["error"] and str(scans / "gone.npz") in rows["lost"]["error"]
+    # absent where batch runs too: a missing file, not a file system the worker cannot see
+    assert rows["lost"]["error"] == f"no such file: {scans / 'gone.npz'}"
+    assert "3 of 4 items focused, 1 failed" in capsys.readouterr().out
     assert len({rows[n]["worker"] for n in ("phys3", "phys4", "none4", "lost")}) == 2  # both workers took items
     assert (out / "summary.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     for it in items[:3]:
@@ -117,6 +119,63 @@ def test_batch_on_a_two_worker_local_cluster_equals_separate_focus_runs(scans, t
     assert "3 of 4 items kept" in capsys.readouterr().err
     assert (out / "items" / "phys3" / "target.npy").stat().st_mtime_ns == before
     assert _summary(out)["phys3"]["target_ssim_corrected"] == rows["phys3"]["target_ssim_corrected"]
+
+
+@pytest.mark.slow
+def test_summary_lists_pending_items_from_the_start_and_the_local_cluster_opens_no_dashboard(scans, tmp_path):
+    from twinfocus.cli.batch_jobs import run_batch
+    from twinfocus.cluster import dask_client
+
+    import urllib.error
+    import urllib.request
+
+    with dask_client(workers=1) as client:
+        port = client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.http_server.port)
+        # the scheduler's own health page on a free loopback port, and no dashboard behind it
+        assert urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=30).read() == b"ok"
+        with pytest.raises(urllib.error.HTTPError) as e:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=30)
+        assert e.value.code == 404
+    assert port != 8787
+    items = [{"name": f"n{i}", "scan": "scan3.npz", "method": "none", "reference_roi": REF, "target_roi": TGT,
+              "size": "16", "no_pictures": "true"} for i in range(2)]
+    manifest = _write_csv(scans / "pending.csv", items)
+    out = tmp_path / "b"
+    seen = {}
+
+    def log(msg):  # the cluster is up: no item has run yet
+        if "local cluster" in msg:
+            seen.update({n: r["status"] for n, r in _summary(out).items()})
+
+    rows = run_batch(manifest, out, workers=1, log=log)
+    assert seen == {"n0": "pending", "n1": "pending"}
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_ctrl_c_stops_a_batch_with_one_line(scans, tmp_path):
+    items = [{"name": f"i{i}", "scan": "scan3.npz", "template_scan": "tpl3.npz", "reference_roi": REF,
+              "target_roi": TGT, "size": "24", "no_pictures": "true"} for i in range(8)]
+    manifest = _write_csv(scans / "many.csv", items)
+    out = tmp_path / "b"
+    # its own process group, as a terminal's foreground job: Ctrl-C reaches every process in it
+    p = subprocess.Popen([sys.executable, "-c", "import sys; from twinfocus.cli import main; sys.exit(main())", "batch", str(manifest), "--out", str(out),
+                          "--workers", "2"], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                         start_new_session=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                         # as from a terminal: SIGINT not ignored (a background shell job ignores it)
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    lines = []
+    for line in p.stderr:  # waits on the batch's own word that the cluster is up
+        lines.append(line)
+        if "local cluster" in line:
+            break
+    os.killpg(p.pid, signal.SIGINT)
+    _, rest = p.communicate(timeout=240)
+    assert p.returncode == 130, rest
+    said = [ln for ln in rest.splitlines() if ln.strip() and not ln.startswith("[batch] ")]
+    assert len(said) == 1 and said[0].startswith("twinfocus batch: interrupted:"), rest
+    assert "pending" in {r["status"] for r in _summary(out).values()}
 
 
 def test_thread_budget_shares_each_host_among_its_workers():

@@ -7,6 +7,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
+import threading
 import uuid
 from typing import Any
 
@@ -75,13 +77,35 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, log=No
     threads = max(1, cores // n)
     # Set before the worker processes import numba/torch/BLAS: their pools start at these sizes.
     env = {k: str(threads) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")}
-    cluster = LocalCluster(
-        n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.ERROR, env=env
-    )
+    # A terminal's Ctrl-C goes to every process of the foreground group: the worker processes,
+    # started while SIGINT is ignored, keep ignoring it (Python leaves an ignored SIGINT alone), so
+    # only this process sees it and closes the cluster; else each worker prints its traceback.
+    in_main = threading.current_thread() is threading.main_thread()
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN) if in_main else None
+    try:
+        # No dashboard: dashboard_address=None turns the dashboard off, but the scheduler still serves
+        # its health and metrics pages on 8787 unless told another address (a free loopback port).
+        cluster = LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+            silence_logs=logging.ERROR,
+            env=env,
+        )
+    finally:
+        if in_main:
+            signal.signal(signal.SIGINT, old)
     client = Client(cluster)
     log(f"[batch] local cluster: {n} workers x {threads} threads")
     try:
         yield client
+    except KeyboardInterrupt:
+        # closing a cluster with tasks running logs each lost task and connection: not news after Ctrl-C
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        raise
     finally:
         client.close()
         cluster.close()

@@ -1,4 +1,5 @@
-"""Progress lines on stderr for long work (a bar on a terminal, a line every 10 % otherwise)."""
+"""Progress lines on stderr for long work (a bar on a terminal, a line every 10 % otherwise), with
+an estimate of the time left at the pace so far."""
 
 from __future__ import annotations
 
@@ -24,6 +25,8 @@ class Progress:
         frac = done / total
         now = time.perf_counter()
         suffix = f" {extra[0]:.4f}" if extra else ""
+        if 0 < done < total:  # what remains at the pace so far
+            suffix += f", about {remaining_text((now - self.t0) * (total - done) / done)} left"
         if self.tty:
             if now - self._last_t < 0.1 and done < total:
                 return
@@ -39,3 +42,12 @@ class Progress:
             self._last_decile = decile
             self.stream.write(f"[{self.label}] {100 * frac:5.1f}% {now - self.t0:6.1f}s{suffix}\n")
         self.stream.flush()
+
+
+def remaining_text(seconds: float) -> str:
+    """``"40 s"``, ``"3 min"``, ``"1.5 h"``: a duration as a person reads an estimate."""
+    if seconds < 90:
+        return f"{max(0.0, seconds):.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"

@@ -350,6 +350,30 @@ def simulation_cost(
     return int(peak), float(int(n_scans) * elements * int(n_scatterers) * SECONDS_PER_PAIR)
 
 
+#: bytes per grid cell while a planar object's scatterers are placed (meshgrid, jitter, indices,
+#: points and amplitudes: about a dozen 8-byte values per cell at the peak)
+BYTES_PER_SCATTERER_CELL = 120
+
+
+def scatterer_cells(scene, spacing_m: float) -> int:
+    """Grid cells the scene's scatterers are drawn from at ``spacing_m`` (metres), counted without
+    making them: a planar object's ceil(w / s) x ceil(h / s) cells (before its mask keeps some),
+    a point cloud's points, the clutter's points. Each costs about
+    :data:`BYTES_PER_SCATTERER_CELL` bytes while the scatterers are placed, so a memory check can
+    refuse a scene that would not fit before it is drawn."""
+    n = 0
+    for obj in scene.objects:
+        size = getattr(obj, "size_m", None)
+        if size is not None:
+            w_m, h_m = size
+            n += max(1, math.ceil(w_m / spacing_m)) * max(1, math.ceil(h_m / spacing_m))
+        else:
+            n += int(np.asarray(obj.points_m).shape[0])
+    if scene.clutter is not None:
+        n += int(scene.clutter.n_points) + int(scene.clutter.n_strong)
+    return n
+
+
 def add_thermal_noise(
     data, snr_db: float, rng: np.random.Generator | int | None = None, signal_power: float | None = None
 ) -> np.ndarray:

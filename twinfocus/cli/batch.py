@@ -34,20 +34,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from twinfocus.cli.batch_jobs import run_batch
+    from twinfocus.cli.batch_jobs import BatchInterrupted, run_batch
     from twinfocus.progress import Progress
 
     log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
-    rows = run_batch(
-        args.manifest,
-        args.out,
-        scheduler=args.scheduler,
-        workers=args.workers,
-        resume=not args.no_resume,
-        progress=Progress("batch", enabled=not args.quiet),
-        log=log,
-    )
+    try:
+        rows = run_batch(
+            args.manifest,
+            args.out,
+            scheduler=args.scheduler,
+            workers=args.workers,
+            resume=not args.no_resume,
+            progress=Progress("batch", enabled=not args.quiet),
+            log=log,
+        )
+    except BatchInterrupted as exc:
+        print(f"twinfocus batch: {exc}", file=sys.stderr)
+        return 130
     failed = [r for r in rows if r.get("status") != "ok"]
-    print(f"{len(rows) - len(failed)}/{len(rows)} focused; {args.out}/summary.csv")
+    print(f"{len(rows) - len(failed)} of {len(rows)} items focused, {len(failed)} failed; {args.out}/summary.csv")
     # Failed items are recorded, not fatal; the status still tells a script that some need a look.
     return 1 if failed else 0

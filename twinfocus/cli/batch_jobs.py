@@ -25,7 +25,7 @@ import os
 import re
 import socket
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from twinfocus.atomic import atomic_writer, write_text_atomic
@@ -75,6 +75,8 @@ class BatchItem:
     paths: list[str]
     out: str
     options: dict
+    #: input files that do not exist where ``batch`` runs (a worker may still see them elsewhere)
+    missing_here: list[str] = field(default_factory=list)
 
 
 def _flag_values(key: str, value, actions: dict) -> list[str]:
@@ -152,20 +154,25 @@ def read_manifest(path: str | os.PathLike, out_dir: str | os.PathLike) -> list[B
             parser.parse_args(argv)
         except TwinFocusError as exc:
             raise TwinFocusError(f"{where}: {exc}") from None
-        items.append(BatchItem(name, argv, list(paths.values()), item_out, {k: v for k, v in row.items()}))
+        files = list(paths.values())
+        missing = [p for p in files if not os.path.isfile(p)]
+        items.append(BatchItem(name, argv, files, item_out, {k: v for k, v in row.items()}, missing))
     return items
 
 
 # --- on the worker ------------------------------------------------------------------------------
 
 
-def check_visible(paths) -> None:
-    """One line naming the first input file this machine cannot read."""
+def check_visible(paths, missing_here=()) -> None:
+    """One line naming the first input file this machine cannot read: missing everywhere (absent
+    where ``batch`` runs too: ``missing_here``), or only on this worker (no shared file system)."""
     for p in paths:
         if not os.path.isfile(p):
+            if p in missing_here:
+                raise TwinFocusError(f"no such file: {p}")
             raise TwinFocusError(
-                f"worker on {socket.gethostname()} cannot see {p} (every worker needs the manifest's "
-                f"files under the same path: a shared file system)"
+                f"worker on {socket.gethostname()} cannot see {p}, which exists where batch runs (every "
+                f"worker needs the manifest's files under the same path: a shared file system)"
             )
 
 
@@ -196,7 +203,7 @@ def focus_item(item: BatchItem, threads=None) -> dict:
     row: dict = {"name": item.name, "status": "ok", "error": "", "worker": _worker_name(), "out": item.out}
     try:
         limit_threads(threads)
-        check_visible(item.paths)
+        check_visible(item.paths, item.missing_here)
         args = focus_parser().parse_args(item.argv)
         err = io.StringIO()
         # focus's summary line and warnings; the row carries the metrics and the warnings
@@ -257,8 +264,10 @@ def run_batch(
             rows[it.name] = {**prev, "status": "ok"}
         else:
             todo.append(it)
-    if len(todo) < len(items):
-        log(f"[batch] {len(items) - len(todo)} of {len(items)} items kept from an earlier run")
+    kept = len(items) - len(todo)
+    if kept:
+        log(f"[batch] {kept} of {len(items)} items kept from an earlier run")
+    write_summary(out, items, rows)  # from the start: every item not yet run is listed as pending
 
     def record(item, res, err):
         rows[item.name] = (
@@ -270,15 +279,29 @@ def run_batch(
         write_summary(out, items, rows)  # after every item, so an interrupted batch still has its table
 
     t0 = time.perf_counter()
-    if todo:
-        with dask_client(scheduler, workers, log) as client:
-            run_tasks(client, focus_item, todo, [f"focus-{it.name}" for it in todo], record, progress=progress)
+    try:
+        if todo:
+            with dask_client(scheduler, workers, log) as client:
+                run_tasks(client, focus_item, todo, [f"focus-{it.name}" for it in todo], record, progress=progress)
+    except KeyboardInterrupt:
+        write_summary(out, items, rows)
+        n_done = sum(1 for it in todo if it.name in rows)
+        raise BatchInterrupted(
+            f"interrupted: {n_done} of the {len(todo)} items to run finished; {out / 'summary.csv'} lists the "
+            f"rest as pending (run the same command again to go on)"
+        ) from None
     write_summary(out, items, rows, figure=True)
-    n_ok = sum(r.get("status") == "ok" for r in rows.values())
+    n_ok = sum(rows[it.name].get("status") == "ok" for it in items)
+    ran = f" ({kept} kept from an earlier run)" if kept else ""
     log(
-        f"[batch] {n_ok}/{len(items)} ok, {len(todo)} focused in {time.perf_counter() - t0:.1f} s; {out / 'summary.csv'}"
+        f"[batch] {n_ok} ok, {len(items) - n_ok} failed of {len(items)} items{ran} in "
+        f"{time.perf_counter() - t0:.1f} s; {out / 'summary.csv'}"
     )
     return [rows[it.name] for it in items]
+
+
+class BatchInterrupted(KeyboardInterrupt):
+    """Ctrl-C during a batch: the one line to print (what finished, where the table is)."""
 
 
 def write_summary(out: Path, items: list[BatchItem], rows: dict, figure: bool = False) -> None:

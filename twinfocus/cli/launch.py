@@ -17,7 +17,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("assignments", nargs="*", metavar="name:=value", help="launch arguments")
     parser.add_argument("--show", action="store_true", help="print the resolved graph and exit")
     parser.add_argument(
-        "--grace", type=float, default=10.0, help="seconds a node gets to stop after Ctrl-C before SIGKILL"
+        "--grace",
+        type=float,
+        default=10.0,
+        help="seconds a stopping node may go without a heartbeat before SIGKILL (one still heartbeating gets up to 120 s)",
     )
 
 

@@ -48,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     if args.noise_dn < 0:
         raise TwinFocusError(f"--noise-dn must be >= 0, got {args.noise_dn}")
     sc = Scenario(**layout_kwargs(args))
+    _check_memory(sc.scene(), args.width, args.height_px)
     position = (
         DEFAULT_LEFT_CAMERA_POSITION_M
         if args.camera_position_mm is None
@@ -66,3 +67,17 @@ def run(args: argparse.Namespace) -> int:
     )
     print(f"wrote {args.out}/ (left.png, right.png, camera.json, truth.npz)", file=sys.stderr)
     return 0
+
+
+def _check_memory(scene, width: int, height: int) -> None:
+    """Refuse, before anything is drawn, a rendering that cannot fit in memory."""
+    from twinfocus.digital_twin.render import render_memory_bytes
+    from twinfocus.machine import available_memory_bytes
+
+    need, avail = render_memory_bytes(scene, width, height), available_memory_bytes()
+    if avail is not None and need > avail:
+        raise TwinFocusError(
+            f"this rendering needs about {need / 2**30:.3g} GiB (a {width} x {height} picture and the objects' "
+            f"textures); {avail / 2**30:.1f} GiB is available: use smaller letters (--height, metres) or a "
+            "smaller picture (--width, --height-px)"
+        )

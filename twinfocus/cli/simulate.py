@@ -283,17 +283,26 @@ def _check_cost(sc, args) -> None:
     from twinfocus.machine import available_memory_bytes
     from twinfocus.radar import Chirp, mmwcas_virtual_array
     from twinfocus.scene import scatterer_spacing_m
-    from twinfocus.simulate import simulation_cost
+    from twinfocus.simulate import BYTES_PER_SCATTERER_CELL, scatterer_cells, simulation_cost
 
     if args.columns < 1 or args.rows < 2:
         raise TwinFocusError(f"--columns must be >= 1 and --rows >= 2, got {args.columns} and {args.rows}")
     spacing = sc.spacing_m or scatterer_spacing_m(sc.distance_m)
-    n_pts = sc.scene().scatterers(spacing, 0)[0].shape[0]
+    scene = sc.scene()
+    avail = available_memory_bytes()
+    # counted before any scatterer is made: drawing them is itself the allocation to refuse
+    cells = scatterer_cells(scene, spacing)
+    if avail is not None and cells * BYTES_PER_SCATTERER_CELL > avail:
+        raise TwinFocusError(
+            f"this scene needs about {cells:.3g} scatterers ({spacing * 1e3:.2g} mm apart over objects "
+            f"{args.height:g} m high), {cells * BYTES_PER_SCATTERER_CELL / 2**30:.3g} GiB just to place them; "
+            f"{avail / 2**30:.1f} GiB is available: use a smaller --height / --target-height"
+        )
+    n_pts = scene.scatterers(spacing, 0)[0].shape[0]
     n_scans = 2 if args.template_out else 1
     peak, cpu_s = simulation_cost(
         args.columns * args.rows, mmwcas_virtual_array().n_channels, Chirp().n_samples, n_pts, n_scans
     )
-    avail = available_memory_bytes()
     if avail is not None and peak > avail:
         raise TwinFocusError(
             f"this simulation needs about {peak / 2**30:.1f} GiB of memory ({args.columns} x {args.rows} positions) "

@@ -454,3 +454,25 @@ def render_scene(
     rng = np.random.default_rng(seed)
     surfaces = scene_surfaces(scene, rng, clutter=clutter)
     return render_surfaces(surfaces, camera, supersample=supersample, noise_dn=noise_dn, seed=seed + 1)
+
+
+#: peak bytes per texel of an object's texture while it is made (noise, blurs, colour channels)
+BYTES_PER_TEXEL = 48
+#: peak bytes per supersampled picture pixel of one view (colour, depth, hit buffers)
+BYTES_PER_RENDER_PIXEL = 64
+
+
+def render_memory_bytes(scene, width: int, height: int, supersample: int = 2) -> int:
+    """Peak memory of :func:`render_scene` for ``scene`` and a ``width`` x ``height`` picture,
+    bytes, estimated from sizes alone (nothing is made), so a command can refuse a rendering that
+    cannot fit before it allocates: every planar object's texture at the fixed texel size, and
+    the supersampled picture."""
+    texels = 0
+    for obj in scene.objects:
+        if getattr(obj, "mask", None) is None:
+            continue
+        extent = np.array(np.shape(obj.mask), dtype=np.float64) * float(obj.pixel_m)
+        rows, cols = (max(8.0, np.ceil(e / _OBJECT_TEXEL_M)) for e in extent)
+        texels += int(rows * cols)
+    pixels = int(width) * int(height) * int(supersample) ** 2
+    return texels * BYTES_PER_TEXEL + pixels * BYTES_PER_RENDER_PIXEL
