@@ -42,10 +42,12 @@ from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE
 from twinfocus.grid import ImageGrid
 from twinfocus.phase_ramp import MIN_RAMP_COHERENCE_SQRT_M, ramp_free_coherence
 from twinfocus.radar import Chirp
+from twinfocus.reference_free import METHODS as REFERENCE_FREE_METHODS
+from twinfocus.reference_free import reference_free_autofocus
 from twinfocus.scan import Scan
 from twinfocus.templates import check_has_signal
 
-METHODS = ("twin", "sharpness", "none")
+METHODS = ("twin", "sharpness", *REFERENCE_FREE_METHODS, "none")
 
 
 @dataclass
@@ -334,7 +336,8 @@ def focus_bases(
     reference_info : what a digital twin's cloud conditioning chose and why
         (:attr:`twinfocus.digital_twin.condition.DigitalTwinReference.info`): written to metrics.json
         as ``digital_twin``; the confidence report reads its ``curved``.
-    method : ``"twin"`` (reference vs template), ``"sharpness"`` (of the target) or ``"none"``.
+    method : ``"twin"`` (reference vs template), ``"sharpness"``, ``"entropy"`` or ``"pga"`` (of the
+        target itself, :mod:`twinfocus.reference_free`; metrics.json ``reference_free``) or ``"none"``.
     config : :class:`~twinfocus.autofocus.AutofocusConfig`, handed to the autofocus as is.
     bp_options : the back-projection options the bases were built with (recorded in ``config``).
     phase_ramp : "auto", "remove" or "keep": the estimate's constant + linear-in-aperture ramp
@@ -399,6 +402,8 @@ def focus_bases(
         )
     elif method == "sharpness":
         result = sharpness_autofocus(tgt_basis, cfg, progress=prog("sharpness autofocus"))
+    elif method in REFERENCE_FREE_METHODS:
+        result = reference_free_autofocus(tgt_basis, method)
     else:
         result = no_correction(ref_basis)
     timings = {"autofocus": time.perf_counter() - t}
@@ -410,6 +415,8 @@ def focus_bases(
     m: dict = {"method": method, "n_positions": int(positions.shape[0]), "n_channels": int(positions.shape[1])}
     if reference_info is not None:
         m["digital_twin"] = reference_info
+    if "reference_free" in result.extra:
+        m["reference_free"] = result.extra["reference_free"]
     if method == "twin":
         m["estimator"] = {
             "init": cfg.init,
