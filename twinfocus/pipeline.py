@@ -676,9 +676,12 @@ def _space_variant(
 
 
 def _complex_match(image: np.ndarray, template: np.ndarray) -> float:
-    """Normalised complex correlation Re<image, template> / (|image| |template|): 1 when equal."""
-    num = np.vdot(template.ravel(), image.ravel()).real
-    return float(num / max(np.linalg.norm(image) * np.linalg.norm(template), 1e-300))
+    """Normalised complex correlation Re<image, template> / (|image| |template|): 1 when equal.
+    Each at unit peak in complex128 first: the norms of complex64 images at 1e20 overflow."""
+    a, t = (np.asarray(x).astype(np.complex128).ravel() for x in (image, template))
+    a, t = a / max(np.abs(a).max(), 1e-300), t / max(np.abs(t).max(), 1e-300)
+    num = np.vdot(t, a).real
+    return float(num / max(np.linalg.norm(a) * np.linalg.norm(t), 1e-300))
 
 
 #: below this reference-vs-template SSIM the reference was not matched and the phase is suspect:

@@ -301,7 +301,11 @@ def fit_smooth_drift(
     for i in range(0, m, 64):  # (64, P, 3) at a time
         a[i : i + 64] = (k * (lines_of_sight(c[i : i + 64], pix) - u_c[i : i + 64, None, :]))[..., :2]
     at = torch.from_numpy(a)
-    flat = b.reshape(m, -1)
+    # The correlation is scale-free: the basis (its half by the same factor) and the template at
+    # unit peak, so float32 sums of squares of a scan at 1e20 do not overflow (nor flush at 1e-20).
+    unit = 1.0 / max(float(np.abs(b).max()), 1e-30)
+    flat = b.reshape(m, -1) * unit
+    tpl = tpl * (1.0 / max(float(np.abs(tpl).max()), 1e-30))
     br = torch.from_numpy(np.ascontiguousarray(flat.real, np.float32))
     bi = torch.from_numpy(np.ascontiguousarray(flat.imag, np.float32))
     tr = torch.from_numpy(np.ascontiguousarray(tpl.real.reshape(-1), np.float32))
@@ -313,7 +317,7 @@ def fit_smooth_drift(
     tilted = half_basis is not None
     tilt_coef = torch.zeros(s.shape[1], requires_grad=tilted)
     if tilted:
-        half = np.asarray(half_basis).reshape(m, -1)
+        half = np.asarray(half_basis).reshape(m, -1) * unit
         hr = torch.from_numpy(np.ascontiguousarray(half.real, np.float32))
         hi = torch.from_numpy(np.ascontiguousarray(half.imag, np.float32))
 
