@@ -133,9 +133,24 @@ def test_snr_from_minus_10_to_60_db(snr_db):
 @pytest.mark.parametrize("rows", [1, 2])
 @pytest.mark.parametrize("method", ["twin", "entropy", "pga", "none"])
 def test_one_and_two_radar_positions(rows, method):
-    out = focus_or_refuse(scene(rows=rows, columns=1), method)
+    s = scene(rows=rows, columns=1)
+    out = focus_or_refuse(s, method)
     if out is not None:
         assert out.phase_rad.shape == (rows,)
+    # the estimators themselves, whether or not the pipeline accepts so small a scan
+    basis, aperture = s["ref_basis"], s["positions"].mean(axis=1)[:, :2]
+    if method == "twin":
+        phases = [correlation_phase(basis, s["truth_reference"]), projection_phase(basis, np.abs(s["truth_reference"]))]
+    elif method == "entropy":
+        phases = [minimum_entropy_phase(basis)[0]]
+    elif method == "pga":
+        phases = [phase_gradient_phase(basis)[0]]
+    else:
+        phases = [np.zeros(rows)]
+    for phase in phases:
+        assert phase.shape == (rows,) and np.isfinite(phase).all()
+        moved, info = transfer_phase(phase, aperture, 0.3, s["chirp"].wavelength_m)
+        assert np.isfinite(moved).all() and np.isfinite(ramp_free_coherence(phase, aperture))
 
 
 def test_one_channel():
@@ -216,10 +231,16 @@ def test_float32_and_float64_agree():
 
 
 def test_an_image_of_8_x_8():
-    out = focus_or_refuse(scene(size=8), "twin")
+    s = scene(size=8)
+    out = focus_or_refuse(s, "twin")
     assert out is not None and out.target.shape == (8, 8)
-    for method in ("entropy", "pga", "sharpness"):
-        focus_or_refuse(scene(size=8), method)
+    focus_or_refuse(s, "sharpness")
+    for method in ("entropy", "pga"):
+        # 1.2 resolution cells per position: the reference-free estimate is flagged, whatever it did
+        out = focus_or_refuse(s, method)
+        assert out is not None and out.metrics["reference_free"]["cells_per_position"] < 2
+        assert not out.metrics["confidence"]["trusted"]
+        assert any("resolution cells per radar position" in w for w in out.metrics["confidence"]["warnings"])
 
 
 def test_an_image_of_1000_x_1000_on_a_few_positions():

@@ -138,3 +138,5 @@ def test_focus_command_runs_entropy_and_pga_without_a_template(tmp_path):
         assert m["method"] == method and "converged" in m["reference_free"]
         assert m["target_ssim_corrected"] > m["target_ssim_uncorrected"] + 0.05
         assert np.load(out / "phase.npy").shape == (60,)
+        # 3 resolution cells per position: enough to pin the phases, no warning
+        assert m["reference_free"]["cells_per_position"] > 2.5 and "warning" not in m["reference_free"]

@@ -43,7 +43,7 @@ from twinfocus.grid import ImageGrid
 from twinfocus.phase_ramp import MIN_RAMP_COHERENCE_SQRT_M, ramp_free_coherence
 from twinfocus.radar import Chirp
 from twinfocus.reference_free import METHODS as REFERENCE_FREE_METHODS
-from twinfocus.reference_free import reference_free_autofocus
+from twinfocus.reference_free import reference_free_autofocus, resolution_cells
 from twinfocus.scan import Scan
 from twinfocus.templates import check_has_signal
 
@@ -403,7 +403,9 @@ def focus_bases(
     elif method == "sharpness":
         result = sharpness_autofocus(tgt_basis, cfg, progress=prog("sharpness autofocus"))
     elif method in REFERENCE_FREE_METHODS:
-        result = reference_free_autofocus(tgt_basis, method)
+        result = reference_free_autofocus(
+            tgt_basis, method, cells=resolution_cells(positions, target_grid, chirp.wavelength_m)
+        )
     else:
         result = no_correction(ref_basis)
     timings = {"autofocus": time.perf_counter() - t}
@@ -803,6 +805,9 @@ def confidence_report(
             f"the corrected reference leaves {residual:.3f} of its template unmatched (> {MAX_REFERENCE_RESIDUAL}): "
             "the error is not all one phase per position (a hand's drift, rotation); expect the target below its ceiling"
         )
+    free = (m.get("reference_free") or {}).get("warning")
+    if free:
+        out["warnings"].append(free)
     reg = m.get("template_registration")
     if reg and reg.get("at_limit"):
         out["warnings"].append(
