@@ -7,9 +7,10 @@ with no template: what the field uses when no reference is in view.
 
 * :func:`minimum_entropy_phase`: the phases that make the image's intensity least spread out
   (smallest Shannon entropy), one position at a time. With the others fixed the intensity is
-  I(p; t) = c0(p) + Re(c1(p) exp(j t)) in that position's phase t, so every candidate t costs one
-  pass over the pixels; each step keeps the best of a full turn of candidates (refined by a
-  parabola), so the entropy never rises and no step is caught by a wrap.
+  I(p; t) = c0(p) + Re(c1(p) exp(j t)) in that position's phase t: a second-order model of the
+  entropy in t proposes a step, and when the exact entropy does not fall there, a full turn of
+  candidates is searched; a step is kept only when it lowers the entropy, so it never rises and
+  no step is caught by a wrap.
 * :func:`phase_gradient_phase`: phase-gradient autofocus (PGA) adapted to the basis. The
   back-projection has already taken the near-field range migration out, so a bright pixel's
   column B[:, p] is the phase history of the scatterer there, and the eigenvector estimator of
@@ -111,15 +112,16 @@ def minimum_entropy_phase(
     I(p; t) = |a|^2 + |B_m|^2 + 2 Re(conj(a) B_m exp(j t)) with a = the image without it. The
     phase that minimises a second-order model of the entropy in t is tried first (a few passes
     over the pixels); when it does not lower the exact entropy, the exact entropy at
-    ``candidates`` phases over a full turn is, the best refined by a parabola through it and its
-    neighbours. A phase is kept only when it lowers the exact entropy, so the entropy never rises.
+    ``candidates`` phases over a full turn is searched, the best refined by a parabola through it
+    and its neighbours. A phase is kept only when it lowers the exact entropy, so the entropy never rises.
 
     Parameters
     ----------
     basis : complex (M, H, W) sub-image basis of the region (any scale; complex64 or complex128).
     iterations : sweeps over the positions at most (>= 1); stops earlier when no phase moved by
         more than ``tol_rad`` in a sweep.
-    candidates : phases tried per position per sweep (>= 4), spaced 2 pi / ``candidates``.
+    candidates : phases of the exact search (>= 4), spaced 2 pi / ``candidates``; each costs a
+        pass over the pixels.
     tol_rad : convergence threshold, radians.
     init_phase_rad : float (M,) radians to start from (zeros when None).
 
