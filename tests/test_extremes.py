@@ -126,8 +126,8 @@ def focus_or_refuse(s: dict, method: str = "twin", **kw):
 @pytest.mark.parametrize("snr_db", [-10.0, 0.0, 20.0, 60.0])
 def test_snr_from_minus_10_to_60_db(snr_db):
     out = focus_or_refuse(scene(snr_db=snr_db))
-    if snr_db >= 20:
-        assert out is not None and out.metrics["target_ssim_corrected"] > out.metrics["target_ssim_uncorrected"]
+    # 24 x 86 x 64 samples integrate even -10 dB per sample into an image the twin can use
+    assert out is not None and out.metrics["target_ssim_corrected"] > out.metrics["target_ssim_uncorrected"] + 0.1
 
 
 @pytest.mark.parametrize("rows", [1, 2])
@@ -156,12 +156,13 @@ def test_one_and_two_radar_positions(rows, method):
 def test_one_channel():
     out = focus_or_refuse(scene(channels=1, error_m=0.1e-3))
     assert out is not None and out.metrics["n_channels"] == 1
+    assert out.metrics["target_ssim_corrected"] > out.metrics["target_ssim_uncorrected"]
 
 
 @pytest.mark.parametrize("range_m", [0.1, 0.6, 5.0])
 def test_ranges_from_10_cm_to_5_m(range_m):
     out = focus_or_refuse(scene(range_m=range_m))
-    assert out is not None
+    assert out is not None and out.metrics["target_ssim_corrected"] > out.metrics["target_ssim_uncorrected"] + 0.1
 
 
 @pytest.mark.parametrize("error_m", [0.0, 0.1e-3, 1e-3, 5e-3])
@@ -199,9 +200,12 @@ def test_a_template_that_is_one_bright_pixel():
     for cfg in (
         AutofocusConfig(init="projection", iterations=0),
         AutofocusConfig(init="zero", iterations=20),
-        AutofocusConfig(init="correlation", iterations=0),  # needs a phase: refused by name
+        AutofocusConfig(init="correlation", iterations=0),
     ):
-        focus_or_refuse(s, template=one.astype(np.complex64) if cfg.init == "correlation" else one, config=cfg)
+        out = focus_or_refuse(s, template=one.astype(np.complex64) if cfg.init == "correlation" else one, config=cfg)
+        # a point is not the reference: the run says so rather than trusting the phases
+        assert out is not None and not out.metrics["confidence"]["trusted"]
+        assert any("matches its template poorly" in w for w in out.metrics["confidence"]["warnings"])
     with pytest.raises(TwinFocusError, match="template"):
         focus(s, template=np.zeros_like(one), config=CLOSED_FORM)
 
