@@ -42,10 +42,12 @@ from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE
 from twinfocus.grid import ImageGrid
 from twinfocus.phase_ramp import MIN_RAMP_COHERENCE_SQRT_M, ramp_free_coherence
 from twinfocus.radar import Chirp
+from twinfocus.reference_free import METHODS as REFERENCE_FREE_METHODS
+from twinfocus.reference_free import reference_free_autofocus, resolution_cells
 from twinfocus.scan import Scan
 from twinfocus.templates import check_has_signal
 
-METHODS = ("twin", "sharpness", "none")
+METHODS = ("twin", "sharpness", *REFERENCE_FREE_METHODS, "none")
 
 
 @dataclass
@@ -334,7 +336,8 @@ def focus_bases(
     reference_info : what a digital twin's cloud conditioning chose and why
         (:attr:`twinfocus.digital_twin.condition.DigitalTwinReference.info`): written to metrics.json
         as ``digital_twin``; the confidence report reads its ``curved``.
-    method : ``"twin"`` (reference vs template), ``"sharpness"`` (of the target) or ``"none"``.
+    method : ``"twin"`` (reference vs template), ``"sharpness"``, ``"entropy"`` or ``"pga"`` (of the
+        target itself, :mod:`twinfocus.reference_free`; metrics.json ``reference_free``) or ``"none"``.
     config : :class:`~twinfocus.autofocus.AutofocusConfig`, handed to the autofocus as is.
     bp_options : the back-projection options the bases were built with (recorded in ``config``).
     phase_ramp : "auto", "remove" or "keep": the estimate's constant + linear-in-aperture ramp
@@ -399,6 +402,10 @@ def focus_bases(
         )
     elif method == "sharpness":
         result = sharpness_autofocus(tgt_basis, cfg, progress=prog("sharpness autofocus"))
+    elif method in REFERENCE_FREE_METHODS:
+        result = reference_free_autofocus(
+            tgt_basis, method, cells=resolution_cells(positions, target_grid, chirp.wavelength_m)
+        )
     else:
         result = no_correction(ref_basis)
     timings = {"autofocus": time.perf_counter() - t}
@@ -410,6 +417,8 @@ def focus_bases(
     m: dict = {"method": method, "n_positions": int(positions.shape[0]), "n_channels": int(positions.shape[1])}
     if reference_info is not None:
         m["digital_twin"] = reference_info
+    if "reference_free" in result.extra:
+        m["reference_free"] = result.extra["reference_free"]
     if method == "twin":
         m["estimator"] = {
             "init": cfg.init,
@@ -669,9 +678,12 @@ def _space_variant(
 
 
 def _complex_match(image: np.ndarray, template: np.ndarray) -> float:
-    """Normalised complex correlation Re<image, template> / (|image| |template|): 1 when equal."""
-    num = np.vdot(template.ravel(), image.ravel()).real
-    return float(num / max(np.linalg.norm(image) * np.linalg.norm(template), 1e-300))
+    """Normalised complex correlation Re<image, template> / (|image| |template|): 1 when equal.
+    Each at unit peak in complex128 first: the norms of complex64 images at 1e20 overflow."""
+    a, t = (np.asarray(x).astype(np.complex128).ravel() for x in (image, template))
+    a, t = a / max(np.abs(a).max(), 1e-300), t / max(np.abs(t).max(), 1e-300)
+    num = np.vdot(t, a).real
+    return float(num / max(np.linalg.norm(a) * np.linalg.norm(t), 1e-300))
 
 
 #: below this reference-vs-template SSIM the reference was not matched and the phase is suspect:
@@ -793,6 +805,9 @@ def confidence_report(
             f"the corrected reference leaves {residual:.3f} of its template unmatched (> {MAX_REFERENCE_RESIDUAL}): "
             "the error is not all one phase per position (a hand's drift, rotation); expect the target below its ceiling"
         )
+    free = (m.get("reference_free") or {}).get("warning")
+    if free:
+        out["warnings"].append(free)
     reg = m.get("template_registration")
     if reg and reg.get("at_limit"):
         out["warnings"].append(

@@ -301,9 +301,14 @@ def fit_smooth_drift(
     for i in range(0, m, 64):  # (64, P, 3) at a time
         a[i : i + 64] = (k * (lines_of_sight(c[i : i + 64], pix) - u_c[i : i + 64, None, :]))[..., :2]
     at = torch.from_numpy(a)
+    # The correlation is scale-free: the basis (its half by the same factor) and the template at
+    # unit peak, so float32 sums of squares of a scan at 1e20 do not overflow (nor flush at 1e-20).
+    # Scaled in place after the float32 copies: no second copy of the basis.
+    unit = 1.0 / max(float(np.abs(b).max()), 1e-30)
     flat = b.reshape(m, -1)
-    br = torch.from_numpy(np.ascontiguousarray(flat.real, np.float32))
-    bi = torch.from_numpy(np.ascontiguousarray(flat.imag, np.float32))
+    tpl = tpl * (1.0 / max(float(np.abs(tpl).max()), 1e-30))
+    br = torch.from_numpy(np.ascontiguousarray(flat.real, np.float32)).mul_(unit)
+    bi = torch.from_numpy(np.ascontiguousarray(flat.imag, np.float32)).mul_(unit)
     tr = torch.from_numpy(np.ascontiguousarray(tpl.real.reshape(-1), np.float32))
     ti = torch.from_numpy(np.ascontiguousarray(tpl.imag.reshape(-1), np.float32))
     t_norm = torch.sqrt((tr * tr + ti * ti).sum())
@@ -314,8 +319,8 @@ def fit_smooth_drift(
     tilt_coef = torch.zeros(s.shape[1], requires_grad=tilted)
     if tilted:
         half = np.asarray(half_basis).reshape(m, -1)
-        hr = torch.from_numpy(np.ascontiguousarray(half.real, np.float32))
-        hi = torch.from_numpy(np.ascontiguousarray(half.imag, np.float32))
+        hr = torch.from_numpy(np.ascontiguousarray(half.real, np.float32)).mul_(unit)
+        hi = torch.from_numpy(np.ascontiguousarray(half.imag, np.float32)).mul_(unit)
 
     def match(dp: torch.Tensor) -> torch.Tensor:
         er, ei = br, bi

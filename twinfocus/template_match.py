@@ -80,8 +80,31 @@ def correlation_phase(basis: np.ndarray, template: np.ndarray) -> np.ndarray:
     """
     b, t = _check(basis, template)
     flat = b.reshape(b.shape[0], -1)
-    # angle <B_m, T> = -angle (B_m . conj T): no conjugate copy of the basis
+    # angle <B_m, T> = -angle (B_m . conj T): no conjugate copy of the basis; the template at unit
+    # peak so that the products of a basis and a template at 1e20 (or 1e-20) neither overflow nor
+    # flush to zero in complex64
+    t = _unit_peak(t)
     return -np.angle(flat @ np.conj(t.reshape(-1)).astype(flat.dtype)).astype(np.float64)
+
+
+def _unit_peak(template: np.ndarray) -> np.ndarray:
+    """complex128 (H, W): the template divided by its peak modulus (the scale is free)."""
+    t = np.asarray(template).astype(np.complex128)
+    return t / np.abs(t).max()
+
+
+def _shift_limit(max_shift_px: int, shape: tuple[int, ...]) -> int:
+    """The registration's search half-width S: ``max_shift_px``, or less on a region too small
+    for a search of 2 S + 1 shifts (S = (min(H, W) - 1) // 2)."""
+    s = int(max_shift_px)
+    if s < 1:
+        raise TwinFocusError(f"max_shift_px must be >= 1, got {max_shift_px}")
+    fits = (min(shape) - 1) // 2
+    if fits < 1:
+        raise TwinFocusError(
+            f"a {shape[0]} x {shape[1]} region is too small to register a template in (at least 3 x 3 pixels)"
+        )
+    return min(s, fits)
 
 
 def projection_phase(
@@ -123,17 +146,15 @@ class MatchScores:
     template while it is captured and pays only for the last batch after it. The
     template's spectrum and the normaliser are computed once, here.
 
-    template : complex (H, W) on the basis's grid; max_shift_px : S, shifts |dy|, |dx| <= S.
+    template : complex (H, W) on the basis's grid; max_shift_px : S, shifts |dy|, |dx| <= S (less
+    on a region smaller than 2 S + 1 pixels: :attr:`max_shift_px` holds the S searched).
     """
 
     def __init__(self, template: np.ndarray, max_shift_px: int = 4):
-        t = _check_template(template)
-        s = int(max_shift_px)
-        if s < 1:
-            raise TwinFocusError(f"max_shift_px must be >= 1, got {max_shift_px}")
+        # unit peak: the scores are a ratio, and a template at 1e20 would overflow complex64
+        t = _unit_peak(_check_template(template))
+        s = _shift_limit(max_shift_px, t.shape)
         h, w = t.shape
-        if 2 * s + 1 > min(h, w):
-            raise TwinFocusError(f"max_shift_px {s} is too large for a {h} x {w} region")
         self.shape = t.shape
         self.max_shift_px = s
         self._pad = (h + s, w + s)  # enough padding that shifts up to s never wrap
@@ -172,7 +193,8 @@ class MatchScores:
 def match_scores(basis: np.ndarray, template: np.ndarray, max_shift_px: int = 4, chunk: int = 64) -> np.ndarray:
     """J(s) for every integer shift s = (dy, dx) with |dy|, |dx| <= max_shift_px.
 
-    Returns float64 (2 S + 1, 2 S + 1), S = max_shift_px, entry [S + dy, S + dx] the score of the
+    Returns float64 (2 S + 1, 2 S + 1), S = max_shift_px (less on a small region, as
+    :class:`MatchScores`), entry [S + dy, S + dx] the score of the
     template moved by (dy, dx) pixels (:func:`shift_image`'s convention). Computed for all shifts
     at once by zero-padded FFT cross-correlation, ``chunk`` positions at a time
     (:class:`MatchScores` over the whole basis).
@@ -196,7 +218,7 @@ def register_template(
     (J at the peak over J unmoved, >= 1) and ``at_limit`` (the peak lies on the search border:
     the template is farther off than ``max_shift_px``, widen it or check the template)).
     """
-    s = int(max_shift_px)
+    s = _shift_limit(max_shift_px, np.shape(template))
     if scores is None:
         scores = match_scores(basis, template, max_shift_px)
     elif scores.shape != (2 * s + 1, 2 * s + 1):

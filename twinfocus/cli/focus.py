@@ -45,7 +45,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     src.add_argument("--template-scan", help="scan of the reference alone on accurate positions (physical twin)")
     src.add_argument("--digital-twin", help="reference point cloud (.npy, (N, 3) metres, scene frame)")
-    src.add_argument("--method", choices=["sharpness", "none"], help="baseline without a template")
+    src.add_argument(
+        "--method",
+        choices=["sharpness", "entropy", "pga", "none"],
+        help="without a template: the target's own sharpness, minimum entropy or phase-gradient autofocus "
+        "(docs/reference_free.md), or no correction",
+    )
     p.add_argument("--out", required=True, help="output folder")
     add_focus_options(p)  # the settings shared with the solver node: twinfocus/settings.py
     p.add_argument(
