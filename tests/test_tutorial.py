@@ -62,7 +62,7 @@ def test_the_tutorial_runs_as_written(tmp_path: Path) -> None:
 
     shown = [body for lang, body in blocks(text) if lang in ("", "text")]
     lines = [
-        ln.strip() for body in shown for ln in body.splitlines() if ln.startswith(("[convert]", "twinfocus focus:"))
+        ln.strip() for body in shown for ln in body.splitlines() if ln.startswith(("[convert]", "[calibrate]", "twinfocus focus:"))
     ]
     assert lines, "the tutorial shows no output line to check"
     for line in lines:
