@@ -29,9 +29,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--reference-roi",
         nargs=5,
         type=float,
-        required=True,
+        default=None,
         metavar=("X0", "X1", "Y0", "Y1", "Z"),
-        help="reference region (metres)",
+        help="reference region (metres); without it, found from --digital-twin's cloud, --template's grid or "
+        "--template-scan's image (metrics.json reference_search); needed with --method",
     )
     p.add_argument(
         "--target-roi",
@@ -159,15 +160,17 @@ def target_region(values: list[str]) -> tuple[tuple[float, ...], float | tuple[f
     return box, depth
 
 
-def volume_plan(args: argparse.Namespace, n_positions: int, n_channels: int):
+def volume_plan(args: argparse.Namespace, n_positions: int, n_channels: int, reference_roi=None):
     """The ``--volume`` grid over both regions' x/y box and what it will cost (checked against
-    the memory available), or None without ``--volume``."""
+    the memory available), or None without ``--volume``. reference_roi : the reference region
+    when it was found rather than typed (before it is, the target's box stands in: the cost
+    depends only on the pixel and plane counts)."""
     from twinfocus.volume import volume_cost, volume_grid
 
     if args.volume is None:
         return None
     box, _ = target_region(args.target_roi)
-    ref = args.reference_roi
+    ref = reference_roi or args.reference_roi or (*box, 1.0)
     plane = ImageGrid(
         min(box[0], ref[0]), max(box[1], ref[1]), min(box[2], ref[2]), max(box[3], ref[3]), 1.0, args.size, args.size
     )
@@ -212,6 +215,8 @@ def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
                 "for a template file)"
             )
     target_region(args.target_roi)
+    if args.reference_roi is None and args.method:
+        raise TwinFocusError("--method needs --reference-roi (a reference region is found only from a twin)")
     if args.refine_depth is not None and not (args.refine_depth > 0):
         raise TwinFocusError(f"--refine-depth must be a positive distance (metres), got {args.refine_depth}")
     check_memory(shapes["data"][0], args.size)
@@ -267,6 +272,31 @@ def _template(args, scan, ref_grid, bp, progress, cache) -> tuple:
     if cache.warning:
         print(f"twinfocus focus: warning: {cache.warning}", file=sys.stderr)
     return template, status, support, info
+
+
+def _reference_region(args: argparse.Namespace, bp: dict, progress) -> tuple[tuple, dict]:
+    """The reference region: typed, or found from the twin (:mod:`twinfocus.reference_search`)."""
+    from twinfocus import reference_search
+
+    if args.reference_roi is not None:
+        return tuple(args.reference_roi), {"source": "typed"}
+    if args.digital_twin:
+        from twinfocus.digital_twin.template import load_points
+
+        return reference_search.region_from_cloud(load_points(args.digital_twin, allow_non_finite=True))
+    if args.template:
+        from twinfocus.scan import load_npz
+
+        z = load_npz(args.template)
+        if not all(k in z for k in ("x_m", "y_m", "z_m")):
+            raise TwinFocusError(f"--template {args.template}: not a template file (no x_m, y_m, z_m)")
+        return reference_search.region_from_template_file(z["x_m"], z["y_m"], float(z["z_m"]))
+    from twinfocus.scan import Scan
+
+    twin = Scan.load(args.template_scan)
+    return reference_search.region_from_scan(
+        twin.data, twin.positions, twin.chirp, bp_options=bp, progress_factory=progress
+    )
 
 
 def _depth_range(
@@ -363,21 +393,31 @@ def run(args: argparse.Namespace) -> int:
     pictures = "none" if args.no_pictures else args.pictures
     shapes = _check_before_work(args)
     device = resolve_device(args.device)
-    ref_grid = ImageGrid.from_roi(args.reference_roi, args.size)
+    bp = {"oversample": args.oversample, "precision": args.precision}
+    if device != "cpu":
+        bp.update(backend="torch", device=device)
+    progress = lambda label: Progress(label, enabled=not args.quiet)
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    reference_roi, reference_found = _reference_region(args, bp, progress)
+    if reference_found["source"] != "typed":
+        timings["reference_search"] = time.perf_counter() - t
+        if not args.quiet:
+            print(
+                f"[reference] region from the {reference_found['source']}: "
+                + " ".join(f"{v:.3f}" for v in reference_roi),
+                file=sys.stderr,
+            )
+    ref_grid = ImageGrid.from_roi(reference_roi, args.size)
     box, typed_depth = target_region(args.target_roi)
     depth_range = _depth_range(typed_depth, args.refine_depth, ref_grid.z)
-    plan = volume_plan(args, shapes["data"][0], shapes["data"][1])
+    plan = volume_plan(args, shapes["data"][0], shapes["data"][1], reference_roi)
     if plan is not None and not args.quiet:
         print(
             f"[volume] {' x '.join(map(str, plan[0].shape))} voxels: about {plan[1]['memory_bytes'] / 2**20:.0f} MiB "
             f"and {plan[1]['seconds_estimate']:.0f} s on the CPU",
             file=sys.stderr,
         )
-    bp = {"oversample": args.oversample, "precision": args.precision}
-    if device != "cpu":
-        bp.update(backend="torch", device=device)
-    progress = lambda label: Progress(label, enabled=not args.quiet)
-    timings: dict[str, float] = {}
 
     t = time.perf_counter()
     scan = Scan.load(args.scan)
@@ -422,6 +462,7 @@ def run(args: argparse.Namespace) -> int:
     outputs = focus(scan, target_grid=tgt_grid, space_variant=args.space_variant)
     if search is not None:
         outputs.metrics["target_depth"] = {**search_info, **search.to_dict()}
+    outputs.metrics["reference_search"] = {**reference_found, "roi": list(reference_roi)}
     outputs.timings_s = {**timings, **outputs.timings_s}
     outputs.metrics["timings_s"] = outputs.timings_s
     if cache_status is not None:
@@ -437,12 +478,16 @@ def run(args: argparse.Namespace) -> int:
         save_template(args.save_template, template, ref_grid, support=support, info=twin_info)
     volume = None
     if plan is not None:
-        t = time.perf_counter()
+        t, cpu = time.perf_counter(), time.process_time()
         volume = corrected_image(
             scan.data, scan.positions, scan.chirp, plan[0], outputs.phase_rad, progress=progress("volume"), **bp
         )
         timings["volume"] = outputs.timings_s["volume"] = time.perf_counter() - t
-        outputs.metrics["volume"] = _volume_metrics(plan[0], plan[1], timings["volume"])
+        outputs.metrics["volume"] = {
+            **_volume_metrics(plan[0], plan[1], timings["volume"]),
+            # on a busy machine the steadier figure: about the wall time x the threads when idle
+            "cpu_seconds": time.process_time() - cpu,
+        }
     t = time.perf_counter()
     write_outputs(args.out, outputs, pictures=pictures)
     _write_where(args.out, search, typed_depth, volume, plan[0] if plan else None, pictures)
