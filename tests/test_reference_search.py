@@ -9,7 +9,13 @@ import pytest
 from twinfocus.cli import main
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.reference_search import REGION_MARGIN_M, region_from_cloud, region_from_scan, region_from_template_file
+from twinfocus.reference_search import (
+    REGION_MARGIN_M,
+    candidate_score,
+    region_from_cloud,
+    region_from_scan,
+    region_from_template_file,
+)
 from twinfocus.simulate import simulate_if
 
 
@@ -86,3 +92,32 @@ def test_focus_from_the_twin_and_an_xy_box_alone_matches_typed_regions(tmp_path)
     assert where["roi"][4] == pytest.approx(0.6, abs=0.004)
     assert found["target_depth"]["depth_m"] == pytest.approx(0.68, abs=0.004)
     assert found["target_ssim_corrected"] > typed["target_ssim_corrected"] - 0.01
+
+
+def test_candidate_score_puts_trusted_references_first():
+    trusted = {"reference_match_ssim": 0.7, "warnings": []}
+    warned = {"reference_match_ssim": 0.99, "warnings": ["the transfer is not to be trusted"]}
+    assert candidate_score(trusted) == pytest.approx(0.7)
+    assert candidate_score(warned) == pytest.approx(-0.01)
+    assert candidate_score({"reference_match_ssim": None, "warnings": []}) == 0.0
+
+
+@pytest.mark.slow
+def test_of_two_template_scans_the_one_of_the_reference_is_chosen(tmp_path):
+    d = tmp_path
+    sim = ["--columns", "3", "--rows", "40", "--quiet", "--seed", "3"]
+    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "a.npz"), *sim]) == 0
+    # a motion-stage scan of another letter where the reference stands: the wrong twin
+    assert main(["simulate", "--out", str(d / "other.npz"), "--template-out", str(d / "b.npz"), "--reference", "B",
+                 *sim]) == 0
+    assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
+                 "--target-roi", "0.02", "0.13", "-0.11", "0.12", "0.6", "--size", "48", "--iterations", "150",
+                 "--space-variant", "off", "--template-scan", str(d / "b.npz"), str(d / "a.npz"), "--quiet",
+                 "--no-cache", "--out", str(d / "out")]) == 0
+    m = json.loads((d / "out" / "metrics.json").read_text())
+    cands = m["reference_candidates"]
+    assert [c["path"] for c in cands["candidates"]] == [str(d / "b.npz"), str(d / "a.npz")]
+    assert cands["chosen"] == 1
+    a, b = cands["candidates"][1], cands["candidates"][0]
+    assert a["score"] > b["score"] and a["target_ssim_corrected"] > b["target_ssim_corrected"]
+    assert m["target_ssim_corrected"] == a["target_ssim_corrected"]

@@ -135,3 +135,12 @@ def region_from_scan(
         "object_energy_share": round(share, 4),
         "depth_contrast": round(float(found.contrast), 2),
     }
+
+
+def candidate_score(confidence: dict) -> float:
+    """A reference candidate's score from its confidence report
+    (:func:`twinfocus.pipeline.confidence_report`): how well the corrected reference matches its
+    template (SSIM, 0 when there is none) less one for each warning, so a candidate the report
+    trusts outranks any it warns about. Larger is better."""
+    match = confidence.get("reference_match_ssim")
+    return float(match or 0.0) - len(confidence.get("warnings", []))

@@ -65,11 +65,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument(
         "--template",
+        nargs="+",
+        metavar="TEMPLATE",
         help="template file (.npz: image, x_m, y_m, z_m; a digital twin's, from twinfocus twin --out, also its "
-        "outline and conditioning)",
+        "outline and conditioning); several: each a reference candidate, the best by the confidence report used "
+        "(metrics.json reference_candidates)",
     )
-    src.add_argument("--template-scan", help="scan of the reference alone on accurate positions (physical twin)")
-    src.add_argument("--digital-twin", help="reference point cloud (.npy, (N, 3) metres, scene frame)")
+    src.add_argument(
+        "--template-scan",
+        nargs="+",
+        metavar="SCAN",
+        help="scan of the reference alone on accurate positions (physical twin); several: candidates, as --template",
+    )
+    src.add_argument(
+        "--digital-twin",
+        nargs="+",
+        metavar="CLOUD",
+        help="reference point cloud (.npy, (N, 3) metres, scene frame); several: candidates, as --template",
+    )
     src.add_argument("--method", choices=["sharpness", "none"], help="baseline without a template")
     p.add_argument("--out", required=True, help="output folder")
     add_focus_options(p)  # the settings shared with the solver node: twinfocus/settings.py
@@ -198,12 +211,10 @@ def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
     shapes = peek_npz_shapes(args.scan)
     if "data" not in shapes or len(shapes["data"]) != 3:
         raise TwinFocusError(f"{args.scan}: not a scan file (no 3-D 'data' array)")
-    if args.template_scan:
-        peek_npz_shapes(args.template_scan)
-    if args.template:
-        peek_npz_shapes(args.template)
-    if args.digital_twin:
-        cloud = Path(args.digital_twin)
+    for path in (args.template_scan or []) + (args.template or []):
+        peek_npz_shapes(path)
+    for path in args.digital_twin or []:
+        cloud = Path(path)
         if not cloud.is_file():
             raise TwinFocusError(f"--digital-twin {cloud}: no such file")
         with open(cloud, "rb") as f:
@@ -354,7 +365,8 @@ def _volume_metrics(grid, cost: dict, seconds: float) -> dict:
 
 def _write_where(out_dir, search, typed_depth, volume, grid, pictures: str) -> None:
     """Beside write_outputs' files: depth_search.png for a depth search, and for a volume
-    volume.npy, volume.ply and its two pictures (each written atomically)."""
+    volume.npy, volume.ply and its two pictures (the data written atomically; an earlier run's
+    volume files are removed when this run forms none)."""
     import numpy as np
 
     from twinfocus.atomic import atomic_writer, write_bytes_atomic
@@ -365,6 +377,8 @@ def _write_where(out_dir, search, typed_depth, volume, grid, pictures: str) -> N
         with atomic_writer(Path(out_dir) / "depth_search.png") as f:
             depth_search_picture(f, search, typed_depth if isinstance(typed_depth, float) else None)
     if volume is None:
+        for stale in ("volume.npy", "volume.ply"):  # an earlier run's volume is not this result's
+            (Path(out_dir) / stale).unlink(missing_ok=True)
         return
     from twinfocus.volume import bright_voxels, ply_bytes, projections
 
@@ -377,26 +391,18 @@ def _write_where(out_dir, search, typed_depth, volume, grid, pictures: str) -> N
         volume_pictures(out_dir, *projections(volume, grid), grid)
 
 
-def run(args: argparse.Namespace) -> int:
-    t_run = time.perf_counter()
+def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, device: str, progress) -> dict:
+    """Everything ``focus`` does with one reference (``args`` names one template source): its
+    region (typed or found), its template, the target's depth when it is searched, the focused
+    outputs. Returns a dict of them (``outputs``, ``search``, ``template``, ``support``,
+    ``twin_info``, ``ref_grid``, ``cache_status``, ``method``)."""
     import numpy as np
 
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.cache import TemplateCache
     from twinfocus.estimators import estimator_settings
-    from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import focus_scan, write_outputs
-    from twinfocus.progress import Progress
-    from twinfocus.scan import Scan
-    from twinfocus.volume import corrected_image
+    from twinfocus.pipeline import focus_scan
 
-    pictures = "none" if args.no_pictures else args.pictures
-    shapes = _check_before_work(args)
-    device = resolve_device(args.device)
-    bp = {"oversample": args.oversample, "precision": args.precision}
-    if device != "cpu":
-        bp.update(backend="torch", device=device)
-    progress = lambda label: Progress(label, enabled=not args.quiet)
     timings: dict[str, float] = {}
     t = time.perf_counter()
     reference_roi, reference_found = _reference_region(args, bp, progress)
@@ -409,19 +415,7 @@ def run(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
     ref_grid = ImageGrid.from_roi(reference_roi, args.size)
-    box, typed_depth = target_region(args.target_roi)
     depth_range = _depth_range(typed_depth, args.refine_depth, ref_grid.z)
-    plan = volume_plan(args, shapes["data"][0], shapes["data"][1], reference_roi)
-    if plan is not None and not args.quiet:
-        print(
-            f"[volume] {' x '.join(map(str, plan[0].shape))} voxels: about {plan[1]['memory_bytes'] / 2**20:.0f} MiB "
-            f"and {plan[1]['seconds_estimate']:.0f} s on the CPU",
-            file=sys.stderr,
-        )
-
-    t = time.perf_counter()
-    scan = Scan.load(args.scan)
-    timings["load_scan"] = time.perf_counter() - t
     t = time.perf_counter()
     template, cache_status, support, twin_info = _template(
         args, scan, ref_grid, bp, progress, TemplateCache(enabled=not args.no_cache)
@@ -429,7 +423,6 @@ def run(args: argparse.Namespace) -> int:
     timings["template"] = time.perf_counter() - t
     method = "twin" if template is not None else args.method
     has_phase = template is not None and np.iscomplexobj(template)
-    tracking_error_m = args.tracking_error_mm * 1e-3
     chosen = {}
     if method == "twin":
         chosen = estimator_settings(args.estimator, has_phase, has_support=support is not None)
@@ -447,9 +440,8 @@ def run(args: argparse.Namespace) -> int:
         bp_options=bp,
         progress_factory=progress,
         phase_ramp=args.phase_ramp,
-        tracking_error_m=tracking_error_m,
+        tracking_error_m=args.tracking_error_mm * 1e-3,
     )
-
     search = None
     if depth_range is not None:
         t = time.perf_counter()
@@ -464,9 +456,80 @@ def run(args: argparse.Namespace) -> int:
         outputs.metrics["target_depth"] = {**search_info, **search.to_dict()}
     outputs.metrics["reference_search"] = {**reference_found, "roi": list(reference_roi)}
     outputs.timings_s = {**timings, **outputs.timings_s}
-    outputs.metrics["timings_s"] = outputs.timings_s
     if cache_status is not None:
         outputs.metrics["template_cache"] = cache_status
+    return {
+        "outputs": outputs,
+        "search": search,
+        "template": template,
+        "support": support,
+        "twin_info": twin_info,
+        "ref_grid": ref_grid,
+        "method": method,
+    }
+
+
+def _candidates(args: argparse.Namespace) -> list[tuple[str | None, argparse.Namespace]]:
+    """One (path, args naming that one template source) per reference candidate; (None, args)
+    for a baseline."""
+    for option in ("template", "template_scan", "digital_twin"):
+        paths = getattr(args, option)
+        if paths:
+            return [(path, argparse.Namespace(**{**vars(args), option: path})) for path in paths]
+    return [(None, args)]
+
+
+def run(args: argparse.Namespace) -> int:
+    t_run = time.perf_counter()
+    from twinfocus.pipeline import write_outputs
+    from twinfocus.progress import Progress
+    from twinfocus.reference_search import candidate_score
+    from twinfocus.scan import Scan
+    from twinfocus.volume import corrected_image
+
+    pictures = "none" if args.no_pictures else args.pictures
+    shapes = _check_before_work(args)
+    device = resolve_device(args.device)
+    bp = {"oversample": args.oversample, "precision": args.precision}
+    if device != "cpu":
+        bp.update(backend="torch", device=device)
+    progress = lambda label: Progress(label, enabled=not args.quiet)
+    box, typed_depth = target_region(args.target_roi)
+
+    t = time.perf_counter()
+    scan = Scan.load(args.scan)
+    load_s = time.perf_counter() - t
+    candidates = _candidates(args)
+    results, listed = [], []
+    for path, cand_args in candidates:
+        if len(candidates) > 1 and not args.quiet:
+            print(f"[reference] candidate {path}", file=sys.stderr)
+        r = _focus_with(cand_args, scan, box, typed_depth, bp, device, progress)
+        conf = r["outputs"].metrics["confidence"]
+        results.append(r)
+        listed.append(
+            {
+                "path": path,
+                "reference_roi": list(r["ref_grid"].roi),
+                "score": candidate_score(conf),
+                "reference_match_ssim": conf.get("reference_match_ssim"),
+                "warnings": len(conf["warnings"]),
+                "target_roi": list(r["outputs"].target_grid.roi),
+                # known only for a simulated scan: how the choice fared
+                "target_ssim_corrected": r["outputs"].metrics.get("target_ssim_corrected"),
+            }
+        )
+    best = max(range(len(results)), key=lambda i: listed[i]["score"])
+    chosen = results[best]
+    outputs, search, template = chosen["outputs"], chosen["search"], chosen["template"]
+    support, twin_info, ref_grid, method = chosen["support"], chosen["twin_info"], chosen["ref_grid"], chosen["method"]
+    if len(candidates) > 1:
+        outputs.metrics["reference_candidates"] = {"chosen": best, "candidates": listed}
+        if not args.quiet:
+            print(f"[reference] chose {listed[best]['path']} (score {listed[best]['score']:.3f})", file=sys.stderr)
+    timings = {"load_scan": load_s, **outputs.timings_s}
+    outputs.timings_s = timings
+    outputs.metrics["timings_s"] = timings
     from twinfocus.sensors.capture_to_scan import read_capture_report
 
     gaps = read_capture_report(args.scan)  # written by `twinfocus convert` beside a real capture
@@ -477,12 +540,19 @@ def run(args: argparse.Namespace) -> int:
 
         save_template(args.save_template, template, ref_grid, support=support, info=twin_info)
     volume = None
+    plan = volume_plan(args, shapes["data"][0], shapes["data"][1], ref_grid.roi)
     if plan is not None:
+        if not args.quiet:
+            print(
+                f"[volume] {' x '.join(map(str, plan[0].shape))} voxels: about "
+                f"{plan[1]['memory_bytes'] / 2**20:.0f} MiB and {plan[1]['seconds_estimate']:.0f} s on the CPU",
+                file=sys.stderr,
+            )
         t, cpu = time.perf_counter(), time.process_time()
         volume = corrected_image(
             scan.data, scan.positions, scan.chirp, plan[0], outputs.phase_rad, progress=progress("volume"), **bp
         )
-        timings["volume"] = outputs.timings_s["volume"] = time.perf_counter() - t
+        timings["volume"] = time.perf_counter() - t
         outputs.metrics["volume"] = {
             **_volume_metrics(plan[0], plan[1], timings["volume"]),
             # on a busy machine the steadier figure: about the wall time x the threads when idle
