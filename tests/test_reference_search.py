@@ -121,3 +121,21 @@ def test_of_two_template_scans_the_one_of_the_reference_is_chosen(tmp_path):
     a, b = cands["candidates"][1], cands["candidates"][0]
     assert a["score"] > b["score"] and a["target_ssim_corrected"] > b["target_ssim_corrected"]
     assert m["target_ssim_corrected"] == a["target_ssim_corrected"]
+
+
+@pytest.mark.slow
+def test_focus_with_the_reference_region_from_its_cloud_matches_the_typed_region(tmp_path):
+    d = tmp_path
+    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"), "--columns", "3",
+                 "--rows", "40", "--quiet", "--seed", "3", "--reference-cloud-out", str(d / "cloud.npy")]) == 0
+    common = ["--target-roi", "0.02", "0.13", "-0.11", "0.12", "0.6", "--size", "48", "--digital-twin",
+              str(d / "cloud.npy"), "--quiet", "--no-cache"]
+    assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
+                 "--out", str(d / "typed"), *common]) == 0
+    assert main(["focus", str(d / "scan.npz"), "--out", str(d / "found"), *common]) == 0
+    typed = json.loads((d / "typed" / "metrics.json").read_text())
+    found = json.loads((d / "found" / "metrics.json").read_text())
+    where = found["reference_search"]
+    assert where["source"] == "digital twin cloud" and where["points_inside"] > 0.95
+    assert where["roi"][4] == pytest.approx(0.6, abs=0.005)
+    assert found["target_ssim_corrected"] > typed["target_ssim_corrected"] - 0.01
