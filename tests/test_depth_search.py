@@ -110,6 +110,7 @@ def test_focus_finds_the_target_depth_and_matches_the_typed_result(deep_scene, t
         (["0.0", "0.1", "-0.1", "0.1", "0.7:0.5"], [], "Z0:Z1"),
         (["0.1", "0.0", "-0.1", "0.1"], [], "X0 < X1"),
         (["0.0", "0.1", "-0.1", "0.1", "0.6"], ["--refine-depth", "-0.1"], "--refine-depth"),
+        (["0.0", "0.1", "-0.1", "0.1", "0.6"], ["--volume", "0.7", "0.5", "0.01"], "volume needs 0 < Z0 <= Z1"),
     ],
 )
 def test_bad_target_regions_are_refused_before_any_work(deep_scene, tmp_path, capsys, target, extra, needle):
