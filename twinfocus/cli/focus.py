@@ -4,13 +4,17 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import functools
 import os
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from twinfocus.depth_search import DEFAULT_HALF_RANGE_M
 from twinfocus.errors import TwinFocusError
+from twinfocus.grid import ImageGrid
 from twinfocus.settings import add_focus_options, resolve_device
 
 #: bytes per radar position and pixel that a run holds at its peak: the two sub-image bases
@@ -25,26 +29,60 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--reference-roi",
         nargs=5,
         type=float,
-        required=True,
+        default=None,
         metavar=("X0", "X1", "Y0", "Y1", "Z"),
-        help="reference region (metres)",
+        help="reference region (metres); without it, found from --digital-twin's cloud, --template's grid or "
+        "--template-scan's image (metrics.json reference_search); needed with --method",
     )
     p.add_argument(
         "--target-roi",
-        nargs=5,
-        type=float,
+        nargs="+",
         required=True,
-        metavar=("X0", "X1", "Y0", "Y1", "Z"),
-        help="target region (metres)",
+        metavar="X0 X1 Y0 Y1 [Z | Z0:Z1]",
+        help="target region (metres): with Z, focused there; with a range Z0:Z1, or without a depth (the "
+        f"reference's +- {DEFAULT_HALF_RANGE_M} m), the depth where its corrected image is sharpest is searched "
+        "for (metrics.json target_depth, depth_search.png)",
+    )
+    p.add_argument(
+        "--refine-depth",
+        nargs="?",
+        type=float,
+        const=0.1,
+        default=None,
+        metavar="M",
+        help="with a typed Z: search Z +- M metres (default 0.1) for the target's depth instead of trusting Z",
+    )
+    p.add_argument(
+        "--volume",
+        nargs=3,
+        type=float,
+        default=None,
+        metavar=("Z0", "Z1", "DZ"),
+        help="also form the corrected 3-D volume over both regions' x/y box, --size x --size pixels, planes "
+        "Z0..Z1 every DZ metres: volume.npy, volume.ply (voxels within 12 dB of the brightest), "
+        "volume_mip.png, volume_depth.png",
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument(
         "--template",
+        nargs="+",
+        metavar="TEMPLATE",
         help="template file (.npz: image, x_m, y_m, z_m; a digital twin's, from twinfocus twin --out, also its "
-        "outline and conditioning)",
+        "outline and conditioning); several: each a reference candidate, the best by the confidence report used "
+        "(metrics.json reference_candidates)",
     )
-    src.add_argument("--template-scan", help="scan of the reference alone on accurate positions (physical twin)")
-    src.add_argument("--digital-twin", help="reference point cloud (.npy, (N, 3) metres, scene frame)")
+    src.add_argument(
+        "--template-scan",
+        nargs="+",
+        metavar="SCAN",
+        help="scan of the reference alone on accurate positions (physical twin); several: candidates, as --template",
+    )
+    src.add_argument(
+        "--digital-twin",
+        nargs="+",
+        metavar="CLOUD",
+        help="reference point cloud (.npy, (N, 3) metres, scene frame); several: candidates, as --template",
+    )
     src.add_argument(
         "--method",
         choices=["sharpness", "entropy", "pga", "none"],
@@ -97,20 +135,72 @@ def _check_writable_target(path: str, option: str, folder: bool) -> None:
         raise TwinFocusError(f"{option} {path}: cannot write in {anchor} ({exc.strerror or exc})") from None
 
 
-def check_memory(n_positions: int, size: int, available: int | None = None) -> int:
-    """Refuse a run whose sub-image bases and optimiser copies (~32 B per position and pixel)
-    cannot fit in the memory available; returns the estimate in bytes."""
-    need = _BYTES_PER_POSITION_PIXEL * n_positions * size * size
+def _require_memory(need: int, what: str, advice: str, available: int | None) -> int:
+    """Refuse work that needs ``need`` bytes when less is available (``available`` None: ask
+    the OS); returns ``need``."""
     from twinfocus.machine import available_memory_bytes
 
     available = available_memory_bytes() if available is None else available
     if available is not None and need > available:
         raise TwinFocusError(
-            f"--size {size} needs about {need / 2**30:.1f} GiB ({n_positions} positions x {size} x {size} pixels x "
-            f"{_BYTES_PER_POSITION_PIXEL} B for the sub-image bases), {available / 2**30:.1f} GiB is available; "
-            "choose a smaller --size"
+            f"{what} needs about {need / 2**30:.1f} GiB, {available / 2**30:.1f} GiB is available; {advice}"
         )
     return need
+
+
+def check_memory(n_positions: int, size: int, available: int | None = None) -> int:
+    """Refuse a run whose sub-image bases and optimiser copies (~32 B per position and pixel)
+    cannot fit in the memory available; returns the estimate in bytes."""
+    need = _BYTES_PER_POSITION_PIXEL * n_positions * size * size
+    return _require_memory(
+        need,
+        f"--size {size} ({n_positions} positions x {size} x {size} pixels x {_BYTES_PER_POSITION_PIXEL} B for the "
+        "sub-image bases)",
+        "choose a smaller --size",
+        available,
+    )
+
+
+def target_region(values: list[str]) -> tuple[tuple[float, ...], float | tuple[float, float] | None]:
+    """``--target-roi``'s words -> (X0, X1, Y0, Y1) and the depth: Z, (Z0, Z1) or None."""
+    from twinfocus.depth_search import parse_depth
+
+    if len(values) not in (4, 5):
+        raise TwinFocusError(f"--target-roi takes X0 X1 Y0 Y1 and optionally Z or Z0:Z1, got {len(values)} values")
+    try:
+        box = tuple(float(v) for v in values[:4])
+    except ValueError:
+        raise TwinFocusError(
+            f"--target-roi: X0 X1 Y0 Y1 must be numbers (metres), got {' '.join(values[:4])}"
+        ) from None
+    depth = parse_depth(values[4]) if len(values) == 5 else None
+    ImageGrid.from_roi((*box, 1.0), 2)  # checks the box (a depth is checked by parse_depth)
+    return box, depth
+
+
+def volume_plan(args: argparse.Namespace, n_positions: int, n_channels: int, reference_roi=None):
+    """The ``--volume`` grid over both regions' x/y box and what it will cost (checked against
+    the memory available), or None without ``--volume``. reference_roi : the reference region
+    when it was found rather than typed (before it is, the target's box stands in: the cost
+    depends only on the pixel and plane counts)."""
+    from twinfocus.volume import volume_cost, volume_grid
+
+    if args.volume is None:
+        return None
+    box, _ = target_region(args.target_roi)
+    ref = reference_roi or args.reference_roi or (*box, 1.0)
+    plane = ImageGrid(
+        min(box[0], ref[0]), max(box[1], ref[1]), min(box[2], ref[2]), max(box[3], ref[3]), 1.0, args.size, args.size
+    )
+    grid = volume_grid(plane, *args.volume)
+    cost = volume_cost(grid, n_positions, n_channels)
+    _require_memory(
+        cost["memory_bytes"] + _BYTES_PER_POSITION_PIXEL * n_positions * args.size**2,
+        f"--volume ({' x '.join(map(str, grid.shape))} voxels) beside the sub-image bases",
+        "choose a smaller --size or fewer planes",
+        None,
+    )
+    return grid, cost
 
 
 def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
@@ -126,12 +216,10 @@ def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
     shapes = peek_npz_shapes(args.scan)
     if "data" not in shapes or len(shapes["data"]) != 3:
         raise TwinFocusError(f"{args.scan}: not a scan file (no 3-D 'data' array)")
-    if args.template_scan:
-        peek_npz_shapes(args.template_scan)
-    if args.template:
-        peek_npz_shapes(args.template)
-    if args.digital_twin:
-        cloud = Path(args.digital_twin)
+    for path in (args.template_scan or []) + (args.template or []):
+        peek_npz_shapes(path)
+    for path in args.digital_twin or []:
+        cloud = Path(path)
         if not cloud.is_file():
             raise TwinFocusError(f"--digital-twin {cloud}: no such file")
         with open(cloud, "rb") as f:
@@ -142,7 +230,13 @@ def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
                 "cloud .npy, (N, 3) metres (use --template-scan for a motion-stage scan, --template "
                 "for a template file)"
             )
+    target_region(args.target_roi)
+    if args.reference_roi is None and args.method:
+        raise TwinFocusError("--method needs --reference-roi (a reference region is found only from a twin)")
+    if args.refine_depth is not None and not (args.refine_depth > 0):
+        raise TwinFocusError(f"--refine-depth must be a positive distance (metres), got {args.refine_depth}")
     check_memory(shapes["data"][0], args.size)
+    volume_plan(args, shapes["data"][0], shapes["data"][1])
     return shapes
 
 
@@ -196,32 +290,137 @@ def _template(args, scan, ref_grid, bp, progress, cache) -> tuple:
     return template, status, support, info
 
 
-def run(args: argparse.Namespace) -> int:
-    t_run = time.perf_counter()
+def _reference_region(args: argparse.Namespace, bp: dict, progress) -> tuple[tuple, dict]:
+    """The reference region: typed, or found from the twin (:mod:`twinfocus.reference_search`)."""
+    from twinfocus import reference_search
+
+    if args.reference_roi is not None:
+        return tuple(args.reference_roi), {"source": "typed"}
+    if args.digital_twin:
+        from twinfocus.digital_twin.template import load_points
+
+        return reference_search.region_from_cloud(load_points(args.digital_twin, allow_non_finite=True))
+    if args.template:
+        from twinfocus.scan import load_npz
+
+        z = load_npz(args.template)
+        if not all(k in z for k in ("x_m", "y_m", "z_m")):
+            raise TwinFocusError(f"--template {args.template}: not a template file (no x_m, y_m, z_m)")
+        return reference_search.region_from_template_file(z["x_m"], z["y_m"], float(z["z_m"]))
+    from twinfocus.scan import Scan
+
+    twin = Scan.load(args.template_scan)
+    return reference_search.region_from_scan(
+        twin.data, twin.positions, twin.chirp, bp_options=bp, progress_factory=progress
+    )
+
+
+def _depth_range(
+    typed: float | tuple[float, float] | None, refine_m: float | None, reference_depth_m: float
+) -> tuple[float, float] | None:
+    """The depths to search for the target: the typed range, Z +- ``refine_m``, the default range
+    around the reference when no depth was typed; None for a typed Z to be trusted."""
+    from twinfocus.depth_search import default_range
+
+    if typed is None:
+        return default_range(reference_depth_m)
+    if isinstance(typed, tuple):
+        return typed
+    if refine_m is not None:
+        return (max(0.01, typed - refine_m), typed + refine_m)
+    return None
+
+
+def _find_target_depth(focus, scan, box, depth_range, method, bp, progress):
+    """The target's depth from the scan: the phase from the reference first (its scalar estimate,
+    on a 2 x 2 target region at the range's middle: the target's own images are not needed yet),
+    then :func:`twinfocus.depth_search.search_depth` with it. Returns (the search, what phase it
+    used)."""
+    import numpy as np
+
+    from twinfocus.depth_search import search_depth
+    from twinfocus.grid import ImageGrid
+
+    if method == "twin":
+        probe = ImageGrid.from_roi((*box, float(np.mean(depth_range))), 2)
+        blind = dataclasses.replace(scan, positions_true=None)  # no truth images for the probe
+        phase = focus(blind, target_grid=probe, space_variant="off").phase_rad
+        used = "the twin's estimate (one phase per position, before any space-variant step)"
+    else:
+        # the sharpness estimate needs the target's own region; search the uncorrected scan
+        phase = np.zeros(scan.n_positions)
+        used = "none (uncorrected)"
+    search = search_depth(
+        scan.data, scan.positions, scan.chirp, box, depth_range, phase, bp_options=bp, progress_factory=progress
+    )
+    return search, {"range_m": list(depth_range), "phase": used}
+
+
+def _volume_metrics(grid, cost: dict, seconds: float) -> dict:
+    p = grid.plane
+    return {
+        "roi": [p.x0, p.x1, p.y0, p.y1],
+        "z_m": [grid.z0, grid.z1],
+        "shape": list(grid.shape),
+        "memory_bytes_estimate": cost["memory_bytes"],
+        "seconds_estimate": cost["seconds_estimate"],
+        "seconds": seconds,
+    }
+
+
+def _write_where(out_dir, search, typed_depth, volume, grid, pictures: str) -> None:
+    """Beside write_outputs' files: depth_search.png for a depth search, and for a volume
+    volume.npy, volume.ply and its two pictures (the data written atomically; an earlier run's
+    volume files are removed when this run forms none)."""
+    import numpy as np
+
+    from twinfocus.atomic import atomic_writer, write_bytes_atomic
+
+    if search is not None and pictures != "none":
+        from twinfocus.depth_pictures import depth_search_picture
+
+        with atomic_writer(Path(out_dir) / "depth_search.png") as f:
+            depth_search_picture(f, search, typed_depth if isinstance(typed_depth, float) else None)
+    if volume is None:
+        for stale in ("volume.npy", "volume.ply"):  # an earlier run's volume is not this result's
+            (Path(out_dir) / stale).unlink(missing_ok=True)
+        return
+    from twinfocus.volume import bright_voxels, ply_bytes, projections
+
+    with atomic_writer(Path(out_dir) / "volume.npy") as f:
+        np.save(f, volume.astype(np.complex64))
+    write_bytes_atomic(Path(out_dir) / "volume.ply", ply_bytes(*bright_voxels(volume, grid)))
+    if pictures != "none":
+        from twinfocus.depth_pictures import volume_pictures
+
+        volume_pictures(out_dir, *projections(volume, grid), grid)
+
+
+def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, device: str, progress) -> dict:
+    """Everything ``focus`` does with one reference (``args`` names one template source): its
+    region (typed or found), its template, the target's depth when it is searched, the focused
+    outputs. Returns a dict of them (``outputs``, ``search``, ``template``, ``support``,
+    ``twin_info``, ``ref_grid``, ``cache_status``, ``method``)."""
     import numpy as np
 
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.cache import TemplateCache
     from twinfocus.estimators import estimator_settings
-    from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import focus_scan, write_outputs
-    from twinfocus.progress import Progress
-    from twinfocus.scan import Scan
+    from twinfocus.pipeline import focus_scan
 
-    pictures = "none" if args.no_pictures else args.pictures
-    _check_before_work(args)
-    device = resolve_device(args.device)
-    ref_grid = ImageGrid.from_roi(args.reference_roi, args.size)
-    tgt_grid = ImageGrid.from_roi(args.target_roi, args.size)
-    bp = {"oversample": args.oversample, "precision": args.precision}
-    if device != "cpu":
-        bp.update(backend="torch", device=device)
-    progress = lambda label: Progress(label, enabled=not args.quiet)
     timings: dict[str, float] = {}
-
     t = time.perf_counter()
-    scan = Scan.load(args.scan)
-    timings["load_scan"] = time.perf_counter() - t
+    reference_roi, reference_found = _reference_region(args, bp, progress)
+    if reference_found["source"] != "typed":
+        timings["reference_search"] = time.perf_counter() - t
+        if not args.quiet:
+            print(
+                f"[reference] region from the {reference_found['source']}: "
+                + " ".join(f"{v:.3f}" for v in reference_roi),
+                file=sys.stderr,
+            )
+    ref_grid = ImageGrid.from_roi(reference_roi, args.size)
+    depth_range = _depth_range(typed_depth, args.refine_depth, ref_grid.z)
     t = time.perf_counter()
     template, cache_status, support, twin_info = _template(
         args, scan, ref_grid, bp, progress, TemplateCache(enabled=not args.no_cache)
@@ -229,18 +428,15 @@ def run(args: argparse.Namespace) -> int:
     timings["template"] = time.perf_counter() - t
     method = "twin" if template is not None else args.method
     has_phase = template is not None and np.iscomplexobj(template)
-    tracking_error_m = args.tracking_error_mm * 1e-3
     chosen = {}
     if method == "twin":
         chosen = estimator_settings(args.estimator, has_phase, has_support=support is not None)
     if args.loss_steepness is not None:
         chosen["loss_steepness"] = args.loss_steepness
     cfg = AutofocusConfig.from_settings({**vars(args), "device": device}, **chosen)  # validated
-
-    outputs = focus_scan(
-        scan,
-        ref_grid,
-        tgt_grid,
+    focus = functools.partial(
+        focus_scan,
+        reference_grid=ref_grid,
         template=template,
         support=support,
         reference_info=twin_info,
@@ -249,13 +445,96 @@ def run(args: argparse.Namespace) -> int:
         bp_options=bp,
         progress_factory=progress,
         phase_ramp=args.phase_ramp,
-        space_variant=args.space_variant,
-        tracking_error_m=tracking_error_m,
+        tracking_error_m=args.tracking_error_mm * 1e-3,
     )
+    search = None
+    if depth_range is not None:
+        t = time.perf_counter()
+        search, search_info = _find_target_depth(focus, scan, box, depth_range, method, bp, progress)
+        timings["target_depth"] = time.perf_counter() - t
+        tgt_grid = ImageGrid.from_roi((*box, search.depth_m), args.size)
+    else:
+        assert isinstance(typed_depth, float)
+        tgt_grid = ImageGrid.from_roi((*box, typed_depth), args.size)
+    outputs = focus(scan, target_grid=tgt_grid, space_variant=args.space_variant)
+    if search is not None:
+        outputs.metrics["target_depth"] = {**search_info, **search.to_dict()}
+    outputs.metrics["reference_search"] = {**reference_found, "roi": list(reference_roi)}
     outputs.timings_s = {**timings, **outputs.timings_s}
-    outputs.metrics["timings_s"] = outputs.timings_s
     if cache_status is not None:
         outputs.metrics["template_cache"] = cache_status
+    return {
+        "outputs": outputs,
+        "search": search,
+        "template": template,
+        "support": support,
+        "twin_info": twin_info,
+        "ref_grid": ref_grid,
+        "method": method,
+    }
+
+
+def _candidates(args: argparse.Namespace) -> list[tuple[str | None, argparse.Namespace]]:
+    """One (path, args naming that one template source) per reference candidate; (None, args)
+    for a baseline."""
+    for option in ("template", "template_scan", "digital_twin"):
+        paths = getattr(args, option)
+        if paths:
+            return [(path, argparse.Namespace(**{**vars(args), option: path})) for path in paths]
+    return [(None, args)]
+
+
+def run(args: argparse.Namespace) -> int:
+    t_run = time.perf_counter()
+    from twinfocus.pipeline import write_outputs
+    from twinfocus.progress import Progress
+    from twinfocus.reference_search import candidate_score
+    from twinfocus.scan import Scan
+    from twinfocus.volume import corrected_image
+
+    pictures = "none" if args.no_pictures else args.pictures
+    shapes = _check_before_work(args)
+    device = resolve_device(args.device)
+    bp = {"oversample": args.oversample, "precision": args.precision}
+    if device != "cpu":
+        bp.update(backend="torch", device=device)
+    progress = lambda label: Progress(label, enabled=not args.quiet)
+    box, typed_depth = target_region(args.target_roi)
+
+    t = time.perf_counter()
+    scan = Scan.load(args.scan)
+    load_s = time.perf_counter() - t
+    candidates = _candidates(args)
+    results, listed = [], []
+    for path, cand_args in candidates:
+        if len(candidates) > 1 and not args.quiet:
+            print(f"[reference] candidate {path}", file=sys.stderr)
+        r = _focus_with(cand_args, scan, box, typed_depth, bp, device, progress)
+        conf = r["outputs"].metrics["confidence"]
+        results.append(r)
+        listed.append(
+            {
+                "path": path,
+                "reference_roi": list(r["ref_grid"].roi),
+                "score": candidate_score(conf),
+                "reference_match_ssim": conf.get("reference_match_ssim"),
+                "warnings": len(conf["warnings"]),
+                "target_roi": list(r["outputs"].target_grid.roi),
+                # known only for a simulated scan: how the choice fared
+                "target_ssim_corrected": r["outputs"].metrics.get("target_ssim_corrected"),
+            }
+        )
+    best = max(range(len(results)), key=lambda i: listed[i]["score"])
+    chosen = results[best]
+    outputs, search, template = chosen["outputs"], chosen["search"], chosen["template"]
+    support, twin_info, ref_grid, method = chosen["support"], chosen["twin_info"], chosen["ref_grid"], chosen["method"]
+    if len(candidates) > 1:
+        outputs.metrics["reference_candidates"] = {"chosen": best, "candidates": listed}
+        if not args.quiet:
+            print(f"[reference] chose {listed[best]['path']} (score {listed[best]['score']:.3f})", file=sys.stderr)
+    timings = {"load_scan": load_s, **outputs.timings_s}
+    outputs.timings_s = timings
+    outputs.metrics["timings_s"] = timings
     from twinfocus.sensors.capture_to_scan import read_capture_report
 
     gaps = read_capture_report(args.scan)  # written by `twinfocus convert` beside a real capture
@@ -265,8 +544,28 @@ def run(args: argparse.Namespace) -> int:
         from twinfocus.templates import save_template
 
         save_template(args.save_template, template, ref_grid, support=support, info=twin_info)
+    volume = None
+    plan = volume_plan(args, shapes["data"][0], shapes["data"][1], ref_grid.roi)
+    if plan is not None:
+        if not args.quiet:
+            print(
+                f"[volume] {' x '.join(map(str, plan[0].shape))} voxels: about "
+                f"{plan[1]['memory_bytes'] / 2**20:.0f} MiB and {plan[1]['seconds_estimate']:.0f} s on the CPU",
+                file=sys.stderr,
+            )
+        t, cpu = time.perf_counter(), time.process_time()
+        volume = corrected_image(
+            scan.data, scan.positions, scan.chirp, plan[0], outputs.phase_rad, progress=progress("volume"), **bp
+        )
+        timings["volume"] = time.perf_counter() - t
+        outputs.metrics["volume"] = {
+            **_volume_metrics(plan[0], plan[1], timings["volume"]),
+            # on a busy machine the steadier figure: about the wall time x the threads when idle
+            "cpu_seconds": time.process_time() - cpu,
+        }
     t = time.perf_counter()
     write_outputs(args.out, outputs, pictures=pictures)
+    _write_where(args.out, search, typed_depth, volume, plan[0] if plan else None, pictures)
     t_write = time.perf_counter() - t
     m = outputs.metrics
     for warning in m["confidence"]["warnings"]:

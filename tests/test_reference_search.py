@@ -1,0 +1,141 @@
+"""The reference region found from what is known: a cloud with stray points, a template file's
+grid, the one object of a physical twin's scan; and ``focus`` given only the twin and the
+target's x/y box."""
+import json
+
+import numpy as np
+import pytest
+
+from twinfocus.cli import main
+from twinfocus.errors import TwinFocusError
+from twinfocus.radar import Chirp, mmwcas_virtual_array
+from twinfocus.reference_search import (
+    REGION_MARGIN_M,
+    candidate_score,
+    region_from_cloud,
+    region_from_scan,
+    region_from_template_file,
+)
+from twinfocus.simulate import simulate_if
+
+
+def test_region_of_a_cloud_ignores_stray_points_and_holes():
+    rng = np.random.default_rng(0)
+    n = 5000
+    pts = np.stack([rng.uniform(-0.14, -0.02, n), rng.uniform(-0.06, 0.07, n), 0.6 + rng.normal(0, 1e-3, n)], axis=1)
+    stray = rng.uniform([-0.5, -0.5, 0.2], [0.5, 0.5, 1.0], (20, 3))  # 0.4 % far outliers
+    bad = np.full((5, 3), np.nan)
+    roi, info = region_from_cloud(np.concatenate([pts, stray, bad]))
+    want = (-0.14 - REGION_MARGIN_M, -0.02 + REGION_MARGIN_M, -0.06 - REGION_MARGIN_M, 0.07 + REGION_MARGIN_M)
+    assert np.allclose(roi[:4], want, atol=0.003)
+    assert roi[4] == pytest.approx(0.6, abs=1e-3)
+    assert info["points"] == n + 20 and info["points_inside"] > 0.99 and info["depth_spread_m"] < 0.005
+    with pytest.raises(TwinFocusError, match="finite points"):
+        region_from_cloud(bad)
+    with pytest.raises(TwinFocusError, match=r"\(N, 3\)"):
+        region_from_cloud(np.zeros((4, 2)))
+    with pytest.raises(TwinFocusError, match="in front"):
+        region_from_cloud(pts * [1, 1, -1])
+
+
+def test_region_of_a_template_file_is_its_grid():
+    roi, info = region_from_template_file(np.linspace(-0.1, 0.0, 11), np.linspace(-0.05, 0.05, 7), 0.55)
+    assert roi == pytest.approx((-0.1, 0.0, -0.05, 0.05, 0.55)) and info["source"] == "template file"
+
+
+def test_region_of_the_one_object_of_a_scan():
+    ch = Chirp()
+    va = mmwcas_virtual_array()
+    pos = np.array([va.offsets_m + [cx, y, 0.0] for cx in (-0.03, 0.0, 0.03) for y in np.arange(-9.5, 10) * 0.005])
+    # a 6 x 8 cm patch of scatterers 5 mm apart at 0.62 m, away from the aperture's axis
+    xs, ys = np.meshgrid(np.arange(-0.12, -0.06 + 1e-9, 0.005), np.arange(0.0, 0.08 + 1e-9, 0.005))
+    pts = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.62)], axis=1)
+    amp = np.exp(2j * np.pi * np.random.default_rng(2).random(len(pts)))  # speckle
+    data = simulate_if(pts, amp, pos, ch)
+    roi, info = region_from_scan(data, pos, ch)
+    assert roi[4] == pytest.approx(0.62, abs=0.1 * ch.range_resolution_m)
+    # the box holds the patch, with at most 2.5 cm to spare on a side beyond the margin
+    truth = (-0.12, -0.06, 0.0, 0.08)
+    assert roi[0] < truth[0] < roi[0] + REGION_MARGIN_M + 0.025
+    assert roi[1] - REGION_MARGIN_M - 0.025 < truth[1] < roi[1]
+    assert roi[2] < truth[2] < roi[2] + REGION_MARGIN_M + 0.025
+    assert roi[3] - REGION_MARGIN_M - 0.025 < truth[3] < roi[3]
+    assert info["source"] == "physical twin scan" and info["object_energy_share"] > 0.9
+
+
+def test_method_without_reference_region_is_refused(tmp_path, capsys):
+    scan = tmp_path / "scan.npz"
+    np.savez(scan, data=np.zeros((2, 2, 4), np.complex64))
+    rc = main(["focus", str(scan), "--target-roi", "0", "0.1", "0", "0.1", "0.6", "--method", "none",
+               "--out", str(tmp_path / "o"), "--quiet"])
+    assert rc == 2
+    assert "--reference-roi" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_focus_from_the_twin_and_an_xy_box_alone_matches_typed_regions(tmp_path):
+    d = tmp_path
+    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"), "--columns", "3",
+                 "--rows", "40", "--quiet", "--seed", "3", "--target-depth-offset", "0.08"]) == 0
+    common = ["--size", "48", "--iterations", "150", "--space-variant", "off", "--template-scan", str(d / "tpl.npz"),
+              "--quiet", "--no-cache"]
+    box = ["0.016", "0.103", "-0.0785", "0.0785"]
+    assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
+                 "--target-roi", *box, "0.68", "--out", str(d / "typed"), *common]) == 0
+    assert main(["focus", str(d / "scan.npz"), "--target-roi", *box, "--out", str(d / "found"), *common]) == 0
+    typed = json.loads((d / "typed" / "metrics.json").read_text())
+    found = json.loads((d / "found" / "metrics.json").read_text())
+    assert typed["reference_search"] == {"source": "typed", "roi": [-0.15, 0.0, -0.11, 0.12, 0.6]}
+    where = found["reference_search"]
+    assert where["source"] == "physical twin scan" and where["roi"] == found["reference_roi"]
+    assert where["roi"][4] == pytest.approx(0.6, abs=0.004)
+    assert found["target_depth"]["depth_m"] == pytest.approx(0.68, abs=0.004)
+    assert found["target_ssim_corrected"] > typed["target_ssim_corrected"] - 0.01
+
+
+def test_candidate_score_puts_trusted_references_first():
+    trusted = {"reference_match_ssim": 0.7, "warnings": []}
+    warned = {"reference_match_ssim": 0.99, "warnings": ["the transfer is not to be trusted"]}
+    assert candidate_score(trusted) == pytest.approx(0.7)
+    assert candidate_score(warned) == pytest.approx(-0.01)
+    assert candidate_score({"reference_match_ssim": None, "warnings": []}) == 0.0
+
+
+@pytest.mark.slow
+def test_of_two_template_scans_the_one_of_the_reference_is_chosen(tmp_path):
+    d = tmp_path
+    sim = ["--columns", "3", "--rows", "40", "--quiet", "--seed", "3"]
+    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "a.npz"), *sim]) == 0
+    # a motion-stage scan of another letter where the reference stands: the wrong twin
+    assert main(["simulate", "--out", str(d / "other.npz"), "--template-out", str(d / "b.npz"), "--reference", "B",
+                 *sim]) == 0
+    assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
+                 "--target-roi", "0.02", "0.13", "-0.11", "0.12", "0.6", "--size", "48", "--iterations", "150",
+                 "--space-variant", "off", "--template-scan", str(d / "b.npz"), str(d / "a.npz"), "--quiet",
+                 "--no-cache", "--out", str(d / "out")]) == 0
+    m = json.loads((d / "out" / "metrics.json").read_text())
+    cands = m["reference_candidates"]
+    assert [c["path"] for c in cands["candidates"]] == [str(d / "b.npz"), str(d / "a.npz")]
+    assert cands["chosen"] == 1
+    a, b = cands["candidates"][1], cands["candidates"][0]
+    assert a["score"] > b["score"] and a["target_ssim_corrected"] > b["target_ssim_corrected"]
+    assert m["target_ssim_corrected"] == a["target_ssim_corrected"]
+
+
+@pytest.mark.slow
+def test_focus_with_the_reference_region_from_its_cloud_matches_the_typed_region(tmp_path):
+    d = tmp_path
+    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"), "--columns", "3",
+                 "--rows", "40", "--quiet", "--seed", "3", "--reference-cloud-out", str(d / "cloud.npy")]) == 0
+    common = ["--target-roi", "0.02", "0.13", "-0.11", "0.12", "0.6", "--size", "48", "--digital-twin",
+              str(d / "cloud.npy"), "--quiet", "--no-cache"]
+    assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
+                 "--out", str(d / "typed"), *common]) == 0
+    assert main(["focus", str(d / "scan.npz"), "--out", str(d / "found"), *common]) == 0
+    typed = json.loads((d / "typed" / "metrics.json").read_text())
+    found = json.loads((d / "found" / "metrics.json").read_text())
+    where = found["reference_search"]
+    assert where["source"] == "digital twin cloud" and where["points_inside"] > 0.95
+    assert where["roi"][4] == pytest.approx(0.6, abs=0.005)
+    assert found["target_ssim_corrected"] > typed["target_ssim_corrected"] - 0.01

@@ -1,0 +1,145 @@
+"""Corrected volumes: the phase applied to the samples equals the phase applied to the basis,
+points land in the voxels where they are, the PLY reads back, and ``focus --volume`` writes
+what it promises after checking what it will cost."""
+import json
+
+import numpy as np
+import pytest
+
+from twinfocus.backprojection import subimage_basis
+from twinfocus.basis import form_image
+from twinfocus.cli import main
+from twinfocus.cli.focus import volume_plan
+from twinfocus.errors import TwinFocusError
+from twinfocus.grid import ImageGrid
+from twinfocus.radar import C_M_PER_S, Chirp, mmwcas_virtual_array
+from twinfocus.volume import (
+    bright_voxels,
+    corrected_data,
+    corrected_image,
+    ply_bytes,
+    projections,
+    read_ply_points,
+    volume_cost,
+    volume_grid,
+)
+
+
+def _aperture(n_rows=16, pitch=0.004, columns=(-0.02, 0.0, 0.02)):
+    va = mmwcas_virtual_array()
+    return np.array(
+        [va.offsets_m + np.array([cx, y, 0.0]) for cx in columns for y in (np.arange(n_rows) - (n_rows - 1) / 2) * pitch]
+    )
+
+
+def _points_scan(chirp, positions, points, amplitudes):
+    data = np.zeros((*positions.shape[:2], chirp.n_samples), np.complex128)
+    for p, a in zip(points, amplitudes):
+        r = np.linalg.norm(positions - p, axis=-1)
+        data += a * np.exp(1j * 2 * np.pi * chirp.frequencies_hz * 2 * r[..., None] / C_M_PER_S)
+    return data.astype(np.complex64)
+
+
+def test_phase_on_the_samples_equals_phase_on_the_basis():
+    ch = Chirp()
+    pos = _aperture(n_rows=8)
+    data = _points_scan(ch, pos, [np.array([0.01, 0.0, 0.5])], [1.0])
+    phase = np.random.default_rng(0).uniform(-np.pi, np.pi, pos.shape[0])
+    grid = ImageGrid(-0.02, 0.04, -0.03, 0.03, 0.5, 9, 7)
+    want = form_image(subimage_basis(data, pos, ch, grid), phase)
+    got = corrected_image(data, pos, ch, grid, phase)
+    assert np.abs(got - want).max() < 1e-4 * np.abs(want).max()
+    with pytest.raises(TwinFocusError, match="one value per radar position"):
+        corrected_data(data, phase[:-1])
+
+
+def test_volume_grid_planes():
+    plane = ImageGrid(-0.1, 0.1, -0.1, 0.1, 1.0, 4, 5)
+    g = volume_grid(plane, 0.5, 0.7, 0.005)
+    assert g.shape == (41, 4, 5) and g.z_m[0] == 0.5 and g.z_m[-1] == pytest.approx(0.7)
+    assert volume_grid(plane, 0.5, 0.52, 0.03).shape[0] == 1
+    for bad in ((0.7, 0.5, 0.01), (0.5, 0.7, 0.0), (0.0, 0.7, 0.01), (0.5, np.inf, 0.01)):
+        with pytest.raises(TwinFocusError):
+            volume_grid(plane, *bad)
+    cost = volume_cost(g, n_positions=100, n_channels=86)
+    assert cost["voxels"] == 41 * 20 and cost["memory_bytes"] == 64 * 41 * 20
+    assert cost["seconds_estimate"] == pytest.approx(1.1e-8 * 41 * 20 * 100 * 86)
+
+
+def test_two_points_at_two_depths_land_in_their_voxels(tmp_path):
+    ch = Chirp()
+    pos = _aperture()
+    pts = [np.array([-0.03, 0.01, 0.55]), np.array([0.03, -0.01, 0.65])]
+    data = _points_scan(ch, pos, pts, [1.0, 1.0])
+    plane = ImageGrid(-0.06, 0.06, -0.04, 0.04, 1.0, 25, 17)  # 5 mm pixels
+    grid = volume_grid(plane, 0.5, 0.7, 0.01)
+    vol = corrected_image(data, pos, ch, grid, np.zeros(pos.shape[0]))
+    assert vol.shape == grid.shape and vol.dtype == np.complex64
+    mip, depth = projections(vol, grid)
+    for p in pts:
+        i, j = np.round(plane.index_of(p[0], p[1])).astype(int)
+        assert depth[i, j] == pytest.approx(p[2], abs=0.0101)
+        assert mip[i, j] > 0.5 * mip.max()
+    assert np.isnan(depth).sum() > 0.5 * depth.size  # away from the points: blank
+    cloud, values = bright_voxels(vol, grid, threshold_db=-3.0)
+    assert 2 <= len(cloud) < 0.01 * vol.size and values.max() == pytest.approx(1.0)
+    for p in pts:  # each point's brightest voxel is in the cloud, within a voxel of the point
+        assert np.abs(cloud - p).max(axis=1).min() <= 0.0051
+    (tmp_path / "v.ply").write_bytes(ply_bytes(cloud, values))
+    back, vals = read_ply_points(tmp_path / "v.ply")
+    assert np.array_equal(back, cloud) and np.array_equal(vals, values)
+    o3d = pytest.importorskip("open3d")
+    pc = o3d.io.read_point_cloud(str(tmp_path / "v.ply"))
+    assert np.allclose(np.asarray(pc.points), cloud, atol=1e-6)
+
+
+def _args(**kw):
+    import argparse
+
+    base = dict(volume=[0.5, 0.7, 0.005], target_roi=["0.0", "0.1", "-0.1", "0.1"],
+                reference_roi=[-0.15, 0.0, -0.11, 0.12, 0.6], size=100)
+    return argparse.Namespace(**{**base, **kw})
+
+
+def test_volume_plan_covers_both_regions_and_refuses_what_cannot_fit(monkeypatch):
+    grid, cost = volume_plan(_args(), n_positions=780, n_channels=86)
+    assert grid.shape == (41, 100, 100)
+    assert (grid.plane.x0, grid.plane.x1, grid.plane.y0, grid.plane.y1) == (-0.15, 0.1, -0.11, 0.12)
+    assert cost["memory_bytes"] == 64 * 41 * 100 * 100
+    import twinfocus.machine
+
+    monkeypatch.setattr(twinfocus.machine, "available_memory_bytes", lambda: 100 * 2**20)
+    with pytest.raises(TwinFocusError, match="--volume"):
+        volume_plan(_args(size=200), n_positions=780, n_channels=86)
+    assert volume_plan(_args(volume=None), 780, 86) is None
+
+
+@pytest.mark.slow
+def test_focus_writes_the_volume(tmp_path):
+    d = tmp_path
+    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"), "--columns", "3",
+                 "--rows", "40", "--quiet", "--seed", "3", "--target-depth-offset", "0.08"]) == 0
+    out = d / "out"
+    assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
+                 "--target-roi", "0.016", "0.103", "-0.0785", "0.0785", "0.68", "--size", "40", "--iterations", "150",
+                 "--space-variant", "off", "--template-scan", str(d / "tpl.npz"), "--out", str(out), "--quiet",
+                 "--no-cache", "--volume", "0.55", "0.73", "0.01"]) == 0
+    vol = np.load(out / "volume.npy")
+    m = json.loads((out / "metrics.json").read_text())["volume"]
+    assert vol.shape == tuple(m["shape"]) == (19, 40, 40) and vol.dtype == np.complex64
+    for name in ("volume.ply", "volume_mip.png", "volume_depth.png"):
+        assert (out / name).is_file()
+    # the reference letter (x < 0) is brightest near 0.60 m, the target (x > 0.016) near 0.68 m
+    plane = ImageGrid(*m["roi"], z=1.0, height=40, width=40)
+    z = np.linspace(*m["z_m"], vol.shape[0])
+    mag = np.abs(vol)
+    left, right = plane.x_m < -0.01, plane.x_m > 0.02
+    assert z[mag[:, :, left].max(axis=(1, 2)).argmax()] == pytest.approx(0.60, abs=0.011)
+    assert z[mag[:, :, right].max(axis=(1, 2)).argmax()] == pytest.approx(0.68, abs=0.011)
+    cloud, _ = read_ply_points(out / "volume.ply")
+    assert len(cloud) > 0 and cloud[:, 2].min() >= 0.55 - 1e-6
+    # a run without --volume into the same folder leaves no volume of the earlier result
+    assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
+                 "--target-roi", "0.016", "0.103", "-0.0785", "0.0785", "0.68", "--size", "16", "--method", "none",
+                 "--out", str(out), "--quiet"]) == 0
+    assert not [p.name for p in out.glob("volume*")]
