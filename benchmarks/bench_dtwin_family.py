@@ -23,8 +23,9 @@ registered closed form and the drift fit where it helps), the reference's own tr
 phase per position) and the target's (the oracle); each twin's confidence report (trusted, its
 warnings) and what it measured.
 
-    python -m benchmarks.bench_dtwin_family --draws 3                 (bench draws, ~8 min on 2 cores)
-    python -m benchmarks.bench_dtwin_family --draws 6 --heldout       (held-out draws)
+    python -m benchmarks.bench_dtwin_family --draws 3             (bench draws: 2-3 min a draw, 10 under a
+                                                                   hand's drift, on the shared 2-core VM)
+    python -m benchmarks.bench_dtwin_family --draws 2 --heldout   (held-out draws)
 
 Writes ``dtwin_family.json`` (``dtwin_family_heldout.json``) and prints the table of each twin per
 condition (mean +- sd, worst) and the confidence report's false trust (trusted, below 0.90) and

@@ -2,8 +2,8 @@
 
 A digital twin's template is an outline drawn from a camera cloud; the radar sees a rough
 reference as speckle whatever the outline says, so the corrected reference's SSIM against the
-template's picture (0.68-0.77 on field draws, whatever the target reached) says nothing about the
-estimate. What the outline does say is where the reference's energy belongs, and a rough
+template's picture (0.66-0.78 on field draws, whether the target reached 0.49 or 0.99) says
+nothing about the estimate. What the outline does say is where the reference's energy belongs, and a rough
 surface's speckle says how that energy spreads: with every scatterer its own phase, the energy
 e = |I|^2 over the reference is about exponentially distributed, contrast mean(e^2) / mean(e)^2
 near 2. An estimate that lost the reference's phase piles its energy into a few bright pixels

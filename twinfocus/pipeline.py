@@ -693,8 +693,8 @@ MAX_REFERENCE_RESIDUAL = 0.01
 #: a digital twin's reference is read against its outline, not its template's picture
 #: (:mod:`twinfocus.outline_fill`): flagged when its energy's contrast over the outline is above
 #: this. Bench draws (benchmarks/bench_dtwin_family.py, 390 positions, 64 x 64 pixels): the
-#: reference on the true positions 2.5-2.7; outline estimates at 0.95-0.99 of target SSIM 2.6-2.7;
-#: those at 0.66-0.90 (F and E as the reference) 3.7-6.4
+#: reference on the true positions 2.3-2.6, the outline estimates (all below 0.90 of target SSIM)
+#: 3.7-6.4; checked on held-out draws (docs/digital_twin_field.md)
 MAX_OUTLINE_CONTRAST = 3.2
 #: what a digital twin's user can do when its result is flagged
 DIGITAL_TWIN_NEXT = (
