@@ -116,3 +116,28 @@ def test_the_report_reads_a_digital_twin_against_its_outline_not_its_template_pi
     assert not report["trusted"]
     (warning,) = report["warnings"]
     assert "does not fill its outline" in warning and "--template-scan" in warning
+
+
+def test_focus_reads_a_digital_twin_against_its_outline(small_scene):
+    """focus_bases with an outline (what --digital-twin runs) writes the corrected reference's
+    outline statistics, and its confidence report judges them, not the picture match."""
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.estimators import estimator_settings
+    from twinfocus.grid import ImageGrid
+    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST, focus_bases
+    from twinfocus.radar import Chirp, uniform_virtual_array
+    from twinfocus.trajectory import paper_raster, phase_centres
+
+    basis, _, support = small_scene
+    grid = ImageGrid.from_roi([-0.045, -0.005, -0.02, 0.02, 0.3], 24)
+    positions = phase_centres(paper_raster(n_columns=2, n_rows=24, column_pitch_m=0.128, row_pitch_m=0.004),
+                              uniform_virtual_array(16, 0.002))
+    cfg = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
+    out = focus_bases(basis, basis, positions, Chirp(n_samples=64), grid, grid, template=support.astype(np.float32),
+                      support=support, config=cfg)
+    fill = out.metrics["reference_outline"]
+    assert fill == outline_fill(out.reference, support)
+    report = out.metrics["confidence"]
+    assert report["reference_outline"] == fill
+    assert not any("matches its template poorly" in w for w in report["warnings"])
+    assert any("does not fill its outline" in w for w in report["warnings"]) == (fill["contrast"] > MAX_OUTLINE_CONTRAST)

@@ -331,7 +331,9 @@ def focus_bases(
         ``reference_grid`` (required for ``method="twin"``; the phase is what
         ``config.template_registration`` / ``config.init="correlation"`` need).
     support : bool (H, W) the reference's outline on ``reference_grid`` (a digital twin's), which
-        ``config.init="outline"`` needs.
+        ``config.init="outline"`` needs; the corrected reference is then read against it
+        (:func:`twinfocus.outline_fill.outline_fill`, metrics.json ``reference_outline``, which the
+        confidence report judges instead of the reference's SSIM against the template's picture).
     reference_info : what a digital twin's cloud conditioning chose and why
         (:attr:`twinfocus.digital_twin.condition.DigitalTwinReference.info`): written to metrics.json
         as ``digital_twin``; the confidence report reads its ``curved``.
