@@ -40,6 +40,7 @@ from twinfocus.basis import form_image, form_image_space_variant
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE
 from twinfocus.grid import ImageGrid
+from twinfocus.outline_fill import outline_fill
 from twinfocus.phase_ramp import MIN_RAMP_COHERENCE_SQRT_M, ramp_free_coherence
 from twinfocus.radar import Chirp
 from twinfocus.reference_free import METHODS as REFERENCE_FREE_METHODS
@@ -332,7 +333,9 @@ def focus_bases(
         ``reference_grid`` (required for ``method="twin"``; the phase is what
         ``config.template_registration`` / ``config.init="correlation"`` need).
     support : bool (H, W) the reference's outline on ``reference_grid`` (a digital twin's), which
-        ``config.init="outline"`` needs.
+        ``config.init="outline"`` needs; the corrected reference is then read against it
+        (:func:`twinfocus.outline_fill.outline_fill`, metrics.json ``reference_outline``, which the
+        confidence report judges instead of the reference's SSIM against the template's picture).
     reference_info : what a digital twin's cloud conditioning chose and why
         (:attr:`twinfocus.digital_twin.condition.DigitalTwinReference.info`): written to metrics.json
         as ``digital_twin``; the confidence report reads its ``curved``.
@@ -523,6 +526,9 @@ def focus_bases(
         )
         if np.iscomplexobj(template):
             m["reference_residual"] = 1.0 - _complex_match(ref_cor, template)
+    if method == "twin" and support is not None:
+        # a digital twin's like-with-like check (the confidence report reads it)
+        m["reference_outline"] = outline_fill(ref_cor, support)
     out = FocusOutputs(
         reference_grid=reference_grid,
         target_grid=target_grid,
@@ -698,6 +704,17 @@ MIN_REFERENCE_MATCH_PHYSICAL = 0.95
 #: (0.83 against 0.97), and above 0.01 after the space-variant fit too (0.86-0.95 against 0.97,
 #: every one of 10 draws flagged)
 MAX_REFERENCE_RESIDUAL = 0.01
+#: a digital twin's reference is read against its outline, not its template's picture
+#: (:mod:`twinfocus.outline_fill`): flagged when its energy's contrast over the outline is above
+#: this. Bench draws (benchmarks/bench_dtwin_family.py, 390 positions, 64 x 64 pixels): the
+#: reference on the true positions 2.3-2.6, the outline estimates (all below 0.90 of target SSIM)
+#: 3.7-6.4; checked on held-out draws (docs/digital_twin_field.md)
+MAX_OUTLINE_CONTRAST = 3.2
+#: what a digital twin's user can do when its result is flagged
+DIGITAL_TWIN_NEXT = (
+    "to get this scene at its ceiling, scan the reference alone on a motion stage and focus with "
+    "--template-scan, or rescan holding the radar steadier"
+)
 
 
 def confidence_report(
@@ -744,7 +761,19 @@ def confidence_report(
         )
     match = out["reference_match_ssim"]
     least = MIN_REFERENCE_MATCH_PHYSICAL if m.get("template_registration") else MIN_REFERENCE_MATCH
-    if match is not None and match < least:
+    fill = m.get("reference_outline")
+    if fill is not None:
+        # a digital twin: its template is an outline, which a speckled reference never matches
+        # as a picture; read the reference against the outline instead
+        out["reference_outline"] = fill
+        if fill["contrast"] > MAX_OUTLINE_CONTRAST:
+            out["warnings"].append(
+                f"the corrected reference does not fill its outline as a focused rough reference does: "
+                f"its energy's contrast over the outline is {fill['contrast']:.1f} (> {MAX_OUTLINE_CONTRAST}; about 2.5 "
+                "focused): the outline estimate piled the energy into a few bright pixels instead of finding the "
+                f"reference's phase; expect the target below its ceiling; {DIGITAL_TWIN_NEXT} (docs/digital_twin_field.md)"
+            )
+    elif match is not None and match < least:
         out["warnings"].append(
             f"the corrected reference matches its template poorly (SSIM {match:.2f} < {least}); "
             "check the template, the reference region and the template's placement"
@@ -776,8 +805,9 @@ def confidence_report(
         out["warnings"].append(
             f"the estimate's phases have wrapped (coherence x sqrt(M) {coherence:.1f} < {AUTO_REFINE_BELOW_COHERENCE}), "
             "so the scan cannot check where the outline put the reference: across the axis one radar position "
-            f"does not resolve it sits where the cloud puts it, and the target can be a few mm off there{tried} "
-            '(docs/digital_twin.md, "Placing the reference by the band\'s halves")'
+            f"does not resolve it sits where the cloud puts it, and the target can be a few mm off there{tried}; "
+            + (f"{DIGITAL_TWIN_NEXT} " if "outline" in est else "")
+            + '(docs/digital_twin.md, "Placing the reference by the band\'s halves")'
         )
     if "outline" in est:
         # how sure the outline estimator is: the energy it put inside the outline, and how many of

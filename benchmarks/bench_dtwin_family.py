@@ -1,0 +1,189 @@
+"""The digital twin and the physical twin on a wide family of field scenes, and how far the
+confidence report can be believed on them.
+
+Every draw takes at random (from its own seed): the reference's letter (with holes and without; 'O'
+is a ring), the target's letter, the letters' separation (9-12 degrees; 16.3 under a hand's
+drift), the reference's rough texture (every scatterer its own phase over +-90 degrees and
+strength +-30 %) and a camera cloud as it comes (1 mm noise, 25 % of the surface missing in
+patches, 2 % outliers, an offset of 2-3 mm in a random direction). Conditions:
+
+  paper: 0.5 mm z + 0.2 mm x/y tracking error, 15 dB;
+  1 mm deeper: 1 mm z + 0.3 mm x/y, 10 dB, the target 10 cm deeper than the reference;
+  1.6 mm: 1.6 mm z (every phase wraps) + 0.3 mm x/y, 15 dB;
+  hand: a hand's drift, 0.8 mm per axis, and 0.15 degrees of array rotation, 15 dB.
+
+Bench draws (seeds 1001 on, letters of ``BENCH_LETTERS``) are what thresholds are chosen on;
+held-out draws (seeds 2001 on, letters of ``HELDOUT_LETTERS``, none shared) only check them.
+Scans are smaller than the paper's 780 positions x 100 x 100 pixels: ``--rows`` (default 65 rows
+of 6 columns, 390 positions) and ``--size`` (default 64 x 64 pixels per region).
+
+Per draw, target SSIM against the image on the true positions: the digital twin as
+``twinfocus focus --digital-twin`` runs it, the physical twin (its motion-stage scan, the
+registered closed form and the drift fit where it helps), the reference's own true phase (one
+phase per position) and the target's (the oracle); each twin's confidence report (trusted, its
+warnings) and what it measured.
+
+    python -m benchmarks.bench_dtwin_family --draws 3             (bench draws: 2-3 min a draw, 10 under a
+                                                                   hand's drift, on the shared 2-core VM)
+    python -m benchmarks.bench_dtwin_family --draws 2 --heldout   (held-out draws)
+
+Writes ``dtwin_family.json`` (``dtwin_family_heldout.json``) and prints the table of each twin per
+condition (mean +- sd, worst) and the confidence report's false trust (trusted, below 0.90) and
+false alarms (flagged, at or above 0.95).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+CONDITIONS = {
+    "paper": dict(error_sigma_m=(0.2e-3, 0.2e-3, 0.5e-3), snr_db=15),
+    "1 mm deeper": dict(error_sigma_m=(0.3e-3, 0.3e-3, 1.0e-3), snr_db=10, target_depth_offset_m=0.1),
+    "1.6 mm": dict(error_sigma_m=(0.3e-3, 0.3e-3, 1.6e-3), snr_db=15),
+    "hand": dict(error_model="hand", error_sigma_m=(0.8e-3,) * 3, snr_db=15, separation_deg=16.3),
+}
+#: the reference's and target's letters: with holes (A, B, O: a ring, R, P, D, Q) and without
+BENCH_LETTERS = "ABOFHTE"
+HELDOUT_LETTERS = "DPRQLKX"
+#: the bench's and the held-out draws' first seeds
+BENCH_SEED, HELDOUT_SEED = 1001, 2001
+#: the camera cloud's impairments: noise m, hole fraction, outlier fraction; its offset is drawn
+CLOUD = (1e-3, 0.25, 0.02)
+OFFSET_RANGE_M = (2e-3, 3e-3)
+#: what a result must reach to count as good (a flag on it is a false alarm) and below which a
+#: trusted one is a false trust
+GOOD, POOR = 0.95, 0.90
+
+
+def family_scenario(condition: str, seed: int, letters: str, rows: int) -> dict:
+    """The Scenario keywords of one draw of ``condition``: letters and separation from ``seed``."""
+    rng = np.random.default_rng([seed, 31])
+    ref, tgt = rng.choice(list(letters), 2, replace=False)
+    kw = dict(reference=str(ref), target=str(tgt), separation_deg=float(rng.uniform(9.0, 12.0)),
+              reference_roughness_deg=90.0, reference_amplitude_spread=0.3, n_rows=rows, seed=seed)
+    return {**kw, **CONDITIONS[condition]}
+
+
+def one_draw(condition: str, seed: int, letters: str, rows: int, size: int) -> dict:
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.basis import form_image
+    from twinfocus.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.digital_twin.condition import digital_twin_reference
+    from twinfocus.estimators import estimator_settings
+    from twinfocus.metrics import image_ssim, oracle_phase
+    from twinfocus.outline_fill import outline_fill
+    from twinfocus.pipeline import focus_bases, half_array_bases, upper_band_basis
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.templates import template_from_scan
+
+    kw = family_scenario(condition, seed, letters, rows)
+    sc = Scenario(**kw)
+    scan, tpl_scan = simulate_scenario(sc)
+    rg, tg = scenario_grids(sc, size)
+    rng = np.random.default_rng([seed, 14])
+    surface = sc.scene().object("reference").surface_points(1e-3)
+    cloud = camera_cloud(surface, *CLOUD, float(rng.uniform(*OFFSET_RANGE_M)), rng=rng)
+    twin = digital_twin_reference(cloud, scan.positions, scan.chirp, rg)
+    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
+    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+    truth = dict(truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
+                 truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
+                 positions_true=scan.positions_true)
+    rec: dict = {"seed": seed, "reference": kw["reference"], "target": kw["target"],
+                 "separation_deg": round(kw["separation_deg"], 2)}
+    # what `twinfocus focus --digital-twin CLOUD` runs
+    dt = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=twin.template, support=twin.support,
+                     reference_info=twin.info, config=AutofocusConfig(**estimator_settings("auto", False, has_support=True)),
+                     upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, rg), **truth)
+    # what `twinfocus focus --template-scan` runs
+    pt = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template_from_scan(tpl_scan, rg, keep_phase=True),
+                     config=AutofocusConfig(**estimator_settings("auto", True)),
+                     half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg), **truth)
+    for name, out in (("digital", dt), ("physical", pt)):
+        m, conf = out.metrics, out.metrics["confidence"]
+        rec[name] = m["target_ssim_corrected"]
+        rec[f"{name} trusted"] = conf["trusted"]
+        rec[f"{name} warnings"] = conf["warnings"]
+        rec[f"{name} confidence"] = {k: v for k, v in conf.items() if k not in ("warnings", "trusted")}
+        rec[f"{name} time_s"] = out.timings_s["autofocus"] + out.timings_s.get("space_variant", 0.0)
+    # how the references on the true positions and the physical twin's fill the outline (what the
+    # digital twin's is read against)
+    rec["digital outline"] = dt.metrics["reference_outline"]
+    rec["physical outline"] = outline_fill(pt.reference, twin.support)
+    rec["truth outline"] = outline_fill(truth["truth_reference"], twin.support)
+    rec["uncorrected"] = dt.metrics["target_ssim_uncorrected"]
+    rec["oracle"] = dt.metrics["target_ssim_oracle_phase"]
+    reference_true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
+    rec["reference true phase"] = image_ssim(form_image(tb, reference_true), truth["truth_target"])
+    return rec
+
+
+def trusted(rec: dict, twin: str) -> bool:
+    """Whether the confidence report trusts this record's ``twin`` result, by the report's present
+    rules: for the digital twin the reference is read against its outline (its energy contrast
+    there, ``MAX_OUTLINE_CONTRAST``), not against its template's picture, so records from a run
+    before that rule are read alike (their picture warning dropped, the contrast applied)."""
+    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST
+
+    if twin != "digital":
+        return bool(rec[f"{twin} trusted"])
+    others = [w for w in rec["digital warnings"]
+              if "matches its template poorly" not in w and "does not fill its outline" not in w]
+    contrast = (rec["digital confidence"].get("reference_outline") or rec["digital outline"])["contrast"]
+    return not others and contrast <= MAX_OUTLINE_CONTRAST
+
+
+def table(results: dict) -> str:
+    """Markdown: each twin per condition (mean +- sd, worst) and the confidence report's errors."""
+    cols = ("digital", "physical", "reference true phase", "oracle")
+    lines = ["| condition | draws | digital twin | physical twin | reference's true phase | target's own phase |",
+             "|---|---|---|---|---|---|"]
+    for cond, recs in results.items():
+        cells = [np.array([r[c] for r in recs]) for c in cols]
+        lines.append(f"| {cond} | {len(recs)} | " + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
+    lines += ["", "| twin | results | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |", "|---|---|---|---|"]
+    for twin in ("digital", "physical"):
+        recs = [r for rs in results.values() for r in rs]
+        poor = sum(r[twin] < POOR and trusted(r, twin) for r in recs)
+        alarm = sum(r[twin] >= GOOD and not trusted(r, twin) for r in recs)
+        lines.append(f"| {twin} | {len(recs)} | {poor} ({poor / len(recs):.0%}) | {alarm} ({alarm / len(recs):.0%}) |")
+    return "\n".join(lines)
+
+
+def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, heldout: bool = False,
+         rows: int = 65, size: int = 64, only: str | None = None) -> dict:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / ("dtwin_family_heldout.json" if heldout else "dtwin_family.json")
+    first, letters = (HELDOUT_SEED, HELDOUT_LETTERS) if heldout else (BENCH_SEED, BENCH_LETTERS)
+    results: dict = json.loads(path.read_text()) if only and path.is_file() else {}
+    results.pop("scan", None)
+    for cond in CONDITIONS:
+        if only and only != cond:
+            continue
+        results[cond] = []
+        for seed in range(first, first + draws):
+            print(f"[dtwin family{', held out' if heldout else ''}] {cond}, seed {seed}", file=sys.stderr, flush=True)
+            results[cond].append(one_draw(cond, seed, letters, rows, size))
+            path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1, default=float))
+    path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1, default=float))
+    print(table(results))
+    return results
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument("--draws", type=int, default=3, help="draws per condition")
+    ap.add_argument("--heldout", action="store_true", help="the held-out draws (other letters, other seeds)")
+    ap.add_argument("--rows", type=int, default=65, help="scan rows of 6 columns (the paper: 130)")
+    ap.add_argument("--size", type=int, default=64, help="pixels per side of each region (the paper: 100)")
+    ap.add_argument("--only", default=None, help="one condition's name (replaces it in an earlier file)")
+    a = ap.parse_args()
+    main(a.out, a.draws, a.heldout, a.rows, a.size, a.only)

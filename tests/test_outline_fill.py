@@ -1,0 +1,143 @@
+"""A digital twin's like-with-like check (twinfocus.outline_fill) and the confidence report that
+reads it: closed forms for the statistics, a small simulated scene for what they tell apart, and
+the report trusting or flagging a digital twin's result by them (not by the template's picture)."""
+import numpy as np
+import pytest
+
+from twinfocus.errors import TwinFocusError
+from twinfocus.outline_fill import outline_fill
+
+
+def _outline(h=40, w=40):
+    mask = np.zeros((h, w), bool)
+    mask[10:30, 12:28] = True
+    return mask
+
+
+def test_speckle_inside_the_outline_has_contrast_two_and_all_its_energy_inside():
+    # fully developed speckle: |complex Gaussian|^2 is exponential, mean(e^2) / mean(e)^2 = 2
+    rng = np.random.default_rng(3)
+    mask = _outline(200, 200)
+    img = np.where(mask, rng.normal(size=mask.shape) + 1j * rng.normal(size=mask.shape), 0)
+    fill = outline_fill(img, mask, grow_px=0)
+    assert fill["energy_inside"] == 1.0
+    assert fill["contrast"] == pytest.approx(2.0, abs=0.1)
+
+
+def test_energy_piled_into_few_pixels_gives_the_closed_form_contrast():
+    # k of the n pixels of the outline holding equal energy: contrast n / k exactly
+    mask = _outline()
+    img = np.zeros(mask.shape, complex)
+    img[np.nonzero(mask)[0][:8], np.nonzero(mask)[1][:8]] = 2.0 - 1.0j
+    assert outline_fill(img, mask, grow_px=0)["contrast"] == pytest.approx(mask.sum() / 8, rel=1e-3)
+
+
+def test_energy_outside_the_grown_outline_counts_against_it():
+    mask = _outline()
+    img = np.zeros(mask.shape, complex)
+    img[20, 20] = 1.0  # inside
+    img[20, 32] = 1.0  # 5 px right of the outline: inside when grown by 5, not by 3
+    assert outline_fill(img, mask, grow_px=3)["energy_inside"] == pytest.approx(0.5)
+    assert outline_fill(img, mask, grow_px=5)["energy_inside"] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(
+    "image, support, grow, match",
+    [
+        (np.ones((4, 4)), np.ones((4, 5), bool), 0, "same"),
+        (np.ones((4, 4)), np.zeros((4, 4), bool), 0, "none of the region"),
+        (np.ones((4, 4)), np.ones((4, 4), bool), -1, "grow_px"),
+        (np.zeros((4, 4)), np.ones((4, 4), bool), 0, "no finite energy"),
+    ],
+)
+def test_bad_input_is_refused_by_name(image, support, grow, match):
+    with pytest.raises(TwinFocusError, match=match):
+        outline_fill(image, support, grow)
+
+
+@pytest.fixture(scope="module")
+def small_scene():
+    """An 'F' of rough scatterers (each its own phase) 2 mm apart, 20 mm tall at 0.3 m, scanned by a
+    16-channel array on 2 x 24 positions; the tracked positions off by 1.6 mm along z (every phase
+    wraps); its sub-image basis, the image on the true positions and the letter's outline."""
+    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.grid import ImageGrid
+    from twinfocus.radar import Chirp, uniform_virtual_array
+    from twinfocus.simulate import simulate_if
+    from twinfocus.trajectory import paper_raster, phase_centres
+
+    chirp = Chirp(n_samples=64)
+    rng = np.random.default_rng(1)
+    s = np.arange(-0.010, 0.0101, 0.002)
+    xy = [(-0.010, y) for y in s] + [(x, 0.010) for x in s] + [(x * 0.6, 0.0) for x in s]
+    points = np.array([(x - 0.025, y, 0.3) for x, y in xy])
+    true = phase_centres(paper_raster(n_columns=2, n_rows=24, column_pitch_m=0.128, row_pitch_m=0.004),
+                         uniform_virtual_array(16, 0.002))
+    data = simulate_if(points, np.exp(2j * np.pi * rng.random(len(points))), true, chirp)
+    tracked = true.copy()
+    tracked[..., 2] += rng.normal(0, 1.6e-3, true.shape[0])[:, None]
+    grid = ImageGrid.from_roi([-0.045, -0.005, -0.02, 0.02, 0.3], 24)
+    pixel = grid.points().reshape(grid.shape + (3,))
+    # the outline: pixels within 2 mm of a scatterer
+    support = np.min(np.linalg.norm(pixel[:, :, None, :2] - points[None, None, :, :2], axis=-1), axis=-1) < 2e-3
+    return subimage_basis(data, tracked, chirp, grid), backproject(data, true, chirp, grid), support
+
+
+def test_a_focused_reference_fills_its_outline_and_one_with_wrapped_errors_does_not(small_scene):
+    basis, truth, support = small_scene
+    focused, unfocused = outline_fill(truth, support), outline_fill(basis.sum(axis=0), support)
+    # the image on the true positions keeps 0.84 of its energy within 3 px of the letter; the scan
+    # as tracked (1.6 mm along z: every phase wrapped) spreads it outside
+    assert focused["energy_inside"] > 0.8
+    assert unfocused["energy_inside"] < focused["energy_inside"] - 0.1
+
+
+def _report(fill, match=0.68):
+    from twinfocus.grid import ImageGrid
+    from twinfocus.pipeline import confidence_report
+    from twinfocus.radar import Chirp, mmwcas_virtual_array
+    from twinfocus.trajectory import paper_raster, phase_centres
+
+    pos = phase_centres(paper_raster(6, 10), mmwcas_virtual_array())
+    ref = ImageGrid.from_roi([-0.15, 0.0, -0.11, 0.12, 0.6], 20)
+    tgt = ImageGrid.from_roi([0.02, 0.13, -0.11, 0.12, 0.6], 20)
+    m = {"reference_ssim_vs_template_corrected": match, "reference_outline": fill}
+    return confidence_report(m, pos, Chirp(), ref, tgt, 0.5e-3)
+
+
+def test_the_report_reads_a_digital_twin_against_its_outline_not_its_template_picture():
+    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST
+
+    good = {"energy_inside": 0.9, "contrast": MAX_OUTLINE_CONTRAST - 0.2}
+    # a speckled reference matches an outline's picture at 0.68: no longer a reason to flag it
+    report = _report(good)
+    assert report["trusted"] and report["reference_outline"] == good
+    report = _report({**good, "contrast": MAX_OUTLINE_CONTRAST + 0.2})
+    assert not report["trusted"]
+    (warning,) = report["warnings"]
+    assert "does not fill its outline" in warning and "--template-scan" in warning
+
+
+def test_focus_reads_a_digital_twin_against_its_outline(small_scene):
+    """focus_bases with an outline (what --digital-twin runs) writes the corrected reference's
+    outline statistics, and its confidence report judges them, not the picture match."""
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.estimators import estimator_settings
+    from twinfocus.grid import ImageGrid
+    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST, focus_bases
+    from twinfocus.radar import Chirp, uniform_virtual_array
+    from twinfocus.trajectory import paper_raster, phase_centres
+
+    basis, _, support = small_scene
+    grid = ImageGrid.from_roi([-0.045, -0.005, -0.02, 0.02, 0.3], 24)
+    positions = phase_centres(paper_raster(n_columns=2, n_rows=24, column_pitch_m=0.128, row_pitch_m=0.004),
+                              uniform_virtual_array(16, 0.002))
+    cfg = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
+    out = focus_bases(basis, basis, positions, Chirp(n_samples=64), grid, grid, template=support.astype(np.float32),
+                      support=support, config=cfg)
+    fill = out.metrics["reference_outline"]
+    assert fill == outline_fill(out.reference, support)
+    report = out.metrics["confidence"]
+    assert report["reference_outline"] == fill
+    assert not any("matches its template poorly" in w for w in report["warnings"])
+    assert any("does not fill its outline" in w for w in report["warnings"]) == (fill["contrast"] > MAX_OUTLINE_CONTRAST)
