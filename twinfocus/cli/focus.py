@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.estimators import REFERENCE_FREE_RUNGS
 from twinfocus.settings import add_focus_options, resolve_device
 
 #: bytes per radar position and pixel that a run holds at its peak: the two sub-image bases
@@ -45,7 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     src.add_argument("--template-scan", help="scan of the reference alone on accurate positions (physical twin)")
     src.add_argument("--digital-twin", help="reference point cloud (.npy, (N, 3) metres, scene frame)")
-    src.add_argument("--method", choices=["sharpness", "none"], help="baseline without a template")
+    src.add_argument(
+        "--method", choices=REFERENCE_FREE_RUNGS + ("none",), help="reference-free autofocus or none (no template)"
+    )
     p.add_argument("--out", required=True, help="output folder")
     add_focus_options(p)  # the settings shared with the solver node: twinfocus/settings.py
     p.add_argument(
@@ -227,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
     tracking_error_m = args.tracking_error_mm * 1e-3
     chosen = {}
     if method == "twin":
-        chosen = estimator_settings(args.estimator, has_phase, has_support=support is not None)
+        chosen = estimator_settings(args.estimator, has_phase, has_support=support is not None, model=args.model)
     if args.loss_steepness is not None:
         chosen["loss_steepness"] = args.loss_steepness
     cfg = AutofocusConfig.from_settings({**vars(args), "device": device}, **chosen)  # validated
@@ -243,6 +246,7 @@ def run(args: argparse.Namespace) -> int:
         config=cfg,
         bp_options=bp,
         progress_factory=progress,
+        model=args.model,
         phase_ramp=args.phase_ramp,
         space_variant=args.space_variant,
         tracking_error_m=tracking_error_m,
