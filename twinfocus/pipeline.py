@@ -5,8 +5,10 @@ elsewhere (the solver node builds them batch by batch as measurements arrive).
 
 1. sub-image bases of the reference and target regions (one back-projection each);
 2. the reference template (file, motion-stage scan, digital twin) — or none for the baselines;
-3. autofocus: phase per radar position from the reference (or sharpness of the target);
-4. phase transfer to the target, metrics against the truth when the scan carries it.
+3. the ladder of correction models climbed on the reference (:mod:`twinfocus.ladder`: one phase
+   per position, the optimiser, the placement, the range errors, the drift, the tilt), or a
+   reference-free autofocus of the target;
+4. the kept model applied to the target, metrics against the truth when the scan carries it.
 """
 
 from __future__ import annotations
