@@ -45,6 +45,7 @@ from nodes.node import Node, Shutdown, run_node
 from nodes.params import REQUIRED, Param, param_of
 from twinfocus.basis import BasisRows
 from twinfocus.errors import TwinFocusError
+from twinfocus.estimators import REFERENCE_FREE_RUNGS
 from twinfocus.settings import FOCUS_SETTINGS
 
 if TYPE_CHECKING:  # imported where used: the node starts without scipy
@@ -95,7 +96,11 @@ class Solver(Node):
         **Node.PARAMS,
         "reference_roi": Param(REQUIRED, "reference region X0 X1 Y0 Y1 Z, metres", type="floats"),
         "target_roi": Param(REQUIRED, "target region X0 X1 Y0 Y1 Z, metres", type="floats"),
-        "method": Param("twin", "twin (needs twin/template), sharpness or none", choices=("twin", "sharpness", "none")),
+        "method": Param(
+            "twin",
+            "twin (needs twin/template), a reference-free autofocus (sharpness) or none",
+            choices=("twin",) + REFERENCE_FREE_RUNGS + ("none",),
+        ),
         # the settings of `twinfocus focus`, same names and defaults (twinfocus/settings.py)
         **{s.name: param_of(s) for s in FOCUS_SETTINGS},
         "basis": Param(
@@ -194,7 +199,10 @@ class Solver(Node):
         if self.params["method"] != "twin" or self.template is None:
             return self.cfg
         chosen = estimator_settings(
-            self.params["estimator"], bool(np.iscomplexobj(self.template)), has_support=self.support is not None
+            self.params["estimator"],
+            bool(np.iscomplexobj(self.template)),
+            has_support=self.support is not None,
+            model=self.params["model"],
         )
         if self.params["loss_steepness"] is not None:
             chosen["loss_steepness"] = self.params["loss_steepness"]
@@ -434,6 +442,7 @@ class Solver(Node):
                     config=self._config(s.chirp),
                     bp_options=self.bp,
                     progress_factory=lambda label: progress,
+                    model=self.params["model"],
                     phase_ramp=self.params["phase_ramp"],
                     space_variant=self.params["space_variant"],
                     tracking_error_m=self.tracking_error_m,
@@ -538,6 +547,7 @@ class Solver(Node):
                 config=self._config(s.chirp),
                 bp_options=self.bp,
                 progress_factory=lambda label: self._progress,
+                model=self.params["model"],
                 phase_ramp=self.params["phase_ramp"],
                 space_variant=self.params["space_variant"],
                 tracking_error_m=self.tracking_error_m,

@@ -375,19 +375,8 @@ def twin_autofocus(
                     "refine_below_coherence needs each radar position's place in the aperture (aperture_m, (M, 2) "
                     "metres) to take the ramp out of the projections' phases"
                 )
-            coherence = ramp_free_coherence(init_phase_rad, aperture_m)
-            refine = coherence < cfg.refine_below_coherence
-            extra["refine_check"] = {
-                "coherence_sqrt_m": round(coherence, 3),
-                "refine_below": float(cfg.refine_below_coherence),
-                "refined": bool(refine),
-                "why": (
-                    "the projections' phases have wrapped (tracking error past about lambda/5): the optimiser ran"
-                    if refine
-                    else "the projections' phases hold together (tracking error within about lambda/5): projections alone"
-                ),
-            }
-            if not refine:
+            extra["refine_check"] = refine_check(init_phase_rad, aperture_m, cfg.refine_below_coherence)
+            if not extra["refine_check"]["refined"]:
                 cfg = replace(cfg, iterations=0)
     elif cfg.init == "outline":
         from twinfocus.template_match import averaged_outline_phase, outline_phase
@@ -456,6 +445,27 @@ def twin_autofocus(
     history.append(losses)
     elapsed = time.perf_counter() - t0
     return AutofocusResult(phase, np.concatenate(history), form_image(basis, phase), elapsed, "twin", extra)
+
+
+def refine_check(phase_rad: np.ndarray, aperture_m: np.ndarray, refine_below: float) -> dict:
+    """Whether the optimiser should refine a closed-form estimate (``refine_below_coherence``):
+    yes when its phases, their constant + linear ramp taken out, hold together less than
+    ``refine_below`` (coherence x sqrt(M), :func:`ramp_free_coherence`): they have wrapped.
+
+    phase_rad : float (M,) radians; aperture_m : float (M, 2) metres. Returns the record
+    metrics.json keeps: ``coherence_sqrt_m``, ``refine_below``, ``refined``, ``why``."""
+    coherence = ramp_free_coherence(phase_rad, aperture_m)
+    refine = coherence < refine_below
+    return {
+        "coherence_sqrt_m": round(coherence, 3),
+        "refine_below": float(refine_below),
+        "refined": bool(refine),
+        "why": (
+            "the projections' phases have wrapped (tracking error past about lambda/5): the optimiser ran"
+            if refine
+            else "the projections' phases hold together (tracking error within about lambda/5): projections alone"
+        ),
+    }
 
 
 def template_loss(

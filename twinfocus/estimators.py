@@ -69,13 +69,15 @@ def estimator_that_ran(resolved: str, estimator_metrics: dict) -> str:
     return resolved
 
 
-def estimator_settings(estimator: str, has_phase: bool, has_support: bool = False) -> dict:
+def estimator_settings(estimator: str, has_phase: bool, has_support: bool = False, model: str = "auto") -> dict:
     """The :class:`~twinfocus.autofocus.AutofocusConfig` fields that make a named estimator
     (``iterations`` only where it is 0: no optimiser); ``loss_steepness`` is the default for
     it, which an explicit choice overrides. ``"auto"`` is resolved by :func:`resolve_estimator`
     (for an amplitude template without an outline, the optimiser then runs only where the
     projections' phases have wrapped: ``refine_below_coherence``); ``has_support``: the
-    reference's outline is known (a digital twin from a cloud), which "outline" needs."""
+    reference's outline is known (a digital twin from a cloud), which "outline" needs. ``model``
+    (``--model``) "full" or "refine" runs the optimiser after any estimator: a closed form's
+    ``iterations`` are then left to the settings."""
     by_data = estimator == "auto" and not has_phase and not has_support
     estimator = resolve_estimator(estimator, has_phase, has_support)
     if estimator not in ESTIMATORS:
@@ -102,7 +104,7 @@ def estimator_settings(estimator: str, has_phase: bool, has_support: bool = Fals
         # reference by its outline (docs/evaluation.md)
         "loss_steepness": 5.0 if estimator in ("paper", "projection", "projection-refined") else None,
     }
-    if estimator in ("correlation", "projection", "outline"):
+    if estimator in ("correlation", "projection", "outline") and model not in ("full", "refine"):
         out["iterations"] = 0
     if estimator == "outline":
         # averaged over the outlines grown from the first estimate: +0.010-0.019 target SSIM with
@@ -111,3 +113,16 @@ def estimator_settings(estimator: str, has_phase: bool, has_support: bool = Fals
     if by_data:
         out["refine_below_coherence"] = AUTO_REFINE_BELOW_COHERENCE
     return out
+
+
+#: the twin's ladder of correction models, simplest first (:mod:`twinfocus.ladder`,
+#: docs/model_ladder.md): no correction; one phase per position (the estimator's closed form,
+#: projections or outline); the paper's optimiser refining it; the template's placement (the
+#: estimate's ramp); the range errors read from the band's halves; a smooth drift per pixel; the
+#: array's tilt with it
+TWIN_RUNGS = ("none", "phase", "refine", "placement", "range_errors", "drift", "tilt")
+#: autofocus without a reference in view, each a ladder of its own above "none" (``--method``)
+REFERENCE_FREE_RUNGS = ("sharpness", "entropy", "pga")
+#: ``twinfocus focus --model``: climb as the evidence says, stop at the cheapest trusted rung,
+#: try every rung, or exactly one rung (those beneath it by their rules, none above it)
+MODEL_CHOICES = ("auto", "fast", "full") + TWIN_RUNGS + REFERENCE_FREE_RUNGS

@@ -5,13 +5,14 @@ elsewhere (the solver node builds them batch by batch as measurements arrive).
 
 1. sub-image bases of the reference and target regions (one back-projection each);
 2. the reference template (file, motion-stage scan, digital twin) — or none for the baselines;
-3. autofocus: phase per radar position from the reference (or sharpness of the target);
-4. phase transfer to the target, metrics against the truth when the scan carries it.
+3. the ladder of correction models climbed on the reference (:mod:`twinfocus.ladder`: one phase
+   per position, the optimiser, the placement, the range errors, the drift, the tilt), or a
+   reference-free autofocus of the target;
+4. the kept model applied to the target, metrics against the truth when the scan carries it.
 """
 
 from __future__ import annotations
 
-import functools
 import json
 import os
 import shutil
@@ -28,27 +29,31 @@ from twinfocus.autofocus import (
     MAX_TEMPLATE_OFFSET_RANGED_M,
     MIN_RANGED_RAMP_COHERENCE_SQRT_M,
     AutofocusConfig,
-    AutofocusResult,
-    no_correction,
-    sharpness_autofocus,
-    transfer_phase,
-    twin_autofocus,
 )
 from twinfocus.backprojection import backproject, subimage_basis, subimage_basis_points
-from twinfocus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
-from twinfocus.basis import form_image, form_image_space_variant
+from twinfocus.band_delay import half_band_chirps, half_band_data
+from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE
 from twinfocus.grid import ImageGrid
+from twinfocus.ladder import (
+    REFERENCE_FREE,
+    Model,
+    Placement,
+    Problem,
+    RangeErrors,
+    build_ladder,
+    climb,
+    complex_match,
+    legacy_entries,
+    rung_entry,
+)
 from twinfocus.outline_fill import outline_fill
-from twinfocus.phase_ramp import MIN_RAMP_COHERENCE_SQRT_M, ramp_free_coherence
 from twinfocus.radar import Chirp
-from twinfocus.reference_free import METHODS as REFERENCE_FREE_METHODS
-from twinfocus.reference_free import reference_free_autofocus, resolution_cells
 from twinfocus.scan import Scan
 from twinfocus.templates import check_has_signal
 
-METHODS = ("twin", "sharpness", *REFERENCE_FREE_METHODS, "none")
+METHODS = ("twin",) + tuple(REFERENCE_FREE) + ("none",)
 
 
 @dataclass
@@ -73,6 +78,8 @@ class FocusOutputs:
     config: dict = field(default_factory=dict)
     #: float64 (M, 3) metres: the smooth drift of the space-variant correction, when it was used
     drift_m: np.ndarray | None = None
+    #: complex (H, W) the target as each tried rung of the ladder left it, by rung name (pictures "all")
+    rung_targets: dict = field(default_factory=dict)
 
 
 def _check_method(method: str, template: np.ndarray | None) -> None:
@@ -165,6 +172,7 @@ def focus_scan(
     config: AutofocusConfig | None = None,
     bp_options: dict | None = None,
     progress_factory=None,
+    model: str = "auto",
     phase_ramp: str = "auto",
     space_variant: str = "auto",
     tracking_error_m: float = 0.5e-3,
@@ -178,6 +186,7 @@ def focus_scan(
     _check_method(method, template)
     if config is not None:  # a bad configuration fails before the back-projections
         config.validate()
+    build_ladder(model, method=method, phase_ramp=phase_ramp, space_variant=space_variant)
     bp = dict(bp_options or {})
     prog = progress_factory or (lambda label: None)
     timings: dict[str, float] = {}
@@ -221,6 +230,7 @@ def focus_scan(
         config=config,
         bp_options=bp,
         progress_factory=progress_factory,
+        model=model,
         phase_ramp=phase_ramp,
         space_variant=space_variant,
         tracking_error_m=tracking_error_m,
@@ -252,8 +262,10 @@ def place_estimate(
     upper_band: Callable[[np.ndarray], np.ndarray] | None = None,
     coherence_sqrt_m: float | None = None,
 ) -> tuple[np.ndarray, dict, float | None]:
-    """The phase :func:`focus_bases` transfers to the target from the reference's estimate: its
-    constant + linear ramp handled by :func:`~twinfocus.autofocus.transfer_phase` (``phase_ramp``).
+    """The ladder's placement and range-errors rungs on one estimate
+    (:class:`~twinfocus.ladder.Placement`, :class:`~twinfocus.ladder.RangeErrors`): the phase
+    :func:`focus_bases` transfers to the target, its constant + linear ramp handled by
+    :func:`~twinfocus.autofocus.transfer_phase` (``phase_ramp``).
 
     The plain ramp fit cannot place the reference when the estimate's phases have wrapped (its
     ramp is out of sight) nor when its ramp is larger than a misplacement explains (it may be
@@ -262,37 +274,22 @@ def place_estimate(
     and tell (docs/digital_twin.md, "Placing the reference by the band's halves").
 
     phase : float (M,) radians; ref_basis : complex (M, H, W) on ``reference_grid``; positions :
-    float64 (M, K, 3) phase centres, metres; coherence_sqrt_m : the estimate's
-    :func:`~twinfocus.phase_ramp.ramp_free_coherence` when the caller has it. Returns (float64 (M,)
-    radians, the ``phase_ramp`` metrics, seconds the range errors took or None when they were not
-    read)."""
-    centres = positions.mean(axis=1)
-    transfer = functools.partial(
-        transfer_phase,
-        phase,
-        centres[:, :2],
-        float(reference_grid.z - centres[:, 2].mean()),
-        chirp.wavelength_m,
-        phase_ramp,
-        registered=registered,
-    )
-    transferred, info = transfer()
-    if coherence_sqrt_m is None:
-        coherence_sqrt_m = ramp_free_coherence(phase, centres[:, :2])
-    out_of_sight = coherence_sqrt_m < MIN_RAMP_COHERENCE_SQRT_M
-    too_large = np.any(info["slope_rad_per_m"]) and not info["removed"]
-    if upper_band is None or phase_ramp != "auto" or registered or not (out_of_sight or too_large):
-        return transferred, info, None
+    float64 (M, K, 3) phase centres, metres; coherence_sqrt_m : unused (the range-errors rung
+    measures it). Returns (float64 (M,) radians, the ``phase_ramp`` metrics, seconds the range
+    errors took or None when they were not read)."""
+    problem = Problem(ref_basis, ref_basis, positions, chirp, reference_grid, reference_grid, AutofocusConfig(),
+                      upper_band=upper_band)  # fmt: skip
+    estimate = np.asarray(phase, dtype=np.float64)
+    model = Model(estimate, estimate, registered=registered, estimated=True)
+    model = Placement({"remove": "on", "keep": "off"}.get(phase_ramp, "auto")).fit(problem, model)
+    ranged = RangeErrors("auto" if phase_ramp == "auto" else "off", ramp_mode=phase_ramp)
+    if ranged.mode == "off" or ranged.cannot(problem, model) or ranged.skip(problem, model):
+        assert model.ramp is not None
+        return model.phase_rad, model.ramp, None
     t = time.perf_counter()
-    pixels = bright_pixels(form_image(ref_basis, phase))
-    high = upper_band(pixels)
-    range_errors = position_range_errors_m(ref_basis[:, pixels] - high, high, phase, chirp)
-    seconds = time.perf_counter() - t
-    transferred, info = transfer(range_errors_m=range_errors)
-    info["asked_range_errors_because"] = (
-        "the estimate's phases have wrapped" if out_of_sight else "its ramp is larger than a misplacement explains"
-    )
-    return transferred, info, seconds
+    model = ranged.fit(problem, model)
+    assert model.ramp is not None
+    return model.phase_rad, model.ramp, time.perf_counter() - t
 
 
 def focus_bases(
@@ -310,6 +307,7 @@ def focus_bases(
     config: AutofocusConfig | None = None,
     bp_options: dict | None = None,
     progress_factory=None,
+    model: str = "auto",
     phase_ramp: str = "auto",
     space_variant: str = "auto",
     tracking_error_m: float = 0.5e-3,
@@ -320,15 +318,17 @@ def focus_bases(
     half_bases: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
     upper_band: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> FocusOutputs:
-    """The focusing steps that follow the sub-image bases: autofocus, transfer, metrics.
+    """The focusing steps that follow the sub-image bases: the ladder of correction models
+    (:mod:`twinfocus.ladder`, docs/model_ladder.md) climbed on the reference, the kept model
+    applied to both regions, the metrics.
 
     Shared by ``twinfocus focus`` (:func:`focus_scan`) and the solver node (bases streamed batch
     by batch), so both give the same phase, images and metrics keys.
 
     ref_basis, tgt_basis : complex (M, H, W) sub-image bases of the reference and target regions
         (:func:`twinfocus.backprojection.subimage_basis`) on ``reference_grid`` / ``target_grid``.
-    positions : float64 (M, K, 3) tracked phase centres, metres (the ramp fit, the confidence
-        report); chirp : the scan's :class:`~twinfocus.radar.Chirp`.
+    positions : float64 (M, K, 3) tracked phase centres, metres; chirp : the scan's
+        :class:`~twinfocus.radar.Chirp`.
     template : float (H, W) amplitude, or complex (H, W) image with its phase, on
         ``reference_grid`` (required for ``method="twin"``; the phase is what
         ``config.template_registration`` / ``config.init="correlation"`` need).
@@ -343,38 +343,16 @@ def focus_bases(
         target itself, :mod:`twinfocus.reference_free`; metrics.json ``reference_free``) or ``"none"``.
     config : :class:`~twinfocus.autofocus.AutofocusConfig`, handed to the autofocus as is.
     bp_options : the back-projection options the bases were built with (recorded in ``config``).
-    phase_ramp : "auto", "remove" or "keep": the estimate's constant + linear-in-aperture ramp
-        before the transfer (:func:`twinfocus.autofocus.transfer_phase`). That ramp moves the
-        image; "auto" removes only what a template's misplacement explains (none after a
-        registration; a fitted ramp only when it stands for a shift of at most 3 mm), since a
-        hand's drift puts real error in it. "keep" transfers the phase as is (the source paper).
-    space_variant : "auto", "on" or "off": a smooth across-sight drift fitted to the whole
-        reference and transferred per pixel (:func:`twinfocus.space_variant.fit_smooth_drift`)
-        instead of one phase per position. Needs a registered template with phase (a physical
-        twin). "auto" fits it only when the scalar estimate leaves more than
-        ``SPACE_VARIANT_MIN_RESIDUAL`` of the reference unmatched, and keeps it only when it
-        takes away at least ``SPACE_VARIANT_MIN_GAIN`` of that residual; metrics.json
-        ``space_variant`` says what was done and why.
+    model, phase_ramp, space_variant : the ladder's knob and the placement's and the drift's own
+        settings (:func:`twinfocus.ladder.build_ladder`); metrics.json ``model`` records every rung.
     tracking_error_m : the tracker's position error magnitude assumed by the confidence report.
     progress_factory : ``label -> progress callable`` (see :class:`twinfocus.progress.Progress`).
-    truth_target, truth_reference : complex (H, W) images formed on the true positions, and
-        positions_true : float64 (M, K, 3); with all three the metrics include the SSIMs
-        against the truth and the phase error against the oracle phase.
-    registration_scores : the template registration's scores against all of ``ref_basis``
-        when already accumulated (the solver node, as the scan arrives); see
-        :func:`~twinfocus.autofocus.twin_autofocus`.
-    half_bases : ``() -> (reference, target)`` sub-image bases, complex (M, H, W) each, of the
-        channels on one side of the array's middle (:func:`twinfocus.space_variant.array_half`),
-        called only when the space-variant fit runs: with them it also follows the array's tilt
-        (:func:`half_array_bases` makes one from a scan).
-    upper_band : ``pixels -> reference basis`` complex (M, pixels.sum()) from the upper half of the
-        chirp's band on a bool (H, W) mask of ``reference_grid`` (:func:`upper_band_basis` makes
-        one), called only when a template that was not registered gives phases whose ramp cannot
-        be seen (wrapped) or is larger than a misplacement explains (``phase_ramp="auto"``), on
-        the pixels holding 99 % of the estimate's image energy: the
-        positions' range errors measured from the band's halves
-        (:func:`twinfocus.band_delay.position_range_errors_m`) then let the transfer find and take
-        out the template's misplacement.
+    truth_target, truth_reference : complex (H, W) images on the true positions, and
+        positions_true : float64 (M, K, 3): with all three, the metrics against the truth.
+    registration_scores : the template registration's scores, when already accumulated (the
+        solver node); see :func:`~twinfocus.autofocus.twin_autofocus`.
+    half_bases, upper_band : the half-array bases and the upper band's basis, called only when
+        the tilt and range-errors rungs run (:func:`half_array_bases`, :func:`upper_band_basis`).
 
     Returns :class:`FocusOutputs` (``timings_s`` holds ``autofocus``; ``metrics`` has no
     ``timings_s``: the caller adds its own).
@@ -382,175 +360,83 @@ def focus_bases(
     _check_method(method, template)
     cfg = config or AutofocusConfig()
     cfg.validate()
-    bp = dict(bp_options or {})
-    prog = progress_factory or (lambda label: None)
-    ref_unc = ref_basis.sum(axis=0)
-    tgt_unc = tgt_basis.sum(axis=0)
-    check_has_signal(ref_unc, "the reference region")
+    rungs = build_ladder(model, method=method, phase_ramp=phase_ramp, space_variant=space_variant)
+    check_has_signal(ref_basis.sum(axis=0), "the reference region")
     if template is not None:
         check_has_signal(template, "the template")
-    centres = positions.mean(axis=1)  # each position's phase centre (M, 3): its place in the aperture
-
-    t = time.perf_counter()
-    if method == "twin":
-        assert template is not None  # _check_method: "twin" needs a template
-        result: AutofocusResult = twin_autofocus(
-            ref_basis,
-            template,
-            cfg,
-            progress=prog("autofocus"),
-            support=support,
-            registration_scores=registration_scores,
-            aperture_m=centres[:, :2],
-        )
-    elif method == "sharpness":
-        result = sharpness_autofocus(tgt_basis, cfg, progress=prog("sharpness autofocus"))
-    elif method in REFERENCE_FREE_METHODS:
-        result = reference_free_autofocus(
-            tgt_basis, method, cells=resolution_cells(positions, target_grid, chirp.wavelength_m)
-        )
-    else:
-        result = no_correction(ref_basis)
-    timings = {"autofocus": time.perf_counter() - t}
-
-    phase = result.phase_rad
-    # how well a twin estimate's phases hold together once their ramp is out (below the ramp fit's
-    # threshold its ramp, the image's place, is out of the fit's sight)
-    coherence = ramp_free_coherence(phase, centres[:, :2]) if method == "twin" else float("inf")
+    problem = Problem(ref_basis, tgt_basis, positions, chirp, reference_grid, target_grid, cfg, template, support,
+                      registration_scores, half_bases, upper_band, progress_factory)  # fmt: skip
+    kept, section = climb(problem, rungs)
+    targets = section.pop("targets")
     m: dict = {"method": method, "n_positions": int(positions.shape[0]), "n_channels": int(positions.shape[1])}
     if reference_info is not None:
         m["digital_twin"] = reference_info
-    if "reference_free" in result.extra:
-        m["reference_free"] = result.extra["reference_free"]
-    if method == "twin":
-        m["estimator"] = {
-            "init": cfg.init,
-            "template_registration": cfg.template_registration,
-            "iterations": int(cfg.iterations),
-        }
-        if cfg.init == "projection":
-            m["estimator"].update(
-                projection_iterations=int(cfg.projection_iterations), projection_restarts=int(cfg.projection_restarts)
-            )
-        for knob in ("coarse_iterations", "smoothness_weight"):
-            if getattr(cfg, knob):
-                m["estimator"][knob] = getattr(cfg, knob)
-        if "outline" in result.extra:
-            m["estimator"]["outline"] = result.extra["outline"]
-            # the scan can check where the outline put the reference only while the phases hold
-            # together (their ramp is then seen, and the transfer takes a misplacement's out)
-            m["estimator"]["phase_coherence_sqrt_m"] = round(coherence, 3)
-        if "outline_ensemble" in result.extra:
-            m["estimator"]["outline_ensemble"] = result.extra["outline_ensemble"]
-        if "refine_check" in result.extra:
-            m["estimator"]["refine_check"] = result.extra["refine_check"]
-            if not result.extra["refine_check"]["refined"]:
-                m["estimator"]["iterations"] = 0  # what ran: the optimiser was skipped
-        if "projection_restarts" in result.extra:
-            m["projection_restarts"] = result.extra["projection_restarts"]
-        if "registration" in result.extra:
-            m["template_registration"] = result.extra["registration"]
-        # metrics and pictures against the template the phases were fitted to (moved when registered)
-        template = result.extra.get("template", template)
-    if method != "none":
-        transferred, m["phase_ramp"], ranged_s = place_estimate(
-            phase,
-            ref_basis,
-            positions,
-            chirp,
-            reference_grid,
-            phase_ramp,
-            registered="registration" in result.extra,
-            upper_band=upper_band if method == "twin" else None,
-            coherence_sqrt_m=coherence,
-        )
-        if ranged_s is not None:
-            timings["range_errors"] = ranged_s
-        phase = transferred
-        m["phase_ramp_removed"] = m["phase_ramp"]["removed"]
-    drift = None
-    ref_sv_basis, tgt_sv_basis = ref_basis, tgt_basis
-    if method == "twin":
-        t = time.perf_counter()
-        sv = _space_variant(
-            ref_basis,
-            template,
-            phase,
-            positions,
-            chirp,
-            reference_grid,
-            space_variant,
-            registered="registration" in result.extra,
-            ramp_removed=bool(m["phase_ramp"]["removed"]),
-            progress=prog("space-variant fit"),
-            half_bases=half_bases,
-        )
-        m["space_variant"] = sv.pop("info")
-        if sv:
-            timings["space_variant"] = time.perf_counter() - t
-            phase, drift = sv["phase"], sv["drift"]
-            if sv["halves"] is not None:
-                from twinfocus.space_variant import tilted_basis
-
-                # the images are formed from the tilted bases; the ceiling below keeps the scan's own
-                ref_half, tgt_half = sv["halves"]
-                ref_sv_basis = tilted_basis(ref_basis, ref_half, sv["tilt"])
-                tgt_sv_basis = tilted_basis(tgt_basis, tgt_half, sv["tilt"])
-    if drift is None:
-        ref_cor = form_image(ref_basis, phase)
-        tgt_cor = form_image(tgt_basis, phase)
-    else:
-        from twinfocus.space_variant import lines_of_sight, pixel_phases
-
-        ref_cor = form_image_space_variant(
-            ref_sv_basis,
-            pixel_phases(phase, drift, reference_grid.centre_m, centres, reference_grid, chirp.wavelength_m),
-        )
-        tgt_cor = form_image_space_variant(
-            tgt_sv_basis,
-            pixel_phases(phase, drift, reference_grid.centre_m, centres, target_grid, chirp.wavelength_m),
-        )
-        # the scalar phase nearest to what the target got: the per-pixel phase at its centre
-        k = 4.0 * np.pi / chirp.wavelength_m
-        du = lines_of_sight(centres, target_grid.centre_m) - lines_of_sight(centres, reference_grid.centre_m)
-        phase = phase + k * np.einsum("mc,mc->m", du, drift)
-    centre, steep = cfg.threshold_centre, cfg.threshold_steepness
-
-    if template is not None:
-        tpl_disp = metrics.display_image(template, centre, steep)
-        m["reference_ssim_vs_template_uncorrected"] = metrics.ssim(
-            metrics.display_image(ref_unc, centre, steep), tpl_disp
-        )
-        m["reference_ssim_vs_template_corrected"] = metrics.ssim(
-            metrics.display_image(ref_cor, centre, steep), tpl_disp
-        )
-        if np.iscomplexobj(template):
-            m["reference_residual"] = 1.0 - _complex_match(ref_cor, template)
-    if method == "twin" and support is not None:
-        # a digital twin's like-with-like check (the confidence report reads it)
-        m["reference_outline"] = outline_fill(ref_cor, support)
+    m["model"] = {"asked": model, **section}
+    m.update(legacy_entries(problem, kept, section))
+    free = [e["info"] for e in section["rungs"] if e["rung"] in REFERENCE_FREE and e["kept"] and e.get("info")]
+    if free:
+        m["reference_free"] = free[0]
     out = FocusOutputs(
         reference_grid=reference_grid,
         target_grid=target_grid,
         method=method,
-        phase_rad=phase,
-        reference=ref_cor,
-        reference_uncorrected=ref_unc,
-        target=tgt_cor,
-        target_uncorrected=tgt_unc,
+        phase_rad=kept.target_phase(problem),
+        reference=kept.apply(problem, "reference"),
+        reference_uncorrected=ref_basis.sum(axis=0),
+        target=kept.apply(problem, "target"),
+        target_uncorrected=tgt_basis.sum(axis=0),
         template=None if template is None else np.abs(template).astype(np.float32),
-        loss_history=result.loss_history,
+        loss_history=kept.loss_history,
         metrics=m,
-        timings_s=timings,
-        config={**cfg.to_dict(), **{f"bp_{k}": v for k, v in bp.items()}},
-        drift_m=drift,
+        timings_s=rung_timings(section),
+        config={**cfg.to_dict(), **{f"bp_{k}": v for k, v in (bp_options or {}).items()}},
+        drift_m=kept.drift_m,
+        rung_targets=targets,
     )
+    # metrics against the template the phases were fitted to (moved when registered)
+    add_template_metrics(m, out, kept.template, cfg.threshold_centre, cfg.threshold_steepness)
+    if method == "twin" and support is not None:
+        # a digital twin's like-with-like check (the confidence report reads it)
+        m["reference_outline"] = outline_fill(out.reference, support)
     m["confidence"] = confidence_report(m, positions, chirp, reference_grid, target_grid, tracking_error_m)
     if truth_target is not None and truth_reference is not None and positions_true is not None:
-        add_truth_metrics(
-            out, tgt_basis, positions, chirp, truth_target, truth_reference, positions_true, centre, steep
-        )
+        add_truth_metrics(out, tgt_basis, positions, chirp, truth_target, truth_reference, positions_true,
+                          cfg.threshold_centre, cfg.threshold_steepness)  # fmt: skip
     return out
+
+
+def rung_timings(section: dict) -> dict[str, float]:
+    """The timings_s entries of the ladder's rungs (read-only aliases of the ``model`` section's
+    ``time_s``): ``autofocus`` (the estimate: phase and refine, or a reference-free rung),
+    ``range_errors`` and ``space_variant`` (the drift or tilt kept)."""
+    seconds = {e["rung"]: e["time_s"] for e in section["rungs"] if e["tried"]}
+    out = {
+        "autofocus": sum(
+            v for k, v in seconds.items() if k not in ("none", "placement", "range_errors", "drift", "tilt")
+        )
+    }
+    if "range_errors" in seconds:
+        out["range_errors"] = seconds["range_errors"]
+    kept_sv = [e["time_s"] for e in section["rungs"] if e["rung"] in ("drift", "tilt") and e["kept"]]
+    if kept_sv:
+        out["space_variant"] = kept_sv[0]
+    return out
+
+
+def add_template_metrics(
+    m: dict, out: FocusOutputs, template: np.ndarray | None, centre: float, steepness: float
+) -> None:
+    """The reference against its template, uncorrected and corrected (SSIM of the displayed
+    images), and for a template with phase the unmatched share ``reference_residual``."""
+    if template is None:
+        return
+    tpl_disp = metrics.display_image(template, centre, steepness)
+    for which, image in (("uncorrected", out.reference_uncorrected), ("corrected", out.reference)):
+        m[f"reference_ssim_vs_template_{which}"] = metrics.ssim(
+            metrics.display_image(image, centre, steepness), tpl_disp
+        )
+    if np.iscomplexobj(template):
+        m["reference_residual"] = 1.0 - complex_match(out.reference, template)
 
 
 def add_truth_metrics(
@@ -584,112 +470,6 @@ def add_truth_metrics(
     m["reference_ssim_corrected"] = metrics.image_ssim(out.reference, truth_reference, centre, steepness)
     m["phase_error_rms_rad_vs_oracle"] = metrics.phase_error_rms(out.phase_rad, out.phase_oracle_rad)
     m["phase_error_rms_rad_uncorrected"] = metrics.phase_error_rms(np.zeros_like(out.phase_rad), out.phase_oracle_rad)
-
-
-#: space-variant "auto": fit when the scalar estimate leaves more than this of the reference
-#: unmatched (1 - normalised complex correlation with its template): 0.0008 on the paper's
-#: protocol, 0.008 on the demo scene's 0.5 mm x/y/z jitter, 0.025-0.031 under a hand's drift
-SPACE_VARIANT_MIN_RESIDUAL = 0.01
-#: ... and keep the fit when it takes away at least this fraction of that residual (0.4-0.6 under
-#: a hand's drift, docs/handheld.md)
-SPACE_VARIANT_MIN_GAIN = 0.3
-SPACE_VARIANT_MODES = ("auto", "on", "off")
-
-
-def _space_variant(
-    ref_basis: np.ndarray,
-    template: np.ndarray | None,
-    phase: np.ndarray,
-    positions: np.ndarray,
-    chirp: Chirp,
-    grid: ImageGrid,
-    mode: str,
-    registered: bool,
-    ramp_removed: bool,
-    progress=None,
-    half_bases=None,
-) -> dict:
-    """The space-variant step of :func:`focus_bases`: {"info": what was done and why} plus, when
-    it is used, "phase" (M,), "drift" (M, 3), "tilt" (M,) and "halves" (the half-array bases of
-    the reference and the target, or None)."""
-    if mode not in SPACE_VARIANT_MODES:
-        raise TwinFocusError(f"space_variant must be one of {', '.join(SPACE_VARIANT_MODES)}, got {mode!r}")
-    info: dict = {"mode": mode, "used": False}
-    if mode == "off":
-        return {"info": {**info, "reason": "off on request"}}
-    why_not = None
-    if template is None or not np.iscomplexobj(template) or not registered:
-        why_not = "needs a template with phase registered to the scan (a physical twin)"
-    elif ramp_removed:
-        why_not = "the phase ramp was removed before the transfer; the drift fit needs the whole estimate"
-    if why_not:
-        if mode == "on":
-            raise TwinFocusError(f"space-variant correction {why_not}")
-        return {"info": {**info, "reason": why_not}}
-    assert template is not None  # why_not is set when it is None
-    residual = 1.0 - _complex_match(form_image(ref_basis, phase), template)
-    info["residual_scalar"] = residual
-    if mode == "auto" and residual <= SPACE_VARIANT_MIN_RESIDUAL:
-        return {
-            "info": {
-                **info,
-                "reason": f"not needed: the scalar phase leaves {residual:.4f} of the reference "
-                f"unmatched (<= {SPACE_VARIANT_MIN_RESIDUAL})",
-            }
-        }
-    from twinfocus.space_variant import fit_smooth_drift  # torch and scipy: only on this path
-
-    halves = half_bases() if half_bases is not None else None
-    new_phase, drift, tilt, fit = fit_smooth_drift(
-        ref_basis,
-        template,
-        phase,
-        positions.mean(axis=1),
-        grid,
-        chirp.wavelength_m,
-        half_basis=None if halves is None else halves[0],
-        progress=progress,
-    )
-    after = 1.0 - fit["match_after"]
-    info.update(
-        residual_space_variant=after,
-        knot_spacing_positions=fit["knot_spacing_positions"],
-        iterations=fit["iterations"],
-        refine_iterations=fit["refine_iterations"],
-        smoothness_per_mm2=fit["smoothness_per_mm2"],
-        time_s=fit["time_s"],
-        drift_rms_mm=[float(v) for v in np.sqrt((drift[:, :2] ** 2).mean(axis=0)) * 1e3],
-        tilt_fitted=bool(fit["tilt_fitted"]),
-        tilt_rms_rad=float(np.sqrt((tilt**2).mean())),
-    )
-    gain = 1.0 - after / residual if residual > 0 else 0.0
-    if mode == "auto" and gain < SPACE_VARIANT_MIN_GAIN:
-        return {
-            "info": {
-                **info,
-                "reason": f"fitted but not kept: it took away {gain:.0%} of the unmatched reference "
-                f"(< {SPACE_VARIANT_MIN_GAIN:.0%}); the error is not a smooth drift",
-            }
-        }
-    info.update(
-        used=True,
-        reason=(
-            "on request"
-            if mode == "on"
-            else f"the scalar phase left {residual:.4f} of the reference unmatched; a smooth "
-            f"drift takes away {gain:.0%} of it"
-        ),
-    )
-    return {"info": info, "phase": new_phase, "drift": drift, "tilt": tilt, "halves": halves}
-
-
-def _complex_match(image: np.ndarray, template: np.ndarray) -> float:
-    """Normalised complex correlation Re<image, template> / (|image| |template|): 1 when equal.
-    Each at unit peak in complex128 first: the norms of complex64 images at 1e20 overflow."""
-    a, t = (np.asarray(x).astype(np.complex128).ravel() for x in (image, template))
-    a, t = a / max(np.abs(a).max(), 1e-300), t / max(np.abs(t).max(), 1e-300)
-    num = np.vdot(t, a).real
-    return float(num / max(np.linalg.norm(a) * np.linalg.norm(t), 1e-300))
 
 
 #: below this reference-vs-template SSIM the reference was not matched and the phase is suspect:
@@ -728,8 +508,10 @@ def confidence_report(
     """How far to trust the correction of this scan: the reference match, the first-order
     transfer bound for this geometry (paper eq. 7) and warnings when either is poor.
 
-    m : the metrics so far (reads ``reference_ssim_vs_template_corrected``); positions : float64
-    (M, K, 3) phase centres, metres."""
+    m : the metrics so far: ``reference_ssim_vs_template_corrected``, ``reference_residual``,
+    ``digital_twin`` and the ``model`` section (:func:`_model_view`); positions : float64 (M, K, 3)
+    phase centres, metres."""
+    est, ramp, reg = _model_view(m)
     bound = metrics.transfer_bound_rad(
         positions, reference_grid.centre_m, target_grid.centre_m, chirp.wavelength_m, tracking_error_m
     )
@@ -760,7 +542,7 @@ def confidence_report(
             f"{bound.max():.2f} rad (> pi/4) for {tracking_error_m * 1e3:.1f} mm tracking error; the transfer is not to be trusted"
         )
     match = out["reference_match_ssim"]
-    least = MIN_REFERENCE_MATCH_PHYSICAL if m.get("template_registration") else MIN_REFERENCE_MATCH
+    least = MIN_REFERENCE_MATCH_PHYSICAL if reg else MIN_REFERENCE_MATCH
     fill = m.get("reference_outline")
     if fill is not None:
         # a digital twin: its template is an outline, which a speckled reference never matches
@@ -778,12 +560,10 @@ def confidence_report(
             f"the corrected reference matches its template poorly (SSIM {match:.2f} < {least}); "
             "check the template, the reference region and the template's placement"
         )
-    est = m.get("estimator") or {}
     if "refine_check" in est:
         # what auto chose for an amplitude template, from the projections' own phases
         out["estimator_choice"] = est["refine_check"]["why"]
     coherence = est.get("phase_coherence_sqrt_m")
-    ramp = m.get("phase_ramp") or {}
     ranged = ramp.get("ramp_coherence_sqrt_m")
     if ranged is not None:
         # the ramp fitted with the range errors from the band's halves taken out: how clearly it
@@ -838,14 +618,30 @@ def confidence_report(
     free = (m.get("reference_free") or {}).get("warning")
     if free:
         out["warnings"].append(free)
-    reg = m.get("template_registration")
     if reg and reg.get("at_limit"):
         out["warnings"].append(
             f"the template registration stopped at its search limit (shift {reg['shift_px'][0]:+.1f}, "
             f"{reg['shift_px'][1]:+.1f} px): the template is placed farther off than that; check its placement"
         )
+    if "model" in m:
+        out["model"] = m["model"]["result"]
     out["trusted"] = not out["warnings"]
     return out
+
+
+def _model_view(m: dict) -> tuple[dict, dict, dict | None]:
+    """What the confidence report reads of the correction: (the estimate's record: the phase
+    rung's info with the refine rung's ``refine_check``; the placement's record: the range
+    errors' when they were read, else the placement's; the template registration or None), from
+    metrics.json's ``model`` section, or from the older entries when a metrics dict has none."""
+    if "model" not in m:
+        return m.get("estimator") or {}, m.get("phase_ramp") or {}, m.get("template_registration")
+    section = m["model"]
+    est = dict(rung_entry(section, "phase").get("info", {}))
+    est.update({k: v for k, v in rung_entry(section, "refine").get("info", {}).items() if k == "refine_check"})
+    ranged = rung_entry(section, "range_errors")
+    ramp = (ranged if ranged.get("tried") else rung_entry(section, "placement")).get("info", {})
+    return est, ramp, est.get("registration")
 
 
 def write_outputs(out_dir: str | os.PathLike, outputs: FocusOutputs, pictures: str | bool = "summary") -> Path:

@@ -168,6 +168,8 @@ def write_detail_pictures(out_dir: Path, o) -> None:
     for name, (img, grid, title) in names.items():
         if img is not None:
             save_image_png(out_dir / name, img, grid, title)
+    if o.rung_targets:
+        save_rungs_png(out_dir / "model_ladder.png", o)
 
     if o.loss_history.size:
         fig, ax = plt.subplots(figsize=(5, 3))
@@ -197,6 +199,24 @@ def write_detail_pictures(out_dir: Path, o) -> None:
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out_dir / "phase.png", dpi=110)
+    plt.close(fig)
+
+
+def save_rungs_png(path: Path, o) -> None:
+    """The target as each tried rung of the ladder left it, side by side, simplest first: the
+    rung, kept or not, and its target SSIM against the truth when the scan carries it."""
+    from twinfocus.metrics import image_ssim
+
+    plt = pyplot()
+    entries = {e["rung"]: e for e in o.metrics.get("model", {}).get("rungs", [])}
+    names = list(o.rung_targets)
+    fig, axes = plt.subplots(1, len(names), figsize=(2.6 * len(names), 3.0), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        kept = "kept" if entries.get(name, {}).get("kept") else "not kept"
+        score = "" if o.target_truth is None else f", SSIM {image_ssim(o.rung_targets[name], o.target_truth):.3f}"
+        _show(ax, o.rung_targets[name], o.target_grid, f"{name} ({kept}{score})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import ESTIMATORS
+from twinfocus.estimators import ESTIMATORS, MODEL_CHOICES
 
 
 @dataclass(frozen=True)
@@ -165,6 +165,19 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
         "coarse-to-fine: this many optimiser iterations on blurred images before the full-resolution ones "
         "(0: the paper's single stage)",
         config="coarse_iterations",
+    ),
+    Setting(
+        "model",
+        str,
+        "auto",
+        "which corrections of the ladder to fit, simplest first: none, phase (one phase per position, the "
+        "{estimator}'s closed form), refine (the paper's optimiser), placement (the estimate's ramp), range_errors "
+        "(from the band's halves), drift (smooth, per pixel), tilt (the array's, with the drift); auto = each "
+        "kept only where its rule says the reference asks for it; fast = the closed-form rungs only (no optimiser, "
+        "drift or tilt); full = every rung fitted where it can run, each kept by its rule; a rung's name = that "
+        "rung, those beneath it by their rules, none above it; {phase_ramp} and {space_variant} other than auto "
+        "win for their rungs (metrics.json model records every rung, docs/model_ladder.md)",
+        choices=MODEL_CHOICES,
     ),
     Setting(
         "phase_ramp",

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from twinfocus.depth_search import DEFAULT_HALF_RANGE_M
 from twinfocus.errors import TwinFocusError
+from twinfocus.estimators import REFERENCE_FREE_RUNGS
 from twinfocus.grid import ImageGrid
 from twinfocus.settings import add_focus_options, resolve_device
 
@@ -85,7 +86,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     src.add_argument(
         "--method",
-        choices=["sharpness", "entropy", "pga", "none"],
+        choices=REFERENCE_FREE_RUNGS + ("none",),
         help="without a template: the target's own sharpness, minimum entropy or phase-gradient autofocus "
         "(docs/reference_free.md), or no correction",
     )
@@ -430,7 +431,7 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
     has_phase = template is not None and np.iscomplexobj(template)
     chosen = {}
     if method == "twin":
-        chosen = estimator_settings(args.estimator, has_phase, has_support=support is not None)
+        chosen = estimator_settings(args.estimator, has_phase, has_support=support is not None, model=args.model)
     if args.loss_steepness is not None:
         chosen["loss_steepness"] = args.loss_steepness
     cfg = AutofocusConfig.from_settings({**vars(args), "device": device}, **chosen)  # validated
@@ -444,6 +445,7 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
         config=cfg,
         bp_options=bp,
         progress_factory=progress,
+        model=args.model,
         phase_ramp=args.phase_ramp,
         tracking_error_m=args.tracking_error_mm * 1e-3,
     )

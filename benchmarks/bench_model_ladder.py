@@ -1,0 +1,212 @@
+"""The ladder's trade: per rung, the target's SSIM against the time the ladder took to reach it,
+on the field-like scenes the project simulates, and how often ``--model auto`` stops at the rung
+the truth says is best; ``--model fast`` against ``auto`` in time and SSIM.
+
+    python -m benchmarks.bench_model_ladder --draws 2        (docs/model_ladder.md quotes it)
+
+Each draw builds the scan's bases once and runs ``focus_bases`` once per rung (``--model RUNG``:
+that rung forced, those beneath it by their rules; its time is the whole climb to it) and with
+``--model auto`` and ``fast``, its settings from the settings table (twinfocus/settings.py) as
+``twinfocus focus`` takes them. A rung that cannot run on the scene (``range_errors`` after a
+physical twin's registration, ``drift`` without one) has no entry. Small scans so that it fits a loaded 2-core machine: 3 columns
+of 30 positions, 24 x 24 pixels, the optimiser's 100 iterations. Scenes (the paper's letters
+unless said):
+
+* paper protocol: 0.5 mm x/y/z jitter, the physical twin;
+* hand drift + rotation: a hand's 0.8 mm drift and 0.15 deg rotation, letters H and S, 15 dB;
+* 1.6 mm wraps: 1.6 mm along z (every phase wraps) + 0.3 mm x/y, an amplitude template;
+* rough reference: every scatterer of the reference its own phase (+-90 deg), the physical twin;
+* camera cloud: the rough reference's digital twin from a camera cloud (1 mm noise, 25 % holes,
+  2 % outliers, 2.5 mm offset).
+
+Writes ``model_ladder.json`` (one record per scene and draw, and the summary) and
+docs/figures/model_ladder.png; prints a markdown table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+SIZE, COLUMNS, ROWS, ITERATIONS = 24, 3, 30, 100
+HAND = dict(reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand", error_sigma_m=(0.8e-3,) * 3)
+SCENES = {
+    "paper protocol": (dict(error_model="gaussian", error_sigma_m=(0.5e-3,) * 3), "physical"),
+    "hand drift + rotation": (HAND, "physical"),
+    "1.6 mm wraps": (dict(error_sigma_m=(0.3e-3, 0.3e-3, 1.6e-3), snr_db=15), "amplitude"),
+    "rough reference": (dict(error_sigma_m=(0.2e-3, 0.2e-3, 0.5e-3), snr_db=15, reference_roughness_deg=90.0),
+                        "physical"),
+    "camera cloud": (dict(error_sigma_m=(0.2e-3, 0.2e-3, 0.5e-3), snr_db=15, reference_roughness_deg=90.0), "cloud"),
+}
+CLOUD = (1e-3, 0.25, 0.02, 2.5e-3)
+MODELS = ("auto", "fast")
+
+
+def one_draw(scene: str, seed: int) -> dict:
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.errors import TwinFocusError
+    from twinfocus.estimators import TWIN_RUNGS, estimator_settings
+    from twinfocus.pipeline import focus_bases, half_array_bases, upper_band_basis
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.settings import default_settings
+    from twinfocus.templates import template_from_scan
+
+    kw, kind = SCENES[scene]
+    sc = Scenario(**kw, n_columns=COLUMNS, n_rows=ROWS, seed=seed)
+    scan, tpl_scan = simulate_scenario(sc)
+    rg, tg = scenario_grids(sc, SIZE)
+    support = None
+    if kind == "cloud":
+        from twinfocus.digital_twin.camera_cloud import camera_cloud
+        from twinfocus.digital_twin.condition import digital_twin_reference
+
+        surface = sc.scene().object("reference").surface_points(1e-3)
+        twin = digital_twin_reference(camera_cloud(surface, *CLOUD, rng=np.random.default_rng([seed, 14])),
+                                      scan.positions, scan.chirp, rg)
+        template, support = twin.template, twin.support
+    else:
+        template = template_from_scan(tpl_scan, rg, keep_phase=True)
+        if kind == "amplitude":
+            template = np.abs(template)
+    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
+    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+    truth = dict(truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
+                 truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
+                 positions_true=scan.positions_true)
+    settings = {**default_settings(), "iterations": ITERATIONS, "device": "cpu"}
+    rec: dict = {"scene": scene, "seed": seed, "rungs": {}}
+    for model in TWIN_RUNGS + MODELS:
+        chosen = estimator_settings(settings["estimator"], np.iscomplexobj(template), support is not None, model=model)
+        cfg = AutofocusConfig.from_settings(settings, **chosen)
+        t = time.perf_counter()
+        try:
+            out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template, support=support,
+                              config=cfg, model=model, phase_ramp=settings["phase_ramp"],
+                              space_variant=settings["space_variant"],
+                              half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg),
+                              upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, rg), **truth)
+        except TwinFocusError as exc:  # the rung cannot run on this scene
+            rec.setdefault("cannot run", {})[model] = str(exc)
+            continue
+        m = out.metrics
+        r = {"ssim": m["target_ssim_corrected"], "time_s": time.perf_counter() - t, "result": m["model"]["result"],
+             "kept": m["model"]["kept"], "trusted": m["confidence"]["trusted"]}
+        if model in MODELS:
+            rec[model] = r
+        else:
+            rec["rungs"][model] = r
+        rec["uncorrected"] = m["target_ssim_uncorrected"]
+        rec["oracle phase"] = m["target_ssim_oracle_phase"]
+    best = max(rec["rungs"], key=lambda r: rec["rungs"][r]["ssim"])
+    rec["best rung by truth"] = best
+    rec["auto picks best"] = rec["auto"]["result"] == best
+    rec["auto within 0.005 of best"] = rec["auto"]["ssim"] >= rec["rungs"][best]["ssim"] - 0.005
+    return rec
+
+
+def summary(records: list[dict]) -> dict:
+    out: dict = {}
+    for scene in SCENES:
+        recs = [r for r in records if r["scene"] == scene]
+        if not recs:
+            continue
+        from twinfocus.estimators import TWIN_RUNGS
+
+        rungs = [n for n in TWIN_RUNGS if any(n in r["rungs"] for r in recs)]
+        s: dict = {"draws": len(recs), "rungs": {}}
+        for n in rungs:
+            v = [r["rungs"][n] for r in recs if n in r["rungs"]]
+            s["rungs"][n] = {"ssim_mean": float(np.mean([x["ssim"] for x in v])),
+                             "ssim_sd": float(np.std([x["ssim"] for x in v])),
+                             "time_s_mean": float(np.mean([x["time_s"] for x in v])), "draws": len(v)}
+        for model in MODELS:
+            s[model] = {"ssim_mean": float(np.mean([r[model]["ssim"] for r in recs])),
+                        "ssim_sd": float(np.std([r[model]["ssim"] for r in recs])),
+                        "time_s_mean": float(np.mean([r[model]["time_s"] for r in recs])),
+                        "results": [r[model]["result"] for r in recs]}
+        s["auto picks best"] = f"{sum(r['auto picks best'] for r in recs)}/{len(recs)}"
+        s["auto within 0.005 of best"] = f"{sum(r['auto within 0.005 of best'] for r in recs)}/{len(recs)}"
+        s["uncorrected"] = float(np.mean([r["uncorrected"] for r in recs]))
+        s["oracle phase"] = float(np.mean([r["oracle phase"] for r in recs]))
+        out[scene] = s
+    return out
+
+
+def table(summ: dict) -> str:
+    lines = ["| scene | --model | target SSIM | time (s) |", "|---|---|---|---|"]
+    for scene, s in summ.items():
+        for n, v in s["rungs"].items():
+            lines.append(f"| {scene} | {n} | {v['ssim_mean']:.3f} +- {v['ssim_sd']:.3f} | {v['time_s_mean']:.2f} |")
+        for model in MODELS:
+            v = s[model]
+            lines.append(f"| {scene} | **--model {model}** ({', '.join(sorted(set(v['results'])))}) | "
+                         f"{v['ssim_mean']:.3f} +- {v['ssim_sd']:.3f} | {v['time_s_mean']:.2f} |")
+        lines.append(f"| {scene} | auto stops at the best rung | {s['auto picks best']} "
+                     f"(within 0.005: {s['auto within 0.005 of best']}) | |")
+    return "\n".join(lines)
+
+
+def figure(summ: dict, path: Path) -> None:
+    from twinfocus.plotting import pyplot
+
+    plt = pyplot()
+    fig, axes = plt.subplots(1, len(summ), figsize=(3.2 * len(summ), 3.4), squeeze=False)
+    for ax, (scene, s) in zip(axes[0], summ.items()):
+        pts = [(v["time_s_mean"], v["ssim_mean"], n) for n, v in s["rungs"].items()]
+        frontier, best = [], -1.0
+        for t, q, n in sorted(pts):
+            ax.plot(t, q, "o", color="tab:blue", ms=4)
+            ax.annotate(n, (t, q), fontsize=6, xytext=(2, 2), textcoords="offset points")
+            if q > best:
+                frontier.append((t, q))
+                best = q
+        ax.step(*zip(*frontier), where="post", color="tab:blue", alpha=0.5, lw=1)
+        for model, marker in (("auto", "*"), ("fast", "^")):
+            ax.plot(s[model]["time_s_mean"], s[model]["ssim_mean"], marker, color="tab:red", ms=8, label=model)
+        ax.set_xscale("log")
+        ax.set_title(scene, fontsize=8)
+        ax.set_xlabel("time (s, loaded 2-core VM)", fontsize=7)
+        ax.set_ylabel("target SSIM", fontsize=7)
+        ax.tick_params(labelsize=6)
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 2, only: str | None = None) -> dict:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    records = []
+    for scene in SCENES:
+        if only and only not in scene:
+            continue
+        for seed in range(1, draws + 1):
+            t = time.perf_counter()
+            records.append(one_draw(scene, seed))
+            print(f"[model_ladder] {scene} draw {seed}: {time.perf_counter() - t:.0f} s", file=sys.stderr, flush=True)
+    summ = summary(records)
+    doc = {"command": f"python -m benchmarks.bench_model_ladder --draws {draws}",
+           "protocol": {"columns": COLUMNS, "rows": ROWS, "size_px": SIZE, "optimiser_iterations": ITERATIONS,
+                        "draws": draws, "note": "times on a loaded 2-core VM, shared with other work"},
+           "summary": summ, "records": records}
+    (out_dir / "model_ladder.json").write_text(json.dumps(doc, indent=1, default=float))
+    figure(summ, Path(__file__).resolve().parent.parent / "docs" / "figures" / "model_ladder.png")
+    print(table(summ))
+    return doc
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--draws", type=int, default=2)
+    ap.add_argument("--only", help="scenes whose name holds this")
+    ap.add_argument("--out", default="benchmarks/results")
+    a = ap.parse_args()
+    main(a.out, a.draws, a.only)

@@ -1,0 +1,795 @@
+"""The ladder of correction models: each correction a small object of one shape, climbed from the
+simplest, a richer one kept only when its rule says the reference asks for it.
+
+A rung (:class:`Rung`) is made from settings only (its ``mode``), ``fit`` on the reference
+(:class:`Problem`: the sub-image bases, the scan's geometry, the template) starting from the
+:class:`Model` the rungs beneath it left, and gives a new :class:`Model` that ``apply`` turns into
+an image of any region's basis. :func:`climb` runs the rungs in order and records, per rung, what
+it adds, whether it was tried, its evidence (the reference's match before and after, the
+parameters it adds), whether it was kept and why, and its time: metrics.json's ``model`` section.
+
+The twin's ladder (``TWIN_RUNGS``), simplest first:
+
+    none -> phase -> refine -> placement -> range_errors -> drift -> tilt
+
+* ``phase``: one phase per position from the reference, the estimator's closed form
+  (registered correlation, projections or outline; :func:`twinfocus.autofocus.twin_autofocus`);
+* ``refine``: the paper's optimiser from there (same parameters, a costlier fit);
+* ``placement``: the estimate's constant + linear ramp, which moves the image, taken out where a
+  misplaced template explains it (:func:`twinfocus.autofocus.transfer_phase`);
+* ``range_errors``: the ramp fitted with each position's range error, read from the band's
+  halves, taken out (:func:`twinfocus.band_delay.position_range_errors_m`);
+* ``drift``: a smooth across-sight drift transferred per pixel
+  (:func:`twinfocus.space_variant.fit_smooth_drift`);
+* ``tilt``: the drift with the array's tilt, from the half-array bases (one fit with the drift).
+
+Without a reference in view the reference-free rungs (``REFERENCE_FREE_RUNGS``: sharpness) stand
+on ``none`` instead, each with the placement above it. :func:`build_ladder` makes the rungs from
+the ``model`` setting (``auto``, ``fast``, ``full`` or one rung's name) and the rungs' own settings
+(``phase_ramp``, ``space_variant``; an explicit value of those wins over ``model``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from twinfocus import metrics
+from twinfocus.autofocus import (
+    RAMP_MODES,
+    AutofocusConfig,
+    refine_check,
+    sharpness_autofocus,
+    transfer_phase,
+    twin_autofocus,
+)
+from twinfocus.band_delay import bright_pixels, position_range_errors_m
+from twinfocus.basis import form_image, form_image_space_variant
+from twinfocus.errors import TwinFocusError
+from twinfocus.estimators import MODEL_CHOICES, REFERENCE_FREE_RUNGS, TWIN_RUNGS
+from twinfocus.grid import ImageGrid
+from twinfocus.phase_ramp import MIN_RAMP_COHERENCE_SQRT_M, ramp_free_coherence
+from twinfocus.radar import Chirp
+from twinfocus.settings import config_default
+
+#: a rung's mode: "off" (not tried), "auto" (its rule decides whether to fit and whether to keep),
+#: "try" (fitted whenever it can run, kept by its rule), "on" (fitted and kept; refused when it cannot run)
+MODES = ("off", "auto", "try", "on")
+SPACE_VARIANT_MODES = ("auto", "on", "off")
+#: space-variant "auto": fit when the scalar estimate leaves more than this of the reference
+#: unmatched (1 - normalised complex correlation with its template): 0.0008 on the paper's
+#: protocol, 0.008 on the demo scene's 0.5 mm x/y/z jitter, 0.025-0.031 under a hand's drift
+SPACE_VARIANT_MIN_RESIDUAL = 0.01
+#: ... and keep the fit when it takes away at least this fraction of that residual (0.4-0.6 under
+#: a hand's drift, docs/handheld.md): a penalty for the drift's parameters, which fit some of the
+#: reference's noise whatever the error is
+SPACE_VARIANT_MIN_GAIN = 0.3
+
+
+def complex_match(image: np.ndarray, template: np.ndarray) -> float:
+    """Normalised complex correlation Re<image, template> / (|image| |template|): 1 when equal.
+    Each at unit peak in complex128 first: the norms of complex64 images at 1e20 overflow."""
+    a, t = (np.asarray(x).astype(np.complex128).ravel() for x in (image, template))
+    a, t = a / max(np.abs(a).max(), 1e-300), t / max(np.abs(t).max(), 1e-300)
+    num = np.vdot(t, a).real
+    return float(num / max(np.linalg.norm(a) * np.linalg.norm(t), 1e-300))
+
+
+@dataclass
+class Problem:
+    """What every rung sees (read only): the regions' bases and the scan's geometry.
+
+    ref_basis, tgt_basis : complex (M, H, W) sub-image bases on ``reference_grid`` /
+    ``target_grid``; positions : float64 (M, K, 3) tracked phase centres, metres; template :
+    float or complex (H, W) on ``reference_grid`` or None; support : bool (H, W) the reference's
+    outline or None; half_bases, upper_band : the callables of
+    :func:`twinfocus.pipeline.half_array_bases` / :func:`~twinfocus.pipeline.upper_band_basis`."""
+
+    ref_basis: np.ndarray
+    tgt_basis: np.ndarray
+    positions: np.ndarray
+    chirp: Chirp
+    reference_grid: ImageGrid
+    target_grid: ImageGrid
+    config: AutofocusConfig
+    template: np.ndarray | None = None
+    support: np.ndarray | None = None
+    registration_scores: np.ndarray | None = None
+    half_bases: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
+    upper_band: Callable[[np.ndarray], np.ndarray] | None = None
+    progress_factory: Callable | None = None
+
+    @property
+    def centres(self) -> np.ndarray:
+        """float64 (M, 3): each position's phase centre (its channels' mean), metres."""
+        return self.positions.mean(axis=1)
+
+    def progress(self, label: str):
+        return self.progress_factory(label) if self.progress_factory else None
+
+
+@dataclass
+class Model:
+    """A correction, as the rungs kept it so far.
+
+    phase_rad : float64 (M,) radians, what the target gets at the reference's line of sight;
+    estimate_rad : float64 (M,) the reference's estimate before the placement; template : the
+    template the phases were fitted to (moved when registered); drift_m : float64 (M, 3) metres
+    and tilt_rad : float64 (M,) of the space-variant rungs, with ``halves`` the half-array bases
+    (reference, target) when the tilt was fitted; extra : the estimator's record
+    (:attr:`twinfocus.autofocus.AutofocusResult.extra`); ramp : the placement's record."""
+
+    phase_rad: np.ndarray
+    estimate_rad: np.ndarray
+    template: np.ndarray | None = None
+    registered: bool = False
+    #: whether a rung has estimated phases (the placement and range errors need an estimate)
+    estimated: bool = False
+    loss_history: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    extra: dict = field(default_factory=dict)
+    ramp: dict | None = None
+    drift_m: np.ndarray | None = None
+    tilt_rad: np.ndarray | None = None
+    halves: tuple[np.ndarray, np.ndarray] | None = None
+    _images: dict = field(default_factory=dict, repr=False)
+
+    def apply(self, problem: Problem, region: str) -> np.ndarray:
+        """The corrected image of ``region`` ("reference" or "target"): complex (H, W) on its grid."""
+        if region not in self._images:
+            basis, grid, half = (
+                (problem.ref_basis, problem.reference_grid, 0)
+                if region == "reference"
+                else (problem.tgt_basis, problem.target_grid, 1)
+            )
+            if self.drift_m is None:
+                self._images[region] = form_image(basis, self.phase_rad)
+            else:
+                from twinfocus.space_variant import pixel_phases, tilted_basis
+
+                if self.halves is not None and self.tilt_rad is not None:
+                    # the images are formed from the tilted bases; the truth metrics keep the scan's own
+                    basis = tilted_basis(basis, self.halves[half], self.tilt_rad)
+                phases = pixel_phases(
+                    self.phase_rad,
+                    self.drift_m,
+                    problem.reference_grid.centre_m,
+                    problem.centres,
+                    grid,
+                    problem.chirp.wavelength_m,
+                )
+                self._images[region] = form_image_space_variant(basis, phases)
+        return self._images[region]
+
+    def target_phase(self, problem: Problem) -> np.ndarray:
+        """float64 (M,): the one phase per position nearest to what the target got (with a drift,
+        the per-pixel phase at the target's centre)."""
+        if self.drift_m is None:
+            return self.phase_rad
+        from twinfocus.space_variant import lines_of_sight
+
+        k = 4.0 * np.pi / problem.chirp.wavelength_m
+        c = problem.centres
+        du = lines_of_sight(c, problem.target_grid.centre_m) - lines_of_sight(c, problem.reference_grid.centre_m)
+        return self.phase_rad + k * np.einsum("mc,mc->m", du, self.drift_m)
+
+    def evolve(self, **changes) -> Model:
+        """A copy with ``changes`` (its images formed anew)."""
+        return replace(self, _images={}, **changes)
+
+
+def reference_evidence(problem: Problem, model: Model) -> dict:
+    """How well ``model`` matches the reference to its template: for a template with phase the
+    unmatched share 1 - complex correlation (lower is better), for an amplitude template the SSIM
+    of the displayed images (higher is better); without a template the target's sharpness
+    sum(I^2) / sum(I)^2, I = |image|^2 (higher is better)."""
+    cfg = problem.config
+    template = model.template if model.template is not None else problem.template
+    if template is None:
+        inten = np.abs(model.apply(problem, "target")).astype(np.float64) ** 2
+        return {"target_sharpness": float((inten**2).sum() / max(inten.sum() ** 2, 1e-300))}
+    ref = model.apply(problem, "reference")
+    if np.iscomplexobj(template):
+        return {"reference_unmatched": 1.0 - complex_match(ref, template)}
+    c, s = cfg.threshold_centre, cfg.threshold_steepness
+    return {
+        "reference_ssim_vs_template": metrics.ssim(
+            metrics.display_image(ref, c, s), metrics.display_image(template, c, s)
+        )
+    }
+
+
+class Rung:
+    """One correction model. Subclasses set ``name``, ``adds`` (one line) and ``cheap`` (closed
+    form: ``--model fast`` climbs it), and define :meth:`fit`; :meth:`cannot`, :meth:`skip` and
+    :meth:`keep` default to "can", "fit" and "keep"."""
+
+    name = ""
+    adds = ""
+    cheap = True
+
+    def __init__(self, mode: str = "auto"):
+        if mode not in MODES:
+            raise TwinFocusError(f"rung mode must be one of {', '.join(MODES)}, got {mode!r}")
+        self.mode = mode
+        #: what the rung's checks and fit recorded (metrics.json ``model.rungs[].info``)
+        self.info_: dict = {}
+
+    def cannot(self, problem: Problem, model: Model) -> str | None:
+        """Why this rung cannot run on ``problem`` (refused in mode "on"), or None."""
+        return None
+
+    def skip(self, problem: Problem, model: Model) -> str | None:
+        """Why the fit is not run although it could (auto's checks before fitting), or None."""
+        return None
+
+    def fit(self, problem: Problem, model: Model) -> Model:
+        """The richer model fitted on the reference from ``model``; ``self.info_`` says how."""
+        raise NotImplementedError
+
+    def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
+        """Whether the fitted model is kept, and why."""
+        return True, "kept on request" if self.mode == "on" else "fitted"
+
+    def parameters(self, problem: Problem) -> int:
+        """How many numbers the rung adds to the model."""
+        return 0
+
+    def not_kept(self, before: Model, after: Model) -> Model:
+        """The model the rungs above start from when this one's fit is not kept: ``before``."""
+        return before
+
+    def off_reason(self) -> str:
+        return "off"
+
+
+class NoCorrection(Rung):
+    name, adds = "none", "nothing: every position's phase 0"
+
+    def fit(self, problem: Problem, model: Model) -> Model:
+        return model
+
+    def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
+        return True, "the baseline the rungs above are measured against"
+
+
+class PhasePerPosition(Rung):
+    """One phase per position from the reference, the estimator's closed form (the config's
+    ``init``: correlation after the registration, projections or outline); the paper's estimator
+    ("zero") has none: its phases are the optimiser's (``refine``)."""
+
+    name, adds = "phase", "one phase per position, the estimator's closed form"
+
+    def cannot(self, problem: Problem, model: Model) -> str | None:
+        return None if problem.template is not None else "needs a template"
+
+    def parameters(self, problem: Problem) -> int:
+        return int(problem.positions.shape[0])
+
+    def fit(self, problem: Problem, model: Model) -> Model:
+        cfg = problem.config
+        assert problem.template is not None  # cannot() refuses without one
+        if cfg.init == "zero":
+            template, extra = problem.template, dict[str, Any]()
+            if cfg.template_registration == "correlation":
+                from twinfocus.template_match import register_template
+
+                template, _, extra["registration"] = register_template(
+                    problem.ref_basis,
+                    template,
+                    int(cfg.registration_max_shift_px),
+                    scores=problem.registration_scores,
+                )
+            zero = np.zeros(problem.ref_basis.shape[0])
+            self.info_ = {"closed_form": "none (the paper's estimator starts the optimiser from 0)", **extra}
+            extra["template"] = template
+            registered = "registration" in extra
+            return model.evolve(
+                phase_rad=zero, estimate_rad=zero, template=template, extra=extra, registered=registered, estimated=True
+            )
+        closed = replace(cfg, iterations=0, refine_below_coherence=0.0)
+        result = twin_autofocus(
+            problem.ref_basis,
+            problem.template,
+            closed,
+            progress=problem.progress("autofocus"),
+            support=problem.support,
+            registration_scores=problem.registration_scores,
+            aperture_m=problem.centres[:, :2],
+        )
+        extra = result.extra
+        self.info_ = {"closed_form": cfg.init}
+        self.info_.update(
+            {k: extra[k] for k in ("registration", "projection_restarts", "outline", "outline_ensemble") if k in extra}
+        )
+        if "outline" in extra:
+            # the scan can check where the outline put the reference only while the phases hold
+            # together (their ramp is then seen, and the transfer takes a misplacement's out)
+            self.info_["phase_coherence_sqrt_m"] = round(
+                ramp_free_coherence(result.phase_rad, problem.centres[:, :2]), 3
+            )
+        return model.evolve(
+            phase_rad=result.phase_rad,
+            estimate_rad=result.phase_rad,
+            template=result.extra.get("template", problem.template),
+            registered="registration" in result.extra,
+            loss_history=result.loss_history,
+            extra=result.extra,
+            estimated=True,
+        )
+
+
+class Refine(Rung):
+    """The paper's optimiser (Adam on 1 - SSIM against the template) from the closed form's
+    phases. Auto: the estimator decides (``config.iterations``; with ``refine_below_coherence`` and
+    the projections, only when their phases have wrapped: :func:`twinfocus.autofocus.refine_check`)."""
+
+    name, adds, cheap = "refine", "the same phases refined by the paper's optimiser", False
+
+    def cannot(self, problem: Problem, model: Model) -> str | None:
+        return None if problem.template is not None else "needs a template"
+
+    def _iterations(self, problem: Problem) -> int:
+        # a closed-form estimator's config has none: the settings table's then
+        return int(problem.config.iterations or config_default("iterations"))
+
+    def skip(self, problem: Problem, model: Model) -> str | None:
+        cfg = problem.config
+        if self.mode != "auto":
+            return None
+        if int(cfg.iterations) == 0:
+            return f"the estimator is closed form ({cfg.init}): no optimiser"
+        if cfg.init == "projection" and cfg.refine_below_coherence > 0:
+            check = refine_check(model.estimate_rad, problem.centres[:, :2], cfg.refine_below_coherence)
+            self.info_["refine_check"] = check
+            return None if check["refined"] else check["why"]
+        return None
+
+    def fit(self, problem: Problem, model: Model) -> Model:
+        cfg = replace(
+            problem.config,
+            init="zero",
+            template_registration="none",
+            refine_below_coherence=0.0,
+            iterations=self._iterations(problem),
+        )
+        assert model.template is not None
+        result = twin_autofocus(
+            problem.ref_basis,
+            model.template,
+            cfg,
+            progress=problem.progress("autofocus"),
+            init_phase_rad=model.estimate_rad,
+        )
+        self.info_["iterations"] = int(cfg.iterations)
+        return model.evolve(phase_rad=result.phase_rad, estimate_rad=result.phase_rad, loss_history=result.loss_history)
+
+    def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
+        check = self.info_.get("refine_check")
+        if self.mode == "auto" and check is not None:
+            return True, check["why"]
+        return True, "the estimator refines its phases with the optimiser" if self.mode == "auto" else "on request"
+
+
+class ReferenceFree(Rung):
+    """Autofocus of the target itself, no reference: ``estimate(basis, config, progress) ->
+    (phase float (M,) radians, info dict, loss history)``."""
+
+    cheap = False
+
+    def __init__(self, name: str, estimate: Callable, adds: str, mode: str = "auto"):
+        super().__init__(mode)
+        self.name, self.estimate, self.adds = name, estimate, adds
+
+    def parameters(self, problem: Problem) -> int:
+        return int(problem.positions.shape[0])
+
+    def fit(self, problem: Problem, model: Model) -> Model:
+        phase, self.info_, losses = self.estimate(
+            problem.tgt_basis, problem.config, problem.progress(f"{self.name} autofocus"), problem
+        )
+        return model.evolve(phase_rad=phase, estimate_rad=phase, loss_history=losses, estimated=True)
+
+
+def _sharpness(
+    basis: np.ndarray, config: AutofocusConfig, progress, problem: Problem
+) -> tuple[np.ndarray, dict, np.ndarray]:
+    result = sharpness_autofocus(basis, config, progress=progress)
+    return result.phase_rad, {}, result.loss_history
+
+
+def _free(method: str) -> Callable:
+    """A :mod:`twinfocus.reference_free` method as a rung's estimate; its info carries the
+    region's resolution cells per position and a warning when they are too few."""
+
+    def estimate(
+        basis: np.ndarray, config: AutofocusConfig, progress, problem: Problem
+    ) -> tuple[np.ndarray, dict, np.ndarray]:
+        from twinfocus.reference_free import reference_free_autofocus, resolution_cells
+
+        cells = resolution_cells(problem.positions, problem.target_grid, problem.chirp.wavelength_m)
+        result = reference_free_autofocus(basis, method, cells=cells)
+        return result.phase_rad, result.extra["reference_free"], result.loss_history
+
+    return estimate
+
+
+#: the reference-free rungs by name: (estimate, what it adds); ``estimate(basis, config,
+#: progress, problem) -> (phase float (M,) radians, info dict, loss history float (n,))``
+REFERENCE_FREE: dict[str, tuple[Callable, str]] = {
+    "sharpness": (_sharpness, "one phase per position maximising the target's sharpness (no reference)"),
+    "entropy": (_free("entropy"), "one phase per position minimising the target's entropy (no reference)"),
+    "pga": (_free("pga"), "one phase per position from the target's brightest scatterers (no reference)"),
+}
+
+
+def _transfer(problem: Problem, model: Model, mode: str, range_errors_m: np.ndarray | None = None):
+    centres = problem.centres
+    return transfer_phase(
+        model.estimate_rad,
+        centres[:, :2],
+        float(problem.reference_grid.z - centres[:, 2].mean()),
+        problem.chirp.wavelength_m,
+        mode,
+        registered=model.registered,
+        range_errors_m=range_errors_m,
+    )
+
+
+class Placement(Rung):
+    """The estimate's constant + linear ramp, which moves the image, taken out where a template's
+    misplacement explains it (:func:`twinfocus.autofocus.transfer_phase`; ``ramp_mode``
+    ``--phase-ramp``). Always measured: off, the ramp is reported and transferred as is."""
+
+    name, adds = "placement", "the template's place: the estimate's ramp taken out"
+    ramp_mode = "auto"
+
+    def __init__(self, mode: str = "auto"):
+        super().__init__(mode)
+        self.ramp_mode = {"on": "remove", "off": "keep"}.get(mode, "auto")
+
+    def parameters(self, problem: Problem) -> int:
+        return 3
+
+    def cannot(self, problem: Problem, model: Model) -> str | None:
+        return None if model.estimated else "no estimate to place"
+
+    def fit(self, problem: Problem, model: Model) -> Model:
+        phase, self.info_ = _transfer(problem, model, self.ramp_mode)
+        return model.evolve(phase_rad=phase, ramp=self.info_)
+
+    def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
+        assert after.ramp is not None
+        return bool(after.ramp["removed"]), after.ramp["reason"]
+
+    def not_kept(self, before: Model, after: Model) -> Model:
+        # the ramp stays in the phase, and its measurement goes on to the rungs above
+        return replace(before, ramp=after.ramp)
+
+
+class RangeErrors(Rung):
+    """Each position's range error read from the band's halves (on the pixels holding 99 % of the
+    estimate's image energy), taken out of the estimate before its ramp is fitted
+    (docs/digital_twin.md, "Placing the reference by the band's halves"). Auto: only when the
+    estimate's phases have wrapped (its ramp is out of sight) or its ramp is larger than a
+    misplacement explains."""
+
+    name, adds = "range_errors", "each position's range error from the band's halves, before the ramp fit"
+
+    def __init__(self, mode: str = "auto", ramp_mode: str = "auto"):
+        super().__init__(mode)
+        self.ramp_mode = ramp_mode
+
+    def parameters(self, problem: Problem) -> int:
+        return int(problem.positions.shape[0])
+
+    def cannot(self, problem: Problem, model: Model) -> str | None:
+        if not model.estimated:
+            return "no estimate to place"
+        if model.registered:
+            return "the template was registered to the scan: no misplacement is left to place"
+        if problem.upper_band is None:
+            return "no upper-band basis (a chirp too short to halve, or none given)"
+        return None
+
+    def skip(self, problem: Problem, model: Model) -> str | None:
+        coherence = ramp_free_coherence(model.estimate_rad, problem.centres[:, :2])
+        self.because_ = (
+            "the estimate's phases have wrapped"
+            if coherence < MIN_RAMP_COHERENCE_SQRT_M
+            else "its ramp is larger than a misplacement explains"
+            if model.ramp is not None and np.any(model.ramp["slope_rad_per_m"]) and not model.ramp["removed"]
+            else None
+        )
+        if self.mode == "auto" and self.because_ is None:
+            return "not needed: the estimate's ramp is in sight and within what a misplacement explains"
+        return None
+
+    def fit(self, problem: Problem, model: Model) -> Model:
+        assert problem.upper_band is not None
+        pixels = bright_pixels(form_image(problem.ref_basis, model.estimate_rad))
+        high = problem.upper_band(pixels)
+        range_errors = position_range_errors_m(
+            problem.ref_basis[:, pixels] - high, high, model.estimate_rad, problem.chirp
+        )
+        phase, self.info_ = _transfer(problem, model, self.ramp_mode, range_errors)
+        self.info_["asked_range_errors_because"] = self.because_ or "asked for"
+        return model.evolve(phase_rad=phase, ramp=self.info_)
+
+    def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
+        # the transfer's own rule: a ramp taken out only when it stands out of the range errors
+        assert after.ramp is not None
+        return True, after.ramp["reason"]
+
+
+class SmoothDrift(Rung):
+    """A smooth across-sight drift fitted to the whole reference and transferred per pixel
+    (:func:`twinfocus.space_variant.fit_smooth_drift`); with ``tilt`` also the array's tilt, from
+    the half-array bases, in the same fit. Needs a registered template with phase (a physical
+    twin) and the whole estimate (its ramp kept). Auto: fitted only when the scalar phase leaves
+    more than ``SPACE_VARIANT_MIN_RESIDUAL`` of the reference unmatched, kept only when it takes
+    away at least ``SPACE_VARIANT_MIN_GAIN`` of that. ``with_tilt_above``: the tilt rung above
+    fits the drift too, so this one leaves it to that rung when the half-array bases are there."""
+
+    cheap = False
+
+    def __init__(self, mode: str = "auto", tilt: bool = False, with_tilt_above: bool = False, setting: str = "auto"):
+        super().__init__(mode)
+        self.tilt, self.with_tilt_above, self.setting = tilt, with_tilt_above, setting
+        self.name = "tilt" if tilt else "drift"
+        self.adds = (
+            "the array's tilt per position, fitted with the drift (half-array bases)"
+            if tilt
+            else "a smooth across-sight drift per position, transferred per pixel"
+        )
+        self.info_: dict = {"mode": setting, "used": False}
+
+    def parameters(self, problem: Problem) -> int:
+        m = int(problem.positions.shape[0])
+        return 2 * m + (m // 10 + 1 if self.tilt else 0)
+
+    def off_reason(self) -> str:
+        self.info_["reason"] = "off on request"
+        return "off on request"
+
+    def cannot(self, problem: Problem, model: Model) -> str | None:
+        why = None
+        if model.template is None or not np.iscomplexobj(model.template) or not model.registered:
+            why = "needs a template with phase registered to the scan (a physical twin)"
+        elif model.ramp is not None and model.ramp["removed"]:
+            why = "the phase ramp was removed before the transfer; the drift fit needs the whole estimate"
+        if why:
+            self.info_["reason"] = why
+        return why
+
+    def skip(self, problem: Problem, model: Model) -> str | None:
+        if self.tilt and problem.half_bases is None:
+            return "no half-array bases (an array of one channel, or none given)"
+        if not self.tilt and self.with_tilt_above and problem.half_bases is not None:
+            return "fitted with the array's tilt, one rung up"
+        assert model.template is not None
+        residual = 1.0 - complex_match(model.apply(problem, "reference"), model.template)
+        self.info_["residual_scalar"] = residual
+        if self.mode == "auto" and residual <= SPACE_VARIANT_MIN_RESIDUAL:
+            self.info_["reason"] = (
+                f"not needed: the scalar phase leaves {residual:.4f} of the reference "
+                f"unmatched (<= {SPACE_VARIANT_MIN_RESIDUAL})"
+            )
+            return self.info_["reason"]
+        return None
+
+    def fit(self, problem: Problem, model: Model) -> Model:
+        from twinfocus.space_variant import fit_smooth_drift  # torch and scipy: only on this path
+
+        assert model.template is not None
+        halves = problem.half_bases() if self.tilt and problem.half_bases is not None else None
+        phase, drift, tilt, fit = fit_smooth_drift(
+            problem.ref_basis,
+            model.template,
+            model.phase_rad,
+            problem.centres,
+            problem.reference_grid,
+            problem.chirp.wavelength_m,
+            half_basis=None if halves is None else halves[0],
+            progress=problem.progress("space-variant fit"),
+        )
+        self.info_.update(
+            residual_space_variant=1.0 - fit["match_after"],
+            knot_spacing_positions=fit["knot_spacing_positions"],
+            iterations=fit["iterations"],
+            refine_iterations=fit["refine_iterations"],
+            smoothness_per_mm2=fit["smoothness_per_mm2"],
+            time_s=fit["time_s"],
+            drift_rms_mm=[float(v) for v in np.sqrt((drift[:, :2] ** 2).mean(axis=0)) * 1e3],
+            tilt_fitted=bool(fit["tilt_fitted"]),
+            tilt_rms_rad=float(np.sqrt((tilt**2).mean())),
+        )
+        return model.evolve(phase_rad=phase, drift_m=drift, tilt_rad=tilt, halves=halves)
+
+    def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
+        residual, after_r = self.info_["residual_scalar"], self.info_["residual_space_variant"]
+        gain = 1.0 - after_r / residual if residual > 0 else 0.0
+        if self.mode != "on" and gain < SPACE_VARIANT_MIN_GAIN:
+            why = (
+                f"fitted but not kept: it took away {gain:.0%} of the unmatched reference "
+                f"(< {SPACE_VARIANT_MIN_GAIN:.0%}); the error is not a smooth drift"
+            )
+        else:
+            self.info_["used"] = True
+            why = (
+                "on request"
+                if self.mode == "on"
+                else f"the scalar phase left {residual:.4f} of the reference unmatched; a smooth "
+                f"drift takes away {gain:.0%} of it"
+            )
+        self.info_["reason"] = why
+        return self.info_["used"], why
+
+
+def build_ladder(
+    model: str = "auto",
+    *,
+    method: str = "twin",
+    phase_ramp: str = "auto",
+    space_variant: str = "auto",
+) -> list[Rung]:
+    """The rungs for one scan, simplest first, each with its mode.
+
+    model : "auto" (each rung by its rule: today's decisions), "fast" (the closed-form rungs
+        only: no optimiser, no drift or tilt), "full" (every rung fitted where it can run, each
+        kept by its rule; the optimiser always) or a rung's name (that rung forced, those beneath
+        it by their rules, none above it).
+    method : "twin" (the twin's ladder), a reference-free rung's name, or "none".
+    phase_ramp, space_variant : the placement's and the drift's own settings; other than "auto"
+        they win over ``model`` for their rungs.
+    """
+    if model not in MODEL_CHOICES:
+        raise TwinFocusError(f"model must be one of {', '.join(MODEL_CHOICES)}, got {model!r}")
+    if space_variant not in SPACE_VARIANT_MODES:
+        raise TwinFocusError(f"space_variant must be one of {', '.join(SPACE_VARIANT_MODES)}, got {space_variant!r}")
+    if phase_ramp not in RAMP_MODES:
+        raise TwinFocusError(f"phase ramp mode must be one of {', '.join(RAMP_MODES)}, got {phase_ramp!r}")
+    if method == "none":
+        names: tuple[str, ...] = ("none",)
+    elif method == "twin":
+        names = TWIN_RUNGS
+    elif method in REFERENCE_FREE:
+        names = ("none", method, "placement")
+    else:
+        raise TwinFocusError(f"unknown method {method!r}")
+    if model in MODEL_CHOICES[3:] and model not in names:
+        raise TwinFocusError(
+            f"--model {model}: not a rung of this ladder ({', '.join(names)}): "
+            + (
+                "the reference-free rungs need --method"
+                if model in REFERENCE_FREE_RUNGS
+                else "it needs a template (--template, --template-scan or --digital-twin)"
+            )
+        )
+    modes = {name: "auto" for name in names}
+    if model == "fast":
+        modes.update(refine="off", drift="off", tilt="off")
+    elif model == "full":
+        modes.update(refine="on", range_errors="try", drift="try", tilt="try")
+    elif model != "auto":
+        above = names[names.index(model) + 1 :]
+        modes.update({n: "off" for n in above})
+        modes[model] = "on"
+    # a rung's own explicit setting wins over the model
+    if phase_ramp != "auto":
+        modes["placement"] = {"remove": "on", "keep": "off"}[phase_ramp]
+        modes["range_errors"] = "off"
+    if space_variant != "auto":
+        modes["drift"] = modes["tilt"] = space_variant
+    rungs: list[Rung] = []
+    for name in names:
+        mode = modes[name]
+        if name == "none":
+            rungs.append(NoCorrection("on"))
+        elif name == "phase":
+            rungs.append(PhasePerPosition("on" if mode != "off" else "off"))
+        elif name == "refine":
+            rungs.append(Refine(mode))
+        elif name == "placement":
+            rungs.append(Placement(mode))
+        elif name == "range_errors":
+            rungs.append(RangeErrors(mode, ramp_mode=phase_ramp))
+        elif name in ("drift", "tilt"):
+            setting = space_variant if space_variant != "auto" or model == "auto" else model
+            rungs.append(
+                SmoothDrift(mode, tilt=name == "tilt", with_tilt_above=modes["tilt"] != "off", setting=setting)
+            )
+        else:
+            estimate, adds = REFERENCE_FREE[name]
+            rungs.append(ReferenceFree(name, estimate, adds, "on" if mode != "off" else "off"))
+    return rungs
+
+
+def climb(problem: Problem, rungs: list[Rung]) -> tuple[Model, dict]:
+    """Climb ``rungs`` (:func:`build_ladder`) on ``problem``: returns the kept model and
+    metrics.json's ``model`` section: ``rungs``, one entry per rung (``rung``, ``adds``,
+    ``mode``, ``tried``, ``kept``, ``why``, ``time_s``, and when tried ``evidence``: the
+    reference's match before and after and the ``parameters`` it adds, and ``info``: what its
+    fit recorded), ``kept`` (the kept rungs' names), ``result`` (the top kept rung) and
+    ``time_s``; and ``targets``, each tried rung's target image (complex (H, W)), for the caller
+    to take out."""
+    m = problem.ref_basis.shape[0]
+    model = Model(phase_rad=np.zeros(m), estimate_rad=np.zeros(m), template=problem.template)
+    entries, kept, targets = [], [], {}
+    t_all = time.perf_counter()
+    for rung in rungs:
+        entry: dict = {"rung": rung.name, "adds": rung.adds, "mode": rung.mode, "tried": False, "kept": False}
+        t = time.perf_counter()
+        measured = rung.name == "placement"  # the ramp is reported whatever is done with it
+        why = rung.off_reason() if rung.mode == "off" and not measured else rung.cannot(problem, model)
+        if why is None:
+            why = rung.skip(problem, model)
+        elif rung.mode == "on":
+            what = "space-variant correction" if rung.name in ("drift", "tilt") else f"--model {rung.name}:"
+            raise TwinFocusError(f"{what} {why}")
+        if why is None:
+            before = reference_evidence(problem, model) if rung.name != "none" else {}
+            candidate = rung.fit(problem, model)
+            keep, why = rung.keep(problem, model, candidate)
+            after = reference_evidence(problem, candidate)
+            entry.update(tried=True, kept=keep)
+            targets[rung.name] = candidate.apply(problem, "target")
+            entry["evidence"] = {"before": before, "after": after, "parameters": rung.parameters(problem)}
+            if keep:
+                model = candidate
+                kept.append(rung.name)
+            else:
+                model = rung.not_kept(model, candidate)
+        entry.update(why=why, time_s=time.perf_counter() - t)
+        if rung.info_:
+            entry["info"] = rung.info_
+        entries.append(entry)
+    section = {"rungs": entries, "kept": kept, "result": kept[-1], "time_s": time.perf_counter() - t_all}
+    section["targets"] = targets  # the images, for the pictures: not written to metrics.json
+    return model, section
+
+
+def rung_entry(section: dict, name: str) -> dict:
+    """The ``model`` section's entry of rung ``name`` ({} when the ladder has none)."""
+    return next((e for e in section.get("rungs", []) if e["rung"] == name), {})
+
+
+def legacy_entries(problem: Problem, model: Model, section: dict) -> dict:
+    """The metrics.json entries that came before the ``model`` section, now read-only aliases of
+    it (docs/model_ladder.md): ``estimator`` (the config's estimator, with what ran: its
+    ``iterations``, ``refine_check``, ``outline``...), ``template_registration``,
+    ``projection_restarts``, ``phase_ramp``, ``phase_ramp_removed`` and ``space_variant``."""
+    cfg, out = problem.config, {}
+    phase = rung_entry(section, "phase")
+    if phase.get("tried"):
+        info, refine = phase.get("info", {}), rung_entry(section, "refine")
+        est: dict = {"init": cfg.init, "template_registration": cfg.template_registration}
+        # what ran: 0 when the optimiser did not
+        est["iterations"] = int(refine["info"]["iterations"]) if refine.get("tried") else 0
+        if cfg.init == "projection":
+            est.update(
+                projection_iterations=int(cfg.projection_iterations), projection_restarts=int(cfg.projection_restarts)
+            )
+        for knob in ("coarse_iterations", "smoothness_weight"):
+            if getattr(cfg, knob):
+                est[knob] = getattr(cfg, knob)
+        est.update({k: info[k] for k in ("outline", "phase_coherence_sqrt_m", "outline_ensemble") if k in info})
+        if "refine_check" in refine.get("info", {}):
+            est["refine_check"] = refine["info"]["refine_check"]
+        out["estimator"] = est
+        if "projection_restarts" in info:
+            out["projection_restarts"] = info["projection_restarts"]
+        if "registration" in info:
+            out["template_registration"] = info["registration"]
+    if model.ramp is not None:
+        out["phase_ramp"] = model.ramp
+        out["phase_ramp_removed"] = model.ramp["removed"]
+    sv = [rung_entry(section, n) for n in ("drift", "tilt")]
+    if sv[0]:
+        # the rung that decided: the tilt's when the drift left the fit to it
+        deferred = sv[1] and sv[1]["info"].get("reason") and (sv[1]["tried"] or "with the array's tilt" in sv[0]["why"])
+        out["space_variant"] = sv[1]["info"] if deferred else sv[0]["info"]
+    return out
