@@ -98,7 +98,7 @@ class Solver(Node):
         "target_roi": Param(REQUIRED, "target region X0 X1 Y0 Y1 Z, metres", type="floats"),
         "method": Param(
             "twin",
-            "twin (needs twin/template), a reference-free autofocus (sharpness) or none",
+            "twin (needs twin/template), a reference-free autofocus (sharpness, entropy, pga) or none",
             choices=("twin",) + REFERENCE_FREE_RUNGS + ("none",),
         ),
         # the settings of `twinfocus focus`, same names and defaults (twinfocus/settings.py)

@@ -158,7 +158,7 @@ def test_a_reference_free_rung_plugs_in_by_name(scene, monkeypatch):
     placement; here the injected error itself, so the image is its brute-force sum."""
     s = scene
 
-    def oracle(basis, config, progress):
+    def oracle(basis, config, progress, problem):
         return s["phi"], {"source": "injected"}, np.zeros(0)
 
     monkeypatch.setitem(REFERENCE_FREE, "oracle", (oracle, "the injected phases"))
