@@ -34,6 +34,7 @@ from twinfocus.evaluation.cases import (
 )
 from twinfocus.evaluation.experiments import Experiment
 from twinfocus.machine import machine_info
+from twinfocus.progress import remaining_text
 
 
 def quick_settings() -> EvalSettings:
@@ -174,9 +175,11 @@ def run_experiment(
                         f"{r['method']} {r['ssim']:.3f}" if r["ssim"] is not None else f"{r['method']} failed"
                         for r in recs
                     )
+                    spent = time.perf_counter() - t_start
+                    left = f", about {remaining_text(spent * (total - done) / done)} left" if done < total else ""
                     log(
                         f"[{exp.name}] {done}/{total} scene {i + 1}/{len(all_units)} {ref}>{tgt} {c.label} draw {d + 1}: "
-                        f"{summary} ({time.perf_counter() - t_start:.0f} s)"
+                        f"{summary} ({spent:.0f} s{left})"
                     )
                 del bases
         del case
@@ -288,10 +291,18 @@ def run_experiments(
             return
         got[exp.name][unit] = res
         n = n_scenes[exp.name]
-        log(f"[{exp.name}] {len(got[exp.name])}/{n} scenes done ({res['seconds'] / 60:.1f} min this one)")
+        finished = sum(len(g) for g in got.values())
+        spent = time.perf_counter() - t_tasks
+        left = (
+            f", about {remaining_text(spent * (len(parts) - finished) / finished)} left in all"
+            if finished < len(parts)
+            else ""
+        )
+        log(f"[{exp.name}] {len(got[exp.name])}/{n} scenes done ({res['seconds'] / 60:.1f} min this one{left})")
         if len(got[exp.name]) == n and exp.name not in errors:
             keep(exp, merge_parts([got[exp.name][u] for u in range(n)]))
 
+    t_tasks = time.perf_counter()
     log(
         f"[bench] {len(pending)} experiments as {len(parts)} Dask tasks, one per scene "
         f"({sum(e.n_draws() for e in pending)} draws)"
