@@ -472,6 +472,7 @@ def focus_bases(
             ramp_removed=bool(m["phase_ramp"]["removed"]),
             progress=prog("space-variant fit"),
             half_bases=half_bases,
+            device=cfg.device,
         )
         m["space_variant"] = sv.pop("info")
         if sv:
@@ -593,6 +594,7 @@ def _space_variant(
     ramp_removed: bool,
     progress=None,
     half_bases=None,
+    device: str = "cpu",
 ) -> dict:
     """The space-variant step of :func:`focus_bases`: {"info": what was done and why} plus, when
     it is used, "phase" (M,), "drift" (M, 3), "tilt" (M,) and "halves" (the half-array bases of
@@ -633,6 +635,7 @@ def _space_variant(
         grid,
         chirp.wavelength_m,
         half_basis=None if halves is None else halves[0],
+        device=device,
         progress=progress,
     )
     after = 1.0 - fit["match_after"]
