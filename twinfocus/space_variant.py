@@ -423,13 +423,14 @@ class _DriftMatch:
         torch = self.torch
         theta = torch.addmm(phase[:, None], self.ux * dp[:, :1] + self.uy * dp[:, 1:], self.q_t)
         rot = torch.polar(self.one, theta)
-        br = self.b * rot
         if tilt is None:
+            br = rot.mul_(self.b)
             image = br.sum(0)
         else:
             e = torch.polar(torch.ones_like(tilt), -tilt)
             s2 = torch.complex(torch.zeros_like(tilt), 2.0 * torch.sin(tilt))
             hr = self.half * rot
+            br = rot.mul_(self.b)  # in place: exp(j theta) is not needed past here
             image = e @ br + s2 @ hr
         i_norm = float(torch.linalg.vector_norm(image))
         corr = float(torch.vdot(self.t, image).real) / max(i_norm * self.t_norm, 1e-300)
