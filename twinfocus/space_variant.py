@@ -45,6 +45,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
+from twinfocus.band_delay import bright_pixels
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
 
@@ -214,6 +215,12 @@ def knot_basis(n_positions: int, spacing: int) -> np.ndarray:
     return b / b.sum(axis=1, keepdims=True)
 
 
+#: the share of the template's energy whose pixels the knots' stage of :func:`fit_smooth_drift`
+#: runs on (benchmarks/results/field_speed.json: the same target SSIM as on every pixel, draw for
+#: draw, in 0.6 of the time)
+KNOT_ENERGY_FRACTION = 0.9
+
+
 def fit_smooth_drift(
     basis: np.ndarray,
     template: np.ndarray,
@@ -229,6 +236,7 @@ def fit_smooth_drift(
     smoothness_per_mm2: float = 1e-4,
     half_basis: np.ndarray | None = None,
     tilt_step_rad: float = 0.01,
+    knot_energy_fraction: float = KNOT_ENERGY_FRACTION,
     device: str | None = "cpu",
     progress: Callable[[int, int, float], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
@@ -274,14 +282,19 @@ def fit_smooth_drift(
     halves' sub-images moving apart for a drift across the line of sight (handheld draws 3 / 5:
     0.922 / 0.917 without, 0.948 / 0.947 with, docs/handheld.md).
 
+    knot_energy_fraction : the knots' stage runs on the template's brightest pixels that hold
+    this share of its energy (:func:`twinfocus.band_delay.bright_pixels`; 1: every pixel), the
+    per-position stage on every pixel: the knots' curve is set by where the reference is, and the
+    pixels around it, which only weigh in the image's norm, are left to the last stage.
     device : the torch device (cpu, cuda, cuda:N; None:
     :func:`twinfocus.settings.resolve_device`'s choice), the same code on each.
 
     Returns (phase float64 (M,) radians at the region's centre (``phase0_rad`` when phi is
     fixed), dp float64 (M, 3) metres in the correction's sense (z is 0), tilt float64 (M,)
     radians (zeros without ``half_basis``), info: ``match_before`` / ``match_after`` (the
-    correlation), the settings, ``device``, ``time_s``).
-    Memory: about 40 bytes per position and pixel (0.3 GB at 780 x 100 x 100), 56 with ``half_basis``.
+    correlation on every pixel), the settings, ``knot_pixels``, ``device``, ``time_s``).
+    Memory: about 40 bytes per position and pixel (0.3 GB at 780 x 100 x 100), 56 with ``half_basis``,
+    and a copy of the bases on the knots' stage's pixels.
     """
     import torch
 
@@ -298,7 +311,12 @@ def fit_smooth_drift(
     c = np.asarray(centres_m, np.float64)
     if c.shape != (m, 3):
         raise TwinFocusError(f"centres must be (M, 3) = ({m}, 3), got {c.shape}")
+    if not 0.0 < float(knot_energy_fraction) <= 1.0:
+        raise TwinFocusError(f"knot_energy_fraction must be in (0, 1], got {knot_energy_fraction!r}")
     match = _DriftMatch(b, half_basis, tpl, c, grid, wavelength_m, device)
+    coarse = match
+    if knot_energy_fraction < 1.0:
+        coarse = match.on(bright_pixels(tpl, knot_energy_fraction).ravel())
     dev = match.device
     s = torch.from_numpy(knot_basis(m, int(knot_spacing)).astype(np.float32)).to(dev)
     coef = torch.zeros(s.shape[1], 2, device=dev)
@@ -308,10 +326,10 @@ def fit_smooth_drift(
     total = int(iterations) + int(refine_iterations)
     matches: list[float] = []  # the correlation before each step, over both stages
 
-    def descend(parameter: torch.Tensor, knots: bool, steps: int, smoothness: float) -> None:
+    def descend(parameter: torch.Tensor, knots: bool, steps: int, smoothness: float, objective: _DriftMatch) -> None:
         """Adam on ``parameter`` (metres: the knots' values when ``knots``, else each position's
         drift) and phi and the tilt's knots, each at its own step, maximising the correlation less
-        ``smoothness`` * sum |dp_{m+1} - dp_m|^2 (mm^2). The gradients are the correlation's own
+        ``smoothness`` * sum |dp_{m+1} - dp_m|^2 (mm^2) on ``objective``'s pixels. The gradients are the correlation's own
         (:meth:`_DriftMatch.value_and_gradients`): no graph is kept between steps."""
         groups = [{"params": [parameter], "lr": step_m}]
         if phase_step_rad > 0:
@@ -321,7 +339,7 @@ def fit_smooth_drift(
         opt = torch.optim.Adam(groups)
         for _ in range(int(steps)):
             dp = s @ parameter if knots else parameter
-            corr, g_phase, g_dp, g_tilt = match.value_and_gradients(phase, dp, s @ tilt_coef if tilted else None)
+            corr, g_phase, g_dp, g_tilt = objective.value_and_gradients(phase, dp, s @ tilt_coef if tilted else None)
             matches.append(corr)
             grad = -g_dp
             if smoothness:
@@ -337,12 +355,12 @@ def fit_smooth_drift(
             if progress is not None:
                 progress(len(matches), total, -matches[-1])
 
-    descend(coef, True, iterations, 0.0)
+    before = match.value_and_gradients(phase, s @ coef, s @ tilt_coef if tilted else None)[0]
+    descend(coef, True, iterations, 0.0, coarse)
     # Per-position refinement: the knots' straight segments cannot follow a drift that wanders
     # within 10 positions; a penalty on the step between neighbours keeps the noise out.
     drift = s @ coef
-    descend(drift, False, refine_iterations, float(smoothness_per_mm2))
-    before = matches[0] if matches else float("nan")
+    descend(drift, False, refine_iterations, float(smoothness_per_mm2), match)
     after = match.value_and_gradients(phase, drift, s @ tilt_coef if tilted else None)[0] if total else before
     dp = np.zeros((m, 3))
     dp[:, :2] = drift.cpu().numpy()
@@ -353,6 +371,7 @@ def fit_smooth_drift(
         "iterations": int(iterations),
         "refine_iterations": int(refine_iterations),
         "smoothness_per_mm2": float(smoothness_per_mm2),
+        "knot_pixels": int(coarse.t.shape[0]),
         "phase_fitted": phase_step_rad > 0,
         "tilt_fitted": tilted,
         "device": str(dev),
@@ -416,6 +435,20 @@ class _DriftMatch:
         self.t = put(np.asarray(template).reshape(-1), np.complex64)
         self.t_norm = float(torch.linalg.vector_norm(self.t))
         self.one = torch.ones((1, 1), dtype=torch.float32, device=self.device)  # |exp(j theta)|, broadcast
+
+    def on(self, pixels: np.ndarray) -> _DriftMatch:
+        """The same correlation on the pixels of a bool (P,) mask: views of this one's arrays'
+        columns (the polynomial basis is the one fitted over every pixel)."""
+        sub = object.__new__(_DriftMatch)
+        sub.__dict__.update(self.__dict__)
+        idx = self.torch.from_numpy(np.flatnonzero(pixels)).to(self.device)
+        sub.q_t = self.q_t[:, idx].contiguous()
+        sub.columns = self.columns[idx].contiguous()
+        sub.b = self.b[:, idx].contiguous()
+        sub.half = None if self.half is None else self.half[:, idx].contiguous()
+        sub.t = self.t[idx]
+        sub.t_norm = float(self.torch.linalg.vector_norm(sub.t))
+        return sub
 
     def value_and_gradients(self, phase, dp, tilt):
         """(corr float, d corr / d phi (M,), d corr / d dp (M, 2), d corr / d psi (M,) or None)
