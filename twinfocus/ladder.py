@@ -594,6 +594,7 @@ class SmoothDrift(Rung):
             problem.reference_grid,
             problem.chirp.wavelength_m,
             half_basis=None if halves is None else halves[0],
+            device=problem.config.device,
             progress=problem.progress("space-variant fit"),
         )
         self.info_.update(

@@ -45,6 +45,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
+from twinfocus.band_delay import bright_pixels
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
 
@@ -214,6 +215,13 @@ def knot_basis(n_positions: int, spacing: int) -> np.ndarray:
     return b / b.sum(axis=1, keepdims=True)
 
 
+#: the share of the template's energy whose pixels the knots' stage of :func:`fit_smooth_drift`
+#: runs on (benchmarks/results/field_speed.json: the target's SSIM and the drift's error as good as
+#: the fit on every pixel in both stages, draw for draw, the fit 2-6x faster with the gradients
+#: written out)
+KNOT_ENERGY_FRACTION = 0.9
+
+
 def fit_smooth_drift(
     basis: np.ndarray,
     template: np.ndarray,
@@ -229,6 +237,8 @@ def fit_smooth_drift(
     smoothness_per_mm2: float = 1e-4,
     half_basis: np.ndarray | None = None,
     tilt_step_rad: float = 0.01,
+    knot_energy_fraction: float = KNOT_ENERGY_FRACTION,
+    device: str | None = "cpu",
     progress: Callable[[int, int, float], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Smooth across-sight drift (and optionally the per-position phase) from one extended
@@ -273,11 +283,19 @@ def fit_smooth_drift(
     halves' sub-images moving apart for a drift across the line of sight (handheld draws 3 / 5:
     0.922 / 0.917 without, 0.948 / 0.947 with, docs/handheld.md).
 
+    knot_energy_fraction : the knots' stage runs on the template's brightest pixels that hold
+    this share of its energy (:func:`twinfocus.band_delay.bright_pixels`; 1: every pixel), the
+    per-position stage on every pixel: the knots' curve is set by where the reference is, and the
+    pixels around it, which only weigh in the image's norm, are left to the last stage.
+    device : the torch device (cpu, cuda, cuda:N; None:
+    :func:`twinfocus.settings.resolve_device`'s choice), the same code on each.
+
     Returns (phase float64 (M,) radians at the region's centre (``phase0_rad`` when phi is
     fixed), dp float64 (M, 3) metres in the correction's sense (z is 0), tilt float64 (M,)
     radians (zeros without ``half_basis``), info: ``match_before`` / ``match_after`` (the
-    correlation), the settings, ``time_s``).
-    Memory: about 40 bytes per position and pixel (0.3 GB at 780 x 100 x 100).
+    correlation on every pixel), the settings, ``knot_pixels``, ``device``, ``time_s``).
+    Memory: about 40 bytes per position and pixel (0.3 GB at 780 x 100 x 100), 56 with ``half_basis``,
+    and a copy of the bases on the knots' stage's pixels.
     """
     import torch
 
@@ -294,79 +312,59 @@ def fit_smooth_drift(
     c = np.asarray(centres_m, np.float64)
     if c.shape != (m, 3):
         raise TwinFocusError(f"centres must be (M, 3) = ({m}, 3), got {c.shape}")
-    k = 4.0 * np.pi / float(wavelength_m)
-    pix = grid.points()
-    u_c = lines_of_sight(c, grid.centre_m)
-    a = np.empty((m, pix.shape[0], 2), np.float32)
-    for i in range(0, m, 64):  # (64, P, 3) at a time
-        a[i : i + 64] = (k * (lines_of_sight(c[i : i + 64], pix) - u_c[i : i + 64, None, :]))[..., :2]
-    at = torch.from_numpy(a)
-    # The correlation is scale-free: the basis (its half by the same factor) and the template at
-    # unit peak, so float32 sums of squares of a scan at 1e20 do not overflow (nor flush at 1e-20).
-    # Scaled in place after the float32 copies: no second copy of the basis.
-    unit = 1.0 / max(float(np.abs(b).max()), 1e-30)
-    flat = b.reshape(m, -1)
-    tpl = tpl * (1.0 / max(float(np.abs(tpl).max()), 1e-30))
-    br = torch.from_numpy(np.ascontiguousarray(flat.real, np.float32)).mul_(unit)
-    bi = torch.from_numpy(np.ascontiguousarray(flat.imag, np.float32)).mul_(unit)
-    tr = torch.from_numpy(np.ascontiguousarray(tpl.real.reshape(-1), np.float32))
-    ti = torch.from_numpy(np.ascontiguousarray(tpl.imag.reshape(-1), np.float32))
-    t_norm = torch.sqrt((tr * tr + ti * ti).sum())
-    s = torch.from_numpy(knot_basis(m, int(knot_spacing)).astype(np.float32))
-    coef = torch.zeros(s.shape[1], 2, requires_grad=True)
-    phase = torch.tensor(np.asarray(phase0_rad, np.float32), requires_grad=phase_step_rad > 0)
+    if not 0.0 < float(knot_energy_fraction) <= 1.0:
+        raise TwinFocusError(f"knot_energy_fraction must be in (0, 1], got {knot_energy_fraction!r}")
+    match = _DriftMatch(b, half_basis, tpl, c, grid, wavelength_m, device)
+    coarse = match
+    if knot_energy_fraction < 1.0:
+        coarse = match.on(bright_pixels(tpl, knot_energy_fraction).ravel())
+    dev = match.device
+    s = torch.from_numpy(knot_basis(m, int(knot_spacing)).astype(np.float32)).to(dev)
+    coef = torch.zeros(s.shape[1], 2, device=dev)
+    phase = torch.tensor(np.asarray(phase0_rad, np.float32), device=dev)
     tilted = half_basis is not None
-    tilt_coef = torch.zeros(s.shape[1], requires_grad=tilted)
-    if tilted:
-        half = np.asarray(half_basis).reshape(m, -1)
-        hr = torch.from_numpy(np.ascontiguousarray(half.real, np.float32)).mul_(unit)
-        hi = torch.from_numpy(np.ascontiguousarray(half.imag, np.float32)).mul_(unit)
-
-    def match(dp: torch.Tensor) -> torch.Tensor:
-        er, ei = br, bi
-        if tilted:  # B exp(-j psi) + 2j sin(psi) L (tilted_basis)
-            psi = s @ tilt_coef
-            cp, sp = torch.cos(psi)[:, None], torch.sin(psi)[:, None]
-            er = br * cp + bi * sp - 2.0 * sp * hi
-            ei = bi * cp - br * sp + 2.0 * sp * hr
-        theta = phase[:, None] + (at * dp[:, None, :]).sum(-1)
-        cs, sn = torch.cos(theta), torch.sin(theta)
-        ir = (cs * er - sn * ei).sum(0)
-        ii = (sn * er + cs * ei).sum(0)
-        return (ir * tr + ii * ti).sum() / (torch.sqrt((ir * ir + ii * ii).sum()) * t_norm)
-
+    tilt_coef = torch.zeros(s.shape[1], device=dev)
     total = int(iterations) + int(refine_iterations)
     matches: list[float] = []  # the correlation before each step, over both stages
 
-    def descend(parameter: torch.Tensor, drift_of: Callable[[], torch.Tensor], steps: int, smoothness: float) -> None:
-        """Adam on ``parameter`` (metres) and, when it moves, phi (radians), each at its own step,
-        maximising the correlation less ``smoothness`` * sum |dp_{m+1} - dp_m|^2 (mm^2)."""
-        phase_group = [{"params": [phase], "lr": phase_step_rad}] if phase_step_rad > 0 else []
-        tilt_group = [{"params": [tilt_coef], "lr": tilt_step_rad}] if tilted else []
-        opt = torch.optim.Adam([{"params": [parameter], "lr": step_m}] + phase_group + tilt_group)
+    def descend(parameter: torch.Tensor, knots: bool, steps: int, smoothness: float, objective: _DriftMatch) -> None:
+        """Adam on ``parameter`` (metres: the knots' values when ``knots``, else each position's
+        drift) and phi and the tilt's knots, each at its own step, maximising the correlation less
+        ``smoothness`` * sum |dp_{m+1} - dp_m|^2 (mm^2) on ``objective``'s pixels. The gradients are the correlation's own
+        (:meth:`_DriftMatch.value_and_gradients`): no graph is kept between steps."""
+        groups = [{"params": [parameter], "lr": step_m}]
+        if phase_step_rad > 0:
+            groups.append({"params": [phase], "lr": phase_step_rad})
+        if tilted:
+            groups.append({"params": [tilt_coef], "lr": tilt_step_rad})
+        opt = torch.optim.Adam(groups)
         for _ in range(int(steps)):
-            dp = drift_of()
-            corr = match(dp)
-            matches.append(float(corr.detach()))
-            loss = -corr
+            dp = s @ parameter if knots else parameter
+            corr, g_phase, g_dp, g_tilt = objective.value_and_gradients(phase, dp, s @ tilt_coef if tilted else None)
+            matches.append(corr)
+            grad = -g_dp
             if smoothness:
-                loss = smoothness * ((dp[1:] - dp[:-1]) * 1e3).pow(2).sum() + loss
-            opt.zero_grad()
-            loss.backward()
+                step = (dp[1:] - dp[:-1]) * (2e6 * smoothness)  # d/d dp of smoothness * |1e3 step|^2
+                grad = grad.clone()
+                grad[1:] += step
+                grad[:-1] -= step
+            parameter.grad = s.T @ grad if knots else grad
+            phase.grad = -g_phase
+            if tilted:
+                tilt_coef.grad = -(s.T @ g_tilt)
             opt.step()
             if progress is not None:
                 progress(len(matches), total, -matches[-1])
 
-    descend(coef, lambda: s @ coef, iterations, 0.0)
+    before = match.value_and_gradients(phase, s @ coef, s @ tilt_coef if tilted else None)[0]
+    descend(coef, True, iterations, 0.0, coarse)
     # Per-position refinement: the knots' straight segments cannot follow a drift that wanders
     # within 10 positions; a penalty on the step between neighbours keeps the noise out.
-    drift = (s @ coef).detach().clone().requires_grad_(True)
-    descend(drift, lambda: drift, refine_iterations, float(smoothness_per_mm2))
-    before = matches[0] if matches else float("nan")
-    with torch.no_grad():
-        after = float(match(drift)) if total else before
+    drift = s @ coef
+    descend(drift, False, refine_iterations, float(smoothness_per_mm2), match)
+    after = match.value_and_gradients(phase, drift, s @ tilt_coef if tilted else None)[0] if total else before
     dp = np.zeros((m, 3))
-    dp[:, :2] = drift.detach().numpy()
+    dp[:, :2] = drift.cpu().numpy()
     info = {
         "match_before": before,
         "match_after": after,
@@ -374,9 +372,119 @@ def fit_smooth_drift(
         "iterations": int(iterations),
         "refine_iterations": int(refine_iterations),
         "smoothness_per_mm2": float(smoothness_per_mm2),
+        "knot_pixels": int(coarse.t.shape[0]),
         "phase_fitted": phase_step_rad > 0,
         "tilt_fitted": tilted,
+        "device": str(dev),
         "time_s": time.perf_counter() - t0,
     }
-    tilt = (s @ tilt_coef).detach().numpy().astype(np.float64)
-    return phase.detach().numpy().astype(np.float64), dp, tilt, info
+    tilt = (s @ tilt_coef).cpu().numpy().astype(np.float64)
+    return phase.cpu().numpy().astype(np.float64), dp, tilt, info
+
+
+#: degree of the polynomial in the pixel's place that stands for each position's line-of-sight
+#: term a_m(p) (:class:`_DriftMatch`): 4 keeps it within 3e-5 rad of the exact phase at 2 mm of
+#: drift over a 100 x 100 region at 0.6 m (degree 3: 3e-4)
+LINE_OF_SIGHT_DEGREE = 4
+
+
+class _DriftMatch:
+    """The correlation of :func:`fit_smooth_drift`, with its gradients.
+
+    corr = Re<I, T> / (|I| |T|), I(p) = sum_m C_m(p), C_m(p) = E_m(p) exp(j theta_m(p)),
+    theta_m(p) = phi_m + a_m(p) . dp_m, E_m = B_m exp(-j psi_m) + 2j sin(psi_m) L_m (the tilted
+    basis) or B_m. A change dC of the contributions changes corr by Re sum_p dC(p) conj(W(p)),
+    W = T / (|I| |T|) - corr I / |I|^2, so d corr / d theta_m(p) = -Im(C_m(p) conj W(p)).
+
+    a_m(p) = k (u_{m,p} - u_{m,c}) turns slowly over the region: each position's is a polynomial
+    of degree ``LINE_OF_SIGHT_DEGREE`` in the pixel's place, a_m(p) = U_m . q(p) (q: an
+    orthonormal polynomial basis over the pixels, U_m its least-squares coefficients). Then
+    theta is one matrix product, and the gradients' sums over the pixels are products of the
+    contributions with the few columns conj(W) [1, q]: no (M, P) array beyond the phasors and
+    B exp(j theta) is formed, and no autograd graph is kept.
+    """
+
+    def __init__(self, basis, half_basis, template, centres_m, grid, wavelength_m, device):
+        import torch
+
+        from twinfocus.settings import resolve_device
+
+        self.torch = torch
+        self.device = torch.device(resolve_device(device))
+        m = basis.shape[0]
+        pts = grid.points()
+        x = (pts[:, 0] - grid.centre_m[0]) / max(grid.x1 - grid.x0, 1e-12) * 2.0
+        y = (pts[:, 1] - grid.centre_m[1]) / max(grid.y1 - grid.y0, 1e-12) * 2.0
+        deg = LINE_OF_SIGHT_DEGREE
+        q, _ = np.linalg.qr(np.stack([x**i * y**j for i in range(deg + 1) for j in range(deg + 1 - i)], axis=1))
+        k = 4.0 * np.pi / float(wavelength_m)
+        u_c = lines_of_sight(centres_m, grid.centre_m)
+        ux = np.empty((m, q.shape[1]))
+        uy = np.empty((m, q.shape[1]))
+        for i in range(0, m, 64):  # (64, P, 3) at a time
+            d = k * (lines_of_sight(centres_m[i : i + 64], pts) - u_c[i : i + 64, None, :])
+            ux[i : i + 64], uy[i : i + 64] = d[..., 0] @ q, d[..., 1] @ q
+
+        def put(v, dtype):
+            return torch.from_numpy(np.ascontiguousarray(v, dtype)).to(self.device)
+
+        self.ux, self.uy = put(ux, np.float32), put(uy, np.float32)
+        self.q_t = put(q.T, np.float32)  # (n, P)
+        self.columns = put(np.c_[np.ones(q.shape[0]), q], np.float32)  # (P, 1 + n)
+        # The correlation is scale-free: the basis (its half by the same factor) and the template at
+        # unit peak, so float32 sums of squares of a scan at 1e20 do not overflow (nor flush at 1e-20);
+        # scaled in place after the float32 copies, so no second copy of the basis.
+        unit = 1.0 / max(float(np.abs(basis).max()), 1e-30)
+        self.b = put(np.asarray(basis).reshape(m, -1), np.complex64).mul_(unit)
+        self.half = None if half_basis is None else put(np.asarray(half_basis).reshape(m, -1), np.complex64).mul_(unit)
+        tpl = np.asarray(template).reshape(-1)
+        self.t = put(tpl / max(float(np.abs(tpl).max()), 1e-30), np.complex64)
+        self.t_norm = float(torch.linalg.vector_norm(self.t))
+        self.one = torch.ones((1, 1), dtype=torch.float32, device=self.device)  # |exp(j theta)|, broadcast
+
+    def on(self, pixels: np.ndarray) -> _DriftMatch:
+        """The same correlation on the pixels of a bool (P,) mask: views of this one's arrays'
+        columns (the polynomial basis is the one fitted over every pixel)."""
+        sub = object.__new__(_DriftMatch)
+        sub.__dict__.update(self.__dict__)
+        idx = self.torch.from_numpy(np.flatnonzero(pixels)).to(self.device)
+        sub.q_t = self.q_t[:, idx].contiguous()
+        sub.columns = self.columns[idx].contiguous()
+        sub.b = self.b[:, idx].contiguous()
+        sub.half = None if self.half is None else self.half[:, idx].contiguous()
+        sub.t = self.t[idx]
+        sub.t_norm = float(self.torch.linalg.vector_norm(sub.t))
+        return sub
+
+    def value_and_gradients(self, phase, dp, tilt):
+        """(corr float, d corr / d phi (M,), d corr / d dp (M, 2), d corr / d psi (M,) or None)
+        at phase (M,), dp (M, 2) metres, tilt (M,) radians or None: float32 tensors."""
+        torch = self.torch
+        theta = torch.addmm(phase[:, None], self.ux * dp[:, :1] + self.uy * dp[:, 1:], self.q_t)
+        rot = torch.polar(self.one, theta)
+        if tilt is None:
+            br = rot.mul_(self.b)
+            image = br.sum(0)
+        else:
+            e = torch.polar(torch.ones_like(tilt), -tilt)
+            s2 = torch.complex(torch.zeros_like(tilt), 2.0 * torch.sin(tilt))
+            hr = self.half * rot
+            br = rot.mul_(self.b)  # in place: exp(j theta) is not needed past here
+            image = e @ br + s2 @ hr
+        i_norm = float(torch.linalg.vector_norm(image))
+        corr = float(torch.vdot(self.t, image).real) / max(i_norm * self.t_norm, 1e-300)
+        w = self.t / max(i_norm * self.t_norm, 1e-300) - image * (corr / max(i_norm * i_norm, 1e-300))
+        x = self.columns * w.conj()[:, None]  # (P, 1 + n): conj W [1, q]
+        yb = br @ x
+        if tilt is None:
+            sums = yb
+        else:
+            yh = hr @ x
+            sums = e[:, None] * yb + s2[:, None] * yh
+        g = -sums.imag  # (M, 1 + n): sum_p d corr / d theta_m(p) [1, q(p)]
+        g_dp = torch.stack(((self.ux * g[:, 1:]).sum(1), (self.uy * g[:, 1:]).sum(1)), dim=1)
+        g_tilt = None
+        if tilt is not None:
+            # d E / d psi = -j B exp(-j psi) + 2j cos(psi) L, against conj W
+            g_tilt = (-1j * e * yb[:, 0] + 2j * torch.cos(tilt) * yh[:, 0]).real
+        return corr, g[:, 0], g_dp, g_tilt

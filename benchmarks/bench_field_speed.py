@@ -1,0 +1,156 @@
+"""The hand's drift + tilt fit (``twinfocus.space_variant.fit_smooth_drift``) against an earlier
+version of it, side by side on the same draws and the same inputs: time, the target's SSIM against
+the image on the true positions, the drift's error against the true positions.
+
+    python -m benchmarks.bench_field_speed --draws 2            (--seeds 3,5 picks the draws)
+    python -m benchmarks.run --only field_speed
+
+Each draw is the hand-drift scene of ``benchmarks/bench_handheld.py`` ("hand 0.8 mm + 0.15 deg":
+780 positions, 100 x 100 regions), focused by ``focus_bases`` with the space-variant fit on. The
+fit's inputs are taken as the pipeline hands them over; the pipeline's own call is the current
+fit's row, then the earlier version (``--baseline``, a git revision: its
+``twinfocus/space_variant.py``, loaded as it was) runs on the same inputs at once after it, so
+both see the same load. With a CUDA device the current fit also runs there (after a warm-up fit)
+and writes its own rows. Writes ``field_speed.json`` (records per draw, the load average around
+each fit, the settings) and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from twinfocus import metrics
+from twinfocus import space_variant as sv
+from twinfocus.autofocus import AutofocusConfig
+from twinfocus.backprojection import backproject, subimage_basis
+from twinfocus.basis import form_image_space_variant
+from twinfocus.estimators import estimator_settings
+from twinfocus.machine import machine_info
+from twinfocus.pipeline import focus_bases, half_array_bases
+from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+from twinfocus.templates import template_from_scan
+
+#: the scene of bench_handheld's "hand 0.8 mm + 0.15 deg"
+SCENE = dict(reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand", error_sigma_m=(0.8e-3,) * 3)
+#: the fit before its gradients were written out (autograd over the per-pixel model)
+BASELINE = "d325d94"
+
+
+def load_baseline(rev: str):
+    """``twinfocus/space_variant.py`` as it was at git revision ``rev``, as a module (None when
+    git or the revision is not there)."""
+    try:
+        src = subprocess.run(["git", "show", f"{rev}:twinfocus/space_variant.py"], capture_output=True, text=True,
+                             check=True, cwd=Path(__file__).resolve().parents[1]).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    path = Path(tempfile.mkdtemp()) / f"space_variant_{rev}.py"
+    path.write_text(src)
+    spec = importlib.util.spec_from_file_location(f"space_variant_{rev}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)  # type: ignore[union-attr]
+    return module
+
+
+def one_draw(seed: int, baseline) -> dict:
+    sc = Scenario(**SCENE, seed=seed)
+    scan, tpl_scan = simulate_scenario(sc)
+    rg, tg = scenario_grids(sc, 100)
+    tpl = template_from_scan(tpl_scan, rg, keep_phase=True)
+    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
+    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+    truth_t = backproject(scan.data, scan.positions_true, scan.chirp, tg)
+    truth_r = backproject(scan.data, scan.positions_true, scan.chirp, rg)
+    halves = half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg)()
+    centres = scan.positions.mean(axis=1)
+    true_drift = (scan.positions_true - scan.positions).mean(axis=1)[:, :2]  # the correction's sense
+
+    def scored(label: str, fit, load_before: float) -> dict:
+        phase, dp, tilt, info = fit
+        img = form_image_space_variant(sv.tilted_basis(tb, halves[1], tilt),
+                                       sv.pixel_phases(phase, dp, rg.centre_m, centres, tg, scan.chirp.wavelength_m))
+        e = dp[:, :2] - true_drift
+        return {"fit": label, "time_s": info["time_s"], "load_before": load_before, "load_after": os.getloadavg()[0],
+                "match_before": info["match_before"], "match_after": info["match_after"],
+                "target_ssim": metrics.image_ssim(img, truth_t),
+                "drift_error_rms_mm": float(np.sqrt(((e - e.mean(axis=0)) ** 2).mean()) * 1e3),
+                "iterations": [info["iterations"], info["refine_iterations"]], "device": info.get("device", "cpu")}
+
+    rows: list[dict] = []
+    current = sv.fit_smooth_drift
+
+    def fit_and_compare(*args, **kwargs):
+        load = os.getloadavg()[0]
+        out = current(*args, **kwargs)
+        rows.append(scored("current", out, load))
+        kwargs.pop("progress", None)
+        kwargs.pop("device", None)
+        if baseline is not None:
+            load = os.getloadavg()[0]
+            rows.append(scored(f"baseline {BASELINE}", baseline.fit_smooth_drift(*args, **kwargs), load))
+        try:
+            import torch
+        except ImportError:
+            return out
+        if torch.cuda.is_available():
+            current(*args, **kwargs, device="cuda")  # warm-up: the CUDA context and kernels
+            load = os.getloadavg()[0]
+            rows.append(scored(f"current on {torch.cuda.get_device_name()}", current(*args, **kwargs, device="cuda"),
+                               load))
+        return out
+
+    sv.fit_smooth_drift = fit_and_compare  # the pipeline imports it from the module when it runs
+    try:
+        out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=tpl,
+                          config=AutofocusConfig(**estimator_settings("correlation", True)), phase_ramp="auto",
+                          space_variant="on", truth_target=truth_t, truth_reference=truth_r,
+                          positions_true=scan.positions_true, half_bases=lambda: halves)
+    finally:
+        sv.fit_smooth_drift = current
+    return {"seed": seed, "pipeline_target_ssim": out.metrics["target_ssim_corrected"],
+            "ceiling_target_phase": out.metrics["target_ssim_oracle_phase"], "fits": rows}
+
+
+def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 2, seeds: list[int] | None = None,
+         baseline_rev: str = BASELINE) -> dict:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    baseline = load_baseline(baseline_rev)
+    if baseline is None:
+        print(f"[field_speed] revision {baseline_rev} not found: current fit only", file=sys.stderr)
+    records = []
+    for seed in seeds or list(range(1, draws + 1)):
+        print(f"[field_speed] draw {seed}", file=sys.stderr, flush=True)
+        t0 = time.perf_counter()
+        records.append(one_draw(seed, baseline))
+        print(f"[field_speed] draw {seed} done in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+    result = {"command": "python -m benchmarks.bench_field_speed " + " ".join(sys.argv[1:]),
+              "scene": {k: list(v) if isinstance(v, tuple) else v for k, v in SCENE.items()},
+              "n_positions": 780, "region_px": [100, 100], "machine": machine_info(), "draws": records}
+    (out_dir / "field_speed.json").write_text(json.dumps(result, indent=2))
+    print("| draw | fit | time s | load | target SSIM | drift error mm | match after |\n|---|---|---|---|---|---|---|")
+    for r in records:
+        for f in r["fits"]:
+            print(f"| {r['seed']} | {f['fit']} | {f['time_s']:.1f} | {f['load_before']:.0f} | {f['target_ssim']:.4f} "
+                  f"| {f['drift_error_rms_mm']:.3f} | {f['match_after']:.5f} |")
+    return result
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument("--draws", type=int, default=2)
+    ap.add_argument("--seeds", default=None, help="comma-separated draw seeds (instead of 1..draws)")
+    ap.add_argument("--baseline", default=BASELINE, help="git revision of the fit to compare with")
+    a = ap.parse_args()
+    main(a.out, a.draws, [int(s) for s in a.seeds.split(",")] if a.seeds else None, a.baseline)
