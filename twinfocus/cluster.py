@@ -98,17 +98,28 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, log=No
     finally:
         if in_main:
             signal.signal(signal.SIGINT, old)
-    client = Client(cluster)
-    log(f"[batch] local cluster: {n} workers x {threads} threads")
+    before = signal.signal(signal.SIGINT, _quiet_interrupt) if in_main else None
+    client = None
     try:
+        client = Client(cluster)
+        log(f"[batch] local cluster: {n} workers x {threads} threads")
         yield client
-    except KeyboardInterrupt:
-        # closing a cluster with tasks running logs each lost task and connection: not news after Ctrl-C
-        logging.getLogger("distributed").setLevel(logging.CRITICAL)
-        raise
     finally:
-        client.close()
+        if in_main:
+            signal.signal(signal.SIGINT, before)
+        if client is not None:
+            client.close()
         cluster.close()
+
+
+def _quiet_interrupt(signum, frame) -> None:
+    """Ctrl-C during a local cluster's run: Dask and its event loop are silenced *before* the
+    KeyboardInterrupt is raised, since the loop thread logs each lost task and connection (and a
+    cancelled wait's callback error) while the main thread unwinds: not news after Ctrl-C."""
+    # dask's logging configuration sets tornado.application's own level: named, not inherited
+    for name in ("distributed", "tornado", "tornado.application"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+    raise KeyboardInterrupt
 
 
 def thread_budget(client) -> dict:

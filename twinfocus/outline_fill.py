@@ -14,7 +14,6 @@ image's; one that left it blurred puts energy outside the outline.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from twinfocus.errors import TwinFocusError
 
@@ -33,6 +32,8 @@ def outline_fill(image: np.ndarray, support: np.ndarray, grow_px: int = OUTLINE_
     "contrast": mean(e^2) / mean(e)^2 of e = |image|^2 over the grown outline (>= 1; 2 for fully
     developed speckle)}.
     """
+    from scipy import ndimage  # scipy.ndimage is slow to import: only where a reference is read
+
     img = np.asarray(image)
     mask = np.asarray(support, dtype=bool)
     if img.ndim != 2 or mask.shape != img.shape:
