@@ -99,16 +99,16 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, log=No
         if in_main:
             signal.signal(signal.SIGINT, old)
     before = signal.signal(signal.SIGINT, _quiet_interrupt) if in_main else None
-    client = None
+    local: Client | None = None
     try:
-        client = Client(cluster)
+        local = Client(cluster)
         log(f"[batch] local cluster: {n} workers x {threads} threads")
-        yield client
+        yield local
     finally:
         if in_main:
             signal.signal(signal.SIGINT, before)
-        if client is not None:
-            client.close()
+        if local is not None:
+            local.close()
         cluster.close()
 
 
