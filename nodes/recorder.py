@@ -161,7 +161,7 @@ class Recorder(Node):
         already gone at that moment."""
         stop = self._stop
         code, reason = (stop.code, stop.reason) if stop is not None else (0, "")
-        if self.launcher_gone():
+        if self._launcher_died(wait_s=1.0 if code in (128 + signal.SIGTERM, 128 + signal.SIGINT) else 0.0):
             return "the launcher is gone"
         if code not in (0, 128 + signal.SIGTERM, 128 + signal.SIGINT):
             return f"the recorder stopped with {reason or f'exit status {code}'}"
@@ -190,6 +190,25 @@ class Recorder(Node):
         if silent:
             return f"node {', '.join(silent)} stopped answering"
         return ""
+
+    def _launcher_died(self, wait_s: float) -> bool:
+        """Whether the launcher that started this node has died, waiting up to ``wait_s`` for it.
+
+        A launcher killed outright dies thread by thread: its children are first handed to a
+        sibling thread of the same process and get their parent-death signal while it still
+        stands, so a stop by signal looks like the launcher's planned stop for a moment. A
+        launcher that stops its graph as planned outlives its nodes, so waiting costs a planned
+        stop at most ``wait_s``."""
+        pid = self._launcher_pid
+        if pid is None:
+            return False
+        end = time.monotonic() + wait_s
+        while True:
+            if self.launcher_gone() or not _running(pid):
+                return True
+            if time.monotonic() >= end:
+                return False
+            time.sleep(0.02)
 
     def on_start(self) -> None:
         self.log(f"recording {', '.join(self.params['topics']) or 'all topics'} to {self.writer.path}")
