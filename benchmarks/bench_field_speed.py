@@ -29,19 +29,17 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.bench_handheld import CONDITIONS, draw_bases
 from twinfocus import metrics
 from twinfocus import space_variant as sv
 from twinfocus.autofocus import AutofocusConfig
-from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.basis import form_image_space_variant
 from twinfocus.estimators import estimator_settings
 from twinfocus.machine import machine_info
 from twinfocus.pipeline import focus_bases, half_array_bases
-from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
-from twinfocus.templates import template_from_scan
 
 #: the scene of bench_handheld's "hand 0.8 mm + 0.15 deg"
-SCENE = dict(reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand", error_sigma_m=(0.8e-3,) * 3)
+SCENE = CONDITIONS["hand 0.8 mm + 0.15 deg"]
 #: the fit before its gradients were written out (autograd over the per-pixel model)
 BASELINE = "d325d94"
 
@@ -63,14 +61,7 @@ def load_baseline(rev: str):
 
 
 def one_draw(seed: int, baseline) -> dict:
-    sc = Scenario(**SCENE, seed=seed)
-    scan, tpl_scan = simulate_scenario(sc)
-    rg, tg = scenario_grids(sc, 100)
-    tpl = template_from_scan(tpl_scan, rg, keep_phase=True)
-    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
-    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
-    truth_t = backproject(scan.data, scan.positions_true, scan.chirp, tg)
-    truth_r = backproject(scan.data, scan.positions_true, scan.chirp, rg)
+    scan, rg, tg, tpl, rb, tb, truth_t, truth_r = draw_bases(SCENE, seed)
     halves = half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg)()
     centres = scan.positions.mean(axis=1)
     true_drift = (scan.positions_true - scan.positions).mean(axis=1)[:, :2]  # the correction's sense

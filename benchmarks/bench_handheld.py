@@ -53,7 +53,10 @@ def mean_offset_removed_ssim(target: np.ndarray, scan, grid, truth: np.ndarray) 
     return metrics.image_ssim(shift_image(target, -dy_px, -dx_px), truth)
 
 
-def one_draw(kw: dict, seed: int) -> dict:
+def draw_bases(kw: dict, seed: int):
+    """One draw of a condition: (scan, reference grid, target grid, the stage scan's template with
+    its phase, the reference's and the target's sub-image bases, the target's and the reference's
+    images on the true positions), 100 x 100 pixels."""
     sc = Scenario(**kw, seed=seed)
     scan, tpl_scan = simulate_scenario(sc)
     rg, tg = scenario_grids(sc, 100)
@@ -62,6 +65,11 @@ def one_draw(kw: dict, seed: int) -> dict:
     tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
     truth_t = backproject(scan.data, scan.positions_true, scan.chirp, tg)
     truth_r = backproject(scan.data, scan.positions_true, scan.chirp, rg)
+    return scan, rg, tg, tpl, rb, tb, truth_t, truth_r
+
+
+def one_draw(kw: dict, seed: int) -> dict:
+    scan, rg, tg, tpl, rb, tb, truth_t, truth_r = draw_bases(kw, seed)
     rec: dict = {"seed": seed}
     runs = (("closed_form_remove", tpl, "correlation", "remove", "off"), ("closed_form_auto", tpl, "correlation", "auto", "off"),
             ("default", tpl, "correlation", "auto", "auto"),
