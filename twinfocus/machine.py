@@ -44,3 +44,17 @@ def available_memory_bytes() -> int | None:
         return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
     except (ValueError, OSError, AttributeError):
         return None
+
+
+def require_memory(need: int, what: str, advice: str, available: int | None = None) -> int:
+    """Refuse, in one line, work that needs ``need`` bytes when less is available (``available``
+    None: ask the OS, :func:`available_memory_bytes`); returns ``need``. ``what`` names the work,
+    ``advice`` what to change."""
+    from twinfocus.errors import TwinFocusError
+
+    available = available_memory_bytes() if available is None else available
+    if available is not None and need > available:
+        raise TwinFocusError(
+            f"{what} needs about {need / 2**30:.1f} GiB, {available / 2**30:.1f} GiB is available; {advice}"
+        )
+    return need

@@ -16,6 +16,7 @@ from twinfocus.depth_search import DEFAULT_HALF_RANGE_M
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import REFERENCE_FREE_RUNGS
 from twinfocus.grid import ImageGrid
+from twinfocus.machine import require_memory
 from twinfocus.settings import add_focus_options, resolve_device
 
 #: bytes per radar position and pixel that a run holds at its peak: the two sub-image bases
@@ -136,24 +137,11 @@ def _check_writable_target(path: str, option: str, folder: bool) -> None:
         raise TwinFocusError(f"{option} {path}: cannot write in {anchor} ({exc.strerror or exc})") from None
 
 
-def _require_memory(need: int, what: str, advice: str, available: int | None) -> int:
-    """Refuse work that needs ``need`` bytes when less is available (``available`` None: ask
-    the OS); returns ``need``."""
-    from twinfocus.machine import available_memory_bytes
-
-    available = available_memory_bytes() if available is None else available
-    if available is not None and need > available:
-        raise TwinFocusError(
-            f"{what} needs about {need / 2**30:.1f} GiB, {available / 2**30:.1f} GiB is available; {advice}"
-        )
-    return need
-
-
 def check_memory(n_positions: int, size: int, available: int | None = None) -> int:
     """Refuse a run whose sub-image bases and optimiser copies (~32 B per position and pixel)
     cannot fit in the memory available; returns the estimate in bytes."""
     need = _BYTES_PER_POSITION_PIXEL * n_positions * size * size
-    return _require_memory(
+    return require_memory(
         need,
         f"--size {size} ({n_positions} positions x {size} x {size} pixels x {_BYTES_PER_POSITION_PIXEL} B for the "
         "sub-image bases)",
@@ -195,7 +183,7 @@ def volume_plan(args: argparse.Namespace, n_positions: int, n_channels: int, ref
     )
     grid = volume_grid(plane, *args.volume)
     cost = volume_cost(grid, n_positions, n_channels)
-    _require_memory(
+    require_memory(
         cost["memory_bytes"] + _BYTES_PER_POSITION_PIXEL * n_positions * args.size**2,
         f"--volume ({' x '.join(map(str, grid.shape))} voxels) beside the sub-image bases",
         "choose a smaller --size or fewer planes",

@@ -72,12 +72,11 @@ def run(args: argparse.Namespace) -> int:
 def _check_memory(scene, width: int, height: int) -> None:
     """Refuse, before anything is drawn, a rendering that cannot fit in memory."""
     from twinfocus.digital_twin.render import render_memory_bytes
-    from twinfocus.machine import available_memory_bytes
+    from twinfocus.machine import require_memory
 
-    need, avail = render_memory_bytes(scene, width, height), available_memory_bytes()
-    if avail is not None and need > avail:
-        raise TwinFocusError(
-            f"this rendering needs about {need / 2**30:.3g} GiB (a {width} x {height} picture and the objects' "
-            f"textures); {avail / 2**30:.1f} GiB is available: use smaller letters (--height, metres) or a "
-            "smaller picture (--width, --height-px)"
-        )
+    require_memory(
+        render_memory_bytes(scene, width, height),
+        "this rendering",
+        f"it holds a {width} x {height} picture and the objects' textures: use smaller letters (--height, metres) "
+        "or a smaller picture (--width, --height-px)",
+    )
