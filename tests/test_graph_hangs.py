@@ -262,7 +262,7 @@ def test_a_stopped_node_that_may_respawn_is_replaced_and_the_graph_focuses(tmp_p
 
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("command, words", [
-    (["simulate", "--out", "{tmp}/s.npz", "--height", "1000"], "GiB just to place them"),
+    (["simulate", "--out", "{tmp}/s.npz", "--height", "1000"], "placing this scene's"),
     (["render", "--out", "{tmp}/r", "--height", "1000"], "this rendering needs about"),
     (["render", "--out", "{tmp}/r", "--width", "1000000", "--height-px", "1000000"], "this rendering needs about"),
 ], ids=["simulate-height", "render-height", "render-picture"])

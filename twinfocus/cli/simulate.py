@@ -280,7 +280,7 @@ def run(args: argparse.Namespace) -> int:
 def _check_cost(sc, args) -> None:
     """Refuse, before any work, a simulation that cannot fit in memory (``--rows
     100000`` would run for minutes and die); say how long a large one will take."""
-    from twinfocus.machine import available_memory_bytes
+    from twinfocus.machine import available_memory_bytes, require_memory
     from twinfocus.radar import Chirp, mmwcas_virtual_array
     from twinfocus.scene import scatterer_spacing_m
     from twinfocus.simulate import BYTES_PER_SCATTERER_CELL, scatterer_cells, simulation_cost
@@ -292,21 +292,22 @@ def _check_cost(sc, args) -> None:
     avail = available_memory_bytes()
     # counted before any scatterer is made: drawing them is itself the allocation to refuse
     cells = scatterer_cells(scene, spacing)
-    if avail is not None and cells * BYTES_PER_SCATTERER_CELL > avail:
-        raise TwinFocusError(
-            f"this scene needs about {cells:.3g} scatterers ({spacing * 1e3:.2g} mm apart over objects "
-            f"{args.height:g} m high), {cells * BYTES_PER_SCATTERER_CELL / 2**30:.3g} GiB just to place them; "
-            f"{avail / 2**30:.1f} GiB is available: use a smaller --height / --target-height"
-        )
+    require_memory(
+        int(cells * BYTES_PER_SCATTERER_CELL),
+        f"placing this scene's {cells:.3g} scatterers ({spacing * 1e3:.2g} mm apart over objects {args.height:g} m high)",
+        "use a smaller --height / --target-height",
+        available=avail,
+    )
     n_pts = scene.scatterers(spacing, 0)[0].shape[0]
     n_scans = 2 if args.template_out else 1
     peak, cpu_s = simulation_cost(
         args.columns * args.rows, mmwcas_virtual_array().n_channels, Chirp().n_samples, n_pts, n_scans
     )
-    if avail is not None and peak > avail:
-        raise TwinFocusError(
-            f"this simulation needs about {peak / 2**30:.1f} GiB of memory ({args.columns} x {args.rows} positions) "
-            f"and about {cpu_s / 60:.0f} min of CPU; {avail / 2**30:.1f} GiB is available: use fewer --rows/--columns"
-        )
+    require_memory(
+        int(peak),
+        f"this simulation ({args.columns} x {args.rows} positions, about {cpu_s / 60:.0f} min of CPU)",
+        "use fewer --rows/--columns",
+        available=avail,
+    )
     if cpu_s > 60 and not args.quiet:
         print(f"simulate: about {peak / 2**30:.1f} GiB and {cpu_s / 60:.1f} min of CPU", file=sys.stderr)
