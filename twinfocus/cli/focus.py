@@ -536,6 +536,17 @@ def run(args: argparse.Namespace) -> int:
         save_template(args.save_template, template, ref_grid, support=support, info=twin_info)
     volume = None
     plan = volume_plan(args, shapes["data"][0], shapes["data"][1], ref_grid.roi)
+    if plan is not None and device == "cpu" and args.precision == "float32":
+        from twinfocus.line_backprojection import plan as line_plan
+        from twinfocus.volume import volume_cost
+
+        # the scan's positions decide whether the volume is formed by sub-arrays, and so its time
+        plan = (
+            plan[0],
+            volume_cost(
+                plan[0], scan.data.shape[0], scan.data.shape[1], line_plan(scan.positions, scan.chirp, plan[0])
+            ),
+        )
     if plan is not None:
         if not args.quiet:
             print(
