@@ -130,6 +130,15 @@ def test_focus_writes_the_volume(tmp_path):
     assert vol.shape == tuple(m["shape"]) == (19, 40, 40) and vol.dtype == np.complex64
     for name in ("volume.ply", "volume_mip.png", "volume_depth.png"):
         assert (out / name).is_file()
+    assert m["files"] == {"volume": "volume.npy", "points": "volume.ply", "foxglove": "volume.mcap"}
+    assert m["sub_arrays"] is None or m["sub_arrays"] >= 1
+    from mcap.reader import make_reader
+
+    with open(out / "volume.mcap", "rb") as f:  # one cloud of the PLY's points on /volume/points
+        summary = make_reader(f).get_summary()
+    (channel,) = summary.channels.values()
+    assert channel.topic == "/volume/points" and summary.statistics.channel_message_counts[channel.id] == 1
+    assert m["points"] == len(read_ply_points(out / "volume.ply")[0]) > 0
     # the reference letter (x < 0) is brightest near 0.60 m, the target (x > 0.016) near 0.68 m
     plane = ImageGrid(*m["roi"], z=1.0, height=40, width=40)
     z = np.linspace(*m["z_m"], vol.shape[0])
