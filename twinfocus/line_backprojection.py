@@ -86,7 +86,10 @@ def _box_extent(grid: VolumeGrid, centre: np.ndarray, w: np.ndarray) -> tuple[np
 
 class LinePlan:
     """How a volume is formed by sub-arrays (module docstring): the groups, the table steps and
-    extents, and the estimated cost against the direct back-projection (channel evaluations)."""
+    extents, and the estimated cost against the direct back-projection (channel evaluations).
+
+    frames : :func:`_line_frames`' (centres, directions, a); extent : :func:`_box_extent`'s;
+    groups : channel groups per position (adjacent channels along the line, as even as they split)."""
 
     def __init__(self, chirp: Chirp, grid: VolumeGrid, frames, extent, groups: int):
         centre, w, a = frames
@@ -128,8 +131,9 @@ class LinePlan:
 
 
 def plan(positions_m: np.ndarray, chirp: Chirp, grid: VolumeGrid) -> LinePlan | None:
-    """The cheapest :class:`LinePlan` over the group counts, or None when the channels are not on
-    lines or the plan would not save at least half of the direct back-projection's work.
+    """The cheapest :class:`LinePlan` over the group counts whose tables fit :data:`TABLE_BYTES`,
+    or None when the channels are not on lines or the plan would not save at least half of the
+    direct back-projection's work.
 
     positions_m : float64 (M, K, 3) phase centres, metres."""
     positions_m = np.asarray(positions_m, dtype=np.float64)
@@ -143,6 +147,8 @@ def plan(positions_m: np.ndarray, chirp: Chirp, grid: VolumeGrid) -> LinePlan | 
     n_ch = positions_m.shape[1]
     for groups in sorted({max(1, n_ch // s) for s in (4, 6, 8, 11, 16, 22, 29, 43, n_ch)}):
         p = LinePlan(chirp, grid, frames, extent, groups)
+        if p.table_bytes_per_position > TABLE_BYTES:  # one position's tables would not fit the bound
+            continue
         if best is None or p.cost < best.cost:
             best = p
     return best if best is not None and best.cost < 0.5 * best.direct_cost else None
