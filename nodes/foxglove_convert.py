@@ -424,6 +424,21 @@ class FoxgloveConverter:
         return [_proto("/log", log, t)]
 
 
+def write_point_cloud_log(
+    path, points_m: np.ndarray, intensity: np.ndarray, *, topic: str = "/volume/points", frame_id: str = "scene"
+) -> None:
+    """One :func:`point_cloud` (x y z intensity, float32; points_m (N, 3) metres, intensity (N,))
+    in a new MCAP at ``path`` (an earlier file there replaced only once this one is finished),
+    schema included, stamped now: what ``twinfocus focus --volume`` writes beside its PLY."""
+    import time
+
+    from msgs.mcap_log import LogWriter
+
+    t = time.time_ns()
+    with LogWriter(path, overwrite=True, library="twinfocus focus", chunk_bytes=1 << 20, compression="zstd") as w:
+        point_cloud(topic, points_m, t, frame_id, t, intensity=intensity).write_to(w)
+
+
 def export_log(src, dst, *, overwrite: bool = False, progress=None, say=None) -> dict[str, int]:
     """Write the Foxglove records of every message of the log ``src`` into a new MCAP ``dst``
     (schemas included: Foxglove opens it with nothing else installed), chunked (1 MiB, zstd) and

@@ -32,6 +32,7 @@ has them in its metrics as ``capture``, as ``twinfocus focus`` has a converted c
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from dataclasses import dataclass, field
@@ -44,6 +45,7 @@ from msgs import AutofocusResult, Header, Image, SarMeasurement, TwinTemplate, n
 from nodes.node import Node, Shutdown, run_node
 from nodes.params import REQUIRED, Param, param_of
 from twinfocus.basis import BasisRows
+from twinfocus.depth_search import DEFAULT_HALF_RANGE_M, parse_depth
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import REFERENCE_FREE_RUNGS
 from twinfocus.settings import FOCUS_SETTINGS
@@ -94,8 +96,25 @@ class Solver(Node):
     RENAMED_PARAMS = {"tracking_error_m": "tracking_error_mm, in millimetres (0.5e-3 m is 0.5), as twinfocus focus"}
     PARAMS = {
         **Node.PARAMS,
-        "reference_roi": Param(REQUIRED, "reference region X0 X1 Y0 Y1 Z, metres", type="floats"),
-        "target_roi": Param(REQUIRED, "target region X0 X1 Y0 Y1 Z, metres", type="floats"),
+        "reference_roi": Param(
+            [],
+            "reference region X0 X1 Y0 Y1 Z, metres; empty: the region the template on twin/template was made on",
+            type="floats",
+        ),
+        "target_roi": Param(
+            REQUIRED,
+            "target region X0 X1 Y0 Y1 [Z | Z0 Z1], metres: with Z focused there; with a range Z0 Z1, or "
+            f"without a depth (the reference's +- {DEFAULT_HALF_RANGE_M} m), the depth where its corrected image "
+            "is sharpest is searched for (the result's target_depth.depth_m)",
+            type="floats",
+        ),
+        "refine_depth": Param(0.0, "with a typed Z: search Z +- this many metres for the target's depth (0: trust Z)"),
+        "volume": Param(
+            [],
+            "Z0 Z1 DZ, metres: also form the corrected volume over both regions' x/y box, size x size pixels, and "
+            "publish its maximum-intensity projection on image/focused as volume_mip (empty: none)",
+            type="floats",
+        ),
         "method": Param(
             "twin",
             "twin (needs twin/template), a reference-free autofocus (sharpness, entropy, pga) or none",
@@ -132,13 +151,39 @@ class Solver(Node):
         from twinfocus.grid import ImageGrid
 
         p = self.params
-        for name in ("reference_roi", "target_roi"):
-            if len(p[name]) != 5:
-                raise TwinFocusError(
-                    f"node {self.name!r}: parameter {name!r} needs 5 numbers X0 X1 Y0 Y1 Z, got {p[name]}"
-                )
-        self.ref_grid = ImageGrid.from_roi(p["reference_roi"], p["size"])
-        self.tgt_grid = ImageGrid.from_roi(p["target_roi"], p["size"])
+        if len(p["reference_roi"]) not in (0, 5):
+            raise TwinFocusError(
+                f"node {self.name!r}: parameter 'reference_roi' needs 5 numbers X0 X1 Y0 Y1 Z (or none), "
+                f"got {p['reference_roi']}"
+            )
+        if len(p["target_roi"]) not in (4, 5, 6):
+            raise TwinFocusError(
+                f"node {self.name!r}: parameter 'target_roi' needs X0 X1 Y0 Y1 and optionally Z or Z0 Z1, "
+                f"got {p['target_roi']}"
+            )
+        if p["volume"] and len(p["volume"]) != 3:
+            raise TwinFocusError(f"node {self.name!r}: parameter 'volume' needs Z0 Z1 DZ, got {p['volume']}")
+        # None until a template brings its region when none is typed
+        self.ref_grid = ImageGrid.from_roi(p["reference_roi"], p["size"]) if p["reference_roi"] else None
+        self.target_box = tuple(float(v) for v in p["target_roi"][:4])
+        ImageGrid.from_roi((*self.target_box, 1.0), 2)  # checks the box
+        depth = p["target_roi"][4:]
+        self.typed_depth: float | tuple[float, float] | None = (
+            parse_depth(f"{depth[0]}:{depth[1]}") if len(depth) == 2 else parse_depth(str(depth[0])) if depth else None
+        )
+        if not p["refine_depth"] >= 0:
+            raise TwinFocusError(
+                f"node {self.name!r}: parameter 'refine_depth' must be >= 0 metres, got {p['refine_depth']}"
+            )
+        # the typed plane, or None when the target's depth is searched for at the scan's end
+        self.tgt_grid = (
+            ImageGrid.from_roi((*self.target_box, self.typed_depth), p["size"])
+            if isinstance(self.typed_depth, float) and not p["refine_depth"]
+            else None
+        )
+        # a region or depth found at the end needs the samples there: the scan is focused whole
+        self.whole_scan = p["basis"] == "after_scan" or self.ref_grid is None or self.tgt_grid is None
+        self._check_volume_memory()
         self.cfg = AutofocusConfig.from_settings(p)  # the device resolved as twinfocus focus resolves it
         self.tracking_error_m = p["tracking_error_mm"] * 1e-3
         device = self.cfg.device
@@ -177,6 +222,34 @@ class Solver(Node):
             s.incomplete = f"no measurement for {self.params['scan_timeout_s']:g} s and no last one"
             self.log(f"scan {s.scan_id!r}: {s.incomplete} ({s.n} received); focusing what arrived")
             self._end_scan()
+
+    def _volume_grid(self, ref_grid):
+        """The volume's grid over both regions' x/y box (``twinfocus focus --volume``'s), or None
+        without ``volume``; ``ref_grid`` None: the target's box stands in for the reference's."""
+        from twinfocus.grid import ImageGrid
+        from twinfocus.volume import volume_grid
+
+        if not self.params["volume"]:
+            return None
+        b = self.target_box
+        r = ref_grid.roi if ref_grid is not None else (*b, 1.0)
+        size = self.params["size"]
+        plane = ImageGrid(min(b[0], r[0]), max(b[1], r[1]), min(b[2], r[2]), max(b[3], r[3]), 1.0, size, size)
+        return volume_grid(plane, *self.params["volume"])
+
+    def _check_volume_memory(self) -> None:
+        """A volume that cannot fit is refused when the node starts, not after a scan."""
+        from twinfocus.machine import require_memory
+        from twinfocus.volume import volume_cost
+
+        grid = self._volume_grid(self.ref_grid)
+        if grid is not None:
+            require_memory(
+                volume_cost(grid, 1, 1)["memory_bytes"],
+                f"node {self.name!r}: volume ({' x '.join(map(str, grid.shape))} voxels)",
+                "choose a smaller size or fewer planes",
+                None,
+            )
 
     def _estimator(self) -> str:
         """The named estimator for the template at hand (``auto`` resolved as ``twinfocus focus``
@@ -230,6 +303,13 @@ class Solver(Node):
 
         if self._same_template(msg):  # the same template again (sent for a node that started later)
             return
+        if not self.params["reference_roi"]:
+            from twinfocus.grid import ImageGrid
+            from twinfocus.reference_search import region_from_template_file
+
+            roi, _ = region_from_template_file(msg.x_m, msg.y_m, msg.z_m)
+            self.ref_grid = ImageGrid.from_roi(roi, self.params["size"])
+        assert self.ref_grid is not None
         try:
             template = resample_template(msg.image, msg.x_m, msg.y_m, msg.z_m, self.ref_grid, phase_rad=msg.phase_rad)
         except TwinFocusError as exc:
@@ -330,13 +410,15 @@ class Solver(Node):
         s.positions.append(pos)
         if s.truth is not None:
             s.truth.append(np.stack([m.positions_true_m for m in batch]))
-        if self.params["basis"] == "after_scan" or s.truth is not None or self.params["space_variant"] != "off":
-            # after_scan: the whole scan at the end; truth: its images are formed only after the
+        if self.whole_scan or s.truth is not None or self.params["space_variant"] != "off" or self.params["volume"]:
+            # whole scan: focused at the end; truth: its images are formed only after the
             # result is out, so they neither slow the stream nor delay the image; the
-            # space-variant fit: the half-array bases, back-projected only when the fit runs
+            # space-variant fit: the half-array bases, back-projected only when the fit runs;
+            # the volume: formed with the scan's phase once it is known
             s.data.append(data)
-        if self.params["basis"] == "after_scan":
+        if self.whole_scan:
             return
+        assert self.ref_grid is not None and self.tgt_grid is not None
         t = time.perf_counter()
         s.ref_rows.append(subimage_basis(data, pos, s.chirp, self.ref_grid, **self.bp))
         s.tgt_rows.append(subimage_basis(data, pos, s.chirp, self.tgt_grid, **self.bp))
@@ -424,31 +506,13 @@ class Solver(Node):
         t_start = self._said_at = time.monotonic()
         positions = np.concatenate(s.positions)
         truth = np.concatenate(s.truth) if s.truth else None
-        progress = self._progress
         tgt_basis = None
         try:
-            if self.params["basis"] == "after_scan":
-                from twinfocus.pipeline import focus_scan
-
-                scan = Scan(np.concatenate(s.data), positions, s.chirp, positions_true=truth)
-                out = focus_scan(
-                    scan,
-                    self.ref_grid,
-                    self.tgt_grid,
-                    template=self.template,
-                    support=self.support,
-                    reference_info=self.twin_info,
-                    method=self.params["method"],
-                    config=self._config(s.chirp),
-                    bp_options=self.bp,
-                    progress_factory=lambda label: progress,
-                    model=self.params["model"],
-                    phase_ramp=self.params["phase_ramp"],
-                    space_variant=self.params["space_variant"],
-                    tracking_error_m=self.tracking_error_m,
-                )
+            if self.whole_scan:
+                out = self._focus_whole(Scan(np.concatenate(s.data), positions, s.chirp, positions_true=truth))
             else:
                 out, tgt_basis = self._focus_bases(s, positions)
+            volume = self._volume(s, positions, out) if self.params["volume"] else None
         except TwinFocusError as exc:
             self._drop(s, f"could not focus it: {exc}")
             return
@@ -469,7 +533,7 @@ class Solver(Node):
 
             out.metrics["capture"] = stream_gaps(*gaps)
         timing = {k: float(v) for k, v in out.timings_s.items()}
-        if self.params["basis"] == "stream":
+        if not self.whole_scan:
             timing["basis_streamed"] = s.basis_time_s
             timing["basis_last_batch"] = s.last_batch_s
             if s.scores is not None:
@@ -479,7 +543,7 @@ class Solver(Node):
         timing["after_last_measurement_work"] = time.monotonic() - t_start
         latency = time.monotonic() - s.last_wall
         pending = tgt_basis is not None and truth is not None
-        self._publish(s, out, timing, latency, pending)
+        self._publish(s, out, timing, latency, pending, volume)
         if pending:
             assert tgt_basis is not None and truth is not None
             t = time.perf_counter()
@@ -496,6 +560,74 @@ class Solver(Node):
             d = write_outputs(Path(self.params["out_dir"]) / name, out, pictures=self.params["pictures"])
             self.log(f"wrote {d}/")
         self._count_done()
+
+    def _focus_whole(self, scan):
+        """:func:`twinfocus.pipeline.focus_scan` on the assembled scan, as ``twinfocus focus`` runs
+        it: the target's depth searched first when it is not typed
+        (:func:`twinfocus.depth_search.find_target_depth`)."""
+        import functools
+
+        from twinfocus.depth_search import find_target_depth, range_to_search
+        from twinfocus.grid import ImageGrid
+        from twinfocus.pipeline import focus_scan
+
+        if self.ref_grid is None:
+            raise TwinFocusError("no reference region: none typed and no template yet")
+        progress = self._progress
+        focus = functools.partial(
+            focus_scan,
+            reference_grid=self.ref_grid,
+            template=self.template,
+            support=self.support,
+            reference_info=self.twin_info,
+            method=self.params["method"],
+            config=self._config(scan.chirp),
+            bp_options=self.bp,
+            progress_factory=lambda label: progress,
+            model=self.params["model"],
+            phase_ramp=self.params["phase_ramp"],
+            tracking_error_m=self.tracking_error_m,
+        )
+        depth_range = range_to_search(self.typed_depth, self.params["refine_depth"] or None, self.ref_grid.z)
+        search = None
+        t = time.perf_counter()
+        if depth_range is not None:
+            search, info = find_target_depth(
+                focus, scan, self.target_box, depth_range, self.params["method"], self.bp, lambda label: progress
+            )
+            tgt_grid = ImageGrid.from_roi((*self.target_box, search.depth_m), self.params["size"])
+            self.log(f"target depth {search.depth_m:.4f} m (searched {depth_range[0]:.3f} to {depth_range[1]:.3f} m)")
+        else:
+            assert isinstance(self.typed_depth, float)
+            tgt_grid = ImageGrid.from_roi((*self.target_box, self.typed_depth), self.params["size"])
+        searched_s = time.perf_counter() - t
+        out = focus(scan, target_grid=tgt_grid, space_variant=self.params["space_variant"])
+        if search is not None:
+            out.metrics["target_depth"] = {**info, **search.to_dict()}
+            out.timings_s = {"target_depth": searched_s, **out.timings_s}
+        if not self.params["reference_roi"]:
+            out.metrics["reference_search"] = {"source": "template on twin/template", "roi": list(self.ref_grid.roi)}
+        return out
+
+    def _volume(self, s: _Scan, positions: np.ndarray, out):
+        """The corrected volume (:func:`twinfocus.volume.corrected_image` with the scan's phase) and
+        its grid; its figures in ``out.metrics["volume"]``."""
+        from twinfocus.volume import corrected_image
+
+        grid = self._volume_grid(out.reference_grid)
+        t = time.perf_counter()
+        vol = corrected_image(
+            np.concatenate(s.data), positions, s.chirp, grid, out.phase_rad, progress=self._progress, **self.bp
+        )
+        p = grid.plane
+        out.metrics["volume"] = {
+            "roi": [p.x0, p.x1, p.y0, p.y1],
+            "z_m": [grid.z0, grid.z1],
+            "shape": list(grid.shape),
+            "seconds": time.perf_counter() - t,
+        }
+        out.timings_s["volume"] = out.metrics["volume"]["seconds"]
+        return vol, grid
 
     def _progress(self, done: int = 0, total: int = 0, *extra) -> None:
         """The focusing steps' progress: heartbeats, and a line when focusing has gone on for a
@@ -611,6 +743,14 @@ class Solver(Node):
         }
         # the message's metrics are flat: metrics.json's capture entry as capture.frames_lost ...
         numeric.update({f"capture.{k}": float(v) for k, v in out.metrics.get("capture", {}).items()})
+        # the depth found for the target (metrics.json target_depth) as target_depth.depth_m ...
+        numeric.update(
+            {
+                f"target_depth.{k}": float(v)
+                for k, v in out.metrics.get("target_depth", {}).items()
+                if isinstance(v, (int, float)) and not isinstance(v, bool)
+            }
+        )
         self.result_pub.publish(
             AutofocusResult(
                 header=Header(stamp_ns=now_ns(), frame_id="scene"),
@@ -629,15 +769,24 @@ class Solver(Node):
             )
         )
 
-    def _publish(self, s: _Scan, out, timing: dict, latency: float, pending: bool) -> None:
-        """The images (target last: a viewer waiting for it has the rest), then the result."""
+    def _publish(self, s: _Scan, out, timing: dict, latency: float, pending: bool, volume=None) -> None:
+        """The images (the volume's maximum-intensity projection at the depth of its brightest
+        voxel; the target last: a viewer waiting for it has the rest), then the result."""
         stamp = now_ns()
-        for name, img, grid in (
-            ("target_uncorrected", out.target_uncorrected, self.tgt_grid),
-            ("reference_uncorrected", out.reference_uncorrected, self.ref_grid),
-            ("reference", out.reference, self.ref_grid),
-            ("target", out.target, self.tgt_grid),  # last: a viewer waiting for it has the rest
-        ):
+        images = [
+            ("target_uncorrected", out.target_uncorrected, out.target_grid),
+            ("reference_uncorrected", out.reference_uncorrected, out.reference_grid),
+            ("reference", out.reference, out.reference_grid),
+        ]
+        if volume is not None:
+            from twinfocus.volume import projections
+
+            vol, vgrid = volume
+            mip, _ = projections(vol, vgrid)
+            peak_z = float(vgrid.z_m[np.unravel_index(int(np.argmax(np.abs(vol))), vol.shape)[0]])
+            images.append(("volume_mip", mip, dataclasses.replace(vgrid.plane, z=peak_z)))
+        images.append(("target", out.target, out.target_grid))  # last: a viewer waiting for it has the rest
+        for name, img, grid in images:
             self.image_pub.publish(
                 Image(
                     header=Header(stamp_ns=stamp, frame_id="scene"),

@@ -434,3 +434,25 @@ def test_a_client_connected_before_the_first_message_still_gets_it():
             channel, payload = asyncio.run(asyncio.wait_for(client(bridge.port, lambda: probe.send("vio/pose", pose)), 30))
     decoded = _proto_class(channel["schemaName"], base64.b64decode(channel["schema"])).FromString(payload)
     assert np.allclose([decoded.pose.position.x, decoded.pose.position.y, decoded.pose.position.z], pose.position_m)
+
+
+def test_a_volumes_bright_voxels_read_back_as_a_foxglove_point_cloud(tmp_path):
+    from nodes.foxglove_convert import write_point_cloud_log
+    from twinfocus.grid import ImageGrid
+    from twinfocus.volume import bright_voxels, volume_grid
+
+    grid = volume_grid(ImageGrid(-0.1, 0.1, -0.05, 0.05, 1.0, 5, 7), 0.5, 0.6, 0.05)
+    vol = np.zeros(grid.shape, np.complex64)
+    vol[0, 1, 2], vol[2, 4, 6], vol[1, 0, 0] = 2.0, 1.5j, 0.1  # the last is 26 dB down: left out
+    pts, vals = bright_voxels(vol, grid, threshold_db=-12.0)
+    (tmp_path / "volume.mcap").write_bytes(b"an earlier run's")
+    write_point_cloud_log(tmp_path / "volume.mcap", pts, vals)
+    got = _read_back(tmp_path / "volume.mcap")
+    assert list(got) == ["/volume/points"] and len(got["/volume/points"]) == 1
+    cloud = _unpack(got["/volume/points"][0][0])
+    assert got["/volume/points"][0][0].frame_id == "scene" and len(cloud) == 2
+    want = {(0.5, -0.05 + 0.025, -0.1 + 2 * 0.2 / 6): 1.0, (0.6, 0.05, 0.1): 0.75}  # (z, y, x): |v| / max
+    for x, y, z, i in zip(cloud["x"], cloud["y"], cloud["z"], cloud["intensity"]):
+        key = min(want, key=lambda k: abs(k[0] - z) + abs(k[1] - y) + abs(k[2] - x))
+        assert np.allclose([z, y, x], key, atol=1e-6) and i == pytest.approx(want.pop(key))
+    assert not want

@@ -12,6 +12,7 @@ from twinfocus.cli import main
 from twinfocus.cli.focus import volume_plan
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
+from twinfocus.line_backprojection import TABLE_BYTES
 from twinfocus.radar import C_M_PER_S, Chirp, mmwcas_virtual_array
 from twinfocus.volume import (
     bright_voxels,
@@ -62,7 +63,7 @@ def test_volume_grid_planes():
         with pytest.raises(TwinFocusError):
             volume_grid(plane, *bad)
     cost = volume_cost(g, n_positions=100, n_channels=86)
-    assert cost["voxels"] == 41 * 20 and cost["memory_bytes"] == 64 * 41 * 20
+    assert cost["voxels"] == 41 * 20 and cost["memory_bytes"] == 64 * 41 * 20 + TABLE_BYTES
     assert cost["seconds_estimate"] == pytest.approx(1.1e-8 * 41 * 20 * 100 * 86)
 
 
@@ -105,7 +106,7 @@ def test_volume_plan_covers_both_regions_and_refuses_what_cannot_fit(monkeypatch
     grid, cost = volume_plan(_args(), n_positions=780, n_channels=86)
     assert grid.shape == (41, 100, 100)
     assert (grid.plane.x0, grid.plane.x1, grid.plane.y0, grid.plane.y1) == (-0.15, 0.1, -0.11, 0.12)
-    assert cost["memory_bytes"] == 64 * 41 * 100 * 100
+    assert cost["memory_bytes"] == 64 * 41 * 100 * 100 + TABLE_BYTES
     import twinfocus.machine
 
     monkeypatch.setattr(twinfocus.machine, "available_memory_bytes", lambda: 100 * 2**20)
@@ -129,6 +130,15 @@ def test_focus_writes_the_volume(tmp_path):
     assert vol.shape == tuple(m["shape"]) == (19, 40, 40) and vol.dtype == np.complex64
     for name in ("volume.ply", "volume_mip.png", "volume_depth.png"):
         assert (out / name).is_file()
+    assert m["files"] == {"volume": "volume.npy", "points": "volume.ply", "foxglove": "volume.mcap"}
+    assert m["sub_arrays"] is None or m["sub_arrays"] >= 1
+    from mcap.reader import make_reader
+
+    with open(out / "volume.mcap", "rb") as f:  # one cloud of the PLY's points on /volume/points
+        summary = make_reader(f).get_summary()
+    (channel,) = summary.channels.values()
+    assert channel.topic == "/volume/points" and summary.statistics.channel_message_counts[channel.id] == 1
+    assert m["points"] == len(read_ply_points(out / "volume.ply")[0]) > 0
     # the reference letter (x < 0) is brightest near 0.60 m, the target (x > 0.016) near 0.68 m
     plane = ImageGrid(*m["roi"], z=1.0, height=40, width=40)
     z = np.linspace(*m["z_m"], vol.shape[0])

@@ -12,7 +12,8 @@ apart around the best, and a parabola through the best fine plane and its two ne
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -157,3 +158,58 @@ def default_range(reference_depth_m: float) -> tuple[float, float]:
     """The depths searched when none is typed: the reference's +- :data:`DEFAULT_HALF_RANGE_M`
     (kept in front of the aperture)."""
     return (max(0.05, reference_depth_m - DEFAULT_HALF_RANGE_M), reference_depth_m + DEFAULT_HALF_RANGE_M)
+
+
+def range_to_search(
+    typed: float | tuple[float, float] | None, refine_m: float | None, reference_depth_m: float
+) -> tuple[float, float] | None:
+    """The depths to search for the target (metres): the typed range, Z +- ``refine_m``, the
+    default range around the reference (:func:`default_range`) when no depth was typed; None for
+    a typed Z to be trusted."""
+    if typed is None:
+        return default_range(reference_depth_m)
+    if isinstance(typed, tuple):
+        return typed
+    if refine_m is not None:
+        return (max(0.01, typed - refine_m), typed + refine_m)
+    return None
+
+
+def find_target_depth(
+    focus: Callable,
+    scan,
+    box: Sequence[float],
+    depth_range: tuple[float, float],
+    method: str,
+    bp_options: dict,
+    progress_factory=None,
+) -> tuple[DepthSearch, dict]:
+    """The target's depth from the scan: the phase from the reference first (its scalar estimate,
+    on a 2 x 2 target region at the range's middle: the target's own images are not needed yet),
+    then :func:`search_depth` with it. What ``twinfocus focus`` and the solver node both run.
+
+    focus : ``focus(scan, target_grid=, space_variant=)`` returning outputs with ``phase_rad``
+    (:func:`twinfocus.pipeline.focus_scan` with the reference bound); scan :
+    :class:`twinfocus.scan.Scan`; box : (X0, X1, Y0, Y1) metres; method : ``twin`` or a
+    reference-free one (then the uncorrected scan is searched). Returns (the search, {"range_m",
+    "phase": what phase it used})."""
+    if method == "twin":
+        probe = ImageGrid.from_roi((*box, float(np.mean(depth_range))), 2)
+        blind = dataclasses.replace(scan, positions_true=None)  # no truth images for the probe
+        phase = focus(blind, target_grid=probe, space_variant="off").phase_rad
+        used = "the twin's estimate (one phase per position, before any space-variant step)"
+    else:
+        # the sharpness estimate needs the target's own region; search the uncorrected scan
+        phase = np.zeros(scan.n_positions)
+        used = "none (uncorrected)"
+    search = search_depth(
+        scan.data,
+        scan.positions,
+        scan.chirp,
+        box,
+        depth_range,
+        phase,
+        bp_options=bp_options,
+        progress_factory=progress_factory,
+    )
+    return search, {"range_m": list(depth_range), "phase": used}

@@ -54,8 +54,22 @@ def corrected_image(
     data : complex (M, K, N) samples; positions_m : float64 (M, K, 3) phase centres, metres;
     phase_rad : float (M,) the correction, radians. bp_options : keywords of
     :func:`twinfocus.backprojection.backproject_points` (oversample, precision, backend, device,
-    progress)."""
-    return backproject(corrected_data(data, phase_rad), positions_m, chirp, grid, **bp_options)
+    progress). A volume on the CPU in float32 whose positions hold their channels on a line is
+    formed by sub-arrays (:mod:`twinfocus.line_backprojection`) where that is at least twice
+    cheaper."""
+    corrected = corrected_data(data, phase_rad)
+    if (
+        isinstance(grid, VolumeGrid)
+        and bp_options.get("backend", "numba") == "numba"
+        and bp_options.get("precision", "float32") == "float32"
+    ):
+        from twinfocus import line_backprojection
+
+        line_plan = line_backprojection.plan(positions_m, chirp, grid)
+        if line_plan is not None:
+            opts = {k: v for k, v in bp_options.items() if k in ("oversample", "progress")}
+            return line_backprojection.backproject_volume(corrected, positions_m, chirp, grid, line_plan, **opts)
+    return backproject(corrected, positions_m, chirp, grid, **bp_options)
 
 
 def volume_grid(plane: ImageGrid, z0: float, z1: float, dz: float) -> VolumeGrid:
@@ -67,14 +81,20 @@ def volume_grid(plane: ImageGrid, z0: float, z1: float, dz: float) -> VolumeGrid
     return VolumeGrid(plane, float(z0), float(z0 + (depth - 1) * dz), depth)
 
 
-def volume_cost(grid: VolumeGrid, n_positions: int, n_channels: int) -> dict:
+def volume_cost(grid: VolumeGrid, n_positions: int, n_channels: int, line_plan=None) -> dict:
     """What :func:`corrected_image` on ``grid`` will take on the CPU: {"voxels", "memory_bytes",
-    "seconds_estimate"} (:data:`BYTES_PER_VOXEL`, :data:`SECONDS_PER_VOXEL_CHANNEL`)."""
+    "seconds_estimate"} (:data:`BYTES_PER_VOXEL` and the sub-array tables' bound,
+    :data:`SECONDS_PER_VOXEL_CHANNEL` per channel evaluation: ``line_plan``'s
+    (:func:`twinfocus.line_backprojection.plan`) when the volume is formed by sub-arrays, one per
+    voxel, position and channel otherwise)."""
+    from twinfocus.line_backprojection import TABLE_BYTES
+
     voxels = int(np.prod(grid.shape))
+    evaluations = line_plan.cost if line_plan is not None else voxels * n_positions * n_channels
     return {
         "voxels": voxels,
-        "memory_bytes": BYTES_PER_VOXEL * voxels,
-        "seconds_estimate": SECONDS_PER_VOXEL_CHANNEL * voxels * n_positions * n_channels,
+        "memory_bytes": BYTES_PER_VOXEL * voxels + TABLE_BYTES,
+        "seconds_estimate": SECONDS_PER_VOXEL_CHANNEL * evaluations,
     }
 
 

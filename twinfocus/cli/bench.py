@@ -5,6 +5,7 @@ beyond``: the improvements of the twin estimate beyond the paper, one row each.
     twinfocus bench paper [--quick] [--out DIR] [--draws N] [--only EXPERIMENTS] [--markdown FILE] [--resume]
     twinfocus bench paper --report-only [--out DIR] [--markdown FILE]
     twinfocus bench beyond [--quick] [--out DIR] [--draws N] [--markdown FILE] [--resume] [--report-only]
+    twinfocus bench where [--quick] [--out DIR] [--draws N] [--markdown FILE]
     ... [--workers N | --scheduler tcp://HOST:PORT]: the experiments as Dask tasks (docs/batch.md)
 """
 
@@ -16,7 +17,7 @@ import sys
 
 from twinfocus.errors import TwinFocusError
 
-SUITES = ("paper", "beyond")
+SUITES = ("paper", "beyond", "where")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,8 +26,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "suite",
         choices=SUITES,
-        help="what to run: 'paper' (the source paper's evaluation) or 'beyond' "
-        "(the twin estimate's improvements beyond the paper, docs/beyond.md)",
+        help="what to run: 'paper' (the source paper's evaluation), 'beyond' "
+        "(the twin estimate's improvements beyond the paper, docs/beyond.md) or 'where' (focus finding the "
+        "regions, depth and reference it is not given, one row each)",
     )
     p.add_argument(
         "--quick",
@@ -75,14 +77,19 @@ def run(args: argparse.Namespace) -> int:
     from twinfocus.evaluation.runner import run_paper
 
     args.out = args.out or f"bench_{args.suite}"
-    if args.suite == "beyond" and (args.only or args.trade_scenes is not None):
+    if args.suite != "paper" and (args.only or args.trade_scenes is not None):
         raise TwinFocusError("--only and --trade-scenes apply to the 'paper' suite only")
+    if args.suite == "where" and (args.resume or args.workers is not None or args.scheduler):
+        raise TwinFocusError("--resume, --workers and --scheduler apply to the 'paper' and 'beyond' suites only")
     if args.report_only:
         if not (Path(args.out) / "raw").is_dir():
             raise TwinFocusError(
                 f"--report-only: {Path(args.out) / 'raw'} holds no raw results; run the benchmark first"
             )
-        print((write_beyond_report if args.suite == "beyond" else write_report)(args.out, args.markdown))
+        from twinfocus.evaluation.where import write_where_report
+
+        writer = {"beyond": write_beyond_report, "where": write_where_report}.get(args.suite, write_report)
+        print(writer(args.out, args.markdown))
         return 0
     only = [s.strip() for s in args.only.split(",") if s.strip()] or None
     from twinfocus.settings import resolve_device
@@ -98,6 +105,11 @@ def run(args: argparse.Namespace) -> int:
     )
     log = (lambda msg: None) if args.quiet else None
     kw = {} if log is None else {"log": log}
+    if args.suite == "where":
+        from twinfocus.evaluation.where import run_where
+
+        print(run_where(args.out, draws=args.draws or 1, quick=args.quick, markdown=args.markdown, command=command))
+        return 0
     if args.suite == "beyond":
         print(
             run_beyond(

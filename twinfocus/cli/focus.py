@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import os
 import sys
@@ -61,8 +60,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar=("Z0", "Z1", "DZ"),
         help="also form the corrected 3-D volume over both regions' x/y box, --size x --size pixels, planes "
-        "Z0..Z1 every DZ metres: volume.npy, volume.ply (voxels within 12 dB of the brightest), "
-        "volume_mip.png, volume_depth.png",
+        "Z0..Z1 every DZ metres: volume.npy, volume.ply and volume.mcap (the voxels within 12 dB of the "
+        "brightest, as a point cloud and as a Foxglove /volume/points), volume_mip.png, volume_depth.png",
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument(
@@ -304,47 +303,6 @@ def _reference_region(args: argparse.Namespace, bp: dict, progress) -> tuple[tup
     )
 
 
-def _depth_range(
-    typed: float | tuple[float, float] | None, refine_m: float | None, reference_depth_m: float
-) -> tuple[float, float] | None:
-    """The depths to search for the target: the typed range, Z +- ``refine_m``, the default range
-    around the reference when no depth was typed; None for a typed Z to be trusted."""
-    from twinfocus.depth_search import default_range
-
-    if typed is None:
-        return default_range(reference_depth_m)
-    if isinstance(typed, tuple):
-        return typed
-    if refine_m is not None:
-        return (max(0.01, typed - refine_m), typed + refine_m)
-    return None
-
-
-def _find_target_depth(focus, scan, box, depth_range, method, bp, progress):
-    """The target's depth from the scan: the phase from the reference first (its scalar estimate,
-    on a 2 x 2 target region at the range's middle: the target's own images are not needed yet),
-    then :func:`twinfocus.depth_search.search_depth` with it. Returns (the search, what phase it
-    used)."""
-    import numpy as np
-
-    from twinfocus.depth_search import search_depth
-    from twinfocus.grid import ImageGrid
-
-    if method == "twin":
-        probe = ImageGrid.from_roi((*box, float(np.mean(depth_range))), 2)
-        blind = dataclasses.replace(scan, positions_true=None)  # no truth images for the probe
-        phase = focus(blind, target_grid=probe, space_variant="off").phase_rad
-        used = "the twin's estimate (one phase per position, before any space-variant step)"
-    else:
-        # the sharpness estimate needs the target's own region; search the uncorrected scan
-        phase = np.zeros(scan.n_positions)
-        used = "none (uncorrected)"
-    search = search_depth(
-        scan.data, scan.positions, scan.chirp, box, depth_range, phase, bp_options=bp, progress_factory=progress
-    )
-    return search, {"range_m": list(depth_range), "phase": used}
-
-
 def _volume_metrics(grid, cost: dict, seconds: float) -> dict:
     p = grid.plane
     return {
@@ -357,10 +315,17 @@ def _volume_metrics(grid, cost: dict, seconds: float) -> dict:
     }
 
 
-def _write_where(out_dir, search, typed_depth, volume, grid, pictures: str) -> None:
+#: the volume's files beside write_outputs' (metrics.json "volume" "files" names them)
+VOLUME_FILES = {"volume": "volume.npy", "points": "volume.ply", "foxglove": "volume.mcap"}
+#: voxels within this many dB of the volume's brightest make its point clouds
+VOLUME_THRESHOLD_DB = -12.0
+
+
+def _write_where(out_dir, search, typed_depth, volume, grid, cloud, pictures: str) -> None:
     """Beside write_outputs' files: depth_search.png for a depth search, and for a volume
-    volume.npy, volume.ply and its two pictures (the data written atomically; an earlier run's
-    volume files are removed when this run forms none)."""
+    :data:`VOLUME_FILES` (``cloud``: :func:`twinfocus.volume.bright_voxels`' points and values, as
+    PLY and as a Foxglove point cloud on ``/volume/points``) and its two pictures (the data
+    written atomically; an earlier run's volume files are removed when this run forms none)."""
     import numpy as np
 
     from twinfocus.atomic import atomic_writer, write_bytes_atomic
@@ -371,14 +336,16 @@ def _write_where(out_dir, search, typed_depth, volume, grid, pictures: str) -> N
         with atomic_writer(Path(out_dir) / "depth_search.png") as f:
             depth_search_picture(f, search, typed_depth if isinstance(typed_depth, float) else None)
     if volume is None:
-        for stale in ("volume.npy", "volume.ply"):  # an earlier run's volume is not this result's
+        for stale in VOLUME_FILES.values():  # an earlier run's volume is not this result's
             (Path(out_dir) / stale).unlink(missing_ok=True)
         return
-    from twinfocus.volume import bright_voxels, ply_bytes, projections
+    from nodes.foxglove_convert import write_point_cloud_log
+    from twinfocus.volume import ply_bytes, projections
 
-    with atomic_writer(Path(out_dir) / "volume.npy") as f:
+    with atomic_writer(Path(out_dir) / VOLUME_FILES["volume"]) as f:
         np.save(f, volume.astype(np.complex64))
-    write_bytes_atomic(Path(out_dir) / "volume.ply", ply_bytes(*bright_voxels(volume, grid)))
+    write_bytes_atomic(Path(out_dir) / VOLUME_FILES["points"], ply_bytes(*cloud))
+    write_point_cloud_log(Path(out_dir) / VOLUME_FILES["foxglove"], *cloud)
     if pictures != "none":
         from twinfocus.depth_pictures import volume_pictures
 
@@ -394,6 +361,7 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
 
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.cache import TemplateCache
+    from twinfocus.depth_search import find_target_depth, range_to_search
     from twinfocus.estimators import estimator_settings
     from twinfocus.pipeline import focus_scan
 
@@ -409,7 +377,7 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
                 file=sys.stderr,
             )
     ref_grid = ImageGrid.from_roi(reference_roi, args.size)
-    depth_range = _depth_range(typed_depth, args.refine_depth, ref_grid.z)
+    depth_range = range_to_search(typed_depth, args.refine_depth, ref_grid.z)
     t = time.perf_counter()
     template, cache_status, support, twin_info = _template(
         args, scan, ref_grid, bp, progress, TemplateCache(enabled=not args.no_cache)
@@ -440,7 +408,7 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
     search = None
     if depth_range is not None:
         t = time.perf_counter()
-        search, search_info = _find_target_depth(focus, scan, box, depth_range, method, bp, progress)
+        search, search_info = find_target_depth(focus, scan, box, depth_range, method, bp, progress)
         timings["target_depth"] = time.perf_counter() - t
         tgt_grid = ImageGrid.from_roi((*box, search.depth_m), args.size)
     else:
@@ -480,7 +448,7 @@ def run(args: argparse.Namespace) -> int:
     from twinfocus.progress import Progress
     from twinfocus.reference_search import candidate_score
     from twinfocus.scan import Scan
-    from twinfocus.volume import corrected_image
+    from twinfocus.volume import bright_voxels, corrected_image
 
     pictures = "none" if args.no_pictures else args.pictures
     shapes = _check_before_work(args)
@@ -534,8 +502,16 @@ def run(args: argparse.Namespace) -> int:
         from twinfocus.templates import save_template
 
         save_template(args.save_template, template, ref_grid, support=support, info=twin_info)
-    volume = None
+    volume, cloud = None, None
     plan = volume_plan(args, shapes["data"][0], shapes["data"][1], ref_grid.roi)
+    sub_arrays = None
+    if plan is not None and device == "cpu" and args.precision == "float32":
+        from twinfocus.line_backprojection import plan as line_plan
+        from twinfocus.volume import volume_cost
+
+        # the scan's positions decide whether the volume is formed by sub-arrays, and so its time
+        sub_arrays = line_plan(scan.positions, scan.chirp, plan[0])
+        plan = (plan[0], volume_cost(plan[0], scan.data.shape[0], scan.data.shape[1], sub_arrays))
     if plan is not None:
         if not args.quiet:
             print(
@@ -552,10 +528,16 @@ def run(args: argparse.Namespace) -> int:
             **_volume_metrics(plan[0], plan[1], timings["volume"]),
             # on a busy machine the steadier figure: about the wall time x the threads when idle
             "cpu_seconds": time.process_time() - cpu,
+            # sub-arrays per radar position (twinfocus.line_backprojection); null: back-projected directly
+            "sub_arrays": sub_arrays.groups if sub_arrays is not None else None,
         }
+        cloud = bright_voxels(volume, plan[0], VOLUME_THRESHOLD_DB)
+        outputs.metrics["volume"].update(
+            files=dict(VOLUME_FILES), points=len(cloud[0]), points_threshold_db=VOLUME_THRESHOLD_DB
+        )
     t = time.perf_counter()
     write_outputs(args.out, outputs, pictures=pictures)
-    _write_where(args.out, search, typed_depth, volume, plan[0] if plan else None, pictures)
+    _write_where(args.out, search, typed_depth, volume, plan[0] if plan else None, cloud, pictures)
     t_write = time.perf_counter() - t
     m = outputs.metrics
     for warning in m["confidence"]["warnings"]:
