@@ -302,9 +302,12 @@ def test_tilted_basis_is_the_halves_phased_apart():
         array_half(np.zeros((3, 4, 3)))
 
 
-def test_the_drift_fits_gradients_are_those_of_the_per_pixel_model():
+@pytest.mark.parametrize("kernel", ["numba", "torch"])
+@pytest.mark.parametrize("tilted", [True, False])
+def test_the_drift_fits_gradients_are_those_of_the_per_pixel_model(kernel, tilted):
     """The fit's correlation and its gradients (written out, not traced) against autograd on the
-    model as written: exact lines of sight per pixel, float64, the tilted basis."""
+    model as written: exact lines of sight per pixel, float64, the tilted basis or the plain one;
+    the CPU's fused kernel and the torch code other devices run, both on the CPU here."""
     import torch
 
     from twinfocus.space_variant import _DriftMatch
@@ -318,8 +321,11 @@ def test_the_drift_fits_gradients_are_those_of_the_per_pixel_model():
     centres = np.c_[rng.uniform(-0.2, 0.2, m), rng.uniform(-0.13, 0.13, m), np.zeros(m)]
     phase, dp, tilt = rng.normal(size=m), rng.normal(size=(m, 2)) * 1e-3, rng.normal(size=m) * 0.1
 
-    match = _DriftMatch(b, half, tpl, centres, grid, lam, "cpu")
-    f32 = [torch.tensor(v, dtype=torch.float32) for v in (phase, dp, tilt)]
+    b_before = b.copy()
+    match = _DriftMatch(b, half if tilted else None, tpl, centres, grid, lam, "cpu")
+    match.kernel = kernel
+    f32 = [torch.tensor(v, dtype=torch.float32) for v in (phase, dp)] + [
+        torch.tensor(tilt, dtype=torch.float32) if tilted else None]
     k = 4 * np.pi / lam
     a = k * (lines_of_sight(centres, grid.points()) - lines_of_sight(centres, grid.centre_m)[:, None, :])[..., :2]
     some = rng.uniform(size=h * w) < 0.4  # the knots' stage's pixels: any subset
@@ -328,14 +334,17 @@ def test_the_drift_fits_gradients_are_those_of_the_per_pixel_model():
         ph, d, ps = (torch.tensor(v, dtype=torch.float64, requires_grad=True) for v in (phase, dp, tilt))
         theta = ph[:, None] + (torch.from_numpy(a[:, pixels]) * d[:, None, :]).sum(-1)
         bt, ht = (torch.from_numpy(v.reshape(m, -1)[:, pixels].astype(np.complex128)) for v in (b, half))
-        e = bt * torch.exp(-1j * ps)[:, None] + 2j * torch.sin(ps)[:, None] * ht
+        e = bt * torch.exp(-1j * ps)[:, None] + 2j * torch.sin(ps)[:, None] * ht if tilted else bt
         image = (e * torch.exp(1j * theta)).sum(0)
         t = torch.from_numpy(tpl.reshape(-1)[pixels].astype(np.complex128))
         want = torch.vdot(t, image).real / (torch.linalg.vector_norm(image) * torch.linalg.vector_norm(t))
         want.backward()
         assert abs(corr - float(want.detach())) < 1e-5
-        for got, exact in ((g_phase, ph.grad), (g_dp, d.grad), (g_tilt, ps.grad)):
+        assert (g_tilt is not None) == tilted
+        for got, exact in ((g_phase, ph.grad), (g_dp, d.grad)) + (((g_tilt, ps.grad),) if tilted else ()):
             np.testing.assert_allclose(got.numpy(), exact.numpy(), rtol=0, atol=1e-3 * float(exact.abs().max()))
+    # the basis is read, never scaled or written in place (the pipeline forms its images after)
+    np.testing.assert_array_equal(b, b_before)
 
 
 def test_the_fit_recovers_the_drift_on_the_bright_pixels_as_on_every_pixel(drifting_scan):
