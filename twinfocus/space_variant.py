@@ -529,6 +529,7 @@ class _DriftMatch:
                 None if e is None else e.numpy(),
                 None if e is None else s2.numpy(),
                 self._kc,
+                _rotate_block(image.shape[0]),
                 c_out,
                 h_out,
                 image,
@@ -550,28 +551,38 @@ def _rotation_constants() -> np.ndarray:
     return np.array((1.0 / (2.0 * np.pi), 0.5, *_SIN_C, *_COS_C), dtype=np.float32)
 
 
-#: pixels per block of :func:`_rotate`: the block's image sums stay in cache over the positions
+#: most pixels per block of :func:`_rotate`: the block's image sums stay in cache over the positions
 _ROTATE_BLOCK = 512
 
 
+def _rotate_block(n_pixels: int) -> int:
+    """Pixels per block of :func:`_rotate`: at most ``_ROTATE_BLOCK``, and at least 4 blocks per
+    thread, so the threads' shares differ by a quarter of one at most (the knots' stage's 2000
+    bright pixels in blocks of 512: 3 blocks on one core, 1 on the other)."""
+    import numba
+
+    return int(max(32, min(_ROTATE_BLOCK, -(-n_pixels // (4 * numba.get_num_threads())))))
+
+
 @njit(parallel=True, fastmath=True, cache=True)
-def _rotate(theta, b, half, e, s2, kc, c_out, h_out, image):
+def _rotate(theta, b, half, e, s2, kc, block, c_out, h_out, image):
     """The drift fit's contributions on the CPU, in one pass over the basis.
 
     theta float32 (M, P) radians; b, half complex64 (M, P) (half None: no tilt); e, s2 complex64
-    (M,) exp(-j psi), 2j sin psi. Writes c_out (M, P) = (e B + s2 L) exp(j theta) (B exp(j theta)
-    without the tilt), h_out (M, P) = L exp(j theta) and image (P,) = sum_m c_out. Parallel over
-    pixel blocks, so no two threads add to one pixel. exp(j theta) from
-    :func:`twinfocus.range_geometry.cis_turns`' polynomials (error ~1e-7 in float32).
+    (M,) exp(-j psi), 2j sin psi; block: pixels per block (:func:`_rotate_block`). Writes c_out
+    (M, P) = (e B + s2 L) exp(j theta) (B exp(j theta) without the tilt), h_out (M, P) =
+    L exp(j theta) and image (P,) = sum_m c_out. Parallel over pixel blocks, so no two threads add
+    to one pixel. exp(j theta) from :func:`twinfocus.range_geometry.cis_turns`' polynomials (error
+    ~1e-7 in float32).
     """
     inv_turn, halfc = kc[0], kc[1]
     s0, s1, s2c, s3, s4, s5, s6 = kc[2], kc[3], kc[4], kc[5], kc[6], kc[7], kc[8]
     c0, c1, c2, c3, c4, c5, c6, c7 = kc[9], kc[10], kc[11], kc[12], kc[13], kc[14], kc[15], kc[16]
     n_pos, n_pix = theta.shape
-    n_blocks = (n_pix + _ROTATE_BLOCK - 1) // _ROTATE_BLOCK
+    n_blocks = (n_pix + block - 1) // block
     for blk in prange(n_blocks):
-        lo = blk * _ROTATE_BLOCK
-        hi = min(lo + _ROTATE_BLOCK, n_pix)
+        lo = blk * block
+        hi = min(lo + block, n_pix)
         acc_re = np.zeros(hi - lo, np.float32)
         acc_im = np.zeros(hi - lo, np.float32)
         for m in range(n_pos):
