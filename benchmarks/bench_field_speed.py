@@ -132,7 +132,9 @@ def one_draw(seed: int, baseline) -> dict:
 
 def focus_profile(seed: int, work: Path) -> dict:
     """``twinfocus simulate`` then ``twinfocus focus`` on one draw of the scene, as a user runs them:
-    the stages' seconds (``metrics.json`` ``timings_s``), the whole command's wall and CPU seconds."""
+    the stages' seconds (``metrics.json`` ``timings_s``; ``space_variant`` holds the half-array
+    bases' back-projection and the fit, whose own seconds are ``space_variant_fit_s``), the whole
+    command's wall and CPU seconds."""
     from twinfocus.scenario import Scenario, scenario_grids
 
     rg, tg = scenario_grids(Scenario(**SCENE, seed=seed), 100)
@@ -154,6 +156,7 @@ def focus_profile(seed: int, work: Path) -> dict:
     return {"seed": seed, "command": "twinfocus " + " ".join(cmd[:1] + ["SCAN", "--template-scan", "STAGE"] + cmd[4:]),
             "wall_s": time.perf_counter() - t0, "cpu_s": (after.children_user + after.children_system)
             - (before.children_user + before.children_system), "load_before": load, "timings_s": m["timings_s"],
+            "space_variant_fit_s": (m.get("space_variant") or {}).get("time_s"),
             "target_ssim_corrected": m.get("target_ssim_corrected")}
 
 
