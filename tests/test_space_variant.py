@@ -1,5 +1,7 @@
 """Space-variant correction (twinfocus.space_variant) against the exact per-point phase
 (metrics.oracle_phase) and brute-force sums."""
+import os
+
 import numpy as np
 import pytest
 
@@ -400,6 +402,36 @@ def test_the_cpu_kernel_and_the_torch_code_fit_the_same_drift(drifting_scan, mon
     assert np.sqrt(((d_torch - d_numba) ** 2).mean()) < 0.01e-3
     assert np.abs(np.angle(np.exp(1j * (p_torch - p_numba)))).max() < 0.05
     assert drift_error_m(d_numba) < 0.06e-3 and drift_error_m(d_torch) < 0.06e-3
+
+
+def test_a_busy_cpu_fits_on_one_thread_and_finds_the_same_drift(drifting_scan, monkeypatch):
+    """At a load average of the cores or more the fit runs on one torch and one numba thread and
+    gives the threads back as they were; the drift is the one the libraries' own threads find."""
+    import numba
+    import torch
+
+    from twinfocus import space_variant as sv
+    from twinfocus.template_match import correlation_phase
+
+    s = drifting_scan
+    centres = s["tracked"].mean(axis=1)
+    phi0 = correlation_phase(s["ref_basis"], s["template"])
+    args = (s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m)
+    cores = os.cpu_count() or 1
+    threads = torch.get_num_threads(), numba.get_num_threads()
+    monkeypatch.setattr(sv.os, "getloadavg", lambda: (0.0, 0.0, 0.0))
+    _, d_idle, _, i_idle = sv.fit_smooth_drift(*args)
+    monkeypatch.setattr(sv.os, "getloadavg", lambda: (float(cores), 0.0, 0.0))
+    seen = []
+    _, d_busy, _, i_busy = sv.fit_smooth_drift(
+        *args, progress=lambda *_: seen.append((torch.get_num_threads(), numba.get_num_threads()))
+    )
+    assert i_idle["threads"] is None
+    if cores >= 2:
+        assert i_busy["threads"] == 1 and set(seen) == {(1, 1)}
+    assert (torch.get_num_threads(), numba.get_num_threads()) == threads
+    assert abs(i_busy["match_after"] - i_idle["match_after"]) < 1e-4
+    assert np.sqrt(((d_busy - d_idle) ** 2).mean()) < 0.01e-3
 
 
 @pytest.mark.gpu
