@@ -296,15 +296,15 @@ def fit_smooth_drift(
     per-position stage on every pixel: the knots' curve is set by where the reference is, and the
     pixels around it, which only weigh in the image's norm, are left to the last stage.
     device : the torch device (cpu, cuda, cuda:N; None:
-    :func:`twinfocus.settings.resolve_device`'s choice), the same code on each. On a CPU whose
-    load average is at or above its cores the fit runs on one thread (:func:`_threads_for_the_load`:
-    3x faster there than two).
+    :func:`twinfocus.settings.resolve_device`'s choice), the same code on each. On a CPU torch's
+    part runs on one thread, numba's on its own count or, when the load average is at or above
+    the cores, on one too (:func:`_threads_for_the_load`: 2-3x faster than both on two).
 
     Returns (phase float64 (M,) radians at the region's centre (``phase0_rad`` when phi is
     fixed), dp float64 (M, 3) metres in the correction's sense (z is 0), tilt float64 (M,)
     radians (zeros without ``half_basis``), info: ``match_before`` / ``match_after`` (the
-    correlation on every pixel), the settings, ``knot_pixels``, ``device``, ``threads`` (1, or None:
-    the libraries' own), ``time_s``).
+    correlation on every pixel), the settings, ``knot_pixels``, ``device``, ``threads`` (numba's on
+    a CPU, None elsewhere), ``time_s``).
     Memory on the CPU: the bases as given (no copy of complex64 ones) and 12 bytes per position
     and pixel of working arrays (0.1 GB at 780 x 100 x 100), 20 with ``half_basis``, and a copy of
     the bases on the knots' stage's pixels; on another device about 40 bytes per position and
@@ -399,24 +399,29 @@ def fit_smooth_drift(
 
 @contextlib.contextmanager
 def _threads_for_the_load(device) -> Iterator[int | None]:
-    """One torch and one numba thread for the fit on a CPU whose load average is at or above its
-    core count, the libraries' own otherwise (restored after); yields 1 or None.
+    """The fit's threads on a CPU (restored after): torch's matrix products on one, numba's pass on
+    its own count, or on one too when the load average is at or above the cores; yields numba's
+    count (None on another device).
 
-    Each step is a numba parallel region then torch's: on a busy machine each waits for whichever
-    of its threads was descheduled, and the idle ones spin (780 x 100 x 100 at load 10-12 on 2
-    cores: 25-36 s wall and 17-24 s CPU with two threads, 7-11 s and 6.3-7.1 s with one)."""
-    cores = os.cpu_count() or 1
-    if device.type != "cpu" or cores < 2 or not hasattr(os, "getloadavg") or os.getloadavg()[0] < cores:
+    Each step is a numba parallel region then several small torch ones: with both libraries'
+    thread pools at two threads, each pool's idle threads spin while the other's work (780 x 100
+    x 100 on 2 cores at load 5: 22-35 s wall and 20-22 s CPU against 9-10 s and 6.3 s on one
+    thread), and on a busy machine each region waits for whichever thread was descheduled (load
+    10-12: 25-36 s against 7-11 s)."""
+    if device.type != "cpu":
         yield None
         return
     import numba
     import torch
 
+    cores = os.cpu_count() or 1
+    busy = hasattr(os, "getloadavg") and os.getloadavg()[0] >= cores
     before = torch.get_num_threads(), numba.get_num_threads()
     torch.set_num_threads(1)
-    numba.set_num_threads(1)
+    if busy:
+        numba.set_num_threads(1)
     try:
-        yield 1
+        yield numba.get_num_threads()
     finally:
         torch.set_num_threads(before[0])
         numba.set_num_threads(before[1])
