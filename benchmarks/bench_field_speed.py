@@ -3,6 +3,8 @@ version of it, side by side on the same draws and the same inputs: time, the tar
 the image on the true positions, the drift's error against the true positions.
 
     python -m benchmarks.bench_field_speed --draws 2            (--seeds 3,5 picks the draws)
+    python -m benchmarks.bench_field_speed --seeds 3,5,8 --threads 1
+    python -m benchmarks.bench_field_speed --focus-profile --seeds 3   (a whole ``twinfocus focus``)
     python -m benchmarks.run --only field_speed
 
 Each draw is the hand-drift scene of ``benchmarks/bench_handheld.py`` ("hand 0.8 mm + 0.15 deg":
@@ -11,8 +13,14 @@ fit's inputs are taken as the pipeline hands them over; the pipeline's own call 
 fit's row, then the earlier version (``--baseline``, a git revision: its
 ``twinfocus/space_variant.py``, loaded as it was) runs on the same inputs at once after it, so
 both see the same load. With a CUDA device the current fit also runs there (after a warm-up fit)
-and writes its own rows. Writes ``field_speed.json`` (records per draw, the load average around
-each fit, the settings) and prints a table.
+and writes its own rows. Writes ``field_speed.json`` (records per draw: each fit's wall seconds
+and the CPU seconds of all its threads, which vary less with the machine's load, the load average
+around it, the settings) and prints a table. ``--focus-profile`` instead simulates the draw's scan
+and stage scan with ``twinfocus simulate`` and focuses it with ``twinfocus focus`` (the reference's
+and the target's regions of the scene, 100 x 100 pixels, no pictures, no template cache), and
+writes every stage's time from its ``metrics.json`` to ``field_focus_profile.json``. ``--threads 1`` runs everything on one thread (torch
+and numba): the CPU seconds are then the fit's own work, barely touched by other processes on a
+busy machine, and bound the wall time on an idle machine with more cores from above.
 """
 
 from __future__ import annotations
@@ -40,8 +48,9 @@ from twinfocus.pipeline import focus_bases, half_array_bases
 
 #: the scene of bench_handheld's "hand 0.8 mm + 0.15 deg"
 SCENE = CONDITIONS["hand 0.8 mm + 0.15 deg"]
-#: the fit before its gradients were written out (autograd over the per-pixel model)
-BASELINE = "d325d94"
+#: the fit before its CPU kernel (gradients written out, torch's element-wise passes); d325d94 is
+#: the one before that (autograd over the per-pixel model)
+BASELINE = "2ec245c"
 
 
 def load_baseline(rev: str):
@@ -57,6 +66,7 @@ def load_baseline(rev: str):
     spec = importlib.util.spec_from_file_location(f"space_variant_{rev}", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)  # type: ignore[union-attr]
+    module.rev = rev
     return module
 
 
@@ -66,12 +76,13 @@ def one_draw(seed: int, baseline) -> dict:
     centres = scan.positions.mean(axis=1)
     true_drift = (scan.positions_true - scan.positions).mean(axis=1)[:, :2]  # the correction's sense
 
-    def scored(label: str, fit, load_before: float) -> dict:
+    def scored(label: str, fit, load_before: float, cpu_s: float) -> dict:
         phase, dp, tilt, info = fit
         img = form_image_space_variant(sv.tilted_basis(tb, halves[1], tilt),
                                        sv.pixel_phases(phase, dp, rg.centre_m, centres, tg, scan.chirp.wavelength_m))
         e = dp[:, :2] - true_drift
-        return {"fit": label, "time_s": info["time_s"], "load_before": load_before, "load_after": os.getloadavg()[0],
+        return {"fit": label, "time_s": info["time_s"], "cpu_s": cpu_s, "load_before": load_before,
+                "load_after": os.getloadavg()[0],
                 "match_before": info["match_before"], "match_after": info["match_after"],
                 "target_ssim": metrics.image_ssim(img, truth_t),
                 "drift_error_rms_mm": float(np.sqrt(((e - e.mean(axis=0)) ** 2).mean()) * 1e3),
@@ -80,24 +91,31 @@ def one_draw(seed: int, baseline) -> dict:
     rows: list[dict] = []
     current = sv.fit_smooth_drift
 
+    def timed(fit, *args, **kwargs):
+        """(the fit's output, load average before, CPU seconds of this process: all its threads)"""
+        load, cpu = os.getloadavg()[0], time.process_time()
+        out = fit(*args, **kwargs)
+        return out, load, time.process_time() - cpu
+
     def fit_and_compare(*args, **kwargs):
-        load = os.getloadavg()[0]
-        out = current(*args, **kwargs)
-        rows.append(scored("current", out, load))
+        out, load, cpu = timed(current, *args, **kwargs)
+        rows.append(scored("current", out, load, cpu))
         kwargs.pop("progress", None)
         kwargs.pop("device", None)
         if baseline is not None:
-            load = os.getloadavg()[0]
-            rows.append(scored(f"baseline {BASELINE}", baseline.fit_smooth_drift(*args, **kwargs), load))
+            # copies: an earlier version may scale its inputs in place (2ec245c did)
+            copies = [np.array(a) if isinstance(a, np.ndarray) else a for a in args]
+            if kwargs.get("half_basis") is not None:
+                kwargs = {**kwargs, "half_basis": np.array(kwargs["half_basis"])}
+            rows.append(scored(f"baseline {baseline.rev}", *timed(baseline.fit_smooth_drift, *copies, **kwargs)))
         try:
             import torch
         except ImportError:
             return out
         if torch.cuda.is_available():
             current(*args, **kwargs, device="cuda")  # warm-up: the CUDA context and kernels
-            load = os.getloadavg()[0]
-            rows.append(scored(f"current on {torch.cuda.get_device_name()}", current(*args, **kwargs, device="cuda"),
-                               load))
+            rows.append(scored(f"current on {torch.cuda.get_device_name()}",
+                               *timed(current, *args, **kwargs, device="cuda")))
         return out
 
     sv.fit_smooth_drift = fit_and_compare  # the pipeline imports it from the module when it runs
@@ -112,8 +130,44 @@ def one_draw(seed: int, baseline) -> dict:
             "ceiling_target_phase": out.metrics["target_ssim_oracle_phase"], "fits": rows}
 
 
+def focus_profile(seed: int, work: Path) -> dict:
+    """``twinfocus simulate`` then ``twinfocus focus`` on one draw of the scene, as a user runs them:
+    the stages' seconds (``metrics.json`` ``timings_s``; ``space_variant`` holds the half-array
+    bases' back-projection and the fit, whose own seconds are ``space_variant_fit_s``), the whole
+    command's wall and CPU seconds."""
+    from twinfocus.scenario import Scenario, scenario_grids
+
+    rg, tg = scenario_grids(Scenario(**SCENE, seed=seed), 100)
+    scan, stage, out = work / f"hand{seed}.npz", work / f"hand{seed}_stage.npz", work / f"focus{seed}"
+    exe = [str(Path(sys.executable).parent / "twinfocus")]  # the console script beside this interpreter
+    subprocess.run(exe + ["simulate", "--out", str(scan), "--template-out", str(stage), "--reference", SCENE["reference"],
+                          "--target", SCENE["target"], "--separation-deg", str(SCENE["separation_deg"]),
+                          "--snr-db", str(SCENE["snr_db"]), "--error-model", SCENE["error_model"],
+                          "--error-sigma-mm", str(SCENE["error_sigma_m"][0] * 1e3), "--seed", str(seed), "--quiet"],
+                   check=True)
+    roi = [[g.x0, g.x1, g.y0, g.y1, g.z] for g in (rg, tg)]
+    cmd = ["focus", str(scan), "--template-scan", str(stage), "--reference-roi", *map(str, roi[0]),
+           "--target-roi", *map(str, roi[1]), "--size", "100", "--out", str(out), "--no-pictures", "--no-cache",
+           "--quiet"]
+    before, t0, load = os.times(), time.perf_counter(), os.getloadavg()[0]
+    subprocess.run(exe + cmd, check=True)
+    after = os.times()
+    m = json.loads((out / "metrics.json").read_text())
+    return {"seed": seed, "command": "twinfocus " + " ".join(cmd[:1] + ["SCAN", "--template-scan", "STAGE"] + cmd[4:]),
+            "wall_s": time.perf_counter() - t0, "cpu_s": (after.children_user + after.children_system)
+            - (before.children_user + before.children_system), "load_before": load, "timings_s": m["timings_s"],
+            "space_variant_fit_s": (m.get("space_variant") or {}).get("time_s"),
+            "target_ssim_corrected": m.get("target_ssim_corrected")}
+
+
 def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 2, seeds: list[int] | None = None,
-         baseline_rev: str = BASELINE) -> dict:
+         baseline_rev: str = BASELINE, threads: int | None = None) -> dict:
+    if threads is not None:
+        import numba
+        import torch
+
+        torch.set_num_threads(threads)
+        numba.set_num_threads(threads)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     baseline = load_baseline(baseline_rev)
@@ -125,14 +179,16 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 2, seed
         t0 = time.perf_counter()
         records.append(one_draw(seed, baseline))
         print(f"[field_speed] draw {seed} done in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
-    result = {"command": "python -m benchmarks.bench_field_speed " + " ".join(sys.argv[1:]),
+    result = {"command": "python -m benchmarks.bench_field_speed " + " ".join(sys.argv[1:]), "threads": threads,
               "scene": {k: list(v) if isinstance(v, tuple) else v for k, v in SCENE.items()},
               "n_positions": 780, "region_px": [100, 100], "machine": machine_info(), "draws": records}
     (out_dir / "field_speed.json").write_text(json.dumps(result, indent=2))
-    print("| draw | fit | time s | load | target SSIM | drift error mm | match after |\n|---|---|---|---|---|---|---|")
+    print("| draw | fit | time s | CPU s | load | target SSIM | drift error mm | match after |\n"
+          "|---|---|---|---|---|---|---|---|")
     for r in records:
         for f in r["fits"]:
-            print(f"| {r['seed']} | {f['fit']} | {f['time_s']:.1f} | {f['load_before']:.0f} | {f['target_ssim']:.4f} "
+            print(f"| {r['seed']} | {f['fit']} | {f['time_s']:.1f} | {f['cpu_s']:.1f} | {f['load_before']:.0f} "
+                  f"| {f['target_ssim']:.4f} "
                   f"| {f['drift_error_rms_mm']:.3f} | {f['match_after']:.5f} |")
     return result
 
@@ -143,5 +199,20 @@ if __name__ == "__main__":
     ap.add_argument("--draws", type=int, default=2)
     ap.add_argument("--seeds", default=None, help="comma-separated draw seeds (instead of 1..draws)")
     ap.add_argument("--baseline", default=BASELINE, help="git revision of the fit to compare with")
+    ap.add_argument("--threads", type=int, default=None, help="torch's and numba's threads (default: theirs)")
+    ap.add_argument("--focus-profile", action="store_true", help="time a whole twinfocus focus per draw instead")
     a = ap.parse_args()
-    main(a.out, a.draws, [int(s) for s in a.seeds.split(",")] if a.seeds else None, a.baseline)
+    if a.focus_profile:
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory() as work:
+            runs = [focus_profile(seed, Path(work)) for seed in ([int(s) for s in a.seeds.split(",")] if a.seeds
+                                                               else range(1, a.draws + 1))]
+        (Path(a.out) / "field_focus_profile.json").write_text(json.dumps(
+            {"command": "python -m benchmarks.bench_field_speed " + " ".join(sys.argv[1:]),
+             "scene": {k: list(v) if isinstance(v, tuple) else v for k, v in SCENE.items()},
+             "machine": machine_info(), "runs": runs}, indent=2))
+        for r in runs:
+            slow = {k: round(v, 1) for k, v in r["timings_s"].items() if isinstance(v, (int, float)) and v > 1.0}
+            print(f"draw {r['seed']}: {r['wall_s']:.0f} s wall, {r['cpu_s']:.0f} s CPU; stages over 1 s: {slow}")
+        sys.exit(0)
+    main(a.out, a.draws, [int(s) for s in a.seeds.split(",")] if a.seeds else None, a.baseline, a.threads)

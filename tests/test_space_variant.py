@@ -1,5 +1,7 @@
 """Space-variant correction (twinfocus.space_variant) against the exact per-point phase
 (metrics.oracle_phase) and brute-force sums."""
+import os
+
 import numpy as np
 import pytest
 
@@ -302,9 +304,12 @@ def test_tilted_basis_is_the_halves_phased_apart():
         array_half(np.zeros((3, 4, 3)))
 
 
-def test_the_drift_fits_gradients_are_those_of_the_per_pixel_model():
+@pytest.mark.parametrize("kernel", ["numba", "torch"])
+@pytest.mark.parametrize("tilted", [True, False])
+def test_the_drift_fits_gradients_are_those_of_the_per_pixel_model(kernel, tilted):
     """The fit's correlation and its gradients (written out, not traced) against autograd on the
-    model as written: exact lines of sight per pixel, float64, the tilted basis."""
+    model as written: exact lines of sight per pixel, float64, the tilted basis or the plain one;
+    the CPU's fused kernel and the torch code other devices run, both on the CPU here."""
     import torch
 
     from twinfocus.space_variant import _DriftMatch
@@ -318,8 +323,11 @@ def test_the_drift_fits_gradients_are_those_of_the_per_pixel_model():
     centres = np.c_[rng.uniform(-0.2, 0.2, m), rng.uniform(-0.13, 0.13, m), np.zeros(m)]
     phase, dp, tilt = rng.normal(size=m), rng.normal(size=(m, 2)) * 1e-3, rng.normal(size=m) * 0.1
 
-    match = _DriftMatch(b, half, tpl, centres, grid, lam, "cpu")
-    f32 = [torch.tensor(v, dtype=torch.float32) for v in (phase, dp, tilt)]
+    b_before = b.copy()
+    match = _DriftMatch(b, half if tilted else None, tpl, centres, grid, lam, "cpu")
+    match.kernel = kernel
+    f32 = [torch.tensor(v, dtype=torch.float32) for v in (phase, dp)] + [
+        torch.tensor(tilt, dtype=torch.float32) if tilted else None]
     k = 4 * np.pi / lam
     a = k * (lines_of_sight(centres, grid.points()) - lines_of_sight(centres, grid.centre_m)[:, None, :])[..., :2]
     some = rng.uniform(size=h * w) < 0.4  # the knots' stage's pixels: any subset
@@ -328,14 +336,17 @@ def test_the_drift_fits_gradients_are_those_of_the_per_pixel_model():
         ph, d, ps = (torch.tensor(v, dtype=torch.float64, requires_grad=True) for v in (phase, dp, tilt))
         theta = ph[:, None] + (torch.from_numpy(a[:, pixels]) * d[:, None, :]).sum(-1)
         bt, ht = (torch.from_numpy(v.reshape(m, -1)[:, pixels].astype(np.complex128)) for v in (b, half))
-        e = bt * torch.exp(-1j * ps)[:, None] + 2j * torch.sin(ps)[:, None] * ht
+        e = bt * torch.exp(-1j * ps)[:, None] + 2j * torch.sin(ps)[:, None] * ht if tilted else bt
         image = (e * torch.exp(1j * theta)).sum(0)
         t = torch.from_numpy(tpl.reshape(-1)[pixels].astype(np.complex128))
         want = torch.vdot(t, image).real / (torch.linalg.vector_norm(image) * torch.linalg.vector_norm(t))
         want.backward()
         assert abs(corr - float(want.detach())) < 1e-5
-        for got, exact in ((g_phase, ph.grad), (g_dp, d.grad), (g_tilt, ps.grad)):
+        assert (g_tilt is not None) == tilted
+        for got, exact in ((g_phase, ph.grad), (g_dp, d.grad)) + (((g_tilt, ps.grad),) if tilted else ()):
             np.testing.assert_allclose(got.numpy(), exact.numpy(), rtol=0, atol=1e-3 * float(exact.abs().max()))
+    # the basis is read, never scaled or written in place (the pipeline forms its images after)
+    np.testing.assert_array_equal(b, b_before)
 
 
 def test_the_fit_recovers_the_drift_on_the_bright_pixels_as_on_every_pixel(drifting_scan):
@@ -360,6 +371,70 @@ def test_the_fit_recovers_the_drift_on_the_bright_pixels_as_on_every_pixel(drift
     assert drift_error_m(bright) < 1.1 * drift_error_m(every)
     assert info["knot_pixels"] < 0.5 * info_every["knot_pixels"] == 0.5 * s["rg"].shape[0] * s["rg"].shape[1]
     assert info["device"] == "cpu" and info["match_after"] > 0.999
+
+
+def test_the_cpu_kernel_and_the_torch_code_fit_the_same_drift(drifting_scan, monkeypatch):
+    """The whole fit (200 Adam steps) with the CPU's fused numba pass and with the torch code that
+    other devices run: float32 round-off apart, and both within 0.06 mm rms of the injected drift
+    (0.8 / 0.6 mm amplitude)."""
+    from twinfocus import space_variant as sv
+    from twinfocus.template_match import correlation_phase
+
+    s = drifting_scan
+    centres = s["tracked"].mean(axis=1)
+    phi0 = correlation_phase(s["ref_basis"], s["template"])
+    args = (s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m)
+
+    def drift_error_m(dp):
+        e = dp[:, :2] - s["drift"][:, :2]
+        return float(np.sqrt(((e - e.mean(axis=0)) ** 2).mean()))
+
+    p_numba, d_numba, _, i_numba = sv.fit_smooth_drift(*args)
+
+    class TorchMatch(sv._DriftMatch):
+        def __init__(self, *a):
+            super().__init__(*a)
+            self.kernel = "torch"
+
+    monkeypatch.setattr(sv, "_DriftMatch", TorchMatch)
+    p_torch, d_torch, _, i_torch = sv.fit_smooth_drift(*args)
+    assert abs(i_torch["match_after"] - i_numba["match_after"]) < 1e-4
+    assert np.sqrt(((d_torch - d_numba) ** 2).mean()) < 0.01e-3
+    assert np.abs(np.angle(np.exp(1j * (p_torch - p_numba)))).max() < 0.05
+    assert drift_error_m(d_numba) < 0.06e-3 and drift_error_m(d_torch) < 0.06e-3
+
+
+def test_a_busy_cpu_fits_on_one_thread_and_finds_the_same_drift(drifting_scan, monkeypatch):
+    """Torch's part of the fit runs on one thread; at a load average of the cores or more numba's
+    too; the threads are given back as they were, and the drift is the same either way."""
+    import numba
+    import torch
+
+    from twinfocus import space_variant as sv
+    from twinfocus.template_match import correlation_phase
+
+    s = drifting_scan
+    centres = s["tracked"].mean(axis=1)
+    phi0 = correlation_phase(s["ref_basis"], s["template"])
+    args = (s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m)
+    cores = os.cpu_count() or 1
+    threads = torch.get_num_threads(), numba.get_num_threads()
+
+    def fit(load):
+        monkeypatch.setattr(sv.os, "getloadavg", lambda: (load, 0.0, 0.0))
+        seen = []
+        _, dp, _, info = sv.fit_smooth_drift(
+            *args, progress=lambda *_: seen.append((torch.get_num_threads(), numba.get_num_threads()))
+        )
+        assert (torch.get_num_threads(), numba.get_num_threads()) == threads
+        return dp, info, set(seen)
+
+    d_idle, i_idle, seen_idle = fit(0.0)
+    d_busy, i_busy, seen_busy = fit(float(cores))
+    assert seen_idle == {(1, threads[1])} and i_idle["threads"] == threads[1]
+    assert seen_busy == {(1, 1)} and i_busy["threads"] == 1
+    assert abs(i_busy["match_after"] - i_idle["match_after"]) < 1e-4
+    assert np.sqrt(((d_busy - d_idle) ** 2).mean()) < 0.01e-3
 
 
 @pytest.mark.gpu

@@ -38,8 +38,10 @@ paper's protocol unchanged.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import scipy.sparse as sp
@@ -48,6 +50,12 @@ import scipy.sparse.linalg as spl
 from twinfocus.band_delay import bright_pixels
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
+from twinfocus.range_geometry import _COS_C, _SIN_C
+
+try:  # numba is a hard dependency; the guard only keeps import errors readable
+    from numba import njit, prange
+except ImportError as exc:  # pragma: no cover
+    raise ImportError("twinfocus.space_variant needs numba (pip install numba)") from exc
 
 
 def lines_of_sight(centres_m: np.ndarray, points_m: np.ndarray) -> np.ndarray:
@@ -288,14 +296,19 @@ def fit_smooth_drift(
     per-position stage on every pixel: the knots' curve is set by where the reference is, and the
     pixels around it, which only weigh in the image's norm, are left to the last stage.
     device : the torch device (cpu, cuda, cuda:N; None:
-    :func:`twinfocus.settings.resolve_device`'s choice), the same code on each.
+    :func:`twinfocus.settings.resolve_device`'s choice), the same code on each. On a CPU torch's
+    part runs on one thread, numba's on its own count or, when the load average is at or above
+    the cores, on one too (:func:`_threads_for_the_load`: 2-3x faster than both on two).
 
     Returns (phase float64 (M,) radians at the region's centre (``phase0_rad`` when phi is
     fixed), dp float64 (M, 3) metres in the correction's sense (z is 0), tilt float64 (M,)
     radians (zeros without ``half_basis``), info: ``match_before`` / ``match_after`` (the
-    correlation on every pixel), the settings, ``knot_pixels``, ``device``, ``time_s``).
-    Memory: about 40 bytes per position and pixel (0.3 GB at 780 x 100 x 100), 56 with ``half_basis``,
-    and a copy of the bases on the knots' stage's pixels.
+    correlation on every pixel), the settings, ``knot_pixels``, ``device``, ``threads`` (numba's on
+    a CPU, None elsewhere), ``time_s``).
+    Memory on the CPU: the bases as given (no copy of complex64 ones) and 12 bytes per position
+    and pixel of working arrays (0.1 GB at 780 x 100 x 100), 20 with ``half_basis``, and a copy of
+    the bases on the knots' stage's pixels; on another device about 40 bytes per position and
+    pixel, 56 with ``half_basis``.
     """
     import torch
 
@@ -356,13 +369,14 @@ def fit_smooth_drift(
             if progress is not None:
                 progress(len(matches), total, -matches[-1])
 
-    before = match.value_and_gradients(phase, s @ coef, s @ tilt_coef if tilted else None)[0]
-    descend(coef, True, iterations, 0.0, coarse)
-    # Per-position refinement: the knots' straight segments cannot follow a drift that wanders
-    # within 10 positions; a penalty on the step between neighbours keeps the noise out.
-    drift = s @ coef
-    descend(drift, False, refine_iterations, float(smoothness_per_mm2), match)
-    after = match.value_and_gradients(phase, drift, s @ tilt_coef if tilted else None)[0] if total else before
+    with _threads_for_the_load(dev) as threads:
+        before = match.value_and_gradients(phase, s @ coef, s @ tilt_coef if tilted else None)[0]
+        descend(coef, True, iterations, 0.0, coarse)
+        # Per-position refinement: the knots' straight segments cannot follow a drift that wanders
+        # within 10 positions; a penalty on the step between neighbours keeps the noise out.
+        drift = s @ coef
+        descend(drift, False, refine_iterations, float(smoothness_per_mm2), match)
+        after = match.value_and_gradients(phase, drift, s @ tilt_coef if tilted else None)[0] if total else before
     dp = np.zeros((m, 3))
     dp[:, :2] = drift.cpu().numpy()
     info = {
@@ -376,16 +390,49 @@ def fit_smooth_drift(
         "phase_fitted": phase_step_rad > 0,
         "tilt_fitted": tilted,
         "device": str(dev),
+        "threads": threads,
         "time_s": time.perf_counter() - t0,
     }
     tilt = (s @ tilt_coef).cpu().numpy().astype(np.float64)
     return phase.cpu().numpy().astype(np.float64), dp, tilt, info
 
 
+@contextlib.contextmanager
+def _threads_for_the_load(device) -> Iterator[int | None]:
+    """The fit's threads on a CPU (restored after): torch's matrix products on one, numba's pass on
+    its own count, or on one too when the load average is at or above the cores; yields numba's
+    count (None on another device).
+
+    Each step is a numba parallel region then several small torch ones: with both libraries'
+    thread pools at two threads, each pool's idle threads spin while the other's work (780 x 100
+    x 100 on 2 cores at load 5: 22-35 s wall and 20-22 s CPU against 9-10 s and 6.3 s on one
+    thread), and on a busy machine each region waits for whichever thread was descheduled (load
+    10-12: 25-36 s against 7-11 s)."""
+    if device.type != "cpu":
+        yield None
+        return
+    import numba
+    import torch
+
+    cores = os.cpu_count() or 1
+    busy = hasattr(os, "getloadavg") and os.getloadavg()[0] >= cores
+    before = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    if busy:
+        numba.set_num_threads(1)
+    try:
+        yield numba.get_num_threads()
+    finally:
+        torch.set_num_threads(before[0])
+        numba.set_num_threads(before[1])
+
+
 #: degree of the polynomial in the pixel's place that stands for each position's line-of-sight
 #: term a_m(p) (:class:`_DriftMatch`): 4 keeps it within 3e-5 rad of the exact phase at 2 mm of
 #: drift over a 100 x 100 region at 0.6 m (degree 3: 3e-4)
 LINE_OF_SIGHT_DEGREE = 4
+#: pixels per side of the lattice that polynomial is fitted on
+LINE_OF_SIGHT_SAMPLES = 16
 
 
 class _DriftMatch:
@@ -400,8 +447,10 @@ class _DriftMatch:
     of degree ``LINE_OF_SIGHT_DEGREE`` in the pixel's place, a_m(p) = U_m . q(p) (q: an
     orthonormal polynomial basis over the pixels, U_m its least-squares coefficients). Then
     theta is one matrix product, and the gradients' sums over the pixels are products of the
-    contributions with the few columns conj(W) [1, q]: no (M, P) array beyond the phasors and
-    B exp(j theta) is formed, and no autograd graph is kept.
+    contributions with the few columns conj(W) [1, q]: no (M, P) array beyond theta, C and
+    L exp(j theta) is formed, and no autograd graph is kept. On the CPU C comes from one fused
+    numba pass (:func:`_rotate`: exp(j theta), the tilted basis and the image's sum in one read of
+    the bases), elsewhere from torch's elementwise products.
     """
 
     def __init__(self, basis, half_basis, template, centres_m, grid, wavelength_m, device):
@@ -416,31 +465,41 @@ class _DriftMatch:
         x = (pts[:, 0] - grid.centre_m[0]) / max(grid.x1 - grid.x0, 1e-12) * 2.0
         y = (pts[:, 1] - grid.centre_m[1]) / max(grid.y1 - grid.y0, 1e-12) * 2.0
         deg = LINE_OF_SIGHT_DEGREE
-        q, _ = np.linalg.qr(np.stack([x**i * y**j for i in range(deg + 1) for j in range(deg + 1 - i)], axis=1))
+        monomials = np.stack([x**i * y**j for i in range(deg + 1) for j in range(deg + 1 - i)], axis=1)
+        q, r = np.linalg.qr(monomials)
+        # The polynomial is fitted on a lattice of LINE_OF_SIGHT_SAMPLES^2 pixels, not all of them:
+        # it is smooth, and the exact lines of sight of every position to every pixel were most
+        # of the setup's time. monomials = q r, so q's coefficients are r times the monomials'.
+        h, w = grid.shape
+        rows = np.unique(np.linspace(0, h - 1, min(h, LINE_OF_SIGHT_SAMPLES)).round().astype(int))
+        cols = np.unique(np.linspace(0, w - 1, min(w, LINE_OF_SIGHT_SAMPLES)).round().astype(int))
+        sample = (rows[:, None] * w + cols[None, :]).ravel()
         k = 4.0 * np.pi / float(wavelength_m)
-        u_c = lines_of_sight(centres_m, grid.centre_m)
-        ux = np.empty((m, q.shape[1]))
-        uy = np.empty((m, q.shape[1]))
-        for i in range(0, m, 64):  # (64, P, 3) at a time
-            d = k * (lines_of_sight(centres_m[i : i + 64], pts) - u_c[i : i + 64, None, :])
-            ux[i : i + 64], uy[i : i + 64] = d[..., 0] @ q, d[..., 1] @ q
+        d = k * (lines_of_sight(centres_m, pts[sample]) - lines_of_sight(centres_m, grid.centre_m)[:, None, :])
+        fit = np.linalg.lstsq(monomials[sample], np.concatenate([d[..., 0], d[..., 1]]).T, rcond=None)[0]
+        u = (r @ fit).T  # (2 M, n): x rows, then y rows
 
         def put(v, dtype):
             return torch.from_numpy(np.ascontiguousarray(v, dtype)).to(self.device)
 
-        self.ux, self.uy = put(ux, np.float32), put(uy, np.float32)
+        self.ux, self.uy = put(u[:m], np.float32), put(u[m:], np.float32)
         self.q_t = put(q.T, np.float32)  # (n, P)
         self.columns = put(np.c_[np.ones(q.shape[0]), q], np.float32)  # (P, 1 + n)
-        # The correlation is scale-free: the basis (its half by the same factor) and the template at
-        # unit peak, so float32 sums of squares of a scan at 1e20 do not overflow (nor flush at 1e-20);
-        # scaled in place after the float32 copies, so no second copy of the basis.
-        unit = 1.0 / max(float(np.abs(basis).max()), 1e-30)
-        self.b = put(np.asarray(basis).reshape(m, -1), np.complex64).mul_(unit)
-        self.half = None if half_basis is None else put(np.asarray(half_basis).reshape(m, -1), np.complex64).mul_(unit)
+        # Used as they are (on the CPU, no copy of a complex64 basis): the correlation is
+        # scale-free, and its image is taken to the basis' unit peak before any sum of squares,
+        # so a scan at 1e20 does not overflow float32 (nor flush at 1e-20).
+        self.unit = 1.0 / max(float(np.abs(basis).max()), 1e-30)
+        self.b = put(np.asarray(basis).reshape(m, -1), np.complex64)
+        self.half = None if half_basis is None else put(np.asarray(half_basis).reshape(m, -1), np.complex64)
         tpl = np.asarray(template).reshape(-1)
         self.t = put(tpl / max(float(np.abs(tpl).max()), 1e-30), np.complex64)
         self.t_norm = float(torch.linalg.vector_norm(self.t))
         self.one = torch.ones((1, 1), dtype=torch.float32, device=self.device)  # |exp(j theta)|, broadcast
+        # numba on the CPU (one fused pass: 18 ms a step at 780 x 100 x 100 with the tilt on one
+        # core, against ~150 for torch's element-wise products), torch on any other device
+        self.kernel = "numba" if self.device.type == "cpu" else "torch"
+        self._kc = _rotation_constants()
+        self._buffers: tuple[np.ndarray, np.ndarray, torch.Tensor] | None = None
 
     def on(self, pixels: np.ndarray) -> _DriftMatch:
         """The same correlation on the pixels of a bool (P,) mask: views of this one's arrays'
@@ -454,37 +513,148 @@ class _DriftMatch:
         sub.half = None if self.half is None else self.half[:, idx].contiguous()
         sub.t = self.t[idx]
         sub.t_norm = float(self.torch.linalg.vector_norm(sub.t))
+        sub._buffers = None
         return sub
 
     def value_and_gradients(self, phase, dp, tilt):
         """(corr float, d corr / d phi (M,), d corr / d dp (M, 2), d corr / d psi (M,) or None)
         at phase (M,), dp (M, 2) metres, tilt (M,) radians or None: float32 tensors."""
         torch = self.torch
-        theta = torch.addmm(phase[:, None], self.ux * dp[:, :1] + self.uy * dp[:, 1:], self.q_t)
-        rot = torch.polar(self.one, theta)
+        slopes = self.ux * dp[:, :1] + self.uy * dp[:, 1:]  # (M, n): theta_m(p) = phi_m + slopes_m . q(p)
         if tilt is None:
-            br = rot.mul_(self.b)
-            image = br.sum(0)
+            e = s2 = None
         else:
             e = torch.polar(torch.ones_like(tilt), -tilt)
             s2 = torch.complex(torch.zeros_like(tilt), 2.0 * torch.sin(tilt))
-            hr = self.half * rot
-            br = rot.mul_(self.b)  # in place: exp(j theta) is not needed past here
-            image = e @ br + s2 @ hr
+        contributions, half_rotated, image = self._contributions(phase, slopes, e, s2)
+        image = image * self.unit
         i_norm = float(torch.linalg.vector_norm(image))
         corr = float(torch.vdot(self.t, image).real) / max(i_norm * self.t_norm, 1e-300)
         w = self.t / max(i_norm * self.t_norm, 1e-300) - image * (corr / max(i_norm * i_norm, 1e-300))
-        x = self.columns * w.conj()[:, None]  # (P, 1 + n): conj W [1, q]
-        yb = br @ x
-        if tilt is None:
-            sums = yb
-        else:
-            yh = hr @ x
-            sums = e[:, None] * yb + s2[:, None] * yh
+        x = self.columns * (w.conj() * self.unit)[:, None]  # (P, 1 + n): conj W [1, q], W of the unscaled image
+        sums = contributions @ x
         g = -sums.imag  # (M, 1 + n): sum_p d corr / d theta_m(p) [1, q(p)]
         g_dp = torch.stack(((self.ux * g[:, 1:]).sum(1), (self.uy * g[:, 1:]).sum(1)), dim=1)
         g_tilt = None
         if tilt is not None:
-            # d E / d psi = -j B exp(-j psi) + 2j cos(psi) L, against conj W
-            g_tilt = (-1j * e * yb[:, 0] + 2j * torch.cos(tilt) * yh[:, 0]).real
+            # d C_m / d psi_m = (-j B exp(-j psi) + 2j cos(psi) L) exp(j theta) = -j C_m + 2j exp(j psi) L exp(j theta)
+            yh = half_rotated @ x[:, 0]
+            g_tilt = sums[:, 0].imag - 2.0 * (torch.conj(e) * yh).imag
         return corr, g[:, 0], g_dp, g_tilt
+
+    def _contributions(self, phase, slopes, e, s2):
+        """C (M, P) = E exp(j theta), L exp(j theta) (M, P) or None, and the image sum_m C (P,):
+        complex64 tensors (on the CPU in this match's buffers, overwritten at the next call).
+        theta = phase (M,) + slopes (M, n) @ q (n, P) (a matrix product: a loop for it in the
+        kernel was slower); e, s2: (M,) exp(-j psi) and 2j sin(psi)
+        of the tilted basis, or None."""
+        torch = self.torch
+        if self.kernel == "numba":
+            if self._buffers is None:
+                shape = tuple(self.b.shape)
+                self._buffers = (  # kept across steps: a fresh 60 MB array each step costs its page faults
+                    np.empty(shape, np.complex64),
+                    np.empty(shape if e is not None else (0, 0), np.complex64),
+                    torch.empty(shape, dtype=torch.float32),
+                )
+            c_out, h_out, theta = self._buffers
+            image = np.empty(self.b.shape[1], np.complex64)
+            torch.addmm(phase[:, None], slopes, self.q_t, out=theta)
+            _rotate(
+                theta.numpy(),
+                self.b.numpy(),
+                None if e is None else self.half.numpy(),
+                None if e is None else e.numpy(),
+                None if e is None else s2.numpy(),
+                self._kc,
+                _rotate_block(image.shape[0]),
+                c_out,
+                h_out,
+                image,
+            )
+            return torch.from_numpy(c_out), None if e is None else torch.from_numpy(h_out), torch.from_numpy(image)
+        rot = torch.polar(self.one, torch.addmm(phase[:, None], slopes, self.q_t))
+        if e is None:
+            contributions = rot.mul_(self.b)
+            return contributions, None, contributions.sum(0)
+        half_rotated = self.half * rot
+        contributions = rot.mul_(self.b).mul_(e[:, None]).add_(half_rotated * s2[:, None])
+        return contributions, half_rotated, contributions.sum(0)
+
+
+def _rotation_constants() -> np.ndarray:
+    """[1/(2 pi), 1/2, the sine's (7) and the cosine's (8) polynomial coefficients] as float32 for
+    :func:`_rotate` (a Python float literal in jitted code is float64 and would promote the
+    float32 arithmetic it touches)."""
+    return np.array((1.0 / (2.0 * np.pi), 0.5, *_SIN_C, *_COS_C), dtype=np.float32)
+
+
+#: most pixels per block of :func:`_rotate`: the block's image sums stay in cache over the positions
+_ROTATE_BLOCK = 512
+
+
+def _rotate_block(n_pixels: int) -> int:
+    """Pixels per block of :func:`_rotate`: at most ``_ROTATE_BLOCK``, and at least 4 blocks per
+    thread, so the threads' shares differ by a quarter of one at most (the knots' stage's 2000
+    bright pixels in blocks of 512: 3 blocks on one core, 1 on the other)."""
+    import numba
+
+    return int(max(32, min(_ROTATE_BLOCK, -(-n_pixels // (4 * numba.get_num_threads())))))
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _rotate(theta, b, half, e, s2, kc, block, c_out, h_out, image):
+    """The drift fit's contributions on the CPU, in one pass over the basis.
+
+    theta float32 (M, P) radians; b, half complex64 (M, P) (half None: no tilt); e, s2 complex64
+    (M,) exp(-j psi), 2j sin psi; block: pixels per block (:func:`_rotate_block`). Writes c_out
+    (M, P) = (e B + s2 L) exp(j theta) (B exp(j theta) without the tilt), h_out (M, P) =
+    L exp(j theta) and image (P,) = sum_m c_out. Parallel over pixel blocks, so no two threads add
+    to one pixel. exp(j theta) from :func:`twinfocus.range_geometry.cis_turns`' polynomials (error
+    ~1e-7 in float32), in a loop of its own per position and block: pure float32 arithmetic,
+    which LLVM vectorises (with the complex products in the same loop it did not: 3x slower).
+    """
+    inv_turn, halfc = kc[0], kc[1]
+    s0, s1, s2c, s3, s4, s5, s6 = kc[2], kc[3], kc[4], kc[5], kc[6], kc[7], kc[8]
+    c0, c1, c2, c3, c4, c5, c6, c7 = kc[9], kc[10], kc[11], kc[12], kc[13], kc[14], kc[15], kc[16]
+    n_pos, n_pix = theta.shape
+    n_blocks = (n_pix + block - 1) // block
+    for blk in prange(n_blocks):
+        lo = blk * block
+        hi = min(lo + block, n_pix)
+        n = hi - lo
+        acc_re = np.zeros(n, np.float32)
+        acc_im = np.zeros(n, np.float32)
+        cos_buf = np.empty(n, np.float32)
+        sin_buf = np.empty(n, np.float32)
+        for m in range(n_pos):
+            th = theta[m, lo:hi]
+            for q in range(n):
+                t = th[q] * inv_turn
+                r = t - np.floor(t + halfc)
+                r2 = r * r
+                sin_buf[q] = r * (s0 + r2 * (s1 + r2 * (s2c + r2 * (s3 + r2 * (s4 + r2 * (s5 + r2 * s6))))))
+                cos_buf[q] = c0 + r2 * (c1 + r2 * (c2 + r2 * (c3 + r2 * (c4 + r2 * (c5 + r2 * (c6 + r2 * c7))))))
+            bb = b[m, lo:hi]
+            cc = c_out[m, lo:hi]
+            if half is None:
+                for q in range(n):
+                    v = bb[q] * complex(cos_buf[q], sin_buf[q])
+                    cc[q] = v
+                    acc_re[q] += v.real
+                    acc_im[q] += v.imag
+            else:
+                em = e[m]
+                sm = s2[m]
+                hh = half[m, lo:hi]
+                ho = h_out[m, lo:hi]
+                for q in range(n):
+                    rot = complex(cos_buf[q], sin_buf[q])
+                    hr = hh[q] * rot
+                    ho[q] = hr
+                    v = em * bb[q] * rot + sm * hr
+                    cc[q] = v
+                    acc_re[q] += v.real
+                    acc_im[q] += v.imag
+        for q in range(n):
+            image[lo + q] = complex(acc_re[q], acc_im[q])
