@@ -59,7 +59,8 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.run --out benchmarks/results
 
 # The paper's evaluation in simulation at the paper's five error draws per pair, on two Dask workers
-# (about 55 min on 2 cores): docs/results.md + docs/results/. ARGS="--resume" keeps finished parts.
+# (about 46 min on an idle 2-core machine: docs/performance.md, "Evaluation time"): docs/results.md +
+# docs/results/. ARGS="--resume" keeps finished parts.
 bench-paper: $(STAMP)
 	nice $(VENV)/bin/twinfocus bench paper --draws 5 --workers 2 --out docs/results --markdown docs/results.md $(ARGS)
 

@@ -31,6 +31,7 @@ from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import estimator_settings
+from twinfocus.evaluation.batched import batchable, paper_estimates
 from twinfocus.evaluation.features import hog_similarity
 from twinfocus.grid import ImageGrid
 from twinfocus.motion import apply_pose_errors, draw_errors
@@ -286,8 +287,9 @@ def prepare_scene(
     template_envs : which physical templates to build: ``"open"`` (the reference alone on the
         stage) and/or ``"cluttered"`` (on the stage in the scene's cluttered room).
     template_cache : dict shared across scenes; a reference whose motion-stage scan is
-        bit-identical to one seen before reuses its templates (one twin per reference object,
-        amortised over the targets scanned with it, as in the paper).
+        bit-identical to one seen before reuses its physical templates (one twin per reference
+        object, amortised over the targets scanned with it, as in the paper); a digital twin is
+        reused only by the same scene (its camera sees the target too).
     """
     bp = settings.bp_options()
     timings: dict[str, float] = {}
@@ -317,13 +319,16 @@ def prepare_scene(
             timings[f"template_{env}"] = time.perf_counter() - t
         templates[f"physical:{env}"] = cache[(key, env)]
     if digital:
-        if (key, "digital") not in cache:
+        # The camera sees the whole scene (the target too), so the digital twin is the scene's own:
+        # keyed by the scene, a run gives the same twins whichever scenes came before it.
+        digital_key = (repr(sc), ref_grid.roi, ref_grid.shape, "digital")
+        if digital_key not in cache:
             try:
                 tpl, info = digital_twin_for(sc, scan.positions_true, scan.chirp, ref_grid, seed=sc.seed, **bp)
-                cache[(key, "digital")] = (tpl, info, None)
+                cache[digital_key] = (tpl, info, None)
             except TwinFocusError as exc:  # a failed twin is a result, not a crash
-                cache[(key, "digital")] = (None, {}, str(exc))
-        tpl, info, err = cache[(key, "digital")]
+                cache[digital_key] = (None, {}, str(exc))
+        tpl, info, err = cache[digital_key]
         templates["digital"] = tpl
         notes["digital_timings_s"] = info
         if err:
@@ -450,6 +455,46 @@ def draw_shared(
     return DrawBases(ref_basis, tgt_basis, oracle_t, oracle_r, shared, tracked_m)
 
 
+def template_key(method: str, template_env: str = "open") -> str:
+    """The key of :attr:`SceneCase.templates` that twin method ``method`` estimates from."""
+    return f"physical:{template_env}" if TWIN_VARIANTS[method][0] == "physical" else "digital"
+
+
+def runs_paper_optimiser(method: str, cfg: AutofocusConfig) -> bool:
+    """Whether twin method ``method`` under ``cfg`` is the paper's optimiser on its template as it
+    is, so that :func:`paper_twin_estimates` can run it beside the others on the same basis."""
+    if method not in TWIN_VARIANTS:
+        return False
+    _, overrides, register_by_loss = TWIN_VARIANTS[method]
+    return not overrides and not register_by_loss and batchable(cfg) and cfg.basis_dtype == "float16"
+
+
+def paper_twin_estimates(case: SceneCase, bases: DrawBases, keys, cfg: AutofocusConfig) -> dict:
+    """The paper's optimiser on the reference basis of one draw from every template of ``keys``
+    (keys of :attr:`SceneCase.templates`, :func:`template_key`) at once
+    (:func:`twinfocus.evaluation.batched.paper_estimates`).
+
+    Returns {key: (float64 (M,) phase radians, seconds: the batch's wall time over its estimates)
+    or the TwinFocusError its method reports}; ``evaluate_methods(estimates=...)`` takes it.
+    """
+    out: dict = {}
+    run = []
+    for key in dict.fromkeys(keys):
+        tpl = case.templates.get(key)
+        if tpl is None:
+            out[key] = TwinFocusError(case.notes.get("digital_error", f"no {key} template"))
+        elif bases.reference is None:
+            out[key] = TwinFocusError("the reference basis was not formed for this draw")
+        else:
+            run.append(key)
+    if run:
+        assert bases.reference is not None  # checked per key above
+        phases, seconds = paper_estimates(bases.reference, [case.templates[k] for k in run], cfg)
+        for key, phase in zip(run, phases):
+            out[key] = phase if isinstance(phase, TwinFocusError) else (phase, seconds / len(run))
+    return out
+
+
 def estimate_phase(
     method: str, case: SceneCase, bases: DrawBases, cfg: AutofocusConfig, template_env: str = "open"
 ) -> tuple[np.ndarray, float]:
@@ -461,8 +506,8 @@ def estimate_phase(
         res = sharpness_autofocus(bases.target, cfg)
         return res.phase_rad, res.time_s
     if method in TWIN_VARIANTS:
-        kind, overrides, register_by_loss = TWIN_VARIANTS[method]
-        key = f"physical:{template_env}" if kind == "physical" else "digital"
+        _, overrides, register_by_loss = TWIN_VARIANTS[method]
+        key = template_key(method, template_env)
         tpl = case.templates.get(key)
         if tpl is None:
             raise TwinFocusError(case.notes.get("digital_error", f"no {key} template"))
@@ -486,18 +531,29 @@ def evaluate_methods(
     template_env: str = "open",
     config_overrides: dict | None = None,
     keep_images: bool = False,
+    estimates: dict | None = None,
 ) -> list[dict]:
     """Every method on one draw: one record each with method, status ("ok" or "failed: ..."),
     ssim and hog (target vs truth), phase error r.m.s. against the target's and the reference's
     oracle phases (rad) and autofocus_s; unless ``settings.phase_ramp`` is "keep", also
     ssim_as_estimated (the phase transferred with its ramp, as the source paper does); with
-    ``keep_images`` also "image": the target's display image (float32 (H, W), what SSIM is taken on)."""
+    ``keep_images`` also "image": the target's display image (float32 (H, W), what SSIM is taken on).
+
+    estimates : :func:`paper_twin_estimates` of this draw; a twin method that runs the paper's
+        optimiser (:func:`runs_paper_optimiser`) takes its template's entry instead of running."""
     cfg = settings.autofocus_config(**(config_overrides or {}))
     records = []
     for method in methods:
         rec = {"method": method, "status": "ok", "ssim": None, "hog": None, "autofocus_s": 0.0}
         try:
-            phase, rec["autofocus_s"] = estimate_phase(method, case, bases, cfg, template_env)
+            key = template_key(method, template_env) if method in TWIN_VARIANTS else None
+            if estimates is not None and key in estimates and runs_paper_optimiser(method, cfg):
+                got = estimates[key]
+                if isinstance(got, TwinFocusError):
+                    raise got
+                phase, rec["autofocus_s"] = got
+            else:
+                phase, rec["autofocus_s"] = estimate_phase(method, case, bases, cfg, template_env)
         except TwinFocusError as exc:
             rec["status"] = f"failed: {exc}"
             records.append(rec)

@@ -258,8 +258,8 @@ def paper_experiments(quick: bool = False, draws: int | None = None, only=None) 
 
     quick : the smoke set (two baseline pairs, two tracking errors on one pair) unless ``only``
         names others, which then run on their first pair with one draw.
-    draws : error draws per pair and condition for every experiment (default 1: the full run
-        then takes about an hour on two shared cores; the paper used 5).
+    draws : error draws per pair and condition for every experiment (default 1; the paper used 5,
+        as ``make bench-paper`` does: docs/performance.md, "Evaluation time", has how long).
     only : names to keep (``trade`` is handled by the runner).
     """
     exps = _full_experiments()

@@ -591,6 +591,12 @@ def write_report(out_dir, markdown_path=None) -> Path:
     ]
     total = sum(doc.get("seconds", 0.0) for doc in raw.values())
     per = ", ".join(f"{k} {v.get('seconds', 0) / 60:.1f} min" for k, v in raw.items())
+    draws = {k: v["definition"]["draws"] for k, v in raw.items() if "draws" in v.get("definition", {})}
+    if len(set(draws.values())) == 1:
+        n = next(iter(draws.values()))
+        per += f"; every experiment with {n} error draw{'s' if n > 1 else ''} per pair and condition"
+    elif draws:
+        per += "; error draws per pair and condition: " + ", ".join(f"{k} {d}" for k, d in draws.items())
     lines += [
         f"Machine: {machine.get('cpu_model', '?')}, {machine.get('cpu_count', '?')} cores "
         f"(shared with other jobs; load average {', '.join(f'{x:.1f}' for x in machine.get('load_average') or [])} at the start), "

@@ -29,7 +29,10 @@ from twinfocus.evaluation.cases import (
     evaluate_methods,
     needs_digital_twin,
     needs_reference,
+    paper_twin_estimates,
     prepare_scene,
+    runs_paper_optimiser,
+    template_key,
     tracked_positions,
 )
 from twinfocus.evaluation.experiments import Experiment
@@ -142,10 +145,29 @@ def run_experiment(
                     settings,
                     need_reference=any(needs_reference(m) for c in group for m in (c.methods or exp.methods)),
                 )
+                # Every condition's paper-optimiser estimates on this draw's reference basis in one batch.
+                cfg = settings.autofocus_config()
+                estimates = paper_twin_estimates(
+                    case,
+                    bases,
+                    [
+                        template_key(m, c.template_env)
+                        for c in group
+                        for m in (c.methods or exp.methods)
+                        if runs_paper_optimiser(m, cfg)
+                    ],
+                    cfg,
+                )
                 for c in group:
                     keep = exp.name in EXAMPLE_EXPERIMENTS and not examples
                     recs = evaluate_methods(
-                        case, bases, c.methods or exp.methods, settings, c.template_env, keep_images=keep
+                        case,
+                        bases,
+                        c.methods or exp.methods,
+                        settings,
+                        c.template_env,
+                        keep_images=keep,
+                        estimates=estimates,
                     )
                     if keep:
                         examples = {
@@ -221,13 +243,18 @@ def merge_parts(parts: list[dict]) -> dict:
     return out
 
 
+#: A Dask worker's templates across its tasks (:func:`prepare_scene`'s ``template_cache``): the
+#: scenes of one reference reuse its twins, as in a serial run. Keyed by the stage scan's data.
+_WORKER_TEMPLATES: dict = {}
+
+
 def _experiment_task(part: tuple[Experiment, int], threads, settings: EvalSettings) -> dict:
     """One scene of an experiment on a Dask worker (threads limited to its share of the machine)."""
     from twinfocus.cluster import limit_threads
 
     limit_threads(threads)
     exp, unit = part
-    return run_experiment(exp, settings, None, log=lambda msg: None, units=[unit])
+    return run_experiment(exp, settings, _WORKER_TEMPLATES, log=lambda msg: None, units=[unit])
 
 
 def run_experiments(
