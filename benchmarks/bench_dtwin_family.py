@@ -130,32 +130,41 @@ def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> 
     return rec
 
 
+#: the digital twin's own warnings (twinfocus.pipeline.outline_warnings), which ``trusted`` applies
+#: anew from each record's measurements, so that records of an earlier run are read by the present rules
+OWN_WARNINGS = ("matches its template poorly", "does not fill its outline", "not sure of the reference's phase",
+                "the tracking drifted")
+
+
 def trusted(rec: dict, twin: str) -> bool:
     """Whether the confidence report trusts this record's ``twin`` result, by the report's present
-    rules: for the digital twin the reference is read against its outline (its energy contrast
-    there, ``MAX_OUTLINE_CONTRAST``), not against its template's picture, so records from a run
-    before that rule are read alike (their picture warning dropped, the contrast applied)."""
-    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST
+    rules: for the digital twin its own checks (``twinfocus.pipeline.outline_warnings``: the
+    reference's energy contrast over its outline, the grown outlines' agreement, the estimate's step
+    coherence) from the record's measurements, with the report's other warnings as recorded."""
+    from twinfocus.pipeline import outline_warnings
 
     if twin != "digital":
         return bool(rec[f"{twin} trusted"])
-    others = [w for w in rec["digital warnings"]
-              if "matches its template poorly" not in w and "does not fill its outline" not in w]
-    contrast = (rec["digital confidence"].get("reference_outline") or rec["digital outline"])["contrast"]
-    return not others and contrast <= MAX_OUTLINE_CONTRAST
+    others = [w for w in rec["digital warnings"] if not any(k in w for k in OWN_WARNINGS)]
+    conf = rec["digital confidence"]
+    contrast = (conf.get("reference_outline") or rec["digital outline"])["contrast"]
+    return not others and not outline_warnings(contrast, conf.get("outline_agreement"), rec.get("digital step_coherence"))
 
 
 def table(results: dict) -> str:
-    """Markdown: each twin per condition (mean +- sd, worst) and the confidence report's errors."""
+    """Markdown: each twin per condition (mean +- sd, worst; draws the tool refused counted apart)
+    and the confidence report's errors over every scored draw."""
     cols = ("digital", "physical", "reference true phase", "oracle")
-    lines = ["| condition | draws | digital twin | physical twin | reference's true phase | target's own phase |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| condition | draws | refused | digital twin | physical twin | reference's true phase | target's own phase |",
+             "|---|---|---|---|---|---|---|"]
     for cond, recs in results.items():
-        cells = [np.array([r[c] for r in recs]) for c in cols]
-        lines.append(f"| {cond} | {len(recs)} | " + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
+        scored = [r for r in recs if "refused" not in r]
+        cells = [np.array([r[c] for r in scored]) for c in cols]
+        lines.append(f"| {cond} | {len(scored)} | {len(recs) - len(scored)} | "
+                     + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
     lines += ["", "| twin | results | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |", "|---|---|---|---|"]
+    recs = [r for rs in results.values() for r in rs if "refused" not in r]
     for twin in ("digital", "physical"):
-        recs = [r for rs in results.values() for r in rs]
         poor = sum(r[twin] < POOR and trusted(r, twin) for r in recs)
         alarm = sum(r[twin] >= GOOD and not trusted(r, twin) for r in recs)
         lines.append(f"| {twin} | {len(recs)} | {poor} ({poor / len(recs):.0%}) | {alarm} ({alarm / len(recs):.0%}) |")
@@ -163,16 +172,19 @@ def table(results: dict) -> str:
 
 
 def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, heldout: bool = False,
-         rows: int = 65, size: int = 64, only: str | None = None, minutes: float | None = None) -> dict:
+         rows: int = 65, size: int = 64, only: str | None = None, minutes: float | None = None,
+         resume: bool = False) -> dict:
+    from twinfocus.errors import TwinFocusError
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / ("dtwin_family_heldout.json" if heldout else "dtwin_family.json")
     first, shapes = (HELDOUT_SEED, HELDOUT_SHAPES) if heldout else (BENCH_SEED, BENCH_SHAPES)
-    results: dict = json.loads(path.read_text()) if only and path.is_file() else {}
+    results: dict = json.loads(path.read_text()) if (only or resume) and path.is_file() else {}
     results.pop("scan", None)
     conditions = [c for c in CONDITIONS if not only or only == c]
     for cond in conditions:
-        results[cond] = []
+        results[cond] = results.get(cond, []) if resume else []
     start = time.monotonic()
     # seed by seed across the conditions, so that a run cut short by ``minutes`` has as many
     # draws of each
@@ -181,8 +193,15 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, held
             print(f"[dtwin family] {minutes} minutes spent: stopping after {seed - first} draws per condition", file=sys.stderr)
             break
         for cond in conditions:
+            if any(r["seed"] == seed for r in results[cond]):
+                continue
             print(f"[dtwin family{', held out' if heldout else ''}] {cond}, seed {seed}", file=sys.stderr, flush=True)
-            results[cond].append(one_draw(cond, seed, shapes, rows, size))
+            try:
+                results[cond].append(one_draw(cond, seed, shapes, rows, size))
+            except TwinFocusError as e:
+                # what a user would be told instead of a result (counted, not scored)
+                kw = family_scenario(cond, seed, shapes, rows)
+                results[cond].append({"seed": seed, "reference": kw["reference"], "target": kw["target"], "refused": str(e)})
             path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1, default=float))
     path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1, default=float))
     print(table(results))
@@ -198,5 +217,6 @@ if __name__ == "__main__":
     ap.add_argument("--size", type=int, default=64, help="pixels per side of each region (the paper: 100)")
     ap.add_argument("--only", default=None, help="one condition's name (replaces it in an earlier file)")
     ap.add_argument("--minutes", type=float, default=None, help="start no new seed after this many minutes")
+    ap.add_argument("--resume", action="store_true", help="keep the draws an earlier run of this file holds")
     a = ap.parse_args()
-    main(a.out, a.draws, a.heldout, a.rows, a.size, a.only, a.minutes)
+    main(a.out, a.draws, a.heldout, a.rows, a.size, a.only, a.minutes, a.resume)

@@ -33,6 +33,7 @@ from twinfocus.autofocus import (
 from twinfocus.backprojection import backproject, subimage_basis, subimage_basis_points
 from twinfocus.band_delay import half_band_chirps, half_band_data
 from twinfocus.basis import form_image
+from twinfocus.drift_check import step_coherence
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE
 from twinfocus.grid import ImageGrid
@@ -398,6 +399,7 @@ def focus_bases(
     if method == "twin" and support is not None:
         # a digital twin's like-with-like check (the confidence report reads it)
         m["reference_outline"] = outline_fill(out.reference, support)
+        m["phase_step_coherence"] = round(step_coherence(out.phase_rad), 4)
     m["confidence"] = confidence_report(m, positions, chirp, reference_grid, target_grid, tracking_error_m)
     if truth_target is not None and truth_reference is not None and positions_true is not None:
         add_truth_metrics(out, tgt_basis, positions, chirp, truth_target, truth_reference, positions_true,
@@ -490,11 +492,50 @@ MAX_REFERENCE_RESIDUAL = 0.01
 #: reference on the true positions 2.3-2.6, the outline estimates (all below 0.90 of target SSIM)
 #: 3.7-6.4; checked on held-out draws (docs/digital_twin_field.md)
 MAX_OUTLINE_CONTRAST = 3.2
+#: ... or when the estimates from the outline's grown variants agree less than this
+#: (:func:`twinfocus.template_match.averaged_outline_phase`'s ``agreement``) ...
+MIN_OUTLINE_AGREEMENT = 0.95
+#: ... or when its phase moves smoothly along the scan (:func:`twinfocus.drift_check.step_coherence`
+#: above this): a drift, which one phase per position cannot undo (bench draws: 0.02-0.09 under
+#: jitter, 0.45-0.50 under a hand's drift)
+MAX_STEP_COHERENCE = 0.3
 #: what a digital twin's user can do when its result is flagged
 DIGITAL_TWIN_NEXT = (
     "to get this scene at its ceiling, scan the reference alone on a motion stage and focus with "
     "--template-scan, or rescan holding the radar steadier"
 )
+
+
+def outline_warnings(contrast: float, agreement: float | None, step: float | None) -> list[str]:
+    """The digital twin's own checks (docs/digital_twin_field.md), each a warning that says what
+    to do: contrast, the corrected reference's energy contrast over its outline
+    (:func:`twinfocus.outline_fill.outline_fill`); agreement, how far the estimates from the
+    outline's grown variants agree (:func:`twinfocus.template_match.averaged_outline_phase`) or
+    None; step, the estimate's step coherence (:func:`twinfocus.drift_check.step_coherence`) or None.
+    """
+    out = []
+    if contrast > MAX_OUTLINE_CONTRAST:
+        out.append(
+            f"the corrected reference does not fill its outline as a focused rough reference does: "
+            f"its energy's contrast over the outline is {contrast:.1f} (> {MAX_OUTLINE_CONTRAST}; about 2.5 "
+            "focused): the outline estimate piled the energy into a few bright pixels instead of finding the "
+            f"reference's phase; expect the target below its ceiling; {DIGITAL_TWIN_NEXT} (docs/digital_twin_field.md)"
+        )
+    if agreement is not None and agreement < MIN_OUTLINE_AGREEMENT:
+        out.append(
+            f"the outline estimate is not sure of the reference's phase: the outlines grown from the camera's "
+            f"pulled it {1 - agreement:.2f} apart (agreement {agreement:.2f} < {MIN_OUTLINE_AGREEMENT}); expect the "
+            f"target below its ceiling; {DIGITAL_TWIN_NEXT} (docs/digital_twin_field.md)"
+        )
+    if step is not None and step > MAX_STEP_COHERENCE:
+        out.append(
+            f"the tracking drifted: the estimate changes smoothly from one position to the next (step coherence "
+            f"{step:.2f} > {MAX_STEP_COHERENCE}), which a drift or a hand's rotation does and one phase per position "
+            "cannot undo across the scene; expect the target well below its ceiling. Scan the reference alone on a "
+            "motion stage and focus with --template-scan (its drift fit follows a drift), or rescan on a stage or "
+            "holding the radar steadier (docs/digital_twin_field.md)"
+        )
+    return out
 
 
 def confidence_report(
@@ -548,13 +589,9 @@ def confidence_report(
         # a digital twin: its template is an outline, which a speckled reference never matches
         # as a picture; read the reference against the outline instead
         out["reference_outline"] = fill
-        if fill["contrast"] > MAX_OUTLINE_CONTRAST:
-            out["warnings"].append(
-                f"the corrected reference does not fill its outline as a focused rough reference does: "
-                f"its energy's contrast over the outline is {fill['contrast']:.1f} (> {MAX_OUTLINE_CONTRAST}; about 2.5 "
-                "focused): the outline estimate piled the energy into a few bright pixels instead of finding the "
-                f"reference's phase; expect the target below its ceiling; {DIGITAL_TWIN_NEXT} (docs/digital_twin_field.md)"
-            )
+        out["phase_step_coherence"] = m.get("phase_step_coherence")
+        agreement = (est.get("outline_ensemble") or {}).get("agreement")
+        out["warnings"] += outline_warnings(fill["contrast"], agreement, m.get("phase_step_coherence"))
     elif match is not None and match < least:
         out["warnings"].append(
             f"the corrected reference matches its template poorly (SSIM {match:.2f} < {least}); "
