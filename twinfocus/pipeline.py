@@ -629,10 +629,16 @@ def confidence_report(
     if "outline" in est:
         # how sure the outline estimator is: the energy it put inside the outline, and how many of
         # its starts ended within 0.01 of the chosen one (several far-apart maxima: less sure)
-        inside = est["outline"]["energy_inside"]
-        best = max(inside)
-        out["outline_energy_inside"] = best
-        out["outline_starts_agreeing"] = f"{sum(v >= best - 0.01 for v in inside)}/{len(inside)}"
+        info = est["outline"]
+        inside = info["energy_inside"]
+        out["outline_energy_inside"] = inside[info.get("chosen", int(np.argmax(inside)))]
+        if "contrast" in info:
+            # the starts that ended within 5 % of the chosen end's speckle contrast
+            least = min(info["contrast"])
+            out["outline_starts_agreeing"] = f"{sum(c <= 1.05 * least for c in info['contrast'])}/{len(inside)}"
+        else:
+            best = max(inside)
+            out["outline_starts_agreeing"] = f"{sum(v >= best - 0.01 for v in inside)}/{len(inside)}"
         if "outline_ensemble" in est:
             out["outline_agreement"] = est["outline_ensemble"]["agreement"]
         twin = m.get("digital_twin") or {}
