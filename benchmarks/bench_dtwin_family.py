@@ -138,17 +138,21 @@ OWN_WARNINGS = ("matches its template poorly", "does not fill its outline", "not
 
 def trusted(rec: dict, twin: str) -> bool:
     """Whether the confidence report trusts this record's ``twin`` result, by the report's present
-    rules: for the digital twin its own checks (``twinfocus.pipeline.outline_warnings``: the
-    reference's energy contrast over its outline, the grown outlines' agreement, the estimate's step
-    coherence) from the record's measurements, with the report's other warnings as recorded."""
-    from twinfocus.pipeline import outline_warnings
+    rules: the drift check (``twinfocus.pipeline.drift_warnings``) and, for the digital twin, its own
+    checks (``outline_warnings``: the reference's energy contrast over its outline, the grown
+    outlines' agreement) applied anew to the record's measurements, the report's other warnings as
+    recorded."""
+    from twinfocus.pipeline import drift_warnings, outline_warnings
 
-    if twin != "digital":
-        return bool(rec[f"{twin} trusted"])
-    others = [w for w in rec["digital warnings"] if not any(k in w for k in OWN_WARNINGS)]
-    conf = rec["digital confidence"]
-    contrast = (conf.get("reference_outline") or rec["digital outline"])["contrast"]
-    return not others and not outline_warnings(contrast, conf.get("outline_agreement"), rec.get("digital step_coherence"))
+    digital = twin == "digital"
+    conf = rec[f"{twin} confidence"]
+    others = [w for w in rec[f"{twin} warnings"] if not any(k in w for k in OWN_WARNINGS)]
+    # (records before the concentration was measured: None, the drift judged by its steps alone)
+    own = drift_warnings(rec[f"{twin} step_coherence"], conf.get("phase_concentration"), digital, conf["separation_deg"])
+    if digital:
+        contrast = (conf.get("reference_outline") or rec["digital outline"])["contrast"]
+        own += outline_warnings(contrast, conf.get("outline_agreement"))
+    return not others and not own
 
 
 def table(results: dict) -> str:

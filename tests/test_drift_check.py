@@ -4,7 +4,7 @@ the digital twin's warnings in the confidence report that read it."""
 import numpy as np
 import pytest
 
-from twinfocus.drift_check import step_coherence
+from twinfocus.drift_check import phase_concentration, step_coherence
 from twinfocus.errors import TwinFocusError
 from twinfocus.motion import drift_errors, gaussian_errors
 
@@ -34,9 +34,12 @@ def test_jitter_is_incoherent_and_a_drift_of_the_same_size_is_not():
     assert np.std(drift) > 0.2e-3
     assert step_coherence(k * jitter) < 0.15
     assert step_coherence(k * drift) > 0.5
+    # the drift spreads the phases (0.5 mm: 1.6 rad rms); 0.05 mm of it keeps them together
+    assert phase_concentration(k * drift) < 0.5 < 0.9 < phase_concentration(0.1 * k * drift)
+    assert phase_concentration(np.array([0.0, np.pi])) == pytest.approx(0.0, abs=1e-12)
 
 
-def _report(contrast=2.5, agreement=None, step=None):
+def _report(contrast=2.5, agreement=None, step=None, digital=True, concentration=0.05):
     from twinfocus.grid import ImageGrid
     from twinfocus.pipeline import confidence_report
     from twinfocus.radar import Chirp, mmwcas_virtual_array
@@ -45,7 +48,9 @@ def _report(contrast=2.5, agreement=None, step=None):
     pos = phase_centres(paper_raster(6, 10), mmwcas_virtual_array())
     ref = ImageGrid.from_roi([-0.15, 0.0, -0.11, 0.12, 0.6], 20)
     tgt = ImageGrid.from_roi([0.02, 0.13, -0.11, 0.12, 0.6], 20)
-    m: dict = {"reference_outline": {"energy_inside": 0.9, "contrast": contrast}, "phase_step_coherence": step}
+    m: dict = {"phase_step_coherence": step, "phase_concentration": concentration}
+    if digital:
+        m["reference_outline"] = {"energy_inside": 0.9, "contrast": contrast}
     if agreement is not None:
         m["estimator"] = {"outline": {"energy_inside": [0.95]}, "outline_ensemble": {"agreement": agreement}}
     return confidence_report(m, pos, Chirp(), ref, tgt, 0.5e-3)
@@ -54,11 +59,18 @@ def _report(contrast=2.5, agreement=None, step=None):
 def test_the_report_trusts_a_focused_outline_estimate_and_flags_a_drift_or_a_split_one():
     from twinfocus.pipeline import MAX_STEP_COHERENCE, MIN_OUTLINE_AGREEMENT
 
-    good = _report(2.5, MIN_OUTLINE_AGREEMENT + 0.03, 0.05)
+    good = _report(2.3, MIN_OUTLINE_AGREEMENT + 0.03, 0.05)
     assert good["trusted"] and good["phase_step_coherence"] == 0.05
-    drift = _report(2.5, MIN_OUTLINE_AGREEMENT + 0.03, MAX_STEP_COHERENCE + 0.1)
+    drift = _report(2.3, MIN_OUTLINE_AGREEMENT + 0.03, MAX_STEP_COHERENCE + 0.1)
     (warning,) = drift["warnings"]
     assert not drift["trusted"] and "drifted" in warning and "--template-scan" in warning
-    split = _report(2.5, MIN_OUTLINE_AGREEMENT - 0.03, 0.05)
+    split = _report(2.3, MIN_OUTLINE_AGREEMENT - 0.03, 0.05)
     (warning,) = split["warnings"]
     assert not split["trusted"] and "not sure" in warning and "--template-scan" in warning
+    # a physical twin (no outline): the drift is flagged too, with its own advice
+    assert _report(step=0.05, digital=False)["trusted"]
+    physical = _report(step=MAX_STEP_COHERENCE + 0.1, digital=False)
+    (warning,) = physical["warnings"]
+    assert "drifted" in warning and "extrapolation" in warning and "--template-scan" not in warning
+    # a scan tracked well moves smoothly too, but its phases stay together: not a drift
+    assert _report(step=0.99, digital=False, concentration=0.95)["trusted"]
