@@ -166,12 +166,15 @@ def table(results: dict) -> str:
         cells = [np.array([r[c] for r in scored]) for c in cols]
         lines.append(f"| {cond} | {len(scored)} | {len(recs) - len(scored)} | "
                      + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
-    lines += ["", "| twin | results | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |", "|---|---|---|---|"]
+    lines += ["", "| twin | results | trusted (their worst) | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |",
+              "|---|---|---|---|---|"]
     recs = [r for rs in results.values() for r in rs if "refused" not in r]
     for twin in ("digital", "physical"):
+        kept = [r[twin] for r in recs if trusted(r, twin)]
         poor = sum(r[twin] < POOR and trusted(r, twin) for r in recs)
         alarm = sum(r[twin] >= GOOD and not trusted(r, twin) for r in recs)
-        lines.append(f"| {twin} | {len(recs)} | {poor} ({poor / len(recs):.0%}) | {alarm} ({alarm / len(recs):.0%}) |")
+        worst = f" ({min(kept):.3f})" if kept else ""
+        lines.append(f"| {twin} | {len(recs)} | {len(kept)}{worst} | {poor} ({poor / len(recs):.0%}) | {alarm} ({alarm / len(recs):.0%}) |")
     return "\n".join(lines)
 
 

@@ -3,8 +3,8 @@ of a drifting tracker rather than a jittering one.
 
 Jitter (each position's error its own) gives phases with no relation between neighbours once it
 passes a few tenths of a millimetre: the mean phasor of the steps exp(j (phi_{m+1} - phi_m)) is
-near 0 (0.02-0.09 on the field benches' draws at 0.5-1.6 mm). A drift (a hand's, or a VIO's)
-changes slowly along the scan, so consecutive positions' phases agree (0.45-0.5 under a hand's
+near 0 (0.01-0.11 on the family bench's draws at 0.5-1.6 mm). A drift (a hand's, or a VIO's)
+changes slowly along the scan, so consecutive positions' phases agree (0.41-0.50 under a hand's
 0.8 mm drift and 0.15 degrees of rotation). A drift moves every pixel of the reference its own
 way (its rotation most of all), which one phase per position cannot undo; the physical twin's
 drift fit can (:func:`twinfocus.space_variant.fit_smooth_drift`), a digital twin's outline cannot.

@@ -491,17 +491,17 @@ MAX_REFERENCE_RESIDUAL = 0.01
 #: a digital twin's reference is read against its outline, not its template's picture
 #: (:mod:`twinfocus.outline_fill`): flagged when its energy's contrast over the outline is above
 #: this. The estimator picks the end of least contrast (:data:`twinfocus.template_match.OUTLINE_CHOICE`),
-#: so its results sit at 1.7-2.7 whatever they reached; on the family bench's draws
-#: (benchmarks/bench_dtwin_family.py, 390 positions, 64 x 64 pixels) the results at 0.93-0.98 were at
-#: 1.7-2.7, those above 2.75 all below 0.90; checked on held-out draws (docs/digital_twin_field.md)
+#: so most of its results sit at 1.7-2.7 whatever they reached; on the family bench's draws
+#: (benchmarks/bench_dtwin_family.py, 390 positions, 64 x 64 pixels) those at 0.93 and above were at
+#: 1.7-2.5, the seven above 2.75 all below 0.90; checked on held-out draws (docs/digital_twin_field.md)
 MAX_OUTLINE_CONTRAST = 2.75
 #: ... or when the estimates from the outline's grown variants agree less than this
 #: (:func:`twinfocus.template_match.averaged_outline_phase`'s ``agreement``; family bench: 0.97-1.00
-#: at 0.93 and above, 0.85-0.94 on 7 results of 0.56-0.89) ...
+#: at 0.93 and above, 0.85-0.94 on nine results of 0.59-0.89) ...
 MIN_OUTLINE_AGREEMENT = 0.95
 #: either twin is flagged when its phase moves smoothly along the scan
 #: (:func:`twinfocus.drift_check.step_coherence` above this): a drift (family bench: 0.01-0.11
-#: under jitter, 0.45-0.50 under a hand's drift, where neither twin reached 0.95)
+#: under jitter, 0.41-0.50 under a hand's drift, where neither twin reached 0.95)
 MAX_STEP_COHERENCE = 0.3
 #: ... and its phases spread, their concentration below this (a scan tracked to 0.1 mm: 0.95; a
 #: hand's drift: 0.02-0.05)
