@@ -38,7 +38,7 @@ def phase_concentration(phase_rad: np.ndarray) -> float:
     """|mean_m exp(j phi_m)|: float in [0, 1], 1 when every position has the same phase (a scan
     tracked exactly), near 0 when the phases cover the circle (errors past a quarter wavelength).
     A scan tracked well moves smoothly too (its step coherence is near 1), but its phases stay
-    together; a drift that matters spreads them (0.02-0.05 under a hand's 0.8 mm drift).
+    together; a drift that matters spreads them (below 0.5 for 0.5 mm of drift and more).
 
     phase_rad : float (M,) radians, M >= 1.
     """

@@ -503,8 +503,8 @@ MIN_OUTLINE_AGREEMENT = 0.95
 #: (:func:`twinfocus.drift_check.step_coherence` above this): a drift (family bench: 0.01-0.11
 #: under jitter, 0.41-0.50 under a hand's drift, where neither twin reached 0.95)
 MAX_STEP_COHERENCE = 0.3
-#: ... and its phases spread, their concentration below this (a scan tracked to 0.1 mm: 0.95; a
-#: hand's drift: 0.02-0.05)
+#: ... and its phases spread, their concentration below this (a scan tracked to 0.1 mm: about 0.95;
+#: a drift of 0.5 mm and more: below 0.5, tests/test_drift_check.py)
 MAX_DRIFT_CONCENTRATION = 0.5
 #: what a digital twin's user can do when its result is flagged
 DIGITAL_TWIN_NEXT = (
