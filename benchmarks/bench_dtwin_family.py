@@ -1,19 +1,20 @@
 """The digital twin and the physical twin on a wide family of field scenes, and how far the
 confidence report can be believed on them.
 
-Every draw takes at random (from its own seed): the reference's letter (with holes and without; 'O'
-is a ring), the target's letter, the letters' separation (9-12 degrees; 16.3 under a hand's
-drift), the reference's rough texture (every scatterer its own phase over +-90 degrees and
-strength +-30 %) and a camera cloud as it comes (1 mm noise, 25 % of the surface missing in
-patches, 2 % outliers, an offset of 2-3 mm in a random direction). Conditions:
+Every draw takes at random (from its own seed): the reference's shape and the target's (letters
+with holes and without, 'O' a ring; plates and tools of a letter's size: a plate, a washer, a
+wrench, a disc, a key), their separation (9-12 degrees; 16.3 under a hand's drift), the
+reference's rough texture (every scatterer its own phase over +-90 degrees and strength +-30 %)
+and a camera cloud as it comes (1 mm noise, 25 % of the surface missing in patches, 2 %
+outliers, an offset of 2-3 mm in a random direction). Conditions:
 
   paper: 0.5 mm z + 0.2 mm x/y tracking error, 15 dB;
   1 mm deeper: 1 mm z + 0.3 mm x/y, 10 dB, the target 10 cm deeper than the reference;
   1.6 mm: 1.6 mm z (every phase wraps) + 0.3 mm x/y, 15 dB;
   hand: a hand's drift, 0.8 mm per axis, and 0.15 degrees of array rotation, 15 dB.
 
-Bench draws (seeds 1001 on, letters of ``BENCH_LETTERS``) are what thresholds are chosen on;
-held-out draws (seeds 2001 on, letters of ``HELDOUT_LETTERS``, none shared) only check them.
+Bench draws (seeds 1001 on, shapes of ``BENCH_SHAPES``) are what thresholds are chosen on;
+held-out draws (seeds 2001 on, shapes of ``HELDOUT_SHAPES``, none shared) only check them.
 Scans are smaller than the paper's 780 positions x 100 x 100 pixels: ``--rows`` (default 65 rows
 of 6 columns, 390 positions) and ``--size`` (default 64 x 64 pixels per region).
 
@@ -23,9 +24,10 @@ registered closed form and the drift fit where it helps), the reference's own tr
 phase per position) and the target's (the oracle); each twin's confidence report (trusted, its
 warnings) and what it measured.
 
-    python -m benchmarks.bench_dtwin_family --draws 3             (bench draws: 2-3 min a draw, 10 under a
-                                                                   hand's drift, on the shared 2-core VM)
-    python -m benchmarks.bench_dtwin_family --draws 2 --heldout   (held-out draws)
+    python -m benchmarks.bench_dtwin_family --draws 10 --minutes 30            (bench draws)
+    python -m benchmarks.bench_dtwin_family --draws 5 --minutes 15 --heldout  (held-out draws)
+
+(--minutes: no new seed is started after that long; the draws of every condition go seed by seed.)
 
 Writes ``dtwin_family.json`` (``dtwin_family_heldout.json``) and prints the table of each twin per
 condition (mean +- sd, worst) and the confidence report's false trust (trusted, below 0.90) and
@@ -37,6 +39,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -47,9 +50,10 @@ CONDITIONS = {
     "1.6 mm": dict(error_sigma_m=(0.3e-3, 0.3e-3, 1.6e-3), snr_db=15),
     "hand": dict(error_model="hand", error_sigma_m=(0.8e-3,) * 3, snr_db=15, separation_deg=16.3),
 }
-#: the reference's and target's letters: with holes (A, B, O: a ring, R, P, D, Q) and without
-BENCH_LETTERS = "ABOFHTE"
-HELDOUT_LETTERS = "DPRQLKX"
+#: the references' and targets' shapes: letters with holes (A, B, O: a ring, R, P, D, Q) and
+#: without, plates and tools (twinfocus.scene.tools: a plate, a washer, a wrench; a disc, a key)
+BENCH_SHAPES = (*"ABOFHTE", "plate", "washer", "wrench")
+HELDOUT_SHAPES = (*"DPRQLKX", "disc", "key")
 #: the bench's and the held-out draws' first seeds
 BENCH_SEED, HELDOUT_SEED = 1001, 2001
 #: the camera cloud's impairments: noise m, hole fraction, outlier fraction; its offset is drawn
@@ -60,21 +64,22 @@ OFFSET_RANGE_M = (2e-3, 3e-3)
 GOOD, POOR = 0.95, 0.90
 
 
-def family_scenario(condition: str, seed: int, letters: str, rows: int) -> dict:
-    """The Scenario keywords of one draw of ``condition``: letters and separation from ``seed``."""
+def family_scenario(condition: str, seed: int, shapes: tuple, rows: int) -> dict:
+    """The Scenario keywords of one draw of ``condition``: shapes and separation from ``seed``."""
     rng = np.random.default_rng([seed, 31])
-    ref, tgt = rng.choice(list(letters), 2, replace=False)
+    ref, tgt = rng.choice(list(shapes), 2, replace=False)
     kw = dict(reference=str(ref), target=str(tgt), separation_deg=float(rng.uniform(9.0, 12.0)),
               reference_roughness_deg=90.0, reference_amplitude_spread=0.3, n_rows=rows, seed=seed)
     return {**kw, **CONDITIONS[condition]}
 
 
-def one_draw(condition: str, seed: int, letters: str, rows: int, size: int) -> dict:
+def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> dict:
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.basis import form_image
     from twinfocus.digital_twin.camera_cloud import camera_cloud
     from twinfocus.digital_twin.condition import digital_twin_reference
+    from twinfocus.drift_check import step_coherence
     from twinfocus.estimators import estimator_settings
     from twinfocus.metrics import image_ssim, oracle_phase
     from twinfocus.outline_fill import outline_fill
@@ -82,7 +87,7 @@ def one_draw(condition: str, seed: int, letters: str, rows: int, size: int) -> d
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.templates import template_from_scan
 
-    kw = family_scenario(condition, seed, letters, rows)
+    kw = family_scenario(condition, seed, shapes, rows)
     sc = Scenario(**kw)
     scan, tpl_scan = simulate_scenario(sc)
     rg, tg = scenario_grids(sc, size)
@@ -112,6 +117,7 @@ def one_draw(condition: str, seed: int, letters: str, rows: int, size: int) -> d
         rec[f"{name} warnings"] = conf["warnings"]
         rec[f"{name} confidence"] = {k: v for k, v in conf.items() if k not in ("warnings", "trusted")}
         rec[f"{name} time_s"] = out.timings_s["autofocus"] + out.timings_s.get("space_variant", 0.0)
+        rec[f"{name} step_coherence"] = round(step_coherence(out.phase_rad), 4)
     # how the references on the true positions and the physical twin's fill the outline (what the
     # digital twin's is read against)
     rec["digital outline"] = dt.metrics["reference_outline"]
@@ -124,53 +130,85 @@ def one_draw(condition: str, seed: int, letters: str, rows: int, size: int) -> d
     return rec
 
 
+#: the digital twin's own warnings (twinfocus.pipeline.outline_warnings), which ``trusted`` applies
+#: anew from each record's measurements, so that records of an earlier run are read by the present rules
+OWN_WARNINGS = ("matches its template poorly", "does not fill its outline", "not sure of the reference's phase",
+                "the tracking drifted")
+
+
 def trusted(rec: dict, twin: str) -> bool:
     """Whether the confidence report trusts this record's ``twin`` result, by the report's present
-    rules: for the digital twin the reference is read against its outline (its energy contrast
-    there, ``MAX_OUTLINE_CONTRAST``), not against its template's picture, so records from a run
-    before that rule are read alike (their picture warning dropped, the contrast applied)."""
-    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST
+    rules: the drift check (``twinfocus.pipeline.drift_warnings``) and, for the digital twin, its own
+    checks (``outline_warnings``: the reference's energy contrast over its outline, the grown
+    outlines' agreement) applied anew to the record's measurements, the report's other warnings as
+    recorded."""
+    from twinfocus.pipeline import drift_warnings, outline_warnings
 
-    if twin != "digital":
-        return bool(rec[f"{twin} trusted"])
-    others = [w for w in rec["digital warnings"]
-              if "matches its template poorly" not in w and "does not fill its outline" not in w]
-    contrast = (rec["digital confidence"].get("reference_outline") or rec["digital outline"])["contrast"]
-    return not others and contrast <= MAX_OUTLINE_CONTRAST
+    digital = twin == "digital"
+    conf = rec[f"{twin} confidence"]
+    others = [w for w in rec[f"{twin} warnings"] if not any(k in w for k in OWN_WARNINGS)]
+    # (records before the concentration was measured: None, the drift judged by its steps alone)
+    own = drift_warnings(rec[f"{twin} step_coherence"], conf.get("phase_concentration"), digital, conf["separation_deg"])
+    if digital:
+        contrast = (conf.get("reference_outline") or rec["digital outline"])["contrast"]
+        own += outline_warnings(contrast, conf.get("outline_agreement"))
+    return not others and not own
 
 
 def table(results: dict) -> str:
-    """Markdown: each twin per condition (mean +- sd, worst) and the confidence report's errors."""
+    """Markdown: each twin per condition (mean +- sd, worst; draws the tool refused counted apart)
+    and the confidence report's errors over every scored draw."""
     cols = ("digital", "physical", "reference true phase", "oracle")
-    lines = ["| condition | draws | digital twin | physical twin | reference's true phase | target's own phase |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| condition | draws | refused | digital twin | physical twin | reference's true phase | target's own phase |",
+             "|---|---|---|---|---|---|---|"]
     for cond, recs in results.items():
-        cells = [np.array([r[c] for r in recs]) for c in cols]
-        lines.append(f"| {cond} | {len(recs)} | " + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
-    lines += ["", "| twin | results | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |", "|---|---|---|---|"]
+        scored = [r for r in recs if "refused" not in r]
+        cells = [np.array([r[c] for r in scored]) for c in cols]
+        lines.append(f"| {cond} | {len(scored)} | {len(recs) - len(scored)} | "
+                     + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
+    lines += ["", "| twin | results | trusted (their worst) | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |",
+              "|---|---|---|---|---|"]
+    recs = [r for rs in results.values() for r in rs if "refused" not in r]
     for twin in ("digital", "physical"):
-        recs = [r for rs in results.values() for r in rs]
+        kept = [r[twin] for r in recs if trusted(r, twin)]
         poor = sum(r[twin] < POOR and trusted(r, twin) for r in recs)
         alarm = sum(r[twin] >= GOOD and not trusted(r, twin) for r in recs)
-        lines.append(f"| {twin} | {len(recs)} | {poor} ({poor / len(recs):.0%}) | {alarm} ({alarm / len(recs):.0%}) |")
+        worst = f" ({min(kept):.3f})" if kept else ""
+        lines.append(f"| {twin} | {len(recs)} | {len(kept)}{worst} | {poor} ({poor / len(recs):.0%}) | {alarm} ({alarm / len(recs):.0%}) |")
     return "\n".join(lines)
 
 
 def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, heldout: bool = False,
-         rows: int = 65, size: int = 64, only: str | None = None) -> dict:
+         rows: int = 65, size: int = 64, only: str | None = None, minutes: float | None = None,
+         resume: bool = False) -> dict:
+    from twinfocus.errors import TwinFocusError
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / ("dtwin_family_heldout.json" if heldout else "dtwin_family.json")
-    first, letters = (HELDOUT_SEED, HELDOUT_LETTERS) if heldout else (BENCH_SEED, BENCH_LETTERS)
-    results: dict = json.loads(path.read_text()) if only and path.is_file() else {}
+    first, shapes = (HELDOUT_SEED, HELDOUT_SHAPES) if heldout else (BENCH_SEED, BENCH_SHAPES)
+    results: dict = json.loads(path.read_text()) if (only or resume) and path.is_file() else {}
     results.pop("scan", None)
-    for cond in CONDITIONS:
-        if only and only != cond:
-            continue
-        results[cond] = []
-        for seed in range(first, first + draws):
+    conditions = [c for c in CONDITIONS if not only or only == c]
+    for cond in conditions:
+        results[cond] = results.get(cond, []) if resume else []
+    start = time.monotonic()
+    # seed by seed across the conditions, so that a run cut short by ``minutes`` has as many
+    # draws of each
+    for seed in range(first, first + draws):
+        if minutes is not None and time.monotonic() - start > 60.0 * minutes:
+            print(f"[dtwin family] {minutes} minutes spent: stopping after {seed - first} draws per condition", file=sys.stderr)
+            break
+        for cond in conditions:
+            if any(r["seed"] == seed for r in results[cond]):
+                continue
             print(f"[dtwin family{', held out' if heldout else ''}] {cond}, seed {seed}", file=sys.stderr, flush=True)
-            results[cond].append(one_draw(cond, seed, letters, rows, size))
+            try:
+                results[cond].append(one_draw(cond, seed, shapes, rows, size))
+            except TwinFocusError as e:
+                # what a user would be told instead of a result (counted, not scored)
+                kw = family_scenario(cond, seed, shapes, rows)
+                results[cond].append({"seed": seed, "reference": kw["reference"], "target": kw["target"], "refused": str(e)})
             path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1, default=float))
     path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1, default=float))
     print(table(results))
@@ -181,9 +219,11 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--draws", type=int, default=3, help="draws per condition")
-    ap.add_argument("--heldout", action="store_true", help="the held-out draws (other letters, other seeds)")
+    ap.add_argument("--heldout", action="store_true", help="the held-out draws (other shapes, other seeds)")
     ap.add_argument("--rows", type=int, default=65, help="scan rows of 6 columns (the paper: 130)")
     ap.add_argument("--size", type=int, default=64, help="pixels per side of each region (the paper: 100)")
     ap.add_argument("--only", default=None, help="one condition's name (replaces it in an earlier file)")
+    ap.add_argument("--minutes", type=float, default=None, help="start no new seed after this many minutes")
+    ap.add_argument("--resume", action="store_true", help="keep the draws an earlier run of this file holds")
     a = ap.parse_args()
-    main(a.out, a.draws, a.heldout, a.rows, a.size, a.only)
+    main(a.out, a.draws, a.heldout, a.rows, a.size, a.only, a.minutes, a.resume)

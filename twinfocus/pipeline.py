@@ -33,6 +33,7 @@ from twinfocus.autofocus import (
 from twinfocus.backprojection import backproject, subimage_basis, subimage_basis_points
 from twinfocus.band_delay import half_band_chirps, half_band_data
 from twinfocus.basis import form_image
+from twinfocus.drift_check import phase_concentration, step_coherence
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE
 from twinfocus.grid import ImageGrid
@@ -398,6 +399,9 @@ def focus_bases(
     if method == "twin" and support is not None:
         # a digital twin's like-with-like check (the confidence report reads it)
         m["reference_outline"] = outline_fill(out.reference, support)
+    if method == "twin":
+        m["phase_step_coherence"] = round(step_coherence(out.phase_rad), 4)
+        m["phase_concentration"] = round(phase_concentration(out.phase_rad), 4)
     m["confidence"] = confidence_report(m, positions, chirp, reference_grid, target_grid, tracking_error_m)
     if truth_target is not None and truth_reference is not None and positions_true is not None:
         add_truth_metrics(out, tgt_basis, positions, chirp, truth_target, truth_reference, positions_true,
@@ -486,15 +490,74 @@ MIN_REFERENCE_MATCH_PHYSICAL = 0.95
 MAX_REFERENCE_RESIDUAL = 0.01
 #: a digital twin's reference is read against its outline, not its template's picture
 #: (:mod:`twinfocus.outline_fill`): flagged when its energy's contrast over the outline is above
-#: this. Bench draws (benchmarks/bench_dtwin_family.py, 390 positions, 64 x 64 pixels): the
-#: reference on the true positions 2.3-2.6, the outline estimates (all below 0.90 of target SSIM)
-#: 3.7-6.4; checked on held-out draws (docs/digital_twin_field.md)
-MAX_OUTLINE_CONTRAST = 3.2
+#: this. The estimator picks the end of least contrast (:data:`twinfocus.template_match.OUTLINE_CHOICE`),
+#: so most of its results sit at 1.7-2.7 whatever they reached; on the family bench's draws
+#: (benchmarks/bench_dtwin_family.py, 390 positions, 64 x 64 pixels) those at 0.93 and above were at
+#: 1.7-2.5, the seven above 2.75 all below 0.90; checked on held-out draws (docs/digital_twin_field.md)
+MAX_OUTLINE_CONTRAST = 2.75
+#: ... or when the estimates from the outline's grown variants agree less than this
+#: (:func:`twinfocus.template_match.averaged_outline_phase`'s ``agreement``; family bench: 0.97-1.00
+#: at 0.93 and above, 0.85-0.94 on nine results of 0.59-0.89) ...
+MIN_OUTLINE_AGREEMENT = 0.95
+#: either twin is flagged when its phase moves smoothly along the scan
+#: (:func:`twinfocus.drift_check.step_coherence` above this): a drift (family bench: 0.01-0.11
+#: under jitter, 0.41-0.50 under a hand's drift, where neither twin reached 0.95)
+MAX_STEP_COHERENCE = 0.3
+#: ... and its phases spread, their concentration below this (a scan tracked to 0.1 mm: about 0.95;
+#: a drift of 0.5 mm and more: below 0.5, tests/test_drift_check.py)
+MAX_DRIFT_CONCENTRATION = 0.5
 #: what a digital twin's user can do when its result is flagged
 DIGITAL_TWIN_NEXT = (
     "to get this scene at its ceiling, scan the reference alone on a motion stage and focus with "
     "--template-scan, or rescan holding the radar steadier"
 )
+
+
+def outline_warnings(contrast: float, agreement: float | None) -> list[str]:
+    """The digital twin's own checks (docs/digital_twin_field.md), each a warning that says what
+    to do: contrast, the corrected reference's energy contrast over its outline
+    (:func:`twinfocus.outline_fill.outline_fill`); agreement, how far the estimates from the
+    outline's grown variants agree (:func:`twinfocus.template_match.averaged_outline_phase`) or None.
+    """
+    out = []
+    if contrast > MAX_OUTLINE_CONTRAST:
+        out.append(
+            f"the corrected reference does not fill its outline as a focused rough reference does: "
+            f"its energy's contrast over the outline is {contrast:.1f} (> {MAX_OUTLINE_CONTRAST}; 1.7-2.7 "
+            "focused): the outline estimate piled the energy into a few bright pixels instead of finding the "
+            f"reference's phase; expect the target below its ceiling; {DIGITAL_TWIN_NEXT} (docs/digital_twin_field.md)"
+        )
+    if agreement is not None and agreement < MIN_OUTLINE_AGREEMENT:
+        out.append(
+            f"the outline estimate is not sure of the reference's phase: the outlines grown from the camera's "
+            f"pulled it apart (agreement {agreement:.2f} < {MIN_OUTLINE_AGREEMENT}); expect the "
+            f"target below its ceiling; {DIGITAL_TWIN_NEXT} (docs/digital_twin_field.md)"
+        )
+    return out
+
+
+def drift_warnings(step: float, concentration: float | None, digital: bool, separation_deg: float) -> list[str]:
+    """A warning when the estimate moves smoothly along the scan (``step``,
+    :func:`twinfocus.drift_check.step_coherence`, above ``MAX_STEP_COHERENCE``) and its phases
+    spread (``concentration``, :func:`~twinfocus.drift_check.phase_concentration`, below
+    ``MAX_DRIFT_CONCENTRATION``; None: not measured): the tracking drifted. A digital twin's one
+    phase per position cannot follow a drift across the scene; a physical twin's drift fit follows
+    it on the reference, and its transfer to a target ``separation_deg`` away is an extrapolation
+    (bench draws: 0.78-0.94 of target SSIM)."""
+    if step <= MAX_STEP_COHERENCE or (concentration is not None and concentration >= MAX_DRIFT_CONCENTRATION):
+        return []
+    what = (
+        "one phase per position from an outline cannot undo it across the scene; scan the reference alone on "
+        "a motion stage and focus with --template-scan (its drift fit follows a drift), or rescan"
+        if digital
+        else f"the drift fit followed it on the reference, but carrying it to a target {separation_deg:.0f} deg away "
+        "is an extrapolation; put the reference nearer the target, or rescan"
+    )
+    return [
+        f"the tracking drifted: the estimate changes smoothly from one position to the next (step coherence "
+        f"{step:.2f} > {MAX_STEP_COHERENCE}), as a drift or a hand's rotation makes it; {what} on a stage or holding "
+        "the radar steadier; expect the target below its ceiling (docs/digital_twin_field.md)"
+    ]
 
 
 def confidence_report(
@@ -548,13 +611,8 @@ def confidence_report(
         # a digital twin: its template is an outline, which a speckled reference never matches
         # as a picture; read the reference against the outline instead
         out["reference_outline"] = fill
-        if fill["contrast"] > MAX_OUTLINE_CONTRAST:
-            out["warnings"].append(
-                f"the corrected reference does not fill its outline as a focused rough reference does: "
-                f"its energy's contrast over the outline is {fill['contrast']:.1f} (> {MAX_OUTLINE_CONTRAST}; about 2.5 "
-                "focused): the outline estimate piled the energy into a few bright pixels instead of finding the "
-                f"reference's phase; expect the target below its ceiling; {DIGITAL_TWIN_NEXT} (docs/digital_twin_field.md)"
-            )
+        agreement = (est.get("outline_ensemble") or {}).get("agreement")
+        out["warnings"] += outline_warnings(fill["contrast"], agreement)
     elif match is not None and match < least:
         out["warnings"].append(
             f"the corrected reference matches its template poorly (SSIM {match:.2f} < {least}); "
@@ -592,10 +650,16 @@ def confidence_report(
     if "outline" in est:
         # how sure the outline estimator is: the energy it put inside the outline, and how many of
         # its starts ended within 0.01 of the chosen one (several far-apart maxima: less sure)
-        inside = est["outline"]["energy_inside"]
-        best = max(inside)
-        out["outline_energy_inside"] = best
-        out["outline_starts_agreeing"] = f"{sum(v >= best - 0.01 for v in inside)}/{len(inside)}"
+        info = est["outline"]
+        inside = info["energy_inside"]
+        out["outline_energy_inside"] = inside[info.get("chosen", int(np.argmax(inside)))]
+        if "contrast" in info:
+            # the starts that ended within 5 % of the chosen end's speckle contrast
+            least = min(info["contrast"])
+            out["outline_starts_agreeing"] = f"{sum(c <= 1.05 * least for c in info['contrast'])}/{len(inside)}"
+        else:
+            best = max(inside)
+            out["outline_starts_agreeing"] = f"{sum(v >= best - 0.01 for v in inside)}/{len(inside)}"
         if "outline_ensemble" in est:
             out["outline_agreement"] = est["outline_ensemble"]["agreement"]
         twin = m.get("digital_twin") or {}
@@ -615,6 +679,11 @@ def confidence_report(
             f"the corrected reference leaves {residual:.3f} of its template unmatched (> {MAX_REFERENCE_RESIDUAL}): "
             "the error is not all one phase per position (a hand's drift, rotation); expect the target below its ceiling"
         )
+    step = m.get("phase_step_coherence")
+    if step is not None:
+        out["phase_step_coherence"] = step
+        out["phase_concentration"] = m.get("phase_concentration")
+        out["warnings"] += drift_warnings(step, m.get("phase_concentration"), fill is not None, float(sep))
     free = (m.get("reference_free") or {}).get("warning")
     if free:
         out["warnings"].append(free)

@@ -14,7 +14,8 @@ z forward, the camera convention) and the plane faces the radar (normal towards 
 
 Modules: ``materials`` (reflectivity, attenuation, colour), ``scatterers`` (scatterer spacing,
 rough-surface amplitudes), ``objects`` (:class:`PlanarObject`, :class:`PointCloudObject`),
-``letters`` (Hershey-font letters), ``plates`` (rectangle, card, disc), ``curved`` (cylinder
+``letters`` (Hershey-font letters), ``plates`` (rectangle, card, disc), ``tools`` (plates and
+tools of a letter's size by name: plate, disc, washer, wrench, key), ``curved`` (cylinder
 section, bent plate), ``occluders``, ``clutter``, ``assembly`` (:class:`Scene`), ``paper`` (the
 paper's two-letter scene), ``checks`` (argument checks). Import the names from here.
 """
@@ -29,11 +30,13 @@ from twinfocus.scene.occluders import Occluder
 from twinfocus.scene.paper import paper_scene
 from twinfocus.scene.plates import card, disc, rectangle
 from twinfocus.scene.scatterers import DEFAULT_SPACING_M, rough_amplitudes, scatterer_spacing_m
+from twinfocus.scene.tools import OBJECT_SHAPES, shape_mask, shaped_object
 
 __all__ = [
     "DEFAULT_SPACING_M",
     "FONTS",
     "MATERIALS",
+    "OBJECT_SHAPES",
     "SHAPES",
     "Clutter",
     "Material",
@@ -54,5 +57,7 @@ __all__ = [
     "rectangle",
     "rough_amplitudes",
     "scatterer_spacing_m",
+    "shape_mask",
     "shaped",
+    "shaped_object",
 ]

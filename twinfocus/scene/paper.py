@@ -11,6 +11,7 @@ from twinfocus.scene.checks import positive
 from twinfocus.scene.clutter import Clutter
 from twinfocus.scene.letters import letter
 from twinfocus.scene.occluders import Occluder
+from twinfocus.scene.tools import OBJECT_SHAPES, shaped_object
 
 
 def paper_scene(
@@ -30,6 +31,9 @@ def paper_scene(
     width_scale: float = 0.65,
 ) -> Scene:
     """The paper's two-letter scene: a reference letter on the -x side, the target on +x.
+    ``reference`` and ``target`` are letters, or plates and tools by their names in
+    :data:`twinfocus.scene.tools.OBJECT_SHAPES` ("plate", "disc", "washer", "wrench", "key"),
+    ``height_m`` tall like a letter.
 
     Both letters face the radar, centred at y = 0 on the planes z = ``reference_distance_m``
     (default ``distance_m``) and z = ``distance_m``; seen from the aperture centre (the origin)
@@ -51,26 +55,14 @@ def paper_scene(
     if not (np.isfinite(sep) and 0 <= sep < 170):
         raise TwinFocusError(f"separation_deg must lie in [0, 170), got {separation_deg!r}")
     half = np.deg2rad(sep / 2.0)
-    ref = letter(
-        reference,
-        height_m,
-        (-ref_z * np.tan(half), 0.0, ref_z),
-        reference_material,
-        font,
-        stroke_m,
-        width_scale,
-        name="reference",
-    )
-    tgt = letter(
-        target,
-        height_m,
-        (distance_m * np.tan(half), 0.0, distance_m),
-        target_material,
-        font,
-        stroke_m,
-        width_scale,
-        name="target",
-    )
+
+    def cut_out(what: str, centre: tuple, material: str, name: str):
+        if what in OBJECT_SHAPES:
+            return shaped_object(what, height_m, centre, material, name=name)
+        return letter(what, height_m, centre, material, font, stroke_m, width_scale, name=name)
+
+    ref = cut_out(reference, (-ref_z * np.tan(half), 0.0, ref_z), reference_material, "reference")
+    tgt = cut_out(target, (distance_m * np.tan(half), 0.0, distance_m), target_material, "target")
     occluders = []
     if isinstance(occluder, Occluder):
         occluders.append(occluder)
