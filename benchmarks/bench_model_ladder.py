@@ -44,10 +44,10 @@ SCENES = {
     "camera cloud": (dict(error_sigma_m=(0.2e-3, 0.2e-3, 0.5e-3), snr_db=15, reference_roughness_deg=90.0), "cloud"),
 }
 CLOUD = (1e-3, 0.25, 0.02, 2.5e-3)
-MODELS = ("auto", "fast")
+MODELS = ("auto", "fast", "full")
 
 
-def one_draw(scene: str, seed: int) -> dict:
+def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) -> dict:
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.errors import TwinFocusError
@@ -82,6 +82,8 @@ def one_draw(scene: str, seed: int) -> dict:
     settings = {**default_settings(), "iterations": ITERATIONS, "device": "cpu"}
     rec: dict = {"scene": scene, "seed": seed, "rungs": {}}
     for model in TWIN_RUNGS + MODELS:
+        if only_models is not None and model not in only_models:
+            continue
         chosen = estimator_settings(settings["estimator"], np.iscomplexobj(template), support is not None, model=model)
         cfg = AutofocusConfig.from_settings(settings, **chosen)
         t = time.perf_counter()
@@ -96,13 +98,17 @@ def one_draw(scene: str, seed: int) -> dict:
             continue
         m = out.metrics
         r = {"ssim": m["target_ssim_corrected"], "time_s": time.perf_counter() - t, "result": m["model"]["result"],
-             "kept": m["model"]["kept"], "trusted": m["confidence"]["trusted"]}
+             "kept": m["model"]["kept"], "trusted": m["confidence"]["trusted"],
+             "heldout": {e["rung"]: e["evidence"]["heldout"] for e in m["model"]["rungs"]
+                         if "heldout" in e.get("evidence", {})}}
         if model in MODELS:
             rec[model] = r
         else:
             rec["rungs"][model] = r
         rec["uncorrected"] = m["target_ssim_uncorrected"]
         rec["oracle phase"] = m["target_ssim_oracle_phase"]
+    if not rec["rungs"] or "auto" not in rec:
+        return rec
     best = max(rec["rungs"], key=lambda r: rec["rungs"][r]["ssim"])
     rec["best rung by truth"] = best
     rec["auto picks best"] = rec["auto"]["result"] == best
