@@ -65,11 +65,6 @@ SPACE_VARIANT_MODES = ("auto", "on", "off")
 #: protocol, 0.008 on the demo scene's 0.5 mm x/y/z jitter, 0.025-0.031 under a hand's drift.
 #: A rule for the cost only: whether a fit is kept is the held-out evidence's
 SPACE_VARIANT_MIN_RESIDUAL = 0.01
-#: held-out evidence: a richer rung is fitted again on each half of the reference's blocks
-#: (:func:`heldout_split`) and judged on the other half against the model beneath fitted on the
-#: same half; it is kept when its gain on the two judged halves, averaged, is larger than their
-#: spread (the gain's noise): when it matches each held-out half better
-HELDOUT_FOLDS = 2
 
 
 def complex_match(image: np.ndarray, template: np.ndarray) -> float:
@@ -189,12 +184,12 @@ class Model:
         return replace(self, **{"_images": {}, "heldout": None, **changes})
 
 
-def heldout_split(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
-    """The reference's pixels in square blocks of about one resolution cell (lambda R / (2 L) on
-    each axis, L the aperture's extent there; at least 2 pixels, at most half the region), in a
-    checkerboard: returns (fitted, block), bool (H, W) the half a held-out fit sees and int (H, W)
-    each pixel's block. Blocks of a resolution cell keep a pixel's neighbours, which share its
-    noise, on its own side."""
+def heldout_split(problem: Problem) -> np.ndarray:
+    """bool (H, W): the half of the reference's pixels a held-out fit sees (its complement the
+    half it is judged on): square blocks of about one resolution cell (lambda R / (2 L) on each
+    axis, L the aperture's extent there; at least 2 pixels, at most half the region; 1 on a
+    region of one pixel's width) in a checkerboard. Blocks of a resolution cell keep a pixel's
+    neighbours, which share its noise, on its own side."""
     grid = problem.reference_grid
     p = problem.positions.reshape(-1, 3)
     r = float(np.linalg.norm(grid.centre_m - p.mean(axis=0)))
@@ -202,11 +197,10 @@ def heldout_split(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     sides = []
     for axis, n, spacing in ((0, grid.width, grid.spacing_m[0]), (1, grid.height, grid.spacing_m[1])):
         cell = wl * r / (2.0 * max(float(np.ptp(p[:, axis])), wl / 2.0))
-        sides.append(int(np.clip(np.ceil(cell / max(spacing, 1e-12)), 2, max(n // 2, 1))))
+        sides.append(int(min(max(np.ceil(cell / max(spacing, 1e-12)), 2), max(n // 2, 1))))
     rows = np.arange(grid.height)[:, None] // sides[1]
     cols = np.arange(grid.width)[None, :] // sides[0]
-    block = rows * (cols.max() + 1) + cols
-    return (rows + cols) % 2 == 0, block
+    return (rows + cols) % 2 == 0
 
 
 def heldout_gain(before: np.ndarray, after: np.ndarray, template: np.ndarray, judged: np.ndarray) -> dict:
@@ -214,10 +208,14 @@ def heldout_gain(before: np.ndarray, after: np.ndarray, template: np.ndarray, ju
 
     before, after, template : complex (H, W) images on the reference's grid; judged : bool (H, W).
     Returns ``unmatched_before``, ``unmatched_after`` (1 - normalised complex correlation on the
-    judged pixels; scale-free) and ``gain`` (their difference: > 0 when ``after`` matches better)."""
+    judged pixels; scale-free), ``gain`` (their difference: > 0 when ``after`` matches better)
+    and ``pixels`` (how many were judged; with none, no gain)."""
+    n = int(np.count_nonzero(judged))
+    if n == 0:
+        return {"unmatched_before": 0.0, "unmatched_after": 0.0, "gain": 0.0, "pixels": 0}
     t = np.asarray(template)[judged]
     u = [1.0 - complex_match(np.asarray(image)[judged], t) for image in (before, after)]
-    return {"unmatched_before": u[0], "unmatched_after": u[1], "gain": u[0] - u[1]}
+    return {"unmatched_before": u[0], "unmatched_after": u[1], "gain": u[0] - u[1], "pixels": n}
 
 
 def heldout_verdict(folds: list[dict]) -> dict:
@@ -232,6 +230,14 @@ def heldout_verdict(folds: list[dict]) -> dict:
     return out
 
 
+def sharpness(image: np.ndarray) -> float:
+    """sum(I^2) / sum(I)^2 of I = |image|^2 (complex (H, W)): 1 / the number of pixels the energy
+    spreads over, higher when sharper; scale-free (at unit peak in float64 first)."""
+    a = np.abs(np.asarray(image)).astype(np.float64)
+    inten = (a / max(a.max(), 1e-300)) ** 2
+    return float((inten**2).sum() / max(inten.sum() ** 2, 1e-300))
+
+
 def reference_evidence(problem: Problem, model: Model) -> dict:
     """How well ``model`` matches the reference to its template: for a template with phase the
     unmatched share 1 - complex correlation (lower is better), for an amplitude template the SSIM
@@ -240,8 +246,7 @@ def reference_evidence(problem: Problem, model: Model) -> dict:
     cfg = problem.config
     template = model.template if model.template is not None else problem.template
     if template is None:
-        inten = np.abs(model.apply(problem, "target")).astype(np.float64) ** 2
-        return {"target_sharpness": float((inten**2).sum() / max(inten.sum() ** 2, 1e-300))}
+        return {"target_sharpness": sharpness(model.apply(problem, "target"))}
     ref = model.apply(problem, "reference")
     if np.iscomplexobj(template):
         return {"reference_unmatched": 1.0 - complex_match(ref, template)}
@@ -684,7 +689,7 @@ class SmoothDrift(Rung):
         from twinfocus.template_match import correlation_phase
 
         assert before.template is not None
-        first, _ = heldout_split(problem)
+        first = heldout_split(problem)
         folds, fits = [], []
         for i, fitted in enumerate((first, ~first)):
             if before.heldout is not None:
