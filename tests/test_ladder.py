@@ -192,7 +192,7 @@ def test_a_real_drift_is_kept():
     rb, tb = (subimage_basis(scan.data, scan.positions, scan.chirp, g) for g in (rg, tg))
     cfg = AutofocusConfig(**estimator_settings("correlation", True))
     outs = {model: focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template, config=cfg, model=model)
-            for model in ("phase", "auto")}  # fmt: skip
+            for model in ("phase", "auto", "fast")}  # fmt: skip
     drift = {e["rung"]: e for e in outs["auto"].metrics["model"]["rungs"]}["drift"]
     assert drift["kept"] and outs["auto"].metrics["model"]["result"] == "drift"
     held = drift["evidence"]["heldout"]
@@ -200,6 +200,12 @@ def test_a_real_drift_is_kept():
     truth = backproject(scan.data, scan.positions_true, scan.chirp, rg)
     assert complex_match(outs["auto"].reference, truth) > complex_match(outs["phase"].reference, truth)
     assert image_ssim(outs["auto"].reference, truth) > image_ssim(outs["phase"].reference, truth)
+    # fast: one phase per position leaves the reference below the trust line, so the drift is
+    # climbed, fitted once on one half and kept on the other half's evidence
+    fast = {e["rung"]: e for e in outs["fast"].metrics["model"]["rungs"]}["drift"]
+    assert "template" in fast["below_trust_line"] and fast["kept"]
+    assert len(fast["evidence"]["heldout"]["folds"]) == 1 and fast["info"]["fitted_on"].startswith("one half")
+    assert complex_match(outs["fast"].reference, truth) > complex_match(outs["phase"].reference, truth)
 
 
 def test_refusals_name_the_problem(scene):

@@ -609,6 +609,9 @@ class SmoothDrift(Rung):
             else "a smooth across-sight drift per position, transferred per pixel"
         )
         self.info_: dict = {"mode": setting, "used": False}
+        #: ``--model fast``: one fit, on one half of the reference's blocks, judged on the other
+        #: and kept as it is (a third of the held-out evidence's three fits)
+        self.one_half = False
 
     def parameters(self, problem: Problem) -> int:
         m = int(problem.positions.shape[0])
@@ -668,6 +671,12 @@ class SmoothDrift(Rung):
 
     def fit(self, problem: Problem, model: Model) -> Model:
         halves = problem.half_bases() if self.tilt and problem.half_bases is not None else None
+        if self.one_half:
+            # one fit: on the first half, judged on the other; what is kept is that fit
+            evidence, fits = self.heldout(problem, model, model.evolve(halves=halves), halves_only=1)
+            self.heldout_ = self.info_["heldout"] = evidence
+            self.info_["fitted_on"] = "one half of the reference's blocks (--model fast)"
+            return fits[0]
         phase, drift, tilt, fit = self._fit(problem, model, halves)
         self.info_.update(
             residual_space_variant=1.0 - fit["match_after"],
@@ -682,16 +691,19 @@ class SmoothDrift(Rung):
         )
         return model.evolve(phase_rad=phase, drift_m=drift, tilt_rad=tilt, halves=halves)
 
-    def heldout(self, problem: Problem, before: Model, after: Model) -> tuple[dict, tuple[Model, ...]]:
+    def heldout(
+        self, problem: Problem, before: Model, after: Model, halves_only: int = 2
+    ) -> tuple[dict, tuple[Model, ...]]:
         """The held-out evidence (:func:`heldout_verdict`): on each half of :func:`heldout_split`
-        this rung and the model beneath, each fitted on that half, judged on the other half; and
-        this rung's half fits (the rungs above judge themselves against them)."""
+        (the first ``halves_only``) this rung and the model beneath, each fitted on that half,
+        judged on the other half; and this rung's half fits (the rungs above judge themselves
+        against them)."""
         from twinfocus.template_match import correlation_phase
 
         assert before.template is not None
         first = heldout_split(problem)
         folds, fits = [], []
-        for i, fitted in enumerate((first, ~first)):
+        for i, fitted in enumerate((first, ~first)[:halves_only]):
             if before.heldout is not None:
                 base = before.heldout[i]
             else:
@@ -712,7 +724,11 @@ class SmoothDrift(Rung):
             self.info_["used"] = True
             self.info_["reason"] = "on request"
             return True, "on request"
-        evidence, half_fits = self.heldout(problem, before, after)
+        half_fits: tuple[Model, ...] = (after,)
+        if self.one_half:
+            evidence = self.heldout_ or {}
+        else:
+            evidence, half_fits = self.heldout(problem, before, after)
         self.heldout_ = self.info_["heldout"] = evidence
         held = (
             f"fitted on one half of the reference's blocks and judged on the other, it leaves "
@@ -721,7 +737,8 @@ class SmoothDrift(Rung):
         )
         if evidence["kept"]:
             self.info_["used"] = True
-            after.heldout = half_fits
+            if not self.one_half:
+                after.heldout = half_fits
             why = f"kept: {held}"
         else:
             why = f"fitted but not kept: {held}; the error is not a smooth drift this reference shows"
@@ -810,6 +827,8 @@ def build_ladder(
     if model == "fast":
         for rung in rungs:
             rung.until_trusted = not rung.cheap
+            if isinstance(rung, SmoothDrift):
+                rung.one_half = True
     return rungs
 
 
