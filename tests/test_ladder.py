@@ -201,10 +201,10 @@ def test_a_real_drift_is_kept():
     assert complex_match(outs["auto"].reference, truth) > complex_match(outs["phase"].reference, truth)
     assert image_ssim(outs["auto"].reference, truth) > image_ssim(outs["phase"].reference, truth)
     # fast: one phase per position leaves the reference below the trust line, so the drift is
-    # climbed, fitted once on one half and kept on the other half's evidence
+    # climbed and kept on one held-out half's evidence (a quick fit on the other half)
     fast = {e["rung"]: e for e in outs["fast"].metrics["model"]["rungs"]}["drift"]
     assert "template" in fast["below_trust_line"] and fast["kept"]
-    assert len(fast["evidence"]["heldout"]["folds"]) == 1 and fast["info"]["fitted_on"].startswith("one half")
+    assert len(fast["evidence"]["heldout"]["folds"]) == 1 and fast["info"]["heldout_fit"].startswith("one half")
     assert complex_match(outs["fast"].reference, truth) > complex_match(outs["phase"].reference, truth)
 
 
