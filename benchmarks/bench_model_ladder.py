@@ -228,7 +228,7 @@ def figure(summ: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def _draw(args: tuple[str, int]) -> dict:
+def _draw(args: tuple) -> dict:
     t = time.perf_counter()
     rec = one_draw(*args)
     print(f"[model_ladder] {args[0]} draw {args[1]}: {time.perf_counter() - t:.0f} s", file=sys.stderr, flush=True)
@@ -236,10 +236,13 @@ def _draw(args: tuple[str, int]) -> dict:
 
 
 def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, only: str | None = None,
-         workers: int = 1) -> dict:
+         workers: int = 1, rerun: tuple[str, ...] | None = None) -> dict:
+    """``rerun``: only these ``--model`` values, run again on the committed draws and put in
+    place of theirs in ``model_ladder.json`` (the rest of each record kept)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    jobs = [(scene, seed) for scene in SCENES if not only or only in scene for seed in range(1, draws + 1)]
+    jobs = [(scene, seed, rerun) for scene in SCENES if not only or only in scene for seed in range(1, draws + 1)]
+    earlier = json.loads((out_dir / "model_ladder.json").read_text()) if rerun else None
     t = time.perf_counter()
     records: list[dict] = []
     partial = out_dir / "model_ladder.partial.json"  # the draws so far, should the run be cut short
@@ -251,11 +254,19 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, only
             partial.write_text(json.dumps(records, default=float))
     records.sort(key=lambda r: (list(SCENES).index(r["scene"]), r["seed"]))
     partial.unlink()
+    command = (f"python -m benchmarks.bench_model_ladder --draws {draws} --workers {workers} --columns {COLUMNS} "
+               f"--rows {ROWS} --size {SIZE} --iterations {ITERATIONS}" + (f" --only '{only}'" if only else ""))
+    if earlier is not None:
+        assert rerun is not None
+        fresh = {(r["scene"], r["seed"]): r for r in records}
+        records = earlier["records"]
+        for r in records:
+            r.update({m: fresh[r["scene"], r["seed"]][m] for m in rerun if (r["scene"], r["seed"]) in fresh})
+        command = f"{command}; then {command} --rerun {','.join(rerun)}"
     summ = summary(records)
-    doc = {"command": f"python -m benchmarks.bench_model_ladder --draws {draws} --workers {workers}"
-                      + (f" --only '{only}'" if only else ""),
+    doc = {"command": command,
            "protocol": {"columns": COLUMNS, "rows": ROWS, "size_px": SIZE, "optimiser_iterations": ITERATIONS,
-                        "draws": draws, "wall_s": time.perf_counter() - t,
+                        "draws": draws, "wall_s": time.perf_counter() - t + (earlier["protocol"]["wall_s"] if earlier else 0),
                         "note": "times on a loaded 2-core VM, shared with other work"},
            "summary": summ, "records": records}
     (out_dir / "model_ladder.json").write_text(json.dumps(doc, indent=1, default=float))
@@ -274,6 +285,7 @@ if __name__ == "__main__":
     ap.add_argument("--rows", type=int, default=ROWS)
     ap.add_argument("--size", type=int, default=SIZE)
     ap.add_argument("--iterations", type=int, default=ITERATIONS)
+    ap.add_argument("--rerun", help="comma-separated --model values to run again on the committed draws")
     a = ap.parse_args()
     COLUMNS, ROWS, SIZE, ITERATIONS = a.columns, a.rows, a.size, a.iterations
-    main(a.out, a.draws, a.only, a.workers)
+    main(a.out, a.draws, a.only, a.workers, tuple(a.rerun.split(",")) if a.rerun else None)
