@@ -1,5 +1,7 @@
 """The ladder of correction models: each correction a small object of one shape, climbed from the
-simplest, a richer one kept only when its rule says the reference asks for it.
+simplest, a richer one kept only when its rule says the reference asks for it: the drift and the
+tilt on held-out evidence (fitted on one half of the reference's pixels, judged on the other:
+:func:`heldout_split`, :func:`heldout_gain`, :func:`heldout_verdict`).
 
 A rung (:class:`Rung`) is made from settings only (its ``mode``), ``fit`` on the reference
 (:class:`Problem`: the sub-image bases, the scan's geometry, the template) starting from the
@@ -26,7 +28,9 @@ The twin's ladder (``TWIN_RUNGS``), simplest first:
 Without a reference in view the reference-free rungs (``REFERENCE_FREE_RUNGS``: sharpness) stand
 on ``none`` instead, each with the placement above it. :func:`build_ladder` makes the rungs from
 the ``model`` setting (``auto``, ``fast``, ``full`` or one rung's name) and the rungs' own settings
-(``phase_ramp``, ``space_variant``; an explicit value of those wins over ``model``).
+(``phase_ramp``, ``space_variant``; an explicit value of those wins over ``model``). ``fast``
+climbs a costly rung only while the reference is below the confidence report's trust line
+(``Problem.trust``).
 """
 
 from __future__ import annotations
