@@ -1,15 +1,17 @@
 """The ladder's trade: per rung, the target's SSIM against the time the ladder took to reach it,
 on the field-like scenes the project simulates, and how often ``--model auto`` stops at the rung
-the truth says is best; ``--model fast`` against ``auto`` in time and SSIM.
+the truth says is best; ``--model fast``, ``auto`` and ``full`` in time and SSIM.
 
-    python -m benchmarks.bench_model_ladder --draws 2        (docs/model_ladder.md quotes it)
+    python -m benchmarks.bench_model_ladder --draws 5 --workers 2   (docs/model_ladder.md quotes it)
 
 Each draw builds the scan's bases once and runs ``focus_bases`` once per rung (``--model RUNG``:
 that rung forced, those beneath it by their rules; its time is the whole climb to it) and with
-``--model auto`` and ``fast``, its settings from the settings table (twinfocus/settings.py) as
+``--model auto``, ``fast`` and ``full``, its settings from the settings table (twinfocus/settings.py) as
 ``twinfocus focus`` takes them. A rung that cannot run on the scene (``range_errors`` after a
-physical twin's registration, ``drift`` without one) has no entry. Small scans so that it fits a loaded 2-core machine: 3 columns
-of 30 positions, 24 x 24 pixels, the optimiser's 100 iterations. Scenes (the paper's letters
+physical twin's registration, ``drift`` without one) has no entry. Small scans so that five
+draws of every scene fit a loaded 2-core machine in about 20 minutes: 3 columns of 20 positions,
+20 x 20 pixels, the optimiser's 50 iterations (``--columns``, ``--rows``, ``--size``,
+``--iterations``). Scenes (the paper's letters
 unless said):
 
 * paper protocol: 0.5 mm x/y/z jitter, the physical twin;
@@ -33,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-SIZE, COLUMNS, ROWS, ITERATIONS = 24, 3, 30, 100
+SIZE, COLUMNS, ROWS, ITERATIONS = 20, 3, 20, 50
 HAND = dict(reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand", error_sigma_m=(0.8e-3,) * 3)
 SCENES = {
     "paper protocol": (dict(error_model="gaussian", error_sigma_m=(0.5e-3,) * 3), "physical"),
@@ -44,10 +46,10 @@ SCENES = {
     "camera cloud": (dict(error_sigma_m=(0.2e-3, 0.2e-3, 0.5e-3), snr_db=15, reference_roughness_deg=90.0), "cloud"),
 }
 CLOUD = (1e-3, 0.25, 0.02, 2.5e-3)
-MODELS = ("auto", "fast")
+MODELS = ("auto", "fast", "full")
 
 
-def one_draw(scene: str, seed: int) -> dict:
+def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) -> dict:
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.errors import TwinFocusError
@@ -82,6 +84,8 @@ def one_draw(scene: str, seed: int) -> dict:
     settings = {**default_settings(), "iterations": ITERATIONS, "device": "cpu"}
     rec: dict = {"scene": scene, "seed": seed, "rungs": {}}
     for model in TWIN_RUNGS + MODELS:
+        if only_models is not None and model not in only_models:
+            continue
         chosen = estimator_settings(settings["estimator"], np.iscomplexobj(template), support is not None, model=model)
         cfg = AutofocusConfig.from_settings(settings, **chosen)
         t = time.perf_counter()
@@ -96,13 +100,18 @@ def one_draw(scene: str, seed: int) -> dict:
             continue
         m = out.metrics
         r = {"ssim": m["target_ssim_corrected"], "time_s": time.perf_counter() - t, "result": m["model"]["result"],
-             "kept": m["model"]["kept"], "trusted": m["confidence"]["trusted"]}
+             "kept": m["model"]["kept"], "trusted": m["confidence"]["trusted"],
+             "heldout": {e["rung"]: e["evidence"]["heldout"] for e in m["model"]["rungs"]
+                         if "heldout" in e.get("evidence", {})},
+             "earlier_rule": _earlier_rule(m["model"])}
         if model in MODELS:
             rec[model] = r
         else:
             rec["rungs"][model] = r
         rec["uncorrected"] = m["target_ssim_uncorrected"]
         rec["oracle phase"] = m["target_ssim_oracle_phase"]
+    if not rec["rungs"] or "auto" not in rec:
+        return rec
     best = max(rec["rungs"], key=lambda r: rec["rungs"][r]["ssim"])
     rec["best rung by truth"] = best
     rec["auto picks best"] = rec["auto"]["result"] == best
@@ -110,45 +119,81 @@ def one_draw(scene: str, seed: int) -> dict:
     return rec
 
 
+#: the drift's and tilt's keep rule before the held-out evidence: kept when the fit on the whole
+#: reference took away at least this share of the unmatched reference
+EARLIER_MIN_GAIN = 0.3
+
+
+def _earlier_rule(section: dict) -> dict:
+    """What the earlier keep rule says of each drift or tilt fit auto tried (``{rung: kept}``),
+    from the same fit's record: where it agrees with the held-out evidence, auto's result on this
+    draw is what the earlier rule gave."""
+    out = {}
+    for e in section["rungs"]:
+        info = e.get("info", {})
+        if e["rung"] in ("drift", "tilt") and e["tried"] and "residual_space_variant" in info:
+            before, after = info["residual_scalar"], info["residual_space_variant"]
+            out[e["rung"]] = bool(before > 0 and 1.0 - after / before >= EARLIER_MIN_GAIN)
+    return out
+
+
+def _stats(values: list[dict]) -> dict:
+    return {"ssim_mean": float(np.mean([x["ssim"] for x in values])),
+            "ssim_sd": float(np.std([x["ssim"] for x in values])),
+            "time_s_mean": float(np.mean([x["time_s"] for x in values])), "draws": len(values)}
+
+
 def summary(records: list[dict]) -> dict:
+    from twinfocus.estimators import TWIN_RUNGS
+
     out: dict = {}
     for scene in SCENES:
         recs = [r for r in records if r["scene"] == scene]
         if not recs:
             continue
-        from twinfocus.estimators import TWIN_RUNGS
-
         rungs = [n for n in TWIN_RUNGS if any(n in r["rungs"] for r in recs)]
-        s: dict = {"draws": len(recs), "rungs": {}}
-        for n in rungs:
-            v = [r["rungs"][n] for r in recs if n in r["rungs"]]
-            s["rungs"][n] = {"ssim_mean": float(np.mean([x["ssim"] for x in v])),
-                             "ssim_sd": float(np.std([x["ssim"] for x in v])),
-                             "time_s_mean": float(np.mean([x["time_s"] for x in v])), "draws": len(v)}
+        s: dict = {"draws": len(recs), "rungs": {n: _stats([r["rungs"][n] for r in recs if n in r["rungs"]])
+                                                 for n in rungs}}
         for model in MODELS:
-            s[model] = {"ssim_mean": float(np.mean([r[model]["ssim"] for r in recs])),
-                        "ssim_sd": float(np.std([r[model]["ssim"] for r in recs])),
-                        "time_s_mean": float(np.mean([r[model]["time_s"] for r in recs])),
-                        "results": [r[model]["result"] for r in recs]}
+            s[model] = {**_stats([r[model] for r in recs]), "results": [r[model]["result"] for r in recs]}
+        s["best rung by truth"] = [r["best rung by truth"] for r in recs]
         s["auto picks best"] = f"{sum(r['auto picks best'] for r in recs)}/{len(recs)}"
         s["auto within 0.005 of best"] = f"{sum(r['auto within 0.005 of best'] for r in recs)}/{len(recs)}"
+        agree = [all(r["auto"]["heldout"][n]["kept"] == k for n, k in r["auto"]["earlier_rule"].items()) for r in recs]
+        s["held-out and earlier rule agree"] = f"{sum(agree)}/{len(recs)}"
         s["uncorrected"] = float(np.mean([r["uncorrected"] for r in recs]))
         s["oracle phase"] = float(np.mean([r["oracle phase"] for r in recs]))
         out[scene] = s
+    n = len(records)
+    out["all scenes"] = {
+        "draws": n,
+        "auto picks best": f"{sum(r['auto picks best'] for r in records)}/{n}",
+        "auto within 0.005 of best": f"{sum(r['auto within 0.005 of best'] for r in records)}/{n}",
+    }
     return out
 
 
 def table(summ: dict) -> str:
-    lines = ["| scene | --model | target SSIM | time (s) |", "|---|---|---|---|"]
+    """One row per scene: each rung's, auto's, fast's and full's target SSIM (mean +- sd) and
+    mean seconds, and how often auto stopped at the rung the truth says is best."""
+    from twinfocus.estimators import TWIN_RUNGS
+
+    cols = [*TWIN_RUNGS, *MODELS]
+    lines = ["| scene (uncorrected / oracle phase) | " + " | ".join(f"`{c}`" if c in TWIN_RUNGS else f"**{c}**" for c in cols)
+             + " | auto at the best rung |", "|---" * (len(cols) + 2) + "|"]
     for scene, s in summ.items():
-        for n, v in s["rungs"].items():
-            lines.append(f"| {scene} | {n} | {v['ssim_mean']:.3f} +- {v['ssim_sd']:.3f} | {v['time_s_mean']:.2f} |")
-        for model in MODELS:
-            v = s[model]
-            lines.append(f"| {scene} | **--model {model}** ({', '.join(sorted(set(v['results'])))}) | "
-                         f"{v['ssim_mean']:.3f} +- {v['ssim_sd']:.3f} | {v['time_s_mean']:.2f} |")
-        lines.append(f"| {scene} | auto stops at the best rung | {s['auto picks best']} "
-                     f"(within 0.005: {s['auto within 0.005 of best']}) | |")
+        if scene == "all scenes":
+            continue
+        cells = []
+        for c in cols:
+            v = s[c] if c in MODELS else s["rungs"].get(c)
+            if v is None:
+                cells.append("—")
+                continue
+            picks = f", {'/'.join(sorted(set(v['results'])))}" if c in MODELS else ""
+            cells.append(f"{v['ssim_mean']:.3f} ± {v['ssim_sd']:.3f} ({v['time_s_mean']:.1f} s{picks})")
+        lines.append(f"| {scene} ({s['uncorrected']:.3f} / {s['oracle phase']:.3f}) | " + " | ".join(cells)
+                     + f" | {s['auto picks best']} (within 0.005: {s['auto within 0.005 of best']}) |")
     return "\n".join(lines)
 
 
@@ -156,8 +201,9 @@ def figure(summ: dict, path: Path) -> None:
     from twinfocus.plotting import pyplot
 
     plt = pyplot()
-    fig, axes = plt.subplots(1, len(summ), figsize=(3.2 * len(summ), 3.4), squeeze=False)
-    for ax, (scene, s) in zip(axes[0], summ.items()):
+    scenes = {k: v for k, v in summ.items() if k != "all scenes"}
+    fig, axes = plt.subplots(1, len(scenes), figsize=(3.2 * len(scenes), 3.4), squeeze=False)
+    for ax, (scene, s) in zip(axes[0], scenes.items()):
         pts = [(v["time_s_mean"], v["ssim_mean"], n) for n, v in s["rungs"].items()]
         frontier, best = [], -1.0
         for t, q, n in sorted(pts):
@@ -167,8 +213,9 @@ def figure(summ: dict, path: Path) -> None:
                 frontier.append((t, q))
                 best = q
         ax.step(*zip(*frontier), where="post", color="tab:blue", alpha=0.5, lw=1)
-        for model, marker in (("auto", "*"), ("fast", "^")):
-            ax.plot(s[model]["time_s_mean"], s[model]["ssim_mean"], marker, color="tab:red", ms=8, label=model)
+        for model, marker, colour in (("auto", "*", "tab:red"), ("fast", "^", "tab:orange"), ("full", "s", "tab:green")):
+            ax.errorbar(s[model]["time_s_mean"], s[model]["ssim_mean"], yerr=s[model]["ssim_sd"], fmt=marker,
+                        color=colour, ms=7, label=model)
         ax.set_xscale("log")
         ax.set_title(scene, fontsize=8)
         ax.set_xlabel("time (s, loaded 2-core VM)", fontsize=7)
@@ -181,21 +228,46 @@ def figure(summ: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 2, only: str | None = None) -> dict:
+def _draw(args: tuple) -> dict:
+    t = time.perf_counter()
+    rec = one_draw(*args)
+    print(f"[model_ladder] {args[0]} draw {args[1]}: {time.perf_counter() - t:.0f} s", file=sys.stderr, flush=True)
+    return rec
+
+
+def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, only: str | None = None,
+         workers: int = 1, rerun: tuple[str, ...] | None = None) -> dict:
+    """``rerun``: only these ``--model`` values, run again on the committed draws and put in
+    place of theirs in ``model_ladder.json`` (the rest of each record kept)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    records = []
-    for scene in SCENES:
-        if only and only not in scene:
-            continue
-        for seed in range(1, draws + 1):
-            t = time.perf_counter()
-            records.append(one_draw(scene, seed))
-            print(f"[model_ladder] {scene} draw {seed}: {time.perf_counter() - t:.0f} s", file=sys.stderr, flush=True)
+    jobs = [(scene, seed, rerun) for scene in SCENES if not only or only in scene for seed in range(1, draws + 1)]
+    earlier = json.loads((out_dir / "model_ladder.json").read_text()) if rerun else None
+    t = time.perf_counter()
+    records: list[dict] = []
+    partial = out_dir / "model_ladder.partial.json"  # the draws so far, should the run be cut short
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    with ProcessPoolExecutor(max(workers, 1)) as pool:
+        for done in as_completed([pool.submit(_draw, job) for job in jobs]):
+            records.append(done.result())
+            partial.write_text(json.dumps(records, default=float))
+    records.sort(key=lambda r: (list(SCENES).index(r["scene"]), r["seed"]))
+    partial.unlink()
+    command = (f"python -m benchmarks.bench_model_ladder --draws {draws} --workers {workers} --columns {COLUMNS} "
+               f"--rows {ROWS} --size {SIZE} --iterations {ITERATIONS}" + (f" --only '{only}'" if only else ""))
+    if earlier is not None:
+        assert rerun is not None
+        fresh = {(r["scene"], r["seed"]): r for r in records}
+        records = earlier["records"]
+        for r in records:
+            r.update({m: fresh[r["scene"], r["seed"]][m] for m in rerun if (r["scene"], r["seed"]) in fresh})
+        command = f"{command}; then {command} --rerun {','.join(rerun)}"
     summ = summary(records)
-    doc = {"command": f"python -m benchmarks.bench_model_ladder --draws {draws}",
+    doc = {"command": command,
            "protocol": {"columns": COLUMNS, "rows": ROWS, "size_px": SIZE, "optimiser_iterations": ITERATIONS,
-                        "draws": draws, "note": "times on a loaded 2-core VM, shared with other work"},
+                        "draws": draws, "wall_s": time.perf_counter() - t + (earlier["protocol"]["wall_s"] if earlier else 0),
+                        "note": "times on a loaded 2-core VM, shared with other work"},
            "summary": summ, "records": records}
     (out_dir / "model_ladder.json").write_text(json.dumps(doc, indent=1, default=float))
     figure(summ, Path(__file__).resolve().parent.parent / "docs" / "figures" / "model_ladder.png")
@@ -205,8 +277,15 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 2, only
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--draws", type=int, default=2)
+    ap.add_argument("--draws", type=int, default=5)
     ap.add_argument("--only", help="scenes whose name holds this")
     ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument("--workers", type=int, default=1, help="draws run side by side (processes)")
+    ap.add_argument("--columns", type=int, default=COLUMNS)
+    ap.add_argument("--rows", type=int, default=ROWS)
+    ap.add_argument("--size", type=int, default=SIZE)
+    ap.add_argument("--iterations", type=int, default=ITERATIONS)
+    ap.add_argument("--rerun", help="comma-separated --model values to run again on the committed draws")
     a = ap.parse_args()
-    main(a.out, a.draws, a.only)
+    COLUMNS, ROWS, SIZE, ITERATIONS = a.columns, a.rows, a.size, a.iterations
+    main(a.out, a.draws, a.only, a.workers, tuple(a.rerun.split(",")) if a.rerun else None)

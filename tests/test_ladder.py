@@ -11,11 +11,12 @@ from twinfocus.estimators import TWIN_RUNGS, estimator_settings
 from twinfocus.grid import ImageGrid
 from twinfocus.ladder import (
     REFERENCE_FREE,
-    SPACE_VARIANT_MIN_GAIN,
     Problem,
-    SmoothDrift,
     build_ladder,
     climb,
+    complex_match,
+    heldout_gain,
+    heldout_verdict,
 )
 from twinfocus.pipeline import focus_bases
 from twinfocus.radar import Chirp
@@ -101,22 +102,29 @@ def test_model_none_and_model_phase_are_exactly_those_models(scene):
     assert all(e["why"] == "off" for n, e in entries.items() if n in ("refine", "range_errors"))
 
 
-def test_fast_leaves_the_optimiser_out_where_auto_runs_it(scene):
-    """An amplitude template and errors over the whole circle: the projections' phases have
-    wrapped, so auto's rule runs the optimiser; fast stops at the closed form."""
+def test_fast_stops_at_the_first_trusted_rung(scene):
+    """The physical twin's closed form matches the reference within the trust line: fast climbs
+    no costly rung above it. An amplitude template with errors over the whole circle: the
+    projections' phases have wrapped, below the trust line, so fast runs the optimiser as auto does."""
     s = scene
+    fast = _focus(s, model="fast", space_variant="auto")
+    f = {e["rung"]: e for e in fast.metrics["model"]["rungs"]}
+    assert f["phase"]["kept"] and f["phase"]["evidence"]["after"]["reference_unmatched"] < 0.01
+    for rung in ("refine", "drift"):
+        assert not f[rung]["tried"] and f[rung]["why"] == "fast: the reference passes the trust line at phase"
+    assert f["tilt"]["mode"] == "off"
+    np.testing.assert_allclose(fast.target, _focus(s).target)
+
     amplitude = np.abs(s["template"])
     auto = _focus(s, template=amplitude, estimator="auto")
     fast = _focus(s, template=amplitude, estimator="auto", model="fast")
     a = {e["rung"]: e for e in auto.metrics["model"]["rungs"]}
     f = {e["rung"]: e for e in fast.metrics["model"]["rungs"]}
     check = a["refine"]["info"]["refine_check"]
-    assert a["refine"]["tried"] == check["refined"]
-    assert auto.metrics["estimator"]["refine_check"] == check
-    assert not f["refine"]["tried"] and f["refine"]["mode"] == "off"
-    assert fast.metrics["estimator"]["iterations"] == 0
-    # what fast kept is the closed form auto started from
-    assert np.allclose(fast.rung_targets["phase"], auto.rung_targets["phase"])
+    assert check["refined"] and a["refine"]["tried"] and auto.metrics["estimator"]["refine_check"] == check
+    assert "phases have wrapped" in f["refine"]["below_trust_line"]
+    assert f["refine"]["tried"] and f["refine"]["kept"]
+    np.testing.assert_allclose(fast.phase_rad, auto.phase_rad)
 
 
 def test_full_runs_the_optimiser_after_a_closed_form_and_explicit_settings_win(scene):
@@ -129,14 +137,75 @@ def test_full_runs_the_optimiser_after_a_closed_form_and_explicit_settings_win(s
     assert full.metrics["space_variant"] == {"mode": "off", "used": False, "reason": "off on request"}
 
 
-def test_the_drift_is_kept_only_when_it_takes_away_enough_of_the_unmatched_reference():
-    rung = SmoothDrift("auto")
-    for after, kept in ((0.018, False), (0.02 * (1 - SPACE_VARIANT_MIN_GAIN) - 1e-4, True)):
-        rung.info_.update(residual_scalar=0.02, residual_space_variant=after)
-        assert rung.keep(None, None, None)[0] is kept  # type: ignore[arg-type]
-    forced = SmoothDrift("on")
-    forced.info_.update(residual_scalar=0.02, residual_space_variant=0.019)
-    assert forced.keep(None, None, None) == (True, "on request")  # type: ignore[arg-type]
+def test_heldout_gain_is_the_match_on_the_judged_pixels_and_the_verdict_needs_every_half():
+    rng = np.random.default_rng(0)
+    template = rng.normal(size=(8, 8)) + 1j * rng.normal(size=(8, 8))
+    judged = np.zeros((8, 8), bool)
+    judged[::2] = True
+    before = template * np.exp(1j * rng.normal(scale=0.5, size=(8, 8)))
+    after = template * np.exp(1j * rng.normal(scale=0.1, size=(8, 8)))
+    g = heldout_gain(before, after, template, judged)
+    # brute force on the judged rows alone: 1 - Re<T, I> / (|I| |T|)
+    t = template[::2].ravel()
+    want = [1 - np.vdot(t, x[::2].ravel()).real / np.linalg.norm(x[::2]) / np.linalg.norm(t) for x in (before, after)]
+    assert g["unmatched_before"] == pytest.approx(want[0]) and g["unmatched_after"] == pytest.approx(want[1])
+    assert g["gain"] == pytest.approx(want[0] - want[1]) and g["gain"] > 0
+    # the pixels the fit saw do not count: changing them changes nothing
+    after[1::2] = 0
+    assert heldout_gain(before, after, template, judged)["gain"] == pytest.approx(g["gain"])
+    both = heldout_verdict([{"unmatched_before": 0.1, "unmatched_after": 0.05, "gain": 0.05},
+                            {"unmatched_before": 0.1, "unmatched_after": 0.07, "gain": 0.03}])  # fmt: skip
+    assert both["kept"] and both["gain"] == pytest.approx(0.04) and both["noise"] == pytest.approx(0.01)
+    one = heldout_verdict([{"unmatched_before": 0.1, "unmatched_after": 0.0, "gain": 0.1},
+                           {"unmatched_before": 0.1, "unmatched_after": 0.11, "gain": -0.01}])  # fmt: skip
+    assert not one["kept"] and one["noise"] > one["gain"] > 0
+
+
+def test_a_drift_fitted_to_noise_is_not_kept(scene):
+    """The error is one phase per position and the rest is noise: the drift, fitted all the same
+    (``full``), fits some of the reference's noise, which its held-out halves do not share."""
+    s = scene
+    out = _focus(s, model="full", cfg={"iterations": 5})
+    drift = {e["rung"]: e for e in out.metrics["model"]["rungs"]}["drift"]
+    assert drift["tried"] and not drift["kept"] and "drift" not in out.metrics["model"]["kept"]
+    held = drift["evidence"]["heldout"]
+    assert len(held["folds"]) == 2 and not held["kept"] and held["gain"] <= held["noise"]
+    assert drift["why"].startswith("fitted but not kept")
+    # on the pixels it was fitted to, the drift matches better: that is the noise it took up
+    assert drift["info"]["residual_space_variant"] < drift["info"]["residual_scalar"]
+
+
+def test_a_real_drift_is_kept():
+    """A hand's drift and rotation on a small simulated scan (2 x 20 positions, 20 x 20 pixels):
+    the drift, fitted on half the reference's blocks, matches the other half better; kept, the
+    reference is nearer its image on the true positions than with one phase per position."""
+    from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.metrics import image_ssim
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.templates import template_from_scan
+
+    sc = Scenario(reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand",
+                  error_sigma_m=(0.8e-3,) * 3, n_columns=2, n_rows=20, seed=1)  # fmt: skip
+    scan, tpl = simulate_scenario(sc)
+    rg, tg = scenario_grids(sc, 20)
+    template = template_from_scan(tpl, rg, keep_phase=True)
+    rb, tb = (subimage_basis(scan.data, scan.positions, scan.chirp, g) for g in (rg, tg))
+    cfg = AutofocusConfig(**estimator_settings("correlation", True))
+    outs = {model: focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template, config=cfg, model=model)
+            for model in ("phase", "auto", "fast")}  # fmt: skip
+    drift = {e["rung"]: e for e in outs["auto"].metrics["model"]["rungs"]}["drift"]
+    assert drift["kept"] and outs["auto"].metrics["model"]["result"] == "drift"
+    held = drift["evidence"]["heldout"]
+    assert all(f["gain"] > 0 for f in held["folds"]) and held["gain"] > held["noise"]
+    truth = backproject(scan.data, scan.positions_true, scan.chirp, rg)
+    assert complex_match(outs["auto"].reference, truth) > complex_match(outs["phase"].reference, truth)
+    assert image_ssim(outs["auto"].reference, truth) > image_ssim(outs["phase"].reference, truth)
+    # fast: one phase per position leaves the reference below the trust line, so the drift is
+    # climbed and kept on one held-out half's evidence (a quick fit on the other half)
+    fast = {e["rung"]: e for e in outs["fast"].metrics["model"]["rungs"]}["drift"]
+    assert "template" in fast["below_trust_line"] and fast["kept"]
+    assert len(fast["evidence"]["heldout"]["folds"]) == 1 and fast["info"]["heldout_fit"].startswith("one half")
+    assert complex_match(outs["fast"].reference, truth) > complex_match(outs["phase"].reference, truth)
 
 
 def test_refusals_name_the_problem(scene):
@@ -184,7 +253,13 @@ def test_focus_model_knob_end_to_end(tmp_path):
     assert main([*common, "--out", str(tmp_path / "fast"), "--model", "fast", "--pictures", "all"]) == 0
     m = json.loads((tmp_path / "fast" / "metrics.json").read_text())
     assert m["model"]["asked"] == "fast"
-    assert not any(e["tried"] for e in m["model"]["rungs"] if e["rung"] in ("refine", "drift", "tilt"))
+    rungs = {e["rung"]: e for e in m["model"]["rungs"]}
+    # the costly rungs only below the trust line (here 0.015 of the reference unmatched by one
+    # phase per position: the drift is fitted), the closed form's estimator no optimiser, no tilt
+    for name in ("refine", "drift"):
+        assert "below_trust_line" in rungs[name] or rungs[name]["why"].startswith("fast: the reference passes")
+    assert rungs["drift"]["tried"] == ("below_trust_line" in rungs["drift"])
+    assert not rungs["refine"]["tried"] and rungs["tilt"]["mode"] == "off" and not rungs["tilt"]["tried"]
     assert (tmp_path / "fast" / "model_ladder.png").is_file()
     assert main([*common, "--out", str(tmp_path / "none"), "--model", "none"]) == 0
     m = json.loads((tmp_path / "none" / "metrics.json").read_text())

@@ -1,5 +1,7 @@
 """The ladder of correction models: each correction a small object of one shape, climbed from the
-simplest, a richer one kept only when its rule says the reference asks for it.
+simplest, a richer one kept only when its rule says the reference asks for it: the drift and the
+tilt on held-out evidence (fitted on one half of the reference's pixels, judged on the other:
+:func:`heldout_split`, :func:`heldout_gain`, :func:`heldout_verdict`).
 
 A rung (:class:`Rung`) is made from settings only (its ``mode``), ``fit`` on the reference
 (:class:`Problem`: the sub-image bases, the scan's geometry, the template) starting from the
@@ -26,7 +28,9 @@ The twin's ladder (``TWIN_RUNGS``), simplest first:
 Without a reference in view the reference-free rungs (``REFERENCE_FREE_RUNGS``: sharpness) stand
 on ``none`` instead, each with the placement above it. :func:`build_ladder` makes the rungs from
 the ``model`` setting (``auto``, ``fast``, ``full`` or one rung's name) and the rungs' own settings
-(``phase_ramp``, ``space_variant``; an explicit value of those wins over ``model``).
+(``phase_ramp``, ``space_variant``; an explicit value of those wins over ``model``). ``fast``
+climbs a costly rung only while the reference is below the confidence report's trust line
+(``Problem.trust``).
 """
 
 from __future__ import annotations
@@ -62,12 +66,9 @@ MODES = ("off", "auto", "try", "on")
 SPACE_VARIANT_MODES = ("auto", "on", "off")
 #: space-variant "auto": fit when the scalar estimate leaves more than this of the reference
 #: unmatched (1 - normalised complex correlation with its template): 0.0008 on the paper's
-#: protocol, 0.008 on the demo scene's 0.5 mm x/y/z jitter, 0.025-0.031 under a hand's drift
+#: protocol, 0.008 on the demo scene's 0.5 mm x/y/z jitter, 0.025-0.031 under a hand's drift.
+#: A rule for the cost only: whether a fit is kept is the held-out evidence's
 SPACE_VARIANT_MIN_RESIDUAL = 0.01
-#: ... and keep the fit when it takes away at least this fraction of that residual (0.4-0.6 under
-#: a hand's drift, docs/handheld.md): a penalty for the drift's parameters, which fit some of the
-#: reference's noise whatever the error is
-SPACE_VARIANT_MIN_GAIN = 0.3
 
 
 def complex_match(image: np.ndarray, template: np.ndarray) -> float:
@@ -102,6 +103,9 @@ class Problem:
     half_bases: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
     upper_band: Callable[[np.ndarray], np.ndarray] | None = None
     progress_factory: Callable | None = None
+    #: why the reference, as a model corrects it, is below the confidence report's trust line, or
+    #: None when it passes (:func:`twinfocus.pipeline.reference_trust`); ``--model fast`` stops there
+    trust: Callable[[Problem, Model], str | None] | None = None
 
     @property
     def centres(self) -> np.ndarray:
@@ -135,6 +139,9 @@ class Model:
     drift_m: np.ndarray | None = None
     tilt_rad: np.ndarray | None = None
     halves: tuple[np.ndarray, np.ndarray] | None = None
+    #: the same model fitted on each half of :func:`heldout_split` (the rungs above judge
+    #: themselves against them); None until a rung kept by held-out evidence sets it
+    heldout: tuple[Model, ...] | None = None
     _images: dict = field(default_factory=dict, repr=False)
 
     def apply(self, problem: Problem, region: str) -> np.ndarray:
@@ -177,8 +184,62 @@ class Model:
         return self.phase_rad + k * np.einsum("mc,mc->m", du, self.drift_m)
 
     def evolve(self, **changes) -> Model:
-        """A copy with ``changes`` (its images formed anew)."""
-        return replace(self, _images={}, **changes)
+        """A copy with ``changes`` (its images formed anew; its held-out fit dropped unless given)."""
+        return replace(self, **{"_images": {}, "heldout": None, **changes})
+
+
+def heldout_split(problem: Problem) -> np.ndarray:
+    """bool (H, W): the half of the reference's pixels a held-out fit sees (its complement the
+    half it is judged on): square blocks of about one resolution cell (lambda R / (2 L) on each
+    axis, L the aperture's extent there; at least 2 pixels, at most half the region; 1 on a
+    region of one pixel's width) in a checkerboard. Blocks of a resolution cell keep a pixel's
+    neighbours, which share its noise, on its own side."""
+    grid = problem.reference_grid
+    p = problem.positions.reshape(-1, 3)
+    r = float(np.linalg.norm(grid.centre_m - p.mean(axis=0)))
+    wl = problem.chirp.wavelength_m
+    sides = []
+    for axis, n, spacing in ((0, grid.width, grid.spacing_m[0]), (1, grid.height, grid.spacing_m[1])):
+        cell = wl * r / (2.0 * max(float(np.ptp(p[:, axis])), wl / 2.0))
+        sides.append(int(min(max(np.ceil(cell / max(spacing, 1e-12)), 2), max(n // 2, 1))))
+    rows = np.arange(grid.height)[:, None] // sides[1]
+    cols = np.arange(grid.width)[None, :] // sides[0]
+    return (rows + cols) % 2 == 0
+
+
+def heldout_gain(before: np.ndarray, after: np.ndarray, template: np.ndarray, judged: np.ndarray) -> dict:
+    """How much better ``after`` matches ``template`` than ``before`` does on the ``judged`` pixels.
+
+    before, after, template : complex (H, W) images on the reference's grid; judged : bool (H, W).
+    Returns ``unmatched_before``, ``unmatched_after`` (1 - normalised complex correlation on the
+    judged pixels; scale-free), ``gain`` (their difference: > 0 when ``after`` matches better)
+    and ``pixels`` (how many were judged; with none, no gain)."""
+    n = int(np.count_nonzero(judged))
+    if n == 0:
+        return {"unmatched_before": 0.0, "unmatched_after": 0.0, "gain": 0.0, "pixels": 0}
+    t = np.asarray(template)[judged]
+    u = [1.0 - complex_match(np.asarray(image)[judged], t) for image in (before, after)]
+    return {"unmatched_before": u[0], "unmatched_after": u[1], "gain": u[0] - u[1], "pixels": n}
+
+
+def heldout_verdict(folds: list[dict]) -> dict:
+    """The held-out evidence of a rung from its folds (:func:`heldout_gain` each): the mean
+    ``unmatched_before`` / ``unmatched_after`` / ``gain``, ``noise`` (half the folds' spread) and
+    ``kept`` (gain > noise: the rung matches every held-out half better than the model beneath)."""
+    gains = np.array([f["gain"] for f in folds])
+    out: dict = {k: float(np.mean([f[k] for f in folds])) for k in ("unmatched_before", "unmatched_after", "gain")}
+    out["noise"] = float(np.ptp(gains) / 2.0)
+    out["kept"] = bool(out["gain"] > out["noise"])
+    out["folds"] = folds
+    return out
+
+
+def sharpness(image: np.ndarray) -> float:
+    """sum(I^2) / sum(I)^2 of I = |image|^2 (complex (H, W)): 1 / the number of pixels the energy
+    spreads over, higher when sharper; scale-free (at unit peak in float64 first)."""
+    a = np.abs(np.asarray(image)).astype(np.float64)
+    inten = (a / max(a.max(), 1e-300)) ** 2
+    return float((inten**2).sum() / max(inten.sum() ** 2, 1e-300))
 
 
 def reference_evidence(problem: Problem, model: Model) -> dict:
@@ -189,8 +250,7 @@ def reference_evidence(problem: Problem, model: Model) -> dict:
     cfg = problem.config
     template = model.template if model.template is not None else problem.template
     if template is None:
-        inten = np.abs(model.apply(problem, "target")).astype(np.float64) ** 2
-        return {"target_sharpness": float((inten**2).sum() / max(inten.sum() ** 2, 1e-300))}
+        return {"target_sharpness": sharpness(model.apply(problem, "target"))}
     ref = model.apply(problem, "reference")
     if np.iscomplexobj(template):
         return {"reference_unmatched": 1.0 - complex_match(ref, template)}
@@ -204,7 +264,7 @@ def reference_evidence(problem: Problem, model: Model) -> dict:
 
 class Rung:
     """One correction model. Subclasses set ``name``, ``adds`` (one line) and ``cheap`` (closed
-    form: ``--model fast`` climbs it), and define :meth:`fit`; :meth:`cannot`, :meth:`skip` and
+    form: ``--model fast`` climbs it whatever the trust line says), and define :meth:`fit`; :meth:`cannot`, :meth:`skip` and
     :meth:`keep` default to "can", "fit" and "keep"."""
 
     name = ""
@@ -217,6 +277,10 @@ class Rung:
         self.mode = mode
         #: what the rung's checks and fit recorded (metrics.json ``model.rungs[].info``)
         self.info_: dict = {}
+        #: the held-out evidence its keep rule read (``model.rungs[].evidence.heldout``), or None
+        self.heldout_: dict | None = None
+        #: ``--model fast``: the rung is climbed only while the model beneath is not trusted
+        self.until_trusted = False
 
     def cannot(self, problem: Problem, model: Model) -> str | None:
         """Why this rung cannot run on ``problem`` (refused in mode "on"), or None."""
@@ -530,9 +594,12 @@ class SmoothDrift(Rung):
     (:func:`twinfocus.space_variant.fit_smooth_drift`); with ``tilt`` also the array's tilt, from
     the half-array bases, in the same fit. Needs a registered template with phase (a physical
     twin) and the whole estimate (its ramp kept). Auto: fitted only when the scalar phase leaves
-    more than ``SPACE_VARIANT_MIN_RESIDUAL`` of the reference unmatched, kept only when it takes
-    away at least ``SPACE_VARIANT_MIN_GAIN`` of that. ``with_tilt_above``: the tilt rung above
-    fits the drift too, so this one leaves it to that rung when the half-array bases are there."""
+    more than ``SPACE_VARIANT_MIN_RESIDUAL`` of the reference unmatched (the fit's cost); kept
+    only on held-out evidence: fitted again on half of the reference's blocks
+    (:func:`heldout_split`), it must match the other half better than the model beneath fitted on
+    the same half, by more than the gain's noise (:func:`heldout_gain`). ``with_tilt_above``: the
+    tilt rung above fits the drift too, so this one leaves it to that rung when the half-array
+    bases are there."""
 
     cheap = False
 
@@ -546,6 +613,9 @@ class SmoothDrift(Rung):
             else "a smooth across-sight drift per position, transferred per pixel"
         )
         self.info_: dict = {"mode": setting, "used": False}
+        #: ``--model fast``: the held-out evidence from one half alone, fitted in the knots' stage
+        #: alone at 50 steps (a quarter of a fit), where auto fits both halves in full
+        self.one_half = False
 
     def parameters(self, problem: Problem) -> int:
         m = int(problem.positions.shape[0])
@@ -581,22 +651,32 @@ class SmoothDrift(Rung):
             return self.info_["reason"]
         return None
 
-    def fit(self, problem: Problem, model: Model) -> Model:
+    def _fit(self, problem: Problem, model: Model, halves, fitted: np.ndarray | None = None, **settings):
+        """fit_smooth_drift on the reference, or on its ``fitted`` pixels alone (bool (H, W):
+        the others zeroed in the basis, the half-array basis and the template)."""
         from twinfocus.space_variant import fit_smooth_drift  # torch and scipy: only on this path
 
         assert model.template is not None
-        halves = problem.half_bases() if self.tilt and problem.half_bases is not None else None
-        phase, drift, tilt, fit = fit_smooth_drift(
-            problem.ref_basis,
-            model.template,
+        # copies: the fit scales the bases it is given in place
+        fitted = np.ones(problem.reference_grid.shape, bool) if fitted is None else fitted
+        basis, template = problem.ref_basis * fitted, model.template * fitted
+        half = None if halves is None else halves[0] * fitted
+        return fit_smooth_drift(
+            basis,
+            template,
             model.phase_rad,
             problem.centres,
             problem.reference_grid,
             problem.chirp.wavelength_m,
-            half_basis=None if halves is None else halves[0],
+            half_basis=half,
             device=problem.config.device,
-            progress=problem.progress("space-variant fit"),
+            progress=problem.progress("space-variant fit" if fitted.all() else "space-variant held-out fit"),
+            **settings,
         )
+
+    def fit(self, problem: Problem, model: Model) -> Model:
+        halves = problem.half_bases() if self.tilt and problem.half_bases is not None else None
+        phase, drift, tilt, fit = self._fit(problem, model, halves)
         self.info_.update(
             residual_space_variant=1.0 - fit["match_after"],
             knot_spacing_positions=fit["knot_spacing_positions"],
@@ -610,22 +690,56 @@ class SmoothDrift(Rung):
         )
         return model.evolve(phase_rad=phase, drift_m=drift, tilt_rad=tilt, halves=halves)
 
+    def heldout(
+        self, problem: Problem, before: Model, after: Model, halves_only: int = 2
+    ) -> tuple[dict, tuple[Model, ...]]:
+        """The held-out evidence (:func:`heldout_verdict`): on each half of :func:`heldout_split`
+        (the first ``halves_only``) this rung and the model beneath, each fitted on that half,
+        judged on the other half; and this rung's half fits (the rungs above judge themselves
+        against them)."""
+        from twinfocus.template_match import correlation_phase
+
+        assert before.template is not None
+        first = heldout_split(problem)
+        folds, fits = [], []
+        # --model fast: one half, the knots' stage alone at half its steps (a quarter of a fit)
+        quick = {"iterations": 50, "refine_iterations": 0} if halves_only == 1 else {}
+        for i, fitted in enumerate((first, ~first)[:halves_only]):
+            if before.heldout is not None:
+                base = before.heldout[i]
+            else:
+                # the model beneath is one phase per position: its closed form on the same half
+                phase = correlation_phase(problem.ref_basis * fitted, before.template * fitted)
+                base = before.evolve(phase_rad=phase)
+            phase, drift, tilt, _ = self._fit(problem, base, after.halves, fitted, **quick)
+            fits.append(after.evolve(phase_rad=phase, drift_m=drift, tilt_rad=tilt))
+            folds.append(
+                heldout_gain(
+                    base.apply(problem, "reference"), fits[-1].apply(problem, "reference"), before.template, ~fitted
+                )
+            )
+        return heldout_verdict(folds), tuple(fits)
+
     def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
-        residual, after_r = self.info_["residual_scalar"], self.info_["residual_space_variant"]
-        gain = 1.0 - after_r / residual if residual > 0 else 0.0
-        if self.mode != "on" and gain < SPACE_VARIANT_MIN_GAIN:
-            why = (
-                f"fitted but not kept: it took away {gain:.0%} of the unmatched reference "
-                f"(< {SPACE_VARIANT_MIN_GAIN:.0%}); the error is not a smooth drift"
-            )
-        else:
+        if self.mode == "on":
             self.info_["used"] = True
-            why = (
-                "on request"
-                if self.mode == "on"
-                else f"the scalar phase left {residual:.4f} of the reference unmatched; a smooth "
-                f"drift takes away {gain:.0%} of it"
-            )
+            self.info_["reason"] = "on request"
+            return True, "on request"
+        evidence, half_fits = self.heldout(problem, before, after, halves_only=1 if self.one_half else 2)
+        if self.one_half:
+            self.info_["heldout_fit"] = "one half, the knots' stage alone at 50 steps (--model fast)"
+        self.heldout_ = self.info_["heldout"] = evidence
+        held = (
+            f"fitted on one half of the reference's blocks and judged on the other, it leaves "
+            f"{evidence['unmatched_after']:.4f} unmatched against {evidence['unmatched_before']:.4f} beneath it "
+            f"(gain {evidence['gain']:.4f}, noise {evidence['noise']:.4f} over {len(evidence['folds'])} halves)"
+        )
+        if evidence["kept"]:
+            self.info_["used"] = True
+            after.heldout = None if self.one_half else half_fits
+            why = f"kept: {held}"
+        else:
+            why = f"fitted but not kept: {held}; the error is not a smooth drift this reference shows"
         self.info_["reason"] = why
         return self.info_["used"], why
 
@@ -639,8 +753,9 @@ def build_ladder(
 ) -> list[Rung]:
     """The rungs for one scan, simplest first, each with its mode.
 
-    model : "auto" (each rung by its rule: today's decisions), "fast" (the closed-form rungs
-        only: no optimiser, no drift or tilt), "full" (every rung fitted where it can run, each
+    model : "auto" (each rung by its rule), "fast" (auto's rules, but a costly rung, the
+        optimiser or the drift, only while the reference is below the trust line
+        (``Problem.trust``), and no tilt: the cheapest trusted rung), "full" (every rung fitted where it can run, each
         kept by its rule; the optimiser always) or a rung's name (that rung forced, those beneath
         it by their rules, none above it).
     method : "twin" (the twin's ladder), a reference-free rung's name, or "none".
@@ -672,7 +787,8 @@ def build_ladder(
         )
     modes = {name: "auto" for name in names}
     if model == "fast":
-        modes.update(refine="off", drift="off", tilt="off")
+        # the tilt, the costliest rung (the half-array bases and a fit with them), is left out
+        modes.update(tilt="off")
     elif model == "full":
         modes.update(refine="on", range_errors="try", drift="try", tilt="try")
     elif model != "auto":
@@ -706,6 +822,11 @@ def build_ladder(
         else:
             estimate, adds = REFERENCE_FREE[name]
             rungs.append(ReferenceFree(name, estimate, adds, "on" if mode != "off" else "off"))
+    if model == "fast":
+        for rung in rungs:
+            rung.until_trusted = not rung.cheap
+            if isinstance(rung, SmoothDrift):
+                rung.one_half = True
     return rungs
 
 
@@ -719,13 +840,21 @@ def climb(problem: Problem, rungs: list[Rung]) -> tuple[Model, dict]:
     to take out."""
     m = problem.ref_basis.shape[0]
     model = Model(phase_rad=np.zeros(m), estimate_rad=np.zeros(m), template=problem.template)
-    entries, kept, targets = [], [], {}
+    entries: list[dict] = []
+    kept: list[str] = []
+    targets: dict[str, np.ndarray] = {}
     t_all = time.perf_counter()
     for rung in rungs:
         entry: dict = {"rung": rung.name, "adds": rung.adds, "mode": rung.mode, "tried": False, "kept": False}
         t = time.perf_counter()
         measured = rung.name == "placement"  # the ramp is reported whatever is done with it
         why = rung.off_reason() if rung.mode == "off" and not measured else rung.cannot(problem, model)
+        if why is None and rung.until_trusted and problem.trust is not None:
+            below = problem.trust(problem, model)
+            if below is None:
+                why = f"fast: the reference passes the trust line at {kept[-1]}"
+            else:
+                entry["below_trust_line"] = below
         if why is None:
             why = rung.skip(problem, model)
         elif rung.mode == "on":
@@ -739,6 +868,8 @@ def climb(problem: Problem, rungs: list[Rung]) -> tuple[Model, dict]:
             entry.update(tried=True, kept=keep)
             targets[rung.name] = candidate.apply(problem, "target")
             entry["evidence"] = {"before": before, "after": after, "parameters": rung.parameters(problem)}
+            if rung.heldout_ is not None:
+                entry["evidence"]["heldout"] = rung.heldout_
             if keep:
                 model = candidate
                 kept.append(rung.name)

@@ -50,6 +50,7 @@ from twinfocus.ladder import (
     rung_entry,
 )
 from twinfocus.outline_fill import outline_fill
+from twinfocus.phase_ramp import ramp_free_coherence
 from twinfocus.radar import Chirp
 from twinfocus.scan import Scan
 from twinfocus.templates import check_has_signal
@@ -366,7 +367,7 @@ def focus_bases(
     if template is not None:
         check_has_signal(template, "the template")
     problem = Problem(ref_basis, tgt_basis, positions, chirp, reference_grid, target_grid, cfg, template, support,
-                      registration_scores, half_bases, upper_band, progress_factory)  # fmt: skip
+                      registration_scores, half_bases, upper_band, progress_factory, reference_trust)  # fmt: skip
     kept, section = climb(problem, rungs)
     targets = section.pop("targets")
     m: dict = {"method": method, "n_positions": int(positions.shape[0]), "n_channels": int(positions.shape[1])}
@@ -696,6 +697,40 @@ def confidence_report(
         out["model"] = m["model"]["result"]
     out["trusted"] = not out["warnings"]
     return out
+
+
+def reference_trust(problem: Problem, model: Model) -> str | None:
+    """Why the reference, as ``model`` corrects it, is below the confidence report's trust line,
+    or None when it passes: for a digital twin (``problem.support``) its energy's contrast over the
+    outline at most ``MAX_OUTLINE_CONTRAST``, otherwise its SSIM against the template at least
+    ``MIN_REFERENCE_MATCH`` (``MIN_REFERENCE_MATCH_PHYSICAL`` when registered); with a template that
+    has phase at most ``MAX_REFERENCE_RESIDUAL`` unmatched; for an unregistered template phases
+    that hold together (ramp-free coherence x sqrt(M) at least ``AUTO_REFINE_BELOW_COHERENCE``).
+    What ``--model fast`` stops at (:func:`twinfocus.ladder.climb`)."""
+    template = model.template if model.template is not None else problem.template
+    if template is None:
+        return "no template to judge the reference by"
+    reference = model.apply(problem, "reference")
+    if problem.support is not None:
+        contrast = outline_fill(reference, problem.support)["contrast"]
+        if contrast > MAX_OUTLINE_CONTRAST:
+            return f"its energy's contrast over the outline is {contrast:.1f} (> {MAX_OUTLINE_CONTRAST})"
+    else:
+        cfg = problem.config
+        least = MIN_REFERENCE_MATCH_PHYSICAL if model.registered else MIN_REFERENCE_MATCH
+        c, k = cfg.threshold_centre, cfg.threshold_steepness
+        match = metrics.ssim(metrics.display_image(reference, c, k), metrics.display_image(template, c, k))
+        if match < least:
+            return f"it matches its template at SSIM {match:.2f} (< {least})"
+    if np.iscomplexobj(template):
+        residual = 1.0 - complex_match(reference, template)
+        if residual > MAX_REFERENCE_RESIDUAL:
+            return f"it leaves {residual:.3f} of its template unmatched (> {MAX_REFERENCE_RESIDUAL})"
+    if not model.registered and model.estimated:
+        coherence = ramp_free_coherence(model.estimate_rad, problem.centres[:, :2])
+        if coherence < AUTO_REFINE_BELOW_COHERENCE:
+            return f"the estimate's phases have wrapped (coherence x sqrt(M) {coherence:.1f} < {AUTO_REFINE_BELOW_COHERENCE})"
+    return None
 
 
 def _model_view(m: dict) -> tuple[dict, dict, dict | None]:
