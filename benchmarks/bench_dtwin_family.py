@@ -4,8 +4,8 @@ confidence report can be believed on them.
 Every draw takes at random (from its own seed): the reference's shape and the target's (letters
 with holes and without, 'O' a ring; plates and tools of a letter's size: a plate, a washer, a
 wrench, a disc, a key), their separation (9-12 degrees; 16.3 under a hand's drift), the
-reference's rough texture (every scatterer its own phase over +-90 degrees and strength +-30 %)
-and a camera cloud as it comes (1 mm noise, 25 % of the surface missing in patches, 2 %
+reference's surface (half the draws smooth, as a letter cut from sheet metal; half rough, every
+scatterer its own phase over +-90 degrees and strength +-30 %) and a camera cloud as it comes (1 mm noise, 25 % of the surface missing in patches, 2 %
 outliers, an offset of 2-3 mm in a random direction). Conditions:
 
   paper: 0.5 mm z + 0.2 mm x/y tracking error, 15 dB;
@@ -64,48 +64,78 @@ OFFSET_RANGE_M = (2e-3, 3e-3)
 GOOD, POOR = 0.95, 0.90
 
 
-def family_scenario(condition: str, seed: int, shapes: tuple, rows: int) -> dict:
-    """The Scenario keywords of one draw of ``condition``: shapes and separation from ``seed``."""
+def family_scenario(condition: str, seed: int, shapes: tuple, rows: int, rough: bool | None = None) -> dict:
+    """The Scenario keywords of one draw of ``condition``: shapes, separation and (unless
+    ``rough`` is given) the reference's surface from ``seed``."""
     rng = np.random.default_rng([seed, 31])
     ref, tgt = rng.choice(list(shapes), 2, replace=False)
-    kw = dict(reference=str(ref), target=str(tgt), separation_deg=float(rng.uniform(9.0, 12.0)),
-              reference_roughness_deg=90.0, reference_amplitude_spread=0.3, n_rows=rows, seed=seed)
+    separation = float(rng.uniform(9.0, 12.0))
+    drawn_rough = bool(rng.random() < 0.5)
+    rough = drawn_rough if rough is None else rough
+    kw = dict(reference=str(ref), target=str(tgt), separation_deg=separation,
+              reference_roughness_deg=90.0 if rough else None, reference_amplitude_spread=0.3, n_rows=rows, seed=seed)
     return {**kw, **CONDITIONS[condition]}
 
 
-def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> dict:
-    from twinfocus.autofocus import AutofocusConfig
+def draw_inputs(condition: str, seed: int, shapes: tuple, rows: int, size: int, rough: bool | None = None) -> dict:
+    """One draw's scan and what the digital twin is given: ``kw`` (its Scenario keywords),
+    ``scan``, ``template_scan`` (the motion-stage scan), grids ``rg``/``tg``, ``twin`` (from the
+    camera cloud as it comes), bases ``rb``/``tb``, ``truth`` (focus_bases' truth keywords) and
+    ``upper_band`` (the reference's upper-band basis)."""
     from twinfocus.backprojection import backproject, subimage_basis
-    from twinfocus.basis import form_image
     from twinfocus.digital_twin.camera_cloud import camera_cloud
     from twinfocus.digital_twin.condition import digital_twin_reference
-    from twinfocus.drift_check import step_coherence
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.metrics import image_ssim, oracle_phase
-    from twinfocus.outline_fill import outline_fill
-    from twinfocus.pipeline import focus_bases, half_array_bases, upper_band_basis
+    from twinfocus.pipeline import upper_band_basis
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
-    from twinfocus.templates import template_from_scan
 
-    kw = family_scenario(condition, seed, shapes, rows)
+    kw = family_scenario(condition, seed, shapes, rows, rough)
     sc = Scenario(**kw)
     scan, tpl_scan = simulate_scenario(sc)
     rg, tg = scenario_grids(sc, size)
     rng = np.random.default_rng([seed, 14])
     surface = sc.scene().object("reference").surface_points(1e-3)
     cloud = camera_cloud(surface, *CLOUD, float(rng.uniform(*OFFSET_RANGE_M)), rng=rng)
-    twin = digital_twin_reference(cloud, scan.positions, scan.chirp, rg)
-    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
-    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
     truth = dict(truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
                  truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
                  positions_true=scan.positions_true)
+    return dict(kw=kw, scan=scan, template_scan=tpl_scan, rg=rg, tg=tg,
+                twin=digital_twin_reference(cloud, scan.positions, scan.chirp, rg),
+                rb=subimage_basis(scan.data, scan.positions, scan.chirp, rg),
+                tb=subimage_basis(scan.data, scan.positions, scan.chirp, tg), truth=truth,
+                upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, rg))
+
+
+def digital_twin_focus(d: dict, **config):
+    """What `twinfocus focus --digital-twin CLOUD` runs on :func:`draw_inputs`' draw ``d``;
+    ``config``: AutofocusConfig fields over the defaults."""
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.estimators import estimator_settings
+    from twinfocus.pipeline import focus_bases
+
+    twin, scan = d["twin"], d["scan"]
+    cfg = AutofocusConfig(**{**estimator_settings("auto", False, has_support=True), **config})
+    return focus_bases(d["rb"], d["tb"], scan.positions, scan.chirp, d["rg"], d["tg"], template=twin.template,
+                       support=twin.support, reference_info=twin.info, config=cfg, upper_band=d["upper_band"],
+                       **d["truth"])
+
+
+def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> dict:
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.basis import form_image
+    from twinfocus.drift_check import step_coherence
+    from twinfocus.estimators import estimator_settings
+    from twinfocus.metrics import image_ssim, oracle_phase
+    from twinfocus.outline_fill import outline_fill
+    from twinfocus.pipeline import focus_bases, half_array_bases
+    from twinfocus.templates import template_from_scan
+
+    d = draw_inputs(condition, seed, shapes, rows, size)
+    kw, scan, tpl_scan, rg, tg, twin, rb, tb, truth = (d[k] for k in ("kw", "scan", "template_scan", "rg", "tg", "twin",
+                                                                       "rb", "tb", "truth"))
     rec: dict = {"seed": seed, "reference": kw["reference"], "target": kw["target"],
+                 "rough": kw["reference_roughness_deg"] is not None,
                  "separation_deg": round(kw["separation_deg"], 2)}
-    # what `twinfocus focus --digital-twin CLOUD` runs
-    dt = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=twin.template, support=twin.support,
-                     reference_info=twin.info, config=AutofocusConfig(**estimator_settings("auto", False, has_support=True)),
-                     upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, rg), **truth)
+    dt = digital_twin_focus(d)
     # what `twinfocus focus --template-scan` runs
     pt = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template_from_scan(tpl_scan, rg, keep_phase=True),
                      config=AutofocusConfig(**estimator_settings("auto", True)),
@@ -166,6 +196,13 @@ def table(results: dict) -> str:
         cells = [np.array([r[c] for r in scored]) for c in cols]
         lines.append(f"| {cond} | {len(scored)} | {len(recs) - len(scored)} | "
                      + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
+    lines += ["", "| condition | digital twin, smooth references | digital twin, rough references |", "|---|---|---|"]
+    for cond, recs in results.items():
+        cells = []
+        for rough in (False, True):
+            v = np.array([r["digital"] for r in recs if "refused" not in r and r.get("rough", True) == rough])
+            cells.append(f"{v.mean():.3f} ({len(v)} draws, worst {v.min():.3f})" if len(v) else "no draws")
+        lines.append(f"| {cond} | " + " | ".join(cells) + " |")
     lines += ["", "| twin | results | trusted (their worst) | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |",
               "|---|---|---|---|---|"]
     recs = [r for rs in results.values() for r in rs if "refused" not in r]

@@ -35,6 +35,7 @@ def test_bench_where_quick_writes_a_row_for_each(tmp_path):
     s = doc["summary"]
     # the depth is found within a centimetre from the box alone and from a typed depth 5 cm off
     assert s["depth found"]["depth_error_mm"] < 10 and s["depth 5 cm off"]["depth_error_mm"] < 10
+    assert s["both found"]["depth_error_mm"] < 10
     assert s["best of two twins"]["right_twin"] == 1.0
     assert s["depth found"]["minus_typed"] > -0.02
     assert (tmp_path / "report.md").read_text().count("\n| ") == len(ROWS) + 1

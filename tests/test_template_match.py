@@ -1,5 +1,7 @@
 """Complex-template registration and the closed-form phase (twinfocus.template_match), against
 brute-force sums and injected shifts / phase errors past lambda/4."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -250,9 +252,9 @@ def test_outline_phase_recovers_wrapped_errors_from_the_outline_alone(placed):
     support = _outline(GRID)
     phi, info = outline_phase(basis, support)
     assert err(phi) < 0.3
-    # the speckle's contrast is what chose the start, and the energy inside rose from the uncorrected image
+    # the start was chosen by the rule, and the energy inside rose from the uncorrected image
     e0 = np.abs(basis.sum(axis=0)) ** 2
-    assert info["contrast"][info["chosen"]] == min(info["contrast"])
+    _assert_chosen_by_the_rule(info)
     assert max(info["energy_inside"]) > e0[support].sum() / e0.sum() + 0.1
     # an outline placed 2 pixels off (a camera cloud's offset) is moved back by the data, where
     # the image resolves it: across the two columns (x) but not along them (y: a 7 mm beam width
@@ -363,6 +365,11 @@ def test_averaged_outlines_beat_one_outline_with_a_hole(placed):
     assert len(info["energy_inside"]) == len(info["support_shift_px"]) == 5 and 0.9 < info["agreement"] <= 1.0
     # the cloud's outline's run, which the confidence report reads
     assert "energy_inside" in est["outline"] and "outline_energy_inside" in out.metrics["confidence"]
+    # the config's choice of end reaches every run: the least contrast's end, each time
+    by_speckle = focus_bases(basis, basis, tracked, ch, GRID, GRID, template=np.abs(basis.sum(axis=0)),
+                             support=support, config=replace(cfg, outline_choice="speckle"))
+    run = by_speckle.metrics["estimator"]["outline"]
+    assert run["chosen_by"] == "speckle" and run["contrast"][run["chosen"]] == min(run["contrast"])
     with pytest.raises(TwinFocusError, match="aperture"):
         twin_autofocus(basis, np.abs(basis.sum(axis=0)), cfg, support=support)
     with pytest.raises(TwinFocusError, match="aperture_m must be"):
@@ -399,6 +406,8 @@ def test_growing_the_outline_fills_a_hole_at_the_edge_and_never_drops_a_pixel(pl
         grown_outline(basis, support, -1)
     with pytest.raises(TwinFocusError, match="outline_growth_rounds"):
         AutofocusConfig(init="outline", iterations=0, outline_growth_rounds=-1).validate()
+    with pytest.raises(TwinFocusError, match="outline_choice must be one of energy, speckle, auto, got 'most'"):
+        AutofocusConfig(init="outline", iterations=0, outline_choice="most").validate()
 
 
 def test_auto_runs_the_optimiser_only_where_the_projections_phases_have_wrapped(placed, coherent):
@@ -474,16 +483,29 @@ def test_speckle_contrast_equals_its_sums():
     assert speckle_contrast(spike, np.ones((1, 100)))[0] > 20
 
 
-def _rough_field_reference(z_sigma_m):
+def _assert_chosen_by_the_rule(info):
+    """The end :func:`outline_phase` chose by ``choose="auto"``: the most energy inside unless that
+    end's contrast is above PILED_CONTRAST, then the least contrast."""
+    from twinfocus.template_match import PILED_CONTRAST
+
+    # (the info's figures are rounded: ends tied there are told apart by the unrounded ones)
+    most = [i for i, f in enumerate(info["energy_inside"]) if f == max(info["energy_inside"])]
+    if all(info["contrast"][i] > PILED_CONTRAST for i in most):
+        assert info["chosen_by"] == "speckle" and info["contrast"][info["chosen"]] == min(info["contrast"])
+    else:
+        assert info["chosen_by"] == "energy" and info["chosen"] in most
+
+
+def _rough_field_reference(z_sigma_m, roughness_deg=90.0):
     """A rough 'F' 127 mm tall as the field bench draws it (every scatterer its own phase over
-    +-90 degrees), 390 positions, 64 x 64 pixels, its outline from a camera cloud with 1 mm noise,
+    +-``roughness_deg``; None: a smooth one), 390 positions, 64 x 64 pixels, its outline from a camera cloud with 1 mm noise,
     25 % holes, 2 % outliers and a 2.5 mm offset. Returns (basis, outline, oracle phase, aperture
     (M, 2), target basis, target on the true positions)."""
     from twinfocus.digital_twin.camera_cloud import camera_cloud
     from twinfocus.digital_twin.condition import digital_twin_reference
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
 
-    sc = Scenario(reference="F", target="B", separation_deg=9.7, reference_roughness_deg=90.0,
+    sc = Scenario(reference="F", target="B", separation_deg=9.7, reference_roughness_deg=roughness_deg,
                   reference_amplitude_spread=0.3, n_rows=65, seed=1001, snr_db=15,
                   error_sigma_m=(0.2e-3, 0.2e-3, z_sigma_m))
     scan, _ = simulate_scenario(sc)
@@ -513,10 +535,29 @@ def test_the_speckle_choice_finds_the_phase_the_energy_choice_misses(z_sigma_m):
         assert err(np.zeros_like(oracle)) > 1.5  # every phase wrapped
     by_energy, info_e = outline_phase(basis, support, choose="energy")
     by_speckle, info_s = outline_phase(basis, support)
-    # the same starts: only the choice differs; the energy inside hardly tells the ends apart
+    # the same starts: only the choice differs; the energy inside hardly tells the ends apart, and
+    # the most energy's end has piled it, so the default rule took the least contrast
     assert info_e["energy_inside"] == info_s["energy_inside"]
+    assert info_s["chosen_by"] == "speckle"
+    _assert_chosen_by_the_rule(info_s)
     assert info_s["energy_inside"][info_s["chosen"]] > max(info_s["energy_inside"]) - 0.03
     # (measured: 0.96 against 1.17 rad at 0.5 mm, 0.87 against 1.10 at 1.6 mm)
     assert err(by_speckle) < err(by_energy) - 0.15
     # and the target formed with it is nearer the target on the true positions (0.75 against 0.59-0.60)
     assert image_ssim(form_image(tb, by_speckle), truth) > image_ssim(form_image(tb, by_energy), truth) + 0.1
+
+
+@pytest.mark.slow
+def test_on_a_smooth_reference_the_rule_keeps_the_most_energy():
+    """On a smooth reference no end piles its energy (every end's contrast is near the others'),
+    and the least contrast is the most smeared end: the default rule keeps the end of most energy,
+    which forms the target nearer the target on the true positions than the least contrast's."""
+    from twinfocus.metrics import image_ssim
+    from twinfocus.template_match import outline_phase
+
+    basis, support, oracle, ap, tb, truth = _rough_field_reference(0.5e-3, roughness_deg=None)
+    phi, info = outline_phase(basis, support)
+    by_speckle, _ = outline_phase(basis, support, choose="speckle")
+    assert info["chosen_by"] == "energy"
+    _assert_chosen_by_the_rule(info)
+    assert image_ssim(form_image(tb, phi), truth) > image_ssim(form_image(tb, by_speckle), truth) + 0.05

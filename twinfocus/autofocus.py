@@ -33,6 +33,7 @@ from twinfocus.phase_ramp import (  # fit_linear_phase: also found here by its c
     ramp_free_coherence,
 )
 from twinfocus.settings import FOCUS_SETTINGS, config_default, resolve_device
+from twinfocus.template_match import OUTLINE_CHOICE, OUTLINE_CHOICES
 
 if TYPE_CHECKING:  # torch is imported where the optimiser runs: the closed-form estimators need none
     import torch
@@ -85,6 +86,10 @@ class AutofocusConfig:
     #: is ``template_match.OUTLINE_GROWTH_ROUNDS``). Each costs one outline run (~0.17 s at 780 x
     #: 100 x 100 on 2 cores); docs/digital_twin.md has what they gain. 0: the cloud's outline as it is.
     outline_growth_rounds: int = 2
+    #: how ``init="outline"`` picks one of its starts' ends: "auto" (the most energy inside the
+    #: outline unless that end piled it), "energy" or "speckle"
+    #: (:data:`twinfocus.template_match.OUTLINE_CHOICES`; docs/digital_twin_field.md)
+    outline_choice: str = OUTLINE_CHOICE
     #: projection steps of ``init="projection"`` (~3 ms each at 780 x 100 x 100 on 2 cores)
     projection_iterations: int = config_default("projection_iterations")
     #: ``init="projection"`` also from this many random starts (fixed seed); the end with the
@@ -115,6 +120,8 @@ class AutofocusConfig:
             raise TwinFocusError(f"projection_restarts must be >= 0, got {self.projection_restarts}")
         if int(self.outline_growth_rounds) < 0:
             raise TwinFocusError(f"outline_growth_rounds must be >= 0, got {self.outline_growth_rounds}")
+        if self.outline_choice not in OUTLINE_CHOICES:
+            raise TwinFocusError(f"outline_choice must be one of {', '.join(OUTLINE_CHOICES)}, got {self.outline_choice!r}")
         if not (np.isfinite(self.refine_below_coherence) and self.refine_below_coherence >= 0):
             raise TwinFocusError(f"refine_below_coherence must be >= 0, got {self.refine_below_coherence}")
         if int(self.projection_iterations) < 1:
@@ -393,12 +400,12 @@ def twin_autofocus(
                     "to line the estimates up"
                 )
             init_phase_rad, ensemble = averaged_outline_phase(
-                basis, support, aperture_m, growth_rounds=cfg.outline_growth_rounds
+                basis, support, aperture_m, growth_rounds=cfg.outline_growth_rounds, choose=cfg.outline_choice
             )
             extra["outline"] = ensemble.pop("first")
             extra["outline_ensemble"] = ensemble
         else:
-            init_phase_rad, extra["outline"] = outline_phase(basis, support)
+            init_phase_rad, extra["outline"] = outline_phase(basis, support, choose=cfg.outline_choice)
     if cfg.init != "zero" and int(cfg.iterations) == 0:
         assert init_phase_rad is not None  # every init but "zero" has set it above
         loss = np.array([template_loss(basis, init_phase_rad, template, cfg)])

@@ -491,7 +491,7 @@ MIN_REFERENCE_MATCH_PHYSICAL = 0.95
 MAX_REFERENCE_RESIDUAL = 0.01
 #: a digital twin's reference is read against its outline, not its template's picture
 #: (:mod:`twinfocus.outline_fill`): flagged when its energy's contrast over the outline is above
-#: this. The estimator picks the end of least contrast (:data:`twinfocus.template_match.OUTLINE_CHOICE`),
+#: this. The estimator leaves an end whose energy is piled (:data:`twinfocus.template_match.OUTLINE_CHOICE`),
 #: so most of its results sit at 1.7-2.7 whatever they reached; on the family bench's draws
 #: (benchmarks/bench_dtwin_family.py, 390 positions, 64 x 64 pixels) those at 0.93 and above were at
 #: 1.7-2.5, the seven above 2.75 all below 0.90; checked on held-out draws (docs/digital_twin_field.md)

@@ -14,7 +14,7 @@ Not here: each entry point's inputs and outputs (the scan, the regions, the temp
 output folders, pictures, the solver's streaming and timeouts), and the AutofocusConfig fields
 that no entry point exposes: ``init``, ``template_registration`` and ``outline_ensemble`` (made by
 :func:`twinfocus.estimators.estimator_settings` from ``estimator``), ``outline_growth_rounds``,
-``smoothness_weight``,
+``outline_choice``, ``smoothness_weight``,
 ``coarse_blur_px`` and ``registration_max_shift_px`` (library and benchmark use).
 
 Plain Python: the command's ``--help`` and a node's parameter list need no numerics.

@@ -247,15 +247,20 @@ def _shift_mask(mask: np.ndarray, dy: int, dx: int) -> np.ndarray:
     return out
 
 
-#: how :func:`outline_phases` picks one of its starts' ends: "energy", the largest share of the
+#: how :func:`outline_phases` picks one of its starts' ends: "energy", the largest share F of the
 #: image's energy inside the outline; "speckle", the smallest contrast of that energy over the
-#: outline (:func:`speckle_contrast`). Every end holds about as much energy inside (0.93-0.97 on the
-#: field bench's draws, whatever their target SSIM), so the share cannot tell them apart; the
-#: contrast can (field bench, 25 starts of one outline: the 3-5 ends of lowest contrast reach
-#: target SSIM 0.89-0.97, the largest share's 0.75-0.82). Bench draws, F and E as the reference:
-#: target SSIM 0.80 -> 0.93 (paper's protocol), 0.78 -> 0.96 (1 mm), 0.71 -> 0.91 (1.6 mm)
-OUTLINE_CHOICES = ("energy", "speckle")
-OUTLINE_CHOICE = "speckle"
+#: outline (:func:`speckle_contrast`); "auto", the largest share unless that end has piled its
+#: energy into a few bright pixels (contrast above :data:`PILED_CONTRAST`), then the smallest
+#: contrast. Every end holds about as much energy inside (0.93-0.97), so on a rough reference the
+#: share cannot tell a focused end from a piled one and the contrast can; on a smooth one every end's
+#: contrast lies at 2.0-2.9 and the least of them is the most smeared. Same draws of the family bench
+#: (390 positions, 64 x 64 pixels; docs/digital_twin_field.md), mean target SSIM:
+#: rough references energy 0.689, speckle 0.762, auto 0.768; smooth ones 0.792, 0.659, 0.792
+OUTLINE_CHOICES = ("energy", "speckle", "auto")
+OUTLINE_CHOICE = "auto"
+#: above this contrast an end has piled its energy (rough references on the family bench: focused
+#: ends 1.4-2.8, piled 3.2-9.0; every end on a smooth one 2.0-2.9)
+PILED_CONTRAST = 3.0
 #: random starts besides zeros: the ends of low contrast are a few of many (3-5 of 25 on the
 #: field bench's draws), so more starts find one more often; all run in one matrix product
 OUTLINE_STARTS = 24
@@ -299,14 +304,16 @@ def outline_phase(
     sees the reference. All starts (zeros and ``starts`` random ones, fixed ``seed``) run at once
     (one matrix product per step). F has many maxima of about the same height, most of them with
     the energy piled into a few bright pixels rather than spread as a rough reference's speckle;
-    ``choose`` "speckle" (:data:`OUTLINE_CHOICE`) returns the end whose energy has the smallest
-    contrast over its outline (:func:`speckle_contrast`), "energy" the one with the largest F.
+    ``choose`` "energy" returns the end with the largest F, "speckle" the one whose energy has the
+    smallest contrast over its outline (:func:`speckle_contrast`), "auto" (:data:`OUTLINE_CHOICE`)
+    the largest F unless that end's contrast shows its energy piled (:data:`PILED_CONTRAST`).
 
     basis : complex (M, H, W); support : bool (H, W), True inside the reference's outline (e.g.
     :attr:`twinfocus.digital_twin.condition.DigitalTwinReference.support`).
 
     Returns (float64 (M,) radians, info: ``energy_inside`` and ``contrast`` per start, ``chosen``
-    start, ``support_shift_px`` (dy, dx) of the chosen start's outline).
+    start, ``chosen_by`` ("energy" or "speckle"), ``support_shift_px`` (dy, dx) of the chosen
+    start's outline).
     """
     ((phi, info),) = outline_phases(basis, [support], starts, iterations, rounds, max_shift_px, seed, choose)
     return phi, info
@@ -389,7 +396,10 @@ def outline_phases(
     out = []
     for k in range(len(base)):
         rows = slice(k * per, (k + 1) * per)
-        chosen = int(np.argmin(contrast[rows]) if choose == "speckle" else np.argmax(inside[rows]))
+        chosen = int(np.argmax(inside[rows]))
+        rule = "energy"
+        if choose == "speckle" or (choose == "auto" and contrast[rows][chosen] > PILED_CONTRAST):
+            chosen, rule = int(np.argmin(contrast[rows])), "speckle"
         out.append(
             (
                 phi[rows][chosen].copy(),
@@ -397,6 +407,7 @@ def outline_phases(
                     "energy_inside": [round(float(v), 4) for v in inside[rows]],
                     "contrast": [round(float(v), 3) for v in contrast[rows]],
                     "chosen": chosen,
+                    "chosen_by": rule,
                     "support_shift_px": [int(v) for v in shifts[k * per + chosen]],
                 },
             )

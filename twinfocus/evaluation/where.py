@@ -12,6 +12,8 @@ with the physical twin (:func:`twinfocus.pipeline.focus_scan`, one phase per pos
 * ``depth found``: the target's x/y box alone, its depth searched over the reference's +- 25 cm
   (:func:`twinfocus.depth_search.find_target_depth`);
 * ``depth 5 cm off``: the target's depth typed 5 cm too far and searched within +- 10 cm;
+* ``both found``: only the target's x/y box typed: the reference's region as in ``reference
+  found``, the target's depth as in ``depth found`` (around the found reference's depth);
 * ``best of two twins``: the reference's twin and another letter's twin as candidates, the
   better scored (:func:`twinfocus.reference_search.candidate_score`) used.
 
@@ -32,12 +34,13 @@ import numpy as np
 
 from twinfocus.evaluation.experiments import BASELINE_LETTERS
 
-ROWS = ("typed", "reference found", "depth found", "depth 5 cm off", "best of two twins")
+ROWS = ("typed", "reference found", "depth found", "depth 5 cm off", "both found", "best of two twins")
 ROW_TEXT = {
     "typed": "both regions typed (X0 X1 Y0 Y1 Z each)",
     "reference found": "reference region from the twin's scan (--reference-roi left out)",
     "depth found": "target's x/y box only (--target-roi X0 X1 Y0 Y1)",
     "depth 5 cm off": "target's Z typed 5 cm too far, --refine-depth 0.1",
+    "both found": "target's x/y box only, --reference-roi left out",
     "best of two twins": "two --template-scan candidates (the reference's, another letter's)",
 }
 #: (reference, target) pairs of the baseline letters; the quick run takes the first
@@ -100,6 +103,9 @@ def where_case(
         t = time.perf_counter()
         m, tgt = focus(ref_grid, twin, depth_range=depth_range)
         record(row, t, m, depth_error_m=float(tgt.z - true_z))
+    t = time.perf_counter()  # the reference's region as found above
+    m, tgt = focus(ImageGrid.from_roi(roi, size), twin, depth_range=default_range(roi[4]))
+    record("both found", t, m, reference_roi=list(roi), depth_error_m=float(tgt.z - true_z))
     t = time.perf_counter()
     other = BASELINE_LETTERS[(BASELINE_LETTERS.index(reference) + 3) % len(BASELINE_LETTERS)]
     wrong = template_scan(replace(sc, reference=other if other != target else BASELINE_LETTERS[0]), scan.chirp)
