@@ -100,6 +100,12 @@ def test_candidate_score_puts_trusted_references_first():
     assert candidate_score(trusted) == pytest.approx(0.7)
     assert candidate_score(warned) == pytest.approx(-0.01)
     assert candidate_score({"reference_match_ssim": None, "warnings": []}) == 0.0
+    # a drift seen through the right twin's estimate is the scan's, not the candidate's: a wrong
+    # twin, whose estimate is noise, must not outrank it for escaping that warning
+    drifted = {"reference_match_ssim": 0.98, "warnings": ["residual", "the tracking drifted"], "drift_warnings": 1}
+    wrong = {"reference_match_ssim": 0.84, "warnings": ["residual"]}
+    assert candidate_score(drifted) == pytest.approx(-0.02)
+    assert candidate_score(drifted) > candidate_score(wrong)
 
 
 @pytest.mark.slow

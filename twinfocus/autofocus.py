@@ -121,7 +121,9 @@ class AutofocusConfig:
         if int(self.outline_growth_rounds) < 0:
             raise TwinFocusError(f"outline_growth_rounds must be >= 0, got {self.outline_growth_rounds}")
         if self.outline_choice not in OUTLINE_CHOICES:
-            raise TwinFocusError(f"outline_choice must be one of {', '.join(OUTLINE_CHOICES)}, got {self.outline_choice!r}")
+            raise TwinFocusError(
+                f"outline_choice must be one of {', '.join(OUTLINE_CHOICES)}, got {self.outline_choice!r}"
+            )
         if not (np.isfinite(self.refine_below_coherence) and self.refine_below_coherence >= 0):
             raise TwinFocusError(f"refine_below_coherence must be >= 0, got {self.refine_below_coherence}")
         if int(self.projection_iterations) < 1:

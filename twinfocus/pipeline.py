@@ -684,7 +684,9 @@ def confidence_report(
     if step is not None:
         out["phase_step_coherence"] = step
         out["phase_concentration"] = m.get("phase_concentration")
-        out["warnings"] += drift_warnings(step, m.get("phase_concentration"), fill is not None, float(sep))
+        drifted = drift_warnings(step, m.get("phase_concentration"), fill is not None, float(sep))
+        out["warnings"] += drifted
+        out["drift_warnings"] = len(drifted)
     free = (m.get("reference_free") or {}).get("warning")
     if free:
         out["warnings"].append(free)

@@ -143,6 +143,11 @@ def candidate_score(confidence: dict) -> float:
     """A reference candidate's score from its confidence report
     (:func:`twinfocus.pipeline.confidence_report`): how well the corrected reference matches its
     template (SSIM, 0 when there is none) less one for each warning, so a candidate the report
-    trusts outranks any it warns about. Larger is better."""
+    trusts outranks any it warns about. Larger is better.
+
+    The drift warning (``drift_warnings`` of them) does not count: it reads the scan's tracking
+    through the estimate, so the right candidate's estimate shows a drift that a wrong one's,
+    which is noise, does not."""
     match = confidence.get("reference_match_ssim")
-    return float(match or 0.0) - len(confidence.get("warnings", []))
+    warned = len(confidence.get("warnings", [])) - int(confidence.get("drift_warnings", 0))
+    return float(match or 0.0) - warned

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.fft
-from scipy import ndimage
 
 from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
@@ -363,6 +362,8 @@ def outline_phases(
     # the shifted outlines reach only the pixels within r of the unshifted ones, so the image is
     # needed only there (a third of the region for a letter); every shift of each outline, on
     # those pixels, once for all rounds
+    from scipy import ndimage  # heavy: only the outline paths load it
+
     reach = ndimage.binary_dilation(np.logical_or.reduce(base), structure=np.ones((2 * r + 1, 2 * r + 1), bool))
     reach = reach.reshape(-1)
     shifted = [
@@ -459,6 +460,8 @@ def grown_outlines(
     support : bool (H, W) the outline; energy : float (H, W) |image|^2 of the estimate on the same
     grid; shift_px : (dy, dx) whole pixels. Returns a list of bool (H, W), closings first.
     """
+    from scipy import ndimage  # heavy: only the outline paths load it
+
     mask = np.asarray(support, dtype=bool)
     e = np.asarray(energy, dtype=np.float64)
     if e.shape != mask.shape:
