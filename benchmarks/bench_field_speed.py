@@ -102,6 +102,8 @@ def one_draw(seed: int, baseline) -> dict:
         rows.append(scored("current", out, load, cpu))
         kwargs.pop("progress", None)
         kwargs.pop("device", None)
+        if kwargs.get("pixels") is None:
+            kwargs.pop("pixels", None)  # an earlier version has no such argument; the whole fit needs none
         if baseline is not None:
             # copies: an earlier version may scale its inputs in place (2ec245c did)
             copies = [np.array(a) if isinstance(a, np.ndarray) else a for a in args]

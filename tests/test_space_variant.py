@@ -230,7 +230,11 @@ def test_per_position_refinement_follows_a_drift_faster_than_the_knots():
     # each position's noise in
     assert drift_error_mm(stiff) > 1.5 * drift_error_mm(refined)
     assert drift_error_mm(free) > 1.5 * drift_error_mm(refined)
-    assert info["refine_iterations"] == 100 and info["match_after"] > info["match_before"]
+    assert info["match_after"] > info["match_before"]
+    # the stage stops once it has taken its gain: early, and near where every step gets it
+    _, every_step, _, info_all = fit_smooth_drift(*args, refine_stop=0.0)
+    assert info_all["refine_iterations"] == 100 and 20 <= info["refine_iterations"] < 100
+    assert drift_error_mm(refined) < 1.15 * drift_error_mm(every_step)
 
 
 def test_the_fit_follows_the_arrays_tilt_with_the_half_array_basis():
@@ -453,3 +457,83 @@ def test_the_drift_fit_on_cuda_matches_the_cpu(drifting_scan):
     assert abs(i_gpu["match_after"] - i_cpu["match_after"]) < 1e-4
     assert np.sqrt(((d_gpu - d_cpu) ** 2).mean()) < 0.01e-3
     assert np.abs(np.angle(np.exp(1j * (p_gpu - p_cpu)))).max() < 0.05
+
+
+def test_drift_image_is_the_brute_force_sum_over_positions_and_pixels():
+    """drift_image against the sum written out: every position's exact line of sight to every
+    pixel, its phase, the tilted basis, added up in complex128 (with and without the tilt)."""
+    from twinfocus.space_variant import drift_image
+
+    rng = np.random.default_rng(5)
+    m, grid, lam = 7, ImageGrid(-0.05, 0.03, -0.04, 0.02, Z, 5, 6), Chirp().wavelength_m
+    centres = np.c_[rng.uniform(-0.1, 0.1, (m, 2)), rng.uniform(-0.01, 0.01, m)]
+    b = (rng.normal(size=(m,) + grid.shape) + 1j * rng.normal(size=(m,) + grid.shape)).astype(np.complex64)
+    left = (rng.normal(size=(m,) + grid.shape) + 1j * rng.normal(size=(m,) + grid.shape)).astype(np.complex64)
+    phase0, dp, psi = rng.uniform(-3, 3, m), rng.normal(0, 1e-3, (m, 3)), rng.uniform(-0.3, 0.3, m)
+    point0 = np.array([0.01, -0.02, Z])
+    k = 4 * np.pi / lam
+    expected, untilted = np.zeros(grid.shape, complex), np.zeros(grid.shape, complex)
+    for i in range(m):
+        u0 = (point0 - centres[i]) / np.linalg.norm(point0 - centres[i])
+        for r, y in enumerate(grid.y_m):
+            for c, x in enumerate(grid.x_m):
+                d = np.array([x, y, Z]) - centres[i]
+                rot = np.exp(1j * (phase0[i] + k * (d / np.linalg.norm(d) - u0) @ dp[i]))
+                e = left[i, r, c] * np.exp(1j * psi[i]) + (b[i, r, c] - left[i, r, c]) * np.exp(-1j * psi[i])
+                expected[r, c] += e * rot
+                untilted[r, c] += b[i, r, c] * rot
+    got = drift_image(b, phase0, dp, point0, centres, grid, lam, half_basis=left, tilt_rad=psi)
+    assert got.dtype == np.complex64 and got.shape == grid.shape
+    np.testing.assert_allclose(got, expected, atol=2e-5 * np.abs(expected).max())
+    np.testing.assert_allclose(drift_image(b, phase0, dp, point0, centres, grid, lam), untilted,
+                               atol=2e-5 * np.abs(untilted).max())  # fmt: skip
+    with pytest.raises(TwinFocusError, match="tilt needs both"):
+        drift_image(b, phase0, dp, point0, centres, grid, lam, half_basis=left)
+
+
+def test_the_fits_adam_steps_as_torchs_adam():
+    """The drift fit's Adam (torch's functional update) against torch.optim.Adam on the same
+    gradients: the same parameters after every step, for two groups at their own steps."""
+    import torch
+
+    from twinfocus.space_variant import _Adam
+
+    rng = np.random.default_rng(6)
+    a0, b0 = rng.normal(size=(4, 2)).astype(np.float32), rng.normal(size=5).astype(np.float32)
+    mine = [torch.tensor(a0), torch.tensor(b0)]
+    ref = [torch.tensor(a0), torch.tensor(b0)]
+    opt_mine = _Adam([{"params": [mine[0]], "lr": 0.01}, {"params": [mine[1]], "lr": 0.2}])
+    opt_ref = torch.optim.Adam([{"params": [ref[0]], "lr": 0.01}, {"params": [ref[1]], "lr": 0.2}])
+    for step in range(6):
+        grads = [torch.tensor(rng.normal(size=p.shape).astype(np.float32)) for p in mine]
+        for p, q, g in zip(mine, ref, grads):
+            p.grad, q.grad = g.clone(), g.clone()
+        opt_mine.step()
+        opt_ref.step()
+        for p, q in zip(mine, ref):
+            torch.testing.assert_close(p, q, rtol=0, atol=1e-7)
+    assert not torch.equal(mine[0], torch.tensor(a0))
+
+
+def test_a_fit_on_some_pixels_is_the_fit_with_the_others_zeroed(drifting_scan):
+    """``pixels`` (the held-out fits') against zeroing the other pixels in the basis and the
+    template: the same knots' pixels, drift, phase and match, float32 round-off apart."""
+    from twinfocus.space_variant import fit_smooth_drift
+    from twinfocus.template_match import correlation_phase
+
+    s = drifting_scan
+    centres, lam = s["tracked"].mean(axis=1), s["chirp"].wavelength_m
+    phi0 = correlation_phase(s["ref_basis"], s["template"])
+    mask = np.zeros(s["rg"].shape, bool)
+    mask[::2, :] = True
+    mask[1::4, 1::2] = True  # not a plain stripe pattern
+    zeroed = fit_smooth_drift(s["ref_basis"] * mask, s["template"] * mask, phi0, centres, s["rg"], lam,
+                              iterations=40, refine_iterations=20)  # fmt: skip
+    masked = fit_smooth_drift(s["ref_basis"], s["template"], phi0, centres, s["rg"], lam, iterations=40,
+                              refine_iterations=20, pixels=mask)  # fmt: skip
+    assert masked[3]["knot_pixels"] == zeroed[3]["knot_pixels"] < mask.sum()
+    np.testing.assert_allclose(masked[1], zeroed[1], atol=2e-7)
+    np.testing.assert_allclose(masked[0], zeroed[0], atol=1e-4)
+    assert abs(masked[3]["match_after"] - zeroed[3]["match_after"]) < 1e-5
+    with pytest.raises(TwinFocusError, match="pixels must be"):
+        fit_smooth_drift(s["ref_basis"], s["template"], phi0, centres, s["rg"], lam, pixels=np.zeros(s["rg"].shape, bool))

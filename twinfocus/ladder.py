@@ -52,7 +52,7 @@ from twinfocus.autofocus import (
     twin_autofocus,
 )
 from twinfocus.band_delay import bright_pixels, position_range_errors_m
-from twinfocus.basis import form_image, form_image_space_variant
+from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import MODEL_CHOICES, REFERENCE_FREE_RUNGS, TWIN_RUNGS
 from twinfocus.grid import ImageGrid
@@ -163,20 +163,21 @@ class Model:
             if self.drift_m is None:
                 self._images[region] = form_image(basis, self.phase_rad)
             else:
-                from twinfocus.space_variant import pixel_phases, tilted_basis
+                from twinfocus.space_variant import drift_image
 
-                if self.halves is not None and self.tilt_rad is not None:
-                    # the images are formed from the tilted bases; the truth metrics keep the scan's own
-                    basis = tilted_basis(basis, self.halves[half], self.tilt_rad)
-                phases = pixel_phases(
+                # formed from the tilted bases; the truth metrics keep the scan's own
+                tilted = self.halves is not None and self.tilt_rad is not None
+                self._images[region] = drift_image(
+                    basis,
                     self.phase_rad,
                     self.drift_m,
                     problem.reference_grid.centre_m,
                     problem.centres,
                     grid,
                     problem.chirp.wavelength_m,
+                    half_basis=self.halves[half] if tilted else None,  # type: ignore[index]
+                    tilt_rad=self.tilt_rad if tilted else None,
                 )
-                self._images[region] = form_image_space_variant(basis, phases)
         return self._images[region]
 
     def target_phase(self, problem: Problem) -> np.ndarray:
@@ -659,30 +660,30 @@ class SmoothDrift(Rung):
         return None
 
     def _fit(self, problem: Problem, model: Model, halves, fitted: np.ndarray | None = None, **settings):
-        """fit_smooth_drift on the reference, or on its ``fitted`` pixels alone (bool (H, W):
-        the others zeroed in the basis, the half-array basis and the template)."""
+        """fit_smooth_drift on the reference, or on its ``fitted`` pixels alone (bool (H, W))."""
         from twinfocus.space_variant import fit_smooth_drift  # torch and scipy: only on this path
 
         assert model.template is not None
-        # copies: the fit scales the bases it is given in place
-        fitted = np.ones(problem.reference_grid.shape, bool) if fitted is None else fitted
-        basis, template = problem.ref_basis * fitted, model.template * fitted
-        half = None if halves is None else halves[0] * fitted
         return fit_smooth_drift(
-            basis,
-            template,
+            problem.ref_basis,
+            model.template,
             model.phase_rad,
             problem.centres,
             problem.reference_grid,
             problem.chirp.wavelength_m,
-            half_basis=half,
+            half_basis=None if halves is None else halves[0],
+            pixels=fitted,
             device=problem.config.device,
-            progress=problem.progress("space-variant fit" if fitted.all() else "space-variant held-out fit"),
+            progress=problem.progress("space-variant fit" if fitted is None else "space-variant held-out fit"),
             **settings,
         )
 
     def fit(self, problem: Problem, model: Model) -> Model:
+        t = time.perf_counter()
         halves = problem.half_bases() if self.tilt and problem.half_bases is not None else None
+        if halves is not None:
+            # a back-projection like the whole bases', reported as a stage of its own
+            self.info_["half_array_bases_s"] = time.perf_counter() - t
         phase, drift, tilt, fit = self._fit(problem, model, halves)
         self.info_.update(
             residual_space_variant=1.0 - fit["match_after"],
@@ -713,8 +714,9 @@ class SmoothDrift(Rung):
             if before.heldout is not None:
                 base = before.heldout[i]
             else:
-                # the model beneath is one phase per position: its closed form on the same half
-                phase = correlation_phase(problem.ref_basis * fitted, before.template * fitted)
+                # the model beneath is one phase per position: its closed form on the same half (a sum
+                # over the template's pixels, so zeroing the template's other half is enough)
+                phase = correlation_phase(problem.ref_basis, before.template * fitted)
                 base = before.evolve(phase_rad=phase)
             phase, drift, tilt, _ = self._fit(problem, base, after.halves, fitted, **HELDOUT_FIT)
             fits.append(after.evolve(phase_rad=phase, drift_m=drift, tilt_rad=tilt))

@@ -413,7 +413,8 @@ def focus_bases(
 def rung_timings(section: dict) -> dict[str, float]:
     """The timings_s entries of the ladder's rungs (read-only aliases of the ``model`` section's
     ``time_s``): ``autofocus`` (the estimate: phase and refine, or a reference-free rung),
-    ``range_errors`` and ``space_variant`` (the drift or tilt kept)."""
+    ``range_errors``, ``half_array_bases`` (the tilt's back-projection of one half of the array's
+    channels, when it ran) and ``space_variant`` (the drift or tilt kept, less those bases)."""
     seconds = {e["rung"]: e["time_s"] for e in section["rungs"] if e["tried"]}
     out = {
         "autofocus": sum(
@@ -422,9 +423,12 @@ def rung_timings(section: dict) -> dict[str, float]:
     }
     if "range_errors" in seconds:
         out["range_errors"] = seconds["range_errors"]
-    kept_sv = [e["time_s"] for e in section["rungs"] if e["rung"] in ("drift", "tilt") and e["kept"]]
-    if kept_sv:
-        out["space_variant"] = kept_sv[0]
+    for e in section["rungs"]:
+        halves_s = e.get("info", {}).get("half_array_bases_s") if e["tried"] else None
+        if halves_s is not None:
+            out["half_array_bases"] = halves_s
+        if e["rung"] in ("drift", "tilt") and e["kept"] and "space_variant" not in out:
+            out["space_variant"] = e["time_s"] - (halves_s or 0.0)
     return out
 
 

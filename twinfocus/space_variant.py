@@ -212,6 +212,84 @@ def tilted_basis(basis: np.ndarray, half_basis: np.ndarray, tilt_rad: np.ndarray
     return (b * e + half * s2).astype(np.complex64)
 
 
+def drift_image(
+    basis: np.ndarray,
+    phase0_rad: np.ndarray,
+    dp_m: np.ndarray,
+    point0_m: np.ndarray,
+    centres_m: np.ndarray,
+    grid: ImageGrid,
+    wavelength_m: float,
+    half_basis: np.ndarray | None = None,
+    tilt_rad: np.ndarray | None = None,
+) -> np.ndarray:
+    """The image a drift (and tilt) correction forms: complex64 (H, W) on ``grid``,
+    sum_m E_m(p) exp(j phi_m(p)) with phi_m(p) from :func:`pixel_phases` and E_m the
+    :func:`tilted_basis` (``basis`` itself without ``half_basis``).
+
+    The same sum as ``form_image_space_variant(tilted_basis(...), pixel_phases(...))``
+    (:mod:`twinfocus.basis`) in one numba pass over the bases, the lines of sight computed per
+    pixel as it goes: no (M, H, W) phases or tilted basis are formed (at 780 x 100 x 100 on 2
+    cores 0.5 s and 0.19 GB of temporaries for the composition, ~0.05 s for this). basis,
+    half_basis : complex (M, H, W); phase0_rad : (M,) radians at ``point0_m`` (3,); dp_m : (M, 3)
+    metres; centres_m : (M, 3) metres; tilt_rad : (M,) radians, with ``half_basis``.
+    """
+    b = np.asarray(basis)
+    m = b.shape[0]
+    if b.ndim != 3 or b.shape[1:] != grid.shape:
+        raise TwinFocusError(f"basis {b.shape} does not fit the grid {grid.shape}")
+    c = np.ascontiguousarray(centres_m, np.float64)
+    dp = np.ascontiguousarray(dp_m, np.float64)
+    phase0 = np.ascontiguousarray(phase0_rad, np.float64)
+    if c.shape != (m, 3) or dp.shape != (m, 3) or phase0.shape != (m,):
+        raise TwinFocusError(f"centres {c.shape}, drift {dp.shape} and phases {phase0.shape} do not fit {m} positions")
+    if (half_basis is None) != (tilt_rad is None):
+        raise TwinFocusError("the tilt needs both the half-array basis and the tilt")
+    k = 4.0 * np.pi / float(wavelength_m)
+    u0 = lines_of_sight(c, np.asarray(point0_m, float))  # (M, 3)
+    kd = k * dp
+    offset = phase0 - np.einsum("mc,mc->m", kd, u0)  # phi_m(p) = offset_m + kd_m . u_{m,p}
+    if half_basis is None or tilt_rad is None:
+        e = np.ones(m, np.complex64)
+        s2 = np.zeros(m, np.complex64)
+        half = np.zeros((0, 0), np.complex64)
+    else:
+        half, psi = np.asarray(half_basis), np.asarray(tilt_rad, float)
+        if half.shape != b.shape or psi.shape != (m,):
+            raise TwinFocusError(f"half basis {half.shape} and tilt {psi.shape} do not fit {b.shape}")
+        e = np.exp(-1j * psi).astype(np.complex64)
+        s2 = (2j * np.sin(psi)).astype(np.complex64)
+        half = np.ascontiguousarray(half.reshape(m, -1), np.complex64)
+    image = np.empty(b.shape[1] * b.shape[2], np.complex64)
+    _drift_sum(np.ascontiguousarray(b.reshape(m, -1), np.complex64), half, e, s2, c, kd, offset,
+               grid.points(), _ROTATE_BLOCK, image)  # fmt: skip
+    return image.reshape(grid.shape)
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _drift_sum(b, half, e, s2, c, kd, offset, points, block, image):
+    """:func:`drift_image`'s sum, parallel over pixel blocks (no two threads add to one pixel):
+    b complex64 (M, P), half (M, P) or (0, 0) (no tilt), e / s2 complex64 (M,), c float64 (M, 3),
+    kd float64 (M, 3) = k dp, offset float64 (M,), points float64 (P, 3); writes image (P,)."""
+    n_pos, n_pix = b.shape
+    tilted = half.shape[0] > 0
+    n_blocks = (n_pix + block - 1) // block
+    for blk in prange(n_blocks):
+        lo = blk * block
+        hi = min(lo + block, n_pix)
+        acc = np.zeros(hi - lo, np.complex128)
+        for m in range(n_pos):
+            cx, cy, cz = c[m, 0], c[m, 1], c[m, 2]
+            kx, ky, kz = kd[m, 0], kd[m, 1], kd[m, 2]
+            for q in range(lo, hi):
+                dx, dy, dz = points[q, 0] - cx, points[q, 1] - cy, points[q, 2] - cz
+                phi = offset[m] + (kx * dx + ky * dy + kz * dz) / np.sqrt(dx * dx + dy * dy + dz * dz)
+                v = b[m, q] * e[m] + half[m, q] * s2[m] if tilted else b[m, q]
+                acc[q - lo] += v * complex(np.cos(phi), np.sin(phi))
+        for q in range(lo, hi):
+            image[q] = acc[q - lo]
+
+
 def knot_basis(n_positions: int, spacing: int) -> np.ndarray:
     """Piecewise-linear interpolation from knots every ``spacing`` positions: float64 (M, n_knots),
     rows sum to 1 (a smooth curve over the capture order from its values at the knots)."""
@@ -222,6 +300,11 @@ def knot_basis(n_positions: int, spacing: int) -> np.ndarray:
     b = np.maximum(0.0, 1.0 - np.abs(t[:, None] - knots[None, :]) / spacing)
     return b / b.sum(axis=1, keepdims=True)
 
+
+#: :func:`fit_smooth_drift`'s per-position stage stops once its last ``REFINE_WINDOW`` steps gained
+#: less than this share of all it gained (benchmarks/results/idle/field_speed.json)
+REFINE_STOP = 0.01
+REFINE_WINDOW = 10
 
 #: the share of the template's energy whose pixels the knots' stage of :func:`fit_smooth_drift`
 #: runs on (benchmarks/results/field_speed.json: the target's SSIM and the drift's error as good as
@@ -242,10 +325,12 @@ def fit_smooth_drift(
     step_m: float = 2e-5,
     phase_step_rad: float = 0.002,
     refine_iterations: int = 100,
+    refine_stop: float = REFINE_STOP,
     smoothness_per_mm2: float = 1e-4,
     half_basis: np.ndarray | None = None,
     tilt_step_rad: float = 0.01,
     knot_energy_fraction: float = KNOT_ENERGY_FRACTION,
+    pixels: np.ndarray | None = None,
     device: str | None = "cpu",
     progress: Callable[[int, int, float], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
@@ -281,7 +366,18 @@ def fit_smooth_drift(
     iterations, step_m : Adam's iterations and step on the knots, metres; phase_step_rad : Adam's
     step on phi, radians (0: phi fixed); refine_iterations : the per-position stage's iterations
     (same steps; 0: the knots' curve as it is); smoothness_per_mm2 : its penalty weight, per mm^2
-    of squared step between neighbours (against a correlation of at most 1).
+    of squared step between neighbours (against a correlation of at most 1); refine_stop : the
+    per-position stage ends early once its last ``REFINE_WINDOW`` steps gained less than this
+    share of all it gained (0: every step). Each of its steps costs four of the knots' (every
+    pixel against a fifth of them). On the hand-drift draws 3, 5, 8, 11, 13 of
+    benchmarks/bench_field_speed.py it stops after 73-90 steps: target SSIM 0.9429 against
+    0.9431 with all 100, the drift's error 0.358 against 0.359 mm r.m.s., 3.6-4.2 s against
+    4.7-5.1 on an idle 2-core machine (benchmarks/results/idle/field_speed.json). At 2 % it
+    stopped at ~50 (0.9421); steps of 4e-5 m, 50 of them, held the hand scans (0.9424) but
+    lost 0.01-0.03 on the 48-position scans of benchmarks/bench_model_ladder.py (Adam's jitter at
+    twice the step), where this rule loses nothing; a fixed 30 steps lost 0.004, and the stage on
+    the pixels with 99 % of the template's energy 0.003 (the pixels around the reference weigh in
+    the image's norm).
 
     half_basis : complex (M, H, W) the reference's sub-images from the channels of
     :func:`array_half` alone: the fit then also follows the array's tilt, a differential phase
@@ -295,6 +391,8 @@ def fit_smooth_drift(
     this share of its energy (:func:`twinfocus.band_delay.bright_pixels`; 1: every pixel), the
     per-position stage on every pixel: the knots' curve is set by where the reference is, and the
     pixels around it, which only weigh in the image's norm, are left to the last stage.
+    pixels : bool (H, W), the fit on these pixels alone (a held-out fit: the same as zeroing the
+    others in the bases and the template, without copying them; None: every pixel).
     device : the torch device (cpu, cuda, cuda:N; None:
     :func:`twinfocus.settings.resolve_device`'s choice), the same code on each. On a CPU torch's
     part runs on one thread, numba's on its own count or, when the load average is at or above
@@ -303,7 +401,7 @@ def fit_smooth_drift(
     Returns (phase float64 (M,) radians at the region's centre (``phase0_rad`` when phi is
     fixed), dp float64 (M, 3) metres in the correction's sense (z is 0), tilt float64 (M,)
     radians (zeros without ``half_basis``), info: ``match_before`` / ``match_after`` (the
-    correlation on every pixel), the settings, ``knot_pixels``, ``device``, ``threads`` (numba's on
+    correlation on every pixel of ``pixels``), the settings, ``knot_pixels``, ``device``, ``threads`` (numba's on
     a CPU, None elsewhere), ``time_s``).
     Memory on the CPU: the bases as given (no copy of complex64 ones) and 12 bytes per position
     and pixel of working arrays (0.1 GB at 780 x 100 x 100), 20 with ``half_basis``, and a copy of
@@ -327,10 +425,14 @@ def fit_smooth_drift(
         raise TwinFocusError(f"centres must be (M, 3) = ({m}, 3), got {c.shape}")
     if not 0.0 < float(knot_energy_fraction) <= 1.0:
         raise TwinFocusError(f"knot_energy_fraction must be in (0, 1], got {knot_energy_fraction!r}")
-    match = _DriftMatch(b, half_basis, tpl, c, grid, wavelength_m, device)
-    coarse = match
+    fitted = np.ones(grid.shape, bool) if pixels is None else np.asarray(pixels, bool)
+    if fitted.shape != grid.shape or not fitted.any():
+        raise TwinFocusError(f"pixels must be a {grid.shape} mask with a pixel in it, got {fitted.shape}")
+    whole = _DriftMatch(b, half_basis, tpl, c, grid, wavelength_m, device)
+    match = coarse = whole if pixels is None else whole.on(fitted.ravel())
     if knot_energy_fraction < 1.0:
-        coarse = match.on(bright_pixels(tpl, knot_energy_fraction).ravel())
+        bright = bright_pixels(np.where(fitted, tpl, 0), knot_energy_fraction) & fitted
+        coarse = whole.on(bright.ravel())
     dev = match.device
     s = torch.from_numpy(knot_basis(m, int(knot_spacing)).astype(np.float32)).to(dev)
     coef = torch.zeros(s.shape[1], 2, device=dev)
@@ -340,18 +442,27 @@ def fit_smooth_drift(
     total = int(iterations) + int(refine_iterations)
     matches: list[float] = []  # the correlation before each step, over both stages
 
-    def descend(parameter: torch.Tensor, knots: bool, steps: int, smoothness: float, objective: _DriftMatch) -> None:
+    def descend(
+        parameter: torch.Tensor, knots: bool, steps: int, smoothness: float, objective: _DriftMatch, stop: float = 0.0
+    ) -> int:
         """Adam on ``parameter`` (metres: the knots' values when ``knots``, else each position's
         drift) and phi and the tilt's knots, each at its own step, maximising the correlation less
         ``smoothness`` * sum |dp_{m+1} - dp_m|^2 (mm^2) on ``objective``'s pixels. The gradients are the correlation's own
-        (:meth:`_DriftMatch.value_and_gradients`): no graph is kept between steps."""
+        (:meth:`_DriftMatch.value_and_gradients`): no graph is kept between steps. ``stop`` > 0:
+        done once the last ``REFINE_WINDOW`` steps gained less than ``stop`` of all this stage's
+        gain (after at least two windows). Returns the steps taken."""
         groups = [{"params": [parameter], "lr": step_m}]
         if phase_step_rad > 0:
             groups.append({"params": [phase], "lr": phase_step_rad})
         if tilted:
             groups.append({"params": [tilt_coef], "lr": tilt_step_rad})
-        opt = torch.optim.Adam(groups)
-        for _ in range(int(steps)):
+        opt = _Adam(groups)
+        first = len(matches)
+        for n in range(int(steps)):
+            if stop > 0 and n >= 2 * REFINE_WINDOW:
+                gained, recent = matches[-1] - matches[first], matches[-1] - matches[-1 - REFINE_WINDOW]
+                if gained > 0 and recent < stop * gained:
+                    return n
             dp = s @ parameter if knots else parameter
             corr, g_phase, g_dp, g_tilt = objective.value_and_gradients(phase, dp, s @ tilt_coef if tilted else None)
             matches.append(corr)
@@ -368,6 +479,7 @@ def fit_smooth_drift(
             opt.step()
             if progress is not None:
                 progress(len(matches), total, -matches[-1])
+        return int(steps)
 
     with _threads_for_the_load(dev) as threads:
         before = match.value_and_gradients(phase, s @ coef, s @ tilt_coef if tilted else None)[0]
@@ -375,7 +487,7 @@ def fit_smooth_drift(
         # Per-position refinement: the knots' straight segments cannot follow a drift that wanders
         # within 10 positions; a penalty on the step between neighbours keeps the noise out.
         drift = s @ coef
-        descend(drift, False, refine_iterations, float(smoothness_per_mm2), match)
+        refined = descend(drift, False, refine_iterations, float(smoothness_per_mm2), match, float(refine_stop))
         after = match.value_and_gradients(phase, drift, s @ tilt_coef if tilted else None)[0] if total else before
     dp = np.zeros((m, 3))
     dp[:, :2] = drift.cpu().numpy()
@@ -384,7 +496,7 @@ def fit_smooth_drift(
         "match_after": after,
         "knot_spacing_positions": int(knot_spacing),
         "iterations": int(iterations),
-        "refine_iterations": int(refine_iterations),
+        "refine_iterations": refined,
         "smoothness_per_mm2": float(smoothness_per_mm2),
         "knot_pixels": int(coarse.t.shape[0]),
         "phase_fitted": phase_step_rad > 0,
@@ -395,6 +507,29 @@ def fit_smooth_drift(
     }
     tilt = (s @ tilt_coef).cpu().numpy().astype(np.float64)
     return phase.cpu().numpy().astype(np.float64), dp, tilt, info
+
+
+class _Adam:
+    """torch's Adam (betas 0.9 / 0.999, eps 1e-8), stepped through its functional form
+    ``torch.optim.adam.adam`` on parameter groups ``[{"params": [tensor], "lr": float}]`` whose
+    ``.grad`` the caller sets: the same update as ``torch.optim.Adam``, whose construction imports
+    ``torch._dynamo`` the first time (1.0-1.3 s on the 2-core machine, a fifth of the whole fit)."""
+
+    def __init__(self, groups: list[dict]) -> None:
+        import torch
+
+        self.state = [
+            (g["params"][0], float(g["lr"]), torch.zeros_like(g["params"][0]), torch.zeros_like(g["params"][0]),
+             torch.zeros((), dtype=torch.float32))
+            for g in groups
+        ]  # fmt: skip
+
+    def step(self) -> None:
+        from torch.optim.adam import adam
+
+        for p, lr, avg, avg_sq, steps in self.state:
+            adam([p], [p.grad], [avg], [avg_sq], [], [steps], foreach=False, amsgrad=False, beta1=0.9, beta2=0.999,
+                 lr=lr, weight_decay=0.0, eps=1e-8, maximize=False)  # fmt: skip
 
 
 @contextlib.contextmanager
@@ -538,7 +673,7 @@ class _DriftMatch:
         g_tilt = None
         if tilt is not None:
             # d C_m / d psi_m = (-j B exp(-j psi) + 2j cos(psi) L) exp(j theta) = -j C_m + 2j exp(j psi) L exp(j theta)
-            yh = half_rotated @ x[:, 0]
+            yh = half_rotated @ x[:, 0].contiguous()
             g_tilt = sums[:, 0].imag - 2.0 * (torch.conj(e) * yh).imag
         return corr, g[:, 0], g_dp, g_tilt
 
