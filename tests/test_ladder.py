@@ -265,3 +265,27 @@ def test_focus_model_knob_end_to_end(tmp_path):
     m = json.loads((tmp_path / "none" / "metrics.json").read_text())
     assert m["model"]["kept"] == ["none"]
     assert m["target_ssim_corrected"] == pytest.approx(m["target_ssim_uncorrected"], abs=1e-6)
+
+
+def test_the_half_array_bases_are_a_stage_of_their_own_in_the_timings():
+    """``timings_s``: the tilt's back-projection of half the channels as ``half_array_bases``, the
+    kept drift or tilt rung's time less it as ``space_variant``, the estimate's rungs summed as
+    ``autofocus``; a rung not kept gives no ``space_variant``."""
+    from twinfocus.pipeline import rung_timings
+
+    def section(tilt_kept: bool) -> dict:
+        return {"rungs": [
+            {"rung": "none", "tried": True, "kept": True, "time_s": 0.01},
+            {"rung": "phase", "tried": True, "kept": True, "time_s": 0.2},
+            {"rung": "refine", "tried": True, "kept": False, "time_s": 1.5},
+            {"rung": "placement", "tried": True, "kept": False, "time_s": 0.05},
+            {"rung": "drift", "tried": False, "kept": False, "time_s": 0.0, "info": {"used": False}},
+            {"rung": "tilt", "tried": True, "kept": tilt_kept, "time_s": 6.5,
+             "info": {"half_array_bases_s": 1.25}},
+        ]}  # fmt: skip
+
+    kept = rung_timings(section(True))
+    assert kept["half_array_bases"] == 1.25 and abs(kept["space_variant"] - 5.25) < 1e-12
+    assert abs(kept["autofocus"] - 1.7) < 1e-12
+    dropped = rung_timings(section(False))
+    assert dropped["half_array_bases"] == 1.25 and "space_variant" not in dropped
