@@ -392,7 +392,8 @@ def fit_smooth_drift(
     per-position stage on every pixel: the knots' curve is set by where the reference is, and the
     pixels around it, which only weigh in the image's norm, are left to the last stage.
     pixels : bool (H, W), the fit on these pixels alone (a held-out fit: the same as zeroing the
-    others in the bases and the template, without copying them; None: every pixel).
+    others in the bases and the template, on copies of these pixels' columns only; None: every
+    pixel).
     device : the torch device (cpu, cuda, cuda:N; None:
     :func:`twinfocus.settings.resolve_device`'s choice), the same code on each. On a CPU torch's
     part runs on one thread, numba's on its own count or, when the load average is at or above
@@ -637,7 +638,7 @@ class _DriftMatch:
         self._buffers: tuple[np.ndarray, np.ndarray, torch.Tensor] | None = None
 
     def on(self, pixels: np.ndarray) -> _DriftMatch:
-        """The same correlation on the pixels of a bool (P,) mask: views of this one's arrays'
+        """The same correlation on the pixels of a bool (P,) mask: copies of this one's arrays'
         columns (the polynomial basis is the one fitted over every pixel)."""
         sub = object.__new__(_DriftMatch)
         sub.__dict__.update(self.__dict__)
