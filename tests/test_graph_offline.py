@@ -56,11 +56,19 @@ def test_live_sim_graph_equals_offline_simulate_and_focus(tmp_path):
     for name in ("target_uncorrected", "reference_uncorrected"):
         a, b = np.load(live_dir / f"{name}.npy"), np.load(off_dir / f"{name}.npy")
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-4 * np.abs(b).max(), err_msg=name)
-    # Same estimator input, same estimate and image.
+    # Same estimator input, same estimate and image. The drift fit runs here (the tilt is kept),
+    # and its per-position stage stops once it stops gaining (space_variant.REFINE_STOP): the two
+    # runs' round-off can put that stop one step apart (78 or 79 here), and one more step moves
+    # the phases by up to ~4e-3 rad, so a one-step difference gets that much.
+    live_sv, off_sv = live_m.get("space_variant", {}), off_m.get("space_variant", {})
+    steps = {live_sv.get("refine_iterations"), off_sv.get("refine_iterations")}
+    one_step_apart = len(steps) == 2 and None not in steps and abs(int.__sub__(*steps)) == 1
+    assert len(steps) == 1 or one_step_apart, (live_sv, off_sv)
+    tol = 1e-2 if one_step_apart else 1e-3
     live_phase, off_phase = np.load(live_dir / "phase.npy"), np.load(off_dir / "phase.npy")
-    np.testing.assert_allclose(np.angle(np.exp(1j * (live_phase - off_phase))), 0.0, rtol=0, atol=1e-3)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (live_phase - off_phase))), 0.0, rtol=0, atol=tol)
     a, b = np.load(live_dir / "target.npy"), np.load(off_dir / "target.npy")
-    np.testing.assert_allclose(a, b, rtol=0, atol=1e-3 * np.abs(b).max())
+    np.testing.assert_allclose(a, b, rtol=0, atol=tol * np.abs(b).max())
     for key in ("target_ssim_corrected", "target_ssim_uncorrected", "reference_ssim_vs_template_corrected"):
         assert abs(live_m[key] - off_m[key]) < 1e-3, (key, live_m[key], off_m[key])
     assert live_m["confidence"]["trusted"] == off_m["confidence"]["trusted"]
