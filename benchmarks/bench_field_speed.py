@@ -41,7 +41,6 @@ from benchmarks.bench_handheld import CONDITIONS, draw_bases
 from twinfocus import metrics
 from twinfocus import space_variant as sv
 from twinfocus.autofocus import AutofocusConfig
-from twinfocus.basis import form_image_space_variant
 from twinfocus.estimators import estimator_settings
 from twinfocus.machine import machine_info
 from twinfocus.pipeline import focus_bases, half_array_bases
@@ -78,8 +77,8 @@ def one_draw(seed: int, baseline) -> dict:
 
     def scored(label: str, fit, load_before: float, cpu_s: float) -> dict:
         phase, dp, tilt, info = fit
-        img = form_image_space_variant(sv.tilted_basis(tb, halves[1], tilt),
-                                       sv.pixel_phases(phase, dp, rg.centre_m, centres, tg, scan.chirp.wavelength_m))
+        img = sv.drift_image(tb, phase, dp, rg.centre_m, centres, tg, scan.chirp.wavelength_m, half_basis=halves[1],
+                             tilt_rad=tilt)
         e = dp[:, :2] - true_drift
         return {"fit": label, "time_s": info["time_s"], "cpu_s": cpu_s, "load_before": load_before,
                 "load_after": os.getloadavg()[0],

@@ -518,7 +518,9 @@ class _Adam:
 
     def __init__(self, groups: list[dict]) -> None:
         import torch
+        from torch.optim.adam import adam
 
+        self.adam = adam
         self.state = [
             (g["params"][0], float(g["lr"]), torch.zeros_like(g["params"][0]), torch.zeros_like(g["params"][0]),
              torch.zeros((), dtype=torch.float32))
@@ -526,11 +528,9 @@ class _Adam:
         ]  # fmt: skip
 
     def step(self) -> None:
-        from torch.optim.adam import adam
-
         for p, lr, avg, avg_sq, steps in self.state:
-            adam([p], [p.grad], [avg], [avg_sq], [], [steps], foreach=False, amsgrad=False, beta1=0.9, beta2=0.999,
-                 lr=lr, weight_decay=0.0, eps=1e-8, maximize=False)  # fmt: skip
+            self.adam([p], [p.grad], [avg], [avg_sq], [], [steps], foreach=False, amsgrad=False, beta1=0.9,
+                      beta2=0.999, lr=lr, weight_decay=0.0, eps=1e-8, maximize=False)  # fmt: skip
 
 
 @contextlib.contextmanager

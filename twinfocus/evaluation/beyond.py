@@ -401,14 +401,14 @@ def space_variant_draws(
     """
     from twinfocus import metrics
     from twinfocus.backprojection import backproject, subimage_basis
-    from twinfocus.basis import form_image, form_image_space_variant
+    from twinfocus.basis import form_image
     from twinfocus.evaluation.cases import EvalSettings
     from twinfocus.grid import ImageGrid
     from twinfocus.motion import apply_position_errors, gaussian_errors
     from twinfocus.radar import Chirp, mmwcas_virtual_array
     from twinfocus.scene import Scene, letter, scatterer_spacing_m
     from twinfocus.simulate import add_thermal_noise, simulate_if
-    from twinfocus.space_variant import fit_position_errors, pixel_phases
+    from twinfocus.space_variant import drift_image, fit_position_errors
     from twinfocus.template_match import register_template
     from twinfocus.trajectory import paper_raster, phase_centres
 
@@ -476,8 +476,7 @@ def space_variant_draws(
             lam,
             prior_sigma_m=max(sigma_mm, 0.1) * 1e-3,
         )
-        ph = pixel_phases(phases[0], dp, centres["ref0"], cm, grids["target"], lam)
-        img = form_image_space_variant(tb, ph)
+        img = drift_image(tb, phases[0], dp, centres["ref0"], cm, grids["target"], lam)
         rec("space-variant", img, t_scalar + time.perf_counter() - t)
         rec("ceiling-target", form_image(tb, metrics.oracle_phase(true, tracked, centres["target"], chirp)), 0.0)
         if log:
