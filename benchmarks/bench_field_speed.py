@@ -5,6 +5,7 @@ the image on the true positions, the drift's error against the true positions.
     python -m benchmarks.bench_field_speed --draws 2            (--seeds 3,5 picks the draws)
     python -m benchmarks.bench_field_speed --seeds 3,5,8 --threads 1
     python -m benchmarks.bench_field_speed --focus-profile --seeds 3   (a whole ``twinfocus focus``)
+    python -m benchmarks.bench_field_speed --focus-profile --seeds 3,5 --models auto,fast
     python -m benchmarks.run --only field_speed
 
 Each draw is the hand-drift scene of ``benchmarks/bench_handheld.py`` ("hand 0.8 mm + 0.15 deg":
@@ -17,8 +18,9 @@ and writes its own rows. Writes ``field_speed.json`` (records per draw: each fit
 and the CPU seconds of all its threads, which vary less with the machine's load, the load average
 around it, the settings) and prints a table. ``--focus-profile`` instead simulates the draw's scan
 and stage scan with ``twinfocus simulate`` and focuses it with ``twinfocus focus`` (the reference's
-and the target's regions of the scene, 100 x 100 pixels, no pictures, no template cache), and
-writes every stage's time from its ``metrics.json`` to ``field_focus_profile.json``. ``--threads 1`` runs everything on one thread (torch
+and the target's regions of the scene, 100 x 100 pixels, no pictures, no template cache), once
+per ``--models`` value, and writes every stage's time from its ``metrics.json``, the ladder's
+time and the target's SSIM to ``field_focus_profile.json``. ``--threads 1`` runs everything on one thread (torch
 and numba): the CPU seconds are then the fit's own work, barely touched by other processes on a
 busy machine, and bound the wall time on an idle machine with more cores from above.
 """
@@ -131,15 +133,15 @@ def one_draw(seed: int, baseline) -> dict:
             "ceiling_target_phase": out.metrics["target_ssim_oracle_phase"], "fits": rows}
 
 
-def focus_profile(seed: int, work: Path) -> dict:
-    """``twinfocus simulate`` then ``twinfocus focus`` on one draw of the scene, as a user runs them:
-    the stages' seconds (``metrics.json`` ``timings_s``; ``space_variant`` holds the half-array
-    bases' back-projection and the fit, whose own seconds are ``space_variant_fit_s``), the whole
-    command's wall and CPU seconds."""
+def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",)) -> list[dict]:
+    """``twinfocus simulate`` then ``twinfocus focus`` on one draw of the scene, as a user runs them,
+    once per ``--model`` in ``models``: the stages' seconds (``metrics.json`` ``timings_s``), the
+    drift fit's own (``space_variant_fit_s``), the ladder's (``model_s``: every rung, the half-array
+    bases included), the rungs kept, the whole command's wall and CPU seconds, the target's SSIM."""
     from twinfocus.scenario import Scenario, scenario_grids
 
     rg, tg = scenario_grids(Scenario(**SCENE, seed=seed), 100)
-    scan, stage, out = work / f"hand{seed}.npz", work / f"hand{seed}_stage.npz", work / f"focus{seed}"
+    scan, stage = work / f"hand{seed}.npz", work / f"hand{seed}_stage.npz"
     exe = [str(Path(sys.executable).parent / "twinfocus")]  # the console script beside this interpreter
     subprocess.run(exe + ["simulate", "--out", str(scan), "--template-out", str(stage), "--reference", SCENE["reference"],
                           "--target", SCENE["target"], "--separation-deg", str(SCENE["separation_deg"]),
@@ -147,18 +149,24 @@ def focus_profile(seed: int, work: Path) -> dict:
                           "--error-sigma-mm", str(SCENE["error_sigma_m"][0] * 1e3), "--seed", str(seed), "--quiet"],
                    check=True)
     roi = [[g.x0, g.x1, g.y0, g.y1, g.z] for g in (rg, tg)]
-    cmd = ["focus", str(scan), "--template-scan", str(stage), "--reference-roi", *map(str, roi[0]),
-           "--target-roi", *map(str, roi[1]), "--size", "100", "--out", str(out), "--no-pictures", "--no-cache",
-           "--quiet"]
-    before, t0, load = os.times(), time.perf_counter(), os.getloadavg()[0]
-    subprocess.run(exe + cmd, check=True)
-    after = os.times()
-    m = json.loads((out / "metrics.json").read_text())
-    return {"seed": seed, "command": "twinfocus " + " ".join(cmd[:1] + ["SCAN", "--template-scan", "STAGE"] + cmd[4:]),
-            "wall_s": time.perf_counter() - t0, "cpu_s": (after.children_user + after.children_system)
-            - (before.children_user + before.children_system), "load_before": load, "timings_s": m["timings_s"],
-            "space_variant_fit_s": (m.get("space_variant") or {}).get("time_s"),
-            "target_ssim_corrected": m.get("target_ssim_corrected")}
+    runs = []
+    for model in models:
+        out = work / f"focus{seed}_{model}"
+        cmd = ["focus", str(scan), "--template-scan", str(stage), "--reference-roi", *map(str, roi[0]),
+               "--target-roi", *map(str, roi[1]), "--size", "100", "--model", model, "--out", str(out),
+               "--no-pictures", "--no-cache", "--quiet"]
+        before, t0, load = os.times(), time.perf_counter(), os.getloadavg()[0]
+        subprocess.run(exe + cmd, check=True)
+        after = os.times()
+        m = json.loads((out / "metrics.json").read_text())
+        runs.append({"seed": seed, "model": model,
+                     "command": "twinfocus " + " ".join(cmd[:1] + ["SCAN", "--template-scan", "STAGE"] + cmd[4:]),
+                     "wall_s": time.perf_counter() - t0, "cpu_s": (after.children_user + after.children_system)
+                     - (before.children_user + before.children_system), "load_before": load,
+                     "timings_s": m["timings_s"], "model_s": m["model"]["time_s"], "kept": m["model"]["kept"],
+                     "space_variant_fit_s": (m.get("space_variant") or {}).get("time_s"),
+                     "target_ssim_corrected": m.get("target_ssim_corrected")})
+    return runs
 
 
 def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 2, seeds: list[int] | None = None,
@@ -202,18 +210,21 @@ if __name__ == "__main__":
     ap.add_argument("--baseline", default=BASELINE, help="git revision of the fit to compare with")
     ap.add_argument("--threads", type=int, default=None, help="torch's and numba's threads (default: theirs)")
     ap.add_argument("--focus-profile", action="store_true", help="time a whole twinfocus focus per draw instead")
+    ap.add_argument("--models", default="auto", help="with --focus-profile: comma-separated --model values")
     a = ap.parse_args()
     if a.focus_profile:
         Path(a.out).mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory() as work:
-            runs = [focus_profile(seed, Path(work)) for seed in ([int(s) for s in a.seeds.split(",")] if a.seeds
-                                                               else range(1, a.draws + 1))]
+            runs = [r for seed in ([int(s) for s in a.seeds.split(",")] if a.seeds else range(1, a.draws + 1))
+                    for r in focus_profile(seed, Path(work), tuple(a.models.split(",")))]
         (Path(a.out) / "field_focus_profile.json").write_text(json.dumps(
             {"command": "python -m benchmarks.bench_field_speed " + " ".join(sys.argv[1:]),
              "scene": {k: list(v) if isinstance(v, tuple) else v for k, v in SCENE.items()},
              "machine": machine_info(), "runs": runs}, indent=2))
         for r in runs:
             slow = {k: round(v, 1) for k, v in r["timings_s"].items() if isinstance(v, (int, float)) and v > 1.0}
-            print(f"draw {r['seed']}: {r['wall_s']:.0f} s wall, {r['cpu_s']:.0f} s CPU; stages over 1 s: {slow}")
+            print(f"draw {r['seed']} --model {r['model']}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.0f} s CPU, ladder "
+                  f"{r['model_s']:.1f} s ({'/'.join(r['kept'])}), target SSIM {r['target_ssim_corrected']:.4f}; "
+                  f"stages over 1 s: {slow}")
         sys.exit(0)
     main(a.out, a.draws, [int(s) for s in a.seeds.split(",")] if a.seeds else None, a.baseline, a.threads)

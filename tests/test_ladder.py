@@ -10,6 +10,7 @@ from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import TWIN_RUNGS, estimator_settings
 from twinfocus.grid import ImageGrid
 from twinfocus.ladder import (
+    FAST_FIT,
     REFERENCE_FREE,
     Problem,
     build_ladder,
@@ -201,9 +202,11 @@ def test_a_real_drift_is_kept():
     assert complex_match(outs["auto"].reference, truth) > complex_match(outs["phase"].reference, truth)
     assert image_ssim(outs["auto"].reference, truth) > image_ssim(outs["phase"].reference, truth)
     # fast: one phase per position leaves the reference below the trust line, so the drift is
-    # climbed and kept on one held-out half's evidence (a quick fit on the other half)
+    # climbed as a quick fit (ladder.FAST_FIT) and kept on one held-out half's evidence
     fast = {e["rung"]: e for e in outs["fast"].metrics["model"]["rungs"]}["drift"]
     assert "template" in fast["below_trust_line"] and fast["kept"]
+    assert fast["info"]["iterations"] == FAST_FIT["iterations"]
+    assert fast["info"]["refine_iterations"] <= FAST_FIT["refine_iterations"] < drift["info"]["refine_iterations"]
     assert len(fast["evidence"]["heldout"]["folds"]) == 1 and fast["info"]["heldout_fit"].startswith("one half")
     assert complex_match(outs["fast"].reference, truth) > complex_match(outs["phase"].reference, truth)
 

@@ -13,10 +13,10 @@ from pathlib import Path
 
 from twinfocus.depth_search import DEFAULT_HALF_RANGE_M
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import REFERENCE_FREE_RUNGS
+from twinfocus.estimators import DRIFT_MODELS, REFERENCE_FREE_RUNGS
 from twinfocus.grid import ImageGrid
 from twinfocus.machine import require_memory
-from twinfocus.settings import add_focus_options, resolve_device
+from twinfocus.settings import add_focus_options, preload_torch, resolve_device
 
 #: bytes per radar position and pixel that a run holds at its peak: the two sub-image bases
 #: (complex64, 8 B each) and the optimiser's copies of the reference basis (float32 [Re | Im]
@@ -378,6 +378,8 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
             )
     ref_grid = ImageGrid.from_roi(reference_roi, args.size)
     depth_range = range_to_search(typed_depth, args.refine_depth, ref_grid.z)
+    if (args.template_scan or args.template) and args.space_variant != "off" and args.model in DRIFT_MODELS:
+        preload_torch()  # a template with phase: the ladder may fit a drift, with torch
     t = time.perf_counter()
     template, cache_status, support, twin_info = _template(
         args, scan, ref_grid, bp, progress, TemplateCache(enabled=not args.no_cache)
