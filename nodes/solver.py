@@ -69,6 +69,11 @@ class _Scan:
     pending: list = field(default_factory=list)
     ref_rows: BasisRows = field(default_factory=BasisRows)
     tgt_rows: BasisRows = field(default_factory=BasisRows)
+    # the half-array bases (the tilt's), streamed from the first batch when the tilt may be fitted
+    half: np.ndarray | None = None  # bool (K,): the half's channels (twinfocus.space_variant.array_half)
+    ref_half_rows: BasisRows = field(default_factory=BasisRows)
+    tgt_half_rows: BasisRows = field(default_factory=BasisRows)
+    half_handed: bool = False  # the streamed half-array rows went to the fit
     positions: list = field(default_factory=list)
     truth: list | None = field(default_factory=list)
     data: list = field(default_factory=list)  # basis:=after_scan, or the truth images after the result
@@ -422,11 +427,66 @@ class Solver(Node):
         t = time.perf_counter()
         s.ref_rows.append(subimage_basis(data, pos, s.chirp, self.ref_grid, **self.bp))
         s.tgt_rows.append(subimage_basis(data, pos, s.chirp, self.tgt_grid, **self.bp))
+        if self._half_streamed(s, pos):
+            assert s.half is not None
+            s.ref_half_rows.append(subimage_basis(data[:, s.half], pos[:, s.half], s.chirp, self.ref_grid, **self.bp))
+            s.tgt_half_rows.append(subimage_basis(data[:, s.half], pos[:, s.half], s.chirp, self.tgt_grid, **self.bp))
         s.last_batch_s = time.perf_counter() - t
         s.basis_time_s += s.last_batch_s
         s.batches += 1
         self._score_registration(s)
         self.heartbeat_if_due()
+
+    def _half_streamed(self, s: _Scan, pos: np.ndarray) -> bool:
+        """Whether this batch's half-array rows are streamed: from the scan's first batch, when the
+        ladder may fit the tilt (a template with phase, the space-variant correction not off, a
+        --model that climbs to the tilt). Their back-projection is then paid while the scan
+        arrives, not after its last frame (1.3 s at 780 positions x 100 x 100 on the 2-core
+        machine); a scan whose drift is not fitted paid it for nothing."""
+        from twinfocus.estimators import TILT_MODELS
+        from twinfocus.space_variant import array_half
+
+        if s.batches == 0 and s.half is None:
+            tilt_possible = (
+                self.params["method"] == "twin"
+                and self.params["space_variant"] != "off"
+                and self.params["model"] in TILT_MODELS
+                and self.template is not None
+                and np.iscomplexobj(self.template)
+            )
+            if tilt_possible:
+                try:
+                    s.half = array_half(pos)
+                except TwinFocusError:  # one channel, or none spread: no tilt to see
+                    pass
+        return s.half is not None
+
+    def _half_bases(self, s: _Scan, positions: np.ndarray):
+        """``focus_bases``'s ``half_bases``: the streamed rows when they cover the scan and its
+        channels split as the first batch's did (the whole scan's :func:`array_half`, as
+        ``twinfocus focus`` takes it); else back-projected from the samples when the fit asks."""
+        from twinfocus.pipeline import half_array_bases
+        from twinfocus.space_variant import array_half
+
+        if s.half is not None and s.ref_half_rows.n == positions.shape[0]:
+            try:
+                same = bool(np.array_equal(array_half(positions), s.half))
+            except TwinFocusError:
+                same = False
+            if same:
+                s.half_handed = True
+                return lambda: (s.ref_half_rows.array(), s.tgt_half_rows.array())
+        if not s.data:
+            return None
+        return half_array_bases(
+            lambda: np.concatenate(s.data),
+            positions,
+            s.chirp,
+            self.ref_grid,
+            self.tgt_grid,
+            self.bp,
+            lambda label: self._progress,
+        )
 
     def _score_registration(self, s: _Scan, final: bool = False) -> None:
         """Adds the reference rows not scored yet to the template registration's scores
@@ -651,7 +711,7 @@ class Solver(Node):
         outputs and the target basis (the oracle-phase image needs it)."""
         from threadpoolctl import threadpool_limits
 
-        from twinfocus.pipeline import focus_bases, half_array_bases, upper_band_basis
+        from twinfocus.pipeline import focus_bases, upper_band_basis
 
         tgt_basis = s.tgt_rows.array()
         self._score_registration(s, final=True)  # the rows left (all of them if the template came after the scan)
@@ -684,17 +744,7 @@ class Solver(Node):
                 space_variant=self.params["space_variant"],
                 tracking_error_m=self.tracking_error_m,
                 registration_scores=scores,
-                half_bases=half_array_bases(
-                    lambda: np.concatenate(s.data),
-                    positions,
-                    s.chirp,
-                    self.ref_grid,
-                    self.tgt_grid,
-                    self.bp,
-                    lambda label: self._progress,
-                )
-                if s.data
-                else None,
+                half_bases=self._half_bases(s, positions),
                 upper_band=upper_band_basis(
                     lambda: np.concatenate(s.data),
                     positions,
@@ -707,6 +757,8 @@ class Solver(Node):
                 else None,
             )
         out.timings_s["focus_bases"] = time.perf_counter() - t  # autofocus and the rest of the steps
+        if s.half_handed:
+            out.metrics["half_array_bases"] = "streamed"
         return out, tgt_basis
 
     def _truth_metrics(self, s: _Scan, out, tgt_basis: np.ndarray, positions: np.ndarray, truth: np.ndarray) -> None:

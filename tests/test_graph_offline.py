@@ -61,6 +61,8 @@ def test_live_sim_graph_equals_offline_simulate_and_focus(tmp_path):
     # runs' round-off can put that stop one step apart (78 or 79 here), and one more step moves
     # the phases by up to ~4e-3 rad, so a one-step difference gets that much.
     live_sv, off_sv = live_m.get("space_variant", {}), off_m.get("space_variant", {})
+    # the tilt's half-array bases were back-projected as the scan arrived, not after it
+    assert off_sv.get("tilt_fitted") and live_m.get("half_array_bases") == "streamed", live_m.get("half_array_bases")
     steps = {live_sv.get("refine_iterations"), off_sv.get("refine_iterations")}
     one_step_apart = len(steps) == 2 and None not in steps and abs(int.__sub__(*steps)) == 1
     assert len(steps) == 1 or one_step_apart, (live_sv, off_sv)

@@ -597,6 +597,49 @@ def test_solver_streams_the_basis_and_focuses_with_the_template(tmp_path):
     assert AutofocusConfig().iterations == 300  # the node's default is the paper's, tests ask for fewer
 
 
+def test_solver_streams_the_half_array_bases_only_when_the_tilt_may_be_fitted():
+    """With a template that has phase the ladder may fit the array's tilt: the solver
+    back-projects the half-array bases batch by batch as the scan arrives, and hands the fit the
+    same bases as the whole scan's (pipeline.half_array_bases, what twinfocus focus forms). With
+    an amplitude template (no drift or tilt rung can run) it streams none."""
+    from nodes.solver import Solver
+    from twinfocus.backprojection import backproject
+    from twinfocus.grid import ImageGrid
+    from twinfocus.pipeline import half_array_bases
+
+    scan = point_scene_scan()
+    ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 16), ImageGrid.from_roi(TGT_ROI, 16)
+    template = backproject(scan.data, scan.positions_true, CHIRP, ref_grid)
+    for phase in (True, False):
+        with local_broker() as ep:
+            solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16,
+                                               "warm_up": False})
+            handed: dict = {}
+            own = solver._half_bases
+
+            def spy(s, positions, own=own, handed=handed):
+                bases = own(s, positions)
+                handed.update(streamed=s.half_handed, bases=bases() if bases is not None else None)
+                return bases
+
+            solver._half_bases = spy
+            probe = Probe(ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"],
+                          wait_for=["solver"])
+            with running(solver, probe):
+                probe.send("twin/template", TwinTemplate(
+                    image=np.abs(template), phase_rad=np.angle(template).astype(np.float32) if phase else None,
+                    x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
+                for m in measurements(scan):
+                    probe.send("sar/measurement", m)
+                probe.wait_for("autofocus/result", 1, timeout_s=60, where=lambda r: not r.metrics_pending)
+        assert handed["streamed"] == phase
+        if phase:
+            want = half_array_bases(scan.data, scan.positions, CHIRP, ref_grid, tgt_grid, solver.bp)()
+            for got, w in zip(handed["bases"], want):
+                # float32 sums in another order (batches of what had arrived): up to 1.6e-5 seen
+                np.testing.assert_allclose(got, w, rtol=0, atol=1e-4 * np.abs(w).max())
+
+
 def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_whole_basis():
     """A physical twin's template (with its phase) arriving after the first half of the scan: the
     solver scores the registration on the rows it already has, then on each batch
