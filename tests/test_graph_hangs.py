@@ -136,13 +136,22 @@ def test_a_node_is_ready_only_once_its_own_subscriptions_reached_the_broker(tmp_
         connect, poll = late._connect, late._poll
         held = {"since": None}
 
-        def connect_then_unplug():
-            connect()
-            late._sub_sock.disconnect(xpub)
-            # On a busy machine the echo can make its round trip between connect() and the
-            # disconnect; the disconnect withdrew it from the broker, so it proves nothing now
-            # (the node reads its XPUB only after this returns, in this thread).
-            late._seen_subs.clear()
+        def connect_held_off():
+            # The node's SUB socket is not connected at all until the replug: connected and then
+            # unplugged, its subscriptions could reach the broker first, and their round trip
+            # back (\x01echo) be read by the node before the withdrawal (\x00echo) on a busy
+            # machine: a ready node whose subscriber is off the broker (1 of 6 tries beside two
+            # CPU hogs). This node's thread runs connect(); the others are connected already.
+            real = zmq.Socket.connect
+
+            def sub_held(sock, addr):
+                return None if sock.socket_type == zmq.SUB else real(sock, addr)
+
+            zmq.Socket.connect = sub_held
+            try:
+                connect()
+            finally:
+                zmq.Socket.connect = real
             held["since"] = time.monotonic()
 
         def poll_and_replug(*a, **k):
@@ -151,7 +160,7 @@ def test_a_node_is_ready_only_once_its_own_subscriptions_reached_the_broker(tmp_
                 late._sub_sock.connect(xpub)
             return poll(*a, **k)
 
-        late._connect, late._poll = connect_then_unplug, poll_and_replug
+        late._connect, late._poll = connect_held_off, poll_and_replug
         threads = [threading.Thread(target=n.spin, daemon=True) for n in (everything, sender)]
         for t in threads:
             t.start()
