@@ -155,3 +155,28 @@ def test_cuda_backend_matches_cpu():
     cpu = backproject(data, pos, ch, grid)
     gpu = backproject(data, pos, ch, grid, backend="torch", device="cuda")
     assert np.abs(cpu - gpu).max() / np.abs(cpu).max() < 1e-4
+
+
+def test_the_kernels_run_on_openmp_without_a_warning_beside_open3d():
+    """open3d (the digital twin's clouds) loads its own TBB, older than numba accepts: numba, whose
+    first choice is TBB, then warned on every digital-twin run before falling back to OpenMP.
+    twinfocus puts OpenMP first, so a kernel runs there and nothing is printed."""
+    import os
+    import subprocess
+    import sys
+
+    pytest.importorskip("open3d")
+    code = (
+        "import twinfocus, open3d, numba, numpy as np\n"
+        "from twinfocus.backprojection import subimage_basis\n"
+        "from twinfocus.grid import ImageGrid\n"
+        "from twinfocus.radar import Chirp\n"
+        "pos = np.zeros((2, 2, 3)); pos[:, 1, 0] = 1e-3\n"
+        "subimage_basis(np.ones((2, 2, 8), np.complex64), pos, Chirp(n_samples=8),"
+        " ImageGrid(-0.01, 0.01, -0.01, 0.01, 0.3, 4, 4))\n"
+        "print(numba.threading_layer())\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                       env={k: v for k, v in os.environ.items() if not k.startswith("NUMBA_THREADING")})
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split()[-1] == "omp" and "TBB" not in r.stderr, (r.stdout, r.stderr)
