@@ -145,7 +145,7 @@ def test_a_node_is_ready_only_once_its_own_subscriptions_reached_the_broker(tmp_
             real = zmq.Socket.connect
 
             def sub_held(sock, addr):
-                return None if sock.socket_type == zmq.SUB else real(sock, addr)
+                return None if sock.type == zmq.SUB else real(sock, addr)
 
             zmq.Socket.connect = sub_held
             try:
