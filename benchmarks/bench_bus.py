@@ -237,15 +237,27 @@ def graph_latency_run(columns: int, rows: int, size: int, rate: float, iteration
         cmd = [sys.executable, "-c", "import sys; from twinfocus.cli import main; sys.exit(main())", "launch", "sim",
                f"port:={port}", "web_port:=0", f"out:={tmp}", f"columns:={columns}", f"rows:={rows}", f"size:={size}",
                f"rate:={rate}", f"iterations:={iterations}", "exit_after:=1"]
-        g = subprocess.Popen(cmd, cwd=repo, env={**os.environ, "PYTHONPATH": repo}, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.DEVNULL)
+        log = Path(tmp) / "graph.log"
+        with open(log, "wb") as out:
+            g = subprocess.Popen(cmd, cwd=repo, env={**os.environ, "PYTHONPATH": repo}, stdout=out,
+                                 stderr=subprocess.STDOUT)
         try:
             probe = Probe(f"tcp://127.0.0.1:{port}", name="bench_graph_probe", params={"ready_timeout_s": 300},
                           listen=["radar/frame", "vio/pose", "sar/measurement", "image/focused", "autofocus/result"])
             with running(probe, start_timeout_s=300):
                 load_before = os.getloadavg()
-                timeout = float(os.environ.get("BENCH_TIMEOUT", 1800))
-                probe.wait_for("image/focused", 1, timeout_s=timeout, where=lambda i: i.name == "target")
+                deadline = time.monotonic() + float(os.environ.get("BENCH_TIMEOUT", 1800))
+                while True:  # the graph's image, unless the graph ended without one (a node refused to start)
+                    try:
+                        probe.wait_for("image/focused", 1, timeout_s=2, where=lambda i: i.name == "target")
+                        break
+                    except TimeoutError:
+                        if g.poll() is not None:
+                            tail = log.read_text(errors="replace").strip().splitlines()[-5:]
+                            raise RuntimeError(f"the graph ended (status {g.returncode}) before its image: "
+                                               + " / ".join(tail)) from None
+                        if time.monotonic() > deadline:
+                            raise
                 res = probe.wait_for("autofocus/result", 1, timeout_s=60)[0]  # the one published with the image
                 load_after = os.getloadavg()
                 # the truth metrics (simulation) follow in a second result
