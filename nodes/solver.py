@@ -443,16 +443,15 @@ class Solver(Node):
         --model that climbs to the tilt). Their back-projection is then paid while the scan
         arrives, not after its last frame (1.3 s at 780 positions x 100 x 100 on the 2-core
         machine); a scan whose drift is not fitted paid it for nothing."""
-        from twinfocus.estimators import TILT_MODELS
+        from twinfocus.ladder import climbs_to
         from twinfocus.space_variant import array_half
 
         if s.batches == 0 and s.half is None:
             tilt_possible = (
                 self.params["method"] == "twin"
-                and self.params["space_variant"] != "off"
-                and self.params["model"] in TILT_MODELS
                 and self.template is not None
                 and np.iscomplexobj(self.template)
+                and climbs_to("tilt", self.params["model"], self.params["space_variant"])
             )
             if tilt_possible:
                 try:

@@ -15,6 +15,7 @@ from twinfocus.ladder import (
     Problem,
     build_ladder,
     climb,
+    climbs_to,
     complex_match,
     heldout_gain,
     heldout_verdict,
@@ -209,6 +210,19 @@ def test_a_real_drift_is_kept():
     assert fast["info"]["refine_iterations"] <= FAST_FIT["refine_iterations"] < drift["info"]["refine_iterations"]
     assert len(fast["evidence"]["heldout"]["folds"]) == 1 and fast["info"]["heldout_fit"].startswith("one half")
     assert complex_match(outs["fast"].reference, truth) > complex_match(outs["phase"].reference, truth)
+
+
+def test_climbs_to_says_which_costly_rungs_a_setting_can_reach():
+    """What the CLI (torch's import) and the solver (the half-array bases) ask before the climb:
+    fast never reaches the tilt, a rung's name nothing above it, --space-variant wins over
+    --model for the drift and the tilt, and a model the twin's ladder refuses reaches nothing."""
+    assert climbs_to("drift", "auto") and climbs_to("tilt", "auto") and climbs_to("tilt", "full")
+    assert climbs_to("drift", "fast") and not climbs_to("tilt", "fast")
+    assert climbs_to("drift", "drift") and not climbs_to("tilt", "drift")
+    assert not climbs_to("drift", "phase") and not climbs_to("drift", "none")
+    assert not climbs_to("drift", "auto", "off") and not climbs_to("tilt", "full", "off")
+    assert climbs_to("tilt", "fast", "on") and climbs_to("drift", "phase", "on")
+    assert not climbs_to("drift", "sharpness") and not climbs_to("drift", "everything")
 
 
 def test_refusals_name_the_problem(scene):

@@ -126,7 +126,3 @@ REFERENCE_FREE_RUNGS = ("sharpness", "entropy", "pga")
 #: ``twinfocus focus --model``: climb as the evidence says, stop at the cheapest trusted rung,
 #: try every rung, or exactly one rung (those beneath it by their rules, none above it)
 MODEL_CHOICES = ("auto", "fast", "full") + TWIN_RUNGS + REFERENCE_FREE_RUNGS
-#: the --model values whose climb can reach the drift rung (torch's fit), and the tilt rung (the
-#: half-array bases): :func:`twinfocus.ladder.build_ladder`'s rules
-DRIFT_MODELS = ("auto", "fast", "full", "drift", "tilt")
-TILT_MODELS = ("auto", "full", "tilt")

@@ -852,6 +852,18 @@ def build_ladder(
     return rungs
 
 
+def climbs_to(rung: str, model: str = "auto", space_variant: str = "auto") -> bool:
+    """Whether the twin's ladder for ``model`` and ``space_variant`` (:func:`build_ladder`) has
+    ``rung`` and may climb it (its mode not off): what a caller asks before paying for a rung's
+    inputs ahead of the climb (torch for the drift, the half-array bases for the tilt). False for
+    a ``model`` the twin's ladder refuses."""
+    try:
+        rungs = build_ladder(model, space_variant=space_variant)
+    except TwinFocusError:
+        return False
+    return any(r.name == rung and r.mode != "off" for r in rungs)
+
+
 def climb(problem: Problem, rungs: list[Rung]) -> tuple[Model, dict]:
     """Climb ``rungs`` (:func:`build_ladder`) on ``problem``: returns the kept model and
     metrics.json's ``model`` section: ``rungs``, one entry per rung (``rung``, ``adds``,

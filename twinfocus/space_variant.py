@@ -207,9 +207,15 @@ def tilted_basis(basis: np.ndarray, half_basis: np.ndarray, tilt_rad: np.ndarray
     psi = np.asarray(tilt_rad, float)
     if half.shape != b.shape or psi.shape != b.shape[:1]:
         raise TwinFocusError(f"half basis {half.shape} and tilt {psi.shape} do not fit the basis {b.shape}")
-    e = np.exp(-1j * psi).astype(np.complex64)[:, None, None]
-    s2 = (2j * np.sin(psi)).astype(np.complex64)[:, None, None]
-    return (b * e + half * s2).astype(np.complex64)
+    e, s2 = _tilt_factors(psi)
+    return (b * e[:, None, None] + half * s2[:, None, None]).astype(np.complex64)
+
+
+def _tilt_factors(tilt_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """exp(-j psi) and 2j sin(psi), complex64 (M,): E_m = B_m exp(-j psi_m) + 2j sin(psi_m) L_m
+    (:func:`tilted_basis`)."""
+    psi = np.asarray(tilt_rad, float)
+    return np.exp(-1j * psi).astype(np.complex64), (2j * np.sin(psi)).astype(np.complex64)
 
 
 def drift_image(
@@ -257,8 +263,7 @@ def drift_image(
         half, psi = np.asarray(half_basis), np.asarray(tilt_rad, float)
         if half.shape != b.shape or psi.shape != (m,):
             raise TwinFocusError(f"half basis {half.shape} and tilt {psi.shape} do not fit {b.shape}")
-        e = np.exp(-1j * psi).astype(np.complex64)
-        s2 = (2j * np.sin(psi)).astype(np.complex64)
+        e, s2 = _tilt_factors(psi)
         half = np.ascontiguousarray(half.reshape(m, -1), np.complex64)
     image = np.empty(b.shape[1] * b.shape[2], np.complex64)
     _drift_sum(np.ascontiguousarray(b.reshape(m, -1), np.complex64), half, e, s2, c, kd, offset,

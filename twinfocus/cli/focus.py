@@ -13,7 +13,7 @@ from pathlib import Path
 
 from twinfocus.depth_search import DEFAULT_HALF_RANGE_M
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import DRIFT_MODELS, REFERENCE_FREE_RUNGS
+from twinfocus.estimators import REFERENCE_FREE_RUNGS
 from twinfocus.grid import ImageGrid
 from twinfocus.machine import require_memory
 from twinfocus.settings import add_focus_options, preload_torch, resolve_device
@@ -363,6 +363,7 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
     from twinfocus.cache import TemplateCache
     from twinfocus.depth_search import find_target_depth, range_to_search
     from twinfocus.estimators import estimator_settings
+    from twinfocus.ladder import climbs_to
     from twinfocus.pipeline import focus_scan
 
     timings: dict[str, float] = {}
@@ -378,7 +379,7 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
             )
     ref_grid = ImageGrid.from_roi(reference_roi, args.size)
     depth_range = range_to_search(typed_depth, args.refine_depth, ref_grid.z)
-    if (args.template_scan or args.template) and args.space_variant != "off" and args.model in DRIFT_MODELS:
+    if (args.template_scan or args.template) and climbs_to("drift", args.model, args.space_variant):
         preload_torch()  # a template with phase: the ladder may fit a drift, with torch
     t = time.perf_counter()
     template, cache_status, support, twin_info = _template(
