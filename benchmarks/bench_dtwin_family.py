@@ -4,9 +4,11 @@ confidence report can be believed on them.
 Every draw takes at random (from its own seed): the reference's shape and the target's (letters
 with holes and without, 'O' a ring; plates and tools of a letter's size: a plate, a washer, a
 wrench, a disc, a key), their separation (9-12 degrees; 16.3 under a hand's drift), the
-reference's surface (half the draws smooth, as a letter cut from sheet metal; half rough, every
-scatterer its own phase over +-90 degrees and strength +-30 %) and a camera cloud as it comes (1 mm noise, 25 % of the surface missing in patches, 2 %
-outliers, an offset of 2-3 mm in a random direction). Conditions:
+reference's surface (a third each: smooth, as a plate or a letter cut from sheet metal, every
+scatterer in phase; rough, each scatterer its own phase within +-90 degrees; speckled, each its
+own phase anywhere on the circle; strengths +-30 % on all three) and a camera cloud as it comes
+(1 mm noise, 25 % of the surface missing in patches, 2 % outliers, an offset of 2-3 mm in a random
+direction). Conditions:
 
   paper: 0.5 mm z + 0.2 mm x/y tracking error, 15 dB;
   1 mm deeper: 1 mm z + 0.3 mm x/y, 10 dB, the target 10 cm deeper than the reference;
@@ -64,20 +66,33 @@ OFFSET_RANGE_M = (2e-3, 3e-3)
 GOOD, POOR = 0.95, 0.90
 
 
-def family_scenario(condition: str, seed: int, shapes: tuple, rows: int, rough: bool | None = None) -> dict:
+#: the reference's surface: the Scenario's roughness (twinfocus.scene.scatterers.rough_amplitudes:
+#: each scatterer's phase uniform within +-that many degrees; None: the scene's speckle, a phase
+#: uniform over the whole circle)
+SURFACES = {"smooth": 0.0, "rough": 90.0, "speckled": None}
+
+
+def family_scenario(condition: str, seed: int, shapes: tuple, rows: int, surface: str | None = None) -> dict:
     """The Scenario keywords of one draw of ``condition``: shapes, separation and (unless
-    ``rough`` is given) the reference's surface from ``seed``."""
+    ``surface`` is given, a key of ``SURFACES``) the reference's surface from ``seed``."""
     rng = np.random.default_rng([seed, 31])
     ref, tgt = rng.choice(list(shapes), 2, replace=False)
     separation = float(rng.uniform(9.0, 12.0))
-    drawn_rough = bool(rng.random() < 0.5)
-    rough = drawn_rough if rough is None else rough
+    drawn = list(SURFACES)[min(int(rng.random() * len(SURFACES)), len(SURFACES) - 1)]
+    surface = drawn if surface is None else surface
+    if surface not in SURFACES:
+        raise ValueError(f"surface must be one of {', '.join(SURFACES)}, got {surface!r}")
     kw = dict(reference=str(ref), target=str(tgt), separation_deg=separation,
-              reference_roughness_deg=90.0 if rough else None, reference_amplitude_spread=0.3, n_rows=rows, seed=seed)
+              reference_roughness_deg=SURFACES[surface], reference_amplitude_spread=0.3, n_rows=rows, seed=seed)
     return {**kw, **CONDITIONS[condition]}
 
 
-def draw_inputs(condition: str, seed: int, shapes: tuple, rows: int, size: int, rough: bool | None = None) -> dict:
+def surface_of(kw: dict) -> str:
+    """The name in ``SURFACES`` of a draw's Scenario keywords ``kw``."""
+    return next(name for name, deg in SURFACES.items() if deg == kw["reference_roughness_deg"])
+
+
+def draw_inputs(condition: str, seed: int, shapes: tuple, rows: int, size: int, surface: str | None = None) -> dict:
     """One draw's scan and what the digital twin is given: ``kw`` (its Scenario keywords),
     ``scan``, ``template_scan`` (the motion-stage scan), grids ``rg``/``tg``, ``twin`` (from the
     camera cloud as it comes), bases ``rb``/``tb``, ``truth`` (focus_bases' truth keywords) and
@@ -88,7 +103,7 @@ def draw_inputs(condition: str, seed: int, shapes: tuple, rows: int, size: int, 
     from twinfocus.pipeline import upper_band_basis
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
 
-    kw = family_scenario(condition, seed, shapes, rows, rough)
+    kw = family_scenario(condition, seed, shapes, rows, surface)
     sc = Scenario(**kw)
     scan, tpl_scan = simulate_scenario(sc)
     rg, tg = scenario_grids(sc, size)
@@ -133,7 +148,7 @@ def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> 
     kw, scan, tpl_scan, rg, tg, twin, rb, tb, truth = (d[k] for k in ("kw", "scan", "template_scan", "rg", "tg", "twin",
                                                                        "rb", "tb", "truth"))
     rec: dict = {"seed": seed, "reference": kw["reference"], "target": kw["target"],
-                 "rough": kw["reference_roughness_deg"] is not None,
+                 "surface": surface_of(kw),
                  "separation_deg": round(kw["separation_deg"], 2)}
     dt = digital_twin_focus(d)
     # what `twinfocus focus --template-scan` runs
@@ -169,9 +184,9 @@ OWN_WARNINGS = ("matches its template poorly", "does not fill its outline", "not
 def trusted(rec: dict, twin: str) -> bool:
     """Whether the confidence report trusts this record's ``twin`` result, by the report's present
     rules: the drift check (``twinfocus.pipeline.drift_warnings``) and, for the digital twin, its own
-    checks (``outline_warnings``: the reference's energy contrast over its outline, the grown
-    outlines' agreement) applied anew to the record's measurements, the report's other warnings as
-    recorded."""
+    checks (``outline_warnings``: the reference's energy contrast over its outline unless the scan
+    read it as speckled, the grown outlines' agreement) applied anew to the record's measurements,
+    the report's other warnings as recorded."""
     from twinfocus.pipeline import drift_warnings, outline_warnings
 
     digital = twin == "digital"
@@ -180,8 +195,8 @@ def trusted(rec: dict, twin: str) -> bool:
     # (records before the concentration was measured: None, the drift judged by its steps alone)
     own = drift_warnings(rec[f"{twin} step_coherence"], conf.get("phase_concentration"), digital, conf["separation_deg"])
     if digital:
-        contrast = (conf.get("reference_outline") or rec["digital outline"])["contrast"]
-        own += outline_warnings(contrast, conf.get("outline_agreement"))
+        fill = conf.get("reference_outline") or rec["digital outline"]
+        own += outline_warnings(fill["contrast"], conf.get("outline_agreement"), fill.get("surface"))
     return not others and not own
 
 
@@ -196,11 +211,12 @@ def table(results: dict) -> str:
         cells = [np.array([r[c] for r in scored]) for c in cols]
         lines.append(f"| {cond} | {len(scored)} | {len(recs) - len(scored)} | "
                      + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
-    lines += ["", "| condition | digital twin, smooth references | digital twin, rough references |", "|---|---|---|"]
+    lines += ["", "| condition | " + " | ".join(f"digital twin, {s} references" for s in SURFACES) + " |",
+              "|---|" + "---|" * len(SURFACES)]
     for cond, recs in results.items():
         cells = []
-        for rough in (False, True):
-            v = np.array([r["digital"] for r in recs if "refused" not in r and r.get("rough", True) == rough])
+        for surface in SURFACES:
+            v = np.array([r["digital"] for r in recs if "refused" not in r and r.get("surface") == surface])
             cells.append(f"{v.mean():.3f} ({len(v)} draws, worst {v.min():.3f})" if len(v) else "no draws")
         lines.append(f"| {cond} | " + " | ".join(cells) + " |")
     lines += ["", "| twin | results | trusted (their worst) | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |",

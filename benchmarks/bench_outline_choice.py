@@ -3,7 +3,7 @@ inside the outline ("energy"), the least contrast of that energy ("speckle") and
 ("auto": the most energy unless that end piled it; :data:`twinfocus.template_match.OUTLINE_CHOICE`).
 
 Draws of the digital-twin family bench (:mod:`benchmarks.bench_dtwin_family`: shapes, places,
-camera clouds, conditions), each run twice, once with the reference smooth and once rough, so
+camera clouds, conditions), each run twice, once with the reference speckled and once rough, so
 that each surface meets every shape and condition. Bench draws (seeds 1001 on, the bench's shapes)
 are what the rule's threshold was chosen on; held-out draws (seeds 3001 on, the held-out shapes,
 seeds no other bench uses) check it.
@@ -44,7 +44,8 @@ def one_draw(job: tuple) -> dict:
     cond, seed, rough, heldout = job
     rec: dict = {"condition": cond, "seed": seed, "rough": rough}
     try:
-        d = draw_inputs(cond, seed, HELDOUT_SHAPES if heldout else BENCH_SHAPES, 65, 64, rough=rough)
+        # (its records' "rough": False are the family's speckled surface)
+        d = draw_inputs(cond, seed, HELDOUT_SHAPES if heldout else BENCH_SHAPES, 65, 64, surface="rough" if rough else "speckled")
     except TwinFocusError as e:
         return {**rec, "refused": str(e)}
     rec.update(reference=d["kw"]["reference"], target=d["kw"]["target"])
@@ -60,7 +61,7 @@ def one_draw(job: tuple) -> dict:
         rec[f"{choice} trusted"] = out.metrics["confidence"]["trusted"]
         rec[f"{choice} s"] = round(time.perf_counter() - t0, 2)
     rec["oracle"] = round(out.metrics["target_ssim_oracle_phase"], 4)
-    print(f"[outline choice] {cond}, seed {seed}, {'rough' if rough else 'smooth'}: "
+    print(f"[outline choice] {cond}, seed {seed}, {'rough' if rough else 'speckled'}: "
           + ", ".join(f"{c} {rec[c]:.3f}" for c in CHOICES), file=sys.stderr, flush=True)
     return rec
 
@@ -72,7 +73,7 @@ def table(records: list[dict]) -> str:
         recs = [r for r in records if r["rough"] == rough and "refused" not in r]
         if recs:
             cells = [f"{np.mean([r[c] for r in recs]):.3f} (worst {min(r[c] for r in recs):.3f})" for c in CHOICES]
-            lines.append(f"| {'rough' if rough else 'smooth'} | {len(recs)} | " + " | ".join(cells) + " |")
+            lines.append(f"| {'rough' if rough else 'speckled'} | {len(recs)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.outline_fill import outline_fill
+from twinfocus.outline_fill import SPECKLED_BELOW, outline_fill, surface_from_positions
 
 
 def _outline(h=40, w=40):
@@ -118,6 +118,79 @@ def test_the_report_reads_a_digital_twin_against_its_outline_not_its_template_pi
     assert "does not fill its outline" in warning and "--template-scan" in warning
 
 
+def test_the_contrast_is_not_held_against_a_reference_the_scan_reads_as_speckled():
+    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST, outline_warnings
+
+    piled = {"energy_inside": 0.9, "contrast": MAX_OUTLINE_CONTRAST + 0.3}
+    # speckle in focus reaches the contrast of a coherent reference's piled energy: no reason to flag
+    assert _report({**piled, "position_energy_contrast": 1.3, "surface": "speckled"})["trusted"]
+    for surface in ("coherent", None):  # a coherent part, or a record that did not read the surface
+        (warning,) = outline_warnings(piled["contrast"], None, surface)
+        assert "does not fill its outline" in warning and "--template-scan" in warning
+    # the other check still holds for a speckled reference
+    (warning,) = outline_warnings(piled["contrast"], 0.8, "speckled")
+    assert "not sure of the reference's phase" in warning
+
+
+def test_surface_from_positions_is_the_contrast_of_each_positions_energy_in_the_grown_outline():
+    """Against a loop over positions and pixels, and unchanged at any scale of the scan."""
+    rng = np.random.default_rng(3)
+    m, h, w = 7, 12, 10
+    basis = (rng.normal(size=(m, h, w)) + 1j * rng.normal(size=(m, h, w))).astype(np.complex64)
+    basis *= rng.uniform(0.2, 3.0, m)[:, None, None].astype(np.float32)  # positions of unequal energy
+    support = np.zeros((h, w), bool)
+    support[5, 4] = True
+    grown = np.array([[abs(r - 5) + abs(c - 4) <= 1 for c in range(w)] for r in range(h)])  # one step of dilation
+    energy = np.array([sum(abs(complex(basis[k, r, c])) ** 2 for r in range(h) for c in range(w) if grown[r, c])
+                       for k in range(m)])
+    expected = (energy**2).mean() / energy.mean() ** 2
+    got = surface_from_positions(basis, support, grow_px=1)
+    assert got["position_energy_contrast"] == pytest.approx(expected, abs=1e-3)
+    assert got["surface"] == ("speckled" if expected < SPECKLED_BELOW else "coherent")
+    for scale in (1e-20, 1e20):
+        assert surface_from_positions(basis * np.float32(scale), support, grow_px=1) == got
+    # one position holding all the energy: contrast M; all equal: 1
+    lone = np.zeros_like(basis)
+    lone[2] = 1.0
+    assert surface_from_positions(lone, support)["position_energy_contrast"] == pytest.approx(m, rel=1e-3)
+    assert surface_from_positions(np.ones_like(basis), support) == {"position_energy_contrast": 1.0, "surface": "speckled"}
+
+
+@pytest.mark.parametrize(
+    ("basis_shape", "support_shape", "grow", "why"),
+    [((4, 5, 6), (5, 5), 0, "must be"), ((5, 6), (5, 6), 0, "must be"), ((4, 5, 6), (5, 6), -1, "grow_px"),
+     ((4, 5, 6), (5, 6), 0, "no finite energy")],
+)
+def test_surface_from_positions_refuses_what_it_cannot_read(basis_shape, support_shape, grow, why):
+    support = np.ones(support_shape, bool)
+    with pytest.raises(TwinFocusError, match=why):
+        surface_from_positions(np.zeros(basis_shape, np.complex64), support, grow)
+    with pytest.raises(TwinFocusError, match="covers none"):
+        surface_from_positions(np.ones((4, 5, 6), np.complex64), np.zeros((5, 6), bool))
+
+
+def test_the_scan_tells_a_speckled_reference_from_a_smooth_or_rough_one_whatever_the_tracking_error():
+    """Field geometry (the MMWCAS array at 0.6 m, an 'H'), 120 positions: a smooth sheet-metal
+    letter (every scatterer in phase) and a rough one (phases within +-90 degrees) send back a lobe
+    that changes across the scan; a speckled one (phases anywhere) does not. Under 1.6 mm of
+    jitter and under a hand's drift alike."""
+    from scipy.spatial import cKDTree
+
+    from twinfocus.backprojection import subimage_basis
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+
+    for errors in ({"error_sigma_m": (0.3e-3, 0.3e-3, 1.6e-3)}, {"error_model": "hand", "error_sigma_m": (0.8e-3,) * 3}):
+        for roughness_deg, surface in ((0.0, "coherent"), (90.0, "coherent"), (None, "speckled")):
+            sc = Scenario(reference="H", reference_roughness_deg=roughness_deg, n_rows=20, snr_db=15, seed=4, **errors)
+            scan, _ = simulate_scenario(sc)
+            grid, _ = scenario_grids(sc, 32)
+            # the outline: pixels within 2 mm of the letter's surface
+            distance, _ = cKDTree(sc.scene().object("reference").surface_points(1e-3)[:, :2]).query(grid.points()[:, :2])
+            support = (distance < 2e-3).reshape(grid.shape)
+            got = surface_from_positions(subimage_basis(scan.data, scan.positions, scan.chirp, grid), support)
+            assert got["surface"] == surface, (errors, roughness_deg, got)
+
+
 def test_focus_reads_a_digital_twin_against_its_outline(small_scene):
     """focus_bases with an outline (what --digital-twin runs) writes the corrected reference's
     outline statistics, and its confidence report judges them, not the picture match."""
@@ -136,8 +209,9 @@ def test_focus_reads_a_digital_twin_against_its_outline(small_scene):
     out = focus_bases(basis, basis, positions, Chirp(n_samples=64), grid, grid, template=support.astype(np.float32),
                       support=support, config=cfg)
     fill = out.metrics["reference_outline"]
-    assert fill == outline_fill(out.reference, support)
+    assert fill == {**outline_fill(out.reference, support), **surface_from_positions(basis, support)}
     report = out.metrics["confidence"]
     assert report["reference_outline"] == fill
     assert not any("matches its template poorly" in w for w in report["warnings"])
-    assert any("does not fill its outline" in w for w in report["warnings"]) == (fill["contrast"] > MAX_OUTLINE_CONTRAST)
+    judged = fill["surface"] != "speckled"
+    assert any("does not fill its outline" in w for w in report["warnings"]) == (judged and fill["contrast"] > MAX_OUTLINE_CONTRAST)

@@ -251,14 +251,15 @@ def _shift_mask(mask: np.ndarray, dy: int, dx: int) -> np.ndarray:
 #: outline (:func:`speckle_contrast`); "auto", the largest share unless that end has piled its
 #: energy into a few bright pixels (contrast above :data:`PILED_CONTRAST`), then the smallest
 #: contrast. Every end holds about as much energy inside (0.93-0.97), so on a rough reference the
-#: share cannot tell a focused end from a piled one and the contrast can; on a smooth one every end's
-#: contrast lies at 2.0-2.9 and the least of them is the most smeared. Same draws of the family bench
+#: share cannot tell a focused end from a piled one and the contrast can; on a speckled one (every
+#: scatterer's phase anywhere on the circle) every end's contrast lies at 2.0-2.9 and the least of
+#: them is the most smeared. Same draws of the family bench
 #: (390 positions, 64 x 64 pixels; docs/digital_twin_field.md), mean target SSIM:
-#: rough references energy 0.689, speckle 0.762, auto 0.768; smooth ones 0.792, 0.659, 0.792
+#: rough references energy 0.689, speckle 0.762, auto 0.768; speckled ones 0.792, 0.659, 0.792
 OUTLINE_CHOICES = ("energy", "speckle", "auto")
 OUTLINE_CHOICE = "auto"
 #: above this contrast an end has piled its energy (rough references on the family bench: focused
-#: ends 1.4-2.8, piled 3.2-9.0; every end on a smooth one 2.0-2.9)
+#: ends 1.4-2.8, piled 3.2-9.0; every end on a speckled one 2.0-2.9)
 PILED_CONTRAST = 3.0
 #: random starts besides zeros: the ends of low contrast are a few of many (3-5 of 25 on the
 #: field bench's draws), so more starts find one more often; all run in one matrix product
