@@ -178,14 +178,14 @@ def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> 
 #: the digital twin's own warnings (twinfocus.pipeline.outline_warnings), which ``trusted`` applies
 #: anew from each record's measurements, so that records of an earlier run are read by the present rules
 OWN_WARNINGS = ("matches its template poorly", "does not fill its outline", "not sure of the reference's phase",
-                "the tracking drifted")
+                "the tracking drifted", "to a few radar positions")
 
 
 def trusted(rec: dict, twin: str) -> bool:
     """Whether the confidence report trusts this record's ``twin`` result, by the report's present
     rules: the drift check (``twinfocus.pipeline.drift_warnings``) and, for the digital twin, its own
     checks (``outline_warnings``: the reference's energy contrast over its outline unless the scan
-    read it as speckled, the grown outlines' agreement) applied anew to the record's measurements,
+    read it as speckled, the glint across the positions, the grown outlines' agreement) applied anew to the record's measurements,
     the report's other warnings as recorded."""
     from twinfocus.pipeline import drift_warnings, outline_warnings
 
@@ -196,7 +196,7 @@ def trusted(rec: dict, twin: str) -> bool:
     own = drift_warnings(rec[f"{twin} step_coherence"], conf.get("phase_concentration"), digital, conf["separation_deg"])
     if digital:
         fill = conf.get("reference_outline") or rec["digital outline"]
-        own += outline_warnings(fill["contrast"], conf.get("outline_agreement"), fill.get("surface"))
+        own += outline_warnings(fill, conf.get("outline_agreement"))
     return not others and not own
 
 

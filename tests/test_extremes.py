@@ -238,6 +238,42 @@ def test_a_reference_region_that_holds_only_noise_is_refused_by_name():
         focus(s)
 
 
+def _smeared_ring(m: int, seed: int, ring: float = 1.5) -> np.ndarray:
+    """Sub-images (m, 32, 32) of an object filling the region, a ring ``ring`` times brighter in
+    it (a washer), each position's phase smeared over 4 x 4 pixel patches: its incoherent image
+    peaks at ring^2 x its median."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:32, :32]
+    r = np.hypot(yy - 16, xx - 16)
+    amplitude = np.where((r > 11) & (r < 13), ring, 1.0)
+    theta = np.kron(2 * np.pi * rng.random((m, 8, 8)), np.ones((1, 4, 4)))
+    return (amplitude * np.exp(1j * theta)).astype(np.complex64)
+
+
+def test_an_object_smeared_over_its_whole_region_is_kept_by_its_incoherent_image_and_noise_is_not():
+    from twinfocus.templates import NOISE_INCOHERENT_PEAK_SQRT_M, check_has_signal
+
+    basis = _smeared_ring(96, 0)
+    image = basis.sum(axis=0)
+    assert np.abs(image).max() / np.median(np.abs(image)) < 4.0
+    with pytest.raises(TwinFocusError, match="shows no object"):
+        check_has_signal(image, "the reference region")  # the image alone: refused, as before
+    check_has_signal(image, "the reference region", basis=basis)  # its incoherent image keeps it
+    for scale in (1e-20, 1e20):
+        check_has_signal(image * np.float32(scale), "the reference region", basis=basis * np.float32(scale))
+    rng = np.random.default_rng(1)
+    noise = (rng.standard_normal(basis.shape) + 1j * rng.standard_normal(basis.shape)).astype(np.complex64)
+    bound = 1.0 + NOISE_INCOHERENT_PEAK_SQRT_M / np.sqrt(96)
+    with pytest.raises(TwinFocusError, match=rf"reference region shows no object .*noise on 96 positions reaches {bound:.2f}"):
+        check_has_signal(noise.sum(axis=0), "the reference region", basis=noise)
+    # on 1-5 positions noise alone peaks as high as an object: the image alone decides, even where
+    # the incoherent image (5.8 x) stands above the noise bound of 2 positions (5.2)
+    few = _smeared_ring(2, 0, ring=2.4)
+    assert np.abs(few.sum(axis=0)).max() / np.median(np.abs(few.sum(axis=0))) < 4.0
+    with pytest.raises(TwinFocusError, match=r"shows no object \(peak only [0-9.]+ x the median\)"):
+        check_has_signal(few.sum(axis=0), "the reference region", basis=few)
+
+
 def test_float32_and_float64_agree():
     a, b = scene(), scene(precision="float64")
     assert b["ref_basis"].dtype == np.complex128 or b["ref_basis"].dtype == np.complex64

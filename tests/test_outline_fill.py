@@ -124,12 +124,22 @@ def test_the_contrast_is_not_held_against_a_reference_the_scan_reads_as_speckled
     piled = {"energy_inside": 0.9, "contrast": MAX_OUTLINE_CONTRAST + 0.3}
     # speckle in focus reaches the contrast of a coherent reference's piled energy: no reason to flag
     assert _report({**piled, "position_energy_contrast": 1.3, "surface": "speckled"})["trusted"]
-    for surface in ("coherent", None):  # a coherent part, or a record that did not read the surface
-        (warning,) = outline_warnings(piled["contrast"], None, surface)
+    for surface in ({"surface": "coherent"}, {}):  # a coherent part, or a record that did not read the surface
+        (warning,) = outline_warnings({**piled, **surface}, None)
         assert "does not fill its outline" in warning and "--template-scan" in warning
-    # the other check still holds for a speckled reference
-    (warning,) = outline_warnings(piled["contrast"], 0.8, "speckled")
+    # the other checks still hold for a speckled reference
+    (warning,) = outline_warnings({**piled, "surface": "speckled"}, 0.8)
     assert "not sure of the reference's phase" in warning
+
+
+def test_a_reference_that_sends_its_return_to_a_few_positions_is_flagged():
+    from twinfocus.pipeline import MAX_POSITION_ENERGY_CONTRAST, outline_warnings
+
+    filled = {"energy_inside": 0.95, "contrast": 1.7, "surface": "coherent"}
+    assert outline_warnings({**filled, "position_energy_contrast": MAX_POSITION_ENERGY_CONTRAST - 0.5}, None) == []
+    (warning,) = outline_warnings({**filled, "position_energy_contrast": MAX_POSITION_ENERGY_CONTRAST + 0.4}, None)
+    assert "to a few radar positions" in warning and "--template-scan" in warning
+    assert not _report({**filled, "position_energy_contrast": MAX_POSITION_ENERGY_CONTRAST + 0.4})["trusted"]
 
 
 def test_surface_from_positions_is_the_contrast_of_each_positions_energy_in_the_grown_outline():
@@ -197,7 +207,7 @@ def test_focus_reads_a_digital_twin_against_its_outline(small_scene):
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.estimators import estimator_settings
     from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST, focus_bases
+    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST, focus_bases, outline_warnings
     from twinfocus.radar import Chirp, uniform_virtual_array
     from twinfocus.trajectory import paper_raster, phase_centres
 
@@ -213,5 +223,7 @@ def test_focus_reads_a_digital_twin_against_its_outline(small_scene):
     report = out.metrics["confidence"]
     assert report["reference_outline"] == fill
     assert not any("matches its template poorly" in w for w in report["warnings"])
+    own = outline_warnings(fill, report.get("outline_agreement"))
+    assert [w for w in report["warnings"] if w in own] == own
     judged = fill["surface"] != "speckled"
     assert any("does not fill its outline" in w for w in report["warnings"]) == (judged and fill["contrast"] > MAX_OUTLINE_CONTRAST)

@@ -199,7 +199,7 @@ def focus_scan(
     )
     timings["reference_basis"] = time.perf_counter() - t
     # Fail before the second back-projection, not after it (focus_bases checks these again).
-    check_has_signal(ref_basis.sum(axis=0), "the reference region")
+    check_has_signal(ref_basis.sum(axis=0), "the reference region", basis=ref_basis)
     if template is not None:
         check_has_signal(template, "the template")
 
@@ -363,7 +363,7 @@ def focus_bases(
     cfg = config or AutofocusConfig()
     cfg.validate()
     rungs = build_ladder(model, method=method, phase_ramp=phase_ramp, space_variant=space_variant)
-    check_has_signal(ref_basis.sum(axis=0), "the reference region")
+    check_has_signal(ref_basis.sum(axis=0), "the reference region", basis=ref_basis)
     if template is not None:
         check_has_signal(template, "the template")
     problem = Problem(ref_basis, tgt_basis, positions, chirp, reference_grid, target_grid, cfg, template, support,
@@ -504,6 +504,13 @@ MAX_REFERENCE_RESIDUAL = 0.01
 #: as speckled (:func:`twinfocus.outline_fill.surface_from_positions`; on the bench draws that
 #: removed 2 false alarms and added no false trust)
 MAX_OUTLINE_CONTRAST = 2.8
+#: ... or when each radar position's energy over the outline varies across the scan by more than
+#: this contrast (:func:`twinfocus.outline_fill.surface_from_positions`): the reference sends most
+#: of its return to a few positions (a flat plate's or disc's glint), and the outline leaves the
+#: others' phase free. Family bench draws: 2.7-3.8 on every reference but a smooth washer (4.50,
+#: its target 0.53-0.84 though its outline looked filled); held out, a rough disc at 4.98
+#: (0.61-0.87). 4.1 lies in the bench's gap
+MAX_POSITION_ENERGY_CONTRAST = 4.1
 #: ... or when the estimates from the outline's grown variants agree less than this
 #: (:func:`twinfocus.template_match.averaged_outline_phase`'s ``agreement``; family bench: 0.97-1.00
 #: at 0.93 and above, 0.85-0.94 on nine results of 0.59-0.89) ...
@@ -522,21 +529,30 @@ DIGITAL_TWIN_NEXT = (
 )
 
 
-def outline_warnings(contrast: float, agreement: float | None, surface: str | None = None) -> list[str]:
+def outline_warnings(fill: dict, agreement: float | None) -> list[str]:
     """The digital twin's own checks (docs/digital_twin_field.md), each a warning that says what
-    to do: contrast, the corrected reference's energy contrast over its outline
-    (:func:`twinfocus.outline_fill.outline_fill`), judged unless ``surface`` is ``"speckled"``
-    (:func:`twinfocus.outline_fill.surface_from_positions`; None: not read, judged);
+    to do. fill : metrics.json ``reference_outline``: ``contrast``, the corrected reference's
+    energy contrast over its outline (:func:`twinfocus.outline_fill.outline_fill`), judged unless
+    ``surface`` is ``"speckled"``, and ``position_energy_contrast``
+    (:func:`twinfocus.outline_fill.surface_from_positions`; either absent: not judged by it);
     agreement, how far the estimates from the outline's grown variants agree
     (:func:`twinfocus.template_match.averaged_outline_phase`) or None.
     """
     out = []
-    if surface != "speckled" and contrast > MAX_OUTLINE_CONTRAST:
+    contrast, glint = fill["contrast"], fill.get("position_energy_contrast")
+    if fill.get("surface") != "speckled" and contrast > MAX_OUTLINE_CONTRAST:
         out.append(
             f"the corrected reference does not fill its outline as a focused reference with a coherent part does: "
             f"its energy's contrast over the outline is {contrast:.1f} (> {MAX_OUTLINE_CONTRAST}; 1.5-2.6 "
             "for a smooth or rough reference in focus): the outline estimate piled the energy into a few bright pixels instead of finding the "
             f"reference's phase; expect the target below its ceiling; {DIGITAL_TWIN_NEXT} (docs/digital_twin_field.md)"
+        )
+    if glint is not None and glint > MAX_POSITION_ENERGY_CONTRAST:
+        out.append(
+            f"the reference sends most of its return to a few radar positions (each position's energy over its "
+            f"outline varies by a contrast of {glint:.1f}, > {MAX_POSITION_ENERGY_CONTRAST}: the glint of a flat "
+            "plate or disc), so the outline cannot pin the phase of the others; expect the target below its "
+            f"ceiling; {DIGITAL_TWIN_NEXT} (docs/digital_twin_field.md)"
         )
     if agreement is not None and agreement < MIN_OUTLINE_AGREEMENT:
         out.append(
@@ -623,7 +639,7 @@ def confidence_report(
         # as a picture; read the reference against the outline instead
         out["reference_outline"] = fill
         agreement = (est.get("outline_ensemble") or {}).get("agreement")
-        out["warnings"] += outline_warnings(fill["contrast"], agreement, fill.get("surface"))
+        out["warnings"] += outline_warnings(fill, agreement)
     elif match is not None and match < least:
         out["warnings"].append(
             f"the corrected reference matches its template poorly (SSIM {match:.2f} < {least}); "
@@ -713,8 +729,8 @@ def confidence_report(
 
 def reference_trust(problem: Problem, model: Model) -> str | None:
     """Why the reference, as ``model`` corrects it, is below the confidence report's trust line,
-    or None when it passes: for a digital twin (``problem.support``) its energy's contrast over the
-    outline at most ``MAX_OUTLINE_CONTRAST`` unless the scan reads it as speckled, otherwise its SSIM against the template at least
+    or None when it passes: for a digital twin (``problem.support``) the outline checks of
+    :func:`outline_warnings` (the grown outlines' agreement aside), otherwise its SSIM against the template at least
     ``MIN_REFERENCE_MATCH`` (``MIN_REFERENCE_MATCH_PHYSICAL`` when registered); with a template that
     has phase at most ``MAX_REFERENCE_RESIDUAL`` unmatched; for an unregistered template phases
     that hold together (ramp-free coherence x sqrt(M) at least ``AUTO_REFINE_BELOW_COHERENCE``).
@@ -724,10 +740,13 @@ def reference_trust(problem: Problem, model: Model) -> str | None:
         return "no template to judge the reference by"
     reference = model.apply(problem, "reference")
     if problem.support is not None:
-        contrast = outline_fill(reference, problem.support)["contrast"]
-        speckled = surface_from_positions(problem.ref_basis, problem.support)["surface"] == "speckled"
-        if not speckled and contrast > MAX_OUTLINE_CONTRAST:
-            return f"its energy's contrast over the outline is {contrast:.1f} (> {MAX_OUTLINE_CONTRAST})"
+        fill = {
+            **outline_fill(reference, problem.support),
+            **surface_from_positions(problem.ref_basis, problem.support),
+        }
+        warnings = outline_warnings(fill, None)
+        if warnings:
+            return warnings[0]
     else:
         cfg = problem.config
         least = MIN_REFERENCE_MATCH_PHYSICAL if model.registered else MIN_REFERENCE_MATCH
