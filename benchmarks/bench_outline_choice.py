@@ -3,7 +3,7 @@ inside the outline ("energy"), the least contrast of that energy ("speckle") and
 ("auto": the most energy unless that end piled it; :data:`twinfocus.template_match.OUTLINE_CHOICE`).
 
 Draws of the digital-twin family bench (:mod:`benchmarks.bench_dtwin_family`: shapes, places,
-camera clouds, conditions), each run twice, once with the reference speckled and once rough, so
+camera clouds, conditions), each run once per surface of the family (smooth, rough, speckled), so
 that each surface meets every shape and condition. Bench draws (seeds 1001 on, the bench's shapes)
 are what the rule's threshold was chosen on; held-out draws (seeds 3001 on, the held-out shapes,
 seeds no other bench uses) check it.
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_dtwin_family import BENCH_SEED, BENCH_SHAPES, CONDITIONS, HELDOUT_SHAPES
+from benchmarks.bench_dtwin_family import BENCH_SEED, BENCH_SHAPES, CONDITIONS, HELDOUT_SHAPES, SURFACES
 
 CHOICES = ("energy", "speckle", "auto")
 #: the held-out draws' first seed (the family bench's own held-out draws start at 2001)
@@ -34,18 +34,17 @@ HELDOUT_SEED = 3001
 
 
 def one_draw(job: tuple) -> dict:
-    """(condition, seed, rough, heldout) -> the record of each choice on that draw."""
+    """(condition, seed, surface, heldout) -> the record of each choice on that draw."""
     import torch
 
     from benchmarks.bench_dtwin_family import digital_twin_focus, draw_inputs
     from twinfocus.errors import TwinFocusError
 
     torch.set_num_threads(1)  # one draw per worker
-    cond, seed, rough, heldout = job
-    rec: dict = {"condition": cond, "seed": seed, "rough": rough}
+    cond, seed, surface, heldout = job
+    rec: dict = {"condition": cond, "seed": seed, "surface": surface}
     try:
-        # (its records' "rough": False are the family's speckled surface)
-        d = draw_inputs(cond, seed, HELDOUT_SHAPES if heldout else BENCH_SHAPES, 65, 64, surface="rough" if rough else "speckled")
+        d = draw_inputs(cond, seed, HELDOUT_SHAPES if heldout else BENCH_SHAPES, 65, 64, surface=surface)
     except TwinFocusError as e:
         return {**rec, "refused": str(e)}
     rec.update(reference=d["kw"]["reference"], target=d["kw"]["target"])
@@ -61,7 +60,7 @@ def one_draw(job: tuple) -> dict:
         rec[f"{choice} trusted"] = out.metrics["confidence"]["trusted"]
         rec[f"{choice} s"] = round(time.perf_counter() - t0, 2)
     rec["oracle"] = round(out.metrics["target_ssim_oracle_phase"], 4)
-    print(f"[outline choice] {cond}, seed {seed}, {'rough' if rough else 'speckled'}: "
+    print(f"[outline choice] {cond}, seed {seed}, {surface}: "
           + ", ".join(f"{c} {rec[c]:.3f}" for c in CHOICES), file=sys.stderr, flush=True)
     return rec
 
@@ -69,17 +68,17 @@ def one_draw(job: tuple) -> dict:
 def table(records: list[dict]) -> str:
     """Markdown: mean target SSIM (and worst) per surface and choice over the scored draws."""
     lines = ["| reference | draws | " + " | ".join(CHOICES) + " |", "|---|---|" + "---|" * len(CHOICES)]
-    for rough in (False, True):
-        recs = [r for r in records if r["rough"] == rough and "refused" not in r]
+    for surface in SURFACES:
+        recs = [r for r in records if r["surface"] == surface and "refused" not in r]
         if recs:
             cells = [f"{np.mean([r[c] for r in recs]):.3f} (worst {min(r[c] for r in recs):.3f})" for c in CHOICES]
-            lines.append(f"| {'rough' if rough else 'speckled'} | {len(recs)} | " + " | ".join(cells) + " |")
+            lines.append(f"| {surface} | {len(recs)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def main(out_dir: str = "benchmarks/results", draws: int = 6, heldout: bool = False, workers: int = 2) -> list[dict]:
     first = HELDOUT_SEED if heldout else BENCH_SEED
-    jobs = [(c, s, rough, heldout) for s in range(first, first + draws) for rough in (False, True) for c in CONDITIONS]
+    jobs = [(c, s, surface, heldout) for s in range(first, first + draws) for surface in SURFACES for c in CONDITIONS]
     with ProcessPoolExecutor(workers) as ex:
         records = list(ex.map(one_draw, jobs))
     path = Path(out_dir) / ("outline_choice_heldout.json" if heldout else "outline_choice.json")
@@ -92,7 +91,7 @@ def main(out_dir: str = "benchmarks/results", draws: int = 6, heldout: bool = Fa
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="benchmarks/results")
-    ap.add_argument("--draws", type=int, default=6, help="seeds; each runs every condition, smooth and rough")
+    ap.add_argument("--draws", type=int, default=6, help="seeds; each runs every condition and surface")
     ap.add_argument("--heldout", action="store_true", help="the held-out draws (other shapes, other seeds)")
     ap.add_argument("--workers", type=int, default=2, help="draws at once, one process each")
     a = ap.parse_args()

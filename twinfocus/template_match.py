@@ -255,7 +255,8 @@ def _shift_mask(mask: np.ndarray, dy: int, dx: int) -> np.ndarray:
 #: scatterer's phase anywhere on the circle) every end's contrast lies at 2.0-2.9 and the least of
 #: them is the most smeared. Same draws of the family bench
 #: (390 positions, 64 x 64 pixels; docs/digital_twin_field.md), mean target SSIM:
-#: rough references energy 0.689, speckle 0.762, auto 0.768; speckled ones 0.792, 0.659, 0.792
+#: rough references energy 0.707, speckle 0.774, auto 0.776; speckled ones 0.811, 0.701, 0.811;
+#: smooth ones (every scatterer in phase) 0.661, 0.662, 0.663, where no rule holds
 OUTLINE_CHOICES = ("energy", "speckle", "auto")
 OUTLINE_CHOICE = "auto"
 #: above this contrast an end has piled its energy (rough references on the family bench: focused
