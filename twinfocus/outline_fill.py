@@ -29,7 +29,7 @@ OUTLINE_GROW_PX = 3
 #: (contrast over the positions, :func:`surface_from_positions`) is speckled. On the family bench's
 #: draws (benchmarks/bench_dtwin_family.py: the MMWCAS array, 390 positions at 0.6 m, 64 x 64
 #: pixels, 10-15 dB, jitter and a hand's drift alike; bench and held-out draws) speckled
-#: references gave 1.18-1.46, rough ones (+-90 degrees) 2.67-4.99 and smooth ones 2.99-3.91:
+#: references gave 1.18-1.46, rough ones (+-90 degrees) 2.67-4.99 and smooth ones 2.99-4.51:
 #: between the two groups, with room for noise, which pulls every value toward 1
 SPECKLED_BELOW = 1.8
 
