@@ -38,6 +38,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -56,6 +57,7 @@ from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import MODEL_CHOICES, REFERENCE_FREE_RUNGS, TWIN_RUNGS
 from twinfocus.grid import ImageGrid
+from twinfocus.outline_fill import surface_from_positions
 from twinfocus.phase_ramp import MIN_RAMP_COHERENCE_SQRT_M, ramp_free_coherence
 from twinfocus.radar import Chirp
 from twinfocus.settings import config_default
@@ -125,6 +127,12 @@ class Problem:
     def centres(self) -> np.ndarray:
         """float64 (M, 3): each position's phase centre (its channels' mean), metres."""
         return self.positions.mean(axis=1)
+
+    @cached_property
+    def surface(self) -> dict | None:
+        """What the scan says of the reference's surface, read once from its basis over its
+        outline (:func:`twinfocus.outline_fill.surface_from_positions`); None without an outline."""
+        return None if self.support is None else surface_from_positions(self.ref_basis, self.support)
 
     def progress(self, label: str):
         return self.progress_factory(label) if self.progress_factory else None

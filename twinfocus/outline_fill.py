@@ -34,6 +34,18 @@ OUTLINE_GROW_PX = 3
 SPECKLED_BELOW = 1.8
 
 
+def _grown(support: np.ndarray, grow_px: int) -> np.ndarray:
+    """The outline, bool (H, W), grown by ``grow_px`` >= 0 pixels; refused when it is empty."""
+    from scipy import ndimage  # scipy.ndimage is slow to import: only where a reference is read
+
+    mask = np.asarray(support, dtype=bool)
+    if int(grow_px) < 0:
+        raise TwinFocusError(f"grow_px must be >= 0, got {grow_px}")
+    if not mask.any():
+        raise TwinFocusError("the outline covers none of the region")
+    return ndimage.binary_dilation(mask, iterations=int(grow_px)) if int(grow_px) else mask
+
+
 def outline_fill(image: np.ndarray, support: np.ndarray, grow_px: int = OUTLINE_GROW_PX) -> dict:
     """The focused reference against its outline.
 
@@ -44,18 +56,10 @@ def outline_fill(image: np.ndarray, support: np.ndarray, grow_px: int = OUTLINE_
     "contrast": mean(e^2) / mean(e)^2 of e = |image|^2 over the grown outline (>= 1; 2 for fully
     developed speckle)}.
     """
-    from scipy import ndimage  # scipy.ndimage is slow to import: only where a reference is read
-
     img = np.asarray(image)
-    mask = np.asarray(support, dtype=bool)
-    if img.ndim != 2 or mask.shape != img.shape:
-        raise TwinFocusError(f"image {img.shape} and outline {mask.shape} must be the same (H, W)")
-    if int(grow_px) < 0:
-        raise TwinFocusError(f"grow_px must be >= 0, got {grow_px}")
-    if not mask.any():
-        raise TwinFocusError("the outline covers none of the region")
-    if int(grow_px):
-        mask = ndimage.binary_dilation(mask, iterations=int(grow_px))
+    if img.ndim != 2 or np.shape(support) != img.shape:
+        raise TwinFocusError(f"image {img.shape} and outline {np.shape(support)} must be the same (H, W)")
+    mask = _grown(support, grow_px)
     e = np.abs(img.astype(np.complex128)) ** 2
     total = float(e.sum())
     inside = e[mask]
@@ -86,18 +90,10 @@ def surface_from_positions(basis: np.ndarray, support: np.ndarray, grow_px: int 
     Returns {"position_energy_contrast": mean(E^2) / mean(E)^2 over the M positions (>= 1),
     "surface": "speckled" or "coherent"}.
     """
-    from scipy import ndimage
-
     b = np.asarray(basis)
-    mask = np.asarray(support, dtype=bool)
-    if b.ndim != 3 or b.shape[1:] != mask.shape:
-        raise TwinFocusError(f"basis {b.shape} must be (M, H, W) with the outline's (H, W) {mask.shape}")
-    if int(grow_px) < 0:
-        raise TwinFocusError(f"grow_px must be >= 0, got {grow_px}")
-    if not mask.any():
-        raise TwinFocusError("the outline covers none of the region")
-    if int(grow_px):
-        mask = ndimage.binary_dilation(mask, iterations=int(grow_px))
+    if b.ndim != 3 or b.shape[1:] != np.shape(support):
+        raise TwinFocusError(f"basis {b.shape} must be (M, H, W) with the outline's (H, W) {np.shape(support)}")
+    mask = _grown(support, grow_px)
     inside = np.abs(b[:, mask])
     # in float64 after the unit peak: a scan at 1e20 would overflow float32's squares
     peak = float(inside.max())

@@ -49,7 +49,7 @@ from twinfocus.ladder import (
     legacy_entries,
     rung_entry,
 )
-from twinfocus.outline_fill import outline_fill, surface_from_positions
+from twinfocus.outline_fill import outline_fill
 from twinfocus.phase_ramp import ramp_free_coherence
 from twinfocus.radar import Chirp
 from twinfocus.scan import Scan
@@ -399,7 +399,7 @@ def focus_bases(
     add_template_metrics(m, out, kept.template, cfg.threshold_centre, cfg.threshold_steepness)
     if method == "twin" and support is not None:
         # a digital twin's like-with-like check (the confidence report reads it)
-        m["reference_outline"] = {**outline_fill(out.reference, support), **surface_from_positions(ref_basis, support)}
+        m["reference_outline"] = {**outline_fill(out.reference, support), **(problem.surface or {})}
     if method == "twin":
         m["phase_step_coherence"] = round(step_coherence(out.phase_rad), 4)
         m["phase_concentration"] = round(phase_concentration(out.phase_rad), 4)
@@ -512,8 +512,8 @@ MAX_OUTLINE_CONTRAST = 2.8
 #: (0.61-0.87). 4.1 lies in the bench's gap
 MAX_POSITION_ENERGY_CONTRAST = 4.1
 #: ... or when the estimates from the outline's grown variants agree less than this
-#: (:func:`twinfocus.template_match.averaged_outline_phase`'s ``agreement``; family bench: 0.97-1.00
-#: at 0.93 and above, 0.85-0.94 on nine results of 0.59-0.89) ...
+#: (:func:`twinfocus.template_match.averaged_outline_phase`'s ``agreement``; family bench: below it
+#: on six results of 0.62-0.77 and on two of 0.946 and 0.948) ...
 MIN_OUTLINE_AGREEMENT = 0.95
 #: either twin is flagged when its phase moves smoothly along the scan
 #: (:func:`twinfocus.drift_check.step_coherence` above this): a drift (family bench: 0.01-0.11
@@ -740,10 +740,7 @@ def reference_trust(problem: Problem, model: Model) -> str | None:
         return "no template to judge the reference by"
     reference = model.apply(problem, "reference")
     if problem.support is not None:
-        fill = {
-            **outline_fill(reference, problem.support),
-            **surface_from_positions(problem.ref_basis, problem.support),
-        }
+        fill = {**outline_fill(reference, problem.support), **(problem.surface or {})}
         warnings = outline_warnings(fill, None)
         if warnings:
             return warnings[0]
