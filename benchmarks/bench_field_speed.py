@@ -6,6 +6,7 @@ the image on the true positions, the drift's error against the true positions.
     python -m benchmarks.bench_field_speed --seeds 3,5,8 --threads 1
     python -m benchmarks.bench_field_speed --focus-profile --seeds 3   (a whole ``twinfocus focus``)
     python -m benchmarks.bench_field_speed --focus-profile --seeds 3,5 --models auto,fast
+    python -m benchmarks.bench_field_speed --focus-profile --as-user --seeds 3,5,8,11 --models auto,fast
     python -m benchmarks.run --only field_speed
 
 Each draw is the hand-drift scene of ``benchmarks/bench_handheld.py`` ("hand 0.8 mm + 0.15 deg":
@@ -20,7 +21,8 @@ around it, the settings) and prints a table. ``--focus-profile`` instead simulat
 and stage scan with ``twinfocus simulate`` and focuses it with ``twinfocus focus`` (the reference's
 and the target's regions of the scene, 100 x 100 pixels, no pictures, no template cache), once
 per ``--models`` value, and writes every stage's time from its ``metrics.json``, the ladder's
-time and the target's SSIM to ``field_focus_profile.json``. ``--threads 1`` runs everything on one thread (torch
+time and the target's SSIM to ``field_focus_profile.json``; with ``--as-user`` the scan as captured (no truth
+images) and the template from the cache, what a user waits for (``field_focus_profile_as_user.json``). ``--threads 1`` runs everything on one thread (torch
 and numba): the CPU seconds are then the fit's own work, barely touched by other processes on a
 busy machine, and bound the wall time on an idle machine with more cores from above.
 """
@@ -133,11 +135,19 @@ def one_draw(seed: int, baseline) -> dict:
             "ceiling_target_phase": out.metrics["target_ssim_oracle_phase"], "fits": rows}
 
 
-def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",)) -> list[dict]:
+def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",), as_user: bool = False) -> list[dict]:
     """``twinfocus simulate`` then ``twinfocus focus`` on one draw of the scene, as a user runs them,
     once per ``--model`` in ``models``: the stages' seconds (``metrics.json`` ``timings_s``), the
     drift fit's own (``space_variant_fit_s``), the ladder's (``model_s``: every rung, the half-array
-    bases included), the rungs kept, the whole command's wall and CPU seconds, the target's SSIM."""
+    bases included), the rungs kept, the whole command's wall and CPU seconds, the target's SSIM.
+
+    as_user : what a user in the field waits for instead: the scan as captured (no true positions,
+    so no truth images are formed) and the template scan's image read from the template cache
+    (filled by one untimed run first, in a cache of this draw's own); the target's SSIM is then
+    scored here, from ``target.npy`` against the image on the true positions."""
+    from twinfocus.backprojection import backproject
+    from twinfocus.metrics import image_ssim
+    from twinfocus.scan import Scan
     from twinfocus.scenario import Scenario, scenario_grids
 
     rg, tg = scenario_grids(Scenario(**SCENE, seed=seed), 100)
@@ -149,23 +159,39 @@ def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",)) ->
                           "--error-sigma-mm", str(SCENE["error_sigma_m"][0] * 1e3), "--seed", str(seed), "--quiet"],
                    check=True)
     roi = [[g.x0, g.x1, g.y0, g.y1, g.z] for g in (rg, tg)]
+    env, truth = None, None
+    if as_user:
+        captured = Scan.load(scan)
+        truth = backproject(captured.data, captured.positions_true, captured.chirp, tg)
+        captured.positions_true = None
+        scan = work / f"hand{seed}_captured.npz"
+        captured.save(scan)
+        env = {**os.environ, "TWINFOCUS_CACHE_DIR": str(work / f"cache{seed}")}
+
+    def command(model: str, out: Path) -> list[str]:
+        return ["focus", str(scan), "--template-scan", str(stage), "--reference-roi", *map(str, roi[0]),
+                "--target-roi", *map(str, roi[1]), "--size", "100", "--model", model, "--out", str(out),
+                "--no-pictures", *([] if as_user else ["--no-cache"]), "--quiet"]
+
+    if as_user:  # the cache's first fill is not what a user waits for on later scans
+        subprocess.run(exe + command("none", work / f"focus{seed}_warm"), check=True, env=env)
     runs = []
     for model in models:
         out = work / f"focus{seed}_{model}"
-        cmd = ["focus", str(scan), "--template-scan", str(stage), "--reference-roi", *map(str, roi[0]),
-               "--target-roi", *map(str, roi[1]), "--size", "100", "--model", model, "--out", str(out),
-               "--no-pictures", "--no-cache", "--quiet"]
+        cmd = command(model, out)
         before, t0, load = os.times(), time.perf_counter(), os.getloadavg()[0]
-        subprocess.run(exe + cmd, check=True)
+        subprocess.run(exe + cmd, check=True, env=env)
         after = os.times()
         m = json.loads((out / "metrics.json").read_text())
+        if truth is not None:
+            m["target_ssim_corrected"] = image_ssim(np.load(out / "target.npy"), truth)
         runs.append({"seed": seed, "model": model,
                      "command": "twinfocus " + " ".join(cmd[:1] + ["SCAN", "--template-scan", "STAGE"] + cmd[4:]),
                      "wall_s": time.perf_counter() - t0, "cpu_s": (after.children_user + after.children_system)
                      - (before.children_user + before.children_system), "load_before": load,
                      "timings_s": m["timings_s"], "model_s": m["model"]["time_s"], "kept": m["model"]["kept"],
                      "space_variant_fit_s": (m.get("space_variant") or {}).get("time_s"),
-                     "target_ssim_corrected": m.get("target_ssim_corrected")})
+                     "target_ssim_corrected": m.get("target_ssim_corrected"), "as_user": as_user})
     return runs
 
 
@@ -211,13 +237,16 @@ if __name__ == "__main__":
     ap.add_argument("--threads", type=int, default=None, help="torch's and numba's threads (default: theirs)")
     ap.add_argument("--focus-profile", action="store_true", help="time a whole twinfocus focus per draw instead")
     ap.add_argument("--models", default="auto", help="with --focus-profile: comma-separated --model values")
+    ap.add_argument("--as-user", action="store_true",
+                    help="with --focus-profile: the scan as captured (no truth images) and the template from the cache")
     a = ap.parse_args()
     if a.focus_profile:
         Path(a.out).mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory() as work:
             runs = [r for seed in ([int(s) for s in a.seeds.split(",")] if a.seeds else range(1, a.draws + 1))
-                    for r in focus_profile(seed, Path(work), tuple(a.models.split(",")))]
-        (Path(a.out) / "field_focus_profile.json").write_text(json.dumps(
+                    for r in focus_profile(seed, Path(work), tuple(a.models.split(",")), a.as_user)]
+        name = "field_focus_profile_as_user.json" if a.as_user else "field_focus_profile.json"
+        (Path(a.out) / name).write_text(json.dumps(
             {"command": "python -m benchmarks.bench_field_speed " + " ".join(sys.argv[1:]),
              "scene": {k: list(v) if isinstance(v, tuple) else v for k, v in SCENE.items()},
              "machine": machine_info(), "runs": runs}, indent=2))

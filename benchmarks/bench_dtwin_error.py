@@ -1,0 +1,170 @@
+"""Where the digital twin's phase goes wrong: the structure of its error against the reference's
+true phase, on the family bench's draws (``benchmarks/bench_dtwin_family.py``, bench seeds only).
+
+Per draw, the digital twin as ``twinfocus focus --digital-twin`` runs it, and against the
+reference's true phase (one phase per position, :func:`twinfocus.metrics.oracle_phase`):
+
+- ``error_rms_rad``: its error's r.m.s. over the positions (the error's mean phase taken out);
+- ``step_error_rms_rad``: the r.m.s. of its error's change from one position to the next along a
+  sweep, and ``neighbour_step_error_rms_rad`` the same for the phase difference that neighbouring
+  positions' sub-images give by themselves (``arg sum_p conj(B_m(p)) B_m+1(p)``, 2 mm apart along
+  the sweep: nearly the same view of the reference, so its texture cancels);
+- ``without_degree_N``: the target's SSIM once the error's least-squares polynomial of degree N
+  (1: a ramp; 2: + the quadratic terms; 3: + the cubic ones) in the positions' aperture
+  coordinates is taken out of the estimate (an oracle: it needs the truth), which says how much of
+  the target's loss is smooth across the aperture;
+- ``subaperture_shift_px``: how far apart the images of the two halves of the aperture (along the
+  sweeps, y; across them, x) sit on the reference's true phase, by their intensities' cross
+  correlation, and ``shift_per_rad_px`` how far one radian of quadratic phase over the half
+  aperture moves them (what a map-drift estimate of the quadratic term would read).
+
+    python -m benchmarks.bench_dtwin_error --draws 5
+    python -m benchmarks.bench_dtwin_error --draws 3 --conditions paper,hand
+
+Writes ``dtwin_error_structure.json`` and prints a table per condition.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.bench_dtwin_family import BENCH_SEED, BENCH_SHAPES, CONDITIONS, digital_twin_focus, draw_inputs, surface_of
+
+#: consecutive positions further apart than this start a new sweep, metres (the scans' steps along
+#: a sweep are ~2 mm; the sweeps are one array length, 83 mm, apart)
+SWEEP_GAP_M = 0.01
+
+
+def sweeps(centres_m: np.ndarray) -> list[np.ndarray]:
+    """The positions' indices, sweep by sweep, from (M, 3) phase centres in capture order."""
+    step = np.linalg.norm(np.diff(centres_m, axis=0), axis=1)
+    starts = np.r_[0, np.nonzero(step > SWEEP_GAP_M)[0] + 1, len(centres_m)]
+    return [np.arange(a, b) for a, b in zip(starts[:-1], starts[1:])]
+
+
+def wrapped(phase: np.ndarray) -> np.ndarray:
+    return np.angle(np.exp(1j * phase))
+
+
+def centred(error: np.ndarray) -> np.ndarray:
+    """``error`` wrapped, its circular mean taken out."""
+    return wrapped(error - np.angle(np.exp(1j * error).mean()))
+
+
+def aperture_polynomial(centres_m: np.ndarray, degree: int) -> np.ndarray:
+    """Monomials up to ``degree`` of the positions' aperture coordinates (x, y scaled to [-1, 1]):
+    float64 (M, terms)."""
+    x, y = centres_m[:, 0], centres_m[:, 1]
+    x = (x - x.mean()) / max(np.ptp(x) / 2, 1e-12)
+    y = (y - y.mean()) / max(np.ptp(y) / 2, 1e-12)
+    return np.stack([x**i * y**j for n in range(degree + 1) for i in range(n + 1) for j in [n - i]], axis=1)
+
+
+def intensity_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(rows, columns) by which ``b``'s intensity sits from ``a``'s: the peak of their cross
+    correlation (zero-padded), refined by a parabola through it and its neighbours."""
+    fa, fb = (np.abs(v) ** 2 - (np.abs(v) ** 2).mean() for v in (a, b))
+    h, w = fa.shape
+    cc = np.real(np.fft.ifft2(np.conj(np.fft.fft2(fa, (2 * h, 2 * w))) * np.fft.fft2(fb, (2 * h, 2 * w))))
+    i, j = np.unravel_index(int(np.argmax(cc)), cc.shape)
+
+    def refined(line: np.ndarray, k: int) -> float:
+        n = line.size
+        left, mid, right = line[(k - 1) % n], line[k], line[(k + 1) % n]
+        den = left - 2 * mid + right
+        v = k + (0.5 * (left - right) / den if den else 0.0)
+        return v - n if v > n / 2 else v
+
+    return refined(cc[:, j], i), refined(cc[i, :], j)
+
+
+def one_draw(condition: str, seed: int, rows: int, size: int) -> dict:
+    from twinfocus.basis import form_image
+    from twinfocus.metrics import image_ssim, oracle_phase
+
+    d = draw_inputs(condition, seed, BENCH_SHAPES, rows, size)
+    scan, rb, tb = d["scan"], d["rb"], d["tb"]
+    truth = d["truth"]["truth_target"]
+    centres = scan.positions.mean(axis=1)
+    runs = sweeps(centres)
+    true_phase = oracle_phase(scan.positions_true, scan.positions, d["rg"].centre_m, scan.chirp)
+    dt = digital_twin_focus(d)
+    error = wrapped(dt.phase_rad - true_phase)
+    rec: dict = {"seed": seed, "reference": d["kw"]["reference"], "surface": surface_of(d["kw"]),
+                 "sweeps": len(runs), "digital": round(float(dt.metrics["target_ssim_corrected"]), 4),
+                 "reference true phase": round(image_ssim(form_image(tb, true_phase), truth), 4),
+                 "error_rms_rad": round(float(np.sqrt(np.mean(centred(error) ** 2))), 3)}
+    b = rb.reshape(rb.shape[0], -1)
+    own, neighbours = [], []
+    for s in runs:
+        own.append(wrapped(error[s[1:]] - error[s[:-1]]))
+        given = -np.angle(np.sum(np.conj(b[s[:-1]]) * b[s[1:]], axis=1))
+        neighbours.append(wrapped(given - (true_phase[s[1:]] - true_phase[s[:-1]])))
+    rec["step_error_rms_rad"] = round(float(np.sqrt(np.mean(np.concatenate(own) ** 2))), 3)
+    rec["neighbour_step_error_rms_rad"] = round(float(np.sqrt(np.mean(np.concatenate(neighbours) ** 2))), 3)
+    for degree in (1, 2, 3):
+        a = aperture_polynomial(centres, degree)
+        smooth = a @ np.linalg.lstsq(a, centred(error), rcond=None)[0]
+        rec[f"without_degree_{degree}"] = round(image_ssim(form_image(tb, dt.phase_rad - smooth), truth), 4)
+    x, y = aperture_polynomial(centres, 1)[:, 2], aperture_polynomial(centres, 1)[:, 1]
+    shifts, per_rad = {}, {}
+    for axis, coord, k in (("y", y, 0), ("x", x, 1)):
+        low = coord < 0
+
+        def apart(phase: np.ndarray, low=low, k=k) -> float:
+            return intensity_shift(form_image(rb[low], phase[low]), form_image(rb[~low], phase[~low]))[k]
+
+        at_truth = apart(true_phase)
+        shifts[axis] = round(at_truth, 2)
+        per_rad[axis] = round(apart(true_phase + coord**2) - at_truth, 2)
+    rec["subaperture_shift_px"], rec["shift_per_rad_px"] = shifts, per_rad
+    return rec
+
+
+def table(results: dict) -> str:
+    lines = ["| condition | draws | digital twin | error rms rad | its step error | neighbours' step error | "
+             "without ramp | without degree 2 | without degree 3 | true phase |", "|---" * 10 + "|"]
+    for cond, recs in results.items():
+        def mean(key: str) -> float:
+            return float(np.mean([r[key] for r in recs]))
+
+        lines.append(f"| {cond} | {len(recs)} | {mean('digital'):.3f} | {mean('error_rms_rad'):.2f} | "
+                     f"{mean('step_error_rms_rad'):.2f} | {mean('neighbour_step_error_rms_rad'):.2f} | "
+                     f"{mean('without_degree_1'):.3f} | {mean('without_degree_2'):.3f} | "
+                     f"{mean('without_degree_3'):.3f} | {mean('reference true phase'):.3f} |")
+    return "\n".join(lines)
+
+
+def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, conditions: tuple[str, ...] = tuple(CONDITIONS),
+         rows: int = 65, size: int = 64) -> dict:
+    results: dict = {}
+    t0 = time.perf_counter()
+    for cond in conditions:
+        results[cond] = []
+        for seed in range(BENCH_SEED, BENCH_SEED + draws):
+            results[cond].append(one_draw(cond, seed, rows, size))
+            print(f"[dtwin_error] {cond} seed {seed}: {json.dumps(results[cond][-1])}", file=sys.stderr, flush=True)
+    out = {"command": "python -m benchmarks.bench_dtwin_error " + " ".join(sys.argv[1:]), "rows": rows, "size": size,
+           "wall_s": round(time.perf_counter() - t0, 1), "results": results}
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    (Path(out_dir) / "dtwin_error_structure.json").write_text(json.dumps(out, indent=2))
+    print(table(results))
+    return out
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument("--draws", type=int, default=5)
+    ap.add_argument("--conditions", default=",".join(CONDITIONS), help="comma-separated, of " + ", ".join(CONDITIONS))
+    ap.add_argument("--rows", type=int, default=65)
+    ap.add_argument("--size", type=int, default=64)
+    a = ap.parse_args()
+    main(a.out, a.draws, tuple(a.conditions.split(",")), a.rows, a.size)
