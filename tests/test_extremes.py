@@ -204,8 +204,11 @@ def test_amplitudes_from_1e_minus_20_to_1e20_give_the_unit_result(amplitude, met
     for key in ("ref_basis", "tgt_basis", "truth_reference", "truth_target"):
         assert np.isfinite(scaled[key]).all(), key
     ref, out = _unit_focus(method), focus(scaled, method)
-    # the optimiser of the sharpness baseline (float32) follows its own path from a scale-free start
-    tol = 0.05 if method == "sharpness" else 1e-3
+    # the optimiser of the sharpness baseline (float32) follows its own path from a scale-free start;
+    # minimum entropy keeps a phase only where the entropy falls, so the float32 bases' rounding
+    # (7e-7 of their peak apart between the scales) moves its near ties: a 1e-6 perturbation of the
+    # unit scene's basis alone moves its phases by 1.0e-3 rad r.m.s.
+    tol = {"sharpness": 0.05, "entropy": 5e-3}.get(method, 1e-3)
     d = np.angle(np.exp(1j * (out.phase_rad - ref.phase_rad)))
     assert np.sqrt(np.mean((d - np.angle(np.exp(1j * d).mean())) ** 2)) < max(tol, 1e-3)
     assert out.metrics["target_ssim_corrected"] == pytest.approx(ref.metrics["target_ssim_corrected"], abs=tol)
