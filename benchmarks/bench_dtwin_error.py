@@ -35,7 +35,15 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_dtwin_family import BENCH_SEED, BENCH_SHAPES, CONDITIONS, digital_twin_focus, draw_inputs, surface_of
+from benchmarks.bench_dtwin_family import (
+    BENCH_SEED,
+    BENCH_SHAPES,
+    CONDITIONS,
+    digital_twin_focus,
+    draw_inputs,
+    surface_of,
+)
+from twinfocus.subpixel import parabola_vertex
 
 #: consecutive positions further apart than this start a new sweep, metres (the scans' steps along
 #: a sweep are ~2 mm; the sweeps are one array length, 83 mm, apart)
@@ -77,9 +85,7 @@ def intensity_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
     def refined(line: np.ndarray, k: int) -> float:
         n = line.size
-        left, mid, right = line[(k - 1) % n], line[k], line[(k + 1) % n]
-        den = left - 2 * mid + right
-        v = k + (0.5 * (left - right) / den if den else 0.0)
+        v = k + parabola_vertex(line[(k - 1) % n], line[k], line[(k + 1) % n])
         return v - n if v > n / 2 else v
 
     return refined(cc[:, j], i), refined(cc[i, :], j)
@@ -132,7 +138,7 @@ def table(results: dict) -> str:
     lines = ["| condition | draws | digital twin | error rms rad | its step error | neighbours' step error | "
              "without ramp | without degree 2 | without degree 3 | true phase |", "|---" * 10 + "|"]
     for cond, recs in results.items():
-        def mean(key: str) -> float:
+        def mean(key: str, recs: list = recs) -> float:
             return float(np.mean([r[key] for r in recs]))
 
         lines.append(f"| {cond} | {len(recs)} | {mean('digital'):.3f} | {mean('error_rms_rad'):.2f} | "

@@ -21,10 +21,11 @@ around it, the settings) and prints a table. ``--focus-profile`` instead simulat
 and stage scan with ``twinfocus simulate`` and focuses it with ``twinfocus focus`` (the reference's
 and the target's regions of the scene, 100 x 100 pixels, no pictures, no template cache), once
 per ``--models`` value, and writes every stage's time from its ``metrics.json``, the ladder's
-time and the target's SSIM to ``field_focus_profile.json``; with ``--as-user`` the scan as captured (no truth
-images) and the template from the cache, what a user waits for (``field_focus_profile_as_user.json``). ``--threads 1`` runs everything on one thread (torch
-and numba): the CPU seconds are then the fit's own work, barely touched by other processes on a
-busy machine, and bound the wall time on an idle machine with more cores from above.
+time and the target's SSIM to ``field_focus_profile.json``; with ``--as-user`` the scan as
+captured (no truth images) and the template from the cache, what a user waits for
+(``field_focus_profile_as_user.json``). ``--threads 1`` runs everything on one thread (torch and
+numba): the CPU seconds are then the fit's own work, barely touched by other processes on a busy
+machine, and bound the wall time on an idle machine with more cores from above.
 """
 
 from __future__ import annotations
