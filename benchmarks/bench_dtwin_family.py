@@ -24,10 +24,13 @@ Per draw, target SSIM against the image on the true positions: the digital twin 
 ``twinfocus focus --digital-twin`` runs it, the physical twin (its motion-stage scan, the
 registered closed form and the drift fit where it helps), the reference's own true phase (one
 phase per position) and the target's (the oracle); each twin's confidence report (trusted, its
-warnings) and what it measured.
+warnings) and what it measured; and the field's reference-free autofocus on the target itself
+(``--method sharpness``, ``entropy``, ``pga``), the baselines a twin has to beat, with their
+confidence reports.
 
     python -m benchmarks.bench_dtwin_family --draws 10 --minutes 30            (bench draws)
     python -m benchmarks.bench_dtwin_family --draws 5 --minutes 15 --heldout  (held-out draws)
+    python -m benchmarks.bench_dtwin_family --add-baselines [--heldout]     (baselines only, added)
 
 (--minutes: no new seed is started after that long; the draws of every condition go seed by seed.)
 
@@ -172,7 +175,28 @@ def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> 
     rec["oracle"] = dt.metrics["target_ssim_oracle_phase"]
     reference_true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
     rec["reference true phase"] = image_ssim(form_image(tb, reference_true), truth["truth_target"])
+    rec.update(baselines(d))
     return rec
+
+
+#: the field's reference-free autofocus, run on the target itself as ``twinfocus focus --method``
+#: runs it: the baselines beside the twins
+BASELINES = ("sharpness", "entropy", "pga")
+
+
+def baselines(d: dict) -> dict:
+    """The reference-free methods on :func:`draw_inputs`' draw ``d``: each one's target SSIM
+    (``sharpness``, ...), whether the confidence report trusts it and its warnings."""
+    from twinfocus.pipeline import focus_bases
+
+    out: dict = {}
+    scan = d["scan"]
+    for method in BASELINES:
+        f = focus_bases(d["rb"], d["tb"], scan.positions, scan.chirp, d["rg"], d["tg"], method=method, **d["truth"])
+        out[method] = f.metrics["target_ssim_corrected"]
+        out[f"{method} trusted"] = f.metrics["confidence"]["trusted"]
+        out[f"{method} warnings"] = f.metrics["confidence"]["warnings"]
+    return out
 
 
 #: the digital twin's own warnings (twinfocus.pipeline.outline_warnings), which ``trusted`` applies
@@ -219,29 +243,56 @@ def table(results: dict) -> str:
             v = np.array([r["digital"] for r in recs if "refused" not in r and r.get("surface") == surface])
             cells.append(f"{v.mean():.3f} ({len(v)} draws, worst {v.min():.3f})" if len(v) else "no draws")
         lines.append(f"| {cond} | " + " | ".join(cells) + " |")
+    lines += ["", "| condition | digital twin | " + " | ".join(f"`--method {m}`" for m in BASELINES) + " |",
+              "|---|---|" + "---|" * len(BASELINES)]
+    for cond, recs in results.items():
+        scored = [r for r in recs if "refused" not in r and all(m in r for m in BASELINES)]
+        if not scored:
+            continue
+        cells = [np.array([r[c] for r in scored]) for c in ("digital", *BASELINES)]
+        lines.append(f"| {cond} | " + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
     lines += ["", "| twin | results | trusted (their worst) | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |",
               "|---|---|---|---|---|"]
     recs = [r for rs in results.values() for r in rs if "refused" not in r]
-    for twin in ("digital", "physical"):
-        kept = [r[twin] for r in recs if trusted(r, twin)]
-        poor = sum(r[twin] < POOR and trusted(r, twin) for r in recs)
-        alarm = sum(r[twin] >= GOOD and not trusted(r, twin) for r in recs)
+    for twin in ("digital", "physical", *BASELINES):
+        rs = [r for r in recs if twin in r]
+        if not rs:
+            continue
+
+        def trust(r: dict, twin: str = twin) -> bool:
+            return bool(r[f"{twin} trusted"]) if twin in BASELINES else trusted(r, twin)
+
+        kept = [r[twin] for r in rs if trust(r)]
+        poor = sum(r[twin] < POOR and trust(r) for r in rs)
+        alarm = sum(r[twin] >= GOOD and not trust(r) for r in rs)
         worst = f" ({min(kept):.3f})" if kept else ""
-        lines.append(f"| {twin} | {len(recs)} | {len(kept)}{worst} | {poor} ({poor / len(recs):.0%}) | {alarm} ({alarm / len(recs):.0%}) |")
+        lines.append(f"| {twin} | {len(rs)} | {len(kept)}{worst} | {poor} ({poor / len(rs):.0%}) | {alarm} ({alarm / len(rs):.0%}) |")
     return "\n".join(lines)
 
 
 def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, heldout: bool = False,
          rows: int = 65, size: int = 64, only: str | None = None, minutes: float | None = None,
-         resume: bool = False) -> dict:
+         resume: bool = False, add_baselines: bool = False) -> dict:
     from twinfocus.errors import TwinFocusError
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / ("dtwin_family_heldout.json" if heldout else "dtwin_family.json")
     first, shapes = (HELDOUT_SEED, HELDOUT_SHAPES) if heldout else (BENCH_SEED, BENCH_SHAPES)
-    results: dict = json.loads(path.read_text()) if (only or resume) and path.is_file() else {}
+    results: dict = json.loads(path.read_text()) if (only or resume or add_baselines) and path.is_file() else {}
     results.pop("scan", None)
+    if add_baselines:
+        # the same seeds draw the same scans: only the baselines are run, the twins' figures kept
+        for cond, recs in results.items():
+            for rec in recs:
+                if "refused" in rec or all(m in rec for m in BASELINES):
+                    continue
+                print(f"[dtwin family] baselines: {cond}, seed {rec['seed']}", file=sys.stderr, flush=True)
+                rec.update(baselines(draw_inputs(cond, rec["seed"], shapes, rows, size)))
+                path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1,
+                                           default=float))
+        print(table(results))
+        return results
     conditions = [c for c in CONDITIONS if not only or only == c]
     for cond in conditions:
         results[cond] = results.get(cond, []) if resume else []
@@ -278,5 +329,7 @@ if __name__ == "__main__":
     ap.add_argument("--only", default=None, help="one condition's name (replaces it in an earlier file)")
     ap.add_argument("--minutes", type=float, default=None, help="start no new seed after this many minutes")
     ap.add_argument("--resume", action="store_true", help="keep the draws an earlier run of this file holds")
+    ap.add_argument("--add-baselines", action="store_true",
+                    help="add the reference-free baselines to an earlier file's records (the twins are not rerun)")
     a = ap.parse_args()
-    main(a.out, a.draws, a.heldout, a.rows, a.size, a.only, a.minutes, a.resume)
+    main(a.out, a.draws, a.heldout, a.rows, a.size, a.only, a.minutes, a.resume, a.add_baselines)

@@ -122,7 +122,7 @@ def test_bad_bases_are_refused_by_name(fn):
         fn(np.ones((3, 4, 4), np.complex64), init_phase_rad=np.zeros(2))
 
 
-def test_focus_command_runs_entropy_and_pga_without_a_template(tmp_path):
+def test_focus_command_runs_the_reference_free_methods_without_a_template(tmp_path):
     import json
 
     from twinfocus.cli import main
@@ -130,13 +130,16 @@ def test_focus_command_runs_entropy_and_pga_without_a_template(tmp_path):
     scan = tmp_path / "scan.npz"
     assert main(["simulate", "--out", str(scan), "--columns", "2", "--rows", "30", "--quiet", "--seed", "3"]) == 0
     rois = ["--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6", "--target-roi", "0.02", "0.13", "-0.11", "0.12"]
-    for method in ("entropy", "pga"):
+    for method in ("entropy", "pga", "sharpness"):
         out = tmp_path / method
         argv = ["focus", str(scan), *rois, "0.6", "--size", "40", "--method", method, "--out", str(out), "--quiet"]
         assert main([*argv, "--no-pictures"]) == 0
         m = json.loads((out / "metrics.json").read_text())
-        assert m["method"] == method and "converged" in m["reference_free"]
+        assert m["method"] == method and (method == "sharpness" or "converged" in m["reference_free"])
         assert m["target_ssim_corrected"] > m["target_ssim_uncorrected"] + 0.05
         assert np.load(out / "phase.npy").shape == (60,)
-        # 3 resolution cells per position: enough to pin the phases, no warning
+        # 3 resolution cells per position: enough to pin the phases, no warning of that
         assert m["reference_free"]["cells_per_position"] > 2.5 and "warning" not in m["reference_free"]
+        # but no reference checks the result: it is never trusted, and the report says so
+        assert not m["confidence"]["trusted"]
+        assert any(w.startswith(f"no reference checks the {method}") for w in m["confidence"]["warnings"])

@@ -481,11 +481,24 @@ class ReferenceFree(Rung):
         return model.evolve(phase_rad=phase, estimate_rad=phase, loss_history=losses, estimated=True)
 
 
+def _target_cells(problem: Problem) -> float:
+    """The target region's resolution cells for the scan's aperture
+    (:func:`twinfocus.reference_free.resolution_cells`)."""
+    from twinfocus.reference_free import resolution_cells
+
+    return resolution_cells(problem.positions, problem.target_grid, problem.chirp.wavelength_m)
+
+
 def _sharpness(
     basis: np.ndarray, config: AutofocusConfig, progress, problem: Problem
 ) -> tuple[np.ndarray, dict, np.ndarray]:
+    """The paper's sharpness optimiser as a rung's estimate; its info carries the region's
+    resolution cells per position and a warning when they are too few, as the other
+    reference-free rungs' do."""
+    from twinfocus.reference_free import cells_summary
+
     result = sharpness_autofocus(basis, config, progress=progress)
-    return result.phase_rad, {}, result.loss_history
+    return result.phase_rad, cells_summary("sharpness", _target_cells(problem), basis.shape[0]), result.loss_history
 
 
 def _free(method: str) -> Callable:
@@ -495,10 +508,9 @@ def _free(method: str) -> Callable:
     def estimate(
         basis: np.ndarray, config: AutofocusConfig, progress, problem: Problem
     ) -> tuple[np.ndarray, dict, np.ndarray]:
-        from twinfocus.reference_free import reference_free_autofocus, resolution_cells
+        from twinfocus.reference_free import reference_free_autofocus
 
-        cells = resolution_cells(problem.positions, problem.target_grid, problem.chirp.wavelength_m)
-        result = reference_free_autofocus(basis, method, cells=cells)
+        result = reference_free_autofocus(basis, method, cells=_target_cells(problem))
         return result.phase_rad, result.extra["reference_free"], result.loss_history
 
     return estimate

@@ -529,6 +529,20 @@ DIGITAL_TWIN_NEXT = (
 )
 
 
+def unchecked_warning(method: str) -> str:
+    """The confidence report's warning on every reference-free result: nothing checks it. The
+    field benches' reference-free results (benchmarks/bench_dtwin_family.py, bench and held-out
+    draws, 240 of them) gained 0.12-0.15 SSIM over no correction on average, and only one
+    reached 0.90; the three trusted by the resolution cells alone were 0.47-0.69
+    (docs/digital_twin_field.md, "Without a reference")."""
+    return (
+        f"no reference checks the {method} correction: reference-free autofocus on the field benches "
+        "gained 0.12-0.15 SSIM over no correction on average and reached 0.90 on 1 of 240 results "
+        "(docs/digital_twin_field.md); focus with a twin (--template-scan or --digital-twin) for a "
+        "result this report can check"
+    )
+
+
 def outline_warnings(fill: dict, agreement: float | None) -> list[str]:
     """The digital twin's own checks (docs/digital_twin_field.md), each a warning that says what
     to do. fill : metrics.json ``reference_outline``: ``contrast``, the corrected reference's
@@ -716,6 +730,8 @@ def confidence_report(
     free = (m.get("reference_free") or {}).get("warning")
     if free:
         out["warnings"].append(free)
+    if m.get("method") in REFERENCE_FREE:
+        out["warnings"].append(unchecked_warning(m["method"]))
     if reg and reg.get("at_limit"):
         out["warnings"].append(
             f"the template registration stopped at its search limit (shift {reg['shift_px'][0]:+.1f}, "

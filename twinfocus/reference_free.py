@@ -341,6 +341,23 @@ def resolution_cells(positions_m: np.ndarray, grid, wavelength_m: float) -> floa
     return cells
 
 
+def cells_summary(method: str, cells: float, n_positions: int) -> dict:
+    """What a reference-free estimate of ``n_positions`` phases on a region of ``cells``
+    resolution cells (:func:`resolution_cells`) reports: ``cells_per_position`` and, below
+    :data:`MIN_CELLS_PER_POSITION`, a ``warning`` that names ``method`` (the confidence report
+    repeats it). The same for every reference-free method: each fits one phase per position to one
+    image."""
+    per_position = float(cells) / max(int(n_positions), 1)
+    out: dict = {"cells_per_position": round(per_position, 3)}
+    if per_position < MIN_CELLS_PER_POSITION:
+        out["warning"] = (
+            f"the region holds {per_position:.1f} resolution cells per radar position (< {MIN_CELLS_PER_POSITION}): "
+            f"too few to pin every phase, so {method} may have sharpened the image away from the truth; "
+            "widen the region or use a twin"
+        )
+    return out
+
+
 #: the reference-free methods by their ``--method`` name
 METHODS: dict[str, Callable[..., tuple[np.ndarray, dict]]] = {
     "entropy": minimum_entropy_phase,
@@ -363,14 +380,7 @@ def reference_free_autofocus(basis: np.ndarray, method: str, cells: float | None
     summary = {k: v for k, v in info.items() if k not in ("entropy", "energy_fraction")}
     summary["loss_first_last"] = [float(loss[0]), float(loss[-1])]
     if cells is not None:
-        per_position = float(cells) / np.asarray(basis).shape[0]
-        summary["cells_per_position"] = round(per_position, 3)
-        if per_position < MIN_CELLS_PER_POSITION:
-            summary["warning"] = (
-                f"the region holds {per_position:.1f} resolution cells per radar position (< {MIN_CELLS_PER_POSITION}): "
-                f"too few to pin every phase, so {method} may have sharpened the image away from the truth; "
-                "widen the region or use a twin"
-            )
+        summary.update(cells_summary(method, cells, np.asarray(basis).shape[0]))
     return AutofocusResult(
         phase, loss, form_image(basis, phase), time.perf_counter() - t0, method, {"reference_free": summary}
     )
