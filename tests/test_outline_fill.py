@@ -142,6 +142,36 @@ def test_a_reference_that_sends_its_return_to_a_few_positions_is_flagged():
     assert not _report({**filled, "position_energy_contrast": MAX_POSITION_ENERGY_CONTRAST + 0.4})["trusted"]
 
 
+def test_the_glint_threshold_grows_with_the_scans_aperture():
+    """Measured on the same bench references scanned over 390 and 780 positions (0.0635 and
+    0.128 m^2): a rough letter reads 4.5-5.4 at the longer scan, a smooth washer 8.0-8.2."""
+    from twinfocus.autofocus import AutofocusConfig
+    from twinfocus.grid import ImageGrid
+    from twinfocus.ladder import Problem
+    from twinfocus.pipeline import GLINT_APERTURE_M2, MAX_POSITION_ENERGY_CONTRAST, glint_threshold, outline_warnings
+    from twinfocus.radar import Chirp
+
+    assert glint_threshold(None) == glint_threshold(GLINT_APERTURE_M2) == MAX_POSITION_ENERGY_CONTRAST
+    assert glint_threshold(GLINT_APERTURE_M2 / 4) == MAX_POSITION_ENERGY_CONTRAST  # never below the bench's
+    assert glint_threshold(2 * GLINT_APERTURE_M2) == pytest.approx(MAX_POSITION_ENERGY_CONTRAST * 2**0.8)
+    filled = {"energy_inside": 0.95, "contrast": 1.7, "surface": "coherent"}
+    for contrast, aperture, glint in ((5.0, 0.128, False), (5.4, 0.128, False), (8.0, 0.128, True), (5.0, 0.0635, True)):
+        warnings = outline_warnings({**filled, "position_energy_contrast": contrast, "aperture_m2": aperture}, None)
+        assert any("to a few radar positions" in w for w in warnings) == glint, (contrast, aperture)
+    # the scan's aperture, as the report reads it: the phase centres' extent across x times across y
+    rng = np.random.default_rng(0)
+    positions = np.zeros((20, 2, 3))
+    positions[:, :, 0] = rng.uniform(-0.2, 0.3, (20, 1)) + np.array([0.0, 0.01])
+    positions[:, :, 1] = rng.uniform(0.0, 0.1, (20, 1))
+    grid = ImageGrid(-0.05, 0.05, -0.05, 0.05, 0.5, 8, 8)
+    basis = (rng.standard_normal((20, 8, 8)) + 1j * rng.standard_normal((20, 8, 8))).astype(np.complex64)
+    support = np.zeros((8, 8), bool)
+    support[2:6, 2:6] = True
+    problem = Problem(basis, basis, positions, Chirp(), grid, grid, AutofocusConfig(), support=support)
+    p = positions.reshape(-1, 3)
+    assert problem.surface["aperture_m2"] == pytest.approx(np.ptp(p[:, 0]) * np.ptp(p[:, 1]), abs=1e-5)
+
+
 def test_surface_from_positions_is_the_contrast_of_each_positions_energy_in_the_grown_outline():
     """Against a loop over positions and pixels, and unchanged at any scale of the scan."""
     rng = np.random.default_rng(3)
@@ -219,7 +249,10 @@ def test_focus_reads_a_digital_twin_against_its_outline(small_scene):
     out = focus_bases(basis, basis, positions, Chirp(n_samples=64), grid, grid, template=support.astype(np.float32),
                       support=support, config=cfg)
     fill = out.metrics["reference_outline"]
-    assert fill == {**outline_fill(out.reference, support), **surface_from_positions(basis, support)}
+    extent = positions.reshape(-1, 3)
+    aperture = round(float(np.ptp(extent[:, 0]) * np.ptp(extent[:, 1])), 5)
+    assert fill == {**outline_fill(out.reference, support), **surface_from_positions(basis, support),
+                    "aperture_m2": aperture}  # fmt: skip
     report = out.metrics["confidence"]
     assert report["reference_outline"] == fill
     assert not any("matches its template poorly" in w for w in report["warnings"])

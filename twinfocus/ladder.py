@@ -131,8 +131,14 @@ class Problem:
     @cached_property
     def surface(self) -> dict | None:
         """What the scan says of the reference's surface, read once from its basis over its
-        outline (:func:`twinfocus.outline_fill.surface_from_positions`); None without an outline."""
-        return None if self.support is None else surface_from_positions(self.ref_basis, self.support)
+        outline (:func:`twinfocus.outline_fill.surface_from_positions`), with ``aperture_m2``, the
+        area the phase centres cover (their extent across x times across y, m^2), which that
+        reading grows with; None without an outline."""
+        if self.support is None:
+            return None
+        p = self.positions.reshape(-1, 3)
+        aperture = float(np.ptp(p[:, 0]) * np.ptp(p[:, 1]))
+        return {**surface_from_positions(self.ref_basis, self.support), "aperture_m2": round(aperture, 5)}
 
     def progress(self, label: str):
         return self.progress_factory(label) if self.progress_factory else None
