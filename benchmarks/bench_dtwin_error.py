@@ -43,6 +43,7 @@ from benchmarks.bench_dtwin_family import (
     draw_inputs,
     surface_of,
 )
+from twinfocus.reference_free import _centred as centred
 from twinfocus.subpixel import parabola_vertex
 
 #: consecutive positions further apart than this start a new sweep, metres (the scans' steps along
@@ -59,11 +60,6 @@ def sweeps(centres_m: np.ndarray) -> list[np.ndarray]:
 
 def wrapped(phase: np.ndarray) -> np.ndarray:
     return np.angle(np.exp(1j * phase))
-
-
-def centred(error: np.ndarray) -> np.ndarray:
-    """``error`` wrapped, its circular mean taken out."""
-    return wrapped(error - np.angle(np.exp(1j * error).mean()))
 
 
 def aperture_polynomial(centres_m: np.ndarray, degree: int) -> np.ndarray:
@@ -119,7 +115,8 @@ def one_draw(condition: str, seed: int, rows: int, size: int) -> dict:
         a = aperture_polynomial(centres, degree)
         smooth = a @ np.linalg.lstsq(a, centred(error), rcond=None)[0]
         rec[f"without_degree_{degree}"] = round(image_ssim(form_image(tb, dt.phase_rad - smooth), truth), 4)
-    x, y = aperture_polynomial(centres, 1)[:, 2], aperture_polynomial(centres, 1)[:, 1]
+    ramp = aperture_polynomial(centres, 1)  # columns 1, y, x
+    x, y = ramp[:, 2], ramp[:, 1]
     shifts, per_rad = {}, {}
     for axis, coord, k in (("y", y, 0), ("x", x, 1)):
         low = coord < 0
