@@ -13,6 +13,16 @@ reference's true phase (one phase per position, :func:`twinfocus.metrics.oracle_
   (1: a ramp; 2: + the quadratic terms; 3: + the cubic ones) in the positions' aperture
   coordinates is taken out of the estimate (an oracle: it needs the truth), which says how much of
   the target's loss is smooth across the aperture;
+- ``blind_degree_2``: the target's SSIM once the estimate's *own* polynomial of degree 2 (fitted to
+  its wrapped phases, :func:`own_polynomial`; no truth) is taken out, with ``ramp_free_coherence``
+  (:func:`twinfocus.phase_ramp.ramp_free_coherence`: whether the phases hold together enough to
+  fit it) and ``step_coherence`` (:func:`twinfocus.drift_check.step_coherence`: jitter near 0.1,
+  a hand's drift near 0.45). Under jitter the true error has no smooth part beyond what 390
+  random values project onto six terms, so the estimate's smooth part is mostly its own error;
+- ``self_template_drift`` (with ``--self-template``): the target's SSIM after the drift + tilt fit
+  (:func:`twinfocus.space_variant.fit_smooth_drift`) to the reference's own corrected image as
+  the template, and ``self_template_match`` the fit's match at its end (1: it never left its
+  start);
 - ``subaperture_shift_px``: how far apart the images of the two halves of the aperture (along the
   sweeps, y; across them, x) sit on the reference's true phase, by their intensities' cross
   correlation, and ``shift_per_rad_px`` how far one radian of quadratic phase over the half
@@ -20,8 +30,9 @@ reference's true phase (one phase per position, :func:`twinfocus.metrics.oracle_
 
     python -m benchmarks.bench_dtwin_error --draws 5
     python -m benchmarks.bench_dtwin_error --draws 3 --conditions paper,hand
+    python -m benchmarks.bench_dtwin_error --draws 10 --conditions paper --heldout  (a check only)
 
-Writes ``dtwin_error_structure.json`` and prints a table per condition.
+Writes ``dtwin_error_structure.json`` (``dtwin_error_structure_heldout.json``) and prints a table per condition.
 """
 
 from __future__ import annotations
@@ -39,6 +50,8 @@ from benchmarks.bench_dtwin_family import (
     BENCH_SEED,
     BENCH_SHAPES,
     CONDITIONS,
+    HELDOUT_SEED,
+    HELDOUT_SHAPES,
     digital_twin_focus,
     draw_inputs,
     surface_of,
@@ -71,6 +84,35 @@ def aperture_polynomial(centres_m: np.ndarray, degree: int) -> np.ndarray:
     return np.stack([x**i * y**j for n in range(degree + 1) for i in range(n + 1) for j in [n - i]], axis=1)
 
 
+def own_polynomial(phase_rad: np.ndarray, centres_m: np.ndarray, degree: int) -> np.ndarray:
+    """The least-squares fit of :func:`aperture_polynomial` to wrapped phases (M,), radians: from
+    the coherent ramp (:func:`twinfocus.phase_ramp.fit_linear_phase`), Gauss-Newton steps on the
+    wrapped residual, so wrapping does not bias it."""
+    from twinfocus.phase_ramp import fit_linear_phase
+
+    columns = aperture_polynomial(centres_m, degree)
+    ramp, _ = fit_linear_phase(phase_rad, centres_m[:, :2], min_coherence_sqrt_m=0.0)
+    coef = np.linalg.lstsq(columns, ramp, rcond=None)[0]
+    for _ in range(20):
+        coef = coef + np.linalg.lstsq(columns, wrapped(phase_rad - columns @ coef), rcond=None)[0]
+    return columns @ coef
+
+
+def self_template_drift(d: dict, dt) -> tuple[float, float]:
+    """(target SSIM, the fit's final match) of the drift + tilt fit to the reference's own image as
+    the digital twin corrected it (the template a reference with no phase template could have)."""
+    from twinfocus.metrics import image_ssim
+    from twinfocus.pipeline import half_array_bases
+    from twinfocus.space_variant import drift_image, fit_smooth_drift
+
+    scan, rg, tg = d["scan"], d["rg"], d["tg"]
+    c, wl = scan.positions.mean(axis=1), scan.chirp.wavelength_m
+    halves = half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg)()
+    phase, drift, tilt, fit = fit_smooth_drift(d["rb"], dt.reference, dt.phase_rad, c, rg, wl, half_basis=halves[0])
+    image = drift_image(d["tb"], phase, drift, rg.centre_m, c, tg, wl, half_basis=halves[1], tilt_rad=tilt)
+    return image_ssim(image, d["truth"]["truth_target"]), float(fit["match_after"])
+
+
 def intensity_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """(rows, columns) by which ``b``'s intensity sits from ``a``'s: the peak of their cross
     correlation (zero-padded), refined by a parabola through it and its neighbours."""
@@ -87,11 +129,14 @@ def intensity_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     return refined(cc[:, j], i), refined(cc[i, :], j)
 
 
-def one_draw(condition: str, seed: int, rows: int, size: int) -> dict:
+def one_draw(condition: str, seed: int, rows: int, size: int, shapes: tuple = BENCH_SHAPES,
+             self_template: bool = False) -> dict:
     from twinfocus.basis import form_image
+    from twinfocus.drift_check import step_coherence
     from twinfocus.metrics import image_ssim, oracle_phase
+    from twinfocus.phase_ramp import ramp_free_coherence
 
-    d = draw_inputs(condition, seed, BENCH_SHAPES, rows, size)
+    d = draw_inputs(condition, seed, shapes, rows, size)
     scan, rb, tb = d["scan"], d["rb"], d["tb"]
     truth = d["truth"]["truth_target"]
     centres = scan.positions.mean(axis=1)
@@ -115,6 +160,13 @@ def one_draw(condition: str, seed: int, rows: int, size: int) -> dict:
         a = aperture_polynomial(centres, degree)
         smooth = a @ np.linalg.lstsq(a, centred(error), rcond=None)[0]
         rec[f"without_degree_{degree}"] = round(image_ssim(form_image(tb, dt.phase_rad - smooth), truth), 4)
+    own = own_polynomial(dt.phase_rad, centres, 2)
+    rec["blind_degree_2"] = round(image_ssim(form_image(tb, dt.phase_rad - own), truth), 4)
+    rec["ramp_free_coherence"] = round(ramp_free_coherence(dt.phase_rad, centres[:, :2]), 2)
+    rec["step_coherence"] = round(step_coherence(dt.phase_rad), 3)
+    if self_template:
+        ssim, match = self_template_drift(d, dt)
+        rec["self_template_drift"], rec["self_template_match"] = round(ssim, 4), round(match, 5)
     ramp = aperture_polynomial(centres, 1)  # columns 1, y, x
     x, y = ramp[:, 2], ramp[:, 1]
     shifts, per_rad = {}, {}
@@ -133,7 +185,8 @@ def one_draw(condition: str, seed: int, rows: int, size: int) -> dict:
 
 def table(results: dict) -> str:
     lines = ["| condition | draws | digital twin | error rms rad | its step error | neighbours' step error | "
-             "without ramp | without degree 2 | without degree 3 | true phase |", "|---" * 10 + "|"]
+             "without ramp | without degree 2 | without degree 3 | true phase | its own degree 2 out |"
+             " self-template drift |", "|---" * 12 + "|"]
     for cond, recs in results.items():
         def mean(key: str, recs: list = recs) -> float:
             return float(np.mean([r[key] for r in recs]))
@@ -141,23 +194,27 @@ def table(results: dict) -> str:
         lines.append(f"| {cond} | {len(recs)} | {mean('digital'):.3f} | {mean('error_rms_rad'):.2f} | "
                      f"{mean('step_error_rms_rad'):.2f} | {mean('neighbour_step_error_rms_rad'):.2f} | "
                      f"{mean('without_degree_1'):.3f} | {mean('without_degree_2'):.3f} | "
-                     f"{mean('without_degree_3'):.3f} | {mean('reference true phase'):.3f} |")
+                     f"{mean('without_degree_3'):.3f} | {mean('reference true phase'):.3f} | "
+                     f"{mean('blind_degree_2'):.3f} | "
+                     + (f"{mean('self_template_drift'):.3f} |" if all("self_template_drift" in r for r in recs) else "- |"))
     return "\n".join(lines)
 
 
 def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, conditions: tuple[str, ...] = tuple(CONDITIONS),
-         rows: int = 65, size: int = 64) -> dict:
+         rows: int = 65, size: int = 64, heldout: bool = False, self_template: bool = False) -> dict:
     results: dict = {}
     t0 = time.perf_counter()
+    first, shapes = (HELDOUT_SEED, HELDOUT_SHAPES) if heldout else (BENCH_SEED, BENCH_SHAPES)
     for cond in conditions:
         results[cond] = []
-        for seed in range(BENCH_SEED, BENCH_SEED + draws):
-            results[cond].append(one_draw(cond, seed, rows, size))
+        for seed in range(first, first + draws):
+            results[cond].append(one_draw(cond, seed, rows, size, shapes, self_template))
             print(f"[dtwin_error] {cond} seed {seed}: {json.dumps(results[cond][-1])}", file=sys.stderr, flush=True)
     out = {"command": "python -m benchmarks.bench_dtwin_error " + " ".join(sys.argv[1:]), "rows": rows, "size": size,
            "wall_s": round(time.perf_counter() - t0, 1), "results": results}
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    (Path(out_dir) / "dtwin_error_structure.json").write_text(json.dumps(out, indent=2))
+    name = "dtwin_error_structure_heldout.json" if heldout else "dtwin_error_structure.json"
+    (Path(out_dir) / name).write_text(json.dumps(out, indent=2))
     print(table(results))
     return out
 
@@ -169,5 +226,7 @@ if __name__ == "__main__":
     ap.add_argument("--conditions", default=",".join(CONDITIONS), help="comma-separated, of " + ", ".join(CONDITIONS))
     ap.add_argument("--rows", type=int, default=65)
     ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--heldout", action="store_true", help="the held-out draws (a check of what the bench chose)")
+    ap.add_argument("--self-template", action="store_true", help="also the drift + tilt fit to the reference's own image")
     a = ap.parse_args()
-    main(a.out, a.draws, tuple(a.conditions.split(",")), a.rows, a.size)
+    main(a.out, a.draws, tuple(a.conditions.split(",")), a.rows, a.size, a.heldout, a.self_template)

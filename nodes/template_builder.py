@@ -128,7 +128,7 @@ class TemplateBuilder(Node):
             return self._message(image, "physical" if support is None else "digital", path, support, info)
         cache = TemplateCache(enabled=bool(self.params["cache"]))
         if src == "scan":
-            key = template_scan_key(path, self.grid, self.bp) if cache.enabled else None
+            key = template_scan_key(path, self.grid, self.bp, cache.root) if cache.enabled else None
             load = lambda: Scan.load(path)  # noqa: E731 (only on a miss)
             source = path
         else:

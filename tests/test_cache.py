@@ -5,7 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from twinfocus.cache import TemplateCache, cache_dir, file_sha256, template_key
+from twinfocus import cache as cache_module
+from twinfocus.cache import TemplateCache, cache_dir, file_sha256, remembered_sha256, template_key
 from twinfocus.cli import main
 from twinfocus.grid import ImageGrid
 from twinfocus.scan import Scan
@@ -160,3 +161,35 @@ def test_digital_twin_template_is_cached_per_cloud_and_aperture(scans, tmp_path,
     rc = main(["focus", str(tmp_path / "moved.npz"), "--reference-roi", *REF, "--target-roi", *TGT, "--size", "40",
                "--out", str(tmp_path / "c"), "--quiet", "--pictures", "none", *twin])
     assert rc == 0 and json.loads((tmp_path / "c" / "metrics.json").read_text())["template_cache"] == "miss"
+
+
+def test_a_files_digest_is_remembered_until_the_file_changes(tmp_path, monkeypatch):
+    """The template scan's digest is read from the memo while the file is as it was, and computed
+    anew (the right one, against hashlib on its bytes) once it is rewritten, even at the same size
+    and modification time; a file changed just now is not remembered."""
+    import hashlib
+    import os
+    import time
+
+    calls = []
+
+    def counted(path):
+        calls.append(path)
+        return file_sha256(path)
+
+    monkeypatch.setattr(cache_module, "file_sha256", counted)
+    f = tmp_path / "stage.npz"
+    f.write_bytes(b"a" * 1000)
+    assert remembered_sha256(f, tmp_path / "c") == hashlib.sha256(b"a" * 1000).hexdigest()
+    assert remembered_sha256(f, tmp_path / "c") and len(calls) == 2  # just written: not remembered
+    monkeypatch.setattr(cache_module, "RACY_S", 0.0)
+    remembered_sha256(f, tmp_path / "c")
+    assert remembered_sha256(f, tmp_path / "c") == hashlib.sha256(b"a" * 1000).hexdigest() and len(calls) == 3
+    mtime = f.stat().st_mtime_ns
+    time.sleep(0.05)  # past the file system's clock tick
+    f.write_bytes(b"b" * 1000)
+    os.utime(f, ns=(mtime, mtime))  # same size, same modification time: only the change time moved
+    assert remembered_sha256(f, tmp_path / "c") == hashlib.sha256(b"b" * 1000).hexdigest() and len(calls) == 4
+    # a memo folder that cannot be written: the digest all the same
+    (tmp_path / "file").write_text("x")
+    assert remembered_sha256(f, tmp_path / "file" / "c") == hashlib.sha256(b"b" * 1000).hexdigest()

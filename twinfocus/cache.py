@@ -7,7 +7,8 @@ changes its hash, so a stale entry is never found; entries are never overwritten
 
 Where: ``$TWINFOCUS_CACHE_DIR``, else ``$XDG_CACHE_HOME/twinfocus``, else ``~/.cache/twinfocus``;
 one ``templates/<key>.npz`` per entry (``image`` as computed, ``roi``, ``shape``, and for a digital
-twin ``info_json``, what its conditioning chose and why, for metrics.json). ``twinfocus
+twin ``info_json``, what its conditioning chose and why, for metrics.json), and under ``digests/``
+the input files' digests, found by their stat (:func:`remembered_sha256`). ``twinfocus
 focus --no-cache`` bypasses it. Delete the folder to empty it. Reading and writing fail soft: a
 cache that cannot be written or an unreadable entry is a miss, never an error.
 """
@@ -25,6 +26,9 @@ from twinfocus.grid import ImageGrid
 
 #: environment variable that relocates the cache
 ENV_DIR = "TWINFOCUS_CACHE_DIR"
+#: a file changed less than this many seconds ago is hashed but not remembered: a second change
+#: within the file system's clock tick could leave its stat as it was (git's "racily clean")
+RACY_S = 2.0
 #: part of every key: bump when the back-projection or the template builders change their output
 FORMAT_VERSION = 2  # 2: digital twins with the seeded RANSAC plane and GrabCut
 
@@ -44,6 +48,38 @@ def file_sha256(path: str | os.PathLike) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
+
+
+def remembered_sha256(path: str | os.PathLike, root: str | os.PathLike | None = None) -> str:
+    """:func:`file_sha256` of ``path``, remembered under ``root`` (default :func:`cache_dir`) by the
+    file's identity and stat: the real path, device, inode, size, and modification and change
+    times in ns. A field user focuses many scans against one template scan of ~140 MB, and hashing
+    it again each time was 0.2-0.5 s of every ``focus`` on the 2-core machine. Any write to the
+    file changes its change time (which no program can set back), so a changed file is hashed
+    anew, as ``git`` trusts its index; a file changed in the last ``RACY_S`` is not remembered.
+    Fails soft: a memo that cannot be read or written means hashing the file."""
+    import time
+
+    from twinfocus.atomic import atomic_writer
+
+    try:
+        st = os.stat(path)
+        ident = f"{os.path.realpath(path)}|{st.st_dev}|{st.st_ino}|{st.st_size}|{st.st_mtime_ns}|{st.st_ctime_ns}"
+        memo = Path(root if root is not None else cache_dir()) / "digests" / hashlib.sha256(ident.encode()).hexdigest()
+        known = memo.read_text().strip() if memo.is_file() else ""
+    except OSError:
+        return file_sha256(path)
+    if len(known) == 64:
+        return known
+    digest = file_sha256(path)
+    if time.time() - max(st.st_mtime, st.st_ctime) < RACY_S:
+        return digest
+    try:
+        with atomic_writer(memo, "w") as f:
+            f.write(digest)
+    except OSError:
+        pass
+    return digest
 
 
 def array_sha256(*arrays: np.ndarray) -> str:
@@ -72,10 +108,14 @@ def template_key(kind: str, inputs: dict, grid: ImageGrid, bp_options: dict) -> 
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def template_scan_key(path: str | os.PathLike, grid: ImageGrid, bp_options: dict) -> str:
+def template_scan_key(
+    path: str | os.PathLike, grid: ImageGrid, bp_options: dict, root: str | os.PathLike | None = None
+) -> str:
     """Key of a template scan's complex image (:func:`twinfocus.templates.template_from_scan`
-    with ``keep_phase=True``) on ``grid``."""
-    return template_key("template_scan", {"file_sha256": file_sha256(path), "keep_phase": True}, grid, bp_options)
+    with ``keep_phase=True``) on ``grid``; the file's digest remembered under ``root``
+    (:func:`remembered_sha256`)."""
+    digest = remembered_sha256(path, root)
+    return template_key("template_scan", {"file_sha256": digest, "keep_phase": True}, grid, bp_options)
 
 
 def digital_twin_key(
@@ -85,11 +125,13 @@ def digital_twin_key(
     grid: ImageGrid,
     bp_options: dict,
     method: str = "psf",
+    root: str | os.PathLike | None = None,
 ) -> str:
-    """Key of a digital twin's template: the cloud file, the scan's aperture (positions (M, K, 3)
-    and chirp) it is simulated for, ``grid`` and the options."""
+    """Key of a digital twin's template: the cloud file (its digest remembered under ``root``,
+    :func:`remembered_sha256`), the scan's aperture (positions (M, K, 3) and chirp) it is
+    simulated for, ``grid`` and the options."""
     inputs = {
-        "cloud_sha256": file_sha256(cloud_path),
+        "cloud_sha256": remembered_sha256(cloud_path, root),
         "positions_sha256": array_sha256(np.asarray(positions_m)),
         "chirp": [chirp.f0_hz, chirp.slope_hz_per_s, chirp.fs_hz, chirp.n_samples],
         "method": method,

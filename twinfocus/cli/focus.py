@@ -242,7 +242,7 @@ def _template(args, scan, ref_grid, bp, progress, cache) -> tuple:
         template, support, info = load_template(args.template, ref_grid, with_outline=True)
         return template, None, support, info
     if args.template_scan:
-        key = template_scan_key(args.template_scan, ref_grid, bp) if cache.enabled else None
+        key = template_scan_key(args.template_scan, ref_grid, bp, cache.root) if cache.enabled else None
 
         def compute():
             return template_from_scan(
@@ -251,7 +251,7 @@ def _template(args, scan, ref_grid, bp, progress, cache) -> tuple:
     elif args.digital_twin:
         # one entry holds the template and the outline, stacked (2, H, W)
         key = (
-            digital_twin_key(args.digital_twin, scan.positions, scan.chirp, ref_grid, bp) + "-outline"
+            digital_twin_key(args.digital_twin, scan.positions, scan.chirp, ref_grid, bp, root=cache.root) + "-outline"
             if cache.enabled
             else None
         )
