@@ -56,6 +56,7 @@ from benchmarks.bench_dtwin_family import (
     draw_inputs,
     surface_of,
 )
+from twinfocus.phase_ramp import aperture_polynomial
 from twinfocus.reference_free import _centred as centred
 from twinfocus.subpixel import parabola_vertex
 
@@ -73,15 +74,6 @@ def sweeps(centres_m: np.ndarray) -> list[np.ndarray]:
 
 def wrapped(phase: np.ndarray) -> np.ndarray:
     return np.angle(np.exp(1j * phase))
-
-
-def aperture_polynomial(centres_m: np.ndarray, degree: int) -> np.ndarray:
-    """Monomials up to ``degree`` of the positions' aperture coordinates (x, y scaled to [-1, 1]):
-    float64 (M, terms)."""
-    x, y = centres_m[:, 0], centres_m[:, 1]
-    x = (x - x.mean()) / max(np.ptp(x) / 2, 1e-12)
-    y = (y - y.mean()) / max(np.ptp(y) / 2, 1e-12)
-    return np.stack([x**i * y**j for n in range(degree + 1) for i in range(n + 1) for j in [n - i]], axis=1)
 
 
 def own_polynomial(phase_rad: np.ndarray, centres_m: np.ndarray, degree: int) -> np.ndarray:

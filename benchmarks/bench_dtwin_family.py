@@ -28,9 +28,11 @@ warnings) and what it measured; and the field's reference-free autofocus on the 
 (``--method sharpness``, ``entropy``, ``pga``), the baselines a twin has to beat, with their
 confidence reports.
 
-    python -m benchmarks.bench_dtwin_family --draws 10 --minutes 30            (bench draws)
-    python -m benchmarks.bench_dtwin_family --draws 5 --minutes 15 --heldout  (held-out draws)
+    python -m benchmarks.bench_dtwin_family --draws 30                         (bench draws, ~15 min)
+    python -m benchmarks.bench_dtwin_family --draws 10 --heldout               (held-out draws)
+    python -m benchmarks.bench_dtwin_family --draws 30 --resume                (more draws, added)
     python -m benchmarks.bench_dtwin_family --add-baselines [--heldout]     (baselines only, added)
+    python -m benchmarks.bench_dtwin_family --add-defocus [--heldout]       (the target's focus check, added)
 
 (--minutes: no new seed is started after that long; the draws of every condition go seed by seed.)
 
@@ -202,16 +204,17 @@ def baselines(d: dict) -> dict:
 #: the digital twin's own warnings (twinfocus.pipeline.outline_warnings), which ``trusted`` applies
 #: anew from each record's measurements, so that records of an earlier run are read by the present rules
 OWN_WARNINGS = ("matches its template poorly", "does not fill its outline", "not sure of the reference's phase",
-                "the tracking drifted", "to a few radar positions")
+                "the tracking drifted", "to a few radar positions", "not at its focus")
 
 
 def trusted(rec: dict, twin: str) -> bool:
     """Whether the confidence report trusts this record's ``twin`` result, by the report's present
     rules: the drift check (``twinfocus.pipeline.drift_warnings``) and, for the digital twin, its own
     checks (``outline_warnings``: the reference's energy contrast over its outline unless the scan
-    read it as speckled, the glint across the positions, the grown outlines' agreement) applied anew to the record's measurements,
+    read it as speckled, the glint across the positions, the grown outlines' agreement, the
+    target's own focus where the record measured it) applied anew to the record's measurements,
     the report's other warnings as recorded."""
-    from twinfocus.pipeline import drift_warnings, outline_warnings
+    from twinfocus.pipeline import MAX_TARGET_DEFOCUS_GAIN_NATS, drift_warnings, outline_warnings
 
     digital = twin == "digital"
     conf = rec[f"{twin} confidence"]
@@ -221,6 +224,9 @@ def trusted(rec: dict, twin: str) -> bool:
     if digital:
         fill = conf.get("reference_outline") or rec["digital outline"]
         own += outline_warnings(fill, conf.get("outline_agreement"))
+        gain = conf.get("target_defocus_gain_nats", (rec.get("digital target_defocus") or {}).get("entropy_gain_nats"))
+        if gain is not None and gain > MAX_TARGET_DEFOCUS_GAIN_NATS:
+            own.append("the corrected target is not at its focus")
     return not others and not own
 
 
@@ -272,15 +278,33 @@ def table(results: dict) -> str:
 
 def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, heldout: bool = False,
          rows: int = 65, size: int = 64, only: str | None = None, minutes: float | None = None,
-         resume: bool = False, add_baselines: bool = False) -> dict:
+         resume: bool = False, add_baselines: bool = False, add_defocus: bool = False) -> dict:
     from twinfocus.errors import TwinFocusError
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / ("dtwin_family_heldout.json" if heldout else "dtwin_family.json")
     first, shapes = (HELDOUT_SEED, HELDOUT_SHAPES) if heldout else (BENCH_SEED, BENCH_SHAPES)
-    results: dict = json.loads(path.read_text()) if (only or resume or add_baselines) and path.is_file() else {}
+    results: dict = json.loads(path.read_text()) if (only or resume or add_baselines or add_defocus) and path.is_file() else {}
     results.pop("scan", None)
+    if add_defocus:
+        # records from before the target's focus check: it is measured where it can change the
+        # verdict, on the digital-twin results the other checks trust (the same seeds draw the same scans)
+        for cond, recs in results.items():
+            for rec in recs:
+                if "refused" in rec or "target_defocus_gain_nats" in rec["digital confidence"] \
+                        or "digital target_defocus" in rec or not trusted(rec, "digital"):
+                    continue
+                print(f"[dtwin family] target focus: {cond}, seed {rec['seed']}", file=sys.stderr, flush=True)
+                out = digital_twin_focus(draw_inputs(cond, rec["seed"], shapes, rows, size))
+                if abs(out.metrics["target_ssim_corrected"] - rec["digital"]) > 5e-3:  # BLAS and numba versions: ~1e-3
+                    raise RuntimeError(f"{cond}, seed {rec['seed']}: the digital twin now gives "
+                                       f"{out.metrics['target_ssim_corrected']:.4f}, the record {rec['digital']:.4f}")
+                rec["digital target_defocus"] = out.metrics["target_defocus"]
+                path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1,
+                                           default=float))
+        print(table(results))
+        return results
     if add_baselines:
         # the same seeds draw the same scans: only the baselines are run, the twins' figures kept
         for cond, recs in results.items():
@@ -331,5 +355,7 @@ if __name__ == "__main__":
     ap.add_argument("--resume", action="store_true", help="keep the draws an earlier run of this file holds")
     ap.add_argument("--add-baselines", action="store_true",
                     help="add the reference-free baselines to an earlier file's records (the twins are not rerun)")
+    ap.add_argument("--add-defocus", action="store_true",
+                    help="measure the target's focus check on an earlier file's trusted digital-twin results")
     a = ap.parse_args()
-    main(a.out, a.draws, a.heldout, a.rows, a.size, a.only, a.minutes, a.resume, a.add_baselines)
+    main(a.out, a.draws, a.heldout, a.rows, a.size, a.only, a.minutes, a.resume, a.add_baselines, a.add_defocus)

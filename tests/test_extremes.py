@@ -449,3 +449,32 @@ def test_space_variant_fit_at_extreme_amplitudes_matches_unit_amplitude(unit_sce
     assert np.isfinite(drift).all() and np.isfinite(info["match_after"])
     assert info["match_after"] == pytest.approx(info_unit["match_after"], abs=1e-4)
     np.testing.assert_allclose(drift, drift_unit, atol=1e-6)
+
+
+def test_a_template_of_a_plate_that_fills_most_of_its_region_is_kept_and_noise_is_not():
+    from twinfocus.templates import NOISE_PEAK_TO_DARK, check_has_signal
+
+    yy, xx = np.mgrid[:64, :64]
+    rng = np.random.default_rng(3)
+    for fill in (0.55, 0.75, 0.9):
+        half = 32 * np.sqrt(fill)  # a square plate covering ``fill`` of the region
+        plate = ((np.abs(yy - 31.5) < half) & (np.abs(xx - 31.5) < half)).astype(np.float32)
+        picture = plate * (1 + 0.3 * rng.random(plate.shape)) + 1e-3 * rng.random(plate.shape)
+        assert np.abs(picture).max() / np.median(np.abs(picture)) < 4.0  # the median test alone refuses it
+        check_has_signal(picture.astype(np.float32), "the template")
+        check_has_signal((picture * np.exp(2j * np.pi * rng.random(plate.shape))).astype(np.complex64), "the template")
+    # a plate that covers the whole region has no dark part: nothing tells it from a flat picture of noise
+    flat = (1 + 0.3 * rng.random((64, 64))).astype(np.float32)
+    with pytest.raises(TwinFocusError, match=r"template shows no object .*nor is any of it dark"):
+        check_has_signal(flat, "the template")
+    # Rayleigh noise, 200 pictures: none reaches the dark-part rule, so each one the median test
+    # refuses (peak / median 3.6 on average) stays refused
+    refused = 0
+    for _ in range(200):
+        noise = rng.standard_normal((64, 64)) + 1j * rng.standard_normal((64, 64))
+        assert np.abs(noise).max() < NOISE_PEAK_TO_DARK * np.percentile(np.abs(noise), 10)
+        if np.abs(noise).max() < 4.0 * np.median(np.abs(noise)):
+            refused += 1
+            with pytest.raises(TwinFocusError, match="nor is any of it dark"):
+                check_has_signal(noise.astype(np.complex64), "the template")
+    assert refused > 100

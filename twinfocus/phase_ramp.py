@@ -93,3 +93,19 @@ def ramp_free_coherence(phase_rad: np.ndarray, aperture_m: np.ndarray) -> float:
     phi = np.asarray(phase_rad, dtype=np.float64)
     ramp, _ = fit_linear_phase(phi, aperture_m)
     return float(np.abs(np.exp(1j * (phi - ramp)).mean()) * np.sqrt(phi.size))
+
+
+def aperture_polynomial(centres_m: np.ndarray, degree: int) -> np.ndarray:
+    """Monomials x^i y^j (i + j <= ``degree``) of the positions' aperture coordinates, x and y each
+    scaled to [-1, 1], in the order 1, y, x, y^2, x y, x^2, ...: float64 (M, terms).
+
+    centres_m : (M, 2 or 3) phase centres, metres (z is not used). Degree 1 is the ramp this
+    module fits; degree 2 adds the defocus and astigmatism across the aperture.
+    """
+    c = np.asarray(centres_m, dtype=np.float64)
+    if c.ndim != 2 or c.shape[1] < 2:
+        raise TwinFocusError(f"centres_m must be (M, 2) or (M, 3), got {c.shape}")
+    x, y = c[:, 0], c[:, 1]
+    x = (x - x.mean()) / max(np.ptp(x) / 2, 1e-12)
+    y = (y - y.mean()) / max(np.ptp(y) / 2, 1e-12)
+    return np.stack([x**i * y**j for n in range(int(degree) + 1) for i in range(n + 1) for j in [n - i]], axis=1)

@@ -53,6 +53,7 @@ from twinfocus.outline_fill import outline_fill
 from twinfocus.phase_ramp import ramp_free_coherence
 from twinfocus.radar import Chirp
 from twinfocus.scan import Scan
+from twinfocus.target_focus import defocus_gain_nats
 from twinfocus.templates import check_has_signal
 
 METHODS = ("twin",) + tuple(REFERENCE_FREE) + ("none",)
@@ -403,6 +404,12 @@ def focus_bases(
     if method == "twin":
         m["phase_step_coherence"] = round(step_coherence(out.phase_rad), 4)
         m["phase_concentration"] = round(phase_concentration(out.phase_rad), 4)
+    if method == "twin" and support is not None and kept.drift_m is None:
+        # the target formed by one phase per position: is a defocus left on it?
+        t = time.perf_counter()
+        gain, quadratic = defocus_gain_nats(tgt_basis, out.phase_rad, problem.centres)
+        m["target_defocus"] = {"entropy_gain_nats": round(gain, 4), "quadratic_rad": [round(float(q), 3) for q in quadratic],
+                               "time_s": round(time.perf_counter() - t, 3)}  # fmt: skip
     m["confidence"] = confidence_report(m, positions, chirp, reference_grid, target_grid, tracking_error_m)
     if truth_target is not None and truth_reference is not None and positions_true is not None:
         add_truth_metrics(out, tgt_basis, positions, chirp, truth_target, truth_reference, positions_true,
@@ -523,6 +530,11 @@ GLINT_APERTURE_EXPONENT = 0.8
 #: (:func:`twinfocus.template_match.averaged_outline_phase`'s ``agreement``; family bench: below it
 #: on six results of 0.62-0.77 and on two of 0.946 and 0.948) ...
 MIN_OUTLINE_AGREEMENT = 0.95
+#: ... or when a quadratic phase across the aperture lowers the corrected target's entropy by more
+#: than this many nats (:func:`twinfocus.target_focus.defocus_gain_nats`): the estimate left a
+#: defocus that the reference's outline did not show (family bench's trusted results: 0.002-0.040
+#: at and above 0.95 of target SSIM, 0.10 and 0.12 on two of the six below 0.90)
+MAX_TARGET_DEFOCUS_GAIN_NATS = 0.06
 #: either twin is flagged when its phase moves smoothly along the scan
 #: (:func:`twinfocus.drift_check.step_coherence` above this): a drift (family bench: 0.01-0.11
 #: under jitter, 0.41-0.50 under a hand's drift, where neither twin reached 0.95)
@@ -675,6 +687,17 @@ def confidence_report(
         out["reference_outline"] = fill
         agreement = (est.get("outline_ensemble") or {}).get("agreement")
         out["warnings"] += outline_warnings(fill, agreement)
+        defocus = m.get("target_defocus")
+        if defocus is not None:
+            out["target_defocus_gain_nats"] = defocus["entropy_gain_nats"]
+            if defocus["entropy_gain_nats"] > MAX_TARGET_DEFOCUS_GAIN_NATS:
+                out["warnings"].append(
+                    f"the corrected target is not at its focus: a quadratic phase across the aperture lowers its "
+                    f"entropy by {defocus['entropy_gain_nats']:.2f} nats (> {MAX_TARGET_DEFOCUS_GAIN_NATS}; at most 0.04 "
+                    "on bench results that reached 0.95), so the outline estimate left a defocus that the "
+                    f"reference did not show; expect the target below its ceiling; {DIGITAL_TWIN_NEXT} "
+                    "(docs/digital_twin_field.md)"
+                )
     elif match is not None and match < least:
         out["warnings"].append(
             f"the corrected reference matches its template poorly (SSIM {match:.2f} < {least}); "

@@ -192,6 +192,12 @@ def template_from_scan(scan: Scan, grid: ImageGrid, keep_phase: bool = False, **
 #: not read this way)
 NOISE_INCOHERENT_PEAK_SQRT_M = 6.0
 INCOHERENT_MIN_POSITIONS = 6
+#: a picture of noise alone (Rayleigh amplitudes) peaks at most ~12.5 x its 10th percentile (200
+#: draws each of 16 x 16 to 200 x 200 pixels: 7-10 median, 12.5 the largest); a template of a plate
+#: that fills 58 % of its region (peak / median 1.3 from the cloud, 1.8 from a stage scan) keeps
+#: a dark margin around it, its peak 85 x that percentile and more
+NOISE_PEAK_TO_DARK = 25.0
+DARK_QUANTILE = 10.0
 
 
 def check_has_signal(
@@ -207,6 +213,12 @@ def check_has_signal(
     do not touch, stands above what noise reaches on M positions: peak / median above
     1 + ``NOISE_INCOHERENT_PEAK_SQRT_M`` / sqrt(M) (the washers: 1.8 on 390 positions), on at
     least ``INCOHERENT_MIN_POSITIONS`` positions.
+
+    Without ``basis`` (a picture: a template from a stage scan or a camera cloud), an object that
+    fills most of the region is kept when the region has a dark part: its peak stands above its
+    ``DARK_QUANTILE`` th percentile by more than ``NOISE_PEAK_TO_DARK``, which noise never
+    reaches. Not for a scanned region's image: its smeared phases cancel in places, and those
+    zeros are not a background.
     """
     a = np.abs(np.asarray(amplitude)).astype(np.float64)
     if not np.isfinite(a).all():
@@ -217,7 +229,12 @@ def check_has_signal(
     if peak - a.min() <= 1e-6 * peak:
         raise TwinFocusError(f"{what} is constant: it holds no structure to focus on")
     if med > 0 and peak / med < min_peak_to_median:
-        incoherent = ""
+        why = ""
+        if basis is None:
+            dark = float(np.percentile(a, DARK_QUANTILE))
+            if peak > NOISE_PEAK_TO_DARK * dark:
+                return
+            why = f"; nor is any of it dark: its peak is {peak / max(dark, 1e-300):.1f} x its {DARK_QUANTILE:.0f}th percentile"
         if basis is not None and np.shape(basis)[0] >= INCOHERENT_MIN_POSITIONS:
             b = np.abs(np.asarray(basis))
             # at the unit peak: float32's squares overflow past 1e19
@@ -226,11 +243,10 @@ def check_has_signal(
             bound = 1.0 + NOISE_INCOHERENT_PEAK_SQRT_M / np.sqrt(b.shape[0])
             if ratio > bound:
                 return
-            incoherent = (
+            why = (
                 f"; its incoherent image peaks {ratio:.2f} x its median, where noise on {b.shape[0]} "
                 f"positions reaches {bound:.2f}"
             )
         raise TwinFocusError(
-            f"{what} shows no object (peak only {peak / med:.1f} x the median{incoherent}); check the "
-            "region of interest"
+            f"{what} shows no object (peak only {peak / med:.1f} x the median{why}); check the region of interest"
         )
