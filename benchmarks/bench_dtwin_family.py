@@ -33,6 +33,7 @@ confidence reports.
     python -m benchmarks.bench_dtwin_family --draws 30 --resume                (more draws, added)
     python -m benchmarks.bench_dtwin_family --add-baselines [--heldout]     (baselines only, added)
     python -m benchmarks.bench_dtwin_family --add-defocus [--heldout]       (the target's focus check, added)
+    python -m benchmarks.bench_dtwin_family --defocus-figure docs/figures/target_defocus.png
 
 (--minutes: no new seed is started after that long; the draws of every condition go seed by seed.)
 
@@ -276,6 +277,46 @@ def table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def defocus_figure(path: str | os.PathLike, results_dir: str | os.PathLike = "benchmarks/results") -> None:
+    """A picture of the target's focus check: for each digital-twin result that the report's other
+    checks trust, its target SSIM against the entropy a quadratic still takes off the target
+    (``target_defocus_gain_nats``), bench and held-out draws, with the threshold and the false
+    trust and false alarm lines."""
+    from twinfocus.pipeline import MAX_TARGET_DEFOCUS_GAIN_NATS
+    from twinfocus.plotting import pyplot
+
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(5.2, 3.6))
+    for name, marker, colour in (("dtwin_family.json", "o", "tab:blue"), ("dtwin_family_heldout.json", "^", "tab:orange")):
+        results = json.loads((Path(results_dir) / name).read_text())
+        results.pop("scan", None)
+        points = []
+        for rec in (r for rs in results.values() for r in rs if "refused" not in r):
+            gain = rec["digital confidence"].get("target_defocus_gain_nats",
+                                                 (rec.get("digital target_defocus") or {}).get("entropy_gain_nats"))
+            others = {**rec, "digital confidence": {k: v for k, v in rec["digital confidence"].items()
+                                                    if k != "target_defocus_gain_nats"}}
+            others.pop("digital target_defocus", None)
+            if gain is not None and trusted(others, "digital"):
+                points.append((rec["digital"], gain))
+        x, y = np.array(points).T
+        label = "bench draws" if "heldout" not in name else "held-out draws"
+        ax.plot(x, y, marker, color=colour, ms=5, alpha=0.8, label=f"{label} ({len(points)})")
+    ax.axhline(MAX_TARGET_DEFOCUS_GAIN_NATS, color="tab:red", lw=1, label="flagged above")
+    ax.axvspan(0.0, POOR, color="tab:red", alpha=0.06)
+    ax.axvline(GOOD, color="tab:green", lw=1, ls="--")
+    ax.set_xlim(0.45, 1.0)
+    ax.set_xlabel("target SSIM (below 0.90 shaded: trusting it is a false trust)", fontsize=8)
+    ax.set_ylabel("entropy a quadratic still takes off (nats)", fontsize=8)
+    ax.set_title("digital twin: results the other checks trust", fontsize=9)
+    ax.tick_params(labelsize=7)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, heldout: bool = False,
          rows: int = 65, size: int = 64, only: str | None = None, minutes: float | None = None,
          resume: bool = False, add_baselines: bool = False, add_defocus: bool = False) -> dict:
@@ -357,5 +398,10 @@ if __name__ == "__main__":
                     help="add the reference-free baselines to an earlier file's records (the twins are not rerun)")
     ap.add_argument("--add-defocus", action="store_true",
                     help="measure the target's focus check on an earlier file's trusted digital-twin results")
+    ap.add_argument("--defocus-figure", default=None,
+                    help="draw the target's focus check from --out's two files into this picture (no draws run)")
     a = ap.parse_args()
+    if a.defocus_figure:
+        defocus_figure(a.defocus_figure, a.out)
+        sys.exit(0)
     main(a.out, a.draws, a.heldout, a.rows, a.size, a.only, a.minutes, a.resume, a.add_baselines, a.add_defocus)
