@@ -208,7 +208,14 @@ OWN_WARNINGS = ("matches its template poorly", "does not fill its outline", "not
                 "the tracking drifted", "to a few radar positions", "not at its focus")
 
 
-def trusted(rec: dict, twin: str) -> bool:
+def defocus_gain(rec: dict) -> float | None:
+    """The digital twin's ``target_defocus_gain_nats`` of a record: from its confidence report, or
+    from ``--add-defocus`` for records made before the check; None where not measured."""
+    return rec["digital confidence"].get("target_defocus_gain_nats",
+                                         (rec.get("digital target_defocus") or {}).get("entropy_gain_nats"))
+
+
+def trusted(rec: dict, twin: str, target_focus: bool = True) -> bool:
     """Whether the confidence report trusts this record's ``twin`` result, by the report's present
     rules: the drift check (``twinfocus.pipeline.drift_warnings``) and, for the digital twin, its own
     checks (``outline_warnings``: the reference's energy contrast over its outline unless the scan
@@ -225,7 +232,7 @@ def trusted(rec: dict, twin: str) -> bool:
     if digital:
         fill = conf.get("reference_outline") or rec["digital outline"]
         own += outline_warnings(fill, conf.get("outline_agreement"))
-        gain = conf.get("target_defocus_gain_nats", (rec.get("digital target_defocus") or {}).get("entropy_gain_nats"))
+        gain = defocus_gain(rec) if target_focus else None
         if gain is not None and gain > MAX_TARGET_DEFOCUS_GAIN_NATS:
             own.append("the corrected target is not at its focus")
     return not others and not own
@@ -292,12 +299,8 @@ def defocus_figure(path: str | os.PathLike, results_dir: str | os.PathLike = "be
         results.pop("scan", None)
         points = []
         for rec in (r for rs in results.values() for r in rs if "refused" not in r):
-            gain = rec["digital confidence"].get("target_defocus_gain_nats",
-                                                 (rec.get("digital target_defocus") or {}).get("entropy_gain_nats"))
-            others = {**rec, "digital confidence": {k: v for k, v in rec["digital confidence"].items()
-                                                    if k != "target_defocus_gain_nats"}}
-            others.pop("digital target_defocus", None)
-            if gain is not None and trusted(others, "digital"):
+            gain = defocus_gain(rec)
+            if gain is not None and trusted(rec, "digital", target_focus=False):
                 points.append((rec["digital"], gain))
         x, y = np.array(points).T
         label = "bench draws" if "heldout" not in name else "held-out draws"
