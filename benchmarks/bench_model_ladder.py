@@ -54,6 +54,7 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
     from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.errors import TwinFocusError
     from twinfocus.estimators import TWIN_RUNGS, estimator_settings
+    from twinfocus.ladder import fast_reference
     from twinfocus.pipeline import focus_bases, half_array_bases, upper_band_basis
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.settings import default_settings
@@ -88,18 +89,23 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
             continue
         chosen = estimator_settings(settings["estimator"], np.iscomplexobj(template), support is not None, model=model)
         cfg = AutofocusConfig.from_settings(settings, **chosen)
+        # fast's reference at its resolution, as focus_scan forms it (ladder.fast_reference; every
+        # pixel at this bench's 20 x 20): the slice of the bases, the same pixels
+        g, tpl, (ky, kx) = fast_reference(model, template, support, scan.positions, rg, scan.chirp.wavelength_m)
         t = time.perf_counter()
         try:
-            out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template, support=support,
+            out = focus_bases(rb[:, ::ky, ::kx], tb, scan.positions, scan.chirp, g, tg, template=tpl, support=support,
                               config=cfg, model=model, phase_ramp=settings["phase_ramp"],
                               space_variant=settings["space_variant"],
-                              half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg),
-                              upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, rg), **truth)
+                              half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, g, tg),
+                              upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, g),
+                              **{**truth, "truth_reference": truth["truth_reference"][::ky, ::kx]})
         except TwinFocusError as exc:  # the rung cannot run on this scene
             rec.setdefault("cannot run", {})[model] = str(exc)
             continue
         m = out.metrics
         r = {"ssim": m["target_ssim_corrected"], "time_s": time.perf_counter() - t, "result": m["model"]["result"],
+             "reference_strides": [ky, kx],
              "kept": m["model"]["kept"], "trusted": m["confidence"]["trusted"],
              "heldout": {e["rung"]: e["evidence"]["heldout"] for e in m["model"]["rungs"]
                          if "heldout" in e.get("evidence", {})},

@@ -673,7 +673,7 @@ class Solver(Node):
         its grid; its figures in ``out.metrics["volume"]``."""
         from twinfocus.volume import corrected_image
 
-        grid = self._volume_grid(out.reference_grid)
+        grid = self._volume_grid(self.ref_grid)  # the region typed or found, as twinfocus focus takes it
         t = time.perf_counter()
         vol = corrected_image(
             np.concatenate(s.data), positions, s.chirp, grid, out.phase_rad, progress=self._progress, **self.bp
@@ -710,11 +710,28 @@ class Solver(Node):
         outputs and the target basis (the oracle-phase image needs it)."""
         from threadpoolctl import threadpool_limits
 
+        from twinfocus.ladder import fast_reference
         from twinfocus.pipeline import focus_bases, upper_band_basis
 
         tgt_basis = s.tgt_rows.array()
         self._score_registration(s, final=True)  # the rows left (all of them if the template came after the scan)
         scores = s.scores.scores() if s.scores is not None else None
+        # --model fast: the reference at its resolution, as twinfocus focus forms it (the streamed
+        # rows' slice: the same pixels; the registration is scored again on them)
+        ref_grid, template, (ky, kx) = fast_reference(
+            self.params["model"], self.template, self.support, positions, self.ref_grid, s.chirp.wavelength_m
+        )
+        ref_basis = s.ref_rows.array()[:, ::ky, ::kx]
+        whole_halves = self._half_bases(s, positions)
+        half_bases = whole_halves
+        if (ky, kx) != (1, 1):
+            scores = None
+            if whole_halves is not None:
+
+                def half_bases():
+                    ref_half, tgt_half = whole_halves()
+                    return ref_half[:, ::ky, ::kx], tgt_half
+
         t = time.perf_counter()
         # The BLAS work of these steps (SSIM filters, form_image, small fits on 100 x 100 images)
         # is too small to gain from threads, and OpenBLAS's spinning threads fight numba's and the
@@ -725,13 +742,13 @@ class Solver(Node):
         # under load, above tests/test_graph_offline.py's 1e-5).
         with threadpool_limits(1, user_api="blas"):
             out = focus_bases(
-                s.ref_rows.array(),
+                ref_basis,
                 tgt_basis,
                 positions,
                 s.chirp,
-                self.ref_grid,
+                ref_grid,
                 self.tgt_grid,
-                template=self.template,
+                template=template,
                 support=self.support,
                 reference_info=self.twin_info,
                 method=self.params["method"],
@@ -743,12 +760,12 @@ class Solver(Node):
                 space_variant=self.params["space_variant"],
                 tracking_error_m=self.tracking_error_m,
                 registration_scores=scores,
-                half_bases=self._half_bases(s, positions),
+                half_bases=half_bases,
                 upper_band=upper_band_basis(
                     lambda: np.concatenate(s.data),
                     positions,
                     s.chirp,
-                    self.ref_grid,
+                    ref_grid,
                     self.bp,
                     lambda label: self._progress,
                 )
@@ -756,6 +773,7 @@ class Solver(Node):
                 else None,
             )
         out.timings_s["focus_bases"] = time.perf_counter() - t  # autofocus and the rest of the steps
+        out.metrics["model"]["reference_strides"] = [ky, kx]
         if s.half_handed:
             out.metrics["half_array_bases"] = "streamed"
         return out, tgt_basis
@@ -771,7 +789,7 @@ class Solver(Node):
         s.data = []
         out.target_truth = backproject(data, truth, s.chirp, self.tgt_grid, progress=self._progress, **self.bp)
         self.heartbeat_if_due()
-        out.reference_truth = backproject(data, truth, s.chirp, self.ref_grid, progress=self._progress, **self.bp)
+        out.reference_truth = backproject(data, truth, s.chirp, out.reference_grid, progress=self._progress, **self.bp)
         add_truth_metrics(
             out,
             tgt_basis,

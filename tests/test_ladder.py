@@ -306,3 +306,95 @@ def test_the_half_array_bases_are_a_stage_of_their_own_in_the_timings():
     assert abs(kept["autofocus"] - 1.7) < 1e-12
     dropped = rung_timings(section(False))
     assert dropped["half_array_bases"] == 1.25 and "space_variant" not in dropped
+
+
+def test_a_grid_of_every_kth_pixel_is_the_slice_of_the_whole_grids_images():
+    """``ImageGrid.every``: the same points as the whole grid's ``[::rows, ::columns]``, so the
+    sub-image basis formed on it is that slice of the whole one (a brute-force back-projection of
+    each); a stride that leaves fewer than 2 pixels, or one that is not a whole number, is refused."""
+    from twinfocus.backprojection import subimage_basis
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+
+    sc = Scenario(n_columns=2, n_rows=6, seed=2)
+    scan, _ = simulate_scenario(sc)
+    grid, _ = scenario_grids(sc, (21, 17))
+    for ky, kx in ((2, 2), (3, 1), (1, 4)):
+        sub = grid.every(ky, kx)
+        assert np.allclose(sub.x_m, grid.x_m[::kx]) and np.allclose(sub.y_m, grid.y_m[::ky]) and sub.z == grid.z
+        whole = subimage_basis(scan.data, scan.positions, scan.chirp, grid)
+        # float32 carrier phases referred to each grid's own range window: 5e-5 of the peak seen
+        np.testing.assert_allclose(subimage_basis(scan.data, scan.positions, scan.chirp, sub), whole[:, ::ky, ::kx],
+                                   rtol=0, atol=2e-4 * np.abs(whole).max())  # fmt: skip
+    assert grid.every(1, 1) == grid
+    with pytest.raises(TwinFocusError, match="leave 1 x 17: too few"):
+        grid.every(21, 1)
+    with pytest.raises(TwinFocusError, match="positive whole numbers"):
+        grid.every(0, 2)
+    with pytest.raises(TwinFocusError, match="positive whole numbers"):
+        grid.every(1.5, 2)
+
+
+def test_fast_forms_a_physical_twins_reference_at_its_resolution_and_nothing_else():
+    """``fast_reference``: for ``--model fast`` with a template with phase, each axis keeps every
+    k-th pixel, k the most pixels that fit in ``FAST_REFERENCE_CELL_SHARE`` of a resolution cell
+    lambda R / (2 L), at least ``FAST_REFERENCE_MIN_SIDE`` pixels a side; any other model, an
+    amplitude template or an outline (a digital twin's) keeps every pixel."""
+    from twinfocus.ladder import FAST_REFERENCE_CELL_SHARE, FAST_REFERENCE_MIN_SIDE, fast_reference
+
+    chirp = Chirp()
+    lam = chirp.wavelength_m
+    pos = np.zeros((2, 2, 3))  # the aperture: 0.4 m across x, 0.1 m across y, centred under the region
+    pos[:, :, 0] = [[-0.2, -0.2], [0.2, 0.2]]
+    pos[:, :, 1] = [[-0.05, 0.05], [-0.05, 0.05]]
+    grid = ImageGrid(-0.05, 0.05, -0.05, 0.05, 0.6, 100, 100)  # 1.01 mm pixels at R = 0.6 m
+    pitch = 0.1 / 99
+    cell_x, cell_y = lam * 0.6 / (2 * 0.4), lam * 0.6 / (2 * 0.1)  # 2.9 mm and 11.7 mm
+    want_x = int(FAST_REFERENCE_CELL_SHARE * cell_x / pitch)
+    assert want_x == 2  # 0.8 x 2.9 mm holds two 1.01 mm pixels
+    # across y a cell holds 9 pixels, but every 9th leaves 12 a side: the stride stops at 6 (17 a side)
+    assert int(FAST_REFERENCE_CELL_SHARE * cell_y / pitch) == 9 and 99 // 6 + 1 >= FAST_REFERENCE_MIN_SIDE > 99 // 7 + 1
+    tpl = (np.arange(100 * 100).reshape(100, 100) * (1 + 1j)).astype(np.complex64)
+    g, t, strides = fast_reference("fast", tpl, None, pos, grid, lam)
+    assert strides == (6, want_x) and g == grid.every(6, want_x)
+    np.testing.assert_array_equal(t, tpl[::6, ::want_x])
+    for model, template, support in (("auto", tpl, None), ("full", tpl, None), ("drift", tpl, None),
+                                     ("fast", np.abs(tpl), None), ("fast", tpl, np.ones(tpl.shape, bool)),
+                                     ("fast", None, None)):  # fmt: skip
+        g, t, strides = fast_reference(model, template, support, pos, grid, lam)
+        assert strides == (1, 1) and g is grid and t is template
+    # a region whose pixels are already a cell apart keeps them all
+    coarse = ImageGrid(-0.05, 0.05, -0.05, 0.05, 0.6, 20, 20)
+    assert fast_reference("fast", tpl[:20, :20], None, pos, coarse, lam)[2] == (1, 1)
+
+
+@pytest.mark.slow
+def test_fast_on_a_reference_at_its_resolution_focuses_as_on_every_pixel(monkeypatch):
+    """``twinfocus focus --model fast`` (``focus_scan``) on a hand's drift with a fine reference
+    grid: the reference is formed on every other pixel (its outputs on that grid, the strides in
+    the ``model`` record), and the target reaches what fast gives on every pixel, against the image
+    on the true positions."""
+    import twinfocus.ladder as ladder
+    from twinfocus.backprojection import backproject
+    from twinfocus.metrics import image_ssim
+    from twinfocus.pipeline import focus_scan
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.templates import template_from_scan
+
+    sc = Scenario(reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand",
+                  error_sigma_m=(0.8e-3,) * 3, n_columns=2, n_rows=24, seed=3)  # fmt: skip
+    scan, tpl_scan = simulate_scenario(sc)
+    rg, tg = scenario_grids(sc, 40)
+    template = template_from_scan(tpl_scan, rg, keep_phase=True)
+    truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
+    cfg = AutofocusConfig(**estimator_settings("auto", True, model="fast"))
+    strided = focus_scan(scan, rg, tg, template=template, config=cfg, model="fast")
+    ky, kx = strided.metrics["model"]["reference_strides"]
+    assert ky > 1 and kx > 1 and strided.reference_grid == rg.every(ky, kx)
+    assert strided.reference.shape == strided.reference_grid.shape and strided.target.shape == tg.shape
+    monkeypatch.setattr(ladder, "FAST_REFERENCE_CELL_SHARE", 0.0)  # every pixel
+    whole = focus_scan(scan, rg, tg, template=template, config=cfg, model="fast")
+    assert whole.metrics["model"]["reference_strides"] == [1, 1] and whole.reference.shape == rg.shape
+    assert strided.metrics["model"]["kept"] == whole.metrics["model"]["kept"]
+    uncorrected = image_ssim(whole.target_uncorrected, truth)
+    a, b = image_ssim(strided.target, truth), image_ssim(whole.target, truth)
+    assert b > uncorrected + 0.05 and abs(a - b) < 0.02, (uncorrected, a, b)

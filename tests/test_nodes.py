@@ -683,6 +683,40 @@ def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_wh
     np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
 
 
+def test_solver_with_model_fast_forms_the_reference_as_focus_does():
+    """``model: fast`` with a physical twin's template on a reference finer than the scan resolves:
+    the solver streams the whole reference's rows and hands the ladder every other pixel's
+    (ladder.fast_reference), and gets the phase that ``focus_scan`` (twinfocus focus) gets from
+    the reference back-projected on those pixels alone."""
+    from nodes.solver import Solver
+    from twinfocus.backprojection import backproject
+    from twinfocus.grid import ImageGrid
+    from twinfocus.pipeline import focus_scan
+
+    scan = point_scene_scan(m_side=20)
+    ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 32), ImageGrid.from_roi(TGT_ROI, 32)
+    template = backproject(scan.data, scan.positions_true, CHIRP, ref_grid)
+    with local_broker() as ep:
+        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 32,
+                                           "model": "fast", "warm_up": False})
+        probe = Probe(ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"],
+                      wait_for=["solver"])
+        with running(solver, probe):
+            probe.send("twin/template", TwinTemplate(image=np.abs(template), phase_rad=np.angle(template).astype(np.float32),
+                                                     x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
+            for m in measurements(scan):
+                probe.send("sar/measurement", m)
+            res = probe.wait_for("autofocus/result", 1, timeout_s=60, where=lambda r: not r.metrics_pending)[0]
+            cfg = solver._config(CHIRP)
+    p = solver.params
+    scan.positions_true = None
+    want = focus_scan(scan, ref_grid, tgt_grid, template=solver.template, config=cfg, model="fast",
+                      phase_ramp=p["phase_ramp"], space_variant=p["space_variant"],
+                      tracking_error_m=p["tracking_error_mm"] * 1e-3)
+    assert want.metrics["model"]["reference_strides"] == [2, 2] and want.reference.shape == (16, 16)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
+
+
 def test_solver_picks_the_estimator_as_twinfocus_focus_does():
     from nodes.solver import Solver
     from twinfocus.estimators import estimator_settings

@@ -7,7 +7,7 @@ y = linspace(Y0, Y1, H)[i], z = Z (docs/architecture.md section 4).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -47,6 +47,29 @@ class ImageGrid:
             raise TwinFocusError(f"region of interest needs 5 numbers X0 X1 Y0 Y1 Z, got {len(roi)}")
         h, w = (size, size) if np.isscalar(size) else size  # type: ignore[misc]
         return cls(*roi, height=int(h), width=int(w))  # type: ignore[arg-type]
+
+    def every(self, rows: int, columns: int) -> ImageGrid:
+        """The grid of every ``rows``-th pixel along y and every ``columns``-th along x, from the
+        first: its pixels are this grid's ``[::rows, ::columns]`` (the same points, so an image
+        formed on it is that slice of one formed on this grid)."""
+        ky, kx = int(rows), int(columns)
+        if ky < 1 or kx < 1 or (ky, kx) != (rows, columns):
+            raise TwinFocusError(f"strides must be positive whole numbers, got {rows!r} x {columns!r}")
+        h, w = (self.height - 1) // ky + 1, (self.width - 1) // kx + 1
+        if h < 2 or w < 2:
+            raise TwinFocusError(f"every {ky} x {kx} pixels of {self.height} x {self.width} leave {h} x {w}: too few")
+        # the last pixel kept: this grid's own end where the stride reaches it (no round-off)
+        x1 = (
+            self.x1
+            if (w - 1) * kx == self.width - 1
+            else self.x0 + (w - 1) * kx * (self.x1 - self.x0) / (self.width - 1)
+        )
+        y1 = (
+            self.y1
+            if (h - 1) * ky == self.height - 1
+            else self.y0 + (h - 1) * ky * (self.y1 - self.y0) / (self.height - 1)
+        )
+        return replace(self, x1=x1, y1=y1, height=h, width=w)
 
     @property
     def roi(self) -> tuple[float, float, float, float, float]:

@@ -85,6 +85,53 @@ HELDOUT_FIT = {"iterations": 50, "refine_iterations": 0}
 #: steps) 0.928 / 0.943, with 100 steps 0.914 / 0.936 (the per-position stage takes up what the
 #: knots' straight segments miss; more knot steps without it fit the reference's noise)
 FAST_FIT = {"iterations": 50, "refine_iterations": 20}
+#: ``--model fast`` forms a reference whose template has phase (a physical twin's) on pixels up to
+#: this share of the scan's resolution cell apart (:func:`fast_reference`), not on every pixel of
+#: ``--size``: the reference is there to measure the errors, and the phase estimate and the quick
+#: drift fit need its resolution cells, not several pixels in each. On the hand-drift scene (780
+#: positions, reference 100 x 100, cells 2.3 mm across x, 4.4 mm across y; docs/performance.md)
+#: every other row (0.72 of a cell apart) and every column gave target SSIM 0.945 / 0.945 / 0.906
+#: / 0.927 on draws 3 / 5 / 8 / 11 against 0.944 / 0.944 / 0.905 / 0.930 on every pixel, the
+#: ladder 1.1-1.3 s against 2.2-2.5 s; every other column too (0.86 of a cell) lost 0.002-0.035 on
+#: draws 1, 2, 4, 6, 7 (0.016 on average), and pixels 1.3 cells apart (the family bench's 64 over
+#: the same region) 0.03-0.23. An outline (a digital twin's) needs every pixel (family bench draws
+#: 1001-1006, 64 -> 32 pixels a side: 0.65-0.84 against 0.80-0.98), so it keeps them
+FAST_REFERENCE_CELL_SHARE = 0.8
+#: ... and never fewer than this many pixels a side
+FAST_REFERENCE_MIN_SIDE = 16
+
+
+def fast_reference(
+    model: str,
+    template: np.ndarray | None,
+    support: np.ndarray | None,
+    positions_m: np.ndarray,
+    grid: ImageGrid,
+    wavelength_m: float,
+) -> tuple[ImageGrid, np.ndarray | None, tuple[int, int]]:
+    """The reference's grid and template for ``model``, and the strides (rows, columns) taken: as
+    given, (1, 1), but for ``fast`` with a template with phase and no outline, where each axis
+    takes the largest stride that keeps its pixels within ``FAST_REFERENCE_CELL_SHARE`` of a
+    resolution cell (:func:`twinfocus.reference_free.resolution_cell_m`: lambda R / (2 L), L the
+    aperture's extent on that axis), and at least ``FAST_REFERENCE_MIN_SIDE`` pixels a side; the grid
+    is then ``grid.every(rows, columns)`` and the template ``template[::rows, ::columns]``.
+    positions_m : float (M, K, 3) phase centres, metres; grid : the reference's grid at the
+    user's size; template : (H, W) on it."""
+    if model != "fast" or template is None or not np.iscomplexobj(template) or support is not None:
+        return grid, template, (1, 1)
+    from twinfocus.reference_free import resolution_cell_m
+
+    strides = []
+    cells = resolution_cell_m(positions_m, grid, wavelength_m)
+    for cell, (lo, hi, n) in zip(cells, ((grid.y0, grid.y1, grid.height), (grid.x0, grid.x1, grid.width))):
+        k = max(1, int(FAST_REFERENCE_CELL_SHARE * cell / ((hi - lo) / (n - 1))))
+        while k > 1 and (n - 1) // k + 1 < FAST_REFERENCE_MIN_SIDE:
+            k -= 1
+        strides.append(k)
+    ky, kx = strides
+    if (ky, kx) == (1, 1):
+        return grid, template, (1, 1)
+    return grid.every(ky, kx), template[::ky, ::kx], (ky, kx)
 
 
 def complex_match(image: np.ndarray, template: np.ndarray) -> float:

@@ -46,6 +46,7 @@ from twinfocus.ladder import (
     build_ladder,
     climb,
     complex_match,
+    fast_reference,
     legacy_entries,
     rung_entry,
 )
@@ -193,6 +194,11 @@ def focus_scan(
     bp = dict(bp_options or {})
     prog = progress_factory or (lambda label: None)
     timings: dict[str, float] = {}
+    strides = (1, 1)
+    if method == "twin":  # --model fast: the reference at its resolution (ladder.FAST_REFERENCE_CELL_SHARE)
+        reference_grid, template, strides = fast_reference(
+            model, template, support, scan.positions, reference_grid, scan.chirp.wavelength_m
+        )
 
     t = time.perf_counter()
     ref_basis = subimage_basis(
@@ -246,6 +252,7 @@ def focus_scan(
         upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, reference_grid, bp, progress_factory),
     )
     timings.update(out.timings_s)
+    out.metrics["model"]["reference_strides"] = list(strides)
     if truth_tgt is not None:
         timings["truth_images"] = truth_time
     out.timings_s = timings

@@ -325,19 +325,27 @@ def _centred(phase: np.ndarray) -> np.ndarray:
 MIN_CELLS_PER_POSITION = 2.5
 
 
+def resolution_cell_m(positions_m: np.ndarray, grid, wavelength_m: float) -> tuple[float, float]:
+    """The scan's resolution cell at the region (an :class:`~twinfocus.grid.ImageGrid`), metres,
+    (across y, across x): lambda R / (2 L) on each axis, L the aperture's extent there (all
+    channels of ``positions_m``, float (M, K, 3) phase centres, metres; at least half a
+    wavelength), R the range from the aperture's centre to the region's."""
+    p = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
+    r = float(np.linalg.norm(np.asarray(grid.centre_m, dtype=np.float64) - p.mean(axis=0)))
+    cell_y, cell_x = (
+        float(wavelength_m) * r / (2.0 * max(float(np.ptp(p[:, axis])), float(wavelength_m) / 2.0)) for axis in (1, 0)
+    )
+    return cell_y, cell_x
+
+
 def resolution_cells(positions_m: np.ndarray, grid, wavelength_m: float) -> float:
     """How many resolution cells the region (an :class:`~twinfocus.grid.ImageGrid`) holds for the
     aperture of ``positions_m`` (float (M, K, 3) phase centres, metres): its width over
-    lambda R / (2 L) on each axis, L the aperture's extent there (all channels), R the range from
-    the aperture's centre to the region's; at most the region's pixels. Dimensionless."""
-    p = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
-    centre = np.asarray(grid.centre_m, dtype=np.float64)
-    r = float(np.linalg.norm(centre - p.mean(axis=0)))
+    :func:`resolution_cell_m` on each axis; at most the region's pixels. Dimensionless."""
+    cell_y, cell_x = resolution_cell_m(positions_m, grid, wavelength_m)
     cells = 1.0
-    for axis, (lo, hi, n) in enumerate(((grid.x0, grid.x1, grid.width), (grid.y0, grid.y1, grid.height))):
-        extent = float(np.ptp(p[:, axis]))
-        resolution = float(wavelength_m) * r / (2.0 * max(extent, float(wavelength_m) / 2.0))
-        cells *= min(float(n), max(1.0, abs(hi - lo) / resolution))
+    for cell, (lo, hi, n) in ((cell_x, (grid.x0, grid.x1, grid.width)), (cell_y, (grid.y0, grid.y1, grid.height))):
+        cells *= min(float(n), max(1.0, abs(hi - lo) / cell))
     return cells
 
 

@@ -176,7 +176,8 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
         "(from the band's halves), drift (smooth, per pixel), tilt (the array's, with the drift); auto = each "
         "kept only where its rule says the reference asks for it (the drift and tilt on held-out halves of the "
         "reference); fast = stop at the cheapest rung whose reference passes the trust line (the optimiser and the "
-        "drift only below it, no tilt); full = every rung fitted where it can run, each kept by its rule; a rung's name = that "
+        "drift only below it, no tilt, a physical twin's reference on pixels about a resolution cell apart); "
+        "full = every rung fitted where it can run, each kept by its rule; a rung's name = that "
         "rung, those beneath it by their rules, none above it; {phase_ramp} and {space_variant} other than auto "
         "win for their rungs (metrics.json model records every rung, docs/model_ladder.md)",
         choices=MODEL_CHOICES,
