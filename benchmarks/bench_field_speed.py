@@ -7,6 +7,7 @@ the image on the true positions, the drift's error against the true positions.
     python -m benchmarks.bench_field_speed --focus-profile --seeds 3   (a whole ``twinfocus focus``)
     python -m benchmarks.bench_field_speed --focus-profile --seeds 3,5 --models auto,fast
     python -m benchmarks.bench_field_speed --focus-profile --as-user --seeds 3,5,8,11 --models auto,fast
+    python -m benchmarks.bench_field_speed --focus-profile --warm --seeds 3,5,8,11 --models auto,fast
     python -m benchmarks.run --only field_speed
 
 Each draw is the hand-drift scene of ``benchmarks/bench_handheld.py`` ("hand 0.8 mm + 0.15 deg":
@@ -23,7 +24,9 @@ and the target's regions of the scene, 100 x 100 pixels, no pictures, no templat
 per ``--models`` value, and writes every stage's time from its ``metrics.json``, the ladder's
 time and the target's SSIM to ``field_focus_profile.json``; with ``--as-user`` the scan as
 captured (no truth images) and the template from the cache, what a user waits for
-(``field_focus_profile_as_user.json``). ``--threads 1`` runs everything on one thread (torch and
+(``field_focus_profile_as_user.json``); with ``--warm`` that in one long-lived process, as
+``twinfocus batch``'s workers run scans, each after an untimed run of its own command
+(``field_focus_profile_warm.json``). ``--threads 1`` runs everything on one thread (torch and
 numba): the CPU seconds are then the fit's own work, barely touched by other processes on a busy
 machine, and bound the wall time on an idle machine with more cores from above.
 """
@@ -136,7 +139,8 @@ def one_draw(seed: int, baseline) -> dict:
             "ceiling_target_phase": out.metrics["target_ssim_oracle_phase"], "fits": rows}
 
 
-def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",), as_user: bool = False) -> list[dict]:
+def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",), as_user: bool = False,
+                  warm: bool = False) -> list[dict]:
     """``twinfocus simulate`` then ``twinfocus focus`` on one draw of the scene, as a user runs them,
     once per ``--model`` in ``models``: the stages' seconds (``metrics.json`` ``timings_s``), the
     drift fit's own (``space_variant_fit_s``), the ladder's (``model_s``: every rung, the half-array
@@ -145,7 +149,12 @@ def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",), as
     as_user : what a user in the field waits for instead: the scan as captured (no true positions,
     so no truth images are formed) and the template scan's image read from the template cache
     (filled by one untimed run first, in a cache of this draw's own); the target's SSIM is then
-    scored here, from ``target.npy`` against the image on the true positions."""
+    scored here, from ``target.npy`` against the image on the true positions.
+
+    warm (with as_user): each ``focus`` run in this process, as ``twinfocus batch``'s workers and
+    the live solver run scans one after another (``twinfocus.cli.focus.run``), after one untimed
+    run of the same command: the start, the imports (torch's too), numba's kernels and the cache
+    are paid once per process, not per scan. CPU seconds are then this process's own."""
     from twinfocus.backprojection import backproject
     from twinfocus.metrics import image_ssim
     from twinfocus.scan import Scan
@@ -180,19 +189,30 @@ def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",), as
     for model in models:
         out = work / f"focus{seed}_{model}"
         cmd = command(model, out)
-        before, t0, load = os.times(), time.perf_counter(), os.getloadavg()[0]
-        subprocess.run(exe + cmd, check=True, env=env)
-        after = os.times()
+        if warm:
+            from twinfocus.cli import focus
+            from twinfocus.cli.batch_jobs import focus_parser
+
+            os.environ.update(env or {})
+            focus.run(focus_parser().parse_args(cmd[1:]))  # untimed: what a long-lived process has paid
+            before, t0, load = os.times(), time.perf_counter(), os.getloadavg()[0]
+            focus.run(focus_parser().parse_args(cmd[1:]))
+            wall, after = time.perf_counter() - t0, os.times()
+            cpu_s = (after.user + after.system) - (before.user + before.system)
+        else:
+            before, t0, load = os.times(), time.perf_counter(), os.getloadavg()[0]
+            subprocess.run(exe + cmd, check=True, env=env)
+            wall, after = time.perf_counter() - t0, os.times()
+            cpu_s = (after.children_user + after.children_system) - (before.children_user + before.children_system)
         m = json.loads((out / "metrics.json").read_text())
         if truth is not None:
             m["target_ssim_corrected"] = image_ssim(np.load(out / "target.npy"), truth)
         runs.append({"seed": seed, "model": model,
                      "command": "twinfocus " + " ".join(cmd[:1] + ["SCAN", "--template-scan", "STAGE"] + cmd[4:]),
-                     "wall_s": time.perf_counter() - t0, "cpu_s": (after.children_user + after.children_system)
-                     - (before.children_user + before.children_system), "load_before": load,
+                     "wall_s": wall, "cpu_s": cpu_s, "load_before": load,
                      "timings_s": m["timings_s"], "model_s": m["model"]["time_s"], "kept": m["model"]["kept"],
                      "space_variant_fit_s": (m.get("space_variant") or {}).get("time_s"),
-                     "target_ssim_corrected": m.get("target_ssim_corrected"), "as_user": as_user})
+                     "target_ssim_corrected": m.get("target_ssim_corrected"), "as_user": as_user, "warm": warm})
     return runs
 
 
@@ -240,13 +260,17 @@ if __name__ == "__main__":
     ap.add_argument("--models", default="auto", help="with --focus-profile: comma-separated --model values")
     ap.add_argument("--as-user", action="store_true",
                     help="with --focus-profile: the scan as captured (no truth images) and the template from the cache")
+    ap.add_argument("--warm", action="store_true",
+                    help="with --as-user: each focus in this process after an untimed one, as twinfocus batch's "
+                         "workers and the solver run scans one after another")
     a = ap.parse_args()
     if a.focus_profile:
         Path(a.out).mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory() as work:
             runs = [r for seed in ([int(s) for s in a.seeds.split(",")] if a.seeds else range(1, a.draws + 1))
-                    for r in focus_profile(seed, Path(work), tuple(a.models.split(",")), a.as_user)]
-        name = "field_focus_profile_as_user.json" if a.as_user else "field_focus_profile.json"
+                    for r in focus_profile(seed, Path(work), tuple(a.models.split(",")), a.as_user or a.warm, a.warm)]
+        name = ("field_focus_profile_warm.json" if a.warm else "field_focus_profile_as_user.json" if a.as_user
+                else "field_focus_profile.json")
         (Path(a.out) / name).write_text(json.dumps(
             {"command": "python -m benchmarks.bench_field_speed " + " ".join(sys.argv[1:]),
              "scene": {k: list(v) if isinstance(v, tuple) else v for k, v in SCENE.items()},
