@@ -151,7 +151,7 @@ def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",), as
     (filled by one untimed run first, in a cache of this draw's own); the target's SSIM is then
     scored here, from ``target.npy`` against the image on the true positions.
 
-    warm (with as_user): each ``focus`` run in this process, as ``twinfocus batch``'s workers and
+    warm (as_user as well): each ``focus`` run in this process, as ``twinfocus batch``'s workers and
     the live solver run scans one after another (``twinfocus.cli.focus.run``), after one untimed
     run of the same command: the start, the imports (torch's too), numba's kernels and the cache
     are paid once per process, not per scan. CPU seconds are then this process's own."""
@@ -261,8 +261,8 @@ if __name__ == "__main__":
     ap.add_argument("--as-user", action="store_true",
                     help="with --focus-profile: the scan as captured (no truth images) and the template from the cache")
     ap.add_argument("--warm", action="store_true",
-                    help="with --as-user: each focus in this process after an untimed one, as twinfocus batch's "
-                         "workers and the solver run scans one after another")
+                    help="with --focus-profile (implies --as-user): each focus in this process after an untimed "
+                         "one, as twinfocus batch's workers and the solver run scans one after another")
     a = ap.parse_args()
     if a.focus_profile:
         Path(a.out).mkdir(parents=True, exist_ok=True)

@@ -124,10 +124,9 @@ def fast_reference(
     strides = []
     cells = resolution_cell_m(positions_m, grid, wavelength_m)
     for cell, (lo, hi, n) in zip(cells, ((grid.y0, grid.y1, grid.height), (grid.x0, grid.x1, grid.width))):
-        k = max(1, int(FAST_REFERENCE_CELL_SHARE * cell / ((hi - lo) / (n - 1))))
-        while k > 1 and (n - 1) // k + 1 < FAST_REFERENCE_MIN_SIDE:
-            k -= 1
-        strides.append(k)
+        # (n - 1) // k + 1 pixels are kept: at least FAST_REFERENCE_MIN_SIDE while k <= (n - 1) // (MIN - 1)
+        k = int(FAST_REFERENCE_CELL_SHARE * cell / ((hi - lo) / (n - 1)))
+        strides.append(max(1, min(k, (n - 1) // (FAST_REFERENCE_MIN_SIDE - 1))))
     ky, kx = strides
     if (ky, kx) == (1, 1):
         return grid, template, (1, 1)
