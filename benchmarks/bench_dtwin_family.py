@@ -33,6 +33,7 @@ confidence reports.
     python -m benchmarks.bench_dtwin_family --draws 30 --resume                (more draws, added)
     python -m benchmarks.bench_dtwin_family --add-baselines [--heldout]     (baselines only, added)
     python -m benchmarks.bench_dtwin_family --add-defocus [--heldout]       (the target's focus check, added)
+    python -m benchmarks.bench_dtwin_family --add-placement [--heldout]     (where the digital twin put the target, added)
     python -m benchmarks.bench_dtwin_family --defocus-figure docs/figures/target_defocus.png
 
 (--minutes: no new seed is started after that long; the draws of every condition go seed by seed.)
@@ -172,6 +173,7 @@ def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> 
     # how the references on the true positions and the physical twin's fill the outline (what the
     # digital twin's is read against)
     rec["digital outline"] = dt.metrics["reference_outline"]
+    rec["digital placement"] = placement(d, dt)
     rec["physical outline"] = outline_fill(pt.reference, twin.support)
     rec["truth outline"] = outline_fill(truth["truth_reference"], twin.support)
     rec["uncorrected"] = dt.metrics["target_ssim_uncorrected"]
@@ -180,6 +182,35 @@ def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> 
     rec["reference true phase"] = image_ssim(form_image(tb, reference_true), truth["truth_target"])
     rec.update(baselines(d))
     return rec
+
+
+#: the sub-pixel shifts :func:`placement` tries on the target: +-3 px across y, +-2 px across x
+#: (the estimate's misplacement lies across y, the axis one radar position does not resolve), 0.25 px apart
+BEST_SHIFT_PX = (np.arange(-3.0, 3.01, 0.25), np.arange(-2.0, 2.01, 0.25))
+
+
+def placement(d: dict, out) -> dict:
+    """Where the digital twin put the target of :func:`draw_inputs`' draw ``d`` (``out``: its
+    FocusOutputs), against the truth: ``error_mm`` (x, y), the image shift that the constant +
+    linear part of its phase less the reference's true phase stands for; ``best_shift_ssim``, the
+    target's SSIM once moved by the sub-pixel shift of ``BEST_SHIFT_PX`` that suits it best
+    (``best_shift_px``, (dy, dx)): its focus apart from its place; and the estimate's
+    ``phase_coherence_sqrt_m``, what the confidence report reads the wrapping from."""
+    from twinfocus.metrics import image_ssim, oracle_phase
+    from twinfocus.phase_ramp import fit_linear_phase
+    from twinfocus.subpixel import shift_image
+
+    scan, rg, truth = d["scan"], d["rg"], d["truth"]["truth_target"]
+    centres = scan.positions.mean(axis=1)
+    true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
+    _, coeffs = fit_linear_phase(np.angle(np.exp(1j * (out.phase_rad - true))), centres[:, :2], min_coherence_sqrt_m=0.0)
+    # a ramp b across the aperture moves the image by b R / k (twinfocus.autofocus.transfer_phase)
+    error_m = coeffs[1:] * float(rg.z - centres[:, 2].mean()) * scan.chirp.wavelength_m / (4.0 * np.pi)
+    scores = {(dy, dx): image_ssim(shift_image(out.target, dy, dx), truth) for dy in BEST_SHIFT_PX[0] for dx in BEST_SHIFT_PX[1]}
+    best = max(scores, key=scores.get)
+    return {"error_mm": [round(float(v) * 1e3, 2) for v in error_m], "best_shift_ssim": round(scores[best], 4),
+            "best_shift_px": [float(best[0]), float(best[1])],
+            "phase_coherence_sqrt_m": out.metrics["estimator"].get("phase_coherence_sqrt_m")}
 
 
 #: the field's reference-free autofocus, run on the target itself as ``twinfocus focus --method``
@@ -205,7 +236,7 @@ def baselines(d: dict) -> dict:
 #: the digital twin's own warnings (twinfocus.pipeline.outline_warnings), which ``trusted`` applies
 #: anew from each record's measurements, so that records of an earlier run are read by the present rules
 OWN_WARNINGS = ("matches its template poorly", "does not fill its outline", "not sure of the reference's phase",
-                "the tracking drifted", "to a few radar positions", "not at its focus")
+                "the tracking drifted", "to a few radar positions", "not at its focus", "phases have wrapped")
 
 
 def defocus_gain(rec: dict) -> float | None:
@@ -220,9 +251,10 @@ def trusted(rec: dict, twin: str, target_focus: bool = True) -> bool:
     rules: the drift check (``twinfocus.pipeline.drift_warnings``) and, for the digital twin, its own
     checks (``outline_warnings``: the reference's energy contrast over its outline unless the scan
     read it as speckled, the glint across the positions, the grown outlines' agreement, the
-    target's own focus where the record measured it) applied anew to the record's measurements,
+    target's own focus where the record measured it, the wrapping of its phases where the record
+    kept their coherence) applied anew to the record's measurements,
     the report's other warnings as recorded."""
-    from twinfocus.pipeline import MAX_TARGET_DEFOCUS_GAIN_NATS, drift_warnings, outline_warnings
+    from twinfocus.pipeline import MAX_TARGET_DEFOCUS_GAIN_NATS, drift_warnings, outline_warnings, placement_warnings
 
     digital = twin == "digital"
     conf = rec[f"{twin} confidence"]
@@ -232,6 +264,12 @@ def trusted(rec: dict, twin: str, target_focus: bool = True) -> bool:
     if digital:
         fill = conf.get("reference_outline") or rec["digital outline"]
         own += outline_warnings(fill, conf.get("outline_agreement"))
+        coherence = conf.get("phase_coherence_sqrt_m", (rec.get("digital placement") or {}).get("phase_coherence_sqrt_m"))
+        if coherence is None:  # a record from before the coherence was kept: its wrapping warning as recorded
+            own += [w for w in rec["digital warnings"] if "phases have wrapped" in w]
+        else:
+            halves = conf.get("placement_by_band_halves") or {}
+            own += placement_warnings(coherence, halves.get("ramp_coherence_sqrt_m"), bool(halves.get("removed")))
         gain = defocus_gain(rec) if target_focus else None
         if gain is not None and gain > MAX_TARGET_DEFOCUS_GAIN_NATS:
             own.append("the corrected target is not at its focus")
@@ -265,6 +303,19 @@ def table(results: dict) -> str:
             continue
         cells = [np.array([r[c] for r in scored]) for c in ("digital", *BASELINES)]
         lines.append(f"| {cond} | " + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
+    placed = {cond: [r for r in recs if "digital placement" in r] for cond, recs in results.items()}
+    if any(placed.values()):
+        lines += ["", "| condition | draws | digital twin | moved by its best shift: its focus | the target's place across y, off by (mm): median, 90th percentile, worst | across x |",
+                  "|---|---|---|---|---|---|"]
+        for cond, recs in placed.items():
+            if not recs:
+                continue
+            ssim = np.array([r["digital"] for r in recs])
+            moved = np.array([r["digital placement"]["best_shift_ssim"] for r in recs])
+            off = np.abs(np.array([r["digital placement"]["error_mm"] for r in recs]))
+            lines.append(f"| {cond} | {len(recs)} | {ssim.mean():.3f} | {moved.mean():.3f} | "
+                         + " | ".join(f"{np.median(o):.1f}, {np.percentile(o, 90):.1f}, {o.max():.1f}" for o in (off[:, 1], off[:, 0]))
+                         + " |")
     lines += ["", "| twin | results | trusted (their worst) | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |",
               "|---|---|---|---|---|"]
     recs = [r for rs in results.values() for r in rs if "refused" not in r]
@@ -320,43 +371,56 @@ def defocus_figure(path: str | os.PathLike, results_dir: str | os.PathLike = "be
     plt.close(fig)
 
 
+def _wants(rec: dict, defocus: bool, placement_: bool, baselines_: bool) -> bool:
+    """Whether an earlier record lacks what an ``--add-*`` pass adds: the target's focus check (on
+    the digital-twin results the other checks trust: where it can change the verdict), the
+    digital twin's placement (every result), the baselines."""
+    if baselines_:
+        return not all(m in rec for m in BASELINES)
+    if placement_:
+        return "digital placement" not in rec
+    return ("target_defocus_gain_nats" not in rec["digital confidence"] and "digital target_defocus" not in rec
+            and trusted(rec, "digital"))
+
+
 def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, heldout: bool = False,
          rows: int = 65, size: int = 64, only: str | None = None, minutes: float | None = None,
-         resume: bool = False, add_baselines: bool = False, add_defocus: bool = False) -> dict:
+         resume: bool = False, add_baselines: bool = False, add_defocus: bool = False,
+         add_placement: bool = False) -> dict:
     from twinfocus.errors import TwinFocusError
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / ("dtwin_family_heldout.json" if heldout else "dtwin_family.json")
     first, shapes = (HELDOUT_SEED, HELDOUT_SHAPES) if heldout else (BENCH_SEED, BENCH_SHAPES)
-    results: dict = json.loads(path.read_text()) if (only or resume or add_baselines or add_defocus) and path.is_file() else {}
+    adding = add_baselines or add_defocus or add_placement
+    results: dict = json.loads(path.read_text()) if (only or resume or adding) and path.is_file() else {}
     results.pop("scan", None)
-    if add_defocus:
-        # records from before the target's focus check: it is measured where it can change the
-        # verdict, on the digital-twin results the other checks trust (the same seeds draw the same scans)
+    if add_defocus or add_placement or add_baselines:
+        # the same seeds draw the same scans: only what is added is measured, the records kept
         for cond, recs in results.items():
             for rec in recs:
-                if "refused" in rec or "target_defocus_gain_nats" in rec["digital confidence"] \
-                        or "digital target_defocus" in rec or not trusted(rec, "digital"):
+                if "refused" in rec or not _wants(rec, add_defocus, add_placement, add_baselines):
                     continue
-                print(f"[dtwin family] target focus: {cond}, seed {rec['seed']}", file=sys.stderr, flush=True)
-                out = digital_twin_focus(draw_inputs(cond, rec["seed"], shapes, rows, size))
-                if abs(out.metrics["target_ssim_corrected"] - rec["digital"]) > 5e-3:  # BLAS and numba versions: ~1e-3
-                    raise RuntimeError(f"{cond}, seed {rec['seed']}: the digital twin now gives "
-                                       f"{out.metrics['target_ssim_corrected']:.4f}, the record {rec['digital']:.4f}")
-                rec["digital target_defocus"] = out.metrics["target_defocus"]
-                path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1,
-                                           default=float))
-        print(table(results))
-        return results
-    if add_baselines:
-        # the same seeds draw the same scans: only the baselines are run, the twins' figures kept
-        for cond, recs in results.items():
-            for rec in recs:
-                if "refused" in rec or all(m in rec for m in BASELINES):
-                    continue
-                print(f"[dtwin family] baselines: {cond}, seed {rec['seed']}", file=sys.stderr, flush=True)
-                rec.update(baselines(draw_inputs(cond, rec["seed"], shapes, rows, size)))
+                print(f"[dtwin family] adding: {cond}, seed {rec['seed']}", file=sys.stderr, flush=True)
+                d = draw_inputs(cond, rec["seed"], shapes, rows, size)
+                if add_baselines:
+                    rec.update(baselines(d))
+                else:
+                    out = digital_twin_focus(d)
+                    now = out.metrics["target_ssim_corrected"]
+                    if abs(now - rec["digital"]) > 5e-3:  # BLAS and numba versions: ~1e-3
+                        # the focus check decides the record's verdict, so it must be the record's
+                        # run; the placement describes the run it measured, which it names
+                        if add_defocus:
+                            raise RuntimeError(f"{cond}, seed {rec['seed']}: the digital twin now gives {now:.4f}, "
+                                               f"the record {rec['digital']:.4f}")
+                        print(f"[dtwin family] {cond}, seed {rec['seed']}: the digital twin now gives {now:.4f}, "
+                              f"the record {rec['digital']:.4f}", file=sys.stderr, flush=True)
+                    if add_defocus:
+                        rec["digital target_defocus"] = out.metrics["target_defocus"]
+                    if add_placement:
+                        rec["digital placement"] = {**placement(d, out), "target_ssim": round(now, 4)}
                 path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1,
                                            default=float))
         print(table(results))
@@ -401,10 +465,13 @@ if __name__ == "__main__":
                     help="add the reference-free baselines to an earlier file's records (the twins are not rerun)")
     ap.add_argument("--add-defocus", action="store_true",
                     help="measure the target's focus check on an earlier file's trusted digital-twin results")
+    ap.add_argument("--add-placement", action="store_true",
+                    help="measure where the digital twin put the target (against the truth) on an earlier file's records")
     ap.add_argument("--defocus-figure", default=None,
                     help="draw the target's focus check from --out's two files into this picture (no draws run)")
     a = ap.parse_args()
     if a.defocus_figure:
         defocus_figure(a.defocus_figure, a.out)
         sys.exit(0)
-    main(a.out, a.draws, a.heldout, a.rows, a.size, a.only, a.minutes, a.resume, a.add_baselines, a.add_defocus)
+    main(a.out, a.draws, a.heldout, a.rows, a.size, a.only, a.minutes, a.resume, a.add_baselines, a.add_defocus,
+         a.add_placement)

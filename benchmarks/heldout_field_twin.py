@@ -127,6 +127,15 @@ def figure(path: str | os.PathLike, seed: int = 2) -> None:
     plt.close(fig)
 
 
+def trusted(rec: dict) -> bool:
+    """Whether the confidence report trusts a record's default by the present rules: its verdict
+    as recorded, and the placement check (``twinfocus.pipeline.placement_warnings``, which flags
+    every estimate whose phases have wrapped) applied anew to the coherences the record kept."""
+    from twinfocus.pipeline import placement_warnings
+
+    return bool(rec["default trusted"]) and not placement_warnings(rec["coh"], rec["ranged coh"], bool(rec["removed"]))
+
+
 def table(results: dict) -> str:
     ms = lambda a: f"{np.mean(a):.3f} ± {np.std(a):.3f}"  # noqa: E731
     lines = ["| condition | draws | before (outline not grown) | default | up / down (> 0.005) | default trusted (draws, their mean) "
@@ -135,9 +144,9 @@ def table(results: dict) -> str:
     for cond, recs in results.items():
         b = np.array([r["before"] for r in recs])
         d = np.array([r["default"] for r in recs])
-        trusted = [r["default"] for r in recs if r["default trusted"]]
+        kept = [r["default"] for r in recs if trusted(r)]
         lines.append(f"| {cond} | {len(recs)} | {ms(b)} | {ms(d)} | {int((d - b > 0.005).sum())} / {int((b - d > 0.005).sum())} | "
-                     f"{len(trusted)}" + (f", {np.mean(trusted):.3f}" if trusted else "") + " | "
+                     f"{len(kept)}" + (f", {np.mean(kept):.3f}" if kept else "") + " | "
                      f"{ms([r['truth-placed'] for r in recs])} | {ms([r['physical'] for r in recs])} | {ms([r['oracle'] for r in recs])} |")
     return "\n".join(lines)
 

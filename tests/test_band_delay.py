@@ -8,7 +8,7 @@ from twinfocus.autofocus import MIN_RANGED_RAMP_COHERENCE_SQRT_M, AutofocusConfi
 from twinfocus.backprojection import subimage_basis
 from twinfocus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import estimator_settings
+from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
 from twinfocus.metrics import oracle_phase, true_range_errors_m
 from twinfocus.phase_ramp import fit_linear_phase
 from twinfocus.pipeline import focus_bases, upper_band_basis
@@ -154,8 +154,14 @@ def test_focus_places_a_misplaced_outline_by_the_band_halves(wrapped):
     assert m_with["phase_ramp"]["from_range_errors"] and m_with["phase_ramp"]["removed"]
     placed = m_with["confidence"]["placement_by_band_halves"]
     assert placed["removed"] and placed["ramp_coherence_sqrt_m"] >= MIN_RANGED_RAMP_COHERENCE_SQRT_M
-    assert not any("phases have wrapped" in w for w in m_with["confidence"]["warnings"])
-    assert any("phases have wrapped" in w for w in m_without["confidence"]["warnings"])
+    # wrapped either way, so flagged either way: placed by the halves, the report says the place
+    # may still be a few mm off; not placed, that nothing checked where the outline put it
+    for m, says, not_says in ((m_with, "placed the reference", "cannot check"),
+                              (m_without, "cannot check", "placed the reference")):
+        conf = m["confidence"]
+        assert conf["phase_coherence_sqrt_m"] < AUTO_REFINE_BELOW_COHERENCE and not conf["trusted"]
+        wrapped = [w for w in conf["warnings"] if "phases have wrapped" in w]
+        assert len(wrapped) == 1 and says in wrapped[0] and not_says not in wrapped[0]
 
 
 def test_focus_asks_the_band_halves_when_a_coherent_estimates_ramp_is_too_large():
@@ -210,3 +216,27 @@ def test_place_estimate_moves_back_a_known_misplacement_of_the_exact_phase(wrapp
     # not untouched: the halves' own floor (the reference's delay texture) moves it, by less than
     # the misplacement it takes out
     assert left_off_m(same).max() < 0.5 * 2.5e-3
+
+
+def test_the_placement_check_flags_every_wrapped_estimate_and_says_whether_the_halves_placed_it():
+    """At and above the wrapping line nothing is said; below it the report warns whether or not
+    the band's halves placed the reference (their ramp must reach the fit's coherence and have
+    been taken out), and names what to do next only for a digital twin's outline."""
+    from twinfocus.pipeline import DIGITAL_TWIN_NEXT, placement_warnings
+
+    line, least = AUTO_REFINE_BELOW_COHERENCE, MIN_RANGED_RAMP_COHERENCE_SQRT_M
+    assert placement_warnings(line, least, True) == [] and placement_warnings(9.0, None, False) == []
+    cases = {  # (ranged, removed): placed
+        (least, True): True,
+        (least + 4.0, True): True,
+        (least - 0.01, True): False,  # too faint to count, whatever was done with it
+        (least + 4.0, False): False,
+        (None, False): False,
+    }
+    for (ranged, removed), placed in cases.items():
+        (w,) = placement_warnings(line - 0.01, ranged, removed)
+        assert "phases have wrapped" in w and DIGITAL_TWIN_NEXT in w
+        assert ("placed the reference" in w) == placed and ("cannot check" in w) == (not placed)
+        assert ("did not place it either" in w) == (not placed and ranged is not None)
+    (w,) = placement_warnings(0.5, least + 1.0, True, outline=False)
+    assert DIGITAL_TWIN_NEXT not in w
