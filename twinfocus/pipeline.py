@@ -559,12 +559,12 @@ DIGITAL_TWIN_NEXT = (
 def unchecked_warning(method: str) -> str:
     """The confidence report's warning on every reference-free result: nothing checks it. The
     field benches' reference-free results (benchmarks/bench_dtwin_family.py, bench and held-out
-    draws, 240 of them) gained 0.12-0.15 SSIM over no correction on average, and only one
+    draws, 720 results) gained 0.12-0.15 SSIM over no correction on average, and only one
     reached 0.90; the three trusted by the resolution cells alone were 0.47-0.69
     (docs/digital_twin_field.md, "Without a reference")."""
     return (
         f"no reference checks the {method} correction: reference-free autofocus on the field benches "
-        "gained 0.12-0.15 SSIM over no correction on average and reached 0.90 on 1 of 240 results "
+        "gained 0.12-0.15 SSIM over no correction on average and reached 0.90 on 1 of 720 results "
         "(docs/digital_twin_field.md); focus with a twin (--template-scan or --digital-twin) for a "
         "result this report can check"
     )
