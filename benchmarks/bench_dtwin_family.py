@@ -34,6 +34,8 @@ confidence reports.
     python -m benchmarks.bench_dtwin_family --add-baselines [--heldout]     (baselines only, added)
     python -m benchmarks.bench_dtwin_family --add-defocus [--heldout]       (the target's focus check, added)
     python -m benchmarks.bench_dtwin_family --add-placement [--heldout]     (where the digital twin put the target, added)
+    python -m benchmarks.bench_dtwin_family --add-cloud-parts 8 [--heldout] (the camera cloud's impairments one by one, added
+                                                                            on the first 8 draws of each condition)
     python -m benchmarks.bench_dtwin_family --defocus-figure docs/figures/target_defocus.png
 
 (--minutes: no new seed is started after that long; the draws of every condition go seed by seed.)
@@ -218,6 +220,41 @@ def placement(d: dict, out) -> dict:
 BASELINES = ("sharpness", "entropy", "pga")
 
 
+#: what :func:`cloud_parts` gives the digital twin instead of the camera cloud as it comes: each
+#: impairment of ``CLOUD`` and ``OFFSET_RANGE_M`` alone, all of them but the holes, and two views
+#: (two clouds with their own noise, holes and outliers, one rig offset, joined)
+CLOUD_PARTS = ("exact", "noise only", "holes only", "offset only", "all but holes", "two views")
+
+
+def cloud_parts(d: dict) -> dict:
+    """The digital twin's target SSIM on :func:`draw_inputs`' draw ``d`` with each cloud of
+    ``CLOUD_PARTS`` in place of the one the draw's camera gave: which impairment costs what. The
+    offset keeps its drawn length, in a direction of its own; "two views" holds each point of the
+    surface seen twice, so its holes are where both views lost the surface (a camera's holes from
+    specular spots move with the view; those from a texture-less surface would not)."""
+    from twinfocus.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.digital_twin.condition import digital_twin_reference
+    from twinfocus.scenario import Scenario
+
+    seed, scan, rg = d["kw"]["seed"], d["scan"], d["rg"]
+    surface = Scenario(**d["kw"]).scene().object("reference").surface_points(1e-3)
+    rng = np.random.default_rng([seed, 14, 1])
+    direction = rng.normal(size=3)
+    offset = float(rng.uniform(*OFFSET_RANGE_M)) * direction / np.linalg.norm(direction)
+    noise, holes, outliers = CLOUD
+    clouds = {"exact": (0.0, 0.0, 0.0, 0.0), "noise only": (noise, 0.0, 0.0, 0.0), "holes only": (0.0, holes, 0.0, 0.0),
+              "offset only": (0.0, 0.0, 0.0, offset), "all but holes": (noise, 0.0, outliers, offset)}
+    out = {}
+    for name in CLOUD_PARTS:
+        if name == "two views":
+            cloud = np.vstack([camera_cloud(surface, *CLOUD, offset, rng=rng) for _ in range(2)])
+        else:
+            cloud = camera_cloud(surface, *clouds[name], rng=rng)
+        twin = digital_twin_reference(cloud, scan.positions, scan.chirp, rg)
+        out[name] = round(float(digital_twin_focus({**d, "twin": twin}).metrics["target_ssim_corrected"]), 4)
+    return out
+
+
 def baselines(d: dict) -> dict:
     """The reference-free methods on :func:`draw_inputs`' draw ``d``: each one's target SSIM
     (``sharpness``, ...), whether the confidence report trusts it and its warnings."""
@@ -316,6 +353,16 @@ def table(results: dict) -> str:
             lines.append(f"| {cond} | {len(recs)} | {ssim.mean():.3f} | {moved.mean():.3f} | "
                          + " | ".join(f"{np.median(o):.1f}, {np.percentile(o, 90):.1f}, {o.max():.1f}" for o in (off[:, 1], off[:, 0]))
                          + " |")
+    parted = {cond: [r for r in recs if "digital cloud parts" in r] for cond, recs in results.items()}
+    if any(parted.values()):
+        lines += ["", "| condition | draws | the cloud as it comes | " + " | ".join(CLOUD_PARTS) + " |",
+                  "|---|---|---|" + "---|" * len(CLOUD_PARTS)]
+        for cond, recs in parted.items():
+            if not recs:
+                continue
+            cells = [np.array([r["digital"] for r in recs])]
+            cells += [np.array([r["digital cloud parts"][k] for r in recs]) for k in CLOUD_PARTS]
+            lines.append(f"| {cond} | {len(recs)} | " + " | ".join(f"{v.mean():.3f} (worst {v.min():.3f})" for v in cells) + " |")
     lines += ["", "| twin | results | trusted (their worst) | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |",
               "|---|---|---|---|---|"]
     recs = [r for rs in results.values() for r in rs if "refused" not in r]
@@ -371,10 +418,12 @@ def defocus_figure(path: str | os.PathLike, results_dir: str | os.PathLike = "be
     plt.close(fig)
 
 
-def _wants(rec: dict, defocus: bool, placement_: bool, baselines_: bool) -> bool:
+def _wants(rec: dict, defocus: bool, placement_: bool, baselines_: bool, parts: bool = False) -> bool:
     """Whether an earlier record lacks what an ``--add-*`` pass adds: the target's focus check (on
     the digital-twin results the other checks trust: where it can change the verdict), the
-    digital twin's placement (every result), the baselines."""
+    digital twin's placement (every result), the baselines, the cloud's parts."""
+    if parts:
+        return "digital cloud parts" not in rec
     if baselines_:
         return not all(m in rec for m in BASELINES)
     if placement_:
@@ -386,25 +435,29 @@ def _wants(rec: dict, defocus: bool, placement_: bool, baselines_: bool) -> bool
 def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, heldout: bool = False,
          rows: int = 65, size: int = 64, only: str | None = None, minutes: float | None = None,
          resume: bool = False, add_baselines: bool = False, add_defocus: bool = False,
-         add_placement: bool = False) -> dict:
+         add_placement: bool = False, add_cloud_parts: int = 0) -> dict:
     from twinfocus.errors import TwinFocusError
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / ("dtwin_family_heldout.json" if heldout else "dtwin_family.json")
     first, shapes = (HELDOUT_SEED, HELDOUT_SHAPES) if heldout else (BENCH_SEED, BENCH_SHAPES)
-    adding = add_baselines or add_defocus or add_placement
+    adding = add_baselines or add_defocus or add_placement or add_cloud_parts > 0
     results: dict = json.loads(path.read_text()) if (only or resume or adding) and path.is_file() else {}
     results.pop("scan", None)
-    if add_defocus or add_placement or add_baselines:
+    if adding:
         # the same seeds draw the same scans: only what is added is measured, the records kept
         for cond, recs in results.items():
             for rec in recs:
-                if "refused" in rec or not _wants(rec, add_defocus, add_placement, add_baselines):
+                if add_cloud_parts and rec["seed"] >= first + add_cloud_parts:
+                    continue
+                if "refused" in rec or not _wants(rec, add_defocus, add_placement, add_baselines, add_cloud_parts > 0):
                     continue
                 print(f"[dtwin family] adding: {cond}, seed {rec['seed']}", file=sys.stderr, flush=True)
                 d = draw_inputs(cond, rec["seed"], shapes, rows, size)
-                if add_baselines:
+                if add_cloud_parts:
+                    rec["digital cloud parts"] = cloud_parts(d)
+                elif add_baselines:
                     rec.update(baselines(d))
                 else:
                     out = digital_twin_focus(d)
@@ -467,6 +520,9 @@ if __name__ == "__main__":
                     help="measure the target's focus check on an earlier file's trusted digital-twin results")
     ap.add_argument("--add-placement", action="store_true",
                     help="measure where the digital twin put the target (against the truth) on an earlier file's records")
+    ap.add_argument("--add-cloud-parts", type=int, default=0, metavar="N",
+                    help="on the first N draws of each condition of an earlier file, the digital twin with each of "
+                         "the camera cloud's impairments alone (and two views joined)")
     ap.add_argument("--defocus-figure", default=None,
                     help="draw the target's focus check from --out's two files into this picture (no draws run)")
     a = ap.parse_args()
@@ -474,4 +530,4 @@ if __name__ == "__main__":
         defocus_figure(a.defocus_figure, a.out)
         sys.exit(0)
     main(a.out, a.draws, a.heldout, a.rows, a.size, a.only, a.minutes, a.resume, a.add_baselines, a.add_defocus,
-         a.add_placement)
+         a.add_placement, a.add_cloud_parts)

@@ -37,3 +37,43 @@ def test_placement_reads_an_injected_ramp_as_its_shift_and_finds_an_injected_ima
     assert np.allclose(got["error_mm"], shift_m * 1e3, atol=0.01)
     assert got["best_shift_px"] == [-1.0, 0.5] and got["best_shift_ssim"] > 0.99
     assert got["phase_coherence_sqrt_m"] == 3.2
+
+
+def test_cloud_parts_gives_each_impairment_alone_and_two_views_under_one_offset(monkeypatch):
+    from scipy.spatial import cKDTree
+
+    import benchmarks.bench_dtwin_family as bench
+    import twinfocus.digital_twin.condition as condition
+    from twinfocus.scenario import Scenario
+
+    # seed 1003's offset lies mostly along z, across the reference's plane, where a view shows it
+    kw = bench.family_scenario("paper", 1003, bench.BENCH_SHAPES, 65)
+    surface = Scenario(**kw).scene().object("reference").surface_points(1e-3)
+    seen = {}
+
+    def twin(cloud, positions, chirp, grid):
+        seen[bench.CLOUD_PARTS[len(seen)]] = np.asarray(cloud)
+        return SimpleNamespace(cloud=cloud)
+
+    monkeypatch.setattr(condition, "digital_twin_reference", twin)
+    monkeypatch.setattr(bench, "digital_twin_focus",
+                        lambda d: SimpleNamespace(metrics={"target_ssim_corrected": float(len(d["twin"].cloud))}))
+    d = {"kw": kw, "scan": SimpleNamespace(positions=None, chirp=None), "rg": None}
+    got = bench.cloud_parts(d)
+    assert list(got) == list(bench.CLOUD_PARTS) == list(seen)
+    n = surface.shape[0]
+    assert np.array_equal(seen["exact"], surface)
+    # one impairment each: the noise moves every point (1 mm per axis) and drops none; the holes
+    # drop a quarter and move none; the offset moves all by one vector of the drawn length
+    noise = seen["noise only"] - surface
+    assert seen["noise only"].shape == surface.shape and 0.8e-3 < noise.std() < 1.2e-3
+    holes = seen["holes only"]
+    assert abs(holes.shape[0] - 0.75 * n) <= 1 and cKDTree(surface).query(holes)[0].max() < 1e-12
+    offset = seen["offset only"] - surface
+    assert np.allclose(offset, offset[0]) and 2e-3 <= np.linalg.norm(offset[0]) <= 3e-3
+    assert abs(offset[0, 2]) > 2e-3
+    # two views: twice the kept points and their outliers, each view moved by that one offset
+    two = seen["two views"]
+    assert abs(two.shape[0] - 2 * 0.75 * n * 1.02) < 0.02 * n
+    for view in (two[: two.shape[0] // 2], two[two.shape[0] // 2 :]):
+        assert abs(np.median(view[:, 2]) - np.median(surface[:, 2]) - offset[0, 2]) < 0.3e-3
