@@ -29,11 +29,11 @@ HAND = dict(reference="H", target="S", separation_deg=16.3, snr_db=15, error_mod
 CONDITIONS = {
     "B": (SCENES["B"], range(6, 16)),
     "C": (SCENES["C"], range(6, 16)),
-    "A": (SCENES["A"], range(6, 9)),
+    "A": (SCENES["A"], range(6, 16)),
     "B cylinder": ({**SCENES["B"], "reference_shape": "cylinder"}, range(6, 11)),
     "B bent": ({**SCENES["B"], "reference_shape": "bent"}, range(6, 14)),
     "B 2 mm z": ({**SCENES["B"], "error_sigma_m": (0.3e-3, 0.3e-3, 2.0e-3)}, range(6, 12)),
-    "hand drift H/S": (HAND, range(6, 11)),
+    "hand drift H/S": (HAND, range(6, 16)),
 }
 
 
