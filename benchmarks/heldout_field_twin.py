@@ -6,7 +6,7 @@ the default before its outline was grown first ("before": ``outline_growth_round
 the band's halves where its phases wrapped), the default (docs/digital_twin.md), the default
 placed by the truth (diagnostic), the physical twin (space-variant off) and the target's own phase.
 
-    python -m benchmarks.heldout_field_twin            (~25 min on 2 cores; docs/digital_twin.md)
+    python -m benchmarks.heldout_field_twin            (~30 min on 2 cores; docs/digital_twin.md)
     python -m benchmarks.heldout_field_twin --figure docs/figures/band_halves.png   (one draw, ~30 s)
 
 Not one of ``make bench``'s benchmarks (no ``bench_`` prefix): it checks a default on new draws
