@@ -105,7 +105,8 @@ def draw_inputs(condition: str, seed: int, shapes: tuple, rows: int, size: int, 
     """One draw's scan and what the digital twin is given: ``kw`` (its Scenario keywords),
     ``scan``, ``template_scan`` (the motion-stage scan), grids ``rg``/``tg``, ``twin`` (from the
     camera cloud as it comes), bases ``rb``/``tb``, ``truth`` (focus_bases' truth keywords) and
-    ``upper_band`` (the reference's upper-band basis)."""
+    ``upper_band`` (the reference's upper-band basis) and ``reference_points`` (its exact surface,
+    float (N, 3) metres, what the camera cloud was made from)."""
     from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.digital_twin.camera_cloud import camera_cloud
     from twinfocus.digital_twin.condition import digital_twin_reference
@@ -126,7 +127,7 @@ def draw_inputs(condition: str, seed: int, shapes: tuple, rows: int, size: int, 
                 twin=digital_twin_reference(cloud, scan.positions, scan.chirp, rg),
                 rb=subimage_basis(scan.data, scan.positions, scan.chirp, rg),
                 tb=subimage_basis(scan.data, scan.positions, scan.chirp, tg), truth=truth,
-                upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, rg))
+                upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, rg), reference_points=surface)
 
 
 def digital_twin_focus(d: dict, **config):
@@ -229,15 +230,13 @@ CLOUD_PARTS = ("exact", "noise only", "holes only", "offset only", "all but hole
 def cloud_parts(d: dict) -> dict:
     """The digital twin's target SSIM on :func:`draw_inputs`' draw ``d`` with each cloud of
     ``CLOUD_PARTS`` in place of the one the draw's camera gave: which impairment costs what. The
-    offset keeps its drawn length, in a direction of its own; "two views" holds each point of the
+    offset is drawn anew (a length in ``OFFSET_RANGE_M``, a direction of its own); "two views" holds each point of the
     surface seen twice, so its holes are where both views lost the surface (a camera's holes from
     specular spots move with the view; those from a texture-less surface would not)."""
     from twinfocus.digital_twin.camera_cloud import camera_cloud
     from twinfocus.digital_twin.condition import digital_twin_reference
-    from twinfocus.scenario import Scenario
 
-    seed, scan, rg = d["kw"]["seed"], d["scan"], d["rg"]
-    surface = Scenario(**d["kw"]).scene().object("reference").surface_points(1e-3)
+    seed, scan, rg, surface = d["kw"]["seed"], d["scan"], d["rg"], d["reference_points"]
     rng = np.random.default_rng([seed, 14, 1])
     direction = rng.normal(size=3)
     offset = float(rng.uniform(*OFFSET_RANGE_M)) * direction / np.linalg.norm(direction)

@@ -58,7 +58,7 @@ def test_cloud_parts_gives_each_impairment_alone_and_two_views_under_one_offset(
     monkeypatch.setattr(condition, "digital_twin_reference", twin)
     monkeypatch.setattr(bench, "digital_twin_focus",
                         lambda d: SimpleNamespace(metrics={"target_ssim_corrected": float(len(d["twin"].cloud))}))
-    d = {"kw": kw, "scan": SimpleNamespace(positions=None, chirp=None), "rg": None}
+    d = {"kw": kw, "scan": SimpleNamespace(positions=None, chirp=None), "rg": None, "reference_points": surface}
     got = bench.cloud_parts(d)
     assert list(got) == list(bench.CLOUD_PARTS) == list(seen)
     n = surface.shape[0]
