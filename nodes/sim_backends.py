@@ -11,8 +11,9 @@ processes agree on the scene and the trajectory, and the graph draws the very sc
   blocking), with thermal noise at the scenario's SNR (noise level from
   :func:`twinfocus.scenario.scenario_noise_power`, drawn block after block from one stream);
 * :class:`SimVio` publishes the scenario's *tracked* trajectory
-  (:func:`twinfocus.scenario.scenario_positions`: ``error_model`` vio = ZED-like jitter +
-  drift, gaussian, drift) at every radar frame's stamp, and between them at ``rate_hz`` with the
+  (:func:`twinfocus.scenario.scenario_tracked_poses`: ``error_model`` vio = ZED-like jitter +
+  drift, gaussian, drift, hand = drift + jitter + the array's turn, carried in the pose's
+  orientation) at every radar frame's stamp, and between them at ``rate_hz`` with the
   tracking error interpolated; the synchronizer's interpolation at a radar stamp is then exact;
 * :func:`template_scan` is the reference alone on the motion stage's exact raster, moved by
   the scenario's placement error: the physical twin's capture.
@@ -33,9 +34,9 @@ from twinfocus.scenario import (
     Scenario,
     scenario_noise_power,
     scenario_poses,
-    scenario_positions,
     scenario_scatterers,
     scenario_stream,
+    scenario_tracked_poses,
     simulator_options,
     template_scan,
 )
@@ -129,12 +130,14 @@ class SimVio:
 
     Options: ``scenario``, ``frame_period_s``, ``t0_ns``, ``scans`` (as :class:`SimRadar`),
     ``rate_hz`` (30: poses between radar frames), ``error_model`` (overrides the scenario's:
-    "vio" | "gaussian" | "drift" | "none"), ``error_sigma_m`` (gaussian/drift sigma per axis;
+    "vio" | "gaussian" | "drift" | "hand" | "none"), ``error_sigma_m`` (gaussian/drift/hand sigma per axis;
     default the scenario's), ``margin_s`` (0.5: poses start this long before the first radar
     frame and end after the last).
 
-    At each radar frame's stamp the pose is exactly :func:`twinfocus.scenario.scenario_positions`'
-    tracked one; between them the truth is interpolated and so is the tracking error.
+    At each radar frame's stamp the pose is :func:`twinfocus.scenario.scenario_tracked_poses`'
+    tracked one, whose phase centres are :func:`twinfocus.scenario.scenario_positions`' (exactly
+    without a rotation error; within 0.4 um with the hand's turn); between them the tracked poses
+    are interpolated (positions linearly, orientations by slerp).
     """
 
     live = False
@@ -160,19 +163,17 @@ class SimVio:
             raise TwinFocusError(f"{where}: rate_hz must be positive, got {rate}")
         if model == "none":
             sc = replace(sc, error_model="gaussian", error_sigma_m=(0.0, 0.0, 0.0))
-        elif model in ("vio", "gaussian", "drift"):
+        elif model in ("vio", "gaussian", "drift", "hand"):
             sc = replace(sc, error_model=model, error_sigma_m=tuple(float(v) for v in sigma))
         else:
-            raise TwinFocusError(f"{where}: unknown error_model {model!r}; use vio, gaussian, drift or none")
+            raise TwinFocusError(f"{where}: unknown error_model {model!r}; use vio, gaussian, drift, hand or none")
         self.sc = sc
         # paced on the radar's clock (its first frame's stamp starts it, nodes/driver.py): a pose
         # goes out when the radar frame of the same stamp does, as from a live tracker; the
         # margin's poses before it go out at once
         self.clock_start_ns = t0
-        radar = scenario_poses(sc, period, t0)
-        true, tracked, _ = scenario_positions(sc, frame_period_s=period, t0_ns=t0)
-        # One rigid error per radar pose (apply_position_errors adds it to every channel).
-        err = (tracked - true)[:, 0, :]
+        # the tracked pose per radar frame: the translation error, and the hand's turn of the array
+        radar, tracked_poses = scenario_tracked_poses(sc, period, t0)
         span_ns = int(radar.timestamps_ns[-1] - radar.timestamps_ns[0]) + int(round(period * 1e9))
         start = int(radar.timestamps_ns[0] - margin * 1e9)
         end = int(radar.timestamps_ns[-1] + (scans - 1) * span_ns + margin * 1e9)
@@ -184,12 +185,10 @@ class SimVio:
         t_first = int(radar.timestamps_ns[0])
         local = np.where(ts < t_first + span_ns, ts, t_first + (ts - t_first) % span_ns).astype(np.int64)
         order = np.argsort(local, kind="stable")
-        at = radar.interpolate(local[order])  # interpolate() wants sorted times
-        tracked_poses = Poses(radar.timestamps_ns, radar.position_m + err, radar.quat_xyzw)
-        at_tracked = tracked_poses.interpolate(local[order])
+        at_tracked = tracked_poses.interpolate(local[order])  # interpolate() wants sorted times
         position = np.empty((ts.size, 3))
         quat = np.empty((ts.size, 4))
-        position[order], quat[order] = at_tracked.position_m, at.quat_xyzw
+        position[order], quat[order] = at_tracked.position_m, at_tracked.quat_xyzw
         self.poses = Poses(ts, position, quat)
 
     def samples(self) -> Iterator[PoseSample]:

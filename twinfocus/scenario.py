@@ -28,7 +28,15 @@ from twinfocus.radar import Chirp, VirtualArray, mmwcas_virtual_array
 from twinfocus.scan import Scan
 from twinfocus.scene import PlanarObject, Scene, paper_scene, scatterer_spacing_m, shaped
 from twinfocus.simulate import add_thermal_noise, simulate_if
-from twinfocus.trajectory import Poses, handheld_zigzag, paper_raster, phase_centres
+from twinfocus.trajectory import (
+    Poses,
+    handheld_zigzag,
+    paper_raster,
+    phase_centres,
+    quat_from_rotvec,
+    quat_multiply,
+    quat_to_matrix,
+)
 
 #: the paper's regions of interest (docs/architecture.md section 2) for the default scene (X0, X1, Y0, Y1, Z).
 PAPER_REFERENCE_ROI = (-0.15, 0.0, -0.11, 0.12, 0.6)
@@ -192,18 +200,47 @@ def scenario_positions(
 
     rng : the tracking error's draws (default: the scenario's tracking stream)."""
     poses = scenario_poses(sc, frame_period_s, t0_ns)
-    if rng is None:
-        rng = scenario_stream(sc, TRACKING_STREAM)
     true = phase_centres(poses, scenario_array(sc))
-    shift, turn = draw_errors(
+    shift, turn = scenario_pose_errors(sc, poses.timestamps_ns, rng)
+    return true, apply_pose_errors(true, shift, turn), poses.timestamps_ns
+
+
+def scenario_pose_errors(
+    sc: Scenario, timestamps_ns: np.ndarray, rng: np.random.Generator | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The scenario's tracking error per radar pose: (translation float64 (M, 3) metres, rotation
+    vector float64 (M, 3) radians; zeros but for "hand"), :func:`twinfocus.motion.draw_errors` on
+    ``rng`` (default: the scenario's tracking stream)."""
+    return draw_errors(
         sc.error_model,
-        poses.timestamps_ns,
+        timestamps_ns,
         sc.error_sigma_m,
-        rng,
+        scenario_stream(sc, TRACKING_STREAM) if rng is None else rng,
         sc.correlation_time_s,
         np.radians(sc.rotation_sigma_deg),
     )
-    return true, apply_pose_errors(true, shift, turn), poses.timestamps_ns
+
+
+def scenario_tracked_poses(sc: Scenario, frame_period_s: float = 0.1, t0_ns: int = 0) -> tuple[Poses, Poses]:
+    """(true poses, tracked poses), one per radar frame: the tracked pose is the rigid pose whose
+    phase centres (:func:`twinfocus.trajectory.phase_centres`) are :func:`scenario_positions`'
+    tracked ones, what a tracker reports: the translation error, and the rotation error turning
+    the orientation about the array's channel centre.
+
+    :func:`twinfocus.motion.apply_pose_errors` turns the channels to first order (r x arm); this
+    pose turns them exactly, so its phase centres differ from :func:`scenario_positions`' by
+    |r|^2 |arm| / 2 at most: 0.4 um for the hand's 0.15 degrees on the 83 mm array, 1e-3 rad of
+    phase at 77 GHz. Without a rotation error the two are the same numbers."""
+    poses = scenario_poses(sc, frame_period_s, t0_ns)
+    shift, turn = scenario_pose_errors(sc, poses.timestamps_ns)
+    position = poses.position_m + shift
+    quat = poses.quat_xyzw
+    if np.any(turn):
+        # the turn about the channel centre cbar: centre + R' (offset - cbar) with R' = Q R
+        quat = quat_multiply(quat_from_rotvec(turn), poses.quat_xyzw)
+        cbar = np.asarray(scenario_array(sc).offsets_m, np.float64).mean(axis=0)
+        position = position + np.einsum("mij,j->mi", quat_to_matrix(poses.quat_xyzw) - quat_to_matrix(quat), cbar)
+    return poses, Poses(poses.timestamps_ns, position, quat)
 
 
 def scenario_scene_seed(sc: Scenario) -> int:
