@@ -20,6 +20,12 @@
    result out, the field the visualizer shows) and its step timings.
 
     python -m benchmarks.bench_bus --out benchmarks/results --graph-only [--repeat 3]   # part 3 alone
+
+4. Live hand sweep: part 3 with ``trajectory:=zigzag error_model:=hand`` (the simulated tracker
+   carries the hand's drift and the array's turn), so the solver fits the drift + tilt: the time
+   from the last radar frame to the image, as ``live_hand_sweep``.
+
+    python -m benchmarks.bench_bus --out benchmarks/results --hand-only [--quick] [--repeat 3]
 """
 from __future__ import annotations
 
@@ -218,8 +224,11 @@ def latency_run(mode: str, columns: int, rows: int, size: int, iterations: int, 
     }
 
 
-def graph_latency_run(columns: int, rows: int, size: int, rate: float, iterations: int = 300) -> dict:
-    """``twinfocus launch sim`` with a probe: last radar frame of the sweep -> focused target image."""
+def graph_latency_run(columns: int, rows: int, size: int, rate: float, iterations: int = 300,
+                      hand: bool = False) -> dict:
+    """``twinfocus launch sim`` with a probe: last radar frame of the sweep -> focused target image.
+    ``hand``: a hand sweep (``trajectory:=zigzag error_model:=hand``: the hand's drift and the
+    array's turn in the tracked poses), whose drift + tilt fit runs in the solver."""
     import socket
     import subprocess
     import tempfile
@@ -237,6 +246,8 @@ def graph_latency_run(columns: int, rows: int, size: int, rate: float, iteration
         cmd = [sys.executable, "-c", "import sys; from twinfocus.cli import main; sys.exit(main())", "launch", "sim",
                f"port:={port}", "web_port:=0", f"out:={tmp}", f"columns:={columns}", f"rows:={rows}", f"size:={size}",
                f"rate:={rate}", f"iterations:={iterations}", "exit_after:=1"]
+        if hand:
+            cmd += ["trajectory:=zigzag", "error_model:=hand"]
         log = Path(tmp) / "graph.log"
         with open(log, "wb") as out:
             g = subprocess.Popen(cmd, cwd=repo, env={**os.environ, "PYTHONPATH": repo}, stdout=out,
@@ -276,7 +287,7 @@ def graph_latency_run(columns: int, rows: int, size: int, rate: float, iteration
         finally:
             g.wait(120)
     return {
-        "graph": "launch/sim.yaml",
+        "graph": "launch/sim.yaml" + (" trajectory:=zigzag error_model:=hand" if hand else ""),
         "positions": int(res.phase_rad.size),
         "frames_seen_by_probe": len(frames),
         "image": f"{size}x{size}",
@@ -312,9 +323,30 @@ def graph_latency(repeat: int, *args) -> dict:
     }
 
 
-def main(out_dir: str | Path = "benchmarks/results", quick: bool = False, graph_only: bool = False, repeat: int = 1) -> dict:
+def hand_sweep(out: Path, quick: bool, repeat: int) -> dict:
+    """The live graph's hand sweep (:func:`graph_latency_run` with ``hand``), added to bus.json as
+    ``live_hand_sweep``: the time from the sweep's last radar frame to the focused image, with the
+    drift + tilt fit in it."""
+    sizes = (2, 40, 40, 1.0) if quick else (6, 130, 100, 1.0)
+    runs = [graph_latency_run(*sizes, hand=True) for _ in range(max(1, repeat))]
+    key = "last_radar_frame_to_focused_image_s"
+    hand = {**runs[0], "runs": len(runs), key: float(np.mean([r[key] for r in runs])),
+            "spread_s": [float(min(r[key] for r in runs)), float(max(r[key] for r in runs))],
+            "command": "python -m benchmarks.bench_bus --hand-only" + (" --quick" if quick else "")
+            + (f" --repeat {repeat}" if repeat > 1 else "")}
+    prev = json.loads((out / "bus.json").read_text()) if (out / "bus.json").is_file() else {}
+    prev["live_hand_sweep"] = hand
+    (out / "bus.json").write_text(json.dumps(prev, indent=2, default=float))
+    print(json.dumps(hand, indent=2, default=float))
+    return hand
+
+
+def main(out_dir: str | Path = "benchmarks/results", quick: bool = False, graph_only: bool = False, repeat: int = 1,
+         hand_only: bool = False) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if hand_only:
+        return hand_sweep(out, quick, repeat)
     graph = graph_latency(repeat, *((2, 40, 40, 1.0) if quick else (6, 130, 100, 1.0)))
     if graph_only:
         prev = json.loads((out / "bus.json").read_text()) if (out / "bus.json").is_file() else {}
@@ -333,6 +365,9 @@ def main(out_dir: str | Path = "benchmarks/results", quick: bool = False, graph_
         "scan_end_to_image": [],
         "live_graph": graph,
     }
+    prev_hand = json.loads((out / "bus.json").read_text()).get("live_hand_sweep") if (out / "bus.json").is_file() else None
+    if prev_hand is not None:  # measured by --hand-only (minutes of its own): kept
+        results["live_hand_sweep"] = prev_hand
     cols, rows, size, iters, rate = (2, 40, 40, 30, 20.0) if quick else (6, 130, 100, 300, 10.0)
     for mode in ("stream", "after_scan"):
         results["scan_end_to_image"].append(latency_run(mode, cols, rows, size, iters, rate))
@@ -361,5 +396,7 @@ if __name__ == "__main__":
     ap.add_argument("--quick", action="store_true", help="small sizes (a minute), for checking the script")
     ap.add_argument("--graph-only", action="store_true", help="only the live graph's latency (part 3), added to bus.json")
     ap.add_argument("--repeat", type=int, default=1, help="run the live graph this many times (mean, spread and each run)")
+    ap.add_argument("--hand-only", action="store_true",
+                    help="only the live graph's hand sweep (trajectory:=zigzag error_model:=hand), added to bus.json")
     a = ap.parse_args()
-    main(a.out, a.quick, a.graph_only, a.repeat)
+    main(a.out, a.quick, a.graph_only, a.repeat, a.hand_only)

@@ -1,5 +1,6 @@
 """The simulated tracker's hand model: the tracked pose carries the hand's drift and the array's
 turn, so the synchronizer's phase centres are the hand-held scan's (twinfocus.scenario)."""
+
 import numpy as np
 import pytest
 
@@ -10,12 +11,25 @@ from twinfocus.trajectory import phase_centres
 
 
 def _vio_centres(sc: Scenario, **options):
-    vio = SimVio({"scenario": {"n_columns": sc.n_columns, "n_rows": sc.n_rows, "trajectory": sc.trajectory,
-                               "seed": sc.seed, "error_model": sc.error_model}, **options})
+    vio = SimVio(
+        {
+            "scenario": {
+                "n_columns": sc.n_columns,
+                "n_rows": sc.n_rows,
+                "trajectory": sc.trajectory,
+                "seed": sc.seed,
+                "error_model": sc.error_model,
+            },
+            **options,
+        }
+    )
     _, tracked, stamps = scenario_positions(sc, frame_period_s=0.1, t0_ns=SIM_T0_NS)
     at = vio.poses.interpolate(stamps)  # the poses at the radar stamps, as the synchronizer takes them
-    return phase_centres(at, mmwcas_virtual_array()), tracked, scenario_positions(sc, frame_period_s=0.1,
-                                                                                   t0_ns=SIM_T0_NS)[0]
+    return (
+        phase_centres(at, mmwcas_virtual_array()),
+        tracked,
+        scenario_positions(sc, frame_period_s=0.1, t0_ns=SIM_T0_NS)[0],
+    )
 
 
 def test_hand_pose_carries_the_turn():
