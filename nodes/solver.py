@@ -310,7 +310,9 @@ class Solver(Node):
         ``grid``; pos : (2, K, 3) metres."""
         from twinfocus.ladder import climbs_to
 
-        if self.params["method"] != "twin" or not climbs_to("drift", self.params["model"], self.params["space_variant"]):
+        if self.params["method"] != "twin" or not climbs_to(
+            "drift", self.params["model"], self.params["space_variant"]
+        ):
             return
         from twinfocus.space_variant import fit_smooth_drift
 
