@@ -30,6 +30,7 @@ demo: $(STAMP)
 	$(VENV)/bin/twinfocus simulate --out $(DEMO)/scan.npz --template-out $(DEMO)/template_scan.npz
 	$(VENV)/bin/twinfocus focus $(DEMO)/scan.npz --template-scan $(DEMO)/template_scan.npz \
 	    $(PAPER_FOCUS_ARGS) --out $(DEMO)/focus
+	@$(PY) -m benchmarks.demo_figure $(DEMO)/focus
 	@echo "[make] pictures and figures are in $(DEMO)/focus"
 
 # The node-graph test opens the live web page in a real headless browser (Debian's chromium).
