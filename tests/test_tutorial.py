@@ -71,7 +71,8 @@ def test_the_tutorial_runs_as_written(tmp_path: Path) -> None:
     quoted = next(json.loads(body) for lang, body in blocks(text) if lang == "text" and body.lstrip().startswith("{"))
     report = json.loads((work / "focused" / "metrics.json").read_text())["confidence"]
     assert report["trusted"] is quoted["trusted"] is True and report["warnings"] == quoted["warnings"] == []
-    for key in ("separation_deg", "transfer_bound_rad_max", "reference_match_ssim"):
+    assert sorted(quoted) == sorted(report), "the tutorial's confidence block and the file's keys differ"
+    for key in ("separation_deg", "transfer_bound_rad_max", "reference_match_ssim", "phase_concentration"):
         assert report[key] == pytest.approx(quoted[key], abs=0.01), key
     assert json.loads((work / "focused_2mm" / "metrics.json").read_text())["confidence"]["trusted"] is False
 
@@ -83,3 +84,11 @@ def test_the_tutorial_runs_as_written(tmp_path: Path) -> None:
         k for k in keys if f"`{k}`" not in page and f"`{k}." not in page and f"`{k.split('.')[-1]}`" not in page
     ]
     assert not undocumented, f"docs/reference/metrics.md does not describe {undocumented}"
+
+
+def test_the_thresholds_the_tutorial_quotes_are_the_reports() -> None:
+    from twinfocus.pipeline import MIN_REFERENCE_MATCH, MIN_REFERENCE_MATCH_PHYSICAL
+
+    text = " ".join(TUTORIAL.read_text(encoding="utf-8").split())
+    assert f"warns below {MIN_REFERENCE_MATCH_PHYSICAL} for a physical twin's template" in text
+    assert f"below {MIN_REFERENCE_MATCH} for a digital twin's" in text
