@@ -4,7 +4,7 @@ PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
 DEMO    ?= demo_out
 
-.PHONY: demo test test-fast lint bench bench-paper bench-beyond system-deps browser-deps clean
+.PHONY: demo test test-fast lint api-docs bench bench-paper bench-beyond system-deps browser-deps clean
 
 # open3d and pyusb load the system's libusb-1.0 at import time; without it `import open3d` fails.
 system-deps:
@@ -30,6 +30,7 @@ demo: $(STAMP)
 	$(VENV)/bin/twinfocus simulate --out $(DEMO)/scan.npz --template-out $(DEMO)/template_scan.npz
 	$(VENV)/bin/twinfocus focus $(DEMO)/scan.npz --template-scan $(DEMO)/template_scan.npz \
 	    $(PAPER_FOCUS_ARGS) --out $(DEMO)/focus
+	@$(PY) -m benchmarks.demo_figure $(DEMO)/focus
 	@echo "[make] pictures and figures are in $(DEMO)/focus"
 
 # The node-graph test opens the live web page in a real headless browser (Debian's chromium).
@@ -54,6 +55,12 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check twinfocus msgs nodes
 	$(VENV)/bin/mypy
 	$(VENV)/bin/lint-imports
+
+# The API reference, generated from the docstrings by pdoc into docs/api/ (not committed; open
+# docs/api/index.html). tests/test_api_docs.py builds it the same way.
+api-docs: $(STAMP)
+	$(VENV)/bin/pdoc -o docs/api twinfocus msgs nodes
+	@echo "[make] API reference: docs/api/index.html"
 
 bench: $(STAMP)
 	$(PY) -m benchmarks.run --out benchmarks/results

@@ -1,11 +1,12 @@
-"""Write docs/reference/commands.md from the ``twinfocus`` command's own argument parsers.
+"""Write docs/reference/commands.md and a page per command from the ``twinfocus`` command's own parsers.
 
-    python -m benchmarks.cli_reference                 # rewrite docs/reference/commands.md
-    python -m benchmarks.cli_reference --check         # exit 1 when the committed page is stale
+    python -m benchmarks.cli_reference                 # rewrite docs/reference/commands.md and commands/
+    python -m benchmarks.cli_reference --check         # exit 1 when a committed page is stale
 
-The page is made from what each sub-command's ``add_arguments`` declares (options, choices,
-defaults, help), so it says what the code accepts; ``tests/test_cli_reference.py`` fails when
-the committed page differs from a fresh one.
+The pages are made from what each sub-command's ``add_arguments`` declares (options, choices,
+defaults, help), so they say what the code accepts; ``tests/test_cli_reference.py`` fails when
+a committed page differs from a fresh one. commands.md lists the commands; each has its own page
+(docs/reference/commands/NAME.md), so no page grows past what a reader finishes.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from twinfocus.cli import COMMANDS
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGE = ROOT / "docs" / "reference" / "commands.md"
+COMMAND_PAGES = PAGE.with_suffix("")
 WIDTH = 100
 
 HEADER = """# Reference: commands and options
@@ -93,28 +95,48 @@ def _section(parser: argparse.ArgumentParser, level: int) -> list[str]:
 
 
 def render() -> str:
-    """The whole page, as text."""
+    """The index page, as text: every command with a link to its own page."""
     lines = [HEADER.rstrip(), "", "| command | what it does |", "|---|---|"]
-    lines += [f"| [`twinfocus {name}`](#twinfocus-{name}) | {_cell(text)} |" for name, (_, text) in COMMANDS.items()]
-    lines.append("")
-    for name in COMMANDS:
-        lines += _section(command_parser(name), 2)
+    lines += [
+        f"| [`twinfocus {name}`]({COMMAND_PAGES.name}/{name}.md) | {_cell(text)} |"
+        for name, (_, text) in COMMANDS.items()
+    ]
     return "\n".join(lines).rstrip() + "\n"
+
+
+def render_command(name: str) -> str:
+    """One command's page, as text."""
+    lines = [*_section(command_parser(name), 1), f"All commands: [commands](../{PAGE.name}).", ""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def render_pages() -> dict[Path, str]:
+    """Every page this script writes: the index and one per command."""
+    pages = {PAGE: render()}
+    pages.update({COMMAND_PAGES / f"{name}.md": render_command(name) for name in COMMANDS})
+    return pages
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.cli_reference", description=__doc__.split("\n")[0])
-    p.add_argument("--out", type=Path, default=PAGE, help="page to write (default docs/reference/commands.md)")
-    p.add_argument("--check", action="store_true", help="only compare; exit 1 when the page differs")
+    p.add_argument("--check", action="store_true", help="only compare; exit 1 when a page differs")
     args = p.parse_args(argv)
-    text = render()
+    pages = render_pages()
+    stale = sorted(
+        str(path.relative_to(ROOT))
+        for path in {*pages, *COMMAND_PAGES.glob("*.md")}
+        if not path.is_file() or path.read_text(encoding="utf-8") != pages.get(path)
+    )
     if args.check:
-        same = args.out.is_file() and args.out.read_text(encoding="utf-8") == text
-        print(f"{args.out}: {'up to date' if same else 'stale: run python -m benchmarks.cli_reference'}")
-        return 0 if same else 1
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text, encoding="utf-8")
-    print(f"wrote {args.out}")
+        print(f"stale: {', '.join(stale)}; run python -m benchmarks.cli_reference" if stale else "up to date")
+        return 1 if stale else 0
+    COMMAND_PAGES.mkdir(parents=True, exist_ok=True)
+    for path in COMMAND_PAGES.glob("*.md"):
+        if path not in pages:
+            path.unlink()  # a command that no longer exists
+    for path, text in pages.items():
+        path.write_text(text, encoding="utf-8")
+    print(f"wrote {PAGE.relative_to(ROOT)} and {len(pages) - 1} command pages in {COMMAND_PAGES.relative_to(ROOT)}/")
     return 0
 
 

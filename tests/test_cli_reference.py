@@ -3,18 +3,24 @@ so an option added, removed or changed without the page fails (run ``python -m b
 
 from __future__ import annotations
 
-from benchmarks.cli_reference import PAGE, command_parser, render
+from benchmarks.cli_reference import COMMAND_PAGES, PAGE, command_parser, render, render_command, render_pages
 from twinfocus.cli import COMMANDS
 
 
 def test_the_committed_reference_matches_the_parsers() -> None:
-    assert PAGE.read_text(encoding="utf-8") == render(), "stale: run python -m benchmarks.cli_reference"
+    pages = render_pages()
+    for path, text in pages.items():
+        assert path.is_file() and path.read_text(encoding="utf-8") == text, (
+            f"{path.name} stale: run python -m benchmarks.cli_reference"
+        )
+    assert sorted(COMMAND_PAGES.glob("*.md")) == sorted(p for p in pages if p != PAGE), "a page for no command"
 
 
 def test_every_command_and_option_is_on_the_page() -> None:
-    text = render()
     for name in COMMANDS:
-        assert f"## `twinfocus {name}`" in text
+        assert f"({COMMAND_PAGES.name}/{name}.md)" in render()
+        text = render_command(name)
+        assert f"# `twinfocus {name}`" in text
         for action in command_parser(name)._actions:
             if action.dest == "help":
                 continue
@@ -32,4 +38,5 @@ def test_a_new_option_makes_the_page_stale(monkeypatch) -> None:
         parser.add_argument("--a-new-option", help="something new")
 
     monkeypatch.setattr(convert, "add_arguments", with_one_more)
-    assert "`--a-new-option`" in render() != PAGE.read_text(encoding="utf-8")
+    page = COMMAND_PAGES / "convert.md"
+    assert "`--a-new-option`" in render_command("convert") != page.read_text(encoding="utf-8")

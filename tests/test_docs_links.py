@@ -83,8 +83,11 @@ def test_the_walker_sees_links_pictures_and_code_paths() -> None:
 
 
 def test_the_index_lists_every_page() -> None:
-    """docs/README.md is the way in: every page under docs/ is linked from it."""
+    """docs/README.md is the way in: every page under docs/ is linked from it, or from the page the
+    index links that is named as the page's folder (reference/commands.md lists commands/*.md)."""
     index = ROOT / "docs" / "README.md"
     linked = {rel for rel, _ in _named_paths(index)}
     pages = {p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*.md") if p != index}
+    for folder_page in [p for p in linked if p.endswith(".md") and (ROOT / p).with_suffix("").is_dir()]:
+        linked |= {rel for rel, _ in _named_paths(ROOT / folder_page) if rel.startswith(folder_page[:-3] + "/")}
     assert not sorted(pages - linked), f"pages the index does not list: {sorted(pages - linked)}"

@@ -5,28 +5,22 @@ the run writes."""
 from __future__ import annotations
 
 import json
-import os
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from benchmarks.docs_pages import blocks, page_env
+
 ROOT = Path(__file__).resolve().parents[1]
 TUTORIAL = ROOT / "docs" / "tutorial.md"
-_BLOCK = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
 _OUTPUT_FILE = re.compile(r"`((?:[\w.-]+/)*[\w.-]+\.(?:npz|npy|json|png|bin|txt))`")
-
-
-def blocks(text: str) -> list[tuple[str, str]]:
-    """(language, body) of every fenced block, in order."""
-    return [(m.group(1), m.group(2)) for m in _BLOCK.finditer(text)]
 
 
 def named_outputs(text: str) -> list[str]:
     """The files the tutorial says a step writes: backticked relative paths outside docs/."""
-    prose = _BLOCK.sub("", text)
+    prose = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)
     return sorted({p for p in _OUTPUT_FILE.findall(prose) if not p.startswith(("docs/", "images/", ".venv"))})
 
 
@@ -40,11 +34,8 @@ def test_the_parser_finds_the_steps() -> None:
 @pytest.mark.slow
 def test_the_tutorial_runs_as_written(tmp_path: Path) -> None:
     text = TUTORIAL.read_text(encoding="utf-8")
-    env = dict(os.environ)
     # `python` and `twinfocus` are the environment's, as after `source .venv/bin/activate`.
-    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
-    env["PYTHONPATH"] = f"{ROOT}{os.pathsep}{env.get('PYTHONPATH', '')}"
-    env["TWINFOCUS_CACHE_DIR"] = str(tmp_path / "cache")
+    env = page_env(tmp_path / "cache")
     work = tmp_path / "tutorial"
     work.mkdir()
     printed = ""
@@ -62,7 +53,10 @@ def test_the_tutorial_runs_as_written(tmp_path: Path) -> None:
 
     shown = [body for lang, body in blocks(text) if lang in ("", "text")]
     lines = [
-        ln.strip() for body in shown for ln in body.splitlines() if ln.startswith(("[convert]", "[calibrate]", "twinfocus focus:"))
+        ln.strip()
+        for body in shown
+        for ln in body.splitlines()
+        if ln.startswith(("[convert]", "[calibrate]", "twinfocus focus:"))
     ]
     assert lines, "the tutorial shows no output line to check"
     for line in lines:
@@ -71,7 +65,8 @@ def test_the_tutorial_runs_as_written(tmp_path: Path) -> None:
     quoted = next(json.loads(body) for lang, body in blocks(text) if lang == "text" and body.lstrip().startswith("{"))
     report = json.loads((work / "focused" / "metrics.json").read_text())["confidence"]
     assert report["trusted"] is quoted["trusted"] is True and report["warnings"] == quoted["warnings"] == []
-    for key in ("separation_deg", "transfer_bound_rad_max", "reference_match_ssim"):
+    assert sorted(quoted) == sorted(report), "the tutorial's confidence block and the file's keys differ"
+    for key in ("separation_deg", "transfer_bound_rad_max", "reference_match_ssim", "phase_concentration"):
         assert report[key] == pytest.approx(quoted[key], abs=0.01), key
     assert json.loads((work / "focused_2mm" / "metrics.json").read_text())["confidence"]["trusted"] is False
 
@@ -83,3 +78,11 @@ def test_the_tutorial_runs_as_written(tmp_path: Path) -> None:
         k for k in keys if f"`{k}`" not in page and f"`{k}." not in page and f"`{k.split('.')[-1]}`" not in page
     ]
     assert not undocumented, f"docs/reference/metrics.md does not describe {undocumented}"
+
+
+def test_the_thresholds_the_tutorial_quotes_are_the_reports() -> None:
+    from twinfocus.pipeline import MIN_REFERENCE_MATCH, MIN_REFERENCE_MATCH_PHYSICAL
+
+    text = " ".join(TUTORIAL.read_text(encoding="utf-8").split())
+    assert f"warns below {MIN_REFERENCE_MATCH_PHYSICAL} for a physical twin's template" in text
+    assert f"below {MIN_REFERENCE_MATCH} for a digital twin's" in text

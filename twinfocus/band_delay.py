@@ -83,7 +83,7 @@ def position_range_errors_m(
     the true phase and no tracking error the values scatter by 0.4-0.7 mm (a position's sub-image
     holds every scatterer on its range ring, and where their delays centre depends on the
     surface), and a constant + linear trend of the errors across the aperture is out of their
-    sight (each position is read against the image of all): docs/digital_twin.md, "What the scan
+    sight (each position is read against the image of all): docs/digital_twin_autofocus.md, "What the scan
     alone can place".
     """
     low_basis = np.asarray(low_basis)

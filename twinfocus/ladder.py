@@ -624,7 +624,7 @@ class Placement(Rung):
 class RangeErrors(Rung):
     """Each position's range error read from the band's halves (on the pixels holding 99 % of the
     estimate's image energy), taken out of the estimate before its ramp is fitted
-    (docs/digital_twin.md, "Placing the reference by the band's halves"). Auto: only when the
+    (docs/digital_twin_autofocus.md, "Placing the reference by the band's halves"). Auto: only when the
     estimate's phases have wrapped (its ramp is out of sight) or its ramp is larger than a
     misplacement explains."""
 

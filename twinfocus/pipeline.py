@@ -281,7 +281,7 @@ def place_estimate(
     ramp is out of sight) nor when its ramp is larger than a misplacement explains (it may be
     tracking error): with ``upper_band`` (:func:`upper_band_basis`) and ``phase_ramp`` 'auto' the
     range errors from the band's halves then take the tracking error out along the line of sight
-    and tell (docs/digital_twin.md, "Placing the reference by the band's halves").
+    and tell (docs/digital_twin_autofocus.md, "Placing the reference by the band's halves").
 
     phase : float (M,) radians; ref_basis : complex (M, H, W) on ``reference_grid``; positions :
     float64 (M, K, 3) phase centres, metres; coherence_sqrt_m : unused (the range-errors rung
@@ -660,7 +660,7 @@ def placement_warnings(coherence: float, ranged: float | None, removed: bool, ou
     )
     then = (
         f"{DIGITAL_TWIN_NEXT} " if outline else ""
-    ) + '(docs/digital_twin.md, "Placing the reference by the band\'s halves")'
+    ) + '(docs/digital_twin_autofocus.md, "Placing the reference by the band\'s halves")'
     if ranged is not None and ranged >= MIN_RANGED_RAMP_COHERENCE_SQRT_M and removed:
         return [
             wrapped + f"and the band's halves placed the reference (ramp coherence x sqrt(M) {ranged:.1f}), but their "
@@ -789,7 +789,7 @@ def confidence_report(
                 f"the reference is curved (its cloud departs {1e3 * float(twin.get('curvature_m', 0.0)):.1f} mm from a "
                 "plane): the outline estimator reached 0.86 +- 0.06 of target SSIM on a bent plate and 0.87 +- 0.06 "
                 "on a cylinder section in held-out field scenes, against 0.94 flat and 0.99 with a physical twin; "
-                'expect the target below its ceiling (docs/digital_twin.md, "Curved references")'
+                'expect the target below its ceiling (docs/digital_twin_autofocus.md, "Curved references")'
             )
     residual = m.get("reference_residual")
     out["reference_residual"] = residual

@@ -256,7 +256,7 @@ def preload_torch() -> threading.Thread:
     its images, the import (0.8-0.9 s on the 2-core machine) runs in the gaps of their
     back-projection instead of inside the fit: on hand scans the template stage took about 0.8 s
     longer, the fit's stage 0.9-1.2 s less, the whole run 0.3 s less on average
-    (docs/performance.md, "Field fits"). The fit's own ``import torch`` waits for this one when it
+    (docs/performance_field_fits.md, "Field fits"). The fit's own ``import torch`` waits for this one when it
     has not finished (Python's import lock), so nothing else changes. Not a daemon: a run that
     ends early waits for the import to finish rather than tear it down half done."""
     import importlib

@@ -490,7 +490,7 @@ def grown_outlines(
     return out
 
 
-#: rounds of :func:`grown_outline` before the averaged estimate (docs/digital_twin.md, "Growing the
+#: rounds of :func:`grown_outline` before the averaged estimate (docs/digital_twin_autofocus.md, "Growing the
 #: outline first"): field bench B placed by the truth 0.925 with none, 0.969 with two
 OUTLINE_GROWTH_ROUNDS = 2
 
