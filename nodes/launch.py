@@ -69,7 +69,7 @@ import yaml
 from nodes import FINISHING_TYPES, NODE_TYPES
 from nodes.bus import Broker
 from nodes.node import ENV_GRAPH_NODES, ENV_LAUNCHED, ENV_LAUNCHER_PID
-from nodes.params import Param, coerce, parse_assignment, resolve
+from nodes.params import REQUIRED, Param, coerce, parse_assignment, resolve
 from twinfocus.errors import TwinFocusError
 
 LAUNCH_DIR = Path(__file__).resolve().parent.parent / "launch"
@@ -286,7 +286,7 @@ def _check_argument(path: Path, name: str, spec: dict, value: Any) -> Any:
 
 def _check_parameters(path: Path, spec: NodeSpec) -> None:
     """The node's parameters against what its class declares (:func:`nodes.params.resolve`:
-    names, types, choices), so a bad value is one line before any node starts, not a traceback
+    names, types, choices; a required one left out is the node's to refuse), so a bad value is one line before any node starts, not a traceback
     from each node that takes it. A node class that cannot be imported here is left to say so
     itself when it starts."""
     import importlib
@@ -306,7 +306,9 @@ def _check_parameters(path: Path, spec: NodeSpec) -> None:
         return
     cls = classes[0]
     try:
-        resolve(spec.name, cls.PARAMS, spec.parameters, (), cls.RENAMED_PARAMS)
+        # a required parameter left out is the node's own one-line refusal (it names the argument)
+        declared = {k: p for k, p in cls.PARAMS.items() if p.default is not REQUIRED or k in spec.parameters}
+        resolve(spec.name, declared, spec.parameters, (), cls.RENAMED_PARAMS)
     except TwinFocusError as exc:
         raise TwinFocusError(f"{path.name}: {exc}") from None
 

@@ -92,6 +92,7 @@ class _Scan:
     gaps_before: tuple[int, int, int] = (0, 0, 0)  # the stream's gap counts when the scan began
     gaps: tuple[int, int, int] = (0, 0, 0)  # the stream's gap counts at its latest measurement
     incomplete: str = ""  # why the scan ended without its last measurement (empty: it did not)
+    counted_before: tuple[int, int] = (0, 0)  # radar frames, measurements published for the scans before
 
 
 class Solver(Node):
@@ -378,6 +379,7 @@ class Solver(Node):
             s = None
         if s is None:
             s = self.scan = _Scan(m.scan_id, chirp, m.data.shape[0], time.monotonic(), gaps_before=self.stream_gaps)
+            s.counted_before = (self._radar_frames_before, self._paired_before)
             s.truth = [] if self.params["truth_metrics"] else None
             self.log(f"scan {m.scan_id!r} started")
         if chirp != s.chirp or m.data.shape[0] != s.n_channels:
@@ -944,10 +946,13 @@ class Solver(Node):
                 break
             self.heartbeat_if_due()
             time.sleep(0.1)
-        paired = sum(int(g["published"]["sar/measurement"]) for g in pubs) - self._paired_before
         if not graph or not pubs:  # no broker answer, or no publisher heard from: the old count
             return int(s.expected if s.expected is not None else s.max_index + 1)
-        radar = 0 if final else self._radar_frames(s)
+        radar_before, paired_before = s.counted_before
+        paired = sum(int(g["published"]["sar/measurement"]) for g in pubs) - paired_before
+        radar = 0
+        if not final:
+            radar = sum(int((g.get("published") or {}).get("radar/frame", 0)) for g in graph.values()) - radar_before
         return max(s.max_index + 1, s.n, paired, radar)
 
     def on_shutdown(self) -> None:
