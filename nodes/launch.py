@@ -32,7 +32,10 @@ take the paper's regions, image size and iterations from ``launch/paper.yaml`` t
 argument is declared in one place: the same name in two of them is an error.
 
 ``$(arg NAME)`` is replaced by an argument (keeping its YAML type when it is the whole
-value), ``$(env NAME)`` / ``$(env NAME default)`` by an environment variable.
+value), ``$(env NAME)`` / ``$(env NAME default)`` by an environment variable. :func:`load`
+checks, before any node starts, every ``name:=value`` against the type of the argument's
+default and every node's parameters against the parameters its class declares
+(:func:`nodes.params.resolve`), so a bad value is one line (exit 2), not a traceback per node.
 
 :func:`run` starts the broker in this process, each node as a child process (its own session,
 so a terminal's Ctrl-C reaches only the launcher, which then stops the nodes in order; and a
@@ -42,6 +45,14 @@ of a node whose ``on_exit`` says so: SIGTERM first, SIGKILL once a node has been
 heartbeat) for ``grace_s`` -- a node still heartbeating while it ends (the solver focusing the part
 of a scan that arrived) is given up to ``max_stop_s``. Nodes also poll their parent pid, so they
 notice a dead launcher within 0.1 s even if the signal was missed.
+
+A failed run: the launcher names the node that stopped first and exits 1. A node stopped by a
+signal that is not the launcher's says so in every heartbeat from then on (while it may still
+finish its work: the solver focusing what arrived), so it is named before a node that ends
+because of it (the visualizer handed that incomplete result); of nodes that ended together, one
+that failed is named before one that finished. Before it stops the other nodes the launcher
+tells the broker why the run failed (:meth:`nodes.bus.Broker.fail`), which the recorder asks to
+keep an earlier log.
 
 Hung nodes: the broker keeps every node's latest heartbeat (nodes send one every ``heartbeat_s``,
 also from long computations). A node silent for ``stall_s`` (at least three periods) whose process
@@ -286,9 +297,9 @@ def _check_argument(path: Path, name: str, spec: dict, value: Any) -> Any:
 
 def _check_parameters(path: Path, spec: NodeSpec) -> None:
     """The node's parameters against what its class declares (:func:`nodes.params.resolve`:
-    names, types, choices; a required one left out is the node's to refuse), so a bad value is one line before any node starts, not a traceback
-    from each node that takes it. A node class that cannot be imported here is left to say so
-    itself when it starts."""
+    names, types, choices; a required one left out is the node's to refuse), so a bad value is
+    one line before any node starts, not a traceback from each node that takes it. A node class
+    that cannot be imported here is left to say so itself when it starts."""
     import importlib
 
     from nodes.node import Node

@@ -28,7 +28,7 @@ import pytest
 from msgs.mcap_log import LogReader
 from nodes.testing import patience
 from tests.test_graph import CLI, REPO, Launched, free_port
-from tests.test_graph_faults import SMALL, pids_by_name, replay, small_log, wait_text
+from tests.test_graph_faults import SMALL, pids_by_name, replay, small_log
 from tests.test_log_faults import damage_frame, frames_log
 
 
@@ -151,7 +151,7 @@ def test_play_of_a_cut_log_exits_1_and_says_where_it_was_cut(tmp_path, capfd):
         assert main(["play", str(cut), "--rate", "0", "--broker", ep]) == 1
     err = capfd.readouterr().err
     (end,) = [ln for ln in err.splitlines() if "end of log" in ln]
-    assert f"the log is cut at byte" in end and f"radar/frame seq {last}" in end, err
+    assert "the log is cut at byte" in end and f"radar/frame seq {last}" in end, err
     with local_broker() as ep:  # the whole log: status 0
         assert main(["play", str(log), "--rate", "0", "--broker", ep]) == 0
 
