@@ -211,7 +211,7 @@ class Player(Node):
                 f"the log is cut at byte {r.valid_bytes} of {r.size}: nothing after {last or 'its start'} "
                 "(what came after the cut cannot be counted)"
             )
-        elif r.damage and not lost and not self.skipped:
+        elif not r.complete and not lost and not self.skipped:  # damage that left no gap to count
             parts.append(r.condition)
         return "; ".join(parts)
 
