@@ -87,6 +87,7 @@ class Broker:
         self._ctrl_addr = f"inproc://broker-steer-{uuid.uuid4().hex}"
         self._graph: dict[str, dict] = {}  # latest heartbeat of every node, for late joiners
         self._graph_lock = threading.Lock()
+        self._verdict = ""  # why the launcher stops the graph as a failed run (empty: it does not)
 
     # -- lifecycle --------------------------------------------------------------------------
     def start(self, timeout_s: float = 5.0) -> Broker:
@@ -189,6 +190,8 @@ class Broker:
                     if request == b"graph":
                         with self._graph_lock:
                             rep.send(json.dumps(self._graph).encode())
+                    elif request == b"verdict":
+                        rep.send(self._verdict.encode())
                     else:
                         rep.send(endpoints)
         finally:
@@ -214,6 +217,7 @@ class Broker:
                     "publishes": st.publishes,
                     "pid": st.pid,
                     "message": st.message,
+                    "published": dict(st.published),
                     "heard_s": time.monotonic(),  # when it arrived: the launcher's hang watch
                 }
 
@@ -222,6 +226,27 @@ class Broker:
         ``message``, ``heard_s``: ``time.monotonic()`` when it arrived), by node name."""
         with self._graph_lock:
             return {k: dict(v) for k, v in self._graph.items()}
+
+    def fail(self, reason: str) -> None:
+        """Mark the run failed (``reason``, one line) before the launcher stops the graph, so the
+        nodes that end with it (the recorder) can tell a failed run from a planned stop:
+        :func:`query_verdict`."""
+        self._verdict = reason or "failed"
+
+
+def query_verdict(endpoint: str, ctx: zmq.Context, timeout_s: float = 0.5) -> str | None:
+    """Why the launcher stops the graph as a failed run; "" for no failure (so far), None when the
+    broker does not answer in time."""
+    req = ctx.socket(zmq.REQ)
+    req.setsockopt(zmq.LINGER, 0)
+    req.connect(endpoint)
+    try:
+        req.send(b"verdict")
+        if req.poll(int(timeout_s * 1000)):
+            return req.recv().decode(errors="replace")
+        return None
+    finally:
+        req.close(linger=0)
 
 
 def query_graph(endpoint: str, ctx: zmq.Context, timeout_s: float = 0.5) -> dict[str, dict]:

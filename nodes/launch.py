@@ -32,7 +32,10 @@ take the paper's regions, image size and iterations from ``launch/paper.yaml`` t
 argument is declared in one place: the same name in two of them is an error.
 
 ``$(arg NAME)`` is replaced by an argument (keeping its YAML type when it is the whole
-value), ``$(env NAME)`` / ``$(env NAME default)`` by an environment variable.
+value), ``$(env NAME)`` / ``$(env NAME default)`` by an environment variable. :func:`load`
+checks, before any node starts, every ``name:=value`` against the type of the argument's
+default and every node's parameters against the parameters its class declares
+(:func:`nodes.params.resolve`), so a bad value is one line (exit 2), not a traceback per node.
 
 :func:`run` starts the broker in this process, each node as a child process (its own session,
 so a terminal's Ctrl-C reaches only the launcher, which then stops the nodes in order; and a
@@ -42,6 +45,14 @@ of a node whose ``on_exit`` says so: SIGTERM first, SIGKILL once a node has been
 heartbeat) for ``grace_s`` -- a node still heartbeating while it ends (the solver focusing the part
 of a scan that arrived) is given up to ``max_stop_s``. Nodes also poll their parent pid, so they
 notice a dead launcher within 0.1 s even if the signal was missed.
+
+A failed run: the launcher names the node that stopped first and exits 1. A node stopped by a
+signal that is not the launcher's says so in every heartbeat from then on (while it may still
+finish its work: the solver focusing what arrived), so it is named before a node that ends
+because of it (the visualizer handed that incomplete result); of nodes that ended together, one
+that failed is named before one that finished. Before it stops the other nodes the launcher
+tells the broker why the run failed (:meth:`nodes.bus.Broker.fail`), which the recorder asks to
+keep an earlier log.
 
 Hung nodes: the broker keeps every node's latest heartbeat (nodes send one every ``heartbeat_s``,
 also from long computations). A node silent for ``stall_s`` (at least three periods) whose process
@@ -69,7 +80,7 @@ import yaml
 from nodes import FINISHING_TYPES, NODE_TYPES
 from nodes.bus import Broker
 from nodes.node import ENV_GRAPH_NODES, ENV_LAUNCHED, ENV_LAUNCHER_PID
-from nodes.params import parse_assignment
+from nodes.params import REQUIRED, Param, coerce, parse_assignment, resolve
 from twinfocus.errors import TwinFocusError
 
 LAUNCH_DIR = Path(__file__).resolve().parent.parent / "launch"
@@ -219,7 +230,7 @@ def load(path: str | os.PathLike, assignments: list[str] | tuple = ()) -> Graph:
     for name, spec in declared.items():
         spec = spec if isinstance(spec, dict) else {"default": spec}
         if name in given:
-            args[name] = given[name]
+            args[name] = _check_argument(path, name, spec, given[name])
         elif "default" in spec:
             args[name] = spec["default"]
         else:
@@ -262,7 +273,55 @@ def load(path: str | os.PathLike, assignments: list[str] | tuple = ()) -> Graph:
         nodes.append(NodeSpec(name, module, params, on_exit, respawn, delay, most))
     if not nodes:
         raise TwinFocusError(f"{path}: every node is disabled")
+    for spec in nodes:
+        _check_parameters(path, spec)
     return Graph(path, str(doc.get("description", "")), broker, nodes, args)
+
+
+def _check_argument(path: Path, name: str, spec: dict, value: Any) -> Any:
+    """A launch argument given as ``name:=value``, as the type of its declared default (a number,
+    true/false, a list of numbers); refused in one line before any node starts. Arguments
+    without a default or with a text default take any value (the nodes check them)."""
+    default = spec.get("default")
+    if default is None or isinstance(default, str):
+        return value
+    kind = None
+    if isinstance(default, (list, tuple)):
+        numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in default)
+        kind = "floats" if default and numbers else "list"
+    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    checked = coerce(f"{path.name}: argument {name} (default {default!r})", Param(default, type=kind), value)
+    return value if kind == "list" else checked
+
+
+def _check_parameters(path: Path, spec: NodeSpec) -> None:
+    """The node's parameters against what its class declares (:func:`nodes.params.resolve`:
+    names, types, choices; a required one left out is the node's to refuse), so a bad value is
+    one line before any node starts, not a traceback from each node that takes it. A node class
+    that cannot be imported here is left to say so itself when it starts."""
+    import importlib
+
+    from nodes.node import Node
+
+    try:
+        module = importlib.import_module(spec.module)
+    except Exception:
+        return
+    classes = [
+        c
+        for c in vars(module).values()
+        if isinstance(c, type) and issubclass(c, Node) and c is not Node and c.__module__ == module.__name__
+    ]
+    if len(classes) != 1:
+        return
+    cls = classes[0]
+    try:
+        # a required parameter left out is the node's own one-line refusal (it names the argument)
+        declared = {k: p for k, p in cls.PARAMS.items() if p.default is not REQUIRED or k in spec.parameters}
+        resolve(spec.name, declared, spec.parameters, (), cls.RENAMED_PARAMS)
+    except TwinFocusError as exc:
+        raise TwinFocusError(f"{path.name}: {exc}") from None
 
 
 class _Output:
@@ -332,6 +391,7 @@ class Launcher:
         self.broker: Broker | None = None
         self._stop_reason: str | None = None
         self._code = 0
+        self._failure = ""  # the line that named the node whose stop failed the run
 
     def say(self, text: str) -> None:
         self.out.line("launch", text)
@@ -392,6 +452,9 @@ class Launcher:
             self.start()
             self._watch()
         finally:
+            if self._code and self.broker is not None:
+                # before any node is stopped: the recorder asks for it to keep the earlier log
+                self.broker.fail(self._failure or f"the graph failed (status {self._code})")
             self._stop_all()
             if in_main:
                 for sig, h in old.items():
@@ -421,13 +484,15 @@ class Launcher:
                 due[name] = time.monotonic() + spec.respawn_delay_s
                 return True
             if spec.respawn:
-                self.say(
-                    f"node {name!r} {what} and was respawned {spec.respawn_max} time(s) already; stopping the graph"
-                )
+                fail(f"node {name!r} {what} and was respawned {spec.respawn_max} time(s) already", code)
             else:
-                self.say(f"node {name!r} {what}; stopping the graph")
-            self._code = 2 if code == 2 else 1
+                fail(f"node {name!r} {what}", code)
             return False
+
+        def fail(what: str, code: int = 1) -> None:
+            self._failure = what
+            self.say(f"{what}; stopping the graph")
+            self._code = 2 if code == 2 else 1
 
         while running or due:
             if self._stop_reason is not None:
@@ -439,9 +504,18 @@ class Launcher:
                     self._spawn(specs[name])
                     running.add(name)
             beats = self.broker.heartbeats() if self.broker is not None else {}
-            for name in sorted(running):
+            outside = self._stopped_from_outside(running, specs, beats)
+            if outside:
+                fail(outside)
+                return
+            # the nodes that ended since the last pass, failures first: a node that finished
+            # because another one stopped (the visualizer, handed an incomplete result) is not
+            # the one to name
+            ended = {n: self.procs[n].poll() for n in running}
+            order = sorted(running, key=lambda n: (ended[n] is None or (ended[n] == 0 and not specs[n].respawn), n))
+            for name in order:
                 p = self.procs[name]
-                code = p.poll()
+                code = ended[name]
                 if code is None:
                     why = self._hang(name, specs[name], p, beats.get(name))
                     if why is None:
@@ -460,18 +534,37 @@ class Launcher:
                         return
                     continue
                 if spec.on_exit == "shutdown":
+                    # a node stopped from outside just before may not have been heard from yet
+                    time.sleep(0.3)
+                    beats = self.broker.heartbeats() if self.broker is not None else {}
+                    outside = self._stopped_from_outside(running, specs, beats)
+                    if outside:
+                        fail(outside)
+                        return
                     self.say(f"node {name!r} finished; stopping the graph (on_exit: shutdown)")
                     return
                 if spec.on_exit == "fail":
-                    self.say(
-                        f"node {name!r} ended while the graph runs, and the graph cannot work without it; "
-                        "stopping the graph (set on_exit: ignore or respawn: true in the launch file to allow it)"
+                    fail(
+                        f"node {name!r} ended while the graph runs, and the graph cannot work without it "
+                        "(set on_exit: ignore or respawn: true in the launch file to allow it)"
                     )
-                    self._code = 1
                     return
                 self.say(f"node {name!r} finished")
             time.sleep(0.05)
         self.say("every node finished")
+
+    def _stopped_from_outside(self, running: set[str], specs: dict[str, NodeSpec], beats: dict) -> str:
+        """The line naming a running node that says it was stopped by a signal not the
+        launcher's ("" for none). Its heartbeats say so from the signal on (nodes.node), while
+        it may still be finishing its work; a node that is respawned is judged when it ends."""
+        for name in sorted(running):
+            hb = beats.get(name) or {}
+            msg = str(hb.get("message") or "")
+            if specs[name].respawn or hb.get("pid") != self.procs[name].pid or not msg.startswith("received SIG"):
+                continue
+            sig = msg.split()[1] if len(msg.split()) > 1 else "a signal"
+            return f"node {name!r} was stopped by {sig} from outside the launcher"
+        return ""
 
     def _last_word(self, name: str, pid: int) -> str:
         """': <reason>' from the final heartbeat of a node that ended with a reason (as the
@@ -565,7 +658,7 @@ class Launcher:
             self.broker.stop()
             self.broker = None
         if self.procs:
-            self.say("graph stopped")
+            self.say(f"graph stopped: failed ({self._failure})" if self._failure else "graph stopped")
 
 
 def _proc_state(pid: int) -> tuple[str, int] | None:

@@ -485,7 +485,9 @@ class Node:
             received=dict(self._received),
             published={k: v for k, v in self._published.items() if k != STATUS_TOPIC},
             lost=dict(self._lost),
-            message=self.status_message,
+            # stopped by a signal not the launcher's: every heartbeat from then on says so, so the
+            # launcher names this node at once, not when (or after another node) it ends
+            message=self._stop.reason if self._stop is not None and self._stop.code >= 128 else self.status_message,
         )
         st.header.stamp_ns = now_ns()
         self._status_pub.publish(st)

@@ -94,12 +94,18 @@ def param_of(setting: Setting) -> Param:
 
 
 def _coerce(node: str, name: str, p: Param, value: Any) -> Any:
+    return coerce(f"node {node!r}: parameter {name!r}", p, value)
+
+
+def coerce(label: str, p: Param, value: Any) -> Any:
+    """``value`` as the type ``p`` declares; a value that does not fit raises
+    :class:`~twinfocus.errors.TwinFocusError` ``"<label> must be <type>, got <value>"``."""
     kind = p.kind
     if value is None and p.default is None:
         return None
 
     def bad(expected: str):
-        return TwinFocusError(f"node {node!r}: parameter {name!r} must be {expected}, got {value!r}")
+        return TwinFocusError(f"{label} must be {expected}, got {value!r}")
 
     if kind == "bool":
         if isinstance(value, bool):

@@ -6,7 +6,9 @@ fast as the bus takes them), optionally ``loop``-ing, restricted to ``topics``, 
 is ready before its first message, and it numbers ``seq`` afresh per topic, so subscribers
 detect any loss on the replay itself. Logs cut short by a crash play up to their last
 complete message. With ``exit_when_done`` (default) the node ends after the last message
-(once ZeroMQ has handed everything to the broker).
+(once ZeroMQ has handed everything to the broker), with status 0: under a launcher the solver
+judges the scan. ``twinfocus play`` exits 1 when the log lacked anything (:meth:`Player.loss`,
+said in the ``end of log`` line).
 
 Damage: the reader checks every chunk's CRC and skips what fails (named in the start line:
 bytes, topics, time range); a message that does not decode, or a radar frame or measurement
@@ -187,15 +189,31 @@ class Player(Node):
         if self.params["loop"]:
             self._begin_pass()
             return
-        lost = {t: n for t, n in self.missing.items() if n}
-        note = ""
-        if lost or self.skipped:
-            note = "; missing from the log or damaged: " + ", ".join(f"{t}: {n}" for t, n in sorted(lost.items()))
-            note += f" ({self.skipped} skipped as damaged)" if self.skipped else ""
-        self.log(f"end of log: published {self.sent} message(s){note}")
-        self.status_message = f"done: {self.sent} messages"
+        note = self.loss()
+        self.log(f"end of log: published {self.sent} message(s)" + (f"; {note}" if note else ""))
+        self.status_message = f"done: {self.sent} messages" + (f"; {note}" if note else "")
         if self.params["exit_when_done"]:
             self.request_shutdown("end of log")
+
+    def loss(self) -> str:
+        """What the played log lacked, in one line ("" when it was whole): the messages missing
+        (seq gaps) or damaged per topic, and, for a log cut short, the last message of each
+        topic played (whatever came after it is not in the file and cannot be counted)."""
+        lost = {t: n for t, n in self.missing.items() if n}
+        parts = []
+        if lost or self.skipped:
+            part = "missing from the log or damaged: " + ", ".join(f"{t}: {n}" for t, n in sorted(lost.items()))
+            parts.append(part + (f" ({self.skipped} skipped as damaged)" if self.skipped else ""))
+        r = self.reader
+        if not r.footer:
+            last = ", ".join(f"{t} seq {n}" for t, n in sorted(self._last_seq.items()))
+            parts.append(
+                f"the log is cut at byte {r.valid_bytes} of {r.size}: nothing after {last or 'its start'} "
+                "(what came after the cut cannot be counted)"
+            )
+        elif not r.complete and not lost and not self.skipped:  # damage that left no gap to count
+            parts.append(r.condition)
+        return "; ".join(parts)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -9,9 +9,10 @@ A log is replaced only by the log of a run that ended as planned. The recording 
 under a name that says partial (``OUT_STEM.partial-<UTC stamp>-<pid>.mcap`` beside ``out``)
 and moved onto ``out`` only when the recorder stops at the planned end of its run
 (:meth:`Recorder.unplanned_stop`): started by hand, on Ctrl-C or SIGTERM; under a launcher,
-when the launcher stops the graph and no node had failed (last status ``error``) or fallen
-silent (no heartbeat for ``silent_s`` before the stop). Any other stop (the launcher killed,
-a node failing or hanging, the recorder crashing) finishes the partial file and keeps it beside
+when the launcher stops the graph and no node had failed (last status ``error``), fallen
+silent (no heartbeat for ``silent_s`` before the stop) or been named by the launcher as the
+node that failed the run (stopped from outside, killed, crashed: :func:`nodes.bus.query_verdict`).
+Any other stop (the launcher killed, a node failing or hanging, the recorder crashing) finishes the partial file and keeps it beside
 the earlier log, which stays byte-identical, and says so in one line; a killed recorder leaves
 the partial file as it was. A run that recorded nothing leaves no file. A full disk: one line,
 the partial file deleted (it would keep the disk full), the earlier log kept.
@@ -38,6 +39,7 @@ import zmq
 
 from msgs import NodeStatus, RadarFrame, SarMeasurement, encode, now_ns
 from msgs.mcap_log import LogWriteError, LogWriter
+from nodes.bus import query_verdict
 from nodes.node import ENV_LAUNCHER_PID, GONE_STATES, Node, run_node
 from nodes.params import REQUIRED, Param
 
@@ -178,6 +180,11 @@ class Recorder(Node):
         ]
         if failed:
             return f"node {', '.join(failed)} failed"
+        # the launcher's own word: it names a node stopped from outside or killed (which sends
+        # no last status) before it stops the graph
+        verdict = query_verdict(self.broker, self.ctx)
+        if verdict:
+            return verdict
         # Measured against the newest heartbeat heard, not the clock: a recorder starved of CPU
         # hears every node late, a hung node is behind the others.
         newest = max((st.header.stamp_ns for st in self.graph.values()), default=0)

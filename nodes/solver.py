@@ -92,6 +92,7 @@ class _Scan:
     gaps_before: tuple[int, int, int] = (0, 0, 0)  # the stream's gap counts when the scan began
     gaps: tuple[int, int, int] = (0, 0, 0)  # the stream's gap counts at its latest measurement
     incomplete: str = ""  # why the scan ended without its last measurement (empty: it did not)
+    counted_before: tuple[int, int] = (0, 0)  # radar frames, measurements published for the scans before
 
 
 class Solver(Node):
@@ -203,8 +204,10 @@ class Solver(Node):
         self.waiting: list[_Scan] = []  # finished scans waiting for a template
         self.done = 0
         self.failed = 0  # scans dropped (not focused)
+        self.short: list[str] = []  # scans focused without every position: what each lacked
         self._template_msg: TwinTemplate | None = None  # the template in use, as received
         self._radar_frames_before = 0  # radar frames published for the scans before the current one
+        self._paired_before = 0  # measurements published (paired) for the scans before the current one
         self._flush_scheduled = False
         self.stream_gaps = (0, 0, 0)  # the latest measurement's capture gap counts (since the stream began)
         self.result_pub = self.create_publisher("autofocus/result")
@@ -404,6 +407,7 @@ class Solver(Node):
             s = None
         if s is None:
             s = self.scan = _Scan(m.scan_id, chirp, m.data.shape[0], time.monotonic(), gaps_before=self.stream_gaps)
+            s.counted_before = (self._radar_frames_before, self._paired_before)
             s.truth = [] if self.params["truth_metrics"] else None
             self.log(f"scan {m.scan_id!r} started")
         if chirp != s.chirp or m.data.shape[0] != s.n_channels:
@@ -603,6 +607,9 @@ class Solver(Node):
         except TwinFocusError as exc:
             self._drop(s, f"could not focus it: {exc}")
             return
+        stopping = bool(s.incomplete) and self._stop is not None
+        if stopping:  # counted now that the graph around the solver has stopped
+            s.expected = self._expected_at_stop(s)
         expected = s.expected if s.expected is not None else s.max_index + 1
         out.metrics["n_positions_expected"] = int(max(expected, s.n))
         out.metrics["n_positions_missing"] = int(max(0, expected - s.n))
@@ -610,9 +617,9 @@ class Solver(Node):
         if s.incomplete:
             out.metrics["incomplete_reason"] = s.incomplete
         if expected > s.n:
+            why = "never reached the solver before it stopped" if stopping else "never arrived"
             self.log(
-                f"scan {s.scan_id!r}: {expected - s.n} of its {expected} positions never arrived; "
-                f"focused the {s.n} that did"
+                f"scan {s.scan_id!r}: {expected - s.n} of its {expected} positions {why}; focused the {s.n} that did"
             )
         gaps = _scan_gaps(s.gaps_before, s.gaps)
         if any(gaps):
@@ -646,6 +653,11 @@ class Solver(Node):
             name = s.scan_id + (".incomplete" if s.incomplete else "")
             d = write_outputs(Path(self.params["out_dir"]) / name, out, pictures=self.params["pictures"])
             self.log(f"wrote {d}/")
+        if s.incomplete or expected > s.n:
+            lack = f"{expected - s.n} of {expected} positions missing" if expected > s.n else f"{s.n} positions focused"
+            self.short.append(
+                f"scan {s.scan_id!r}: {lack}" + (f", its end never arrived ({s.incomplete})" if s.incomplete else "")
+            )
         self._count_done()
 
     def _focus_whole(self, scan):
@@ -919,6 +931,12 @@ class Solver(Node):
         if n and self.done >= n:
             if self.failed:
                 self.request_shutdown(f"{self.failed} of {self.done} scan(s) dropped: {self.status_message}", 1)
+            elif self.short:
+                # the work is unfinished: a replay of a cut or damaged log is not a clean run
+                self.request_shutdown(
+                    f"{len(self.short)} of {self.done} scan(s) focused without every position: {'; '.join(self.short)}",
+                    1,
+                )
             else:
                 self.request_shutdown(f"{self.done} scan(s) done")
 
@@ -929,6 +947,7 @@ class Solver(Node):
         if s.expected is None:
             s.expected = max(s.max_index + 1, self._radar_frames(s))
         self._radar_frames_before += max(s.expected, s.n)
+        self._paired_before += max(s.expected, s.n)
 
     def _radar_frames(self, s: _Scan) -> int:
         """Radar frames published for the scan so far, by the radar drivers' heartbeats (0 where no
@@ -936,6 +955,33 @@ class Solver(Node):
         have had, had every frame reached the solver."""
         total = sum(st.published.get("radar/frame", 0) for st in self.read_heartbeats().values())
         return max(0, total - self._radar_frames_before)
+
+    def _expected_at_stop(self, s: _Scan, wait_s: float = 3.0) -> int:
+        """The positions a scan cut short by the solver's own stop should have had: the
+        measurements the other nodes published for it (the synchronizer's pairs), by their
+        final heartbeats at the broker (waiting up to ``wait_s`` for them to end: the graph
+        stops around the solver, and a publisher that ends later paired more); where a publisher
+        sent no final heartbeat (killed, hung) its count may be short, and the radar frames
+        published for the scan count too."""
+        from nodes.bus import query_graph
+
+        deadline = time.monotonic() + wait_s
+        while True:
+            graph = query_graph(self.broker, self.ctx)
+            pubs = [g for n, g in graph.items() if n != self.name and (g.get("published") or {}).get("sar/measurement")]
+            final = all(g.get("state") in ("stopped", "error") for g in pubs)
+            if final or time.monotonic() >= deadline or not all(_alive(int(g.get("pid") or 0)) for g in pubs):
+                break
+            self.heartbeat_if_due()
+            time.sleep(0.1)
+        if not graph or not pubs:  # no broker answer, or no publisher heard from: the old count
+            return int(s.expected if s.expected is not None else s.max_index + 1)
+        radar_before, paired_before = s.counted_before
+        paired = sum(int(g["published"]["sar/measurement"]) for g in pubs) - paired_before
+        radar = 0
+        if not final:
+            radar = sum(int((g.get("published") or {}).get("radar/frame", 0)) for g in graph.values()) - radar_before
+        return max(s.max_index + 1, s.n, paired, radar)
 
     def on_shutdown(self) -> None:
         """A graph stopped mid-scan (a node hung, Ctrl-C) still gets the scan's image from what
@@ -956,6 +1002,21 @@ class Solver(Node):
             self._finish(s)
         except Shutdown:  # the launcher died meanwhile: nothing can be delivered
             pass
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` still exists (a node on this machine; 0: unknown, taken as alive)."""
+    import os
+
+    if pid <= 0:
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    return True
 
 
 def _scan_gaps(before: tuple[int, int, int], now: tuple[int, int, int]) -> tuple[int, int, int]:

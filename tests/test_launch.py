@@ -51,7 +51,7 @@ def _write(path: Path, doc: dict) -> Path:
 
 
 def _graph_doc(**extra) -> dict:
-    return {**extra, "nodes": [{"name": "s", "node": "solver", "parameters": {"size": "$(arg size)", "roi": "$(arg roi)"}}]}
+    return {**extra, "nodes": [{"name": "s", "node": "solver", "parameters": {"size": "$(arg size)", "reference_roi": "$(arg roi)"}}]}
 
 
 def test_includes_resolve_relative_to_the_launch_file_not_the_working_folder(tmp_path, monkeypatch):
@@ -61,7 +61,7 @@ def test_includes_resolve_relative_to_the_launch_file_not_the_working_folder(tmp
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)
     graph = launch.load(lf)
-    assert graph.nodes[0].parameters == {"size": 64, "roi": [1, 2, 3, 4, 5]}
+    assert graph.nodes[0].parameters == {"size": 64, "reference_roi": [1, 2, 3, 4, 5]}
     # A single file name is accepted as well as a list.
     lf2 = _write(tmp_path / "conf" / "g2.yaml", _graph_doc(include="shared/geometry.yaml"))
     assert launch.load(lf2, ["size:=8"]).nodes[0].parameters["size"] == 8

@@ -175,7 +175,7 @@ def test_a_replay_of_a_damaged_log_focuses_the_scan_without_the_frame_and_counts
         code = g.wait(240)
     finally:
         g.kill()
-    assert code == 0, g.text
+    assert code == 1, g.text  # focused without the damaged frame: not every position arrived
     assert "damaged" in g.text and "radar/frame (1 message)" in g.text, g.text
     assert "NaN" not in g.text, g.text
     (metrics_file,) = (tmp_path / "out" / "focus").glob("*/metrics.json")
@@ -267,7 +267,10 @@ def test_a_node_stopped_mid_run_keeps_the_earlier_log_and_says_so(tmp_path, good
     assert LogReader(partial).complete and 10 <= LogReader(partial).counts["radar/frame"] < 100
     lines = [ln for ln in g.lines if "[recorder]" in ln and "stopped before the run ended as planned" in ln]
     assert len(lines) == 1, g.text
-    assert "node player (received SIGTERM) failed" in lines[0] and partial.name in lines[0], lines[0]
+    # the launcher's word (it names the player as soon as its heartbeat says SIGTERM), or the
+    # recorder's own when the player had ended before the stop
+    named = ("node 'player' was stopped by SIGTERM from outside the launcher", "node player (received SIGTERM) failed")
+    assert any(n in lines[0] for n in named) and partial.name in lines[0], lines[0]
     assert f"{out} is the earlier log, unchanged" in lines[0], lines[0]
 
 

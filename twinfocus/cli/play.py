@@ -41,4 +41,6 @@ def run(args: argparse.Namespace) -> int:
         },
         broker=args.broker,
     )
-    return node.spin()
+    code = node.spin()
+    # the end-of-log line has said what was lost; a log that lacked anything is no clean replay
+    return 1 if code == 0 and node.loss() else code
