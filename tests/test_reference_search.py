@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pytest
 
+from twinfocus.boxes import REGION_MARGIN_M as SCAN_MARGIN_M
 from twinfocus.cli import main
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import Chirp, mmwcas_virtual_array
@@ -46,7 +47,9 @@ def test_region_of_a_template_file_is_its_grid():
 def test_region_of_the_one_object_of_a_scan():
     ch = Chirp()
     va = mmwcas_virtual_array()
-    pos = np.array([va.offsets_m + [cx, y, 0.0] for cx in (-0.03, 0.0, 0.03) for y in np.arange(-9.5, 10) * 0.005])
+    # rows 2 mm apart, as a sweep's frames are: rows 5 mm apart put grating lobes 25 cm off, each
+    # nearly as bright as the object
+    pos = np.array([va.offsets_m + [cx, y, 0.0] for cx in (-0.03, 0.0, 0.03) for y in np.arange(-24.5, 25) * 0.002])
     # a 6 x 8 cm patch of scatterers 5 mm apart at 0.62 m, away from the aperture's axis
     xs, ys = np.meshgrid(np.arange(-0.12, -0.06 + 1e-9, 0.005), np.arange(0.0, 0.08 + 1e-9, 0.005))
     pts = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.62)], axis=1)
@@ -56,10 +59,10 @@ def test_region_of_the_one_object_of_a_scan():
     assert roi[4] == pytest.approx(0.62, abs=0.1 * ch.range_resolution_m)
     # the box holds the patch, with at most 2.5 cm to spare on a side beyond the margin
     truth = (-0.12, -0.06, 0.0, 0.08)
-    assert roi[0] < truth[0] < roi[0] + REGION_MARGIN_M + 0.025
-    assert roi[1] - REGION_MARGIN_M - 0.025 < truth[1] < roi[1]
-    assert roi[2] < truth[2] < roi[2] + REGION_MARGIN_M + 0.025
-    assert roi[3] - REGION_MARGIN_M - 0.025 < truth[3] < roi[3]
+    assert roi[0] < truth[0] < roi[0] + SCAN_MARGIN_M + 0.025
+    assert roi[1] - SCAN_MARGIN_M - 0.025 < truth[1] < roi[1]
+    assert roi[2] < truth[2] < roi[2] + SCAN_MARGIN_M + 0.025
+    assert roi[3] - SCAN_MARGIN_M - 0.025 < truth[3] < roi[3]
     assert info["source"] == "physical twin scan" and info["object_energy_share"] > 0.9
 
 

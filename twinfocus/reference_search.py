@@ -4,10 +4,11 @@
   its points (robust to stray points) grown by a margin, at the depth of their median;
 - a template file: the grid it was made on;
 - a physical twin's scan (the reference alone, on accurate positions): the brightest object of
-  a coarse volume of that scan, its x/y box grown by a margin, at the depth where it is sharpest
-  (:func:`twinfocus.depth_search.search_depth`).
+  the wide look at that scan (:func:`twinfocus.boxes.look`), its x/y extent grown by a margin, at
+  the depth where it is sharpest.
 
-Each returns the region (X0, X1, Y0, Y1, Z) and how surely it was found, for metrics.json.
+Each returns the region (X0, X1, Y0, Y1, Z) and how surely it was found, for metrics.json, with
+the object's own ``extent_m`` (the region less the margin).
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ from __future__ import annotations
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid, VolumeGrid
 from twinfocus.radar import Chirp
 
 #: the region is the object's x/y box grown by this on every side, metres: the estimators need the
@@ -25,18 +25,6 @@ from twinfocus.radar import Chirp
 REGION_MARGIN_M = 0.03
 #: a cloud's box is taken between these percentiles of its x and y (stray points beyond are ignored)
 CLOUD_PERCENTILES = (1.0, 99.0)
-#: a physical twin's scan is searched over the aperture's x/y box grown by this, metres ...
-IMAGE_SEARCH_MARGIN_M = 0.3
-#: ... and these depths, metres, on this many pixels per side, with at most this many radar positions
-IMAGE_SEARCH_DEPTHS_M = (0.2, 1.2)
-IMAGE_SEARCH_SIZE = 40
-IMAGE_SEARCH_MAX_POSITIONS = 120
-#: the object is the connected pixels of the projection's energy, smoothed over this many pixels
-#: (a Gaussian's sigma), within this many dB of its brightest
-OBJECT_SMOOTHING_PX = 1.0
-OBJECT_DB = -10.0
-#: the box is drawn again on a finer plane at the object's depth, over the coarse box grown by this, metres
-REFINE_MARGIN_M = 0.03
 
 
 def region_from_cloud(points_m: np.ndarray, margin_m: float = REGION_MARGIN_M) -> tuple[tuple, dict]:
@@ -57,6 +45,7 @@ def region_from_cloud(points_m: np.ndarray, margin_m: float = REGION_MARGIN_M) -
     roi = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), z)
     return roi, {
         "source": "digital twin cloud",
+        "extent_m": [*(roi[i] + (margin_m if i % 2 == 0 else -margin_m) for i in range(4)), z],
         "points": int(p.shape[0]),
         "points_inside": round(float(inside.mean()), 4),
         # how far the surface departs from one depth (a tilted or curved reference is deep)
@@ -68,28 +57,7 @@ def region_from_template_file(x_m: np.ndarray, y_m: np.ndarray, z_m: float) -> t
     """The region a template file was made on: its pixel centres' box at its depth (metres)."""
     x, y = np.asarray(x_m, np.float64), np.asarray(y_m, np.float64)
     roi = (float(x.min()), float(x.max()), float(y.min()), float(y.max()), float(z_m))
-    return roi, {"source": "template file"}
-
-
-def _object_box(mip: np.ndarray, plane: ImageGrid, margin_m: float) -> tuple[tuple[float, float, float, float], float]:
-    """The x/y box of the connected bright pixels around the projection's brightest, grown by
-    ``margin_m``, and the share of the bright pixels' energy that object holds."""
-    from scipy import ndimage  # only on this path
-
-    # speckle breaks a letter into bright islands: the energy smoothed over a few pixels joins them
-    e = ndimage.gaussian_filter(mip.astype(np.float64) ** 2, OBJECT_SMOOTHING_PX)
-    bright = e >= e.max() * 10 ** (OBJECT_DB / 10)
-    labels, _ = ndimage.label(bright)
-    obj = labels == labels[np.unravel_index(int(np.argmax(e)), e.shape)]
-    ii, jj = np.nonzero(obj)
-    dy, dx = plane.spacing_m
-    box = (
-        float(plane.x_m[jj.min()] - dx / 2 - margin_m),
-        float(plane.x_m[jj.max()] + dx / 2 + margin_m),
-        float(plane.y_m[ii.min()] - dy / 2 - margin_m),
-        float(plane.y_m[ii.max()] + dy / 2 + margin_m),
-    )
-    return box, float(e[obj].sum() / e[bright].sum())
+    return roi, {"source": "template file", "extent_m": list(roi)}
 
 
 def region_from_scan(
@@ -97,45 +65,27 @@ def region_from_scan(
     positions_m: np.ndarray,
     chirp: Chirp,
     *,
-    margin_m: float = REGION_MARGIN_M,
+    margin_m: float | None = None,
     bp_options: dict | None = None,
     progress_factory=None,
 ) -> tuple[tuple, dict]:
     """The region of the one object a scan holds (a physical twin's scan of the reference
-    alone): the brightest object of a coarse volume, then its depth by
-    :func:`~twinfocus.depth_search.search_depth` on its box (module docstring).
+    alone): the brightest object of :func:`twinfocus.boxes.look` at the scan, its extent grown by
+    ``margin_m`` (default :data:`twinfocus.boxes.REGION_MARGIN_M`), at the depth where it is sharpest.
 
     data : complex (M, K, N); positions_m : float64 (M, K, 3) metres. Returns ((X0, X1, Y0, Y1, Z),
-    info with the object's share of the bright energy (1: nothing else bright) and the depth
-    search's contrast)."""
-    from twinfocus.depth_search import search_depth
-    from twinfocus.volume import corrected_image, projections
+    info with the object's ``extent_m`` and its share of the look's bright energy (1: nothing else
+    bright))."""
+    from twinfocus import boxes
 
-    prog = progress_factory or (lambda label: None)
-    bp = dict(bp_options or {})
-    step = max(1, -(-data.shape[0] // IMAGE_SEARCH_MAX_POSITIONS))
-    d, p = data[::step], positions_m[::step]
-    centres = p.reshape(-1, 3)
-    lo = centres[:, :2].min(axis=0) - IMAGE_SEARCH_MARGIN_M
-    hi = centres[:, :2].max(axis=0) + IMAGE_SEARCH_MARGIN_M
-    z0, z1 = IMAGE_SEARCH_DEPTHS_M
-    plane = ImageGrid(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), z0, IMAGE_SEARCH_SIZE, IMAGE_SEARCH_SIZE)
-    n_planes = int(np.ceil((z1 - z0) / (0.5 * chirp.range_resolution_m))) + 1
-    grid = VolumeGrid(plane, z0, z1, n_planes)
-    vol = corrected_image(d, p, chirp, grid, np.zeros(d.shape[0]), progress=prog("reference search"), **bp)
-    mip, _ = projections(vol, grid)
-    box, _ = _object_box(mip, plane, margin_m)
-    found = search_depth(d, p, chirp, box, (z0, z1), np.zeros(d.shape[0]), bp_options=bp)
-    g = REFINE_MARGIN_M
-    fine = ImageGrid(
-        box[0] - g, box[1] + g, box[2] - g, box[3] + g, found.depth_m, IMAGE_SEARCH_SIZE, IMAGE_SEARCH_SIZE
-    )
-    box, share = _object_box(np.abs(corrected_image(d, p, chirp, fine, np.zeros(d.shape[0]), **bp)), fine, margin_m)
-    roi = (*box, float(found.depth_m))
+    seen = boxes.look(data, positions_m, chirp, bp_options=bp_options, progress_factory=progress_factory)
+    obj = seen.objects[0]
+    grown = boxes.grow(obj.extent_m, boxes.REGION_MARGIN_M if margin_m is None else margin_m)
+    roi = (*grown, float(obj.depth_m))
     return roi, {
         "source": "physical twin scan",
-        "object_energy_share": round(share, 4),
-        "depth_contrast": round(float(found.contrast), 2),
+        "extent_m": [*obj.extent_m, float(obj.depth_m)],
+        "object_energy_share": round(obj.share, 4),
     }
 
 

@@ -38,11 +38,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--target-roi",
         nargs="+",
-        required=True,
+        default=None,
         metavar="X0 X1 Y0 Y1 [Z | Z0:Z1]",
         help="target region (metres): with Z, focused there; with a range Z0:Z1, or without a depth (the "
         f"reference's +- {DEFAULT_HALF_RANGE_M} m), the depth where its corrected image is sharpest is searched "
-        "for (metrics.json target_depth, depth_search.png)",
+        "for (metrics.json target_depth, depth_search.png); left out, the brightest object of the look at the "
+        "scan apart from the reference (metrics.json boxes, look.png; twinfocus/boxes.py)",
     )
     p.add_argument(
         "--refine-depth",
@@ -149,10 +150,13 @@ def check_memory(n_positions: int, size: int, available: int | None = None) -> i
     )
 
 
-def target_region(values: list[str]) -> tuple[tuple[float, ...], float | tuple[float, float] | None]:
-    """``--target-roi``'s words -> (X0, X1, Y0, Y1) and the depth: Z, (Z0, Z1) or None."""
+def target_region(values: list[str] | None) -> tuple[tuple[float, ...] | None, float | tuple[float, float] | None]:
+    """``--target-roi``'s words -> (X0, X1, Y0, Y1) and the depth: Z, (Z0, Z1) or None; (None,
+    None) when it was left out (the box is then found: twinfocus.boxes)."""
     from twinfocus.depth_search import parse_depth
 
+    if values is None:
+        return None, None
     if len(values) not in (4, 5):
         raise TwinFocusError(f"--target-roi takes X0 X1 Y0 Y1 and optionally Z or Z0:Z1, got {len(values)} values")
     try:
@@ -166,7 +170,7 @@ def target_region(values: list[str]) -> tuple[tuple[float, ...], float | tuple[f
     return box, depth
 
 
-def volume_plan(args: argparse.Namespace, n_positions: int, n_channels: int, reference_roi=None):
+def volume_plan(args: argparse.Namespace, n_positions: int, n_channels: int, reference_roi=None, target_box=None):
     """The ``--volume`` grid over both regions' x/y box and what it will cost (checked against
     the memory available), or None without ``--volume``. reference_roi : the reference region
     when it was found rather than typed (before it is, the target's box stands in: the cost
@@ -175,8 +179,8 @@ def volume_plan(args: argparse.Namespace, n_positions: int, n_channels: int, ref
 
     if args.volume is None:
         return None
-    box, _ = target_region(args.target_roi)
-    ref = reference_roi or args.reference_roi or (*box, 1.0)
+    box = target_box or target_region(args.target_roi)[0] or reference_roi or args.reference_roi or (0, 1, 0, 1)
+    ref = reference_roi or args.reference_roi or (*box[:4], 1.0)
     plane = ImageGrid(
         min(box[0], ref[0]), max(box[1], ref[1]), min(box[2], ref[2]), max(box[3], ref[3]), 1.0, args.size, args.size
     )
@@ -219,8 +223,8 @@ def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
                 "for a template file)"
             )
     target_region(args.target_roi)
-    if args.reference_roi is None and args.method:
-        raise TwinFocusError("--method needs --reference-roi (a reference region is found only from a twin)")
+    if (args.reference_roi is None or args.target_roi is None) and args.method:
+        raise TwinFocusError("--method needs --reference-roi and --target-roi (the regions are found only with a twin)")
     if args.refine_depth is not None and not (args.refine_depth > 0):
         raise TwinFocusError(f"--refine-depth must be a positive distance (metres), got {args.refine_depth}")
     check_memory(shapes["data"][0], args.size)
@@ -369,6 +373,11 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
     timings: dict[str, float] = {}
     t = time.perf_counter()
     reference_roi, reference_found = _reference_region(args, bp, progress)
+    if box is not None and reference_found["source"] != "typed":
+        from twinfocus.boxes import cut_away  # a found region stops short of the typed target's
+
+        extent = reference_found.get("extent_m", reference_roi)
+        reference_roi = (*cut_away(list(reference_roi[:4]), box, extent, box), reference_roi[4])
     if reference_found["source"] != "typed":
         timings["reference_search"] = time.perf_counter() - t
         if not args.quiet:
@@ -408,6 +417,20 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
         phase_ramp=args.phase_ramp,
         tracking_error_m=args.tracking_error_mm * 1e-3,
     )
+    found_boxes = None
+    if box is None:
+        from twinfocus import boxes
+
+        t = time.perf_counter()
+        extent = reference_found.get("extent_m", reference_roi)
+        found_boxes, seen = boxes.find_target(
+            focus, scan, reference_roi, extent, reference_found["source"], bp, progress
+        )
+        timings["boxes"] = time.perf_counter() - t
+        box, typed_depth = found_boxes.target_roi[:4], found_boxes.target_roi[4]
+        depth_range = range_to_search(typed_depth, args.refine_depth, ref_grid.z)
+        if not args.quiet:
+            print(found_boxes.line(), file=sys.stderr)
     search = None
     if depth_range is not None:
         t = time.perf_counter()
@@ -421,6 +444,8 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
     if search is not None:
         outputs.metrics["target_depth"] = {**search_info, **search.to_dict()}
     outputs.metrics["reference_search"] = {**reference_found, "roi": list(reference_roi)}
+    if found_boxes is not None:
+        outputs.metrics["boxes"] = found_boxes.info
     outputs.timings_s = {**timings, **outputs.timings_s}
     if cache_status is not None:
         outputs.metrics["template_cache"] = cache_status
@@ -432,6 +457,8 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
         "twin_info": twin_info,
         "ref_grid": ref_grid,
         "method": method,
+        "boxes": (found_boxes, seen) if found_boxes is not None else None,
+        "typed_depth": typed_depth,
     }
 
 
@@ -506,7 +533,7 @@ def run(args: argparse.Namespace) -> int:
 
         save_template(args.save_template, template, ref_grid, support=support, info=twin_info)
     volume, cloud = None, None
-    plan = volume_plan(args, shapes["data"][0], shapes["data"][1], ref_grid.roi)
+    plan = volume_plan(args, shapes["data"][0], shapes["data"][1], ref_grid.roi, outputs.target_grid.roi[:4])
     sub_arrays = None
     if plan is not None and device == "cpu" and args.precision == "float32":
         from twinfocus.line_backprojection import plan as line_plan
@@ -540,7 +567,13 @@ def run(args: argparse.Namespace) -> int:
         )
     t = time.perf_counter()
     write_outputs(args.out, outputs, pictures=pictures)
-    _write_where(args.out, search, typed_depth, volume, plan[0] if plan else None, cloud, pictures)
+    _write_where(args.out, search, chosen["typed_depth"], volume, plan[0] if plan else None, cloud, pictures)
+    if chosen["boxes"] is not None and pictures != "none":
+        from twinfocus.atomic import atomic_writer
+        from twinfocus.boxes import look_picture
+
+        with atomic_writer(Path(args.out) / "look.png") as f:
+            look_picture(f, chosen["boxes"][1], chosen["boxes"][0])
     t_write = time.perf_counter() - t
     m = outputs.metrics
     for warning in m["confidence"]["warnings"]:
