@@ -50,6 +50,9 @@ FINE_MAX_PX = 96
 COARSE_SMOOTHING_PX = 1.0
 FINE_SMOOTHING_PX = 1.0
 OBJECT_DB = -10.0
+#: objects of one plane closer than this, metres, are pieces of one (a gap of less than about two
+#: resolution cells at the scene's depths; the demo's letters lie 3.7 cm apart)
+MERGE_GAP_M = 0.012
 #: a blob or an object with less than this share of the bright energy is ignored; at most this many blobs
 MIN_SHARE = 0.02
 MAX_BLOBS = 4
@@ -64,7 +67,8 @@ MATCH_IOU = 0.3
 @dataclass
 class LookObject:
     """One bright object of the look: ``extent_m`` (X0, X1, Y0, Y1) metres, the edges of its
-    bright pixels; ``depth_m``; ``share`` of the look's bright energy (all objects sum to 1)."""
+    bright pixels; ``depth_m``; ``share`` of the look's bright energy (with the objects too faint to
+    keep, below :data:`MIN_SHARE`, all sum to 1)."""
 
     extent_m: tuple[float, float, float, float]
     depth_m: float
@@ -119,6 +123,58 @@ def objects_in(image: np.ndarray, plane: ImageGrid, smoothing_px: float, db: flo
             float(plane.y_m[rows.stop - 1] + dy / 2),
         )
         found.append((box, float(e[labels == k].sum()) * dx * dy))
+    return sorted(_merge_near(found), key=lambda f: -f[1])
+
+
+def _gap(a, b) -> float:
+    """How far apart two x/y boxes are, metres: the larger of the x and y gaps (<= 0: they touch)."""
+    return max(max(a[0], b[0]) - min(a[1], b[1]), max(a[2], b[2]) - min(a[3], b[3]))
+
+
+def _merge_near(found: list) -> list:
+    """Pieces of one object (a letter's speckle can leave a bar apart from its stem) joined: boxes
+    closer than :data:`MERGE_GAP_M` become one, their energies summed."""
+    found = list(found)
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(found)):
+            for j in range(i + 1, len(found)):
+                (a, ea), (b, eb) = found[i], found[j]
+                if _gap(a, b) < MERGE_GAP_M:
+                    box = (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
+                    found[i] = (box, ea + eb)
+                    del found[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return found
+
+
+def _blobs(volume: np.ndarray, grid: VolumeGrid) -> list[tuple[tuple[float, float, float, float], float, float]]:
+    """The coarse volume's bright blobs, connected in 3-D (objects at different depths beside each
+    other stay apart): [(x/y box (X0, X1, Y0, Y1) metres, energy, depth metres of its brightest
+    voxel)], the brightest first. volume : complex (D, H, W) on ``grid``."""
+    from scipy import ndimage  # only on this path
+
+    e = ndimage.gaussian_filter(np.abs(volume).astype(np.float64) ** 2, (0.0, COARSE_SMOOTHING_PX, COARSE_SMOOTHING_PX))
+    if not e.max() > 0:
+        return []
+    labels, _ = ndimage.label(e >= e.max() * 10 ** (OBJECT_DB / 10))
+    plane = grid.plane
+    dy, dx = plane.spacing_m
+    found = []
+    for k, (_, rows, cols) in enumerate(ndimage.find_objects(labels), start=1):
+        mask = labels == k
+        peak = np.unravel_index(int(np.argmax(np.where(mask, e, 0.0))), e.shape)
+        box = (
+            float(plane.x_m[cols.start] - dx / 2),
+            float(plane.x_m[cols.stop - 1] + dx / 2),
+            float(plane.y_m[rows.start] - dy / 2),
+            float(plane.y_m[rows.stop - 1] + dy / 2),
+        )
+        found.append((box, float(e[mask].sum()), float(grid.z_m[peak[0]])))
     return sorted(found, key=lambda f: -f[1])
 
 
@@ -155,18 +211,13 @@ def look(
     n_planes = int(np.ceil((z1 - z0) / (0.5 * chirp.range_resolution_m))) + 1
     grid = VolumeGrid(plane, z0, z1, n_planes)
     vol = corrected_image(d, p, chirp, grid, ph, progress=prog("look"), **bp)
-    mip, depth = projections(vol, grid, floor_db=-30.0)
-    blobs = objects_in(mip, plane, COARSE_SMOOTHING_PX)
+    mip, _ = projections(vol, grid)
+    blobs = _blobs(vol, grid)
     total = sum(b[1] for b in blobs) or 1.0
     fine, objects = [], []
-    for box, energy in blobs[:MAX_BLOBS]:
+    for box, energy, z_blob in blobs[:MAX_BLOBS]:
         if energy / total < MIN_SHARE:
             continue
-        rows, cols = plane.index_of(np.array([box[0], box[1]]), np.array([box[2], box[3]]))
-        r0, r1 = np.clip(np.round(rows).astype(int), 0, plane.height - 1)
-        c0, c1 = np.clip(np.round(cols).astype(int), 0, plane.width - 1)
-        patch = depth[r0 : r1 + 1, c0 : c1 + 1]
-        z_blob = float(np.nanmedian(patch)) if np.isfinite(patch).any() else 0.5 * (z0 + z1)
         half = DEPTH_SEARCH_RESOLUTIONS * chirp.range_resolution_m
         found = search_depth(d, p, chirp, box, (max(0.05, z_blob - half), z_blob + half), ph, bp_options=bp)
         g = FINE_MARGIN_M
@@ -353,7 +404,7 @@ def look_picture(path, seen: Look, boxes: Boxes) -> None:
 
     from twinfocus.plotting import _font, inferno
 
-    panels = [(seen.mip, seen.plane, "look (uncorrected, wide)")]
+    panels = [(seen.mip, seen.plane, "look, wide (projection over depth)")]
     panels += [(img, g, f"look, z {g.z * 1e3:.0f} mm") for img, g in seen.fine]
     px, pad, head = 320, 12, 24
     canvas = Image.new("RGB", (len(panels) * (px + 2 * pad), px + head + 2 * pad), "white")

@@ -1,0 +1,128 @@
+"""Boxes found against boxes typed: ``twinfocus focus`` with neither ``--reference-roi`` nor
+``--target-roi`` (twinfocus/boxes.py), on the demo scene and a few others of its family.
+
+For each scene: ``twinfocus simulate`` (the full 6 x 130 raster), then ``twinfocus focus
+--template-scan`` twice at ``--size 100``, once with the boxes typed (the demo's: the paper's
+regions, the Makefile's; the others: :meth:`twinfocus.scenario.Scenario.reference_roi` /
+``target_roi``, each letter's extent grown by 1.5 cm) and once with both left out. Recorded:
+each found region's edges and depth less the letter's (the truth: the scene's object corners,
+:meth:`twinfocus.scene.PlanarObject.corners_m`, and its centre's depth), whether the two found
+regions overlap, the target's SSIM against the truth image both ways, and the run's time.
+
+Writes ``boxes_found.json`` (with the machine and its load) to the output folder.
+Run: ``python -m benchmarks.bench_boxes_found --out benchmarks/results`` (about 4 min on 2 cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+from twinfocus.atomic import write_text_atomic
+from twinfocus.boxes import overlap
+from twinfocus.cli import main as cli
+from twinfocus.machine import machine_info
+from twinfocus.scenario import Scenario, planar_object
+
+SIZE = 100
+#: name -> (simulate's options, the Scenario they make); the demo first
+SCENES = {
+    "demo (A, F at 0.6 m, 10 deg)": ([], Scenario()),
+    "C, X at 0.5 m, 14 deg, seed 1": (
+        ["--reference", "C", "--target", "X", "--distance", "0.5", "--separation-deg", "14", "--seed", "1"],
+        Scenario(reference="C", target="X", distance_m=0.5, separation_deg=14.0, seed=1),
+    ),
+    "R, Z at 0.7 m, 12 deg, target 8 cm deeper, seed 2": (
+        ["--reference", "R", "--target", "Z", "--distance", "0.7", "--separation-deg", "12", "--seed", "2",
+         "--target-depth-offset", "0.08"],
+        Scenario(reference="R", target="Z", distance_m=0.7, separation_deg=12.0, seed=2, target_depth_offset_m=0.08),
+    ),
+}  # fmt: skip
+
+
+def truth_extent(sc: Scenario, name: str) -> list[float]:
+    """The letter's x/y extent and depth [X0, X1, Y0, Y1, Z] (metres) from the scene itself."""
+    obj = planar_object(sc.scene(), name)
+    c = obj.corners_m()
+    return [float(c[:, 0].min()), float(c[:, 0].max()), float(c[:, 1].min()), float(c[:, 1].max()),
+            float(obj.centre_m[2])]  # fmt: skip
+
+
+def _roi_args(roi) -> list[str]:
+    return [f"{v:.6g}" for v in roi]
+
+
+def run_scene(d: Path, sim: list[str], sc: Scenario) -> dict:
+    assert cli(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"), "--quiet", *sim]) == 0
+    common = [str(d / "scan.npz"), "--template-scan", str(d / "tpl.npz"), "--size", str(SIZE), "--quiet", "--no-cache"]
+    typed_args = ["--reference-roi", *_roi_args(sc.reference_roi()), "--target-roi", *_roi_args(sc.target_roi())]
+    t = time.perf_counter()
+    assert cli(["focus", *common, *typed_args, "--out", str(d / "typed")]) == 0
+    typed_s = time.perf_counter() - t
+    t = time.perf_counter()
+    assert cli(["focus", *common, "--out", str(d / "found")]) == 0
+    found_s = time.perf_counter() - t
+    typed = json.loads((d / "typed" / "metrics.json").read_text())
+    found = json.loads((d / "found" / "metrics.json").read_text())
+    row: dict = {}
+    for role, name in (("reference", "reference"), ("target", "target")):
+        truth = truth_extent(sc, name)
+        roi = found[f"{role}_roi"]
+        extent = found["boxes"][role]["extent_m"]
+        # region edge less the letter's edge, outward positive: the margin left on each side
+        out = [truth[0] - roi[0], roi[1] - truth[1], truth[2] - roi[2], roi[3] - truth[3]]
+        row[role] = {
+            "truth_m": truth,
+            "found_roi_m": roi,
+            "found_extent_m": extent,
+            "region_edge_out_m": [round(v, 4) for v in out],
+            "extent_edge_error_m": [round(extent[i] - truth[i], 4) for i in range(4)],
+            "depth_error_m": round(roi[4] - truth[4], 4),
+            "holds_letter": bool(min(out) >= 0),
+            "within_2cm": bool(max(abs(v) for v in out) <= 0.02 and abs(roi[4] - truth[4]) <= 0.02),
+        }
+    row["regions_overlap"] = overlap(found["reference_roi"][:4], found["target_roi"][:4]) > 0
+    row["sure"] = found["boxes"]["sure"]
+    row["target_ssim_typed"] = typed["target_ssim_corrected"]
+    row["target_ssim_found"] = found["target_ssim_corrected"]
+    row["target_ssim_found_less_typed"] = round(found["target_ssim_corrected"] - typed["target_ssim_corrected"], 4)
+    row["seconds"] = {"typed": round(typed_s, 1), "found": round(found_s, 1),
+                      "boxes": round(found["timings_s"].get("boxes", 0.0), 1)}  # fmt: skip
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", default="benchmarks/results")
+    args = p.parse_args(argv)
+    rows = {}
+    for name, (sim, sc) in SCENES.items():
+        with tempfile.TemporaryDirectory() as tmp:
+            rows[name] = run_scene(Path(tmp), sim, sc)
+        print(
+            name, json.dumps({k: rows[name][k] for k in ("target_ssim_typed", "target_ssim_found", "regions_overlap")})
+        )
+    worst = max(abs(r["target_ssim_found_less_typed"]) for r in rows.values())
+    doc = {
+        "command": "python -m benchmarks.bench_boxes_found --out benchmarks/results",
+        "size": SIZE,
+        "scenes": rows,
+        "summary": {
+            "largest_target_ssim_difference": worst,
+            "all_within_2cm": all(r[k]["within_2cm"] for r in rows.values() for k in ("reference", "target")),
+            "any_overlap": any(r["regions_overlap"] for r in rows.values()),
+        },
+        "machine": machine_info(),
+    }
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "boxes_found.json", json.dumps(doc, indent=2, default=float) + "\n")
+    print(f"wrote {out / 'boxes_found.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

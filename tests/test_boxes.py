@@ -1,0 +1,104 @@
+"""The boxes found by the look (twinfocus/boxes.py): against the objects' own extents in
+simulated scenes, and ``focus`` with no box typed against the same scene's typed boxes."""
+
+import json
+
+import numpy as np
+import pytest
+
+from twinfocus.boxes import REGION_MARGIN_M, Look, LookObject, choose, cut_away, look, overlap
+from twinfocus.cli import main
+from twinfocus.errors import TwinFocusError
+from twinfocus.grid import ImageGrid
+from twinfocus.radar import Chirp, mmwcas_virtual_array
+from twinfocus.scenario import Scenario, planar_object
+from twinfocus.simulate import simulate_if
+
+
+def _patch(x0, x1, y0, y1, z, rng):
+    xs, ys = np.meshgrid(np.arange(x0, x1 + 1e-9, 0.004), np.arange(y0, y1 + 1e-9, 0.004))
+    pts = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, z)], axis=1)
+    return pts, np.exp(2j * np.pi * rng.random(len(pts)))  # speckle
+
+
+def test_look_finds_two_patches_at_their_extents_and_depths():
+    ch = Chirp()
+    va = mmwcas_virtual_array()
+    # a dense 3-column raster (rows 2 mm apart, as a sweep's frames are)
+    pos = np.array([va.offsets_m + [cx, y, 0.0] for cx in (-0.082, 0.0, 0.082) for y in np.arange(-19.5, 20) * 0.002])
+    rng = np.random.default_rng(5)
+    truth = [(-0.10, -0.04, -0.05, 0.04, 0.55), (0.01, 0.06, -0.03, 0.06, 0.65)]
+    parts = [_patch(*t, rng) for t in truth]
+    pts = np.concatenate([p for p, _ in parts])
+    amp = np.concatenate([a for _, a in parts])
+    seen = look(simulate_if(pts, amp, pos, ch), pos, ch)
+    assert len(seen.objects) >= 2
+    for t in truth:
+        # the object of the look that overlaps the patch most: its extent within 1.5 cm (the 8 cm
+        # aperture's resolution in y at these depths, lambda z / 2L, is 1.3-1.6 cm), its depth within 5 mm
+        best = max(seen.objects, key=lambda o: overlap(o.extent_m, t[:4]))
+        assert np.abs(np.subtract(best.extent_m, t[:4])).max() < 0.015
+        assert best.depth_m == pytest.approx(t[4], abs=0.005)
+    assert 0.95 < sum(o.share for o in seen.objects) <= 1.0 + 1e-9  # less what was too faint to keep
+
+
+def _seen(*objects):
+    plane = ImageGrid(-0.3, 0.3, -0.3, 0.3, 0.6, 4, 4)
+    return Look(np.zeros((4, 4), np.float32), plane, [], [LookObject(e, z, s) for e, z, s in objects])
+
+
+def test_choose_takes_the_twins_object_as_the_reference_and_the_brightest_other_as_the_target():
+    ref_ext = (-0.09, -0.014, -0.064, 0.064, 0.6)
+    seen = _seen(
+        ((-0.095, -0.01, -0.07, 0.07), 0.6, 0.45),  # the reference as the look sees it
+        ((0.02, 0.085, -0.06, 0.066), 0.62, 0.40),  # the target
+        ((-0.2, -0.15, 0.2, 0.25), 0.5, 0.15),  # something dimmer
+    )
+    ref_roi = (-0.105, 0.001, -0.079, 0.079, 0.6)
+    b = choose(seen, ref_roi, ref_ext, "physical twin scan")
+    assert b.info["reference"]["look_object"] == 1 and b.info["target"]["look_object"] == 2
+    assert b.target_roi == pytest.approx((0.02 - REGION_MARGIN_M, 0.085 + REGION_MARGIN_M, -0.075, 0.081, 0.62))
+    assert b.info["target"]["share"] == pytest.approx(0.40 / 0.55, abs=1e-3)
+    assert b.info["sure"] == "yes" and "[boxes]" in b.line()
+    # nothing besides the reference: refused with a line that says what to type
+    with pytest.raises(TwinFocusError, match="--target-roi"):
+        choose(_seen(((-0.095, -0.01, -0.07, 0.07), 0.6, 1.0)), ref_roi, ref_ext, "typed")
+
+
+def test_a_grown_region_stops_at_the_other_region():
+    # the target's region grown 1.5 cm reaches into a wide typed reference region: cut at its edge
+    keep = [-0.15, 0.03, -0.11, 0.12]
+    cut = cut_away([0.009, 0.096, -0.078, 0.078], keep, (0.024, 0.081, -0.063, 0.063), (-0.09, -0.014, -0.064, 0.064))
+    assert cut == pytest.approx([0.03, 0.096, -0.078, 0.078]) and overlap(cut, keep) == 0.0
+    # objects that overlap each other: nothing to part them by, left as it was
+    assert cut_away([0, 1, 0, 1], [0.5, 2, 0.5, 2], (0, 1, 0, 1), (0.5, 2, 0.5, 2)) == [0, 1, 0, 1]
+
+
+@pytest.mark.slow
+def test_focus_with_no_box_typed_finds_both_letters_and_matches_the_typed_boxes(tmp_path):
+    d = tmp_path
+    sim = ["--columns", "3", "--rows", "40", "--seed", "3", "--quiet"]
+    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"), *sim]) == 0
+    common = [str(d / "scan.npz"), "--template-scan", str(d / "tpl.npz"), "--size", "48", "--iterations", "150",
+              "--space-variant", "off", "--quiet", "--no-cache"]  # fmt: skip
+    typed = ["--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6", "--target-roi", "0.02", "0.13", "-0.11",
+             "0.12", "0.6"]  # fmt: skip
+    assert main(["focus", *common, *typed, "--out", str(d / "typed")]) == 0
+    assert main(["focus", *common, "--out", str(d / "found")]) == 0
+    t = json.loads((d / "typed" / "metrics.json").read_text())
+    f = json.loads((d / "found" / "metrics.json").read_text())
+    scene = Scenario().scene()
+    for role in ("reference", "target"):
+        obj = planar_object(scene, role)
+        c = obj.corners_m()
+        letter = (c[:, 0].min(), c[:, 0].max(), c[:, 1].min(), c[:, 1].max())
+        roi = f[f"{role}_roi"]
+        out = [letter[0] - roi[0], roi[1] - letter[1], letter[2] - roi[2], roi[3] - letter[3]]
+        assert min(out) >= 0, (role, out)  # holds the letter
+        # and not much more: the margin, and the extent within the small scan's 1.5 cm resolution in y
+        assert max(out) <= REGION_MARGIN_M + 0.015, (role, out)
+        assert roi[4] == pytest.approx(float(obj.centre_m[2]), abs=0.005)
+    assert overlap(f["reference_roi"][:4], f["target_roi"][:4]) == 0.0
+    assert f["boxes"]["reference"]["source"] == "physical twin scan"
+    assert (d / "found" / "look.png").is_file()
+    assert f["target_ssim_corrected"] == pytest.approx(t["target_ssim_corrected"], abs=0.02)
