@@ -1,24 +1,25 @@
 """The reference's and the target's boxes from a wide look at the scan, so neither need be typed.
 
-The look (:func:`look`) images the scan without correction, wide (the aperture's x/y box grown
-by :data:`LOOK_MARGIN_M`, depths :data:`LOOK_DEPTHS_M`), in two passes:
+The look (:func:`look`) images the scan wide (the aperture's x/y box grown by
+:data:`LOOK_MARGIN_M`, depths :data:`LOOK_DEPTHS_M`), in two passes:
 
 - a coarse volume from the :data:`LOOK_POSITIONS` radar positions nearest the aperture's centre.
   A dense patch of the aperture, not every n-th position: positions taken n apart along a sweep
   sample it n times too coarsely, and the image's copies (grating lobes) then smear a 12 cm letter
-  over the whole field (what made the reference's region 65 cm tall before);
-- for each bright blob of that volume's projection, its depth where its image is sharpest
-  (:func:`twinfocus.depth_search.search_depth` on the same patch), then a plane at that depth
-  from every position, fine enough (:data:`FINE_PIXEL_M`) to part objects a few cm apart.
+  over the whole field (what made the reference's region 65 cm tall before). Its bright blobs are
+  connected in 3-D, so that objects side by side at different depths stay apart;
+- for each blob, its depth where its image is sharpest (:func:`twinfocus.depth_search.search_depth`
+  on the same patch), then a plane at that depth from every position, fine enough
+  (:data:`FINE_PIXEL_M`) to part objects a few cm apart.
 
 The bright objects of the fine planes are the look's objects (:class:`LookObject`: each one's
-x/y extent, depth and share of the bright energy). :func:`propose` picks the reference among them
-by its overlap with what the twin says it is (the template scan's own look, a template file's
-image, a digital twin's cloud), and :func:`choose` the target as the brightest other object,
-its extent grown into the region focused (:data:`REGION_MARGIN_M`, cut where it would reach into
-the reference's region). A hand-held scan is looked at through the reference's correction
-(:func:`find_target`): uncorrected, each position's tracking error scatters every object along the
-sweep.
+x/y extent, depth and share of the bright energy). :func:`choose` takes the reference's object as
+the one overlapping what the twin says it is (:mod:`twinfocus.reference_search`: the template
+scan's own look, a template file's grid, a digital twin's cloud), and the target as the brightest
+other object, its extent grown into the region focused (:data:`REGION_MARGIN_M`, cut where it
+would reach into the reference's region). A hand-held scan is looked at through the reference's
+correction (:func:`find_target`): uncorrected, each position's tracking error scatters every
+object along the sweep.
 """
 
 from __future__ import annotations
@@ -244,24 +245,6 @@ def overlap(a, b) -> float:
         return 0.0
     inter = w * h
     return float(inter / ((a[1] - a[0]) * (a[3] - a[2]) + (b[1] - b[0]) * (b[3] - b[2]) - inter))
-
-
-def twin_extent_from_image(image: np.ndarray, grid: ImageGrid) -> tuple:
-    """A template image's object: the extent (X0, X1, Y0, Y1, Z) of its brightest object. image :
-    (H, W) complex or real on ``grid``."""
-    found = objects_in(np.abs(image), grid, FINE_SMOOTHING_PX)
-    if not found:
-        raise TwinFocusError("the template's image is blank: no object to find the reference's box from")
-    return (*found[0][0], float(grid.z))
-
-
-def twin_extent_from_cloud(points_m: np.ndarray) -> tuple:
-    """A digital twin's cloud's extent (X0, X1, Y0, Y1, Z): the box of its points between the
-    percentiles :data:`twinfocus.reference_search.CLOUD_PERCENTILES` at its median depth."""
-    from twinfocus.reference_search import region_from_cloud
-
-    roi, _ = region_from_cloud(points_m, margin_m=0.0)
-    return roi
 
 
 def grow(extent, margin_m: float = REGION_MARGIN_M) -> list[float]:
