@@ -33,7 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar=("X0", "X1", "Y0", "Y1", "Z"),
         help="reference region (metres); without it, found from --digital-twin's cloud, --template's grid or "
-        "--template-scan's image (metrics.json reference_search); needed with --method",
+        "--template-scan's look (metrics.json reference_search); needed with --method",
     )
     p.add_argument(
         "--target-roi",
