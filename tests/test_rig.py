@@ -23,13 +23,14 @@ def stage(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("rig")
     sc = Scenario(reference="A", target="F", n_rows=33, seed=5, snr_db=15, template_offset_m=(0.0, 0.0, 0.0))
-    _, stage_scan = simulate_scenario(sc)
+    scan, stage_scan = simulate_scenario(sc)
     stage_scan.save(d / "stage.npz")
-    rg, _ = scenario_grids(sc, 48)
+    scan.save(d / "scan.npz")
+    rg, tg = scenario_grids(sc, 48)
     surface = sc.scene().object("reference").surface_points(1e-3)
     cloud = camera_cloud(surface, 0.5e-3, 0.1, 0.0, OFFSET, rng=2)
     np.save(d / "cloud.npy", cloud)
-    return dict(dir=d, scan=stage_scan, grid=rg, surface=surface, cloud=cloud)
+    return dict(dir=d, scan=stage_scan, grid=rg, target_grid=tg, surface=surface, cloud=cloud)
 
 
 @pytest.mark.slow
@@ -44,7 +45,7 @@ def test_rig_recovers_injected_offset_and_cli_writes_it(stage):
     # fraction of the 2 mm measuring pixel
     np.testing.assert_allclose(rig["offset_m"][:2], -OFFSET[:2], atol=0.8e-3)
     assert all(0 < s < 1e-3 for s in rig["sd_m"][:2])
-    assert abs(rig["offset_m"][2]) < 4e-3  # depth: the radar's focus resolves it far more coarsely
+    assert rig["offset_m"][2] == 0.0 and "depth_offset_m" in rig["source"]  # z: recorded, not applied
     assert rig["board"] == "MMWCAS-RF-EVM" and rig["rotation"] == "not measured"
     assert (d / "rig.png").is_file()
 
@@ -110,3 +111,32 @@ def test_applying_the_rig_puts_the_template_back_in_place(stage):
 
     assert gap(rig.offset_m) < 0.01
     assert gap(None) > 2 * gap(rig.offset_m) + 0.01
+
+
+@pytest.mark.slow
+def test_focus_with_rig_records_it(stage, capsys):
+    import hashlib
+
+    from twinfocus.digital_twin.rig import Rig
+
+    d = stage["dir"]
+    Rig(-OFFSET, [1e-4] * 3, "MMWCAS-RF-EVM", None).save(d / "known.json")
+    ref, tgt = map(str, stage["grid"].roi), map(str, stage["target_grid"].roi)
+    args = ["focus", str(d / "scan.npz"), "--reference-roi", *ref, "--target-roi", *tgt, "--size", "32",
+            "--digital-twin", str(d / "cloud.npy"), "--no-pictures", "--quiet", "--device", "cpu", "--no-cache"]
+    assert main([*args, "--rig", str(d / "known.json"), "--out", str(d / "focus")]) == 0
+    m = json.loads((d / "focus" / "metrics.json").read_text())
+    assert m["rig"]["sha256"] == hashlib.sha256((d / "known.json").read_bytes()).hexdigest()
+    np.testing.assert_allclose(m["rig"]["reference_moved_m"], -OFFSET)
+    np.testing.assert_allclose(m["digital_twin"]["offset_m"], -OFFSET)
+
+
+def test_rig_needs_a_digital_twin(tmp_path, capsys):
+    from twinfocus.radar import Chirp
+    from twinfocus.scan import Scan
+
+    chirp = Chirp()
+    Scan(np.ones((2, 1, chirp.n_samples), np.complex64), np.zeros((2, 1, 3)), chirp).save(tmp_path / "s.npz")
+    rc = main(["focus", str(tmp_path / "s.npz"), "--reference-roi", "0", "0.1", "0", "0.1", "0.6", "--target-roi",
+               "0", "0.1", "0", "0.1", "0.6", "--method", "none", "--rig", "r.json", "--out", str(tmp_path / "o")])
+    assert rc == 2 and "--rig needs --digital-twin" in capsys.readouterr().err

@@ -2,11 +2,12 @@
 positions (a motion-stage scan, or any scan whose positions are trusted) of a scene holding an
 object the camera's cloud shows, and applied to every later cloud of that camera on that board.
 
-What one scan shows: a 3-D translation. Across x and y the cloud's conditioned template is
+What one scan shows: a translation across x and y, where the cloud's conditioned template is
 registered against the radar image of the reference (normalised cross-correlation, sub-pixel
-parabola: :func:`twinfocus.digital_twin.align.register_translation`); along z the radar's depth
-is where the reference's image is sharpest (:func:`twinfocus.depth_search.search_depth`), against
-the cloud's median depth. A rotation is *not* measured: a tilt of a flat object moves its radar
+parabola, on pixels of 2 mm: :func:`twinfocus.digital_twin.align.register_translation`). Along z
+the radar's depth (where the reference's image is sharpest, :func:`twinfocus.depth_search.search_depth`)
+against the cloud's median depth is recorded but not applied: it missed injected offsets of 1-2 mm
+by 2-4 mm (the focus resolves centimetres along z). A rotation is *not* measured: a tilt of a flat object moves its radar
 image by less than the registration resolves over a few centimetres (a 1 deg tilt of a 5 cm letter
 moves its edge by 0.9 mm in depth, far below the range resolution), and an in-plane rotation of one
 object is confounded with the outline's own errors; a rig file says ``"rotation": "not measured"``.
@@ -268,11 +269,13 @@ def measure_rig(
     fine_step = float(search.fine_z_m[1] - search.fine_z_m[0]) if search.fine_z_m.size > 1 else 0.0
     dz = float(search.depth_m - np.median(ref.cloud.points_m[:, 2]))
     sy, sx = grid.spacing_m
-    offset = np.array([dx * sx, dy * sy, dz])
-    # z: no bootstrap (a depth search per draw costs a back-projection each); the fine step's
-    # uniform-quantisation sd is its floor
-    sd = np.array([sd_px[1] * sx, sd_px[0] * sy, fine_step / np.sqrt(12.0)])
+    # z is not applied: the sharpest plane's depth missed injected mm offsets by 2-4 mm on the rig
+    # bench (the radar's focus resolves centimetres along z, not millimetres), and a wrong z costs
+    # more than the camera's own; it is recorded (source.depth_offset_m) for the user to judge
+    offset = np.array([dx * sx, dy * sy, 0.0])
+    sd = np.array([sd_px[1] * sx, sd_px[0] * sy, 0.0])
     source = {"shift_px": [dy, dx], "sd_px": sd_px.tolist(), "match": match, "radar_depth_m": search.depth_m,
+              "depth_offset_m": dz, "depth_step_m": fine_step, "z": "not measured (depth_offset_m: the radar's focus)",
               "grid_roi": list(grid.roi), "grid_shape": list(grid.shape), "bootstrap": int(bootstrap),
               "support_pixels": int(support.sum())}  # fmt: skip
     rig = Rig(offset, sd, board, camera, time.time_ns(), source)
