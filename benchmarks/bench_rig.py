@@ -21,8 +21,14 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_dtwin_family import (CLOUD, HELDOUT_SHAPES, OFFSET_RANGE_M, digital_twin_focus, draw_inputs,
-                                           placement)
+from benchmarks.bench_dtwin_family import (
+    CLOUD,
+    HELDOUT_SHAPES,
+    OFFSET_RANGE_M,
+    digital_twin_focus,
+    draw_inputs,
+    placement,
+)
 
 RIG_SEED = 3101
 CONDITIONS = ("paper", "1 mm deeper", "1.6 mm")
@@ -90,8 +96,21 @@ def main(out: str, draws: int, rows: int, size: int) -> dict:
         seed = RIG_SEED + 10 * k
         offset = draw_rig(seed)
         print(f"[rig bench] set {k}: camera offset {np.round(offset * 1e3, 2)} mm", file=sys.stderr, flush=True)
-        cal = calibrate(seed, offset, rows, size)
-        s = {"camera_offset_m": offset.tolist(), "calibration": cal, "scans": {}}
+        from twinfocus.errors import TwinFocusError
+
+        refused = []
+        # a refused calibration is what a user is told: scan the calibration object again (the
+        # next paper-protocol draw of the set), up to three times
+        for attempt in range(3):
+            try:
+                cal = calibrate(seed + 100 * attempt, offset, rows, size)
+                break
+            except TwinFocusError as exc:
+                refused.append(str(exc))
+                print(f"[rig bench] set {k}: calibration refused: {exc}", file=sys.stderr, flush=True)
+        else:
+            raise RuntimeError(f"set {k}: every calibration refused: {refused}")
+        s = {"camera_offset_m": offset.tolist(), "calibration": {**cal, "refused_before": refused}, "scans": {}}
         for i, cond in enumerate(CONDITIONS):
             print(f"[rig bench] set {k}: {cond}", file=sys.stderr, flush=True)
             s["scans"][cond] = focus_set(cond, seed + 1 + i, offset, np.asarray(cal["offset_m"]), rows, size)
