@@ -5,7 +5,7 @@ and focuses the set's other scans (benchmarks/bench_dtwin_family.py's conditions
 digital twin from their camera clouds, with and without the rig, beside the physical twin and the
 digital twin's placement ceiling (its target's best SSIM over sub-pixel shifts).
 
-    python -m benchmarks.bench_rig --draws 2 --rows 33 --size 48      (~15 min on 2 cores)
+    python -m benchmarks.bench_rig --draws 3 --rows 33 --size 48      (~15 min on 2 cores)
 
 Seeds start at ``RIG_SEED`` (held-out shapes, seeds the family bench does not draw; 3001-3004 were
 looked at while building, 3101 on were not). Writes
@@ -42,16 +42,21 @@ def draw_rig(seed: int) -> np.ndarray:
 
 
 def calibrate(seed: int, offset: np.ndarray, rows: int, size: int) -> dict:
-    """The rig measured on the paper-protocol draw ``seed``'s scan on its true positions."""
+    """The rig measured on the paper-protocol draw ``seed``'s scan (``rows`` rows) on its true
+    positions, as a motion stage takes it."""
+    from benchmarks.bench_dtwin_family import family_scenario
     from twinfocus.digital_twin.camera_cloud import camera_cloud
     from twinfocus.digital_twin.rig import measure_rig
     from twinfocus.scan import Scan
+    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
 
-    d = draw_inputs("paper", seed, HELDOUT_SHAPES, rows, size)
-    scan = d["scan"]
+    sc = Scenario(**family_scenario("paper", seed, HELDOUT_SHAPES, rows))
+    scan, _ = simulate_scenario(sc)
     stage = Scan(scan.data, scan.positions_true, scan.chirp)
-    cloud = camera_cloud(d["reference_points"], *CLOUD, offset, rng=np.random.default_rng([seed, 15]))
-    m = measure_rig(stage, cloud, d["rg"], board="bench", camera=None)
+    rg, _ = scenario_grids(sc, size)
+    surface = sc.scene().object("reference").surface_points(1e-3)
+    cloud = camera_cloud(surface, *CLOUD, offset, rng=np.random.default_rng([seed, 15]))
+    m = measure_rig(stage, cloud, rg, board="bench", camera=None)
     return {"offset_m": m.rig.offset_m.tolist(), "sd_m": m.rig.sd_m.tolist(), "match": m.match,
             "error_mm": [round(float(v) * 1e3, 3) for v in (m.rig.offset_m + offset)]}
 
@@ -88,10 +93,11 @@ def summary(records: list, key: str) -> dict:
             "worst": round(float(v.min()), 4), "n": int(v.size)}
 
 
-def main(out: str, draws: int, rows: int, size: int) -> dict:
+def main(out: str, draws: int, rows: int, size: int, calibration_rows: int = 65) -> dict:
     path = Path(out) / "rig.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    res: dict = {"scan": {"positions": rows * 6, "pixels": size}, "sets": []}
+    res: dict = {"scan": {"positions": rows * 6, "pixels": size, "calibration_positions": calibration_rows * 6},
+                 "sets": []}
     for k in range(draws):
         seed = RIG_SEED + 10 * k
         offset = draw_rig(seed)
@@ -103,7 +109,7 @@ def main(out: str, draws: int, rows: int, size: int) -> dict:
         # next paper-protocol draw of the set), up to three times
         for attempt in range(3):
             try:
-                cal = calibrate(seed + 100 * attempt, offset, rows, size)
+                cal = calibrate(seed + 100 * attempt, offset, calibration_rows, size)
                 break
             except TwinFocusError as exc:
                 refused.append(str(exc))
@@ -134,5 +140,6 @@ if __name__ == "__main__":
     ap.add_argument("--draws", type=int, default=2, help="sets of scans (one rig each)")
     ap.add_argument("--rows", type=int, default=33, help="scan rows of 6 columns (the paper: 130)")
     ap.add_argument("--size", type=int, default=48, help="pixels per side of each region (the paper: 100)")
+    ap.add_argument("--calibration-rows", type=int, default=65, help="rows of the calibration's stage scan")
     a = ap.parse_args()
-    main(a.out, a.draws, a.rows, a.size)
+    main(a.out, a.draws, a.rows, a.size, a.calibration_rows)
