@@ -12,6 +12,7 @@ looked at while building, 3101 on were not). Writes
 ``benchmarks/results/rig.json`` (records and a summary: mean, sd, worst per condition) and prints
 a markdown table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -57,8 +58,12 @@ def calibrate(seed: int, offset: np.ndarray, rows: int, size: int) -> dict:
     surface = sc.scene().object("reference").surface_points(1e-3)
     cloud = camera_cloud(surface, *CLOUD, offset, rng=np.random.default_rng([seed, 15]))
     m = measure_rig(stage, cloud, rg, board="bench", camera=None)
-    return {"offset_m": m.rig.offset_m.tolist(), "sd_m": m.rig.sd_m.tolist(), "match": m.match,
-            "error_mm": [round(float(v) * 1e3, 3) for v in (m.rig.offset_m + offset)]}
+    return {
+        "offset_m": m.rig.offset_m.tolist(),
+        "sd_m": m.rig.sd_m.tolist(),
+        "match": m.match,
+        "error_mm": [round(float(v) * 1e3, 3) for v in (m.rig.offset_m + offset)],
+    }
 
 
 def focus_set(condition: str, seed: int, offset: np.ndarray, rig_offset: np.ndarray, rows: int, size: int) -> dict:
@@ -79,25 +84,39 @@ def focus_set(condition: str, seed: int, offset: np.ndarray, rig_offset: np.ndar
         rec[name] = round(out.metrics["target_ssim_corrected"], 4)
         rec[f"{name} trusted"] = out.metrics["confidence"]["trusted"]
         rec[f"{name} ceiling"] = placement(d, out)["best_shift_ssim"]
-    pt = focus_bases(d["rb"], d["tb"], scan.positions, scan.chirp, rg, d["tg"],
-                     template=template_from_scan(d["template_scan"], rg, keep_phase=True),
-                     config=AutofocusConfig(**estimator_settings("auto", True)),
-                     half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, d["tg"]), **d["truth"])
+    pt = focus_bases(
+        d["rb"],
+        d["tb"],
+        scan.positions,
+        scan.chirp,
+        rg,
+        d["tg"],
+        template=template_from_scan(d["template_scan"], rg, keep_phase=True),
+        config=AutofocusConfig(**estimator_settings("auto", True)),
+        half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, d["tg"]),
+        **d["truth"],
+    )
     rec["physical"] = round(pt.metrics["target_ssim_corrected"], 4)
     return rec
 
 
 def summary(records: list, key: str) -> dict:
     v = np.array([r[key] for r in records], float)
-    return {"mean": round(float(v.mean()), 4), "sd": round(float(v.std(ddof=1)) if v.size > 1 else 0.0, 4),
-            "worst": round(float(v.min()), 4), "n": int(v.size)}
+    return {
+        "mean": round(float(v.mean()), 4),
+        "sd": round(float(v.std(ddof=1)) if v.size > 1 else 0.0, 4),
+        "worst": round(float(v.min()), 4),
+        "n": int(v.size),
+    }
 
 
 def main(out: str, draws: int, rows: int, size: int, calibration_rows: int = 65) -> dict:
     path = Path(out) / "rig.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    res: dict = {"scan": {"positions": rows * 6, "pixels": size, "calibration_positions": calibration_rows * 6},
-                 "sets": []}
+    res: dict = {
+        "scan": {"positions": rows * 6, "pixels": size, "calibration_positions": calibration_rows * 6},
+        "sets": [],
+    }
     for k in range(draws):
         seed = RIG_SEED + 10 * k
         offset = draw_rig(seed)
@@ -122,11 +141,17 @@ def main(out: str, draws: int, rows: int, size: int, calibration_rows: int = 65)
             s["scans"][cond] = focus_set(cond, seed + 1 + i, offset, np.asarray(cal["offset_m"]), rows, size)
         res["sets"].append(s)
         path.write_text(json.dumps(res, indent=1, default=float))
-    res["summary"] = {cond: {key: summary([s["scans"][cond] for s in res["sets"]], key)
-                             for key in ("no rig", "rig", "physical", "no rig ceiling", "rig ceiling")}
-                      for cond in CONDITIONS}
+    res["summary"] = {
+        cond: {
+            key: summary([s["scans"][cond] for s in res["sets"]], key)
+            for key in ("no rig", "rig", "physical", "no rig ceiling", "rig ceiling")
+        }
+        for cond in CONDITIONS
+    }
     path.write_text(json.dumps(res, indent=1, default=float))
-    print("| condition | digital twin, no rig | digital twin, rig | physical twin | ceiling (best over shifts), no rig |")
+    print(
+        "| condition | digital twin, no rig | digital twin, rig | physical twin | ceiling (best over shifts), no rig |"
+    )
     print("|---|---|---|---|---|")
     for cond, s in res["summary"].items():
         cell = {k: f"{v['mean']:.3f} +- {v['sd']:.3f} (worst {v['worst']:.3f})" for k, v in s.items()}

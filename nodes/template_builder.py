@@ -102,7 +102,8 @@ class TemplateBuilder(Node):
             if src not in ("points", "stereo"):
                 raise TwinFocusError(f"node {self.name!r}: 'rig' moves a camera's cloud: source points or stereo")
             from twinfocus.board import default_board
-            from twinfocus.digital_twin.rig import Rig, camera_identity, file_sha256
+            from twinfocus.cache import file_sha256
+            from twinfocus.digital_twin.rig import Rig, camera_identity
 
             rig = Rig.load(p["rig"])
             rig.check(default_board().name, camera_identity(path) if src == "points" else None, p["rig"])

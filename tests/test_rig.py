@@ -2,6 +2,7 @@
 into a simulated camera cloud is recovered from the motion-stage scan; objects too small or of
 another shape are refused; a rig of another board is refused; applying the rig puts the digital
 twin's template back where the radar sees the reference."""
+
 import json
 
 import numpy as np
@@ -37,8 +38,20 @@ def stage(tmp_path_factory):
 def test_rig_recovers_injected_offset_and_cli_writes_it(stage):
     d = stage["dir"]
     out = d / "rig.json"
-    rc = main(["rig", "--scan", str(d / "stage.npz"), "--digital-twin", str(d / "cloud.npy"),
-               "--reference-roi", *map(str, stage["grid"].roi), "--out", str(out), "--quiet"])
+    rc = main(
+        [
+            "rig",
+            "--scan",
+            str(d / "stage.npz"),
+            "--digital-twin",
+            str(d / "cloud.npy"),
+            "--reference-roi",
+            *map(str, stage["grid"].roi),
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
     assert rc == 0
     rig = json.loads(out.read_text())
     # the rig moves the cloud back onto the object: minus the injected offset, in x and y to a
@@ -105,8 +118,9 @@ def test_applying_the_rig_puts_the_template_back_in_place(stage):
     def gap(offset):
         t = digital_twin_reference(stage["cloud"], scan.positions, scan.chirp, grid, offset_m=offset).template
         at0 = ssim(t / t.max(), truth / truth.max())
-        best = max(ssim(np.maximum(shift_image(t, dy, dx), 0) / t.max(), truth / truth.max())
-                   for dy in shifts for dx in shifts)
+        best = max(
+            ssim(np.maximum(shift_image(t, dy, dx), 0) / t.max(), truth / truth.max()) for dy in shifts for dx in shifts
+        )
         return best - at0
 
     assert gap(rig.offset_m) < 0.01
@@ -122,8 +136,23 @@ def test_focus_with_rig_records_it(stage, capsys):
     d = stage["dir"]
     Rig(-OFFSET, [1e-4] * 3, "MMWCAS-RF-EVM", None).save(d / "known.json")
     ref, tgt = map(str, stage["grid"].roi), map(str, stage["target_grid"].roi)
-    args = ["focus", str(d / "scan.npz"), "--reference-roi", *ref, "--target-roi", *tgt, "--size", "32",
-            "--digital-twin", str(d / "cloud.npy"), "--no-pictures", "--quiet", "--device", "cpu", "--no-cache"]
+    args = [
+        "focus",
+        str(d / "scan.npz"),
+        "--reference-roi",
+        *ref,
+        "--target-roi",
+        *tgt,
+        "--size",
+        "32",
+        "--digital-twin",
+        str(d / "cloud.npy"),
+        "--no-pictures",
+        "--quiet",
+        "--device",
+        "cpu",
+        "--no-cache",
+    ]
     assert main([*args, "--rig", str(d / "known.json"), "--out", str(d / "focus")]) == 0
     m = json.loads((d / "focus" / "metrics.json").read_text())
     assert m["rig"]["sha256"] == hashlib.sha256((d / "known.json").read_bytes()).hexdigest()
@@ -137,6 +166,45 @@ def test_rig_needs_a_digital_twin(tmp_path, capsys):
 
     chirp = Chirp()
     Scan(np.ones((2, 1, chirp.n_samples), np.complex64), np.zeros((2, 1, 3)), chirp).save(tmp_path / "s.npz")
-    rc = main(["focus", str(tmp_path / "s.npz"), "--reference-roi", "0", "0.1", "0", "0.1", "0.6", "--target-roi",
-               "0", "0.1", "0", "0.1", "0.6", "--method", "none", "--rig", "r.json", "--out", str(tmp_path / "o")])
+    rc = main(
+        [
+            "focus",
+            str(tmp_path / "s.npz"),
+            "--reference-roi",
+            "0",
+            "0.1",
+            "0",
+            "0.1",
+            "0.6",
+            "--target-roi",
+            "0",
+            "0.1",
+            "0",
+            "0.1",
+            "0.6",
+            "--method",
+            "none",
+            "--rig",
+            "r.json",
+            "--out",
+            str(tmp_path / "o"),
+        ]
+    )
     assert rc == 2 and "--rig needs --digital-twin" in capsys.readouterr().err
+
+
+def test_template_builder_takes_a_rig_and_refuses_another_boards(tmp_path):
+    from nodes.template_builder import TemplateBuilder
+    from nodes.testing import local_broker
+    from twinfocus.digital_twin.rig import Rig
+
+    np.save(tmp_path / "cloud.npy", np.random.default_rng(0).normal(0, 0.01, (50, 3)) + [-0.02, 0.0, 0.3])
+    Rig([1e-3, 0, 0], [1e-4] * 3, "MMWCAS-RF-EVM", None).save(tmp_path / "rig.json")
+    Rig([1e-3, 0, 0], [1e-4] * 3, "another board", None).save(tmp_path / "other.json")
+    params = {"source": "points", "path": str(tmp_path / "cloud.npy"), "reference_roi": [-0.045, -0.005, -0.02, 0.02, 0.3]}
+    with local_broker() as ep:
+        tb = TemplateBuilder(broker=ep, params={**params, "rig": str(tmp_path / "rig.json")})
+        np.testing.assert_allclose(tb.rig[0], [1e-3, 0, 0])
+        assert len(tb.rig[1]["sha256"]) == 64
+        with pytest.raises(TwinFocusError, match="another board"):
+            TemplateBuilder(broker=ep, params={**params, "rig": str(tmp_path / "other.json")})

@@ -23,7 +23,6 @@ resolution cells), a cloud and image that disagree in shape (correlation below
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import time
@@ -157,17 +156,11 @@ def scan_board(scan) -> str:
     return default_board().name
 
 
-def file_sha256(path: str | os.PathLike) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def load_rig_for(path: str | os.PathLike, scan, cloud_path: str | os.PathLike | None) -> tuple[Rig, dict]:
     """``--rig PATH`` for a scan and its cloud: the rig, checked against the scan's board and the
     cloud's camera, and what metrics.json records of it (path, SHA-256, offset, sd)."""
+    from twinfocus.cache import file_sha256
+
     rig = Rig.load(path)
     rig.check(scan_board(scan), camera_identity(cloud_path) if cloud_path else None, path)
     record = {"path": str(path), "sha256": file_sha256(path), "offset_m": rig.offset_m.tolist(),
