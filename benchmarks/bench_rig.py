@@ -110,8 +110,8 @@ def summary(records: list, key: str) -> dict:
     }
 
 
-def main(out: str, draws: int, rows: int, size: int, calibration_rows: int = 65) -> dict:
-    path = Path(out) / "rig.json"
+def main(out: str, draws: int, rows: int, size: int, calibration_rows: int = 65, truth_rig: bool = False) -> dict:
+    path = Path(out) / ("rig_truth.json" if truth_rig else "rig.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     res: dict = {
         "scan": {"positions": rows * 6, "pixels": size, "calibration_positions": calibration_rows * 6},
@@ -138,7 +138,9 @@ def main(out: str, draws: int, rows: int, size: int, calibration_rows: int = 65)
         s = {"camera_offset_m": offset.tolist(), "calibration": {**cal, "refused_before": refused}, "scans": {}}
         for i, cond in enumerate(CONDITIONS):
             print(f"[rig bench] set {k}: {cond}", file=sys.stderr, flush=True)
-            s["scans"][cond] = focus_set(cond, seed + 1 + i, offset, np.asarray(cal["offset_m"]), rows, size)
+            # --truth-rig: the exact offset instead of the measured one (what a perfect rig would give)
+            rig_offset = -offset if truth_rig else np.asarray(cal["offset_m"])
+            s["scans"][cond] = focus_set(cond, seed + 1 + i, offset, rig_offset, rows, size)
         res["sets"].append(s)
         path.write_text(json.dumps(res, indent=1, default=float))
     res["summary"] = {
@@ -166,5 +168,6 @@ if __name__ == "__main__":
     ap.add_argument("--rows", type=int, default=33, help="scan rows of 6 columns (the paper: 130)")
     ap.add_argument("--size", type=int, default=48, help="pixels per side of each region (the paper: 100)")
     ap.add_argument("--calibration-rows", type=int, default=65, help="rows of the calibration's stage scan")
+    ap.add_argument("--truth-rig", action="store_true", help="apply the exact offset (rig_truth.json): a perfect rig")
     a = ap.parse_args()
-    main(a.out, a.draws, a.rows, a.size, a.calibration_rows)
+    main(a.out, a.draws, a.rows, a.size, a.calibration_rows, a.truth_rig)
