@@ -60,6 +60,11 @@ class TemplateBuilder(Node):
             "template file, template scan, point cloud (.npy) or, for stereo, camera.json (pose; optional)",
             type="str",
         ),
+        "rig": Param(
+            "",
+            "for source points or stereo: rig file (twinfocus rig), the camera's offset applied to the cloud",
+            type="str",
+        ),
         "stereo_every": Param(0, "for source stereo: rebuild the cloud from every n-th frame (0: the first only)"),
         "scenario": Param({}, "for source sim: the Scenario fields (as the simulated drivers)", type="any"),
         "reference_roi": Param(REQUIRED, "reference region X0 X1 Y0 Y1 Z, metres", type="floats"),
@@ -92,6 +97,18 @@ class TemplateBuilder(Node):
         src, path = p["source"], p["path"]
         if src in ("file", "scan", "points") and not path:
             raise TwinFocusError(f"node {self.name!r}: source {src!r} needs the 'path' parameter")
+        self.rig = None  # (offset (3,) metres, its record) from the 'rig' parameter
+        if p["rig"]:
+            if src not in ("points", "stereo"):
+                raise TwinFocusError(f"node {self.name!r}: 'rig' moves a camera's cloud: source points or stereo")
+            from twinfocus.board import default_board
+            from twinfocus.cache import file_sha256
+            from twinfocus.digital_twin.rig import Rig, camera_identity
+
+            rig = Rig.load(p["rig"])
+            rig.check(default_board().name, camera_identity(path) if src == "points" else None, p["rig"])
+            self.rig = (rig.offset_m, {"path": p["rig"], "sha256": file_sha256(p["rig"]),
+                                       "reference_moved_m": rig.offset_m.tolist(), "sd_m": rig.sd_m.tolist()})  # fmt: skip
         if src in ("points", "stereo"):
             self.points = None
             self.positions: list[np.ndarray] = []
@@ -225,7 +242,10 @@ class TemplateBuilder(Node):
                 self.log(f"scan {m.scan_id} ended before any camera/stereo frame gave a reference cloud: no template")
                 return
             try:
-                ref = digital_twin_reference(self.points, positions, m.chirp(), self.grid, **self.bp)
+                offset = None if self.rig is None else self.rig[0]
+                ref = digital_twin_reference(self.points, positions, m.chirp(), self.grid, offset_m=offset, **self.bp)
+                if self.rig is not None:
+                    ref.info["rig"] = self.rig[1]
             except TwinFocusError as exc:
                 self.log(f"scan {m.scan_id}: no digital-twin template ({exc})")
                 return

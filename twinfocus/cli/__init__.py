@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "focus": ("twinfocus.cli.focus", "focus a scan file offline with a twin reference"),
     "batch": ("twinfocus.cli.batch", "focus every scan of a manifest on Dask (local cluster or --scheduler)"),
     "twin": ("twinfocus.cli.twin", "digital twin: stereo pair + seed -> reference point cloud and template"),
+    "rig": ("twinfocus.cli.rig", "measure the camera's offset from the radar once (a rig file for --rig)"),
     "render": ("twinfocus.cli.render", "render the simulated scene as the stereo camera sees it (left/right PNG)"),
     "launch": ("twinfocus.cli.launch", "start a graph of nodes from a launch file (launch/sim.yaml, ...)"),
     "record": ("twinfocus.cli.record", "record topics of a running graph to an MCAP log"),

@@ -8,7 +8,7 @@ that talks to Dask; ``twinfocus bench --scheduler/--workers`` spreads its experi
 Manifest: CSV (a header row) or YAML (a list of mappings, or ``{defaults: {...}, items: [...]}``).
 Every item has ``scan`` and any ``twinfocus focus`` option spelled as its flag without the dashes
 (``reference_roi`` or ``reference-roi``: "X0 X1 Y0 Y1 Z" in metres, ``template`` /
-``template_scan`` / ``digital_twin`` / ``method``, ``size``, ``estimator``, ...); ``name``
+``template_scan`` / ``digital_twin`` (with ``rig``) / ``method``, ``size``, ``estimator``, ...); ``name``
 (optional) is the item's output folder ``OUT/items/NAME``. Relative paths are taken from the
 manifest's folder. Workers read the files themselves, so every worker must see the paths (and
 ``OUT``) under the same names: a shared file system on a cluster.
@@ -33,7 +33,7 @@ from twinfocus.cluster import dask_client, limit_threads, run_tasks
 from twinfocus.errors import TwinFocusError
 
 #: focus options that name input files (resolved against the manifest's folder, checked on the worker).
-PATH_OPTIONS = ("scan", "template", "template_scan", "digital_twin")
+PATH_OPTIONS = ("scan", "template", "template_scan", "digital_twin", "rig")
 #: Columns of summary.csv, before the item's options.
 SUMMARY_FIELDS = (
     "name",

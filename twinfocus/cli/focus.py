@@ -91,6 +91,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="without a template: the target's own sharpness, minimum entropy or phase-gradient autofocus "
         "(docs/reference_free.md), or no correction",
     )
+    p.add_argument(
+        "--rig",
+        metavar="RIG.json",
+        help="with --digital-twin: the camera's offset from the radar (twinfocus rig) applied to the cloud first "
+        "(metrics.json rig: its path and SHA-256); a rig of another board or camera is refused",
+    )
     p.add_argument("--out", required=True, help="output folder")
     add_focus_options(p)  # the settings shared with the solver node: twinfocus/settings.py
     p.add_argument(
@@ -225,6 +231,8 @@ def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
     target_region(args.target_roi)
     if (args.reference_roi is None or args.target_roi is None) and args.method:
         raise TwinFocusError("--method needs --reference-roi and --target-roi (the regions are found only with a twin)")
+    if getattr(args, "rig", None) and not args.digital_twin:
+        raise TwinFocusError("--rig needs --digital-twin (it moves the camera's cloud)")
     if args.refine_depth is not None and not (args.refine_depth > 0):
         raise TwinFocusError(f"--refine-depth must be a positive distance (metres), got {args.refine_depth}")
     check_memory(shapes["data"][0], args.size)
@@ -254,16 +262,23 @@ def _template(args, scan, ref_grid, bp, progress, cache) -> tuple:
             )
     elif args.digital_twin:
         # one entry holds the template and the outline, stacked (2, H, W)
+        rig = _rig(args, scan)
         key = (
-            digital_twin_key(args.digital_twin, scan.positions, scan.chirp, ref_grid, bp, root=cache.root) + "-outline"
+            digital_twin_key(args.digital_twin, scan.positions, scan.chirp, ref_grid, bp, root=cache.root)
+            + "-outline"
+            + (f"-rig{rig[1]['sha256'][:16]}" if rig else "")
             if cache.enabled
             else None
         )
 
         def compute():
             from twinfocus.digital_twin.condition import digital_twin_reference_from_file
+            from twinfocus.digital_twin.rig import rig_reference_from_file
 
-            ref = digital_twin_reference_from_file(args.digital_twin, scan, ref_grid, **bp)
+            if rig is not None:
+                ref = rig_reference_from_file(args.digital_twin, scan, ref_grid, rig[0], **bp)
+            else:
+                ref = digital_twin_reference_from_file(args.digital_twin, scan, ref_grid, **bp)
             import numpy as np
 
             return np.stack([ref.template, ref.support.astype(np.float32)]), ref.info
@@ -282,6 +297,15 @@ def _template(args, scan, ref_grid, bp, progress, cache) -> tuple:
     return template, status, support, info
 
 
+def _rig(args: argparse.Namespace, scan):
+    """``--rig``: (the Rig, its metrics.json record) checked against the scan and cloud, or None."""
+    if not getattr(args, "rig", None):
+        return None
+    from twinfocus.digital_twin.rig import load_rig_for
+
+    return load_rig_for(args.rig, scan, args.digital_twin)
+
+
 def _reference_region(args: argparse.Namespace, bp: dict, progress) -> tuple[tuple, dict]:
     """The reference region: typed, or found from the twin (:mod:`twinfocus.reference_search`)."""
     from twinfocus import reference_search
@@ -291,7 +315,12 @@ def _reference_region(args: argparse.Namespace, bp: dict, progress) -> tuple[tup
     if args.digital_twin:
         from twinfocus.digital_twin.template import load_points
 
-        return reference_search.region_from_cloud(load_points(args.digital_twin, allow_non_finite=True))
+        cloud = load_points(args.digital_twin, allow_non_finite=True)
+        if getattr(args, "rig", None):
+            from twinfocus.digital_twin.rig import Rig
+
+            cloud = cloud + Rig.load(args.rig).offset_m  # where the calibrated camera saw it
+        return reference_search.region_from_cloud(cloud)
     if args.template:
         from twinfocus.scan import load_npz
 
@@ -449,6 +478,8 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
     outputs.timings_s = {**timings, **outputs.timings_s}
     if cache_status is not None:
         outputs.metrics["template_cache"] = cache_status
+    if getattr(args, "rig", None):  # the file applied and how far it moved the reference
+        outputs.metrics["rig"] = {**_rig(args, scan)[1], **((twin_info or {}).get("rig") or {})}
     return {
         "outputs": outputs,
         "search": search,

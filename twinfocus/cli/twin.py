@@ -72,6 +72,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--support-out", help="with --out: also write the reference's outline on the grid (PNG)")
     p.add_argument("--calibration", help="radar-camera offset calibration to apply (JSON)")
+    p.add_argument("--rig", help="rig file (twinfocus rig): the camera's offset from the radar to apply")
     p.add_argument("--calibrate-scan", help="scan on accurate positions: measure the radar-camera offset")
     p.add_argument("--calibration-out", help="where to write the measured calibration (JSON)")
     p.add_argument("--report", help="write stage timings and counts here (JSON)")
@@ -125,6 +126,15 @@ def run(args: argparse.Namespace) -> int:
         from twinfocus.digital_twin.align import RadarCameraCalibration
 
         calib_offset = RadarCameraCalibration.load(args.calibration).offset_m
+    if getattr(args, "rig", None):
+        if args.calibration:
+            raise TwinFocusError("give --rig or --calibration, not both")
+        from twinfocus.digital_twin.rig import Rig, scan_board
+
+        rig = Rig.load(args.rig)
+        if scan is not None:
+            rig.check(scan_board(scan), None, args.rig)
+        calib_offset = rig.offset_m
     grid = ImageGrid.from_roi(args.reference_roi, args.size) if args.reference_roi else None
 
     if args.seed_point:
