@@ -205,7 +205,7 @@ def test_convert_and_focus_from_a_zed_bag(tmp_path):
     points as .npy."""
     from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M
     from twinfocus.scan import Scan
-    from twinfocus.sensors.emulators.rig import N_REFERENCE_SCATTERERS
+    from twinfocus.scene import paper_scene
     from twinfocus.sensors.trajectory_files import read_tum
 
     cap = tmp_path / "cap"
@@ -217,7 +217,7 @@ def test_convert_and_focus_from_a_zed_bag(tmp_path):
     from twinfocus.trajectory import matrix_to_quat
 
     q_body = np.array([matrix_to_quat(r) for r in r_body])
-    ref = np.load(cap / "scatterers.npy")[:N_REFERENCE_SCATTERERS]
+    ref = paper_scene().object("reference").surface_points(2e-3)
     opt = ref - np.asarray(DEFAULT_LEFT_CAMERA_POSITION_M)
     ros = opt @ R_BODY_OPT.T
     cloud = np.concatenate([ros, np.full((2, 3), np.nan)])
@@ -231,7 +231,8 @@ def test_convert_and_focus_from_a_zed_bag(tmp_path):
                      "--n-samples", "64"]) == 0
     a, b = Scan.load(tmp_path / "tum.npz"), Scan.load(tmp_path / "bag.npz")
     assert np.allclose(a.positions, b.positions, atol=1e-9) and np.array_equal(a.data, b.data)
-    np.save(tmp_path / "ref.npy", np.stack([-cloud[:, 1], -cloud[:, 2], cloud[:, 0]], axis=1)
+    c32 = cloud.astype(np.float32).astype(np.float64)  # the bag holds float32, as the ZED writes
+    np.save(tmp_path / "ref.npy", np.stack([-c32[:, 1], -c32[:, 2], c32[:, 0]], axis=1)
             + np.asarray(DEFAULT_LEFT_CAMERA_POSITION_M))
     out = {}
     for name, src in [("npy", str(tmp_path / "ref.npy")), ("bag", f"{bag}:{CLOUD}")]:
