@@ -34,8 +34,9 @@ def _header(ns, frame):
 
 def _pose(p, q):
     g = "geometry_msgs/msg/"
-    return T[g + "Pose"](position=T[g + "Point"](x=p[0], y=p[1], z=p[2]),
-                         orientation=T[g + "Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+    return T[g + "Pose"](
+        position=T[g + "Point"](x=p[0], y=p[1], z=p[2]), orientation=T[g + "Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])
+    )
 
 
 def zigzag(n=24, t0=1_700_000_000_000_000_000):
@@ -57,37 +58,68 @@ def cloud_msg(points_ros, ns, frame="zed_left_camera_frame"):
     pf = T["sensor_msgs/msg/PointField"]
     fields = [pf(name=c, offset=4 * i, datatype=7, count=1) for i, c in enumerate(["x", "y", "z", "rgb"])]
     return T["sensor_msgs/msg/PointCloud2"](
-        header=_header(ns, frame), height=2, width=n // 2, fields=fields, is_bigendian=False, point_step=16,
-        row_step=16 * (n // 2), data=np.frombuffer(rec.tobytes(), np.uint8), is_dense=False,
+        header=_header(ns, frame),
+        height=2,
+        width=n // 2,
+        fields=fields,
+        is_bigendian=False,
+        point_step=16,
+        row_step=16 * (n // 2),
+        data=np.frombuffer(rec.tobytes(), np.uint8),
+        is_dense=False,
     )
 
 
 def image_msg(img, ns, frame):
     h, w, _ = img.shape
     bgra = np.concatenate([img, np.full((h, w, 1), 255, np.uint8)], axis=2)
-    return T["sensor_msgs/msg/Image"](header=_header(ns, frame), height=h, width=w, encoding="bgra8",
-                                      is_bigendian=0, step=4 * w, data=bgra.reshape(-1))
+    return T["sensor_msgs/msg/Image"](
+        header=_header(ns, frame),
+        height=h,
+        width=w,
+        encoding="bgra8",
+        is_bigendian=0,
+        step=4 * w,
+        data=bgra.reshape(-1),
+    )
 
 
 def info_msg(ns, frame, w, h, f, tx):
     roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
     k = np.array([f, 0, w / 2, 0, f, h / 2, 0, 0, 1.0])
     p = np.array([f, 0, w / 2, tx, 0, f, h / 2, 0, 0, 0, 1.0, 0])
-    return T["sensor_msgs/msg/CameraInfo"](header=_header(ns, frame), height=h, width=w, distortion_model="plumb_bob",
-                                           d=np.zeros(5), k=k, r=np.eye(3).reshape(-1), p=p, binning_x=0,
-                                           binning_y=0, roi=roi)
+    return T["sensor_msgs/msg/CameraInfo"](
+        header=_header(ns, frame),
+        height=h,
+        width=w,
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=k,
+        r=np.eye(3).reshape(-1),
+        p=p,
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
+    )
 
 
 def write_zed_bag(path, storage, stamps, pos, quat, clouds=(), pair=None):
     """The ZED wrapper's topics: pose, odom, tf (map -> odom identity, odom -> zed_camera_link), clouds, images."""
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     with Writer(path, version=9, storage_plugin=plugin) as w:
-        c = {topic: w.add_connection(topic, ty, typestore=TS) for topic, ty in [
-            (POSE, "geometry_msgs/msg/PoseStamped"), (ODOM, "nav_msgs/msg/Odometry"),
-            ("/tf", "tf2_msgs/msg/TFMessage"), (CLOUD, "sensor_msgs/msg/PointCloud2"),
-            (LEFT, "sensor_msgs/msg/Image"), (RIGHT, "sensor_msgs/msg/Image"),
-            ("/zed/zed_node/left/camera_info", "sensor_msgs/msg/CameraInfo"),
-            ("/zed/zed_node/right/camera_info", "sensor_msgs/msg/CameraInfo")]}
+        c = {
+            topic: w.add_connection(topic, ty, typestore=TS)
+            for topic, ty in [
+                (POSE, "geometry_msgs/msg/PoseStamped"),
+                (ODOM, "nav_msgs/msg/Odometry"),
+                ("/tf", "tf2_msgs/msg/TFMessage"),
+                (CLOUD, "sensor_msgs/msg/PointCloud2"),
+                (LEFT, "sensor_msgs/msg/Image"),
+                (RIGHT, "sensor_msgs/msg/Image"),
+                ("/zed/zed_node/left/camera_info", "sensor_msgs/msg/CameraInfo"),
+                ("/zed/zed_node/right/camera_info", "sensor_msgs/msg/CameraInfo"),
+            ]
+        }
         g = "geometry_msgs/msg/"
 
         def put(topic, ns, msg):
@@ -98,12 +130,27 @@ def write_zed_bag(path, storage, stamps, pos, quat, clouds=(), pair=None):
             cov = T[g + "PoseWithCovariance"](pose=_pose(p, q), covariance=np.zeros(36))
             zero = T[g + "Vector3"](x=0.0, y=0.0, z=0.0)
             tw = T[g + "TwistWithCovariance"](twist=T[g + "Twist"](linear=zero, angular=zero), covariance=np.zeros(36))
-            put(ODOM, ns, T["nav_msgs/msg/Odometry"](header=_header(ns, "odom"), child_frame_id="zed_camera_link",
-                                                     pose=cov, twist=tw))
-            tfs = [T[g + "TransformStamped"](header=_header(ns, parent), child_frame_id=child, transform=T[g + "Transform"](
-                translation=T[g + "Vector3"](x=tp[0], y=tp[1], z=tp[2]),
-                rotation=T[g + "Quaternion"](x=tq[0], y=tq[1], z=tq[2], w=tq[3])))
-                for parent, child, tp, tq in [("map", "odom", [0, 0, 0], [0, 0, 0, 1]), ("odom", "zed_camera_link", p, q)]]
+            put(
+                ODOM,
+                ns,
+                T["nav_msgs/msg/Odometry"](
+                    header=_header(ns, "odom"), child_frame_id="zed_camera_link", pose=cov, twist=tw
+                ),
+            )
+            tfs = [
+                T[g + "TransformStamped"](
+                    header=_header(ns, parent),
+                    child_frame_id=child,
+                    transform=T[g + "Transform"](
+                        translation=T[g + "Vector3"](x=tp[0], y=tp[1], z=tp[2]),
+                        rotation=T[g + "Quaternion"](x=tq[0], y=tq[1], z=tq[2], w=tq[3]),
+                    ),
+                )
+                for parent, child, tp, tq in [
+                    ("map", "odom", [0, 0, 0], [0, 0, 0, 1]),
+                    ("odom", "zed_camera_link", p, q),
+                ]
+            ]
             put("/tf", ns, T["tf2_msgs/msg/TFMessage"](transforms=tfs))
         for ns, pts in clouds:
             put(CLOUD, int(ns), cloud_msg(pts, int(ns)))
@@ -114,7 +161,11 @@ def write_zed_bag(path, storage, stamps, pos, quat, clouds=(), pair=None):
             put(LEFT, ns, image_msg(left, ns, "zed_left_camera_optical_frame"))
             put(RIGHT, ns, image_msg(right, ns, "zed_right_camera_optical_frame"))
             put("/zed/zed_node/left/camera_info", ns, info_msg(ns, "zed_left_camera_optical_frame", wd, h, f, 0.0))
-            put("/zed/zed_node/right/camera_info", ns, info_msg(ns, "zed_right_camera_optical_frame", wd, h, f, -f * base))
+            put(
+                "/zed/zed_node/right/camera_info",
+                ns,
+                info_msg(ns, "zed_right_camera_optical_frame", wd, h, f, -f * base),
+            )
     return path
 
 
@@ -125,8 +176,15 @@ def bag(request, tmp_path):
     pts[[3, 17, 30]] = np.nan  # invalid pixels, as the ZED writes them
     rng = np.random.default_rng(2)
     left, right = (rng.integers(0, 255, (12, 16, 3), dtype=np.uint8) for _ in range(2))
-    path = write_zed_bag(tmp_path / f"run_{request.param}", request.param, stamps, pos, quat,
-                         clouds=[(stamps[2], pts), (stamps[20], pts * 2)], pair=(stamps[4], left, right, 20.0, 0.12))
+    path = write_zed_bag(
+        tmp_path / f"run_{request.param}",
+        request.param,
+        stamps,
+        pos,
+        quat,
+        clouds=[(stamps[2], pts), (stamps[20], pts * 2)],
+        pair=(stamps[4], left, right, 20.0, 0.12),
+    )
     return path, stamps, pos, quat, pts, left, right
 
 
@@ -157,9 +215,9 @@ def test_cloud_equals_the_points_written(bag):
     want = np.stack([-pts[:, 1], -pts[:, 2], pts[:, 0]], axis=1).astype(np.float32).astype(np.float64)
     assert np.array_equal(np.isnan(first.points), np.isnan(want))
     assert np.array_equal(first.points[~np.isnan(want)], want[~np.isnan(want)])
-    assert first.index == 0 and first.stamp_ns == stamps[2]
+    assert first.position == 0 and first.stamp_ns == stamps[2]
     late = read_bag_cloud(path, CLOUD, at_ns=int(stamps[18]))  # nearer the second message
-    assert late.index == 1 and np.allclose(late.points[~np.isnan(want)], 2 * want[~np.isnan(want)], rtol=1e-6)
+    assert late.position == 1 and np.allclose(late.points[~np.isnan(want)], 2 * want[~np.isnan(want)], rtol=1e-6)
 
 
 def test_stereo_pair_and_camera_info(bag):
@@ -209,8 +267,23 @@ def test_convert_and_focus_from_a_zed_bag(tmp_path):
     from twinfocus.sensors.trajectory_files import read_tum
 
     cap = tmp_path / "cap"
-    subprocess.run([sys.executable, "-m", "twinfocus.sensors.emulators", "capture", str(cap), "--rows", "12",
-                    "--n-samples", "64", "--tracking-error-mm", "0.5"], check=True, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "twinfocus.sensors.emulators",
+            "capture",
+            str(cap),
+            "--rows",
+            "12",
+            "--n-samples",
+            "64",
+            "--tracking-error-mm",
+            "0.5",
+        ],
+        check=True,
+        capture_output=True,
+    )
     tum = read_tum(cap / "trajectory.txt")
     # the ZED's pose is its body frame's: the TUM (optical) rotation times the optical -> body rotation
     r_body = tum.rotation_matrices() @ R_BODY_OPT.T
@@ -223,24 +296,56 @@ def test_convert_and_focus_from_a_zed_bag(tmp_path):
     cloud = np.concatenate([ros, np.full((2, 3), np.nan)])
     if cloud.shape[0] % 2:
         cloud = np.concatenate([cloud, np.full((1, 3), np.nan)])
-    bag = write_zed_bag(tmp_path / "run", "mcap", tum.timestamps_ns, tum.position_m, q_body,
-                        clouds=[(int(tum.timestamps_ns[0]), cloud)])
-    for name, traj in [("tum", ["--trajectory", str(cap / "trajectory.txt")]),
-                       ("bag", ["--trajectory", str(bag), "--pose-topic", POSE])]:
-        assert main(["convert", str(cap), *traj, "--out", str(tmp_path / f"{name}.npz"), "--quiet",
-                     "--n-samples", "64"]) == 0
+    bag = write_zed_bag(
+        tmp_path / "run", "mcap", tum.timestamps_ns, tum.position_m, q_body, clouds=[(int(tum.timestamps_ns[0]), cloud)]
+    )
+    for name, traj in [
+        ("tum", ["--trajectory", str(cap / "trajectory.txt")]),
+        ("bag", ["--trajectory", str(bag), "--pose-topic", POSE]),
+    ]:
+        assert (
+            main(["convert", str(cap), *traj, "--out", str(tmp_path / f"{name}.npz"), "--quiet", "--n-samples", "64"])
+            == 0
+        )
     a, b = Scan.load(tmp_path / "tum.npz"), Scan.load(tmp_path / "bag.npz")
     assert np.allclose(a.positions, b.positions, atol=1e-9) and np.array_equal(a.data, b.data)
     c32 = cloud.astype(np.float32).astype(np.float64)  # the bag holds float32, as the ZED writes
-    np.save(tmp_path / "ref.npy", np.stack([-c32[:, 1], -c32[:, 2], c32[:, 0]], axis=1)
-            + np.asarray(DEFAULT_LEFT_CAMERA_POSITION_M))
+    np.save(
+        tmp_path / "ref.npy",
+        np.stack([-c32[:, 1], -c32[:, 2], c32[:, 0]], axis=1) + np.asarray(DEFAULT_LEFT_CAMERA_POSITION_M),
+    )
     out = {}
     for name, src in [("npy", str(tmp_path / "ref.npy")), ("bag", f"{bag}:{CLOUD}")]:
         with pytest.warns(UserWarning, match="NaN or inf"):
-            rc = main(["focus", str(tmp_path / "bag.npz"), "--reference-roi", "-0.085", "0.005", "-0.045", "0.045",
-                       "0.6", "--target-roi", "0.035", "0.105", "-0.045", "0.045", "0.6", "--size", "16",
-                       "--digital-twin", src, "--out", str(tmp_path / name), "--no-pictures", "--quiet",
-                       "--device", "cpu", "--no-cache"])
+            rc = main(
+                [
+                    "focus",
+                    str(tmp_path / "bag.npz"),
+                    "--reference-roi",
+                    "-0.085",
+                    "0.005",
+                    "-0.045",
+                    "0.045",
+                    "0.6",
+                    "--target-roi",
+                    "0.035",
+                    "0.105",
+                    "-0.045",
+                    "0.045",
+                    "0.6",
+                    "--size",
+                    "16",
+                    "--digital-twin",
+                    src,
+                    "--out",
+                    str(tmp_path / name),
+                    "--no-pictures",
+                    "--quiet",
+                    "--device",
+                    "cpu",
+                    "--no-cache",
+                ]
+            )
         assert rc == 0
         out[name] = np.load(tmp_path / name / "phase.npy")
     assert np.allclose(out["npy"], out["bag"], atol=1e-9)
@@ -249,7 +354,21 @@ def test_convert_and_focus_from_a_zed_bag(tmp_path):
 
 def test_focus_refuses_a_wrong_cloud_topic_in_one_line(bag, tmp_path, capsys):
     path = bag[0]
-    rc = main(["focus", "missing.npz", "--digital-twin", f"{path}:{POSE}", "--target-roi", "0", "1", "0", "1",
-               "0.6", "--out", str(tmp_path / "o")])
+    rc = main(
+        [
+            "focus",
+            "missing.npz",
+            "--digital-twin",
+            f"{path}:{POSE}",
+            "--target-roi",
+            "0",
+            "1",
+            "0",
+            "1",
+            "0.6",
+            "--out",
+            str(tmp_path / "o"),
+        ]
+    )
     assert rc == 2 and "Traceback" not in capsys.readouterr().err
     assert Path(path).exists()

@@ -383,7 +383,7 @@ def pin_bag_clouds(clouds: list[str], timestamps_ns: np.ndarray | None, quiet: b
             what = "the scan's middle time" if source.at_ns is None and at is not None else "the time given"
             chosen = "the first message (the scan has no time stamps)" if at is None else f"the one nearest {what}"
             print(
-                f"[digital twin] {source.path}:{source.topic}: message {cloud.index} ({chosen}), frame "
+                f"[digital twin] {source.path}:{source.topic}: message {cloud.position} ({chosen}), frame "
                 f"{cloud.frame_id or '(unnamed)'}, {cloud.points.shape[0]} points",
                 file=sys.stderr,
             )

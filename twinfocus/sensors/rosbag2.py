@@ -140,10 +140,14 @@ def pointcloud2_xyz(msg: Any) -> np.ndarray:
         f = fields[name]
         kind = _FIELD_DTYPES.get(int(f.datatype))
         if kind is None:
-            raise TwinFocusError(f"the PointCloud2's {name} field has datatype {f.datatype}; float32 (7) or float64 (8)")
+            raise TwinFocusError(
+                f"the PointCloud2's {name} field has datatype {f.datatype}; float32 (7) or float64 (8)"
+            )
         dt = np.dtype(kind).newbyteorder(">" if msg.is_bigendian else "<")
         if int(f.offset) + dt.itemsize > step:
-            raise TwinFocusError(f"the PointCloud2's {name} field (offset {f.offset}) lies outside its point_step {step}")
+            raise TwinFocusError(
+                f"the PointCloud2's {name} field (offset {f.offset}) lies outside its point_step {step}"
+            )
         # a strided view over rows and points: any point_step and row padding, no copy of the blob
         view = np.ndarray((h, w), dtype=dt, buffer=data, offset=int(f.offset), strides=(row_step, step))
         out[:, :, j] = view

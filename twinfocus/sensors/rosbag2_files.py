@@ -135,7 +135,9 @@ def read_bag_poses(path: str | os.PathLike, topic: str, child_frame: str | None 
     if msgtype == "tf2_msgs/msg/TFMessage":
         children = sorted({r.child_frame_id for r in records})
         if child_frame is None and len(children) > 1:
-            raise TwinFocusError(f"{p}: {topic} carries several frames ({', '.join(children)}); choose one with --pose-frame")
+            raise TwinFocusError(
+                f"{p}: {topic} carries several frames ({', '.join(children)}); choose one with --pose-frame"
+            )
         if not records:
             raise TwinFocusError(f"{p}: {topic} has no transform of frame {child_frame}")
     elif not records:
@@ -155,13 +157,13 @@ def read_bag_poses(path: str | os.PathLike, topic: str, child_frame: str | None 
 class BagCloud(NamedTuple):
     """A point cloud taken from a bag: points float64 (N, 3), metres, optical axes of the
     message's frame (NaN rows kept); the message's frame, header stamp, the bag's receive time
-    of it (``log_ns``, what ``@STAMP_NS`` selects by), its index on the topic, and how it was chosen."""
+    of it (``log_ns``, what ``@STAMP_NS`` selects by), its position on the topic (0 = first), and how it was chosen."""
 
     points: np.ndarray
     frame_id: str
     stamp_ns: int
     log_ns: int
-    index: int
+    position: int
     chosen: str
 
 
@@ -191,7 +193,9 @@ def read_bag_cloud(path: str | os.PathLike, topic: str, at_ns: int | None = None
     except TwinFocusError as exc:
         raise TwinFocusError(f"{p}: {topic}: {exc}") from None
     chosen = "the first message" if at_ns is None else f"the message recorded nearest {at_ns} ns"
-    return BagCloud(msgs.optical_points(xyz, m.header.frame_id), m.header.frame_id, msgs.stamp_ns(m.header), t, i, chosen)
+    return BagCloud(
+        msgs.optical_points(xyz, m.header.frame_id), m.header.frame_id, msgs.stamp_ns(m.header), t, i, chosen
+    )
 
 
 def bag_source_sha256(source: BagSource) -> str:
@@ -218,9 +222,7 @@ def camera_info_topic(image_topic: str) -> str:
     return image_topic.rsplit("/", 1)[0] + "/camera_info"
 
 
-def read_bag_stereo(
-    path: str | os.PathLike, left_topic: str, right_topic: str, at_ns: int | None = None
-) -> BagStereo:
+def read_bag_stereo(path: str | os.PathLike, left_topic: str, right_topic: str, at_ns: int | None = None) -> BagStereo:
     """The first left image (or the one nearest ``at_ns``) with the right image of the same header
     stamp (else the nearest), and the CameraInfo beside each topic."""
     p = Path(path)
