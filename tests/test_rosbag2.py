@@ -372,3 +372,37 @@ def test_focus_refuses_a_wrong_cloud_topic_in_one_line(bag, tmp_path, capsys):
     )
     assert rc == 2 and "Traceback" not in capsys.readouterr().err
     assert Path(path).exists()
+
+
+@pytest.mark.slow
+def test_twin_takes_the_stereo_pair_and_camera_info_from_a_bag(tmp_path):
+    """`twin BAG:LEFT BAG:RIGHT` (CameraInfo from the bag, default ZED pose) gives the cloud that
+    `twin left.png right.png --camera camera.json` gives for the same rendered pair."""
+    from twinfocus.digital_twin.camera import StereoCamera
+    from twinfocus.digital_twin.render import render_scene
+    from twinfocus.scene import paper_scene
+
+    cam = StereoCamera.zed2i(640, 360)
+    r = render_scene(paper_scene(), cam, seed=3)
+    r.save(tmp_path / "stereo")
+    stamps, pos, quat = zigzag(4)
+    f, w, h = cam.left.fx, cam.left.width, cam.left.height
+    assert cam.left.cx == (w - 1) / 2
+    bag = write_zed_bag(
+        tmp_path / "run", "sqlite3", stamps, pos, quat, pair=(stamps[1], r.left, r.right, f, cam.baseline_m)
+    )
+    roi = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
+    # the bag's CameraInfo puts the principal point at w/2 (as info_msg writes it): the same in camera.json
+    from twinfocus.digital_twin.camera import Intrinsics
+
+    eye = Intrinsics(f, f, w / 2, h / 2, w, h)
+    StereoCamera(eye, eye, np.eye(3), np.array([-cam.baseline_m, 0, 0]), cam.scene_from_left).save(
+        tmp_path / "cam.json"
+    )
+    st = tmp_path / "stereo"
+    common = ["--seed-roi", *roi, "--quiet"]
+    assert main(["twin", str(st / "left.png"), str(st / "right.png"), "--camera", str(tmp_path / "cam.json"),
+                 "--points-out", str(tmp_path / "png.npy"), *common]) == 0  # fmt: skip
+    assert main(["twin", f"{bag}:{LEFT}", f"{bag}:{RIGHT}", "--points-out", str(tmp_path / "bag.npy"), *common]) == 0
+    a, b = np.load(tmp_path / "png.npy"), np.load(tmp_path / "bag.npy")
+    assert a.shape[0] > 100 and np.array_equal(a, b)
