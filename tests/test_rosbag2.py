@@ -6,7 +6,6 @@ its CameraInfo; convert and focus through the commands; one-line refusals."""
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -353,25 +352,23 @@ def test_convert_and_focus_from_a_zed_bag(tmp_path):
 
 
 def test_focus_refuses_a_wrong_cloud_topic_in_one_line(bag, tmp_path, capsys):
+    from twinfocus.radar import Chirp
+    from twinfocus.scan import Scan
+
     path = bag[0]
-    rc = main(
-        [
-            "focus",
-            "missing.npz",
-            "--digital-twin",
-            f"{path}:{POSE}",
-            "--target-roi",
-            "0",
-            "1",
-            "0",
-            "1",
-            "0.6",
-            "--out",
-            str(tmp_path / "o"),
-        ]
-    )
-    assert rc == 2 and "Traceback" not in capsys.readouterr().err
-    assert Path(path).exists()
+    pos = np.zeros((3, 2, 3))
+    pos[:, :, 0] = np.arange(3)[:, None] * 1e-3
+    Scan(np.ones((3, 2, 8), np.complex64), pos, Chirp(n_samples=8)).save(tmp_path / "s.npz")
+    for src, words in [
+        (f"{path}:{POSE}", ["is geometry_msgs/msg/PoseStamped", CLOUD]),
+        (f"{path}:/nope", ["no topic /nope", CLOUD]),
+    ]:
+        rc = main(["focus", str(tmp_path / "s.npz"), "--digital-twin", src, "--target-roi", "0", "0.1", "0", "0.1",
+                   "0.6", "--out", str(tmp_path / "o"), "--quiet"])  # fmt: skip
+        err = capsys.readouterr().err
+        assert rc == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+        assert all(w in err for w in words), err
+        assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.slow
