@@ -131,12 +131,20 @@ def digital_twin_key(
     :func:`remembered_sha256`), the scan's aperture (positions (M, K, 3) and chirp) it is
     simulated for, ``grid`` and the options."""
     inputs = {
-        "cloud_sha256": remembered_sha256(cloud_path, root),
+        "cloud_sha256": _cloud_sha256(cloud_path, root),
         "positions_sha256": array_sha256(np.asarray(positions_m)),
         "chirp": [chirp.f0_hz, chirp.slope_hz_per_s, chirp.fs_hz, chirp.n_samples],
         "method": method,
     }
     return template_key("digital_twin", inputs, grid, bp_options)
+
+
+def _cloud_sha256(cloud: str | os.PathLike, root) -> str:
+    """A cloud file's digest, or for a rosbag2 source ``BAG:TOPIC@STAMP`` that of the message's points."""
+    from twinfocus.sensors.rosbag2_files import bag_source_sha256, split_bag_source
+
+    source = split_bag_source(str(cloud))
+    return remembered_sha256(cloud, root) if source is None else bag_source_sha256(source)
 
 
 class TemplateCache:

@@ -24,6 +24,8 @@ _NOT_FOR_CALIBRATION = {
     "capture",
     "trajectory",
     "trajectory_format",
+    "pose_topic",
+    "pose_frame",
     "extrinsics",
     "out",
     "mcap",

@@ -28,7 +28,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="MMWCAS capture folder (master_0000_data.bin, master_0000_idx.bin, slave1_..., ...), "
         "or a DCA1000 capture (adc_data.bin, <prefix>_Raw_0.bin, or their folder)",
     )
-    p.add_argument("--trajectory", required=True, help="camera (VIO) trajectory file, TUM or EuRoC format")
+    p.add_argument(
+        "--trajectory",
+        required=True,
+        help="camera (VIO) trajectory: TUM or EuRoC file, a rosbag2 (folder, .mcap, .db3; with --pose-topic) "
+        "or a ZED SDK .svo/.svo2 (needs pyzed)",
+    )
+    p.add_argument("--pose-topic", help="with a rosbag2 --trajectory: the pose topic, e.g. /zed/zed_node/pose")
+    p.add_argument("--pose-frame", help="with a tf2_msgs/TFMessage --pose-topic: the child frame to follow")
     p.add_argument("--trajectory-format", choices=["auto", "tum", "euroc"], default="auto")
     p.add_argument("--extrinsics", help="camera-radar calibration (YAML); default identity (radar at the camera)")
     p.add_argument("--out", required=True, help="scan file to write (.npz)")
@@ -145,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
     from twinfocus.radar import mmwcas_virtual_array
     from twinfocus.sensors.capture_to_scan import capture_report_path, scan_from_frames
     from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
-    from twinfocus.sensors.trajectory_files import read_trajectory
+    from twinfocus.sensors.rosbag2_files import read_any_trajectory
 
     out = Path(args.out)
     if out.suffix != ".npz":
@@ -158,9 +165,10 @@ def run(args: argparse.Namespace) -> int:
     if not capture.exists():
         raise TwinFocusError(f"{capture}: no such capture file or folder")
     board = load_board(args.board)
-    poses = read_trajectory(args.trajectory, args.trajectory_format)
+    poses, poses_read = read_any_trajectory(args.trajectory, args.trajectory_format, args.pose_topic, args.pose_frame)
     extrinsics = RadarCameraExtrinsics.load(args.extrinsics) if args.extrinsics else RadarCameraExtrinsics()
     say = (lambda *a: None) if args.quiet else (lambda msg: print(f"[convert] {msg}", file=sys.stderr))
+    say(poses_read)
     if not args.extrinsics:
         say("no --extrinsics: the radar is taken to sit at the camera (identity transform)")
     array = mmwcas_virtual_array(board)

@@ -83,7 +83,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--digital-twin",
         nargs="+",
         metavar="CLOUD",
-        help="reference point cloud (.npy, (N, 3) metres, scene frame); several: candidates, as --template",
+        help="reference point cloud (.npy, (N, 3) metres, scene frame; or BAG:TOPIC, a rosbag2's PointCloud2, "
+        "docs/reference/file_formats.md); several: candidates, as --template",
     )
     src.add_argument(
         "--method",
@@ -217,6 +218,10 @@ def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
     for path in (args.template_scan or []) + (args.template or []):
         peek_npz_shapes(path)
     for path in args.digital_twin or []:
+        from twinfocus.sensors.rosbag2_files import split_bag_source
+
+        if split_bag_source(path) is not None:
+            continue  # a rosbag2's PointCloud2 topic: read (and checked) once the scan's time is known
         cloud = Path(path)
         if not cloud.is_file():
             raise TwinFocusError(f"--digital-twin {cloud}: no such file")
@@ -522,6 +527,10 @@ def run(args: argparse.Namespace) -> int:
 
     t = time.perf_counter()
     scan = Scan.load(args.scan)
+    if args.digital_twin:
+        from twinfocus.digital_twin.template import pin_bag_clouds
+
+        args.digital_twin = pin_bag_clouds(args.digital_twin, scan.timestamps_ns, quiet=args.quiet)
     load_s = time.perf_counter() - t
     candidates = _candidates(args)
     results, listed = [], []

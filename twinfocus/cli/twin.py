@@ -22,9 +22,17 @@ from twinfocus.errors import TwinFocusError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("left", help="left picture (PNG/JPEG, rectified or as calibrated)")
-    p.add_argument("right", help="right picture, same size")
-    p.add_argument("--camera", required=True, help="stereo calibration and camera pose (camera.json)")
+    p.add_argument(
+        "left",
+        help="left picture (PNG/JPEG, rectified or as calibrated), or BAG:TOPIC, a rosbag2's sensor_msgs/Image "
+        "(e.g. run_bag:/zed/zed_node/left/image_rect_color)",
+    )
+    p.add_argument("right", help="right picture, same size (or BAG:TOPIC with the left's bag)")
+    p.add_argument(
+        "--camera",
+        help="stereo calibration and camera pose (camera.json); with a BAG:TOPIC pair, default: the CameraInfo "
+        "beside each image topic and the default ZED pose (a camera.json given there lends only its pose)",
+    )
     seed = p.add_mutually_exclusive_group(required=True)
     seed.add_argument("--seed-point", nargs=2, type=float, metavar=("U", "V"), help="a pixel on the reference")
     seed.add_argument(
@@ -98,6 +106,27 @@ def _check_args(args) -> None:
         raise TwinFocusError(f"--size must be at least 2, got {args.size}")
 
 
+def _pair_from_bag(args):
+    """(StereoCamera, left, right) from a rosbag2's rectified Image pair and their CameraInfo."""
+    import numpy as np
+
+    from twinfocus.digital_twin.camera import Intrinsics, StereoCamera
+    from twinfocus.sensors.rosbag2_files import read_bag_stereo, split_bag_source
+
+    left_src, right_src = split_bag_source(args.left), split_bag_source(args.right)
+    if right_src is None or right_src.path != left_src.path:
+        raise TwinFocusError(f"{args.right}: with a bag's left image, the right must be BAG:TOPIC of the same bag")
+    pair = read_bag_stereo(left_src.path, left_src.topic, right_src.topic, left_src.at_ns)
+    eyes = [Intrinsics(m.fx, m.fy, m.cx, m.cy, m.width, m.height) for m in (pair.left_model, pair.right_model)]
+    baseline = pair.right_model.tx_m - pair.left_model.tx_m
+    base = StereoCamera.load(args.camera) if args.camera else StereoCamera.zed2i(eyes[0].width, eyes[0].height)
+    return (
+        StereoCamera(eyes[0], eyes[1], np.eye(3), np.array([-baseline, 0.0, 0.0]), base.scene_from_left),
+        pair.left,
+        pair.right,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -113,8 +142,15 @@ def run(args: argparse.Namespace) -> int:
     _check_args(args)
     say = (lambda *a: None) if args.quiet else (lambda *a: print("twinfocus twin:", *a, file=sys.stderr))
     t_all = time.perf_counter()
-    camera = StereoCamera.load(args.camera)
-    left, right = read_image(args.left), read_image(args.right)
+    from twinfocus.sensors.rosbag2_files import split_bag_source
+
+    if split_bag_source(args.left) is not None:
+        camera, left, right = _pair_from_bag(args)
+    elif not args.camera:
+        raise TwinFocusError("--camera (camera.json) is needed with picture files")
+    else:
+        camera = StereoCamera.load(args.camera)
+        left, right = read_image(args.left), read_image(args.right)
     if left.shape != right.shape:
         raise TwinFocusError(
             f"{args.left} is {left.shape[1]}x{left.shape[0]} but {args.right} is {right.shape[1]}x{right.shape[0]}: "

@@ -324,6 +324,10 @@ def load_points(path: str | os.PathLike, allow_non_finite: bool = False) -> np.n
     """
     from pathlib import Path
 
+    from twinfocus.sensors.rosbag2_files import split_bag_source
+
+    if (source := split_bag_source(str(path))) is not None:
+        return _bag_points(source, allow_non_finite)
     path = Path(path)
     if not path.is_file():
         raise TwinFocusError(f"{path}: no such point-cloud file")
@@ -339,6 +343,52 @@ def load_points(path: str | os.PathLike, allow_non_finite: bool = False) -> np.n
         return _check_points(p)
     except TwinFocusError as exc:
         raise TwinFocusError(f"{path}: {exc}") from None
+
+
+def _bag_points(source, allow_non_finite: bool) -> np.ndarray:
+    """A rosbag2's PointCloud2 (:func:`twinfocus.sensors.rosbag2_files.read_bag_cloud`) placed as
+    ``twin`` places a stereo cloud: the camera's optical axes, the left camera at the default
+    ZED pose in the scene frame (:data:`~twinfocus.digital_twin.camera.DEFAULT_LEFT_CAMERA_POSITION_M`)."""
+    from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M
+    from twinfocus.sensors.rosbag2_files import read_bag_cloud
+
+    cloud = read_bag_cloud(source.path, source.topic, source.at_ns)
+    p = cloud.points + np.asarray(DEFAULT_LEFT_CAMERA_POSITION_M, np.float64)
+    if allow_non_finite:
+        return p
+    keep = np.isfinite(p).all(axis=1)
+    return _check_points(p[keep])
+
+
+def pin_bag_clouds(clouds: list[str], timestamps_ns: np.ndarray | None, quiet: bool = False) -> list[str]:
+    """``focus --digital-twin BAG:TOPIC``: each rosbag2 source pinned to one message,
+    ``BAG:TOPIC@LOG_NS``: the one recorded nearest the scan's middle time stamp, or the first when
+    the scan has none (or a time was typed with ``@``). Other entries pass unchanged."""
+    import sys
+
+    from twinfocus.sensors.rosbag2_files import read_bag_cloud, split_bag_source
+
+    out = []
+    for entry in clouds:
+        source = split_bag_source(entry)
+        if source is None:
+            out.append(entry)
+            continue
+        at = source.at_ns
+        if at is None and timestamps_ns is not None and len(timestamps_ns):
+            ts = np.asarray(timestamps_ns, np.int64)
+            at = int(ts[0] + (ts[-1] - ts[0]) // 2)
+        cloud = read_bag_cloud(source.path, source.topic, at)
+        if not quiet:
+            what = "the scan's middle time" if source.at_ns is None and at is not None else "the time given"
+            chosen = "the first message (the scan has no time stamps)" if at is None else f"the one nearest {what}"
+            print(
+                f"[digital twin] {source.path}:{source.topic}: message {cloud.position} ({chosen}), frame "
+                f"{cloud.frame_id or '(unnamed)'}, {cloud.points.shape[0]} points",
+                file=sys.stderr,
+            )
+        out.append(f"{source.path}:{source.topic}@{cloud.log_ns}")
+    return out
 
 
 def save_points(path: str | os.PathLike, points_m) -> None:
