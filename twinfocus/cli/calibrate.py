@@ -16,6 +16,7 @@ import json
 import sys
 from pathlib import Path
 
+from twinfocus.atomic import output_files
 from twinfocus.errors import TwinFocusError
 
 #: convert's options that have no meaning for a still capture of a corner.
@@ -51,6 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--range-m", type=float, required=True, help="the corner's range from the radar, metres")
     p.add_argument("--out", required=True, help="calibration file to write (.npz)")
     p.add_argument("--picture", help="where to draw the calibration's picture (default: --out with .png)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out (and its picture)")
     p.add_argument(
         "--window-m", type=float, default=0.25, help="search for the corner within +- this of --range-m (default 0.25)"
     )
@@ -66,6 +68,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise TwinFocusError(f"--out must name a .npz file, got {out}")
+    picture = Path(args.picture) if args.picture else out.with_suffix(".png")
+    with output_files({"--out": out, "--picture": picture}, args.overwrite):
+        return _calibrate(args, out, picture)
+
+
+def _calibrate(args: argparse.Namespace, out: Path, picture: Path) -> int:
     import numpy as np
 
     from twinfocus.board import load_board
@@ -73,10 +84,6 @@ def run(args: argparse.Namespace) -> int:
     from twinfocus.radar import mmwcas_virtual_array
     from twinfocus.sensors.frames import frame_to_virtual_channels, mmwcas_antenna_positions_body_m
 
-    out = Path(args.out)
-    if out.suffix != ".npz":
-        raise TwinFocusError(f"--out must name a .npz file, got {out}")
-    picture = Path(args.picture) if args.picture else out.with_suffix(".png")
     if not args.range_m > 0 or not args.window_m > 0:
         raise TwinFocusError(f"--range-m and --window-m must be positive, got {args.range_m} and {args.window_m}")
     if args.max_frames < 1:

@@ -19,6 +19,7 @@ import json
 import sys
 from pathlib import Path
 
+from twinfocus.atomic import output_files
 from twinfocus.errors import TwinFocusError
 
 
@@ -31,7 +32,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trajectory", required=True, help="camera (VIO) trajectory file, TUM or EuRoC format")
     p.add_argument("--trajectory-format", choices=["auto", "tum", "euroc"], default="auto")
     p.add_argument("--extrinsics", help="camera-radar calibration (YAML); default identity (radar at the camera)")
-    p.add_argument("--out", required=True, help="scan file to write (.npz)")
+    p.add_argument(
+        "--out", required=True, help="scan file to write (.npz; an existing one is refused without --overwrite)"
+    )
     p.add_argument("--mcap", help="also write an MCAP log (radar/frame and vio/pose) here")
     p.add_argument(
         "--z0",
@@ -76,7 +79,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=1000,
         help="nanoseconds per tick of the index files' time stamps (default 1000: microseconds)",
     )
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --mcap file")
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace existing output files (--out, its .capture.json, --mcap)"
+    )
     p.add_argument(
         "--calibration",
         help="channel calibration to apply (.npz from `twinfocus calibrate`); without one a warning is printed",
@@ -139,6 +144,17 @@ def _is_mmwcas(path: Path) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    from twinfocus.sensors.capture_to_scan import capture_report_path
+
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise TwinFocusError(f"--out must name a .npz file, got {out}")
+    outputs = {"--out": out, "--out's capture report": capture_report_path(out), "--mcap": args.mcap}
+    with output_files(outputs, args.overwrite):  # refused or locked before any work
+        return _convert(args, out)
+
+
+def _convert(args: argparse.Namespace, out: Path) -> int:
     from twinfocus.board import load_board
     from twinfocus.evaluation.runner import write_json_atomic
     from twinfocus.progress import Progress
@@ -147,11 +163,6 @@ def run(args: argparse.Namespace) -> int:
     from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
     from twinfocus.sensors.trajectory_files import read_trajectory
 
-    out = Path(args.out)
-    if out.suffix != ".npz":
-        raise TwinFocusError(f"--out must name a .npz file, got {out}")
-    if args.mcap and Path(args.mcap).exists() and not args.overwrite:
-        raise TwinFocusError(f"{args.mcap}: already exists; choose another name or pass --overwrite")
     if not args.z0 > 0:
         raise TwinFocusError(f"--z0 must be positive, got {args.z0}")
     capture = Path(args.capture)
@@ -194,7 +205,7 @@ def run(args: argparse.Namespace) -> int:
         )
         for note in report.notes:
             say(note)
-        calibration = _calibrate(args, scan, array, say)
+        calibration = _calibrate(args, scan, array, board.name, say)
         scan.save(out)
         gaps = {**report.gaps(), **gaps}
         write_json_atomic(
@@ -229,8 +240,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _calibrate(args, scan, array, say) -> dict | None:
-    """Apply --calibration to the scan in place; its record (file, SHA-256), or None with a warning."""
+def _calibrate(args, scan, array, board: str, say) -> dict | None:
+    """Apply --calibration to the scan in place (refused when it was made on another board, array or
+    chirp); its record (file, SHA-256), or None with a warning."""
     if not args.calibration:
         print(
             "[convert] warning: no --calibration: the channels' own phase, gain and delay errors stay in the data "
@@ -240,7 +252,7 @@ def _calibrate(args, scan, array, say) -> dict | None:
         return None
     from twinfocus.calibration import apply_calibration, calibration_for
 
-    correction, record = calibration_for(args.calibration, scan.chirp, array)
+    correction, record = calibration_for(args.calibration, scan.chirp, array, board)
     scan.data = apply_calibration(scan.data, correction)
     scan.calibration = json.dumps(record)
     say(f"channel calibration {record['file']} applied (sha256 {record['sha256'][:12]})")

@@ -8,6 +8,7 @@ import json
 import sys
 import time
 
+from twinfocus.atomic import output_files
 from twinfocus.errors import TwinFocusError
 from twinfocus.motion import ERROR_MODELS
 
@@ -42,8 +43,15 @@ def layout_kwargs(args: argparse.Namespace) -> dict:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", required=True, help="scan file to write (.npz)")
+    p.add_argument(
+        "--out", required=True, help="scan file to write (.npz; an existing one is refused without --overwrite)"
+    )
     p.add_argument("--template-out", help="also write the reference's motion-stage scan here (.npz)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace existing output files (--out, --template-out, --reference-cloud-out)",
+    )
     add_layout_arguments(p)
     p.add_argument("--clutter", action="store_true", help="add room clutter (weak and a few strong scatterers)")
     p.add_argument(
@@ -194,11 +202,6 @@ def array_errors_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from twinfocus.progress import Progress
-    from twinfocus.scenario import Scenario, simulate_scenario
-
     if not str(args.out).endswith(".npz"):
         raise TwinFocusError(f"--out must name a .npz file, got {args.out}")
     if args.error_sigma_mm < 0 or args.xy_error_sigma_mm < 0:
@@ -208,6 +211,21 @@ def run(args: argparse.Namespace) -> int:
     for name in ("cloud_noise_mm", "cloud_offset_mm"):
         if len(getattr(args, name)) not in (1, 3):
             raise TwinFocusError(f"--{name.replace('_', '-')} takes one number or three (x y z)")
+    outputs = {
+        "--out": args.out,
+        "--template-out": args.template_out,
+        "--reference-cloud-out": args.reference_cloud_out,
+    }
+    with output_files(outputs, args.overwrite):  # refused or locked before the (long) simulation
+        return _simulate(args)
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from twinfocus.progress import Progress
+    from twinfocus.scenario import Scenario, simulate_scenario
+
     snr = None if np.isinf(args.snr_db) else args.snr_db
     sc = Scenario(
         **layout_kwargs(args),
