@@ -21,6 +21,7 @@ from pathlib import Path
 
 from twinfocus.atomic import output_files
 from twinfocus.errors import TwinFocusError
+from twinfocus.option_types import finite_float, non_negative_int, positive_float, positive_int
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -38,11 +39,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mcap", help="also write an MCAP log (radar/frame and vio/pose) here")
     p.add_argument(
         "--z0",
-        type=float,
+        type=positive_float,
         default=0.6,
         help="range of the imaging plane for the multistatic correction, m (default 0.6)",
     )
-    p.add_argument("--time-offset-s", type=float, default=0.0, help="added to radar time stamps, seconds (default 0)")
+    p.add_argument(
+        "--time-offset-s", type=finite_float, default=0.0, help="added to radar time stamps, seconds (default 0)"
+    )
     p.add_argument(
         "--align",
         choices=["auto", "start", "none"],
@@ -61,21 +64,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--keep-flagged", action="store_true", help="keep frames flagged as device-skewed")
     p.add_argument(
         "--n-samples",
-        type=int,
+        type=positive_int,
         help="ADC samples per chirp (default: the capture's configuration, else 256)",
     )
-    p.add_argument("--n-loops", type=int, help="chirp loops per frame (default: the configuration's, else 1)")
-    p.add_argument("--loop", type=int, default=0, help="which loop of each frame to use (default 0)")
+    p.add_argument("--n-loops", type=positive_int, help="chirp loops per frame (default: the configuration's, else 1)")
+    p.add_argument("--loop", type=non_negative_int, default=0, help="which loop of each frame to use (default 0)")
     p.add_argument(
         "--f0-hz",
-        type=float,
+        type=positive_float,
         help="frequency of the first ADC sample (default: the configuration's start + slope x ADC start, else 76.6e9)",
     )
-    p.add_argument("--slope-hz-per-s", type=float, help="chirp slope (default: the configuration's, else 120e12)")
-    p.add_argument("--fs-hz", type=float, help="ADC sample rate (default: the configuration's, else 8e6)")
+    p.add_argument(
+        "--slope-hz-per-s", type=positive_float, help="chirp slope (default: the configuration's, else 120e12)"
+    )
+    p.add_argument("--fs-hz", type=positive_float, help="ADC sample rate (default: the configuration's, else 8e6)")
     p.add_argument(
         "--timestamp-unit-ns",
-        type=int,
+        type=positive_int,
         default=1000,
         help="nanoseconds per tick of the index files' time stamps (default 1000: microseconds)",
     )
@@ -102,7 +107,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--frame-period-s",
-        type=float,
+        type=positive_float,
         help="frame period, s (default: from the configuration; MMWCAS 0.1, DCA1000 the .cfg's frameCfg)",
     )
     g.add_argument(

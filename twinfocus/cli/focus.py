@@ -17,6 +17,7 @@ from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import REFERENCE_FREE_RUNGS
 from twinfocus.grid import ImageGrid
 from twinfocus.machine import require_memory
+from twinfocus.option_types import finite_float, positive_float
 from twinfocus.settings import add_focus_options, preload_torch, resolve_device
 
 #: bytes per radar position and pixel that a run holds at its peak: the two sub-image bases
@@ -30,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--reference-roi",
         nargs=5,
-        type=float,
+        type=finite_float,
         default=None,
         metavar=("X0", "X1", "Y0", "Y1", "Z"),
         help="reference region (metres); without it, found from --digital-twin's cloud, --template's grid or "
@@ -48,7 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--refine-depth",
         nargs="?",
-        type=float,
+        type=positive_float,
         const=0.1,
         default=None,
         metavar="M",
@@ -57,7 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--volume",
         nargs=3,
-        type=float,
+        type=finite_float,
         default=None,
         metavar=("Z0", "Z1", "DZ"),
         help="also form the corrected 3-D volume over both regions' x/y box, --size x --size pixels, planes "
