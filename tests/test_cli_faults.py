@@ -1,4 +1,4 @@
-"""Faults a careless or hostile user makes (issue 58): each refused in one line, exit 2, earlier
+"""Faults a careless or hostile user makes: each refused in one line, exit 2, earlier
 results unchanged, nothing written outside the folder the output belongs in."""
 import errno
 import hashlib

@@ -149,7 +149,7 @@ def test_bad_inputs_give_clear_errors_and_keep_old_results(small_scans, tmp_path
     }
     cases.pop("missing key")
     for message, path in cases.items():
-        assert _focus(path, out, *tpl) == 2, message
+        assert _focus(path, out, *tpl, "--overwrite") == 2, message
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err
     # a region of interest with nothing in it
@@ -262,9 +262,9 @@ def test_pictures_of_an_earlier_run_do_not_stay_beside_new_results(small_scans, 
     out = tmp_path / "o"
     assert _focus(small_scans / "scan.npz", out, "--method", "none", "--pictures", "all") == 0
     assert len(list(out.glob("*.png"))) > 1
-    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--pictures", "summary") == 0
+    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--pictures", "summary", "--overwrite") == 0
     assert sorted(p.name for p in out.glob("*.png")) == ["summary.png"]
-    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--no-pictures") == 0
+    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--no-pictures", "--overwrite") == 0
     assert not list(out.glob("*.png")) and (out / "metrics.json").is_file()
 
 
