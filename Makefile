@@ -27,9 +27,9 @@ PAPER_FOCUS_ARGS = $(shell $(PY) -c 'from twinfocus.scenario import PAPER_REFERE
 	PAPER_IMAGE_SIZE as s; print("--reference-roi", *r, "--target-roi", *t, "--size", s)')
 
 demo: $(STAMP)
-	$(VENV)/bin/twinfocus simulate --out $(DEMO)/scan.npz --template-out $(DEMO)/template_scan.npz
+	$(VENV)/bin/twinfocus simulate --overwrite --out $(DEMO)/scan.npz --template-out $(DEMO)/template_scan.npz
 	$(VENV)/bin/twinfocus focus $(DEMO)/scan.npz --template-scan $(DEMO)/template_scan.npz \
-	    $(PAPER_FOCUS_ARGS) --out $(DEMO)/focus
+	    $(PAPER_FOCUS_ARGS) --overwrite --out $(DEMO)/focus
 	@$(PY) -m benchmarks.demo_figure $(DEMO)/focus
 	@echo "[make] pictures and figures are in $(DEMO)/focus"
 

@@ -36,7 +36,6 @@ import dataclasses
 import sys
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -48,6 +47,7 @@ from twinfocus.basis import BasisRows
 from twinfocus.depth_search import DEFAULT_HALF_RANGE_M, parse_depth
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import REFERENCE_FREE_RUNGS
+from twinfocus.safe_paths import child_path
 from twinfocus.settings import FOCUS_SETTINGS
 
 if TYPE_CHECKING:  # imported where used: the node starts without scipy
@@ -651,8 +651,13 @@ class Solver(Node):
             out.metrics["timings_s"] = timing
             # a scan that did not end never replaces the result of one that did
             name = s.scan_id + (".incomplete" if s.incomplete else "")
-            d = write_outputs(Path(self.params["out_dir"]) / name, out, pictures=self.params["pictures"])
-            self.log(f"wrote {d}/")
+            try:  # a scan id comes from the bus: it names a folder only inside out_dir
+                folder = child_path(self.params["out_dir"], name, what="scan id")
+            except TwinFocusError as exc:
+                self.log(f"not written: {exc}")
+            else:
+                d = write_outputs(folder, out, pictures=self.params["pictures"])
+                self.log(f"wrote {d}/")
         if s.incomplete or expected > s.n:
             lack = f"{expected - s.n} of {expected} positions missing" if expected > s.n else f"{s.n} positions focused"
             self.short.append(

@@ -149,12 +149,12 @@ def test_bad_inputs_give_clear_errors_and_keep_old_results(small_scans, tmp_path
     }
     cases.pop("missing key")
     for message, path in cases.items():
-        assert _focus(path, out, *tpl) == 2, message
+        assert _focus(path, out, *tpl, "--overwrite") == 2, message
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err
     # a region of interest with nothing in it
     empty = ["-0.5", "-0.4", "0.3", "0.4", "0.6"]
-    rc = main(["focus", str(scan), "--reference-roi", *empty, "--target-roi", *TGT, "--size", "32", "--out", str(out), "--quiet", *tpl])
+    rc = main(["focus", str(scan), "--reference-roi", *empty, "--target-roi", *TGT, "--size", "32", "--out", str(out), "--quiet", "--overwrite", *tpl])
     assert rc == 2 and "no object" in capsys.readouterr().err
     # a template file that is constant
     from twinfocus.grid import ImageGrid
@@ -162,9 +162,9 @@ def test_bad_inputs_give_clear_errors_and_keep_old_results(small_scans, tmp_path
 
     grid = ImageGrid.from_roi([float(v) for v in REF], 48)
     save_template(tmp_path / "flat.npz", np.ones(grid.shape), grid)
-    assert _focus(scan, out, "--template", str(tmp_path / "flat.npz")) == 2
+    assert _focus(scan, out, "--template", str(tmp_path / "flat.npz"), "--overwrite") == 2
     assert "constant" in capsys.readouterr().err
-    assert _focus(tmp_path / "missing.npz", out, *tpl) == 2
+    assert _focus(tmp_path / "missing.npz", out, *tpl, "--overwrite") == 2
     assert "no such file" in capsys.readouterr().err
     # nothing of the earlier result was touched
     assert (out / "target.npy").read_bytes() == b"earlier result"
@@ -262,9 +262,9 @@ def test_pictures_of_an_earlier_run_do_not_stay_beside_new_results(small_scans, 
     out = tmp_path / "o"
     assert _focus(small_scans / "scan.npz", out, "--method", "none", "--pictures", "all") == 0
     assert len(list(out.glob("*.png"))) > 1
-    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--pictures", "summary") == 0
+    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--pictures", "summary", "--overwrite") == 0
     assert sorted(p.name for p in out.glob("*.png")) == ["summary.png"]
-    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--no-pictures") == 0
+    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--no-pictures", "--overwrite") == 0
     assert not list(out.glob("*.png")) and (out / "metrics.json").is_file()
 
 

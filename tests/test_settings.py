@@ -10,6 +10,7 @@ import pytest
 
 from nodes import launch
 from nodes.params import resolve
+from twinfocus.option_types import CHECKS, finite_float
 from nodes.solver import Solver
 from nodes.testing import local_broker
 from twinfocus import settings
@@ -35,7 +36,7 @@ def test_every_setting_is_a_focus_option_and_a_solver_parameter_with_the_same_de
     actions = {a.dest: a for a in _focus_parser()._actions}
     for s in FOCUS_SETTINGS:
         a = actions[s.name]
-        assert a.option_strings == [s.option] and a.default == s.default and a.type is s.type, s.name
+        assert a.option_strings == [s.option] and a.default == s.default and a.type in (s.type, CHECKS.get(s.check or ""), finite_float), s.name
         assert a.choices == s.choices and a.help, s.name
         p = Solver.PARAMS[s.name]
         assert p.default == s.default and p.choices == s.choices and p.kind == s.type.__name__ and p.help, s.name

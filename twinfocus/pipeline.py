@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus import metrics
+from twinfocus.atomic import record_written, remove_earlier
 from twinfocus.autofocus import (
     MAX_TEMPLATE_OFFSET_RANGED_M,
     MIN_RANGED_RAMP_COHERENCE_SQRT_M,
@@ -875,8 +876,9 @@ def write_outputs(out_dir: str | os.PathLike, outputs: FocusOutputs, pictures: s
     """Write the output files of docs/architecture.md section 4 into ``out_dir``.
 
     pictures : "summary" (summary.png, the default), "all" (every picture), "none"; True/False
-        mean "summary"/"none". Pictures of an earlier run that this one does not write are removed,
-        so the folder never shows images of another result.
+        mean "summary"/"none". Files of an earlier run (listed in its
+        :data:`twinfocus.atomic.WRITTEN`) that this one does not write are removed, so the folder
+        never shows images of another result; a file that no run wrote is never removed.
 
     Everything is first written to a temporary folder beside ``out_dir`` and moved in at the end,
     so a failure never leaves a mix of old and new results.
@@ -913,9 +915,10 @@ def write_outputs(out_dir: str | os.PathLike, outputs: FocusOutputs, pictures: s
         written = {f.name for f in tmp.iterdir()}
         for f in tmp.iterdir():
             os.replace(f, out_dir / f.name)
-        for old in out_dir.glob("*.png"):
-            if old.name not in written:
-                old.unlink()
+        # an earlier run's files that this one did not write go (so the folder never shows
+        # pictures of another result); a file no run of ours listed stays
+        remove_earlier(out_dir, written)
+        record_written(out_dir, written)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_dir

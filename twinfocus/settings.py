@@ -46,6 +46,8 @@ class Setting:
     choices : the allowed values, if limited.
     config : the AutofocusConfig field it sets, if any.
     default_text : what a None default means.
+    check : how a typed value is checked (:data:`twinfocus.option_types.CHECKS`: "positive",
+        "non_negative_int", ...); None: any value of ``type`` (a float still finite).
     """
 
     name: str
@@ -56,6 +58,7 @@ class Setting:
     choices: tuple[str, ...] | None = None
     config: str | None = None
     default_text: str = ""
+    check: str | None = None
 
     @property
     def option(self) -> str:
@@ -79,18 +82,23 @@ def _spelled(spell) -> dict[str, str]:
 
 
 FOCUS_SETTINGS: tuple[Setting, ...] = (
-    Setting("size", int, 100, "image size in pixels per side", unit="px"),
-    Setting("iterations", int, 300, "optimiser iterations", config="iterations"),
-    Setting("lr", float, 5e-2, "Adam learning rate", config="lr"),
-    Setting("lr_min", float, 1e-5, "end of the cosine schedule of the learning rate", config="lr_min"),
+    Setting("size", int, 100, "image size in pixels per side", unit="px", check="positive_int"),
+    Setting("iterations", int, 300, "optimiser iterations", config="iterations", check="non_negative_int"),
+    Setting("lr", float, 5e-2, "Adam learning rate", config="lr", check="positive"),
+    Setting(
+        "lr_min", float, 1e-5, "end of the cosine schedule of the learning rate", config="lr_min", check="non_negative"
+    ),
     Setting(
         "threshold_centre",
         float,
         0.4,
         "soft threshold centre (of the max-normalised amplitude)",
         config="threshold_centre",
+        check="non_negative",
     ),
-    Setting("threshold_steepness", float, 1.0, "soft threshold steepness", config="threshold_steepness"),
+    Setting(
+        "threshold_steepness", float, 1.0, "soft threshold steepness", config="threshold_steepness", check="positive"
+    ),
     Setting(
         "loss_steepness",
         float,
@@ -100,6 +108,7 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
         config="loss_steepness",
         default_text="5 with {estimator} paper, projection or projection-refined, otherwise "
         "{threshold_steepness}, the source paper's",
+        check="positive",
     ),
     Setting(
         "precision",
@@ -125,7 +134,13 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
         config="device",
         default_text="cuda if present, else cpu",
     ),
-    Setting("oversample", int, 16, "range-profile oversampling for the back-projection's interpolation"),
+    Setting(
+        "oversample",
+        int,
+        16,
+        "range-profile oversampling for the back-projection's interpolation",
+        check="positive_int",
+    ),
     Setting(
         "estimator",
         str,
@@ -150,6 +165,7 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
         30,
         "alternating-projection steps of {estimator} projection (~3 ms each)",
         config="projection_iterations",
+        check="non_negative_int",
     ),
     Setting(
         "projection_restarts",
@@ -158,6 +174,7 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
         "{estimator} projection also from this many random starts, the best by the loss going on (pays past "
         "lambda/4, ~0.1 s each at 780 x 100 x 100 on 2 cores)",
         config="projection_restarts",
+        check="non_negative_int",
     ),
     Setting(
         "coarse_iterations",
@@ -166,6 +183,7 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
         "coarse-to-fine: this many optimiser iterations on blurred images before the full-resolution ones "
         "(0: the paper's single stage)",
         config="coarse_iterations",
+        check="non_negative_int",
     ),
     Setting(
         "model",
@@ -208,6 +226,7 @@ FOCUS_SETTINGS: tuple[Setting, ...] = (
         0.5,
         "tracker position error assumed by the confidence report's transfer bound",
         unit="mm",
+        check="non_negative",
     ),
 )
 
@@ -230,10 +249,13 @@ def add_focus_options(parser: argparse.ArgumentParser) -> None:
     def option(s: Setting) -> str:
         return s.option
 
+    from twinfocus.option_types import CHECKS, finite_float
+
     for s in FOCUS_SETTINGS:
         text = f"{s.describe(option)} (default {s.default_words(option)})"
+        kind = CHECKS[s.check] if s.check else finite_float if s.type is float else s.type
         parser.add_argument(
-            s.option, dest=s.name, type=s.type, default=s.default, choices=s.choices, help=text.replace("%", "%%")
+            s.option, dest=s.name, type=kind, default=s.default, choices=s.choices, help=text.replace("%", "%%")
         )
 
 
@@ -261,9 +283,28 @@ def preload_torch() -> threading.Thread:
     ends early waits for the import to finish rather than tear it down half done."""
     import importlib
 
-    thread = threading.Thread(target=importlib.import_module, args=("torch",), name="preload-torch")
+    def load() -> None:
+        try:
+            importlib.import_module("torch")
+        except BaseException:  # noqa: BLE001 - the run's own import says what is wrong, where it needs torch
+            pass
+
+    thread = threading.Thread(target=load, name="preload-torch")
+    _PRELOADS.append(thread)
     thread.start()
     return thread
+
+
+#: preload threads started (:func:`wait_for_preload` joins them)
+_PRELOADS: list[threading.Thread] = []
+
+
+def wait_for_preload() -> None:
+    """Wait for every :func:`preload_torch` import to finish. The command line calls it before it
+    returns, also after a refusal: at interpreter exit a still-running import cannot register its
+    exit handlers and prints a traceback ("can't register atexit after shutdown")."""
+    while _PRELOADS:
+        _PRELOADS.pop().join()
 
 
 def resolve_device(requested: str | None) -> str:

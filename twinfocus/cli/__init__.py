@@ -45,6 +45,13 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """A command's parser: a bad option is one line (which option, what it takes) and exit 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} ({self.prog} --help lists the options)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="twinfocus",
@@ -65,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     # Find the command first, then let its module declare its arguments.
     if argv and argv[0] in COMMANDS:
         module = importlib.import_module(COMMANDS[argv[0]][0])
-        sub_parser = argparse.ArgumentParser(prog=f"twinfocus {argv[0]}", description=COMMANDS[argv[0]][1])
+        sub_parser = _OneLineParser(prog=f"twinfocus {argv[0]}", description=COMMANDS[argv[0]][1])
         module.add_arguments(sub_parser)
         args = sub_parser.parse_args(argv[1:])
         try:
@@ -73,9 +80,24 @@ def main(argv: list[str] | None = None) -> int:
         except TwinFocusError as exc:
             print(f"twinfocus {argv[0]}: error: {exc}", file=sys.stderr)
             return 2
+        except OSError as exc:
+            # a full disk (any writer) is the user's to fix: one line naming the file
+            from twinfocus.atomic import disk_error_message
+
+            line = disk_error_message(exc)
+            if line is None:
+                raise
+            print(f"twinfocus {argv[0]}: error: {line}", file=sys.stderr)
+            return 2
         except KeyboardInterrupt:
             print(f"twinfocus {argv[0]}: interrupted", file=sys.stderr)
             return 130
+        finally:
+            # a background import still running would tear down mid-import at exit (a traceback
+            # after the refusal's line): let it finish first
+            settings = sys.modules.get("twinfocus.settings")  # only a command that imported it preloads
+            if settings is not None:
+                settings.wait_for_preload()
     parser.parse_args(argv)  # prints usage / unknown-command error and exits
     return 2
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from twinfocus.option_types import positive_int
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
@@ -17,7 +19,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output folder: items/NAME/ (focus's files), summary.csv, summary.png")
     where = p.add_mutually_exclusive_group()
     where.add_argument(
-        "--workers", type=int, default=None, help="local cluster of this many worker processes (default: one per core)"
+        "--workers",
+        type=positive_int,
+        default=None,
+        help="local cluster of this many worker processes (default: one per core)",
     )
     where.add_argument(
         "--scheduler",

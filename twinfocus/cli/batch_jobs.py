@@ -31,6 +31,7 @@ from pathlib import Path
 from twinfocus.atomic import atomic_writer, write_text_atomic
 from twinfocus.cluster import dask_client, limit_threads, run_tasks
 from twinfocus.errors import TwinFocusError
+from twinfocus.safe_paths import child_path
 
 #: focus options that name input files (resolved against the manifest's folder, checked on the worker).
 PATH_OPTIONS = ("scan", "template", "template_scan", "digital_twin", "rig")
@@ -145,6 +146,11 @@ def read_manifest(path: str | os.PathLike, out_dir: str | os.PathLike) -> list[B
         paths = {"scan": scan, **{k: row[k] for k in PATH_OPTIONS[1:] if row.get(k)}}
         paths = {k: str((base / str(v)).resolve()) for k, v in paths.items()}
         row.update({k: v for k, v in paths.items() if k != "scan"})
+        if row.get("save_template"):
+            # an output named by the manifest stays inside the batch's --out (resolved against it)
+            row["save_template"] = str(
+                child_path(out_dir, str(row["save_template"]), what=f"{where}: save_template", subfolders=True)
+            )
         item_out = str(out_dir / "items" / name)
         argv = [paths["scan"]]
         for k, v in row.items():

@@ -16,6 +16,7 @@ import shlex
 import sys
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.option_types import positive_int
 
 SUITES = ("paper", "beyond", "where")
 
@@ -38,7 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="report folder (default bench_<suite>/)")
     p.add_argument(
         "--draws",
-        type=int,
+        type=positive_int,
         default=None,
         help="tracking-error draws per pair and condition for every experiment (default 1; the paper used 5)",
     )
@@ -49,13 +50,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true", help="keep experiments already in OUT/raw with the same settings")
     p.add_argument("--report-only", action="store_true", help="only rewrite the report from the raw results in OUT/raw")
     p.add_argument(
-        "--trade-scenes", type=int, default=None, help="scenes in the speed/accuracy trade (default 1; pairs A>F, R>X)"
+        "--trade-scenes",
+        type=positive_int,
+        default=None,
+        help="scenes in the speed/accuracy trade (default 1; pairs A>F, R>X)",
     )
     p.add_argument("--device", default="cpu", help="torch device for the optimiser and back-projection (cpu, cuda)")
     where = p.add_mutually_exclusive_group()
     where.add_argument(
         "--workers",
-        type=int,
+        type=positive_int,
         default=None,
         help="spread the experiments over a local Dask cluster of this many worker processes "
         "(default: one after the other in this process)",

@@ -16,7 +16,9 @@ import json
 import sys
 from pathlib import Path
 
+from twinfocus.atomic import output_files
 from twinfocus.errors import TwinFocusError
+from twinfocus.option_types import non_negative_int, positive_float, positive_int
 
 #: convert's options that have no meaning for a still capture of a corner.
 _NOT_FOR_CALIBRATION = {
@@ -50,16 +52,22 @@ def _convert_parser() -> argparse.ArgumentParser:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("capture", help="capture of one corner reflector: what `convert` reads, or a scan file (.npz)")
-    p.add_argument("--range-m", type=float, required=True, help="the corner's range from the radar, metres")
+    p.add_argument("--range-m", type=positive_float, required=True, help="the corner's range from the radar, metres")
     p.add_argument("--out", required=True, help="calibration file to write (.npz)")
     p.add_argument("--picture", help="where to draw the calibration's picture (default: --out with .png)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out (and its picture)")
     p.add_argument(
-        "--window-m", type=float, default=0.25, help="search for the corner within +- this of --range-m (default 0.25)"
+        "--window-m",
+        type=positive_float,
+        default=0.25,
+        help="search for the corner within +- this of --range-m (default 0.25)",
     )
     p.add_argument(
-        "--reference-channel", type=int, help="virtual channel whose phase and delay are zero (default the middle one)"
+        "--reference-channel",
+        type=non_negative_int,
+        help="virtual channel whose phase and delay are zero (default the middle one)",
     )
-    p.add_argument("--max-frames", type=int, default=64, help="frames of the capture to average (default 64)")
+    p.add_argument("--max-frames", type=positive_int, default=64, help="frames of the capture to average (default 64)")
     p.add_argument("--quiet", action="store_true")
     g = p.add_argument_group("capture layout and chirp (as `twinfocus convert`)")
     for action in _convert_parser()._actions:
@@ -68,6 +76,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise TwinFocusError(f"--out must name a .npz file, got {out}")
+    picture = Path(args.picture) if args.picture else out.with_suffix(".png")
+    with output_files({"--out": out, "--picture": picture}, args.overwrite):
+        return _calibrate(args, out, picture)
+
+
+def _calibrate(args: argparse.Namespace, out: Path, picture: Path) -> int:
     import numpy as np
 
     from twinfocus.board import load_board
@@ -75,10 +92,6 @@ def run(args: argparse.Namespace) -> int:
     from twinfocus.radar import mmwcas_virtual_array
     from twinfocus.sensors.frames import frame_to_virtual_channels, mmwcas_antenna_positions_body_m
 
-    out = Path(args.out)
-    if out.suffix != ".npz":
-        raise TwinFocusError(f"--out must name a .npz file, got {out}")
-    picture = Path(args.picture) if args.picture else out.with_suffix(".png")
     if not args.range_m > 0 or not args.window_m > 0:
         raise TwinFocusError(f"--range-m and --window-m must be positive, got {args.range_m} and {args.window_m}")
     if args.max_frames < 1:

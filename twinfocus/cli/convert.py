@@ -19,7 +19,9 @@ import json
 import sys
 from pathlib import Path
 
+from twinfocus.atomic import output_files
 from twinfocus.errors import TwinFocusError
+from twinfocus.option_types import finite_float, non_negative_int, positive_float, positive_int
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -38,15 +40,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pose-frame", help="with a tf2_msgs/TFMessage --pose-topic: the child frame to follow")
     p.add_argument("--trajectory-format", choices=["auto", "tum", "euroc"], default="auto")
     p.add_argument("--extrinsics", help="camera-radar calibration (YAML); default identity (radar at the camera)")
-    p.add_argument("--out", required=True, help="scan file to write (.npz)")
+    p.add_argument(
+        "--out", required=True, help="scan file to write (.npz; an existing one is refused without --overwrite)"
+    )
     p.add_argument("--mcap", help="also write an MCAP log (radar/frame and vio/pose) here")
     p.add_argument(
         "--z0",
-        type=float,
+        type=positive_float,
         default=0.6,
         help="range of the imaging plane for the multistatic correction, m (default 0.6)",
     )
-    p.add_argument("--time-offset-s", type=float, default=0.0, help="added to radar time stamps, seconds (default 0)")
+    p.add_argument(
+        "--time-offset-s", type=finite_float, default=0.0, help="added to radar time stamps, seconds (default 0)"
+    )
     p.add_argument(
         "--align",
         choices=["auto", "start", "none"],
@@ -65,25 +71,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--keep-flagged", action="store_true", help="keep frames flagged as device-skewed")
     p.add_argument(
         "--n-samples",
-        type=int,
+        type=positive_int,
         help="ADC samples per chirp (default: the capture's configuration, else 256)",
     )
-    p.add_argument("--n-loops", type=int, help="chirp loops per frame (default: the configuration's, else 1)")
-    p.add_argument("--loop", type=int, default=0, help="which loop of each frame to use (default 0)")
+    p.add_argument("--n-loops", type=positive_int, help="chirp loops per frame (default: the configuration's, else 1)")
+    p.add_argument("--loop", type=non_negative_int, default=0, help="which loop of each frame to use (default 0)")
     p.add_argument(
         "--f0-hz",
-        type=float,
+        type=positive_float,
         help="frequency of the first ADC sample (default: the configuration's start + slope x ADC start, else 76.6e9)",
     )
-    p.add_argument("--slope-hz-per-s", type=float, help="chirp slope (default: the configuration's, else 120e12)")
-    p.add_argument("--fs-hz", type=float, help="ADC sample rate (default: the configuration's, else 8e6)")
+    p.add_argument(
+        "--slope-hz-per-s", type=positive_float, help="chirp slope (default: the configuration's, else 120e12)"
+    )
+    p.add_argument("--fs-hz", type=positive_float, help="ADC sample rate (default: the configuration's, else 8e6)")
     p.add_argument(
         "--timestamp-unit-ns",
-        type=int,
+        type=positive_int,
         default=1000,
         help="nanoseconds per tick of the index files' time stamps (default 1000: microseconds)",
     )
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --mcap file")
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace existing output files (--out, its .capture.json, --mcap)"
+    )
     p.add_argument(
         "--calibration",
         help="channel calibration to apply (.npz from `twinfocus calibrate`); without one a warning is printed",
@@ -104,7 +114,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--frame-period-s",
-        type=float,
+        type=positive_float,
         help="frame period, s (default: from the configuration; MMWCAS 0.1, DCA1000 the .cfg's frameCfg)",
     )
     g.add_argument(
@@ -146,6 +156,17 @@ def _is_mmwcas(path: Path) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    from twinfocus.sensors.capture_to_scan import capture_report_path
+
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise TwinFocusError(f"--out must name a .npz file, got {out}")
+    outputs = {"--out": out, "--out's capture report": capture_report_path(out), "--mcap": args.mcap}
+    with output_files(outputs, args.overwrite):  # refused or locked before any work
+        return _convert(args, out)
+
+
+def _convert(args: argparse.Namespace, out: Path) -> int:
     from twinfocus.board import load_board
     from twinfocus.evaluation.runner import write_json_atomic
     from twinfocus.progress import Progress
@@ -154,11 +175,6 @@ def run(args: argparse.Namespace) -> int:
     from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
     from twinfocus.sensors.rosbag2_files import read_any_trajectory
 
-    out = Path(args.out)
-    if out.suffix != ".npz":
-        raise TwinFocusError(f"--out must name a .npz file, got {out}")
-    if args.mcap and Path(args.mcap).exists() and not args.overwrite:
-        raise TwinFocusError(f"{args.mcap}: already exists; choose another name or pass --overwrite")
     if not args.z0 > 0:
         raise TwinFocusError(f"--z0 must be positive, got {args.z0}")
     capture = Path(args.capture)
@@ -202,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
         )
         for note in report.notes:
             say(note)
-        calibration = _calibrate(args, scan, array, say)
+        calibration = _calibrate(args, scan, array, board.name, say)
         scan.save(out)
         gaps = {**report.gaps(), **gaps}
         write_json_atomic(
@@ -237,8 +253,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _calibrate(args, scan, array, say) -> dict | None:
-    """Apply --calibration to the scan in place; its record (file, SHA-256), or None with a warning."""
+def _calibrate(args, scan, array, board: str, say) -> dict | None:
+    """Apply --calibration to the scan in place (refused when it was made on another board, array or
+    chirp); its record (file, SHA-256), or None with a warning."""
     if not args.calibration:
         print(
             "[convert] warning: no --calibration: the channels' own phase, gain and delay errors stay in the data "
@@ -248,7 +265,7 @@ def _calibrate(args, scan, array, say) -> dict | None:
         return None
     from twinfocus.calibration import apply_calibration, calibration_for
 
-    correction, record = calibration_for(args.calibration, scan.chirp, array)
+    correction, record = calibration_for(args.calibration, scan.chirp, array, board)
     scan.data = apply_calibration(scan.data, correction)
     scan.calibration = json.dumps(record)
     say(f"channel calibration {record['file']} applied (sha256 {record['sha256'][:12]})")

@@ -11,11 +11,13 @@ import tempfile
 import time
 from pathlib import Path
 
+from twinfocus.atomic import output_folder, refuse_existing
 from twinfocus.depth_search import DEFAULT_HALF_RANGE_M
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import REFERENCE_FREE_RUNGS
 from twinfocus.grid import ImageGrid
 from twinfocus.machine import require_memory
+from twinfocus.option_types import finite_float, positive_float
 from twinfocus.settings import add_focus_options, preload_torch, resolve_device
 
 #: bytes per radar position and pixel that a run holds at its peak: the two sub-image bases
@@ -29,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--reference-roi",
         nargs=5,
-        type=float,
+        type=finite_float,
         default=None,
         metavar=("X0", "X1", "Y0", "Y1", "Z"),
         help="reference region (metres); without it, found from --digital-twin's cloud, --template's grid or "
@@ -48,7 +50,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--refine-depth",
         nargs="?",
-        type=float,
+        type=positive_float,
         const=0.1,
         default=None,
         metavar="M",
@@ -57,7 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--volume",
         nargs=3,
-        type=float,
+        type=finite_float,
         default=None,
         metavar=("Z0", "Z1", "DZ"),
         help="also form the corrected 3-D volume over both regions' x/y box, --size x --size pixels, planes "
@@ -98,7 +100,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="with --digital-twin: the camera's offset from the radar (twinfocus rig) applied to the cloud first "
         "(metrics.json rig: its path and SHA-256); a rig of another board or camera is refused",
     )
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, help="output folder (an existing one is refused without --overwrite)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing --out (the files an earlier run wrote there; the folder's other files stay) "
+        "and --save-template",
+    )
     add_focus_options(p)  # the settings shared with the solver node: twinfocus/settings.py
     p.add_argument(
         "--pictures",
@@ -210,8 +218,10 @@ def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
     if args.size < 2:
         raise TwinFocusError(f"--size must be at least 2, got {args.size}")
     _check_writable_target(args.out, "--out", folder=True)
+    refuse_existing(args.out, args.overwrite, "--out")
     if args.save_template:
         _check_writable_target(args.save_template, "--save-template", folder=False)
+        refuse_existing(args.save_template, args.overwrite, "--save-template")
     shapes = peek_npz_shapes(args.scan)
     if "data" not in shapes or len(shapes["data"]) != 3:
         raise TwinFocusError(f"{args.scan}: not a scan file (no 3-D 'data' array)")
@@ -363,7 +373,7 @@ def _write_where(out_dir, search, typed_depth, volume, grid, cloud, pictures: st
     """Beside write_outputs' files: depth_search.png for a depth search, and for a volume
     :data:`VOLUME_FILES` (``cloud``: :func:`twinfocus.volume.bright_voxels`' points and values, as
     PLY and as a Foxglove point cloud on ``/volume/points``) and its two pictures (the data
-    written atomically; an earlier run's volume files are removed when this run forms none)."""
+    written atomically, into the fresh folder that becomes --out)."""
     import numpy as np
 
     from twinfocus.atomic import atomic_writer, write_bytes_atomic
@@ -374,8 +384,6 @@ def _write_where(out_dir, search, typed_depth, volume, grid, cloud, pictures: st
         with atomic_writer(Path(out_dir) / "depth_search.png") as f:
             depth_search_picture(f, search, typed_depth if isinstance(typed_depth, float) else None)
     if volume is None:
-        for stale in VOLUME_FILES.values():  # an earlier run's volume is not this result's
-            (Path(out_dir) / stale).unlink(missing_ok=True)
         return
     from nodes.foxglove_convert import write_point_cloud_log
     from twinfocus.volume import ply_bytes, projections
@@ -510,6 +518,21 @@ def _candidates(args: argparse.Namespace) -> list[tuple[str | None, argparse.Nam
 
 def run(args: argparse.Namespace) -> int:
     t_run = time.perf_counter()
+    shapes = _check_before_work(args)
+    # held for the whole run: a second run on this --out refuses at once; the folder appears whole
+    with output_folder(args.out, args.overwrite, "--out") as out_dir:
+        return _run(args, shapes, out_dir, t_run)
+
+
+def _saved_template_path(args: argparse.Namespace, out_dir: Path) -> Path:
+    """Where --save-template is written: inside --out it goes into the folder being built."""
+    path = Path(args.save_template)
+    if path.resolve().parent == Path(args.out).resolve():
+        return out_dir / path.name
+    return path
+
+
+def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) -> int:
     from twinfocus.pipeline import write_outputs
     from twinfocus.progress import Progress
     from twinfocus.reference_search import candidate_score
@@ -517,7 +540,6 @@ def run(args: argparse.Namespace) -> int:
     from twinfocus.volume import bright_voxels, corrected_image
 
     pictures = "none" if args.no_pictures else args.pictures
-    shapes = _check_before_work(args)
     device = resolve_device(args.device)
     bp = {"oversample": args.oversample, "precision": args.precision}
     if device != "cpu":
@@ -571,7 +593,7 @@ def run(args: argparse.Namespace) -> int:
     if args.save_template and template is not None:
         from twinfocus.templates import save_template
 
-        save_template(args.save_template, template, ref_grid, support=support, info=twin_info)
+        save_template(_saved_template_path(args, out_dir), template, ref_grid, support=support, info=twin_info)
     volume, cloud = None, None
     plan = volume_plan(args, shapes["data"][0], shapes["data"][1], ref_grid.roi, outputs.target_grid.roi[:4])
     sub_arrays = None
@@ -606,13 +628,13 @@ def run(args: argparse.Namespace) -> int:
             files=dict(VOLUME_FILES), points=len(cloud[0]), points_threshold_db=VOLUME_THRESHOLD_DB
         )
     t = time.perf_counter()
-    write_outputs(args.out, outputs, pictures=pictures)
-    _write_where(args.out, search, chosen["typed_depth"], volume, plan[0] if plan else None, cloud, pictures)
+    write_outputs(out_dir, outputs, pictures=pictures)
+    _write_where(out_dir, search, chosen["typed_depth"], volume, plan[0] if plan else None, cloud, pictures)
     if chosen["boxes"] is not None and pictures != "none":
         from twinfocus.atomic import atomic_writer
         from twinfocus.boxes import look_picture
 
-        with atomic_writer(Path(args.out) / "look.png") as f:
+        with atomic_writer(Path(out_dir) / "look.png") as f:
             look_picture(f, chosen["boxes"][1], chosen["boxes"][0])
     t_write = time.perf_counter() - t
     m = outputs.metrics

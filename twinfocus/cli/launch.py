@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 
 from nodes import launch
+from twinfocus.option_types import positive_float
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -18,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--show", action="store_true", help="print the resolved graph and exit")
     parser.add_argument(
         "--grace",
-        type=float,
+        type=positive_float,
         default=10.0,
         help="seconds a stopping node may go without a heartbeat before SIGKILL (one still heartbeating gets up to 120 s)",
     )

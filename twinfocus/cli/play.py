@@ -5,15 +5,18 @@ from __future__ import annotations
 import argparse
 
 from nodes.player import Player
+from twinfocus.option_types import non_negative_float
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", help="MCAP file to play")
-    parser.add_argument("--rate", type=float, default=1.0, help="speed factor (default 1; 0 = as fast as possible)")
+    parser.add_argument(
+        "--rate", type=non_negative_float, default=1.0, help="speed factor (default 1; 0 = as fast as possible)"
+    )
     parser.add_argument("--loop", action="store_true", help="start again at the end")
     parser.add_argument("--topics", nargs="+", default=[], help="topics to play (default: all but graph/...)")
     parser.add_argument(
-        "--start-offset", type=float, default=0.0, metavar="S", help="skip the first S seconds of the log"
+        "--start-offset", type=non_negative_float, default=0.0, metavar="S", help="skip the first S seconds of the log"
     )
     parser.add_argument(
         "--wait-for",

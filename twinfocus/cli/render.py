@@ -10,17 +10,18 @@ import sys
 
 from twinfocus.cli.simulate import add_layout_arguments, layout_kwargs
 from twinfocus.errors import TwinFocusError
+from twinfocus.option_types import finite_float, non_negative_float, non_negative_int, positive_int
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output folder")
     add_layout_arguments(p)
-    p.add_argument("--width", type=int, default=1280, help="picture width (default 1280, ZED 2i HD720)")
-    p.add_argument("--height-px", type=int, default=720, help="picture height (default 720)")
+    p.add_argument("--width", type=positive_int, default=1280, help="picture width (default 1280, ZED 2i HD720)")
+    p.add_argument("--height-px", type=positive_int, default=720, help="picture height (default 720)")
     p.add_argument(
         "--camera-position-mm",
         nargs=3,
-        type=float,
+        type=finite_float,
         default=None,
         metavar=("X", "Y", "Z"),
         help="left camera position in the scene frame (default -60 -80 0)",
@@ -28,14 +29,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--extrinsic-error-mm",
         nargs=3,
-        type=float,
+        type=finite_float,
         default=[0.0, 0.0, 0.0],
         metavar=("DX", "DY", "DZ"),
         help="render from a camera this far from the pose written to camera.json (a mounting error)",
     )
-    p.add_argument("--noise-dn", type=float, default=2.0, help="sensor noise, 8-bit grey levels (default 2)")
+    p.add_argument(
+        "--noise-dn", type=non_negative_float, default=2.0, help="sensor noise, 8-bit grey levels (default 2)"
+    )
     p.add_argument("--no-clutter", action="store_true", help="plain background instead of a cluttered one")
-    p.add_argument("--seed", type=int, default=0, help="textures, clutter and noise")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="textures, clutter and noise")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -8,8 +8,18 @@ import json
 import sys
 import time
 
+from twinfocus.atomic import output_files
 from twinfocus.errors import TwinFocusError
 from twinfocus.motion import ERROR_MODELS
+from twinfocus.option_types import (
+    bounded_float,
+    finite_float,
+    non_negative_float,
+    non_negative_int,
+    number_or_inf,
+    positive_float,
+    positive_int,
+)
 
 
 def add_layout_arguments(p: argparse.ArgumentParser) -> None:
@@ -17,10 +27,25 @@ def add_layout_arguments(p: argparse.ArgumentParser) -> None:
     ``twinfocus render`` so that both see the same scene from the same options."""
     p.add_argument("--reference", default="A", help="reference letter (default A)")
     p.add_argument("--target", default="F", help="target letter (default F)")
-    p.add_argument("--distance", type=float, default=0.6, help="object distance, metres (default 0.6)")
-    p.add_argument("--separation-deg", type=float, default=10.0, help="reference-target angle (default 10)")
-    p.add_argument("--height", type=float, default=0.127, help="letter height, metres (default 0.127 = 5 in)")
-    p.add_argument("--target-height", type=float, default=None, help="target letter height if different")
+    p.add_argument(
+        "--distance",
+        type=bounded_float(0, 10, low_open=True, unit="m"),
+        default=0.6,
+        help="object distance, metres (default 0.6)",
+    )
+    p.add_argument("--separation-deg", type=finite_float, default=10.0, help="reference-target angle (default 10)")
+    p.add_argument(
+        "--height",
+        type=bounded_float(0, 5, low_open=True, unit="m"),
+        default=0.127,
+        help="letter height, metres (default 0.127 = 5 in)",
+    )
+    p.add_argument(
+        "--target-height",
+        type=bounded_float(0, 5, low_open=True, unit="m"),
+        default=None,
+        help="target letter height if different",
+    )
     p.add_argument("--reference-material", default="metal")
     p.add_argument("--target-material", default="metal")
     p.add_argument("--occluder", default=None, help="sheet in front of the target: polyester, paper, plastic, ...")
@@ -42,8 +67,15 @@ def layout_kwargs(args: argparse.Namespace) -> dict:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", required=True, help="scan file to write (.npz)")
+    p.add_argument(
+        "--out", required=True, help="scan file to write (.npz; an existing one is refused without --overwrite)"
+    )
     p.add_argument("--template-out", help="also write the reference's motion-stage scan here (.npz)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace existing output files (--out, --template-out, --reference-cloud-out)",
+    )
     add_layout_arguments(p)
     p.add_argument("--clutter", action="store_true", help="add room clutter (weak and a few strong scatterers)")
     p.add_argument(
@@ -57,28 +89,40 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="gaussian",
         help="tracking error: gaussian (the paper), drift, vio, hand (drift + jitter + array rotation)",
     )
-    p.add_argument("--error-sigma-mm", type=float, default=0.5, help="z (range) tracking error sigma, mm (default 0.5)")
     p.add_argument(
-        "--xy-error-sigma-mm", type=float, default=0.5, help="x and y tracking error sigma, mm (default 0.5)"
+        "--error-sigma-mm",
+        type=non_negative_float,
+        default=0.5,
+        help="z (range) tracking error sigma, mm (default 0.5)",
     )
-    p.add_argument("--snr-db", type=float, default=10.0, help="per-sample SNR in dB (default 10); 'inf' for none")
+    p.add_argument(
+        "--xy-error-sigma-mm",
+        type=non_negative_float,
+        default=0.5,
+        help="x and y tracking error sigma, mm (default 0.5)",
+    )
+    p.add_argument(
+        "--snr-db", type=number_or_inf, default=10.0, help="per-sample SNR in dB (default 10); 'inf' for none"
+    )
     p.add_argument("--no-speckle", action="store_true", help="all scatterers in phase")
     p.add_argument(
         "--template-offset-mm",
         nargs=3,
-        type=float,
+        type=finite_float,
         default=[1.0, 0.0, 0.0],
         metavar=("DX", "DY", "DZ"),
         help="placement error of the reference in the template scan, mm (default 1 0 0)",
     )
-    p.add_argument("--range-step-mm", type=float, default=None, help="simulator range grid step (fidelity knob)")
-    p.add_argument("--columns", type=int, default=6, help="raster columns (default 6)")
-    p.add_argument("--rows", type=int, default=130, help="raster rows per column (default 130)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--range-step-mm", type=positive_float, default=None, help="simulator range grid step (fidelity knob)"
+    )
+    p.add_argument("--columns", type=positive_int, default=6, help="raster columns (default 6)")
+    p.add_argument("--rows", type=positive_int, default=130, help="raster rows per column (default 130)")
+    p.add_argument("--seed", type=non_negative_int, default=0)
     g = p.add_argument_group("field-like scenes (rough, curved references; deeper targets)")
     g.add_argument(
         "--reference-roughness-deg",
-        type=float,
+        type=finite_float,
         default=None,
         metavar="DEG",
         help="rough reference: each scatterer's phase uniform in +-DEG (about 90 for a real surface); "
@@ -86,7 +130,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--reference-amplitude-spread",
-        type=float,
+        type=finite_float,
         default=0.3,
         metavar="FRAC",
         help="with --reference-roughness-deg: each scatterer's amplitude x (1 +- FRAC) (default 0.3)",
@@ -99,14 +143,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--reference-shape-parameter",
-        type=float,
+        type=finite_float,
         default=None,
         metavar="P",
         help="cylinder radius in metres (default 0.15) or bend angle in degrees (default 30)",
     )
     g.add_argument(
         "--target-depth-offset",
-        type=float,
+        type=finite_float,
         default=0.0,
         metavar="M",
         help="put the target this many metres further than the reference, along its ray (default 0)",
@@ -118,25 +162,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="CLOUD.npy",
         help="write the reference's surface as a depth camera delivers it (.npy, (N, 3) metres)",
     )
-    c.add_argument("--cloud-spacing-mm", type=float, default=1.0, help="camera sampling of the surface, mm (default 1)")
+    c.add_argument(
+        "--cloud-spacing-mm", type=positive_float, default=1.0, help="camera sampling of the surface, mm (default 1)"
+    )
     c.add_argument(
         "--cloud-noise-mm",
         nargs="+",
-        type=float,
+        type=finite_float,
         default=[1.0],
         metavar="SD",
         help="noise sd, mm: one for every axis or three (x y z) (default 1)",
     )
     c.add_argument(
         "--cloud-holes",
-        type=float,
+        type=finite_float,
         default=0.25,
         metavar="FRAC",
         help="fraction of the surface missing, in patches (default 0.25)",
     )
     c.add_argument(
         "--cloud-outliers",
-        type=float,
+        type=finite_float,
         default=0.02,
         metavar="FRAC",
         help="fraction of the cloud's points that are outliers around the object (default 0.02)",
@@ -144,7 +190,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     c.add_argument(
         "--cloud-offset-mm",
         nargs="+",
-        type=float,
+        type=finite_float,
         default=[2.0],
         metavar="MM",
         help="rigid offset of the cloud: a length (random direction) or three (x y z), mm (default 2)",
@@ -158,15 +204,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="none",
         help="'none' (default): the perfect array; 'typical': published magnitudes (twinfocus.array_errors)",
     )
-    a.add_argument("--array-seed", type=int, help="draw of the array's errors (default: from --seed)")
-    a.add_argument("--channel-phase-deg", type=float, help="per-TX/RX phase spread (180: uniform; typical 180)")
-    a.add_argument("--channel-amplitude-db", type=float, help="per-TX/RX gain sd, dB (typical 1)")
-    a.add_argument("--channel-delay-mm", type=float, help="per-TX/RX range offset sd, mm (typical 3)")
-    a.add_argument("--leakage-db", type=float, help="TX-to-RX leakage re the mean return, dB (typical 0)")
-    a.add_argument("--dc-offset-db", type=float, help="receiver DC offset re the mean return, dB (typical -20)")
-    a.add_argument("--iq-gain-db", type=float, help="I/Q gain mismatch bound, dB (typical 1)")
-    a.add_argument("--iq-phase-deg", type=float, help="I/Q phase mismatch bound, degrees (typical 2)")
-    a.add_argument("--beamwidth-deg", type=float, help="antenna half-power beam width, degrees (typical 60)")
+    a.add_argument("--array-seed", type=non_negative_int, help="draw of the array's errors (default: from --seed)")
+    a.add_argument("--channel-phase-deg", type=finite_float, help="per-TX/RX phase spread (180: uniform; typical 180)")
+    a.add_argument("--channel-amplitude-db", type=finite_float, help="per-TX/RX gain sd, dB (typical 1)")
+    a.add_argument("--channel-delay-mm", type=finite_float, help="per-TX/RX range offset sd, mm (typical 3)")
+    a.add_argument("--leakage-db", type=finite_float, help="TX-to-RX leakage re the mean return, dB (typical 0)")
+    a.add_argument("--dc-offset-db", type=finite_float, help="receiver DC offset re the mean return, dB (typical -20)")
+    a.add_argument("--iq-gain-db", type=finite_float, help="I/Q gain mismatch bound, dB (typical 1)")
+    a.add_argument("--iq-phase-deg", type=finite_float, help="I/Q phase mismatch bound, degrees (typical 2)")
+    a.add_argument("--beamwidth-deg", type=finite_float, help="antenna half-power beam width, degrees (typical 60)")
     p.add_argument("--quiet", action="store_true")
 
 
@@ -194,11 +240,6 @@ def array_errors_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from twinfocus.progress import Progress
-    from twinfocus.scenario import Scenario, simulate_scenario
-
     if not str(args.out).endswith(".npz"):
         raise TwinFocusError(f"--out must name a .npz file, got {args.out}")
     if args.error_sigma_mm < 0 or args.xy_error_sigma_mm < 0:
@@ -208,6 +249,21 @@ def run(args: argparse.Namespace) -> int:
     for name in ("cloud_noise_mm", "cloud_offset_mm"):
         if len(getattr(args, name)) not in (1, 3):
             raise TwinFocusError(f"--{name.replace('_', '-')} takes one number or three (x y z)")
+    outputs = {
+        "--out": args.out,
+        "--template-out": args.template_out,
+        "--reference-cloud-out": args.reference_cloud_out,
+    }
+    with output_files(outputs, args.overwrite):  # refused or locked before the (long) simulation
+        return _simulate(args)
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from twinfocus.progress import Progress
+    from twinfocus.scenario import Scenario, simulate_scenario
+
     snr = None if np.isinf(args.snr_db) else args.snr_db
     sc = Scenario(
         **layout_kwargs(args),
@@ -294,7 +350,7 @@ def _check_cost(sc, args) -> None:
     cells = scatterer_cells(scene, spacing)
     require_memory(
         int(cells * BYTES_PER_SCATTERER_CELL),
-        f"placing this scene's {cells:.3g} scatterers ({spacing * 1e3:.2g} mm apart over objects {args.height:g} m high)",
+        f"placing this scene's {cells:.3g} scatterers ({spacing * 1e3:.2g} mm apart over objects up to {max(args.height, args.target_height or 0):g} m high)",
         "use a smaller --height / --target-height",
         available=avail,
     )

@@ -19,6 +19,7 @@ import sys
 import time
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.option_types import finite_float, positive_float, positive_int
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -34,14 +35,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "beside each image topic and the default ZED pose (a camera.json given there lends only its pose)",
     )
     seed = p.add_mutually_exclusive_group(required=True)
-    seed.add_argument("--seed-point", nargs=2, type=float, metavar=("U", "V"), help="a pixel on the reference")
+    seed.add_argument("--seed-point", nargs=2, type=finite_float, metavar=("U", "V"), help="a pixel on the reference")
     seed.add_argument(
-        "--seed-box", nargs=4, type=float, metavar=("X0", "Y0", "X1", "Y1"), help="pixel box around the reference"
+        "--seed-box",
+        nargs=4,
+        type=finite_float,
+        metavar=("X0", "Y0", "X1", "Y1"),
+        help="pixel box around the reference",
     )
     seed.add_argument(
         "--seed-roi",
         nargs=5,
-        type=float,
+        type=finite_float,
         metavar=("X0", "X1", "Y0", "Y1", "Z"),
         help="radar region (metres) holding the reference, projected into the picture",
     )
@@ -54,7 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--surface", choices=["auto", "plane", "raw"], default="auto", help="surface model (default auto)")
     p.add_argument(
         "--voxel-mm",
-        type=float,
+        type=positive_float,
         default=None,
         help="point spacing; default: half the radar's resolution from --scan, else 1.0 mm",
     )
@@ -64,11 +69,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--reference-roi",
         nargs=5,
-        type=float,
+        type=finite_float,
         metavar=("X0", "X1", "Y0", "Y1", "Z"),
         help="reference region (metres) of the template",
     )
-    p.add_argument("--size", type=int, default=100, help="template size in pixels per side (default 100)")
+    p.add_argument("--size", type=positive_int, default=100, help="template size in pixels per side (default 100)")
     p.add_argument(
         "--out", help="template file to write (.npz: image, x_m, y_m, z_m, the outline and the conditioning)"
     )
