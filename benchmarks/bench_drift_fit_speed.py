@@ -62,6 +62,12 @@ def main(argv: list[str] | None = None) -> dict:
     timings = out.metrics["timings_s"]
     evals, eval_own, eval_cum = _function_times(stats, "value_and_gradients")
     rotate_calls, rotate_s, _ = _function_times(stats, "_rotate")
+    # torch's import runs inside the fit's stage (fit_smooth_drift imports it on its first call)
+    torch_import_s = sum(
+        ct
+        for (f, _, fn), (_, _, _, ct, _) in stats.stats.items()  # type: ignore[attr-defined]
+        if fn == "<module>" and f.endswith(os.path.join("torch", "__init__.py"))
+    )
     rungs = {e["rung"]: e for e in out.metrics["model"]["rungs"] if e["rung"] in ("drift", "tilt")}
     tilt_info = rungs.get("tilt", {}).get("info", {})
     doc = {
@@ -83,6 +89,7 @@ def main(argv: list[str] | None = None) -> dict:
         "numba_pass_s": round(rotate_s, 2),
         "numba_pass_calls": rotate_calls,
         "rest_of_evaluation_s": round(eval_own, 2),
+        "torch_import_s": round(torch_import_s, 2),
         "note": "rest_of_evaluation_s: inside value_and_gradients itself, i.e. torch's complex products "
         "(contributions @ x, half_rotated @ x) on one thread and the small ops; numba_pass_s: _rotate",
     }
