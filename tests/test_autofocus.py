@@ -88,6 +88,7 @@ def test_twin_autofocus_with_independent_jitter_focuses_target():
     assert phase_error_rms(result.phase_rad, oracle) < 0.6 * phase_error_rms(np.zeros_like(oracle), oracle)
 
 
+@pytest.mark.slow  # 24 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_float16_basis_gives_the_same_answer(scene_05mm):
     _, _, _, ref_basis, tgt_basis, template, truth = scene_05mm
     cfg32 = AutofocusConfig(iterations=100)
@@ -128,6 +129,7 @@ def test_smoothness_prior_smooths_the_estimate_of_a_smooth_drift(scene_05mm):
     assert image_ssim(form_image(tgt_basis, smooth.phase_rad), truth) > 0.9
 
 
+@pytest.mark.slow  # 4 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_wrapping_errors_of_2mm_stay_finite():
     ch, data, true, tracked = _scenario(2e-3, seed=4, snr_db=0.0)
     ref_basis = subimage_basis(data, tracked, ch, REF_GRID)

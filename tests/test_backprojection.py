@@ -63,6 +63,7 @@ def _half_power_width(x, amp):
     return xr - xl
 
 
+@pytest.mark.slow  # 5 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_resolution_matches_theory():
     """Half-power widths of a uniform aperture: 0.886 lambda R / (2 D) across, 0.886 c / (2 B) in range."""
     ch = Chirp()
@@ -157,6 +158,7 @@ def test_cuda_backend_matches_cpu():
     assert np.abs(cpu - gpu).max() / np.abs(cpu).max() < 1e-4
 
 
+@pytest.mark.slow  # 22 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_the_kernels_run_on_openmp_without_a_warning_beside_open3d():
     """open3d (the digital twin's clouds) loads its own TBB, older than numba accepts: numba, whose
     first choice is TBB, then warned on every digital-twin run before falling back to OpenMP.

@@ -64,6 +64,7 @@ def test_bright_pixels_hold_the_asked_share_of_the_energy():
         bright_pixels(np.zeros((3, 3)))
 
 
+@pytest.mark.slow  # 8 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_range_errors_follow_the_injected_ones_and_ignore_the_images_place(wrapped):
     ch, true, tracked, data, basis = wrapped
     high = upper_band_basis(data, tracked, ch, GRID)(np.ones(GRID.shape, bool)).reshape(basis.shape)
@@ -123,6 +124,7 @@ def test_the_transfer_finds_a_wrapped_estimates_ramp_with_the_range_errors():
         transfer_phase(phase, ap, 0.25, lam, "auto", range_errors_m=measured[:-1])
 
 
+@pytest.mark.slow  # 72 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_focus_places_a_misplaced_outline_by_the_band_halves(wrapped):
     """An outline 2 px off across y (a camera's offset): the outline estimator keeps it there once
     the phases wrap; with the upper band's basis the transfer moves the image back, and the
@@ -164,6 +166,7 @@ def test_focus_places_a_misplaced_outline_by_the_band_halves(wrapped):
         assert len(wrapped) == 1 and says in wrapped[0] and not_says not in wrapped[0]
 
 
+@pytest.mark.slow  # 11 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_focus_asks_the_band_halves_when_a_coherent_estimates_ramp_is_too_large():
     """0.2 mm of jitter (the phases hold together) and an amplitude template 3 px (5.8 mm) off
     across y: the plain ramp fit sees the shift but keeps it (more than the 3 mm a misplacement is

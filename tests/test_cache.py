@@ -31,6 +31,7 @@ def _focus(scans, out, *extra):
     return json.loads((out / "metrics.json").read_text())
 
 
+@pytest.mark.slow  # 12 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_second_focus_reads_the_template_from_the_cache(scans, tmp_path, monkeypatch):
     monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
     tpl = ["--template-scan", str(scans / "tpl.npz")]
@@ -58,6 +59,7 @@ def test_second_focus_reads_the_template_from_the_cache(scans, tmp_path, monkeyp
     assert len(list((tmp_path / "cache" / "templates").glob("*.npz"))) == 1
 
 
+@pytest.mark.slow  # 9 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_changed_inputs_miss_the_cache(scans, tmp_path, monkeypatch):
     monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
     tpl = ["--template-scan", str(scans / "tpl.npz")]
@@ -77,6 +79,7 @@ def test_changed_inputs_miss_the_cache(scans, tmp_path, monkeypatch):
     assert _focus(scans, tmp_path / "e", *tpl)["template_cache"] == "hit"
 
 
+@pytest.mark.slow  # 4 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_save_template_is_what_template_takes(scans, tmp_path):
     """``--save-template`` writes the template file that ``--template`` reads back: the same
     phase to the file format's float32 amplitude/phase round-off."""
@@ -141,6 +144,7 @@ def test_an_entry_keeps_its_info_and_one_stored_without_it_is_recomputed(tmp_pat
     assert status == "off" and info["curved"] and calls == [1, 1]
 
 
+@pytest.mark.slow  # 36 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_digital_twin_template_is_cached_per_cloud_and_aperture(scans, tmp_path, monkeypatch):
     """A digital twin's template depends on the cloud and on the scan's aperture: the same pair
     hits, another scan (other tracked positions) misses."""

@@ -135,6 +135,7 @@ def _image(scan_path) -> np.ndarray:
     return np.abs(backproject(s.data, s.positions, s.chirp, grid))
 
 
+@pytest.mark.slow  # 56 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_calibrate_then_convert_images_like_the_perfect_array(captures, tmp_path, capsys):
     cap = captures
     cal = tmp_path / "cal.npz"
@@ -309,6 +310,7 @@ def test_iq_imbalance_makes_the_closed_form_image_tone():
     np.testing.assert_allclose(iq_imbalance(tone, [g], [psi]), mu * tone + nu * np.conj(tone), atol=1e-6)
 
 
+@pytest.mark.slow  # 3 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_simulate_array_errors_switch(tmp_path, capsys):
     """--array-errors typical changes the data, not the scene's draws; none is the perfect array;
     a knob alone adds only its effect (leakage: a tone at the antennas' separation, near zero range)."""

@@ -133,6 +133,7 @@ def _corrupt(src, dst, **changes):
     return dst
 
 
+@pytest.mark.slow  # 3 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_bad_inputs_give_clear_errors_and_keep_old_results(small_scans, tmp_path, capsys):
     scan = small_scans / "scan.npz"
     tpl = ["--template-scan", str(small_scans / "tpl.npz")]
@@ -258,6 +259,7 @@ def test_memory_estimate_against_the_bases_it_counts():
         check_memory(780, 100, available=need - 1)
 
 
+@pytest.mark.slow  # 4 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_pictures_of_an_earlier_run_do_not_stay_beside_new_results(small_scans, tmp_path):
     out = tmp_path / "o"
     assert _focus(small_scans / "scan.npz", out, "--method", "none", "--pictures", "all") == 0

@@ -37,6 +37,7 @@ def test_sharpness_prefers_the_concentrated_image_of_equal_energy():
     assert sharpness_score(spread)[0] == pytest.approx(16 / 256)
 
 
+@pytest.mark.slow  # 12 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 @pytest.mark.parametrize("depth", [0.57, 0.634])
 def test_depth_of_a_flat_group_of_points_under_phase_errors(depth):
     ch = Chirp()

@@ -122,6 +122,7 @@ def test_twin_bad_inputs_write_nothing(capture, tmp_path, capsys):
            "--segmenter", "sam2:" + str(tmp_path / "none.pt")], "checkpoint not found")
 
 
+@pytest.mark.slow  # 5 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_focus_digital_twin_extreme_clouds_one_line(capture, tmp_path, capsys):
     """Through the command: each bad cloud is one line (exit 2) naming the file, and
     a cloud with NaN rows is focused with a warning."""

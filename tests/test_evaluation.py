@@ -246,6 +246,7 @@ def test_quick_benchmark_end_to_end(tmp_path):
     assert cli_main(["bench", "paper", "--report-only", "--out", str(tmp_path / "nothing")]) == 2
 
 
+@pytest.mark.slow  # 5 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_object_regions_frame_each_letter_without_the_other():
     from twinfocus.evaluation.cases import object_roi
 

@@ -28,6 +28,7 @@ def _basis_and_templates(seed: int = 0, m: int = 48, n: int = 24):
     return basis, [tpl_a, tpl_b]
 
 
+@pytest.mark.slow  # 49 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_each_batched_estimate_is_the_single_run():
     basis, templates = _basis_and_templates()
     batched, seconds = paper_estimates(basis, templates, CFG)
@@ -43,6 +44,7 @@ def test_each_batched_estimate_is_the_single_run():
         assert s_single > metrics.ssim(np.abs(form_image(basis, np.zeros(basis.shape[0]))), tpl / tpl.max())
 
 
+@pytest.mark.slow  # 19 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_a_bad_template_fails_alone():
     basis, templates = _basis_and_templates(seed=1)
     got, _ = paper_estimates(basis, [np.ones(basis.shape[1:]), templates[0]], CFG)

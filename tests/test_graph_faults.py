@@ -75,6 +75,7 @@ def test_a_node_stopped_from_outside_stops_the_graph_with_one_line(tmp_path, nod
     assert not [p for p in pids_by_name(g).values() if alive(p)]
 
 
+@pytest.mark.slow  # 11 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 @pytest.mark.timeout(240)
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL], ids=["TERM", "KILL"])
 def test_a_stopped_launcher_leaves_no_node_behind(tmp_path, sig):
@@ -98,6 +99,7 @@ def test_a_stopped_launcher_leaves_no_node_behind(tmp_path, sig):
         assert "SIGTERM received: stopping the graph" in g.text and g.proc.returncode == 0, g.text
 
 
+@pytest.mark.slow  # 16 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 @pytest.mark.timeout(240)
 def test_a_respawned_node_comes_back_and_the_graph_focuses(tmp_path):
     launch = (REPO / "launch" / "sim.yaml").read_text().replace(
@@ -158,6 +160,7 @@ def replay(tmp_path, log: Path, *extra) -> Launched:
                     f"target_roi:={roi(sc.target_roi())}", *extra)
 
 
+@pytest.mark.slow  # 15 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 @pytest.mark.timeout(240)
 def test_an_incomplete_log_is_focused_with_what_arrived_and_the_replay_ends(tmp_path):
     full = tmp_path / "full.mcap"
@@ -218,6 +221,7 @@ def test_a_replay_with_a_start_offset_keeps_the_template(tmp_path):
 
 # -- recordings and ports -------------------------------------------------------------------------
 
+@pytest.mark.slow  # 11 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_a_failed_recording_keeps_the_earlier_log_and_leaves_no_file(tmp_path):
     earlier = tmp_path / "y.mcap"
     small_log(earlier, n_frames=3)

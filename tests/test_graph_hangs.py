@@ -204,6 +204,7 @@ def _node(nodes: list, name: str) -> dict:
     return next(n for n in nodes if n["name"] == name)
 
 
+@pytest.mark.slow  # 11 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 @pytest.mark.timeout(400)
 def test_a_dropped_last_scan_ends_the_graph_non_zero_with_the_reason(tmp_path):
     """No template ever comes (the builder is left out): the solver drops the scan after its wait,
@@ -233,6 +234,7 @@ def _stop_synchronizer_mid_scan(g: Launched) -> int:
     return pid
 
 
+@pytest.mark.slow  # 15 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 @pytest.mark.timeout(400)
 def test_a_stopped_node_is_named_and_the_result_is_marked_incomplete(tmp_path):
     out = tmp_path / "out"
@@ -256,6 +258,7 @@ def test_a_stopped_node_is_named_and_the_result_is_marked_incomplete(tmp_path):
     assert not (out / "focus" / "sim").exists()  # a complete result's folder is never written by a partial scan
 
 
+@pytest.mark.slow  # 22 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 @pytest.mark.timeout(400)
 def test_a_stopped_node_that_may_respawn_is_replaced_and_the_graph_focuses(tmp_path):
     def respawn(nodes):

@@ -17,6 +17,7 @@ from tests.test_graph import CLI, REPO, Launched, free_port
 from twinfocus.scenario import Scenario
 
 
+@pytest.mark.slow  # 18 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 @pytest.mark.timeout(600)
 def test_live_sim_graph_equals_offline_simulate_and_focus(tmp_path):
     sc = Scenario(n_columns=2, n_rows=20, seed=5, error_model="vio")

@@ -177,6 +177,7 @@ def test_a_drift_fitted_to_noise_is_not_kept(scene):
     assert drift["info"]["residual_space_variant"] < drift["info"]["residual_scalar"]
 
 
+@pytest.mark.slow  # 3 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_a_real_drift_is_kept():
     """A hand's drift and rotation on a small simulated scan (2 x 20 positions, 20 x 20 pixels):
     the drift, fitted on half the reference's blocks, matches the other half better; kept, the

@@ -306,6 +306,7 @@ def test_ctrl_c_ends_a_run_as_planned_and_replaces_the_earlier_log(tmp_path, goo
     assert "stopped before the run ended as planned" not in g.text, g.text
 
 
+@pytest.mark.slow  # 5 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_a_silent_node_marks_the_stop_unplanned(tmp_path, monkeypatch):
     """The recorder's own judgement, from heartbeats: a node not heard from for silent_s before
     the launcher stopped the graph had hung."""

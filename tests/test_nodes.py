@@ -488,6 +488,7 @@ def test_a_physical_twins_phase_travels_to_the_solver(tmp_path):
         np.testing.assert_allclose(solver.template, load_template(tmp_path / "t.npz", ImageGrid.from_roi(REF_ROI, 9)), atol=1e-5)
 
 
+@pytest.mark.slow  # 3 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_discover_says_at_once_that_it_waits_and_gives_up_naming_both_ways_to_name_a_broker():
     import io
 
@@ -869,6 +870,7 @@ def test_record_then_play_back_with_topic_selection_offset_and_loop(tmp_path):
     assert [p.header.seq for p in poses] == list(range(len(poses)))  # numbered afresh across passes
 
 
+@pytest.mark.slow  # 8 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_loss_thousands_of_messages_replayed_at_full_speed_all_arrive(tmp_path):
     """5,000 poses and 100 MMWCAS-sized radar frames (18 MB) through the bus as fast as it goes."""
     from msgs.mcap_log import LogWriter
@@ -907,6 +909,7 @@ def test_loss_thousands_of_messages_replayed_at_full_speed_all_arrive(tmp_path):
         assert p._lost == {}
 
 
+@pytest.mark.slow  # 3 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_topic_list_echo_and_hz(tmp_path):
     import io
 

@@ -209,6 +209,7 @@ def test_surface_from_positions_refuses_what_it_cannot_read(basis_shape, support
         surface_from_positions(np.ones((4, 5, 6), np.complex64), np.zeros((5, 6), bool))
 
 
+@pytest.mark.slow  # 12 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_the_scan_tells_a_speckled_reference_from_a_smooth_or_rough_one_whatever_the_tracking_error():
     """Field geometry (the MMWCAS array at 0.6 m, an 'H'), 120 positions: a smooth sheet-metal
     letter (every scatterer in phase) and a rough one (phases within +-90 degrees) send back a lobe
@@ -231,6 +232,7 @@ def test_the_scan_tells_a_speckled_reference_from_a_smooth_or_rough_one_whatever
             assert got["surface"] == surface, (errors, roughness_deg, got)
 
 
+@pytest.mark.slow  # 7 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_focus_reads_a_digital_twin_against_its_outline(small_scene):
     """focus_bases with an outline (what --digital-twin runs) writes the corrected reference's
     outline statistics, and its confidence report judges them, not the picture match."""

@@ -122,6 +122,7 @@ def test_bad_bases_are_refused_by_name(fn):
         fn(np.ones((3, 4, 4), np.complex64), init_phase_rad=np.zeros(2))
 
 
+@pytest.mark.slow  # 9 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_focus_command_runs_the_reference_free_methods_without_a_template(tmp_path):
     import json
 

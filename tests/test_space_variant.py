@@ -408,6 +408,7 @@ def test_the_cpu_kernel_and_the_torch_code_fit_the_same_drift(drifting_scan, mon
     assert drift_error_m(d_numba) < 0.06e-3 and drift_error_m(d_torch) < 0.06e-3
 
 
+@pytest.mark.slow  # 3 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_a_busy_cpu_fits_on_one_thread_and_finds_the_same_drift(drifting_scan, monkeypatch):
     """Torch's part of the fit runs on one thread; at a load average of the cores or more numba's
     too; the threads are given back as they were, and the drift is the same either way."""

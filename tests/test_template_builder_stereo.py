@@ -4,6 +4,7 @@ import time
 
 import cv2
 import numpy as np
+import pytest
 
 from msgs import Header, SarMeasurement, StereoFrame
 from nodes.testing import Probe, local_broker, running
@@ -33,6 +34,7 @@ def _measurements(positions, scan_id):
                            last=m == positions.shape[0] - 1) for m in range(positions.shape[0])]
 
 
+@pytest.mark.slow  # 4 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_template_builder_builds_the_digital_twin_from_the_stereo_topic(tmp_path, capfd):
     from nodes.template_builder import TemplateBuilder
 
