@@ -270,3 +270,40 @@ def focus_offset(
         best = min(tried, key=tried.__getitem__)
     pairs = sorted((k, -v) for k, v in tried.items())
     return ClockEstimate(best, step / np.sqrt(12), "focus"), pairs
+
+
+def search_scan_clock(scan, reference_roi, size: int, bp_options: dict | None = None, max_offset_s: float = 0.15):
+    """``focus --clock-search``: a converted scan's positions re-sampled along its own track at the
+    offset that focuses the reference region sharpest.
+
+    scan : :class:`~twinfocus.scan.Scan`; reference_roi : (X0, X1, Y0, Y1, Z) metres; size : image
+    pixels per side of the search's reference image. Without time stamps the offset counts
+    positions (``max_offset_s`` / 0.1 s of them, the MMWCAS frame period). Returns (the scan with
+    the positions moved, a record for metrics.json).
+    """
+    from dataclasses import replace
+
+    from twinfocus.backprojection import backproject
+    from twinfocus.grid import ImageGrid
+
+    if reference_roi is None:
+        raise TwinFocusError("--clock-search needs --reference-roi (the offset is chosen by the reference's focus)")
+    grid = ImageGrid.from_roi(reference_roi, size)
+    stamped = scan.timestamps_ns is not None
+    times = position_times_s(scan.timestamps_ns, scan.n_positions)
+    limit = max_offset_s if stamped else max_offset_s / 0.1
+    bp = dict(bp_options or {})
+
+    def image(positions_m: np.ndarray) -> np.ndarray:
+        return backproject(scan.data, positions_m, scan.chirp, grid, **bp)
+
+    est, tried = focus_offset(image, scan.positions, times, limit)
+    record = {
+        **est.to_dict(),
+        "unit": "s" if stamped else "positions",
+        "searched": [-limit, limit],
+        "sharpness_at_zero": sharpness(image(scan.positions)),
+        "sharpness_at_offset": max(v for _, v in tried),
+        "image_size": int(size),
+    }
+    return replace(scan, positions=shift_positions(scan.positions, times, est.offset_s)), record

@@ -63,6 +63,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "Z0..Z1 every DZ metres: volume.npy, volume.ply and volume.mcap (the voxels within 12 dB of the "
         "brightest, as a point cloud and as a Foxglove /volume/points), volume_mip.png, volume_depth.png",
     )
+    p.add_argument(
+        "--clock-search",
+        action="store_true",
+        help="search the radar-camera clock offset: each position re-sampled along the scan's track (its time "
+        "stamps, else its order) at the offset that focuses --reference-roi sharpest (metrics.json clock_search)",
+    )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument(
         "--template",
@@ -465,6 +471,13 @@ def run(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     scan = Scan.load(args.scan)
     load_s = time.perf_counter() - t
+    clock = None
+    if args.clock_search:
+        from twinfocus.clock_offset import search_scan_clock
+
+        scan, clock = search_scan_clock(scan, args.reference_roi, min(args.size, 48), bp)
+        if not args.quiet:
+            print(f"[clock] offset {clock['offset_s']:+.4f} {clock['unit']} by the reference's focus", file=sys.stderr)
     candidates = _candidates(args)
     results, listed = [], []
     for path, cand_args in candidates:
@@ -498,6 +511,8 @@ def run(args: argparse.Namespace) -> int:
     outputs.metrics["timings_s"] = timings
     from twinfocus.sensors.capture_to_scan import read_capture_report
 
+    if clock is not None:
+        outputs.metrics["clock_search"] = clock
     gaps = read_capture_report(args.scan)  # written by `twinfocus convert` beside a real capture
     if gaps:
         outputs.metrics["capture"] = gaps

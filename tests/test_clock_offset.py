@@ -1,0 +1,71 @@
+"""The radar-camera clock offset found from the data (twinfocus.clock_offset): injected offsets
+recovered, the scan's positions re-sampled along its track, one-line refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twinfocus.backprojection import backproject
+from twinfocus.clock_offset import focus_offset, range_history_offset, shift_positions
+from twinfocus.errors import TwinFocusError
+from twinfocus.grid import ImageGrid
+from twinfocus.radar import Chirp
+from twinfocus.sensors.emulators.radar_scene import monostatic_if
+from twinfocus.trajectory import handheld_zigzag
+
+CHIRP = Chirp(n_samples=64)
+POINT = np.array([[0.03, 0.02, 0.6]])
+
+
+def _sweep(rows: int = 40, period_s: float = 0.05):
+    # 0.258 m per leg in rows x period seconds: about a hand's 0.13 m/s at 40 rows of 50 ms
+    poses = handheld_zigzag(3, rows, frame_period_s=period_s, column_change_s=0.3, rng=1)
+    return poses.timestamps_ns * 1e-9, poses.position_m
+
+
+@pytest.mark.parametrize("offset_s", [0.0, 0.04, -0.03])
+def test_range_history_recovers_an_injected_offset(offset_s):
+    t, track = _sweep()
+    centres = track[:, None, :] + np.array([[-0.01, 0, 0], [0.01, 0, 0]])[None]
+    data = monostatic_if(CHIRP, centres, POINT).astype(np.complex64)
+    # the radar's stamps run offset_s behind the camera's: adding offset_s puts them back
+    est = range_history_offset(data, CHIRP, t - offset_s, t, track)
+    assert abs(est.offset_s - offset_s) < 2e-3
+    assert est.sigma_s < 5e-3
+    np.testing.assert_allclose(est.scatterer_m, POINT[0], atol=5e-3)
+
+
+def test_range_history_refuses_noise_a_still_radar_and_a_few_frames():
+    t, track = _sweep()
+    rng = np.random.default_rng(0)
+    noise = (rng.normal(size=(len(t), 2, 64)) + 1j * rng.normal(size=(len(t), 2, 64))).astype(np.complex64)
+    with pytest.raises(TwinFocusError, match="no static scatterer"):
+        range_history_offset(noise, CHIRP, t, t, track)
+    still = np.zeros_like(track)
+    data = monostatic_if(CHIRP, still[:, None, :], POINT).astype(np.complex64)
+    with pytest.raises(TwinFocusError, match="too short"):
+        range_history_offset(data, CHIRP, t, t, still)
+    with pytest.raises(TwinFocusError, match="too few"):
+        range_history_offset(data[:5], CHIRP, t[:5], t, still)
+
+
+def test_shift_positions_moves_each_position_along_its_motion():
+    t = np.arange(5) * 0.1
+    pos = np.zeros((5, 1, 3))
+    pos[:, 0, 1] = np.array([0, 1, 2, 1, 0]) * 0.02  # up, then down: the sign flips with the leg
+    moved = shift_positions(pos, t, 0.05)
+    np.testing.assert_allclose(moved[1:4, 0, 1], [0.03, 0.03, 0.01])
+
+
+@pytest.mark.parametrize("offset_s", [0.05, -0.03])
+def test_focus_search_undoes_an_offset_of_the_tracked_positions(offset_s):
+    t, track = _sweep(rows=24, period_s=0.05)
+    offsets = np.stack([np.linspace(-0.04, 0.04, 8), np.zeros(8), np.zeros(8)], axis=1)
+    true = track[:, None, :] + offsets[None]
+    pts = np.array([[0.0, 0.0, 0.5], [0.02, 0.03, 0.5], [-0.03, -0.02, 0.5]])
+    data = monostatic_if(CHIRP, true, pts).astype(np.complex64)
+    tracked = shift_positions(true, t, offset_s)  # the camera's poses taken offset_s late
+    grid = ImageGrid.from_roi((-0.06, 0.06, -0.06, 0.06, 0.5), 24)
+    est, tried = focus_offset(lambda p: backproject(data, p, CHIRP, grid), tracked, t, 0.12)
+    assert abs(est.offset_s + offset_s) < 2e-3, tried
