@@ -272,14 +272,41 @@ def focus_offset(
     return ClockEstimate(best, step / np.sqrt(12), "focus"), pairs
 
 
-def search_scan_clock(scan, reference_roi, size: int, bp_options: dict | None = None, max_offset_s: float = 0.15):
-    """``focus --clock-search``: a converted scan's positions re-sampled along its own track at the
-    offset that focuses the reference region sharpest.
+def template_match(template: np.ndarray) -> Callable[[np.ndarray], float]:
+    """A score: correlation of an image's amplitude with ``template``'s (same shape), in [-1, 1]."""
+    b = np.abs(np.asarray(template, np.complex128)).ravel()
+    b = b - b.mean()
+    b /= max(float(np.linalg.norm(b)), 1e-300)
 
-    scan : :class:`~twinfocus.scan.Scan`; reference_roi : (X0, X1, Y0, Y1, Z) metres; size : image
-    pixels per side of the search's reference image. Without time stamps the offset counts
-    positions (``max_offset_s`` / 0.1 s of them, the MMWCAS frame period). Returns (the scan with
-    the positions moved, a record for metrics.json).
+    def score(image: np.ndarray) -> float:
+        a = np.abs(np.asarray(image)).ravel().astype(np.float64)
+        a = a - a.mean()
+        return float(a @ b / max(float(np.linalg.norm(a)), 1e-300))
+
+    return score
+
+
+def search_scan_clock(
+    scan,
+    reference_roi,
+    size: int,
+    bp_options: dict | None = None,
+    max_offset_s: float = 0.15,
+    template=None,
+    step_s: float = 0.005,
+    fine_size: int | None = None,
+):
+    """``focus --clock-search``: a converted scan's positions re-sampled along its own track at the
+    offset that focuses the reference region best.
+
+    scan : :class:`~twinfocus.scan.Scan`; reference_roi : (X0, X1, Y0, Y1, Z) metres; size : pixels
+    per side of the coarse search's reference image; fine_size : of the fine search's (+- 1.2
+    coarse steps around the coarse best; default ``size``). Without time stamps the offset counts
+    positions (``max_offset_s`` / 0.1 s of them, the MMWCAS frame period). template : ``n ->`` the
+    reference's image on the n x n grid (a twin's), matched by amplitude; None: the image's
+    sharpness (weaker on a speckled object). step_s : the coarse grid's step (the match peaks
+    within about the time a hand takes to cross a resolution cell, ~10 ms: keep it below that).
+    Returns (the scan with the positions moved, a record for metrics.json).
     """
     from dataclasses import replace
 
@@ -288,22 +315,40 @@ def search_scan_clock(scan, reference_roi, size: int, bp_options: dict | None = 
 
     if reference_roi is None:
         raise TwinFocusError("--clock-search needs --reference-roi (the offset is chosen by the reference's focus)")
-    grid = ImageGrid.from_roi(reference_roi, size)
     stamped = scan.timestamps_ns is not None
     times = position_times_s(scan.timestamps_ns, scan.n_positions)
     limit = max_offset_s if stamped else max_offset_s / 0.1
+    step = step_s if stamped else step_s / 0.1
     bp = dict(bp_options or {})
 
-    def image(positions_m: np.ndarray) -> np.ndarray:
-        return backproject(scan.data, positions_m, scan.chirp, grid, **bp)
+    def stage(n: int):
+        grid = ImageGrid.from_roi(reference_roi, n)
+        tpl = None if template is None else template(n)
+        score = sharpness if tpl is None else template_match(tpl)
 
-    est, tried = focus_offset(image, scan.positions, times, limit)
+        def image(positions_m: np.ndarray) -> np.ndarray:
+            return backproject(scan.data, positions_m, scan.chirp, grid, **bp)
+
+        return image, score
+
+    image, score = stage(size)
+    steps = 2 * int(np.ceil(limit / step)) + 1
+    coarse, _ = focus_offset(image, scan.positions, times, limit, coarse_steps=steps, score=score)
+    fine_n = int(fine_size or size)
+    image, score = stage(fine_n)
+    shifted = shift_positions(scan.positions, times, coarse.offset_s)
+    span = 1.2 * step
+    fine, tried = focus_offset(image, shifted, times, span, coarse_steps=7, score=score)
+    # shifting twice along the same track is one shift of the sum (linear re-sampling, inside the track)
+    offset = coarse.offset_s + fine.offset_s
     record = {
-        **est.to_dict(),
+        **fine.to_dict(),
+        "offset_s": offset,
         "unit": "s" if stamped else "positions",
         "searched": [-limit, limit],
-        "sharpness_at_zero": sharpness(image(scan.positions)),
-        "sharpness_at_offset": max(v for _, v in tried),
-        "image_size": int(size),
+        "score": "sharpness" if template is None else "template_match",
+        "score_at_zero": score(image(scan.positions)),
+        "score_at_offset": max(v for _, v in tried),
+        "image_size": [int(size), fine_n],
     }
-    return replace(scan, positions=shift_positions(scan.positions, times, est.offset_s)), record
+    return replace(scan, positions=shift_positions(scan.positions, times, offset)), record

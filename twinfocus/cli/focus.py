@@ -451,6 +451,18 @@ def _candidates(args: argparse.Namespace) -> list[tuple[str | None, argparse.Nam
     return [(None, args)]
 
 
+def _clock_template(args: argparse.Namespace):
+    """--clock-search's template: n -> the first --template-scan's image on the n x n reference
+    grid, else None (the image's sharpness)."""
+    if not args.template_scan or args.reference_roi is None:
+        return None
+    from twinfocus.scan import Scan
+    from twinfocus.templates import template_from_scan
+
+    stage = Scan.load(args.template_scan[0])
+    return lambda n: template_from_scan(stage, ImageGrid.from_roi(args.reference_roi, n))
+
+
 def run(args: argparse.Namespace) -> int:
     t_run = time.perf_counter()
     from twinfocus.pipeline import write_outputs
@@ -475,7 +487,9 @@ def run(args: argparse.Namespace) -> int:
     if args.clock_search:
         from twinfocus.clock_offset import search_scan_clock
 
-        scan, clock = search_scan_clock(scan, args.reference_roi, min(args.size, 48), bp)
+        scan, clock = search_scan_clock(
+            scan, args.reference_roi, 32, bp, template=_clock_template(args), fine_size=args.size
+        )
         if not args.quiet:
             print(f"[clock] offset {clock['offset_s']:+.4f} {clock['unit']} by the reference's focus", file=sys.stderr)
     candidates = _candidates(args)
