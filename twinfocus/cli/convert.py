@@ -239,6 +239,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+#: the least clock offset the default --align scan applies, s (a typed --align scan applies any)
+DEFAULT_MIN_APPLIED_OFFSET_S = 0.025
+
+
 def _align_by_scan(convert, scan, radar_traj, report, args, say):
     """``--align scan``: the clock offset from the first conversion's data, then the conversion again
     with it applied. Returns (scan, radar trajectory, report, the estimate's record or None)."""
@@ -259,10 +263,16 @@ def _align_by_scan(convert, scan, radar_traj, report, args, say):
             raise
         say(f"warning: {exc}; the clocks were aligned as --align auto does")
         return scan, radar_traj, report, None
+    if args.align is None and not abs(est.offset_s) > max(3 * est.sigma_s, DEFAULT_MIN_APPLIED_OFFSET_S):
+        # By default only an offset the range history is sure of is applied: on an extended scene it
+        # is good to about 10-15 ms (docs/sensors.md), less than the start alignment usually is.
+        say(est.line() + " -- not applied (below what the range history resolves; focus --clock-search refines)")
+        record = {**est.to_dict(), "applied_shift_s": report.time_shift_ns * 1e-9, "applied": False}
+        return scan, radar_traj, report, record
     say(est.line() + " -- applied")
     shift = int(round(est.offset_s * 1e9))
     scan, radar_traj, report = convert(time_offset_ns=report.time_shift_ns + shift, align="none")
-    record = {**est.to_dict(), "applied_shift_s": report.time_shift_ns * 1e-9}
+    record = {**est.to_dict(), "applied_shift_s": report.time_shift_ns * 1e-9, "applied": True}
     return scan, radar_traj, report, record
 
 
