@@ -136,3 +136,24 @@ def test_a_ti_capture_with_a_shifted_camera_clock_converts_to_the_synchronised_s
     assert err_start > 2e-3  # the trap: the first frame on the first pose
     # the range history is good to about 10 ms on this scene (docs/sensors.md); focus --clock-search refines
     assert err_scan < err_start / 4, (err_scan, err_start)
+
+
+def test_clock_search_of_a_scan_without_stamps_counts_positions():
+    from twinfocus.clock_offset import search_scan_clock
+    from twinfocus.scan import Scan
+
+    t, track = _sweep(rows=24, period_s=0.05)
+    offsets = np.stack([np.linspace(-0.04, 0.04, 8), np.zeros(8), np.zeros(8)], axis=1)
+    true = track[:, None, :] + offsets[None]
+    pts = np.array([[0.0, 0.0, 0.5], [0.02, 0.03, 0.5], [-0.03, -0.02, 0.5]])
+    data = monostatic_if(CHIRP, true, pts).astype(np.complex64)
+    # one position late (50 ms at this sweep's 50 ms period); the scan carries no stamps
+    late = Scan(data, shift_positions(true, t, 0.05), CHIRP, positions_true=true)
+    found, rec = search_scan_clock(late, (-0.06, 0.06, -0.06, 0.06, 0.5), 24, step_s=0.02)
+    assert rec["unit"] == "positions"
+    assert abs(rec["offset_s"] + 1.0) < 0.1, rec
+    # median over positions: at the turns between legs the order's time is no time at all
+    err = lambda p: np.median(np.linalg.norm(p - true, axis=-1))  # noqa: E731
+    assert err(found.positions) < err(late.positions) / 3
+    with pytest.raises(TwinFocusError, match="needs --reference-roi"):
+        search_scan_clock(late, None, 24)

@@ -33,6 +33,10 @@ from twinfocus.radar import Chirp, range_compress
 MIN_PEAK_TO_MEDIAN = 8.0
 #: least change of the radar's distance to the scatterer over the sweep, in range resolutions
 MIN_RANGE_SWING_CELLS = 0.02
+#: ranges below this are not searched for the scatterer (DC, leakage), m
+MIN_RANGE_M = 0.15
+#: the fit's r.m.s. residual may be at most this share of the distance's swing over the sweep
+MAX_RESIDUAL_SHARE = 0.25
 #: fewest frames the range history needs
 MIN_FRAMES = 20
 
@@ -78,7 +82,8 @@ def peak_range_m(data: np.ndarray, chirp: Chirp, oversample: int = 8) -> tuple[n
         raise TwinFocusError(f"data must be (M, K, N), got shape {data.shape}")
     n_fft = int(oversample) * chirp.n_samples
     prof = np.abs(range_compress(data, chirp, n_fft=n_fft, window="hann")).sum(axis=1)  # (M, n_fft)
-    prof[:, :oversample] = 0.0  # DC and leakage sit at zero range
+    # DC and the antennas' leakage sit within a few centimetres of zero range
+    prof[:, : max(oversample, int(np.ceil(MIN_RANGE_M / (chirp.max_range_m / n_fft))))] = 0.0
     mean = prof.mean(axis=0)
     b0 = int(np.argmax(mean))
     ratio = float(mean[b0] / max(np.median(mean), 1e-30))
@@ -187,6 +192,11 @@ def range_history_offset(
             "to find the clock from the data; use --align start or --time-offset-s"
         )
     est = _offset_of(frame_s, ranges, track_s, track_m, max_offset_s, s0)
+    if est.residual_m is not None and est.residual_m > MAX_RESIDUAL_SHARE * np.ptp(dist):
+        raise TwinFocusError(
+            f"clock offset: the brightest scatterer's range does not follow the trajectory (r.m.s. residual "
+            f"{est.residual_m * 1e3:.1f} mm of a {np.ptp(dist) * 1e3:.1f} mm swing); use --align start or --time-offset-s"
+        )
     est.scatterer_m = [float(v) for v in est.scatterer_m or []]
     if fit_rate:
         half = len(frame_s) // 2
