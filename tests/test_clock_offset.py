@@ -157,3 +157,39 @@ def test_clock_search_of_a_scan_without_stamps_counts_positions():
     assert err(found.positions) < err(late.positions) / 3
     with pytest.raises(TwinFocusError, match="needs --reference-roi"):
         search_scan_clock(late, None, 24)
+
+
+def test_focus_clock_search_records_the_offset_it_undid(tmp_path):
+    import json
+
+    from twinfocus.scan import Scan
+
+    t, track = _sweep(rows=24, period_s=0.05)
+    offsets = np.stack([np.linspace(-0.04, 0.04, 8), np.zeros(8), np.zeros(8)], axis=1)
+    true = track[:, None, :] + offsets[None]
+    pts = np.array([[0.0, 0.0, 0.5], [0.02, 0.03, 0.5], [-0.03, -0.02, 0.5], [0.1, 0.0, 0.5]])
+    data = monostatic_if(CHIRP, true, pts).astype(np.complex64)
+    stamps = np.round(t * 1e9).astype(np.int64)
+    Scan(data, shift_positions(true, t, 0.04), CHIRP, positions_true=true, timestamps_ns=stamps).save(
+        tmp_path / "s.npz"
+    )
+    roi = [
+        "--reference-roi",
+        "-0.06",
+        "0.06",
+        "-0.06",
+        "0.06",
+        "0.5",
+        "--target-roi",
+        "0.07",
+        "0.13",
+        "-0.03",
+        "0.03",
+        "0.5",
+    ]
+    out = tmp_path / "out"
+    rc = _cli("focus", str(tmp_path / "s.npz"), *roi, "--method", "none", "--clock-search", "--size", "24",
+              "--out", str(out), "--quiet", "--no-pictures")  # fmt: skip
+    assert rc == 0
+    clock = json.loads((out / "metrics.json").read_text())["clock_search"]
+    assert clock["unit"] == "s" and abs(clock["offset_s"] + 0.04) < 2e-3
