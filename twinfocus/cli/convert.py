@@ -15,6 +15,7 @@ bytes lost, frames dropped as flagged) for the metrics of a later ``focus``.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
@@ -55,10 +56,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--align",
-        choices=["auto", "start", "none"],
-        default="auto",
-        help="clock alignment: 'start' puts the first frame on the first pose; 'auto' does that only when "
-        "the clocks do not overlap (default)",
+        choices=["scan", "start", "none", "auto"],
+        default=None,
+        help="clock alignment: 'scan' (default) finds the radar-camera clock offset from the data (the brightest "
+        "static scatterer's range history against the trajectory) and applies it, falling back to 'auto' with a "
+        "warning when the data cannot tell; 'start' puts the first frame on the first pose; 'none' trusts the "
+        "stamps (plus --time-offset-s); 'auto' is 'start' only when the clocks do not overlap",
     )
     p.add_argument(
         "--frame",
@@ -202,20 +205,25 @@ def _convert(args: argparse.Namespace, out: Path) -> int:
             frames = list(cap.frames(loop=args.loop))
         else:
             frames = cap if _is_mmwcas(capture) else cap.frames
-        scan, radar_traj, report = scan_from_frames(
+        convert = functools.partial(
+            scan_from_frames,
             frames,
             chirp,
             poses,
             args.z0,
             extrinsics,
             array,
-            time_offset_ns=int(round(args.time_offset_s * 1e9)),
-            align=args.align,
             scene_frame=args.frame,
             drop_flagged=not args.keep_flagged,
             progress=Progress("convert", enabled=not args.quiet),
             frames_missing=getattr(cap, "frames_missing", 0),
         )
+        offset_ns = int(round(args.time_offset_s * 1e9))
+        align = args.align or "scan"
+        scan, radar_traj, report = convert(time_offset_ns=offset_ns, align="auto" if align == "scan" else align)
+        clock = None
+        if align == "scan":
+            scan, radar_traj, report, clock = _align_by_scan(convert, scan, radar_traj, report, args, say)
         for note in report.notes:
             say(note)
         calibration = _calibrate(args, scan, array, board.name, say)
@@ -229,6 +237,7 @@ def _convert(args: argparse.Namespace, out: Path) -> int:
                 "chirp": chirp_record,
                 "board": board.to_dict(),
                 "calibration": calibration,
+                "clock": clock,
             },
         )
         say(
@@ -246,11 +255,49 @@ def _convert(args: argparse.Namespace, out: Path) -> int:
                 "dropped_outside": report.n_outside,
                 "dropped_flagged": report.n_flagged,
                 "time_shift_s": report.time_shift_ns * 1e-9,
+                "clock": clock,
                 **gaps,
             }
         )
     )
     return 0
+
+
+#: the least clock offset the default --align scan applies, s (a typed --align scan applies any)
+DEFAULT_MIN_APPLIED_OFFSET_S = 0.025
+
+
+def _align_by_scan(convert, scan, radar_traj, report, args, say):
+    """``--align scan``: the clock offset from the first conversion's data, then the conversion again
+    with it applied. Returns (scan, radar trajectory, report, the estimate's record or None)."""
+    from twinfocus.clock_offset import range_history_offset
+
+    t0 = int(radar_traj.timestamps_ns[0])
+    try:
+        est = range_history_offset(
+            scan.data,
+            scan.chirp,
+            (scan.timestamps_ns - t0) * 1e-9,
+            (radar_traj.timestamps_ns - t0) * 1e-9,
+            radar_traj.position_m,
+            fit_rate=True,
+        )
+    except TwinFocusError as exc:
+        if args.align == "scan":  # asked for by name: the user wants to know it failed
+            raise
+        say(f"warning: {exc}; the clocks were aligned as --align auto does")
+        return scan, radar_traj, report, None
+    if args.align is None and not abs(est.offset_s) > max(3 * est.sigma_s, DEFAULT_MIN_APPLIED_OFFSET_S):
+        # By default only an offset the range history is sure of is applied: on an extended scene it
+        # is good to about 10-15 ms (docs/sensors.md), less than the start alignment usually is.
+        say(est.line() + " -- not applied (below what the range history resolves; focus --clock-search refines)")
+        record = {**est.to_dict(), "applied_shift_s": report.time_shift_ns * 1e-9, "applied": False}
+        return scan, radar_traj, report, record
+    say(est.line() + " -- applied")
+    shift = int(round(est.offset_s * 1e9))
+    scan, radar_traj, report = convert(time_offset_ns=report.time_shift_ns + shift, align="none")
+    record = {**est.to_dict(), "applied_shift_s": report.time_shift_ns * 1e-9, "applied": True}
+    return scan, radar_traj, report, record
 
 
 def _calibrate(args, scan, array, board: str, say) -> dict | None:

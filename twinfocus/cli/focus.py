@@ -66,6 +66,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "Z0..Z1 every DZ metres: volume.npy, volume.ply and volume.mcap (the voxels within 12 dB of the "
         "brightest, as a point cloud and as a Foxglove /volume/points), volume_mip.png, volume_depth.png",
     )
+    p.add_argument(
+        "--clock-search",
+        action="store_true",
+        help="search the radar-camera clock offset: each position re-sampled along the scan's track (its time "
+        "stamps, else its order) at the offset that focuses --reference-roi sharpest (metrics.json clock_search)",
+    )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument(
         "--template",
@@ -516,6 +522,18 @@ def _candidates(args: argparse.Namespace) -> list[tuple[str | None, argparse.Nam
     return [(None, args)]
 
 
+def _clock_template(args: argparse.Namespace):
+    """--clock-search's template: n -> the first --template-scan's image on the n x n reference
+    grid, else None (the image's sharpness)."""
+    if not args.template_scan or args.reference_roi is None:
+        return None
+    from twinfocus.scan import Scan
+    from twinfocus.templates import template_from_scan
+
+    stage = Scan.load(args.template_scan[0])
+    return lambda n: template_from_scan(stage, ImageGrid.from_roi(args.reference_roi, n))
+
+
 def run(args: argparse.Namespace) -> int:
     t_run = time.perf_counter()
     shapes = _check_before_work(args)
@@ -554,6 +572,15 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
 
         args.digital_twin = pin_bag_clouds(args.digital_twin, scan.timestamps_ns, quiet=args.quiet)
     load_s = time.perf_counter() - t
+    clock = None
+    if args.clock_search:
+        from twinfocus.clock_offset import search_scan_clock
+
+        scan, clock = search_scan_clock(
+            scan, args.reference_roi, 32, bp, template=_clock_template(args), fine_size=args.size
+        )
+        if not args.quiet:
+            print(f"[clock] offset {clock['offset_s']:+.4f} {clock['unit']} by the reference's focus", file=sys.stderr)
     candidates = _candidates(args)
     results, listed = [], []
     for path, cand_args in candidates:
@@ -587,6 +614,8 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
     outputs.metrics["timings_s"] = timings
     from twinfocus.sensors.capture_to_scan import read_capture_report
 
+    if clock is not None:
+        outputs.metrics["clock_search"] = clock
     gaps = read_capture_report(args.scan)  # written by `twinfocus convert` beside a real capture
     if gaps:
         outputs.metrics["capture"] = gaps
