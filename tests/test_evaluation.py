@@ -209,7 +209,9 @@ def test_cli_rejects_bad_arguments_before_any_work(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "unknown experiment" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "r").exists()
-    assert cli_main(["bench", "paper", "--quick", "--draws", "0", "--out", str(tmp_path / "r")]) == 2
+    with pytest.raises(SystemExit) as exc:  # refused while the options are read
+        cli_main(["bench", "paper", "--quick", "--draws", "0", "--out", str(tmp_path / "r")])
+    assert exc.value.code == 2 and "--draws" in capsys.readouterr().err
 
 
 @pytest.mark.slow

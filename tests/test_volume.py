@@ -148,8 +148,8 @@ def test_focus_writes_the_volume(tmp_path):
     assert z[mag[:, :, right].max(axis=(1, 2)).argmax()] == pytest.approx(0.68, abs=0.011)
     cloud, _ = read_ply_points(out / "volume.ply")
     assert len(cloud) > 0 and cloud[:, 2].min() >= 0.55 - 1e-6
-    # a run without --volume into the same folder leaves no volume of the earlier result
+    # a run without --volume into the same folder (--overwrite) leaves no volume of the earlier result
     assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
                  "--target-roi", "0.016", "0.103", "-0.0785", "0.0785", "0.68", "--size", "16", "--method", "none",
-                 "--out", str(out), "--quiet"]) == 0
+                 "--out", str(out), "--quiet", "--overwrite"]) == 0
     assert not [p.name for p in out.glob("volume*")]
