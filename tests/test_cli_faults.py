@@ -1,6 +1,7 @@
 """Faults a careless or hostile user makes: each refused in one line, exit 2, earlier
 results unchanged, nothing written outside the folder the output belongs in."""
 import errno
+import json
 import hashlib
 
 import numpy as np
@@ -142,3 +143,22 @@ def test_batch_save_template_stays_inside_out(tmp_path, scan):
     m.write_text(m.read_text().replace("../../t.npz", "templates/t.npz"))
     (item,) = read_manifest(m, tmp_path / "out")
     assert str((tmp_path / "out" / "templates" / "t.npz").resolve()) in item.argv
+
+
+def test_a_cloud_with_nan_points_is_dropped_in_one_line_and_counted(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
+    d = tmp_path / "sim"
+    assert main(["simulate", "--out", str(d / "scan.npz"), "--reference-cloud-out", str(d / "cloud.npy"),
+                 "--columns", "2", "--rows", "12", "--quiet"]) == 0
+    cloud = np.load(d / "cloud.npy")
+    cloud[::10] = np.nan  # as a stereo camera writes the points it could not match
+    np.save(d / "cloud_nan.npy", cloud)
+    capsys.readouterr()
+    out = tmp_path / "out"
+    assert main(["focus", str(d / "scan.npz"), "--digital-twin", str(d / "cloud_nan.npy"), "--reference-roi", *REF,
+                 "--target-roi", *TGT, "--size", "12", "--pictures", "none", "--out", str(out), "--quiet"]) == 0
+    warned = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln and "NaN" in ln]
+    dropped = len(cloud[::10])
+    assert warned == [f"twinfocus focus: warning: reference point cloud: dropped {dropped} of {len(cloud)} rows holding NaN or inf"]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["digital_twin"]["non_finite_rows"] == dropped

@@ -16,7 +16,7 @@ import pytest
 from benchmarks.docs_pages import ROOT, output_figures, page_env, result_file, run_blocks
 
 #: pages that make everything they use; the others need a device or a running graph and say so
-RUNNABLE = ["docs/howto/many_scans.md"]
+RUNNABLE = ["docs/howto/many_scans.md", "docs/howto/digital_twin.md"]
 
 
 def test_a_runnable_page_has_commands_and_a_result_file() -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 
 from twinfocus.errors import TwinFocusError
 
@@ -75,31 +76,51 @@ def main(argv: list[str] | None = None) -> int:
         sub_parser = _OneLineParser(prog=f"twinfocus {argv[0]}", description=COMMANDS[argv[0]][1])
         module.add_arguments(sub_parser)
         args = sub_parser.parse_args(argv[1:])
-        try:
-            return int(module.run(args) or 0)
-        except TwinFocusError as exc:
-            print(f"twinfocus {argv[0]}: error: {exc}", file=sys.stderr)
-            return 2
-        except OSError as exc:
-            # a full disk (any writer) is the user's to fix: one line naming the file
-            from twinfocus.atomic import disk_error_message
-
-            line = disk_error_message(exc)
-            if line is None:
-                raise
-            print(f"twinfocus {argv[0]}: error: {line}", file=sys.stderr)
-            return 2
-        except KeyboardInterrupt:
-            print(f"twinfocus {argv[0]}: interrupted", file=sys.stderr)
-            return 130
-        finally:
-            # a background import still running would tear down mid-import at exit (a traceback
-            # after the refusal's line): let it finish first
-            settings = sys.modules.get("twinfocus.settings")  # only a command that imported it preloads
-            if settings is not None:
-                settings.wait_for_preload()
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line_warning(argv[0], warnings.showwarning)
+            return _run(argv[0], module, args)
     parser.parse_args(argv)  # prints usage / unknown-command error and exits
     return 2
+
+
+def _one_line_warning(command: str, show_others):
+    """``warnings.showwarning`` for a command: the library's own warnings (a cloud's dropped rows,
+    say) as one line in the user's terms, without the source line Python adds; others as usual."""
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, UserWarning) and category.__module__.startswith("twinfocus"):
+            print(f"twinfocus {command}: warning: {message}", file=sys.stderr)
+        else:
+            show_others(message, category, filename, lineno, file, line)
+
+    return show
+
+
+def _run(command: str, module, args: argparse.Namespace) -> int:
+    """Run a parsed command: a user's mistake or a full disk is one line and exit status 2."""
+    try:
+        return int(module.run(args) or 0)
+    except TwinFocusError as exc:
+        print(f"twinfocus {command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        # a full disk (any writer) is the user's to fix: one line naming the file
+        from twinfocus.atomic import disk_error_message
+
+        line = disk_error_message(exc)
+        if line is None:
+            raise
+        print(f"twinfocus {command}: error: {line}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"twinfocus {command}: interrupted", file=sys.stderr)
+        return 130
+    finally:
+        # a background import still running would tear down mid-import at exit (a traceback
+        # after the refusal's line): let it finish first
+        settings = sys.modules.get("twinfocus.settings")  # only a command that imported it preloads
+        if settings is not None:
+            settings.wait_for_preload()
 
 
 if __name__ == "__main__":
