@@ -234,33 +234,30 @@ class Broker:
         self._verdict = reason or "failed"
 
 
-def query_verdict(endpoint: str, ctx: zmq.Context, timeout_s: float = 0.5) -> str | None:
-    """Why the launcher stops the graph as a failed run; "" for no failure (so far), None when the
-    broker does not answer in time."""
+def _ask(endpoint: str, ctx: zmq.Context, request: bytes, timeout_s: float) -> bytes | None:
+    """One request to the broker's control socket; its answer, or None when it does not answer in
+    time."""
     req = ctx.socket(zmq.REQ)
     req.setsockopt(zmq.LINGER, 0)
     req.connect(endpoint)
     try:
-        req.send(b"verdict")
-        if req.poll(int(timeout_s * 1000)):
-            return req.recv().decode(errors="replace")
-        return None
+        req.send(request)
+        return req.recv() if req.poll(int(timeout_s * 1000)) else None
     finally:
         req.close(linger=0)
+
+
+def query_verdict(endpoint: str, ctx: zmq.Context, timeout_s: float = 0.5) -> str | None:
+    """Why the launcher stops the graph as a failed run; "" for no failure (so far), None when the
+    broker does not answer in time."""
+    answer = _ask(endpoint, ctx, b"verdict", timeout_s)
+    return None if answer is None else answer.decode(errors="replace")
 
 
 def query_graph(endpoint: str, ctx: zmq.Context, timeout_s: float = 0.5) -> dict[str, dict]:
     """The broker's record of every node's last heartbeat ({} if it does not answer in time)."""
-    req = ctx.socket(zmq.REQ)
-    req.setsockopt(zmq.LINGER, 0)
-    req.connect(endpoint)
-    try:
-        req.send(b"graph")
-        if req.poll(int(timeout_s * 1000)):
-            return json.loads(req.recv())
-        return {}
-    finally:
-        req.close(linger=0)
+    answer = _ask(endpoint, ctx, b"graph", timeout_s)
+    return {} if answer is None else json.loads(answer)
 
 
 def discover(endpoint: str, ctx: zmq.Context, timeout_s: float, stream=None) -> tuple[str, str]:

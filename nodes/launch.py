@@ -64,6 +64,7 @@ where the launch file says ``respawn``; otherwise the graph stops with status 1.
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import signal
@@ -280,7 +281,8 @@ def load(path: str | os.PathLike, assignments: list[str] | tuple = ()) -> Graph:
 
 def _check_argument(path: Path, name: str, spec: dict, value: Any) -> Any:
     """A launch argument given as ``name:=value``, as the type of its declared default (a number,
-    true/false, a list of numbers); refused in one line before any node starts. Arguments
+    true/false, a list of numbers) and within its declared ``min`` / ``max``; a number that is
+    not finite or out of bounds is refused in one line before any node starts. Arguments
     without a default or with a text default take any value (the nodes check them)."""
     default = spec.get("default")
     if default is None or isinstance(default, str):
@@ -291,7 +293,15 @@ def _check_argument(path: Path, name: str, spec: dict, value: Any) -> Any:
         kind = "floats" if default and numbers else "list"
     if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
-    checked = coerce(f"{path.name}: argument {name} (default {default!r})", Param(default, type=kind), value)
+    label = f"{path.name}: argument {name} (default {default!r})"
+    checked = coerce(label, Param(default, type=kind), value)
+    if isinstance(checked, float) and math.isnan(checked):
+        raise TwinFocusError(f"{label} must be a number, got {value!r}")
+    low, high = spec.get("min"), spec.get("max")
+    if isinstance(checked, (int, float)) and not isinstance(checked, bool):
+        if (low is not None and checked < low) or (high is not None and checked > high):
+            bounds = " and ".join(w for w in (low is not None and f">= {low}", high is not None and f"<= {high}") if w)
+            raise TwinFocusError(f"{label} must be {bounds}, got {value!r}")
     return value if kind == "list" else checked
 
 

@@ -213,6 +213,8 @@ def _calibration(captures, tmp_path, capsys) -> ChannelCalibration:
         ("array", "another array"),
         ("channels", "48 channels"),
         ("chirp", "another chirp (slope_hz_per_s"),
+        # same channel count and layout, another board's name: convert passes the capture's board
+        ("board", "was made on board 'another board'"),
     ],
 )
 def test_calibration_of_another_array_or_chirp_is_refused(captures, tmp_path, capsys, edit, phrase):
@@ -222,6 +224,8 @@ def test_calibration_of_another_array_or_chirp_is_refused(captures, tmp_path, ca
         cal = replace(cal, array_fingerprint=__import__("twinfocus.calibration").calibration.array_fingerprint(other))
     elif edit == "channels":
         cal = replace(cal, gain=cal.gain[:48], delay_m=cal.delay_m[:48])
+    elif edit == "board":
+        cal = replace(cal, board="another board")
     else:
         cal = replace(cal, chirp=Chirp(slope_hz_per_s=100e12))
     cal.save(tmp_path / "other.npz")

@@ -9,7 +9,7 @@ was lost (beside tests/test_log_faults.py, whose fixtures these reuse).
   says how many), missing = those not focused;
 * a replay of a log cut at half its bytes, or with one frame damaged: exit 1, the loss in one
   line and in metrics.json; ``twinfocus play`` of a cut log exits 1 and says where it was cut;
-* ``rows:=abc``: one line, exit 2, before any node starts.
+* ``rows:=abc``, ``rows:=-5``, ``rate:=nan``: one line, exit 2, before any node starts.
 """
 
 from __future__ import annotations
@@ -162,7 +162,10 @@ def test_play_of_a_cut_log_exits_1_and_says_where_it_was_cut(tmp_path, capfd):
     "arg, words",
     [("rows:=abc", "argument rows (default 130) must be an integer, got 'abc'"),
      ("record:=maybe", "argument record (default False) must be true or false, got 'maybe'"),
-     ("estimator:=bogus", "node 'solver': parameter 'estimator' must be one of auto")],
+     ("estimator:=bogus", "node 'solver': parameter 'estimator' must be one of auto"),
+     ("rows:=-5", "argument rows (default 130) must be >= 2, got -5"),
+     ("rate:=nan", "argument rate (default 4.0) must be a number, got 'nan'"),
+     ("web_port:=70000", "argument web_port (default 8765) must be >= 0 and <= 65535, got 70000")],
 )
 def test_a_bad_launch_argument_is_one_line_and_exit_2_before_any_node_starts(tmp_path, arg, words):
     t = time.monotonic()

@@ -937,3 +937,31 @@ def test_topic_list_echo_and_hz(tmp_path):
     assert "vio/pose  [Pose]" in listing and "publishers: src" in listing
     assert echo_out.getvalue().count("type: Pose") == 2 and "position_m: float64 (3,)" in echo_out.getvalue()
     assert "vio/pose: average rate" in hz_out.getvalue()
+
+
+@pytest.mark.parametrize("scan_id", ["../../escaped", "/tmp/absolute"])
+def test_a_scan_id_from_the_bus_never_writes_outside_out_dir(tmp_path, scan_id):
+    from nodes.solver import Solver
+    from twinfocus.grid import ImageGrid
+    from twinfocus.templates import template_from_scan
+
+    scan = point_scene_scan()
+    ref_grid = ImageGrid.from_roi(REF_ROI, 16)
+    template = template_from_scan(scan, ref_grid)
+    out = tmp_path / "run" / "out"
+    out.mkdir(parents=True)
+    (out / "earlier.png").write_bytes(b"not the solver's")
+    with local_broker() as ep:
+        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16, "iterations": 10,
+                                           "estimator": "paper", "out_dir": str(out), "pictures": False,
+                                           "warm_up": False})
+        probe = Probe(ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"])
+        with running(solver, probe):
+            probe.send("twin/template", TwinTemplate(image=template, x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
+            for m in measurements(scan, scan_id=scan_id):
+                probe.send("sar/measurement", m)
+            probe.wait_for("autofocus/result", 2, timeout_s=60)  # the result still goes out on the bus
+    # nothing was written for it, inside out_dir or where the name points, and nothing deleted
+    assert sorted(p.name for p in out.iterdir()) == ["earlier.png"]
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["out"]
+    assert not (tmp_path / "escaped").exists() and not __import__("pathlib").Path("/tmp/absolute").exists()
