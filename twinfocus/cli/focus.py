@@ -254,14 +254,12 @@ def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
         raise TwinFocusError("--method needs --reference-roi and --target-roi (the regions are found only with a twin)")
     if getattr(args, "rig", None) and not args.digital_twin:
         raise TwinFocusError("--rig needs --digital-twin (it moves the camera's cloud)")
-    if args.refine_depth is not None and not (args.refine_depth > 0):
-        raise TwinFocusError(f"--refine-depth must be a positive distance (metres), got {args.refine_depth}")
     check_memory(shapes["data"][0], args.size)
     volume_plan(args, shapes["data"][0], shapes["data"][1])
     return shapes
 
 
-def _template(args, scan, ref_grid, bp, progress, cache) -> tuple:
+def _template(args, scan, ref_grid, bp, progress, cache, rig=None) -> tuple:
     """The reference template for the chosen source, through the cache: (template or None,
     cache status "hit" / "miss" / "off", or None when there is nothing to cache, the reference's
     outline bool (H, W) for a digital twin, else None, and for a digital twin what its cloud's
@@ -283,7 +281,6 @@ def _template(args, scan, ref_grid, bp, progress, cache) -> tuple:
             )
     elif args.digital_twin:
         # one entry holds the template and the outline, stacked (2, H, W)
-        rig = _rig(args, scan)
         key = (
             digital_twin_key(args.digital_twin, scan.positions, scan.chirp, ref_grid, bp, root=cache.root)
             + "-outline"
@@ -327,7 +324,7 @@ def _rig(args: argparse.Namespace, scan):
     return load_rig_for(args.rig, scan, args.digital_twin)
 
 
-def _reference_region(args: argparse.Namespace, bp: dict, progress) -> tuple[tuple, dict]:
+def _reference_region(args: argparse.Namespace, bp: dict, progress, rig=None) -> tuple[tuple, dict]:
     """The reference region: typed, or found from the twin (:mod:`twinfocus.reference_search`)."""
     from twinfocus import reference_search
 
@@ -337,10 +334,8 @@ def _reference_region(args: argparse.Namespace, bp: dict, progress) -> tuple[tup
         from twinfocus.digital_twin.template import load_points
 
         cloud = load_points(args.digital_twin, allow_non_finite=True)
-        if getattr(args, "rig", None):
-            from twinfocus.digital_twin.rig import Rig
-
-            cloud = cloud + Rig.load(args.rig).offset_m  # where the calibrated camera saw it
+        if rig is not None:
+            cloud = cloud + rig[0].offset_m  # where the calibrated camera saw it
         return reference_search.region_from_cloud(cloud)
     if args.template:
         from twinfocus.scan import load_npz
@@ -420,7 +415,8 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
 
     timings: dict[str, float] = {}
     t = time.perf_counter()
-    reference_roi, reference_found = _reference_region(args, bp, progress)
+    rig = _rig(args, scan)  # checked against the scan and the cloud before any work
+    reference_roi, reference_found = _reference_region(args, bp, progress, rig)
     if box is not None and reference_found["source"] != "typed":
         from twinfocus.boxes import cut_away  # a found region stops short of the typed target's
 
@@ -440,7 +436,7 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
         preload_torch()  # a template with phase: the ladder may fit a drift, with torch
     t = time.perf_counter()
     template, cache_status, support, twin_info = _template(
-        args, scan, ref_grid, bp, progress, TemplateCache(enabled=not args.no_cache)
+        args, scan, ref_grid, bp, progress, TemplateCache(enabled=not args.no_cache), rig
     )
     timings["template"] = time.perf_counter() - t
     method = "twin" if template is not None else args.method
@@ -497,8 +493,8 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
     outputs.timings_s = {**timings, **outputs.timings_s}
     if cache_status is not None:
         outputs.metrics["template_cache"] = cache_status
-    if getattr(args, "rig", None):  # the file applied and how far it moved the reference
-        outputs.metrics["rig"] = {**_rig(args, scan)[1], **((twin_info or {}).get("rig") or {})}
+    if rig is not None:  # the file applied and how far it moved the reference
+        outputs.metrics["rig"] = {**rig[1], **((twin_info or {}).get("rig") or {})}
     return {
         "outputs": outputs,
         "search": search,
