@@ -24,6 +24,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.trajectory import matrix_to_quat
 
 POSE_TYPES = (
     "geometry_msgs/msg/PoseStamped",
@@ -39,7 +40,7 @@ CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 #: y down = -z_body, z forward = x_body); ``p_body = R_BODY_OPTICAL @ p_optical``.
 R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 #: The same rotation as a quaternion (x, y, z, w).
-Q_BODY_OPTICAL = np.array([-0.5, 0.5, -0.5, 0.5])
+Q_BODY_OPTICAL = matrix_to_quat(R_BODY_OPTICAL)
 
 # sensor_msgs/PointField datatypes read for x, y, z
 _FIELD_DTYPES = {7: "f4", 8: "f8"}
