@@ -45,13 +45,10 @@ browser-deps:
 test: $(STAMP) browser-deps
 	$(PY) -m pytest -q
 
-# The tests not marked slow: the quick check while working. Measured by benchmarks/bench_test_fast.py
-# (pytest --durations=0; wall time, the sum of per-test durations and the slowest tests into
-# benchmarks/results/test_fast.json). Before the tests of 3 s and more were marked slow the selection
-# summed 767 s of test time on a shared 2-core machine at load 5-7 (benchmarks/results/test_fast_before.json;
-# its 15 slowest took 219 s idle, 415 s there); the 38 tests marked since held 550 s of it, leaving 217 s
-# at that load. After: 676 tests, 192.6 s wall and 181 s summed at load 3.6-5.0 on the same machine
-# (benchmarks/results/test_fast.json), about 95 s idle by the ratio above. Rerun the script idle for the figure.
+# The tests not marked slow: the quick check while working (make test runs them all). Measured by
+# benchmarks/bench_test_fast.py into benchmarks/results/test_fast.json, idle: 181.8 s wall for 822 tests
+# (169.1 s of summed test durations) at load 0.55 -> 1.48 on 2 cores. Rerun the script idle to refresh
+# the file; tests/test_makefile.py checks this comment against it.
 test-fast: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"
 

@@ -21,6 +21,10 @@ def _patch(x0, x1, y0, y1, z, rng):
     return pts, np.exp(2j * np.pi * rng.random(len(pts)))  # speckle
 
 
+# 8 s idle (benchmarks/results/test_fast.json): out of make test-fast. The look's extent and depth of
+# an object are checked quickly by tests/test_reference_search.py::test_region_of_the_one_object_of_a_scan,
+# a target's region found from the look by tests/test_nodes_where.py.
+@pytest.mark.slow
 def test_look_finds_two_patches_at_their_extents_and_depths():
     ch = Chirp()
     va = mmwcas_virtual_array()

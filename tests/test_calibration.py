@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -110,23 +111,44 @@ def test_perfect_array_draw_changes_nothing():
 
 
 @pytest.fixture(scope="module")
-def captures(tmp_path_factory):
-    """A corner capture and a scene capture through one imperfect array, and the same scene (same
-    trajectory) through a perfect one."""
+def corner_and_scene(tmp_path_factory):
+    """A corner capture and a scene capture through one imperfect array: what the quick tests
+    read (the captures of ``captures`` beside them take most of its time)."""
     root = tmp_path_factory.mktemp("calibration")
     errors = draw_array_errors(TYPICAL, 11)
     traj = paper_raster(3, 40, frame_period_s=0.05, t0_ns=1_700_000_000_000_000_000)
-    pts = demo_scatterers(0.6)
     return {
         "root": root,
+        "errors": errors,
         "corner": _capture(root / "corner", _still(8), [[0.0, 0.0, 0.6]], errors, seed=1),
-        "scene": _capture(root / "scene", traj, pts, errors, seed=2),
+        "scene": _capture(root / "scene", traj, demo_scatterers(0.6), errors, seed=2),
+        "traj": traj,
+    }
+
+
+@pytest.fixture(scope="module")
+def captures(corner_and_scene):
+    """Those two, and the same scene (same trajectory) through a perfect array, and the reference
+    alone on the motion stage through both."""
+    c = corner_and_scene
+    root, errors, traj, pts = c["root"], c["errors"], c["traj"], demo_scatterers(0.6)
+    return {
+        **c,
         "perfect": _capture(root / "perfect", traj, pts, draw_array_errors(NONE), seed=2),
         # The reference (the 'T') alone on the motion stage: the physical twin's capture.
         "stage": _capture(root / "stage", traj, pts[:11], errors, seed=3),
         "stage_perfect": _capture(root / "stage_perfect", traj, pts[:11], draw_array_errors(NONE), seed=3),
-        "traj": traj,
     }
+
+
+@pytest.fixture(scope="module")
+def good_calibration(corner_and_scene) -> Path:
+    """The corner capture's calibration, made once by `twinfocus calibrate` (the file's path)."""
+    from twinfocus.cli import main
+
+    out = corner_and_scene["root"] / "good.npz"
+    assert main(["calibrate", str(corner_and_scene["corner"]), "--range-m", "0.6", "--out", str(out), "--quiet"]) == 0
+    return out
 
 
 def _image(scan_path) -> np.ndarray:
@@ -186,9 +208,9 @@ def _refused(rc, err, written, *phrases):
     assert not any(p.exists() for p in written), [p for p in written if p.exists()]
 
 
-def test_no_bright_point_near_the_range_is_refused(captures, tmp_path, capsys):
+def test_no_bright_point_near_the_range_is_refused(corner_and_scene, tmp_path, capsys):
     out = tmp_path / "cal.npz"
-    rc, _, err = _run(capsys, "calibrate", captures["corner"], "--range-m", 2.0, "--out", out, "--quiet")
+    rc, _, err = _run(capsys, "calibrate", corner_and_scene["corner"], "--range-m", 2.0, "--out", out, "--quiet")
     _refused(rc, err, [out, tmp_path / "cal.png"], "no bright point near 2 m")
 
 
@@ -197,14 +219,6 @@ def test_two_corners_are_refused(tmp_path, capsys):
     out = tmp_path / "cal.npz"
     rc, _, err = _run(capsys, "calibrate", cap, "--range-m", 0.65, "--out", out, "--quiet")
     _refused(rc, err, [out, tmp_path / "cal.png"], "two bright points")
-
-
-def _calibration(captures, tmp_path, capsys) -> ChannelCalibration:
-    rc, _, err = _run(
-        capsys, "calibrate", captures["corner"], "--range-m", 0.6, "--out", tmp_path / "good.npz", "--quiet"
-    )
-    assert rc == 0, err
-    return ChannelCalibration.load(tmp_path / "good.npz")
 
 
 @pytest.mark.parametrize(
@@ -217,8 +231,8 @@ def _calibration(captures, tmp_path, capsys) -> ChannelCalibration:
         ("board", "was made on board 'another board'"),
     ],
 )
-def test_calibration_of_another_array_or_chirp_is_refused(captures, tmp_path, capsys, edit, phrase):
-    cal = _calibration(captures, tmp_path, capsys)
+def test_calibration_of_another_array_or_chirp_is_refused(corner_and_scene, good_calibration, tmp_path, capsys, edit, phrase):
+    cal = ChannelCalibration.load(good_calibration)
     if edit == "array":
         other = uniform_virtual_array(86, 1e-3)
         cal = replace(cal, array_fingerprint=__import__("twinfocus.calibration").calibration.array_fingerprint(other))
@@ -229,7 +243,7 @@ def test_calibration_of_another_array_or_chirp_is_refused(captures, tmp_path, ca
     else:
         cal = replace(cal, chirp=Chirp(slope_hz_per_s=100e12))
     cal.save(tmp_path / "other.npz")
-    scene = captures["scene"]
+    scene = corner_and_scene["scene"]
     out = tmp_path / "scan.npz"
     rc, _, err = _run(
         capsys,
@@ -341,14 +355,15 @@ def test_simulate_array_errors_switch(tmp_path, capsys):
     _refused(rc, err, [tmp_path / "x.npz"], "beamwidth_deg")
 
 
-def test_live_radar_backend_applies_the_calibration(captures, tmp_path, capsys):
+def test_live_radar_backend_applies_the_calibration(corner_and_scene, good_calibration, tmp_path, capsys):
     """The radar driver's ``calibration`` option gives the channels `convert --calibration` gives;
     one of another chirp is refused; none warns."""
     from nodes.backends import RADAR_BACKENDS, load_backend
 
-    cal = _calibration(captures, tmp_path, capsys)
+    captures = corner_and_scene
+    cal = ChannelCalibration.load(good_calibration)
     cls = load_backend(RADAR_BACKENDS, "mmwcas", "radar")
-    b = cls({"capture": str(captures["scene"]), "calibration": str(tmp_path / "good.npz")})
+    b = cls({"capture": str(captures["scene"]), "calibration": str(good_calibration)})
     try:
         first = next(iter(b.samples()))
         raw = b.capture.read_frame(b.frames[0])[0]
