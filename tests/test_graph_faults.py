@@ -4,7 +4,8 @@ within a bounded time, with one clear line, and loses no earlier log or result.
 Faults: SIGTERM / SIGKILL to each node and to the launcher, a truncated log and a log damaged
 in the middle, a busy broker port, a recording that fails over an existing log, a replay with a
 start offset, and a node that is respawned. Graphs are small (2 x 30 positions, 16 px) so each
-case is seconds of work; the per-node cases are marked slow but one (the synchronizer killed).
+case is seconds of work; the per-node cases are marked slow (tests/test_graph.py's crashing node is the
+quick check).
 """
 import os
 import re
@@ -57,10 +58,12 @@ NODES = ["radar", "vio", "synchronizer", "template", "solver", "visualizer"]
 
 
 @pytest.mark.timeout(240)
-# make test-fast keeps one case, the synchronizer killed (9-12 s idle each, benchmarks/results/test_fast.json);
-# make test runs every node and both signals.
-@pytest.mark.parametrize("sig", [pytest.param(signal.SIGTERM, marks=pytest.mark.slow), signal.SIGKILL], ids=["TERM", "KILL"])
-@pytest.mark.parametrize("node", [pytest.param(n, marks=[] if n == "synchronizer" else pytest.mark.slow) for n in NODES])
+# 9-12 s idle each (benchmarks/results/test_fast.json): all slow, make test runs every node and both
+# signals. make test-fast's quick cover: tests/test_graph.py::test_a_crashing_node_stops_the_graph_with_a_clear_message
+# (a node that exits stops the graph with one line naming it, exit status its own, no process left).
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL], ids=["TERM", "KILL"])
+@pytest.mark.parametrize("node", NODES)
 def test_a_node_stopped_from_outside_stops_the_graph_with_one_line(tmp_path, node, sig):
     g = sim_graph(tmp_path)
     try:
