@@ -108,8 +108,8 @@ class EvalScenario(Scenario):
         if self.clutter and self.clutter_near_m is not None:
             d = max(self.distance_m, self.reference_distance_m or 0.0)
             scene.clutter = Clutter(
-                (-0.4, -0.3, min(self.distance_m, self.reference_distance_m or 9.9) - self.clutter_near_m),
-                (0.4, 0.3, d + 0.6),
+                np.array([-0.4, -0.3, min(self.distance_m, self.reference_distance_m or 9.9) - self.clutter_near_m]),
+                np.array([0.4, 0.3, d + 0.6]),
                 n_points=2000,
                 amplitude=0.1,
                 n_strong=40,
