@@ -37,7 +37,6 @@ NOT_YET_RESHAPED = {
     "twinfocus/trajectory.py:handheld_zigzag",
     "twinfocus/sensors/emulators/fake_dca1000.py:__init__",
     "twinfocus/evaluation/experiments.py:_full_experiments",
-    "twinfocus/evaluation/runner.py:run_experiment",
 }
 
 
