@@ -36,7 +36,6 @@ IN_PROGRESS_FOLDERS = ("twinfocus/digital_twin/",)
 NOT_YET_RESHAPED = {
     "twinfocus/trajectory.py:handheld_zigzag",
     "twinfocus/sensors/emulators/fake_dca1000.py:__init__",
-    "twinfocus/evaluation/experiments.py:_full_experiments",
 }
 
 
