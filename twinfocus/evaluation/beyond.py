@@ -149,22 +149,13 @@ def _rows(records: list[dict], condition: str) -> dict:
     return out
 
 
+# The report's rows: each twin's methods after that twin's paper row, then the ceilings.
 ROW_ORDER = (
     "none",
     "physical-paper",
-    "physical",
-    "physical-steep",
-    "physical-registered",
-    "physical-correlation",
-    "physical-correlation-refined",
+    *(m for m in METHODS if m.startswith("physical")),
     "digital-paper",
-    "digital",
-    "digital-registered",
-    "digital-steep",
-    "digital-projection-only",
-    "digital-projection",
-    "digital-restarts",
-    "digital-coarse",
+    *(m for m in METHODS if m.startswith("digital")),
     "digital-smooth",
     "ceiling-reference",
     "ceiling-target",
