@@ -53,9 +53,11 @@ test-fast: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"
 
 # Lint, types and the import layers (pyproject.toml's [tool.ruff], [tool.mypy], [tool.importlinter]).
+# ruff covers the tests and the benchmarks as well as the library; mypy covers twinfocus, msgs and nodes.
+LINT_DIRS = twinfocus msgs nodes tests benchmarks
 lint: $(STAMP)
-	$(VENV)/bin/ruff check twinfocus msgs nodes
-	$(VENV)/bin/ruff format --check twinfocus msgs nodes
+	$(VENV)/bin/ruff check $(LINT_DIRS)
+	$(VENV)/bin/ruff format --check $(LINT_DIRS)
 	$(VENV)/bin/mypy
 	$(VENV)/bin/lint-imports
 

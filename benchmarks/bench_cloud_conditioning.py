@@ -122,13 +122,17 @@ def _figure(path: Path) -> None:
         a = ax[i, 0]
         sel = np.abs(cloud[:, 2] - np.median(cloud[:, 2])) < 0.03
         s = a.scatter(cloud[sel, 0] * 100, cloud[sel, 1] * 100, c=(cloud[sel, 2] - 0.6) * 1e3, s=1, cmap="viridis")
-        a.set_xlim(ext[0], ext[1]); a.set_ylim(ext[2], ext[3]); a.set_aspect("equal")
+        a.set_xlim(ext[0], ext[1])
+        a.set_ylim(ext[2], ext[3])
+        a.set_aspect("equal")
         fig.colorbar(s, ax=a, label="z - 0.6 m (mm)")
         a.set_title(f"{shape}: camera cloud (1 mm z noise,\n25 % holes, 3 % outliers, 2 mm offset)", fontsize=9)
         a = ax[i, 1]
         s = a.scatter(ref.cloud.points_m[:, 0] * 100, ref.cloud.points_m[:, 1] * 100,
                       c=(ref.cloud.points_m[:, 2] - 0.6) * 1e3, s=1, cmap="viridis")
-        a.set_xlim(ext[0], ext[1]); a.set_ylim(ext[2], ext[3]); a.set_aspect("equal")
+        a.set_xlim(ext[0], ext[1])
+        a.set_ylim(ext[2], ext[3])
+        a.set_aspect("equal")
         fig.colorbar(s, ax=a, label="z - 0.6 m (mm)")
         a.set_title(f"conditioned: '{ref.surface}' model", fontsize=9)
         truth = support_on_grid(exact, grid)
@@ -140,7 +144,8 @@ def _figure(path: Path) -> None:
         ax[i, 3].imshow(ref.template, extent=ext, cmap="gray")
         ax[i, 3].set_title("template on the reference grid", fontsize=9)
         for a in ax[i]:
-            a.set_xlabel("x (cm)"); a.set_ylabel("y (cm)")
+            a.set_xlabel("x (cm)")
+            a.set_ylabel("y (cm)")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=80)

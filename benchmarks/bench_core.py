@@ -9,6 +9,7 @@ Writes ``core.json`` and ``core.md`` to the output folder (docs/performance.md r
 ``--sections`` re-runs only those sections and keeps the others' figures from the existing
 ``core.json`` (a note in core.md says which were re-run when).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,6 +21,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -60,14 +62,23 @@ def bench_backprojection(scan, grid, quick) -> list[dict]:
         sub = slice(0, None, 10) if (backend, device) == ("torch", "cpu") else slice(None)
         data, positions = scan.data[sub], scan.positions[sub]
         pairs = data.shape[0] * data.shape[1] * grid.height * grid.width
-        t_img, _ = _best(lambda: backproject(data, positions, scan.chirp, grid, **kw), 1 if quick else 2)
-        t_bas, _ = _best(lambda: subimage_basis(data, positions, scan.chirp, grid, **kw), 1 if quick else 2)
-        rows.append({
-            "backend": backend, "precision": precision, "device": device or "cpu", "pairs": pairs,
-            "image_s": t_img, "image_pairs_per_s": pairs / t_img,
-            "basis_s": t_bas, "basis_pairs_per_s": pairs / t_bas,
-        })
-        print(f"  BP {backend}/{precision}/{device or 'cpu'}: image {pairs / t_img:.3g} pairs/s, basis {pairs / t_bas:.3g} pairs/s")
+        t_img, _ = _best(partial(backproject, data, positions, scan.chirp, grid, **kw), 1 if quick else 2)
+        t_bas, _ = _best(partial(subimage_basis, data, positions, scan.chirp, grid, **kw), 1 if quick else 2)
+        rows.append(
+            {
+                "backend": backend,
+                "precision": precision,
+                "device": device or "cpu",
+                "pairs": pairs,
+                "image_s": t_img,
+                "image_pairs_per_s": pairs / t_img,
+                "basis_s": t_bas,
+                "basis_pairs_per_s": pairs / t_bas,
+            }
+        )
+        print(
+            f"  BP {backend}/{precision}/{device or 'cpu'}: image {pairs / t_img:.3g} pairs/s, basis {pairs / t_bas:.3g} pairs/s"
+        )
     return rows
 
 
@@ -79,9 +90,11 @@ def bench_oversample(scan) -> list[dict]:
     grid = ImageGrid(-0.15, 0.0, -0.11, 0.12, 0.6, 100, 100)
     rows = []
     for ov in (2, 4, 8, 16, 32):
-        img = backproject_points(scan.data[sub], scan.positions[sub], scan.chirp, pts, oversample=ov, precision="float64")
+        img = backproject_points(
+            scan.data[sub], scan.positions[sub], scan.chirp, pts, oversample=ov, precision="float64"
+        )
         err = float(np.abs(img - ref).max() / np.abs(ref).max())
-        t, _ = _best(lambda: backproject(scan.data, scan.positions, scan.chirp, grid, oversample=ov), 1)
+        t, _ = _best(partial(backproject, scan.data, scan.positions, scan.chirp, grid, oversample=ov), 1)
         rows.append({"oversample": ov, "max_error_rel_peak": err, "image_s": t})
         print(f"  oversample {ov}: error {err:.2e}, {t:.2f} s")
     return rows
@@ -98,7 +111,8 @@ def _focus(scan, template_scan, sc, size, cfg, bp=None):
     res = twin_autofocus(rb, tpl, cfg)
     truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
     return {
-        "basis_s": t_basis, "autofocus_s": res.time_s,
+        "basis_s": t_basis,
+        "autofocus_s": res.time_s,
         "ssim_uncorrected": image_ssim(tb.sum(0), truth),
         "ssim_corrected": image_ssim(form_image(tb, res.phase_rad), truth),
     }
@@ -112,25 +126,35 @@ def bench_estimators(scan, template_scan, sc, quick) -> list[dict]:
     from twinfocus.evaluation.cases import transfer_phase
 
     rows = []
-    for size in ((100,) if quick else (50, 100, 200)):
+    for size in (100,) if quick else (50, 100, 200):
         rg, tg = scenario_grids(sc, size)
         rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
         tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
         tpl = template_from_scan(template_scan, rg, keep_phase=True)
         truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
         # the outline estimator's outline: a digital twin from the reference's own points
-        support = digital_twin_reference(sc.scene().object("reference").surface_points(1e-3), scan.positions, scan.chirp,
-                                         rg).support
+        support = digital_twin_reference(
+            sc.scene().object("reference").surface_points(1e-3), scan.positions, scan.chirp, rg
+        ).support
         aperture = scan.positions.mean(axis=1)[:, :2]
         for name in ESTIMATORS:
             has_phase = name in PHASE_ESTIMATORS
             outline = name == "outline"
             cfg = AutofocusConfig(basis_dtype="float16", **estimator_settings(name, has_phase, has_support=outline))
-            t, r = _best(lambda: twin_autofocus(rb, tpl if has_phase else np.abs(tpl), cfg,
-                                                support=support if outline else None, aperture_m=aperture), 1)
+            template = tpl if has_phase else np.abs(tpl)
+            t, r = _best(
+                partial(twin_autofocus, rb, template, cfg, support=support if outline else None, aperture_m=aperture), 1
+            )
             ssim = image_ssim(form_image(tb, transfer_phase(r.phase_rad, scan.positions)), truth)
-            rows.append({"size": size, "estimator": name, "template": "complex" if has_phase else "amplitude",
-                         "seconds": t, "ssim": ssim})
+            rows.append(
+                {
+                    "size": size,
+                    "estimator": name,
+                    "template": "complex" if has_phase else "amplitude",
+                    "seconds": t,
+                    "ssim": ssim,
+                }
+            )
             print(f"  {size} {name}: {t:.2f} s, SSIM {ssim:.3f}")
         del rb, tb
     return rows
@@ -147,9 +171,9 @@ def bench_projection_iterations(scan, template_scan, sc, quick) -> list[dict]:
     amplitude = template_from_scan(template_scan, rg)
     truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
     rows = []
-    for steps in ((10, 30) if quick else (3, 10, 30, 100)):
+    for steps in (10, 30) if quick else (3, 10, 30, 100):
         cfg = AutofocusConfig(**estimator_settings("projection", False), projection_iterations=steps)
-        t, r = _best(lambda: twin_autofocus(rb, amplitude, cfg), 1 if quick else 2)
+        t, r = _best(partial(twin_autofocus, rb, amplitude, cfg), 1 if quick else 2)
         ssim = image_ssim(form_image(tb, transfer_phase(r.phase_rad, scan.positions)), truth)
         rows.append({"projection_iterations": steps, "seconds": t, "ssim": ssim})
         print(f"  {steps} steps: {t:.2f} s, SSIM {ssim:.3f}")
@@ -171,9 +195,13 @@ def bench_scaling(scan, template_scan, sc, quick) -> dict:
 
     def measure(data, positions, grid, tpl):
         t_basis, rb = _best(lambda: subimage_basis(data, positions, scan.chirp, grid), reps)
-        t_cf, _ = _best(lambda: twin_autofocus(rb, tpl, AutofocusConfig(**estimator_settings("correlation", True))), reps)
+        t_cf, _ = _best(
+            lambda: twin_autofocus(rb, tpl, AutofocusConfig(**estimator_settings("correlation", True))), reps
+        )
         # 25 iterations: the cost per iteration is constant (slope against iterations below)
-        t_opt, _ = _best(lambda: twin_autofocus(rb, np.abs(tpl), AutofocusConfig(iterations=25, basis_dtype="float16")), 1)
+        t_opt, _ = _best(
+            lambda: twin_autofocus(rb, np.abs(tpl), AutofocusConfig(iterations=25, basis_dtype="float16")), 1
+        )
         return {"basis_s": t_basis, "correlation_s": t_cf, "optimiser_per_iteration_s": t_opt / 25}
 
     out: dict = {"positions": [], "channels": [], "pixels": [], "iterations": []}
@@ -187,12 +215,17 @@ def bench_scaling(scan, template_scan, sc, quick) -> dict:
         print(f"  K={k}: {out['channels'][-1]}")
     for size in (50, 100, 200):
         rg, _ = scenario_grids(sc, size)
-        out["pixels"].append({"n": size * size, **measure(scan.data, scan.positions, rg,
-                                                          template_from_scan(template_scan, rg, keep_phase=True))})
+        out["pixels"].append(
+            {
+                "n": size * size,
+                **measure(scan.data, scan.positions, rg, template_from_scan(template_scan, rg, keep_phase=True)),
+            }
+        )
         print(f"  P={size}^2: {out['pixels'][-1]}")
     rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg100)
     for it in (12, 25, 50, 100):
-        t, _ = _best(lambda: twin_autofocus(rb, np.abs(tpl_full), AutofocusConfig(iterations=it, basis_dtype="float16")), 1)
+        cfg = AutofocusConfig(iterations=it, basis_dtype="float16")
+        t, _ = _best(partial(twin_autofocus, rb, np.abs(tpl_full), cfg), 1)
         out["iterations"].append({"n": it, "optimiser_s": t})
         print(f"  iterations={it}: {t:.2f} s")
     slopes = {}
@@ -200,9 +233,16 @@ def bench_scaling(scan, template_scan, sc, quick) -> dict:
         rows = out[axis]
         for key in ("basis_s", "correlation_s", "optimiser_per_iteration_s"):
             slopes[f"{key[:-2]} vs {axis}"] = _slope([r["n"] for r in rows], [r[key] for r in rows])
-    slopes["optimiser vs iterations"] = _slope([r["n"] for r in out["iterations"]], [r["optimiser_s"] for r in out["iterations"]])
+    slopes["optimiser vs iterations"] = _slope(
+        [r["n"] for r in out["iterations"]], [r["optimiser_s"] for r in out["iterations"]]
+    )
     out["slopes"] = slopes
     return out
+
+
+def _bases(scan, grids, bp: dict) -> tuple:
+    """The sub-image basis of ``scan`` on each grid, with the back-projection settings ``bp``."""
+    return tuple(subimage_basis(scan.data, scan.positions, scan.chirp, g, **bp) for g in grids)
 
 
 def bench_estimator_precision(scan, template_scan, sc, quick) -> list[dict]:
@@ -216,16 +256,24 @@ def bench_estimator_precision(scan, template_scan, sc, quick) -> list[dict]:
         truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
         for precision in ("float32", "float64"):
             bp = {"precision": precision}
-            t_basis, (rb, tb) = _best(lambda: (subimage_basis(scan.data, scan.positions, scan.chirp, rg, **bp),
-                                               subimage_basis(scan.data, scan.positions, scan.chirp, tg, **bp)), 1)
+            t_basis, (rb, tb) = _best(partial(_bases, scan, (rg, tg), bp), 1)
             tpl = template_from_scan(template_scan, rg, keep_phase=True, **bp)
             for name in ("correlation", "projection", "registered", "paper"):
                 has_phase = name in PHASE_ESTIMATORS
                 cfg = AutofocusConfig(precision=precision, **estimator_settings(name, has_phase))
-                t, r = _best(lambda: twin_autofocus(rb, tpl if has_phase else np.abs(tpl), cfg), 1)
+                template = tpl if has_phase else np.abs(tpl)
+                t, r = _best(partial(twin_autofocus, rb, template, cfg), 1)
                 ssim = image_ssim(form_image(tb, transfer_phase(r.phase_rad, scan.positions)), truth)
-                rows.append({"size": size, "precision": precision, "estimator": name, "bases_s": t_basis,
-                             "estimate_s": t, "ssim": ssim})
+                rows.append(
+                    {
+                        "size": size,
+                        "precision": precision,
+                        "estimator": name,
+                        "bases_s": t_basis,
+                        "estimate_s": t,
+                        "ssim": ssim,
+                    }
+                )
                 print(f"  {size} {precision} {name}: bases {t_basis:.2f} s, estimate {t:.2f} s, SSIM {ssim:.3f}")
             del rb, tb
     return rows
@@ -243,8 +291,18 @@ def _peak_mb(stderr: str) -> float:
 def _run_focus(argv: list[str], env: dict) -> dict:
     """One ``twinfocus focus`` in a fresh process: wall seconds and its peak resident memory."""
     t = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-c", f"import sys; from twinfocus.cli import main; rc = main(); {_PEAK}; sys.exit(rc)",
-                           *argv], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            f"import sys; from twinfocus.cli import main; rc = main(); {_PEAK}; sys.exit(rc)",
+            *argv,
+        ],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     wall = time.perf_counter() - t
     if proc.returncode != 0:
         raise RuntimeError(f"focus failed: {proc.stderr}")
@@ -262,28 +320,61 @@ def bench_end_to_end(scan, template_scan, sc, quick) -> dict:
         d = Path(d)
         scan.save(d / "scan.npz")
         template_scan.save(d / "tpl.npz")
-        env = {**os.environ, "TWINFOCUS_CACHE_DIR": str(d / "cache"),
-               "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")])}
+        env = {
+            **os.environ,
+            "TWINFOCUS_CACHE_DIR": str(d / "cache"),
+            "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]),
+        }
         imports = []
         for _ in range(3):
             t = time.perf_counter()
-            subprocess.run([sys.executable, "-c", "import twinfocus.cli.focus, twinfocus.pipeline"], env=env, check=True)
+            subprocess.run(
+                [sys.executable, "-c", "import twinfocus.cli.focus, twinfocus.pipeline"], env=env, check=True
+            )
             imports.append(time.perf_counter() - t)
-        heavy = subprocess.run([sys.executable, "-c", "import sys, twinfocus.cli.focus, twinfocus.pipeline; "
-                                "print(','.join(m for m in ('torch', 'matplotlib', 'open3d', 'scipy') if m in sys.modules))"],
-                               env=env, check=True, capture_output=True, text=True).stdout.strip()
-        args = ["focus", str(d / "scan.npz"), "--template-scan", str(d / "tpl.npz"),
-                "--reference-roi", *map(str, sc.reference_roi()), "--target-roi", *map(str, sc.target_roi()),
-                "--size", "100", "--quiet"]
+        heavy = subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                "import sys, twinfocus.cli.focus, twinfocus.pipeline; "
+                "print(','.join(m for m in ('torch', 'matplotlib', 'open3d', 'scipy') if m in sys.modules))",
+            ],
+            env=env,
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout.strip()
+        args = [
+            "focus",
+            str(d / "scan.npz"),
+            "--template-scan",
+            str(d / "tpl.npz"),
+            "--reference-roi",
+            *map(str, sc.reference_roi()),
+            "--target-roi",
+            *map(str, sc.target_roi()),
+            "--size",
+            "100",
+            "--quiet",
+        ]
         runs = {}
-        for name, extra in (("first (template computed)", []), ("second (template cached)", []),
-                            ("second, all pictures", ["--pictures", "all"])):
+        for name, extra in (
+            ("first (template computed)", []),
+            ("second (template cached)", []),
+            ("second, all pictures", ["--pictures", "all"]),
+        ):
             r = _run_focus([*args, "--out", str(d / "out"), *extra], env)
             m = json.loads((d / "out" / "metrics.json").read_text())
-            r.update(stages_s=m["timings_s"], stages_sum_s=sum(m["timings_s"].values()), template_cache=m.get("template_cache"))
+            r.update(
+                stages_s=m["timings_s"],
+                stages_sum_s=sum(m["timings_s"].values()),
+                template_cache=m.get("template_cache"),
+            )
             r["wall_over_stages"] = r["wall_s"] / r["stages_sum_s"]
             runs[name] = r
-            print(f"  {name}: wall {r['wall_s']:.2f} s, stages {r['stages_sum_s']:.2f} s, peak {r['peak_rss_mb']:.0f} MB")
+            print(
+                f"  {name}: wall {r['wall_s']:.2f} s, stages {r['stages_sum_s']:.2f} s, peak {r['peak_rss_mb']:.0f} MB"
+            )
         solver_code = (
             "import numpy as np; from twinfocus.scan import Scan; from twinfocus.scenario import Scenario, scenario_grids; "
             "from twinfocus.backprojection import subimage_basis; from twinfocus.pipeline import focus_bases; "
@@ -295,16 +386,36 @@ def bench_end_to_end(scan, template_scan, sc, quick) -> dict:
             "tgt.append(subimage_basis(s.data[i:i+20], s.positions[i:i+20], s.chirp, tg))) for i in range(0, s.n_positions, 20)]; "
             "focus_bases(np.concatenate(ref), np.concatenate(tgt), s.positions, s.chirp, rg, tg, template=tpl, "
             "config=AutofocusConfig(**estimator_settings('correlation', True))); "
-            f"import sys; {_PEAK}")
-        solver_mb = _peak_mb(subprocess.run([sys.executable, "-c", solver_code], env=env, check=True, capture_output=True,
-                                            text=True).stderr)
+            f"import sys; {_PEAK}"
+        )
+        solver_mb = _peak_mb(
+            subprocess.run(
+                [sys.executable, "-c", solver_code], env=env, check=True, capture_output=True, text=True
+            ).stderr
+        )
         print(f"  solver-node work: peak {solver_mb:.0f} MB")
-    return {"import_s": min(imports), "heavy_modules_imported": heavy.split(",") if heavy else [], "runs": runs,
-            "solver_peak_rss_mb": solver_mb, "scan_mb": scan.data.nbytes / 2**20}
+    return {
+        "import_s": min(imports),
+        "heavy_modules_imported": heavy.split(",") if heavy else [],
+        "runs": runs,
+        "solver_peak_rss_mb": solver_mb,
+        "scan_mb": scan.data.nbytes / 2**20,
+    }
 
 
-SECTIONS = ("backprojection", "oversample", "autofocus_paper", "trade_estimator", "trade_projection_iterations",
-            "trade_image_size", "trade_iterations", "trade_precision", "trade_estimator_precision", "scaling", "end_to_end")
+SECTIONS = (
+    "backprojection",
+    "oversample",
+    "autofocus_paper",
+    "trade_estimator",
+    "trade_projection_iterations",
+    "trade_image_size",
+    "trade_iterations",
+    "trade_precision",
+    "trade_estimator_precision",
+    "scaling",
+    "end_to_end",
+)
 
 
 def main(out_dir, quick: bool = False, sections: tuple[str, ...] | None = None) -> dict:
@@ -312,19 +423,31 @@ def main(out_dir, quick: bool = False, sections: tuple[str, ...] | None = None) 
     out_dir.mkdir(parents=True, exist_ok=True)
     want = set(sections or SECTIONS)
     if want - set(SECTIONS):
-        raise SystemExit(f"unknown section(s) {', '.join(sorted(want - set(SECTIONS)))}; choose from {', '.join(SECTIONS)}")
+        raise SystemExit(
+            f"unknown section(s) {', '.join(sorted(want - set(SECTIONS)))}; choose from {', '.join(SECTIONS)}"
+        )
     res: dict = {}
     if sections and (out_dir / "core.json").is_file():
         res = json.loads((out_dir / "core.json").read_text())
         res["notes"] = [n for n in res.get("notes", []) if not any(f"`{x}`" in n for x in want)]
-        cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), platform.machine()) \
-            if Path("/proc/cpuinfo").exists() else platform.machine()
-        res["notes"].append(f"sections {', '.join(f'`{x}`' for x in sorted(want))} re-run alone on "
-                            f"{datetime.date.today().isoformat()} ({os.cpu_count()}-core {cpu}, shared with other work)")
+        cpu = (
+            next(
+                (ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")),
+                platform.machine(),
+            )
+            if Path("/proc/cpuinfo").exists()
+            else platform.machine()
+        )
+        res["notes"].append(
+            f"sections {', '.join(f'`{x}`' for x in sorted(want))} re-run alone on "
+            f"{datetime.date.today().isoformat()} ({os.cpu_count()}-core {cpu}, shared with other work)"
+        )
     sc = Scenario()
     t0 = time.perf_counter()
     scan, template_scan = simulate_scenario(sc)
-    res.update({"scenario": sc.to_dict(), "simulate_s": time.perf_counter() - t0, "torch_threads": torch.get_num_threads()})
+    res.update(
+        {"scenario": sc.to_dict(), "simulate_s": time.perf_counter() - t0, "torch_threads": torch.get_num_threads()}
+    )
     ref_grid, _ = scenario_grids(sc, 100)
 
     if "backprojection" in want:
@@ -340,7 +463,7 @@ def main(out_dir, quick: bool = False, sections: tuple[str, ...] | None = None) 
         tpl = template_from_scan(template_scan, ref_grid)
         res["autofocus_paper"] = []
         for bd in ("float32", "float16"):
-            t, r = _best(lambda: twin_autofocus(rb, tpl, AutofocusConfig(basis_dtype=bd)), 1 if quick else 2)
+            t, r = _best(partial(twin_autofocus, rb, tpl, AutofocusConfig(basis_dtype=bd)), 1 if quick else 2)
             res["autofocus_paper"].append({"basis_dtype": bd, "seconds": t, "final_loss": float(r.loss_history[-1])})
             print(f"  basis {bd}: {t:.2f} s")
         del rb
@@ -358,7 +481,7 @@ def main(out_dir, quick: bool = False, sections: tuple[str, ...] | None = None) 
     if "trade_image_size" in want:
         print("trade: image size")
         res["trade_image_size"] = []
-        for size in ((50, 100) if quick else (50, 75, 100, 200)):
+        for size in (50, 100) if quick else (50, 75, 100, 200):
             row = {"size": size, **_focus(scan, template_scan, sc, size, AutofocusConfig(basis_dtype="float16"))}
             res["trade_image_size"].append(row)
             print(f"  {size}: {row}")
@@ -366,15 +489,23 @@ def main(out_dir, quick: bool = False, sections: tuple[str, ...] | None = None) 
         print("trade: iterations")
         res["trade_iterations"] = []
         for it in (25, 50, 100, 200, 300, 500):
-            row = {"iterations": it, **_focus(scan, template_scan, sc, 100, AutofocusConfig(iterations=it, basis_dtype="float16"))}
+            row = {
+                "iterations": it,
+                **_focus(scan, template_scan, sc, 100, AutofocusConfig(iterations=it, basis_dtype="float16")),
+            }
             res["trade_iterations"].append(row)
             print(f"  {it}: {row}")
     if "trade_precision" in want and not quick:
         print("trade: precision")
         res["trade_precision"] = []
         for prec, bd in (("float32", "float16"), ("float32", "float32"), ("float64", "float32")):
-            row = {"precision": prec, "basis_dtype": bd,
-                   **_focus(scan, template_scan, sc, 100, AutofocusConfig(precision=prec, basis_dtype=bd), {"precision": prec})}
+            row = {
+                "precision": prec,
+                "basis_dtype": bd,
+                **_focus(
+                    scan, template_scan, sc, 100, AutofocusConfig(precision=prec, basis_dtype=bd), {"precision": prec}
+                ),
+            }
             res["trade_precision"].append(row)
             print(f"  {prec}/{bd}: {row}")
     if "scaling" in want:
@@ -391,65 +522,147 @@ def main(out_dir, quick: bool = False, sections: tuple[str, ...] | None = None) 
 
 
 def _markdown(res: dict) -> str:
-    lines = ["# Core benchmark", "", f"torch threads: {res['torch_threads']}; simulation of the scene: {res['simulate_s']:.1f} s", ""]
+    lines = [
+        "# Core benchmark",
+        "",
+        f"torch threads: {res['torch_threads']}; simulation of the scene: {res['simulate_s']:.1f} s",
+        "",
+    ]
     # a section re-run alone on another day or machine says so here
     lines += [f"Note: {n}" for n in res.get("notes", [])] + ([""] if res.get("notes") else [])
     if res.get("load_average"):
-        lines += ["Load average (1 min, 2 cores) at the end of each section: "
-                  + ", ".join(f"{k} {v}" for k, v in res["load_average"].items()), ""]
+        lines += [
+            "Load average (1 min, 2 cores) at the end of each section: "
+            + ", ".join(f"{k} {v}" for k, v in res["load_average"].items()),
+            "",
+        ]
     if "backprojection" in res:  # a section run alone into a new folder has only itself
-        lines += ["## Back-projection, 100 x 100 from 67,080 elements", "", "| backend | precision | device | image s | image pairs/s | basis s | basis pairs/s |", "|---|---|---|---|---|---|---|"]
+        lines += [
+            "## Back-projection, 100 x 100 from 67,080 elements",
+            "",
+            "| backend | precision | device | image s | image pairs/s | basis s | basis pairs/s |",
+            "|---|---|---|---|---|---|---|",
+        ]
     for r in res.get("backprojection", []):
-        lines.append(f"| {r['backend']} | {r['precision']} | {r['device']} | {r['image_s']:.2f} | {r['image_pairs_per_s']:.3g} | {r['basis_s']:.2f} | {r['basis_pairs_per_s']:.3g} |")
+        lines.append(
+            f"| {r['backend']} | {r['precision']} | {r['device']} | {r['image_s']:.2f} | "
+            f"{r['image_pairs_per_s']:.3g} | {r['basis_s']:.2f} | {r['basis_pairs_per_s']:.3g} |"
+        )
     if "oversample" in res:
-        lines += ["", "## Range-profile oversampling (interpolation error vs brute force)", "", "| oversample | max error / peak | image s |", "|---|---|---|"]
-        lines += [f"| {r['oversample']} | {r['max_error_rel_peak']:.2e} | {r['image_s']:.2f} |" for r in res["oversample"]]
+        lines += [
+            "",
+            "## Range-profile oversampling (interpolation error vs brute force)",
+            "",
+            "| oversample | max error / peak | image s |",
+            "|---|---|---|",
+        ]
+        lines += [
+            f"| {r['oversample']} | {r['max_error_rel_peak']:.2e} | {r['image_s']:.2f} |" for r in res["oversample"]
+        ]
     if "autofocus_paper" in res:
-        lines += ["", "## Autofocus, paper configuration (780 x 100 x 100, 300 iterations)", "", "| basis storage | seconds |", "|---|---|"]
+        lines += [
+            "",
+            "## Autofocus, paper configuration (780 x 100 x 100, 300 iterations)",
+            "",
+            "| basis storage | seconds |",
+            "|---|---|",
+        ]
         lines += [f"| {r['basis_dtype']} | {r['seconds']:.2f} |" for r in res["autofocus_paper"]]
     if "trade_estimator" in res:
-        lines += ["", "## Trade: estimator (float16 basis; seconds = registration + estimate)", "",
-                  "| size | estimator | template | seconds | target SSIM |", "|---|---|---|---|---|"]
-        lines += [f"| {r['size']} | {r['estimator']} | {r.get('template', 'complex')} | {r['seconds']:.2f} | {r['ssim']:.3f} |"
-                  for r in res["trade_estimator"]]
+        lines += [
+            "",
+            "## Trade: estimator (float16 basis; seconds = registration + estimate)",
+            "",
+            "| size | estimator | template | seconds | target SSIM |",
+            "|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {r['size']} | {r['estimator']} | {r.get('template', 'complex')} | {r['seconds']:.2f} | {r['ssim']:.3f} |"
+            for r in res["trade_estimator"]
+        ]
     if "trade_projection_iterations" in res:
-        lines += ["", "## Trade: projection steps (`--estimator projection --projection-iterations N`, 100 x 100)", "",
-                  "| steps | seconds | target SSIM |", "|---|---|---|"]
-        lines += [f"| {r['projection_iterations']} | {r['seconds']:.2f} | {r['ssim']:.3f} |" for r in res["trade_projection_iterations"]]
+        lines += [
+            "",
+            "## Trade: projection steps (`--estimator projection --projection-iterations N`, 100 x 100)",
+            "",
+            "| steps | seconds | target SSIM |",
+            "|---|---|---|",
+        ]
+        lines += [
+            f"| {r['projection_iterations']} | {r['seconds']:.2f} | {r['ssim']:.3f} |"
+            for r in res["trade_projection_iterations"]
+        ]
     if "trade_estimator_precision" in res:
-        lines += ["", "## Trade: estimator x precision x size (seconds: both bases; the estimate; target SSIM)", "",
-                  "| size | precision | estimator | bases s | estimate s | target SSIM |", "|---|---|---|---|---|---|"]
-        lines += [f"| {r['size']} | {r['precision']} | {r['estimator']} | {r['bases_s']:.2f} | {r['estimate_s']:.2f} | {r['ssim']:.3f} |"
-                  for r in res["trade_estimator_precision"]]
+        lines += [
+            "",
+            "## Trade: estimator x precision x size (seconds: both bases; the estimate; target SSIM)",
+            "",
+            "| size | precision | estimator | bases s | estimate s | target SSIM |",
+            "|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {r['size']} | {r['precision']} | {r['estimator']} | {r['bases_s']:.2f} | {r['estimate_s']:.2f} | {r['ssim']:.3f} |"
+            for r in res["trade_estimator_precision"]
+        ]
     if "scaling" in res:
         sc_ = res["scaling"]
-        lines += ["", "## Scaling (seconds; default scene subsampled)", "",
-                  "| axis | n | basis s | correlation s | optimiser s per iteration |", "|---|---|---|---|---|"]
+        lines += [
+            "",
+            "## Scaling (seconds; default scene subsampled)",
+            "",
+            "| axis | n | basis s | correlation s | optimiser s per iteration |",
+            "|---|---|---|---|---|",
+        ]
         for axis in ("positions", "channels", "pixels"):
-            lines += [f"| {axis} | {r['n']} | {r['basis_s']:.2f} | {r['correlation_s']:.3f} | {r['optimiser_per_iteration_s']:.3f} |"
-                      for r in sc_[axis]]
+            lines += [
+                f"| {axis} | {r['n']} | {r['basis_s']:.2f} | {r['correlation_s']:.3f} | {r['optimiser_per_iteration_s']:.3f} |"
+                for r in sc_[axis]
+            ]
         lines += [f"| iterations | {r['n']} | | | {r['optimiser_s']:.2f} |" for r in sc_["iterations"]]
         lines += ["", "| log-log slope | exponent |", "|---|---|"]
         lines += [f"| {k} | {v:.2f} |" for k, v in sc_["slopes"].items()]
     if "end_to_end" in res:
         e = res["end_to_end"]
-        lines += ["", "## `twinfocus focus` end to end (780 x 86, 100 x 100, --template-scan, fresh processes)", "",
-                  f"Imports of `twinfocus.cli.focus` + `twinfocus.pipeline`: {e['import_s']:.2f} s (heavy modules loaded: "
-                  f"{', '.join(e['heavy_modules_imported']) or 'none'}).", "",
-                  "| run | wall s | sum of stages s | wall / stages | template | peak memory MB | stages s |", "|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "## `twinfocus focus` end to end (780 x 86, 100 x 100, --template-scan, fresh processes)",
+            "",
+            f"Imports of `twinfocus.cli.focus` + `twinfocus.pipeline`: {e['import_s']:.2f} s (heavy modules loaded: "
+            f"{', '.join(e['heavy_modules_imported']) or 'none'}).",
+            "",
+            "| run | wall s | sum of stages s | wall / stages | template | peak memory MB | stages s |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for name, r in e["runs"].items():
             stages = ", ".join(f"{k} {v:.2f}" for k, v in r["stages_s"].items())
-            lines.append(f"| {name} | {r['wall_s']:.2f} | {r['stages_sum_s']:.2f} | {r['wall_over_stages']:.2f} | "
-                         f"{r['template_cache']} | {r['peak_rss_mb']:.0f} | {stages} |")
-        lines += ["", f"Solver node's numerical work (bases in batches of 20 positions, then `focus_bases`): peak "
-                      f"{e['solver_peak_rss_mb']:.0f} MB (scan data {e['scan_mb']:.0f} MB)."]
-    for key, label in (("trade_image_size", "size"), ("trade_iterations", "iterations"), ("trade_precision", "precision")):
+            lines.append(
+                f"| {name} | {r['wall_s']:.2f} | {r['stages_sum_s']:.2f} | {r['wall_over_stages']:.2f} | "
+                f"{r['template_cache']} | {r['peak_rss_mb']:.0f} | {stages} |"
+            )
+        lines += [
+            "",
+            f"Solver node's numerical work (bases in batches of 20 positions, then `focus_bases`): peak "
+            f"{e['solver_peak_rss_mb']:.0f} MB (scan data {e['scan_mb']:.0f} MB).",
+        ]
+    for key, label in (
+        ("trade_image_size", "size"),
+        ("trade_iterations", "iterations"),
+        ("trade_precision", "precision"),
+    ):
         if key not in res or not res[key]:
             continue
-        lines += ["", f"## Trade: {label}", "", f"| {label} | basis s | autofocus s | target SSIM uncorrected | target SSIM corrected |", "|---|---|---|---|---|"]
+        lines += [
+            "",
+            f"## Trade: {label}",
+            "",
+            f"| {label} | basis s | autofocus s | target SSIM uncorrected | target SSIM corrected |",
+            "|---|---|---|---|---|",
+        ]
         for r in res[key]:
             name = r[label] if label != "precision" else f"{r['precision']} / basis {r['basis_dtype']}"
-            lines.append(f"| {name} | {r['basis_s']:.2f} | {r['autofocus_s']:.2f} | {r['ssim_uncorrected']:.3f} | {r['ssim_corrected']:.3f} |")
+            lines.append(
+                f"| {name} | {r['basis_s']:.2f} | {r['autofocus_s']:.2f} | {r['ssim_uncorrected']:.3f} | {r['ssim_corrected']:.3f} |"
+            )
     return "\n".join(lines) + "\n"
 
 

@@ -341,7 +341,8 @@ def table(results: dict) -> str:
         lines.append(f"| {cond} | " + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
     placed = {cond: [r for r in recs if "digital placement" in r] for cond, recs in results.items()}
     if any(placed.values()):
-        lines += ["", "| condition | draws | digital twin | moved by its best shift: its focus | the target's place across y, off by (mm): median, 90th percentile, worst | across x |",
+        lines += ["", "| condition | draws | digital twin | moved by its best shift: its focus "
+                  "| the target's place across y, off by (mm): median, 90th percentile, worst | across x |",
                   "|---|---|---|---|---|---|"]
         for cond, recs in placed.items():
             if not recs:

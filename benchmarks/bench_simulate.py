@@ -21,6 +21,7 @@ import math
 import os
 import platform
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -89,7 +90,7 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", repeats: int = 3) ->
             }
             if (step, order) in ((1e-3, 1), (4e-3, 2), (8e-3, 3)):
                 row["paper_scene_s"], row["paper_scene_cpu_s"] = _best_time(
-                    lambda: simulate_if(scene_pts, scene_amp, positions, chirp, range_step_m=step, order=order), 1
+                    partial(simulate_if, scene_pts, scene_amp, positions, chirp, range_step_m=step, order=order), 1
                 )
             sweep.append(row)
 

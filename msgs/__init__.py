@@ -17,11 +17,12 @@ from msgs.messages import (
     StereoFrame,
     TwinTemplate,
 )
-from msgs.schema import MESSAGE_TYPES, Header, MessageError, now_ns, schema_of
+from msgs.schema import MESSAGE_TYPES, BusMessage, Header, MessageError, now_ns, schema_of
 
 __all__ = [
     "TOPIC_TYPES",
     "MESSAGE_TYPES",
+    "BusMessage",
     "Header",
     "MessageError",
     "now_ns",

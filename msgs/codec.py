@@ -25,7 +25,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from msgs.schema import MESSAGE_TYPES, Header, MessageError, field_specs, validate
+from msgs.schema import MESSAGE_TYPES, BusMessage, Header, MessageError, field_specs, validate
 
 FORMAT_VERSION = 1
 _ND = "__ndarray__"
@@ -34,7 +34,7 @@ _ND = "__ndarray__"
 def _raw(a: np.ndarray) -> memoryview:
     """The array's bytes as a flat byte view (no copy for a C-contiguous array)."""
     a = np.ascontiguousarray(a)
-    return memoryview(a.reshape(-1).view(np.uint8))
+    return a.reshape(-1).view(np.uint8).data
 
 
 def _envelope(msg: Any, buffers: list | None, publisher: str) -> dict:
@@ -128,7 +128,7 @@ def _array(desc: Any, spec, where: str, name: str, buffers: Sequence | None) -> 
     return np.frombuffer(buf, dtype=spec.dtype, count=count).reshape(shape)
 
 
-def _build(env: dict, buffers: Sequence | None, where: str, expect: type | None) -> Any:
+def _build(env: dict, buffers: Sequence | None, where: str, expect: type[BusMessage] | None) -> Any:
     type_name = env["type"]
     cls = MESSAGE_TYPES.get(type_name) if isinstance(type_name, str) else None
     if cls is None:
@@ -154,9 +154,12 @@ def _build(env: dict, buffers: Sequence | None, where: str, expect: type | None)
             if spec.kind == "array" and spec.optional:
                 values[f.name] = None
                 continue
-            if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING:
-                # A field added to the schema after the message was written: take its default.
-                values[f.name] = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+            # A field added to the schema after the message was written: take its default.
+            if f.default is not dataclasses.MISSING:
+                values[f.name] = f.default
+                continue
+            if f.default_factory is not dataclasses.MISSING:
+                values[f.name] = f.default_factory()
                 continue
             raise MessageError(f"{where}: field '{f.name}' is missing")
         raw = fields[f.name]

@@ -278,8 +278,9 @@ class Damage:
         return text
 
 
-#: record types a log of this project holds, with how each is parsed (others are skipped)
-_PARSED = {
+#: record types a log of this project holds, with how each is parsed (others are skipped); Any:
+#: mcap's record classes share no typed ``read`` (their base declares only ``write``)
+_PARSED: dict[int, Any] = {
     Opcode.CHANNEL: Channel,
     Opcode.MESSAGE: Message,
     Opcode.METADATA: Metadata,
@@ -337,8 +338,8 @@ class LogReader:
             self.end_ns = rec.log_time if self.end_ns is None else max(self.end_ns, rec.log_time)
         for d in self.damage:
             for cid, n in d.channel_ids.items():
-                ch = self._chans.get(cid)
-                topic = ch.topic if ch is not None else f"channel {cid}"
+                chan = self._chans.get(cid)
+                topic = chan.topic if chan is not None else f"channel {cid}"
                 d.lost[topic] = d.lost.get(topic, 0) + n
         self.complete = footer and not self.damage and not self.orphans
 
@@ -391,7 +392,7 @@ class LogReader:
 
     def _scan(self) -> tuple[list, bool]:
         """[(opcode, offset, record length incl. header, parsed or None)], footer found."""
-        index = []
+        index: list[tuple[int, int, int, Any]] = []
         pos = 8
         n = len(self._data)
         open_damage: Damage | None = None  # message indexes right after it name what it held
@@ -431,11 +432,12 @@ class LogReader:
             # Damage (or a truncated tail): find the next place where two sound records follow
             # each other (or one ends the file), and go on from there.
             start = pos
-            pos = self._resync(pos + 1)
-            if pos is None:
+            resumed = self._resync(pos + 1)
+            if resumed is None:
                 if n - start > 0 and not self._tail_only(start):
                     self.damage.append(self._unreadable(index, start, n - start))
                 return index, False
+            pos = resumed
             open_damage = self._unreadable(index, start, pos - start)
             self.damage.append(open_damage)
         return index, False

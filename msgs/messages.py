@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from msgs.schema import Header, array, flag, integer, mapping, message, real, strings, text
+from msgs.schema import BusMessage, Header, array, flag, integer, mapping, message, real, stamped, strings, text
 from twinfocus.radar import Chirp
 
 
 @message(topic="radar/frame")
-class RadarFrame:
+class RadarFrame(BusMessage):
     """One radar position: the monostatic-equivalent IF samples of every virtual channel.
 
     data : complex64 (K, N), the model of docs/architecture.md section 2 (one row of a scan's ``data``).
@@ -31,7 +31,7 @@ class RadarFrame:
         0 from sources without gaps and in logs written before these fields existed).
     """
 
-    header: Header
+    header: Header = stamped()
     data: np.ndarray = array("complex64", ("K", "N"))
     f0_hz: float = real(doc="frequency of the first ADC sample, Hz")
     slope_hz_per_s: float = real(doc="chirp slope, Hz/s")
@@ -56,7 +56,7 @@ class RadarFrame:
 
 
 @message(topic="vio/pose")
-class Pose:
+class Pose(BusMessage):
     """A tracked pose of the radar body (VIO output), ROS ``PoseStamped``-like.
 
     position_m : float64 (3,), body origin in ``header.frame_id`` (the scene frame), metres.
@@ -66,7 +66,7 @@ class Pose:
         ``"camera"`` when the synchronizer must apply its calibration).
     """
 
-    header: Header
+    header: Header = stamped()
     position_m: np.ndarray = array("float64", (3,))
     quat_xyzw: np.ndarray = array("float64", (4,))
     confidence: float = real(1.0)
@@ -84,7 +84,7 @@ class Pose:
 
 
 @message(topic="camera/stereo")
-class StereoFrame:
+class StereoFrame(BusMessage):
     """A rectified stereo pair (ZED-like), with optional depth.
 
     left, right : uint8 (H, W) grey or (H, W, 3) RGB; depth_m : optional float32 (H, W) metres
@@ -92,7 +92,7 @@ class StereoFrame:
     baseline_m : stereo baseline, metres.
     """
 
-    header: Header
+    header: Header = stamped()
     left: np.ndarray = array("uint8", [("H", "W"), ("H", "W", 3)])
     right: np.ndarray = array("uint8", [("H", "W"), ("H", "W", 3)])
     camera_matrix: np.ndarray = array("float64", (3, 3))
@@ -106,7 +106,7 @@ class StereoFrame:
 
 
 @message(topic="sar/measurement")
-class SarMeasurement:
+class SarMeasurement(BusMessage):
     """A radar frame paired with its phase-centre positions: one row of a scan file.
 
     data : complex64 (K, N) as in :class:`RadarFrame`; positions_m : float64 (K, 3) tracked
@@ -117,7 +117,7 @@ class SarMeasurement:
     the stream began, as on :class:`RadarFrame`); the solver reports each scan's share.
     """
 
-    header: Header
+    header: Header = stamped()
     data: np.ndarray = array("complex64", ("K", "N"))
     positions_m: np.ndarray = array("float64", ("K", 3))
     f0_hz: float = real()
@@ -143,7 +143,7 @@ class SarMeasurement:
 
 
 @message(topic="twin/template")
-class TwinTemplate:
+class TwinTemplate(BusMessage):
     """The reference object's focused image (a template file on the wire).
 
     image : float32 (H, W) amplitude; x_m (W,), y_m (H,) pixel coordinates; z_m the plane.
@@ -162,7 +162,7 @@ class TwinTemplate:
         curved one. Empty / False / 0 for a physical twin and older logs.
     """
 
-    header: Header
+    header: Header = stamped()
     image: np.ndarray = array("float32", ("H", "W"))
     x_m: np.ndarray = array("float64", ("W",))
     y_m: np.ndarray = array("float64", ("H",))
@@ -177,7 +177,7 @@ class TwinTemplate:
 
 
 @message(topic="autofocus/result")
-class AutofocusResult:
+class AutofocusResult(BusMessage):
     """What the solver found for one scan.
 
     phase_rad : float64 (M,) per-position phase correction; loss_history : float64 (I,) loss
@@ -196,7 +196,7 @@ class AutofocusResult:
     before the field.
     """
 
-    header: Header
+    header: Header = stamped()
     scan_id: str = text()
     method: str = text()
     phase_rad: np.ndarray = array("float64", ("M",))
@@ -210,14 +210,14 @@ class AutofocusResult:
 
 
 @message(topic="image/focused")
-class Image:
+class Image(BusMessage):
     """A complex SAR image on a grid (docs/architecture.md section 4).
 
     name : which image (``"target"``, ``"target_uncorrected"``, ``"reference"``, ...);
     image : complex64 (H, W); x_m (W,), y_m (H,), z_m: pixel coordinates, metres.
     """
 
-    header: Header
+    header: Header = stamped()
     name: str = text()
     scan_id: str = text()
     image: np.ndarray = array("complex64", ("H", "W"))
@@ -227,7 +227,7 @@ class Image:
 
 
 @message(topic="graph/status")
-class NodeStatus:
+class NodeStatus(BusMessage):
     """A node's heartbeat.
 
     state : ``starting`` | ``ready`` (subscriptions live) | ``running`` | ``stopping`` |
@@ -235,7 +235,7 @@ class NodeStatus:
     received / published / lost : per-topic message counts; lost counts gaps in ``seq``.
     """
 
-    header: Header
+    header: Header = stamped()
     node: str = text()
     state: str = text("starting")
     pid: int = integer(0)
@@ -259,7 +259,8 @@ def _check_chirp(msg) -> str | None:
 
 
 #: topic -> the message type that travels on it
-TOPIC_TYPES: dict[str, type] = {
+TOPIC_TYPES: dict[str, type[BusMessage]] = {
     cls.TOPIC: cls
     for cls in (RadarFrame, Pose, StereoFrame, SarMeasurement, TwinTemplate, AutofocusResult, Image, NodeStatus)
+    if cls.TOPIC is not None  # every one of these has a topic
 }

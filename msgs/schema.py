@@ -100,6 +100,11 @@ class ScalarSpec:
         return self.pytype
 
 
+def stamped() -> Any:
+    """The ``header`` field: a fresh :class:`Header` unless one is given."""
+    return field(default_factory=Header)
+
+
 def array(dtype: Any, shape: tuple | list, *, optional: bool = False, doc: str = "") -> Any:
     """An ndarray field. ``shape`` is one tuple or a list of alternative tuples."""
     shapes = tuple(tuple(s) for s in shape) if isinstance(shape, list) else (tuple(shape),)
@@ -114,7 +119,8 @@ def _scalar(pytype: str, default: Any, doc: str) -> Any:
     if default is dataclasses.MISSING:
         return field(metadata={"spec": spec, "doc": doc})
     if isinstance(default, (list, dict)):
-        return field(default_factory=lambda d=default: type(d)(d), metadata={"spec": spec, "doc": doc})
+        # a fresh copy per message: a shared mutable default would leak between messages
+        return field(default_factory=default.copy, metadata={"spec": spec, "doc": doc})
     return field(default=default, metadata={"spec": spec, "doc": doc})
 
 
@@ -145,8 +151,18 @@ def mapping(value_type: str, doc: str = "") -> Any:
 
 # --- registry -------------------------------------------------------------------------------
 
+
+class BusMessage:
+    """What :func:`message` gives every message type, for type checkers: the message types
+    derive from it. It holds no fields (it is no dataclass), so it changes no message's layout."""
+
+    TYPE: ClassVar[str]  # the class name, the type's name on the wire
+    TOPIC: ClassVar[str | None]  # the topic it normally travels on
+    __dataclass_fields__: ClassVar[dict[str, Any]]  # set by dataclass() on each message type
+
+
 #: message type name -> class, filled by :func:`message`
-MESSAGE_TYPES: dict[str, type] = {}
+MESSAGE_TYPES: dict[str, type[BusMessage]] = {}
 
 
 # Tells type checkers that message types take their fields as keywords (names and value types
@@ -165,7 +181,7 @@ def message(topic: str | None = None):
         # dataclass() only calls __post_init__ if it exists when the class is processed.
         cls.__post_init__ = __post_init__
         if "header" not in cls.__dict__:
-            cls.header = field(default_factory=Header)
+            cls.header = stamped()
         # Keyword-only: required fields may follow fields with defaults, and call sites name
         # every field (RadarFrame(data=..., f0_hz=...)), which reads better for wide messages.
         cls = dataclass(cls, kw_only=True)

@@ -21,8 +21,10 @@ Wiring (docs/architecture.md section 4, docs/node_graph.md):
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
+import signal
 import sys
 import threading
 import time
@@ -31,6 +33,7 @@ from urllib.parse import urlsplit
 
 import zmq
 
+from msgs import MessageError, NodeStatus, decode_frames
 from twinfocus.errors import TwinFocusError
 
 DEFAULT_BROKER = "tcp://127.0.0.1:7447"
@@ -199,7 +202,6 @@ class Broker:
             status.close(linger=0)
 
     def _read_status(self, sock: zmq.Socket) -> None:
-        from msgs import MessageError, NodeStatus, decode_frames
 
         while True:
             try:
@@ -304,8 +306,6 @@ def discover(endpoint: str, ctx: zmq.Context, timeout_s: float, stream=None) -> 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m nodes.bus [ENDPOINT]``: a broker alone, for nodes started by hand."""
-    import argparse
-    import signal
 
     ap = argparse.ArgumentParser(prog="python -m nodes.bus", description="Run the message broker until Ctrl-C.")
     ap.add_argument(

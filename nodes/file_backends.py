@@ -21,6 +21,7 @@ from nodes.backends import PoseSample, RadarSample, check_unknown, option
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import mmwcas_virtual_array
 from twinfocus.scan import Scan
+from twinfocus.sensors.trajectory_files import read_trajectory
 
 
 class ScanFileRadar:
@@ -85,7 +86,6 @@ class TrajectoryFileVio:
     frame_id = "scene"
 
     def __init__(self, options: dict):
-        from twinfocus.sensors.trajectory_files import read_trajectory
 
         where = "VIO backend 'trajectory_file'"
         check_unknown(options, {"path", "format", "time_offset_ns", "child_frame_id"}, where)

@@ -23,6 +23,9 @@ import sys
 import threading
 from typing import Any
 
+import foxglove
+from foxglove.websocket import ServerListener
+
 from msgs import now_ns
 from nodes.foxglove_convert import FoxgloveConverter, FoxgloveMessage
 from nodes.node import Node, run_node
@@ -52,8 +55,6 @@ class FoxgloveBridge(Node):
 
     def __init__(self, **kw):
         super().__init__(**kw)
-        import foxglove
-        from foxglove.websocket import ServerListener
 
         self._fox = foxglove
         self.context = foxglove.Context()

@@ -52,12 +52,35 @@ message before it.
 from __future__ import annotations
 
 import json
+import time
 from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+from foxglove.messages import (
+    Color,
+    CompressedImage,
+    FrameTransform,
+    LinePrimitive,
+    Log,
+    LogLevel,
+    PackedElementField,
+    PackedElementFieldNumericType,
+    Point3,
+    PointCloud,
+    PoseInFrame,
+    Quaternion,
+    RawImage,
+    SceneEntity,
+    SceneUpdate,
+    Timestamp,
+    Vector3,
+)
+from foxglove.messages import Pose as FPose
 
+from msgs.mcap_log import LogReader, LogWriter
 from msgs.messages import (
     AutofocusResult,
     Image,
@@ -68,6 +91,10 @@ from msgs.messages import (
     StereoFrame,
     TwinTemplate,
 )
+from msgs.schema import MessageError
+from nodes.visualizer import amplitude_png
+from twinfocus.errors import TwinFocusError
+from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
 
 PROTOBUF = "protobuf"
 JSON = "json"
@@ -149,7 +176,6 @@ class FoxgloveMessage:
 
 
 def _stamp(stamp_ns: int):
-    from foxglove.messages import Timestamp
 
     ns = max(0, int(stamp_ns))
     return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
@@ -198,9 +224,6 @@ class SensorClock:
 def amplitude_image(topic: str, image: np.ndarray, stamp_ns: int, frame_id: str, log_time_ns: int) -> FoxgloveMessage:
     """A ``foxglove.CompressedImage`` PNG of ``|image| / max`` through inferno (the visualizer's
     pictures, pixel (i, j) = image (i, j)); ``image`` real or complex (H, W)."""
-    from foxglove.messages import CompressedImage
-
-    from nodes.visualizer import amplitude_png
 
     msg = CompressedImage(timestamp=_stamp(stamp_ns), frame_id=frame_id, data=amplitude_png(image), format="png")
     return _proto(topic, msg, log_time_ns)
@@ -215,8 +238,6 @@ def point_cloud(
     intensity: np.ndarray | None = None,
 ) -> FoxgloveMessage:
     """A ``foxglove.PointCloud`` of ``points_m`` (N, 3) metres, fields x y z [intensity] float32."""
-    from foxglove.messages import PackedElementField, PackedElementFieldNumericType, PointCloud, Quaternion, Vector3
-    from foxglove.messages import Pose as FPose
 
     cols = [np.asarray(points_m, np.float32).reshape(-1, 3)]
     names = ["x", "y", "z"]
@@ -242,7 +263,6 @@ def point_cloud(
 def frame_transform(parent: str, child: str, translation_m, quat_xyzw, t: int) -> FoxgloveMessage:
     """A ``foxglove.FrameTransform`` on ``/tf``: the pose of ``child`` in ``parent``
     (``translation_m`` (3,) metres, ``quat_xyzw`` (4,) child -> parent rotation)."""
-    from foxglove.messages import FrameTransform, Quaternion, Vector3
 
     p, q = [float(v) for v in translation_m], [float(v) for v in quat_xyzw]
     msg = FrameTransform(
@@ -275,7 +295,6 @@ class FoxgloveConverter:
         max_track: int = 20000,
         extrinsics: dict | None = None,
     ):
-        from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
 
         self.clock = SensorClock()
         self.extrinsics = RadarCameraExtrinsics.from_dict(extrinsics) if extrinsics else None
@@ -344,17 +363,6 @@ class FoxgloveConverter:
         return out
 
     def _pose(self, msg: Pose, t: int) -> list[FoxgloveMessage]:
-        from foxglove.messages import (
-            Color,
-            LinePrimitive,
-            Point3,
-            PoseInFrame,
-            Quaternion,
-            SceneEntity,
-            SceneUpdate,
-            Vector3,
-        )
-        from foxglove.messages import Pose as FPose
 
         frame = msg.header.frame_id or self.scene_frame
         p, q = msg.position_m, msg.quat_xyzw
@@ -387,7 +395,6 @@ class FoxgloveConverter:
         return out
 
     def _camera(self, msg: StereoFrame, t: int) -> FoxgloveMessage:
-        from foxglove.messages import RawImage
 
         img = np.ascontiguousarray(msg.left)
         h, w = img.shape[:2]
@@ -404,7 +411,6 @@ class FoxgloveConverter:
         return _proto("/camera/left", raw, t)
 
     def _status(self, msg: NodeStatus, t: int) -> list[FoxgloveMessage]:
-        from foxglove.messages import Log, LogLevel
 
         lost = int(sum(msg.lost.values()))
         prev = self._node_state.get(msg.node)
@@ -430,9 +436,6 @@ def write_point_cloud_log(
     """One :func:`point_cloud` (x y z intensity, float32; points_m (N, 3) metres, intensity (N,))
     in a new MCAP at ``path`` (an earlier file there replaced only once this one is finished),
     schema included, stamped now: what ``twinfocus focus --volume`` writes beside its PLY."""
-    import time
-
-    from msgs.mcap_log import LogWriter
 
     t = time.time_ns()
     with LogWriter(path, overwrite=True, library="twinfocus focus", chunk_bytes=1 << 20, compression="zstd") as w:
@@ -450,11 +453,6 @@ def export_log(src, dst, *, overwrite: bool = False, progress=None, say=None) ->
     export (an error, Ctrl-C, a full disk) leaves no file behind and an earlier ``dst`` as it
     was. A log with nothing to show (no message, or none with a Foxglove picture) is refused.
     """
-    from pathlib import Path
-
-    from msgs.mcap_log import LogReader, LogWriter
-    from msgs.schema import MessageError
-    from twinfocus.errors import TwinFocusError
 
     src, dst = Path(src), Path(dst)
     if dst.exists() and not overwrite:

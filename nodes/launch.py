@@ -63,6 +63,7 @@ where the launch file says ``respawn``; otherwise the graph stops with status 1.
 
 from __future__ import annotations
 
+import importlib
 import json
 import math
 import os
@@ -80,7 +81,7 @@ import yaml
 
 from nodes import FINISHING_TYPES, NODE_TYPES
 from nodes.bus import Broker
-from nodes.node import ENV_GRAPH_NODES, ENV_LAUNCHED, ENV_LAUNCHER_PID
+from nodes.node import ENV_GRAPH_NODES, ENV_LAUNCHED, ENV_LAUNCHER_PID, Node, stop_signals_to
 from nodes.params import REQUIRED, Param, coerce, parse_assignment, resolve
 from twinfocus.errors import TwinFocusError
 
@@ -310,9 +311,6 @@ def _check_parameters(path: Path, spec: NodeSpec) -> None:
     names, types, choices; a required one left out is the node's to refuse), so a bad value is
     one line before any node starts, not a traceback from each node that takes it. A node class
     that cannot be imported here is left to say so itself when it starts."""
-    import importlib
-
-    from nodes.node import Node
 
     try:
         module = importlib.import_module(spec.module)
@@ -426,6 +424,7 @@ class Launcher:
             self._spawn(spec)
 
     def _spawn(self, spec: NodeSpec) -> None:
+        assert self.broker is not None, "nodes are spawned after the broker starts"
         cmd = [
             sys.executable,
             "-m",
@@ -453,11 +452,10 @@ class Launcher:
         self.say(f"started {spec.name} ({spec.module}, pid {p.pid})")
 
     def run(self) -> int:
-        in_main = threading.current_thread() is threading.main_thread()
-        old = {}
-        if in_main:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                old[sig] = signal.signal(sig, self._on_signal)
+        with stop_signals_to(self._on_signal):
+            return self._run()
+
+    def _run(self) -> int:
         try:
             self.start()
             self._watch()
@@ -466,9 +464,6 @@ class Launcher:
                 # before any node is stopped: the recorder asks for it to keep the earlier log
                 self.broker.fail(self._failure or f"the graph failed (status {self._code})")
             self._stop_all()
-            if in_main:
-                for sig, h in old.items():
-                    signal.signal(sig, h)
         return self._code
 
     def request_stop(self, reason: str = "stop requested") -> None:

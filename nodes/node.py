@@ -43,6 +43,7 @@ are flushed (both bounded by ``linger_s``).
 
 from __future__ import annotations
 
+import argparse
 import heapq
 import itertools
 import json
@@ -53,12 +54,13 @@ import threading
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import zmq
 
-from msgs import TOPIC_TYPES, MessageError, NodeStatus, decode_frames, encode_frames, now_ns
+from msgs import TOPIC_TYPES, BusMessage, MessageError, NodeStatus, decode_frames, encode_frames, now_ns
 from nodes.bus import broker_endpoint, check_topic, discover, query_graph, topic_frame
 from nodes.params import Param, describe, resolve
 from twinfocus.errors import TwinFocusError
@@ -70,6 +72,22 @@ ENV_LAUNCHER_PID = "TWINFOCUS_LAUNCHER_PID"  # set by the launcher: its pid, our
 READY_STATES = ("ready", "running")
 WAIT_WORD_S = 5.0  # a node waiting for the graph says why after this long, then every twice that
 GONE_STATES = ("stopping", "stopped", "error")  # a node that is ending no longer holds anyone up
+
+
+@contextmanager
+def stop_signals_to(handler: Callable) -> Iterator[None]:
+    """SIGINT and SIGTERM go to ``handler`` inside the block and to their earlier handlers after
+    it; off the main thread (tests running a node or a launcher in a thread), where Python takes
+    no signal handlers, the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
 
 
 class Shutdown(Exception):
@@ -88,7 +106,7 @@ class Publisher:
     becomes ready after it went out (a late or restarted node), as a ROS 2 transient-local topic.
     """
 
-    def __init__(self, node: Node, topic: str, msg_type: type | None, latched: bool = False):
+    def __init__(self, node: Node, topic: str, msg_type: type[BusMessage] | None, latched: bool = False):
         check_topic(topic)
         self.node = node
         self.topic = topic
@@ -215,7 +233,9 @@ class Node:
         except (BrokenPipeError, ValueError):  # the launcher that read our output is gone
             pass
 
-    def create_publisher(self, topic: str, msg_type: type | None = None, latched: bool = False) -> Publisher:
+    def create_publisher(
+        self, topic: str, msg_type: type[BusMessage] | None = None, latched: bool = False
+    ) -> Publisher:
         """A publisher of ``topic``; ``latched``: its latest message also reaches subscribers that
         start later (the template, a configuration)."""
         if topic in self._publishers:
@@ -224,7 +244,7 @@ class Node:
         self._publishers[topic] = pub
         return pub
 
-    def create_subscription(self, topic: str, callback: Callable, msg_type: type | None = None) -> None:
+    def create_subscription(self, topic: str, callback: Callable, msg_type: type[BusMessage] | None = None) -> None:
         """Call ``callback(msg)`` for each message on ``topic``; ``topic="*"`` receives every
         topic and calls ``callback(topic, msg)``."""
         if topic == "*":
@@ -287,11 +307,10 @@ class Node:
     # -- main loop ----------------------------------------------------------------------------
     def spin(self) -> int:
         """Run the node until shutdown; returns the exit code (0 ok, 1 crash, 2 user error)."""
-        in_main = threading.current_thread() is threading.main_thread()
-        old = {}
-        if in_main:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                old[sig] = signal.signal(sig, self._on_signal)
+        with stop_signals_to(self._on_signal):
+            return self._spin()
+
+    def _spin(self) -> int:
         try:
             self._connect()
             self._await_own_subscriptions()
@@ -314,9 +333,6 @@ class Node:
             self._stop = Shutdown(1, "crashed")
         finally:
             code = self._shutdown_node()
-            if in_main:
-                for sig, h in old.items():
-                    signal.signal(sig, h)
         return code
 
     def stop(self) -> None:
@@ -363,6 +379,7 @@ class Node:
         self._poller.register(pub, zmq.POLLIN)
 
     def _send_frames(self, frames: list) -> None:
+        assert self._pub_sock is not None, "publishing before the node connected"
         try:
             self._pub_sock.send_multipart(frames, copy=False)
         except zmq.Again:  # only with a finite hwm and NODROP off: counts as a drop
@@ -372,6 +389,7 @@ class Node:
         table[topic] = table.get(topic, 0) + n
 
     def _read_subscriptions(self) -> None:
+        assert self._pub_sock is not None, "polled before the node connected"
         while True:
             try:
                 ev = self._pub_sock.recv(zmq.NOBLOCK)
@@ -469,7 +487,7 @@ class Node:
         if self.state != "running":
             period = min(period, 0.2)  # start-up: let waiting peers see us quickly
         self._next_heartbeat = time.monotonic() + period
-        if self._pub_sock is None:
+        if self._pub_sock is None or self._status_pub is None:
             return
         subs = sorted(self._subs) + (["*"] if self._wildcard else [])
         pubs = sorted(t for t in self._publishers if t != STATUS_TOPIC)
@@ -496,7 +514,7 @@ class Node:
         events = dict(self._poller.poll(timeout_ms))
         if self._pub_sock in events:
             self._read_subscriptions()
-        if self._sub_sock in events:
+        if self._sub_sock is not None and self._sub_sock in events:
             for _ in range(200):  # bounded batch, so timers and heartbeats still run
                 try:
                     frames = self._sub_sock.recv_multipart(zmq.NOBLOCK, copy=False)
@@ -721,7 +739,6 @@ _RUNTIME_PRIVATE = frozenset(
 
 def run_node(cls: type[Node], argv: list[str] | None = None) -> int:
     """``python -m nodes.X [--name N] [--broker URL] [--params JSON] [name:=value ...]``."""
-    import argparse
 
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(

@@ -23,6 +23,7 @@ them: a damaged frame costs that frame, not the scan.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import sys
 import time
 from typing import Any
@@ -84,7 +85,7 @@ class Player(Node):
         self.passes = 0
         self.skipped = 0  # messages that did not decode or held NaN / inf
         self.missing: dict[str, int] = {}  # topic -> messages missing from the log (seq gaps)
-        self._last_seq: dict[str, int] = {}
+        self._last_logged_seq: dict[str, int] = {}
 
     def on_start(self) -> None:
         r = self.reader
@@ -102,7 +103,7 @@ class Player(Node):
     def _latched_before_start(self) -> list:
         """The latest message of each latched topic logged before the start offset."""
         latched = [t for t in self.params["latched_topics"] if t in self.topics]
-        if not latched or self.start_ns <= self.reader.start_ns:
+        if not latched or self.reader.start_ns is None or self.start_ns <= self.reader.start_ns:
             return []
         last = {}
         for m in self.reader.messages(latched):
@@ -112,10 +113,9 @@ class Player(Node):
         return sorted(last.values(), key=lambda m: m.log_time_ns)
 
     def _begin_pass(self) -> None:
-        import itertools
 
         self.passes += 1
-        self._last_seq = {}
+        self._last_logged_seq = {}
         self._iter = itertools.chain(
             # Latched messages go out first, at the start's log time (no pause before them),
             # with sequence -1: they stand outside the stream whose gaps are counted.
@@ -171,8 +171,8 @@ class Player(Node):
             )
             return None
         if m.sequence >= 0:
-            last = self._last_seq.get(m.topic)
-            self._last_seq[m.topic] = m.sequence
+            last = self._last_logged_seq.get(m.topic)
+            self._last_logged_seq[m.topic] = m.sequence
             if last is not None and m.sequence > last + 1:
                 gap = m.sequence - last - 1
                 self.missing[m.topic] = self.missing.get(m.topic, 0) + gap
@@ -206,7 +206,7 @@ class Player(Node):
             parts.append(part + (f" ({self.skipped} skipped as damaged)" if self.skipped else ""))
         r = self.reader
         if not r.footer:
-            last = ", ".join(f"{t} seq {n}" for t, n in sorted(self._last_seq.items()))
+            last = ", ".join(f"{t} seq {n}" for t, n in sorted(self._last_logged_seq.items()))
             parts.append(
                 f"the log is cut at byte {r.valid_bytes} of {r.size}: nothing after {last or 'its start'} "
                 "(what came after the cut cannot be counted)"

@@ -16,6 +16,7 @@ from msgs import Header, RadarFrame
 from nodes.backends import RADAR_BACKENDS, RadarSample
 from nodes.driver import DriverNode
 from nodes.node import run_node
+from twinfocus.sensors.capture_to_scan import stream_gaps
 
 
 class RadarDriver(DriverNode):
@@ -51,7 +52,6 @@ class RadarDriver(DriverNode):
 
 def _gap_fields(gaps) -> dict:
     """A backend's capture gaps as the RadarFrame fields (none: the fields' defaults)."""
-    from twinfocus.sensors.capture_to_scan import stream_gaps
 
     return {} if gaps is None else stream_gaps(*gaps)
 

@@ -40,8 +40,10 @@ import zmq
 from msgs import NodeStatus, RadarFrame, SarMeasurement, encode, now_ns
 from msgs.mcap_log import LogWriteError, LogWriter
 from nodes.bus import query_verdict
+from nodes.foxglove_convert import FoxgloveConverter
 from nodes.node import ENV_LAUNCHER_PID, GONE_STATES, Node, run_node
 from nodes.params import REQUIRED, Param
+from twinfocus.errors import TwinFocusError
 
 
 def radar_metadata(topic: str, msg: RadarFrame | SarMeasurement) -> dict:
@@ -85,13 +87,9 @@ class Recorder(Node):
         # Every parameter is checked before the log file is opened: a refused start leaves no file.
         calib = self.params["calibration"] or {}
         if not isinstance(calib, dict):
-            from twinfocus.errors import TwinFocusError
-
             raise TwinFocusError(f"node {self.name!r}: parameter 'calibration' must be a mapping, got {calib!r}")
         self._foxglove = None
         if self.params["foxglove"]:
-            from nodes.foxglove_convert import FoxgloveConverter
-
             self._foxglove = FoxgloveConverter(extrinsics=calib.get("extrinsics") or None)
         self._radar_done = False
         self._last_state: dict[str, tuple] = {}
@@ -110,7 +108,7 @@ class Recorder(Node):
 
     def _record(self, topic: str, msg: Any) -> None:
         if self._foxglove is not None:
-            self._record_foxglove(topic, msg)
+            self._record_foxglove(self._foxglove, topic, msg)
         if not self.params["topics"] and topic.startswith("graph/") and not self.params["include_graph"]:
             if not (isinstance(msg, NodeStatus) and self._changed(msg)):
                 return
@@ -128,9 +126,9 @@ class Recorder(Node):
         self._last_state[st.node] = key
         return True
 
-    def _record_foxglove(self, topic: str, msg: Any) -> None:
+    def _record_foxglove(self, converter: FoxgloveConverter, topic: str, msg: Any) -> None:
         # graph/status feeds Foxglove's log channel even when the heartbeats themselves are not recorded
-        for rec in self._foxglove.convert(topic, msg, now_ns()):
+        for rec in converter.convert(topic, msg, now_ns()):
             rec.write_to(self.writer)
 
     def _note_signal(self, signum, frame) -> None:

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -39,8 +40,16 @@ import numpy as np
 
 from nodes.backends import PoseSample, RadarSample, check_unknown, option
 from twinfocus.board import load_board
+from twinfocus.calibration import calibration_for
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import Chirp, VirtualArray, mmwcas_virtual_array
+from twinfocus.sensors.dca1000 import BOARD_IP, CONFIG_PORT, DATA_PORT, HOST_IP, Dca1000, RawFrameLayout
+from twinfocus.sensors.emulators.rig import EMULATED_CFG, EmulatedVio, default_sync_file
+from twinfocus.sensors.frames import FrameFlag, frame_to_virtual_channels
+from twinfocus.sensors.ti_cli import RadarCliConfig, TiRadarCli
+from twinfocus.sensors.ti_mmwcas import MmwcasCapture, resolve_config
+from twinfocus.sensors.zed import ZedSdkCamera
+from twinfocus.trajectory import paper_raster
 
 
 def _address(value: str, where: str, name: str) -> tuple[str, int]:
@@ -57,7 +66,6 @@ def _virtual_channels(
     array: VirtualArray | None = None,
     correction: np.ndarray | None = None,
 ) -> np.ndarray:
-    from twinfocus.sensors.frames import frame_to_virtual_channels
 
     x = frame_to_virtual_channels(frame, chirp, z0_m, array)
     return (x if correction is None else x * correction).astype(np.complex64, copy=False)
@@ -66,7 +74,6 @@ def _virtual_channels(
 def _channel_calibration(options: dict, chirp: Chirp, array: VirtualArray, where: str) -> np.ndarray | None:
     """The ``calibration`` option's correction (K, N) (``twinfocus calibrate``), refused when made
     for another array or chirp; none: a one-line warning, the channels uncorrected."""
-    import sys
 
     path = option(options, "calibration", "", str, where)
     if not path:
@@ -76,7 +83,6 @@ def _channel_calibration(options: dict, chirp: Chirp, array: VirtualArray, where
             flush=True,
         )
         return None
-    from twinfocus.calibration import calibration_for
 
     correction, _ = calibration_for(path, chirp, array)
     return correction
@@ -98,8 +104,6 @@ class MmwcasRadar:
     live = False
 
     def __init__(self, options: dict):
-        from twinfocus.sensors.frames import FrameFlag
-        from twinfocus.sensors.ti_mmwcas import MmwcasCapture, resolve_config
 
         where = "radar backend 'mmwcas'"
         check_unknown(
@@ -184,7 +188,6 @@ class MmwcasRadar:
     def _gaps(self, i: int) -> tuple[int, int, int]:
         """The capture's gaps up to frame i, as a stream's: (frames missing from every device,
         frames holding only zeros, 0 bytes)."""
-        from twinfocus.sensors.frames import FrameFlag
 
         zero = int(np.count_nonzero(self.capture.flags[: i + 1] & int(FrameFlag.ZERO_FILLED)))
         return int(self.capture.frames_missing_before[i]), zero, 0
@@ -208,8 +211,6 @@ class Dca1000Radar:
     live = True
 
     def __init__(self, options: dict):
-        from twinfocus.sensors.dca1000 import BOARD_IP, CONFIG_PORT, DATA_PORT, HOST_IP, Dca1000, RawFrameLayout
-        from twinfocus.sensors.ti_cli import RadarCliConfig
 
         where = "radar backend 'dca1000'"
         check_unknown(
@@ -234,8 +235,6 @@ class Dca1000Radar:
         )
         cfg = option(options, "cfg", None, str, where)
         if cfg == "emulated":
-            from twinfocus.sensors.emulators.rig import EMULATED_CFG
-
             cfg = EMULATED_CFG
         self.cfg = cfg
         config = RadarCliConfig.from_cfg(cfg)
@@ -249,7 +248,7 @@ class Dca1000Radar:
             self.layout = config.raw_layout()
         else:
             raise TwinFocusError(f"{where}: layout must be 'mmwcas' or 'cfg', got {layout!r}")
-        if self.layout.n_tx < 12 or self.layout.n_rx < 16:
+        if self.layout.n_tx is None or self.layout.n_tx < 12 or self.layout.n_rx < 16:
             raise TwinFocusError(
                 f"{where}: the frames have {self.layout.n_tx} TX x {self.layout.n_rx} RX; the 86 virtual "
                 "channels of the MMWCAS array need 12 x 16 (use layout: mmwcas for the emulated rig)"
@@ -265,7 +264,7 @@ class Dca1000Radar:
         self.channel_offsets_m = self.array.offsets_m
         self.correction = _channel_calibration(options, self.chirp, self.array, where)
         self._stop = threading.Event()
-        self._cli = None
+        self._cli: TiRadarCli | None = None
         self.host = Dca1000(
             _address(option(options, "board", f"{BOARD_IP}:{CONFIG_PORT}", str, where), where, "board"),
             option(options, "host_ip", HOST_IP, str, where),
@@ -278,8 +277,6 @@ class Dca1000Radar:
             self.host.setup(self.lvds_lanes)
             self.host.start_record()
             if self.cli_port:
-                from twinfocus.sensors.ti_cli import TiRadarCli
-
                 self._cli = TiRadarCli(self.cli_port)
                 self._cli.configure(self.cfg)
             yield from self._stream()
@@ -293,8 +290,6 @@ class Dca1000Radar:
         return st.frames_lost, st.frames_zero_filled, st.lost_bytes
 
     def _stream(self) -> Iterator[RadarSample]:
-        import sys
-        import time
 
         scan, index, pending = 0, 0, None
         said, unsaid = 0.0, 0
@@ -364,7 +359,6 @@ class ZedVio:
     child_frame_id = "camera"
 
     def __init__(self, options: dict):
-        from twinfocus.sensors.zed import ZedSdkCamera
 
         where = "VIO backend 'zed'"
         check_unknown(options, {"resolution", "fps", "serial", "svo_path"}, where)
@@ -399,8 +393,6 @@ class EmulatedRigVio:
     child_frame_id = "radar"
 
     def __init__(self, options: dict):
-        from twinfocus.sensors.emulators.rig import EmulatedVio, default_sync_file
-        from twinfocus.trajectory import paper_raster
 
         where = "VIO backend 'emulated'"
         check_unknown(

@@ -33,6 +33,7 @@ has them in its metrics as ``capture``, as ``twinfocus focus`` has a converted c
 from __future__ import annotations
 
 import dataclasses
+import functools
 import sys
 import time
 from dataclasses import dataclass, field
@@ -47,6 +48,7 @@ from twinfocus.basis import BasisRows
 from twinfocus.depth_search import DEFAULT_HALF_RANGE_M, parse_depth
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import REFERENCE_FREE_RUNGS
+from twinfocus.radar import Chirp
 from twinfocus.safe_paths import child_path
 from twinfocus.settings import FOCUS_SETTINGS
 
@@ -63,7 +65,7 @@ _REGISTRATION_ROWS = 16
 @dataclass
 class _Scan:
     scan_id: str
-    chirp: object
+    chirp: Chirp
     n_channels: int
     first_wall: float
     pending: list = field(default_factory=list)
@@ -293,7 +295,6 @@ class Solver(Node):
         from twinfocus.autofocus import AutofocusConfig, twin_autofocus
         from twinfocus.backprojection import subimage_basis
         from twinfocus.grid import ImageGrid
-        from twinfocus.radar import Chirp
 
         rng = np.random.default_rng(0)
         chirp = Chirp(n_samples=8)
@@ -499,6 +500,8 @@ class Solver(Node):
         from twinfocus.pipeline import half_array_bases
         from twinfocus.space_variant import array_half
 
+        assert self.ref_grid is not None and self.tgt_grid is not None, "the streamed path has both regions"
+
         if s.half is not None and s.ref_half_rows.n == positions.shape[0]:
             try:
                 same = bool(np.array_equal(array_half(positions), s.half))
@@ -563,7 +566,7 @@ class Solver(Node):
                 f"scan {s.scan_id!r} complete ({s.n} positions); waiting up to {self.params['template_wait_s']:g} s for a template"
             )
             self.waiting.append(s)
-            self.call_later(self.params["template_wait_s"], lambda s=s: self._give_up(s))
+            self.call_later(self.params["template_wait_s"], functools.partial(self._give_up, s))
             return
         self._finish(s)
 
@@ -633,6 +636,7 @@ class Solver(Node):
             if s.scores is not None:
                 timing["registration_streamed"] = s.registration_s
             out.metrics["basis_batches"] = s.batches
+        assert s.last_wall is not None, "set by the scan's last measurement"
         timing["last_measurement_to_result"] = time.monotonic() - s.last_wall
         timing["after_last_measurement_work"] = time.monotonic() - t_start
         latency = time.monotonic() - s.last_wall
@@ -757,6 +761,8 @@ class Solver(Node):
 
         from twinfocus.ladder import fast_reference
         from twinfocus.pipeline import focus_bases, upper_band_basis
+
+        assert self.ref_grid is not None and self.tgt_grid is not None, "the streamed path has both regions"
 
         tgt_basis = s.tgt_rows.array()
         self._score_registration(s, final=True)  # the rows left (all of them if the template came after the scan)

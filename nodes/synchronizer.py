@@ -32,6 +32,8 @@ from nodes.node import Node, run_node
 from nodes.params import Param
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar import VirtualArray
+from twinfocus.sensors.capture_to_scan import stream_gaps
+from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
 from twinfocus.trajectory import Poses, phase_centres
 
 
@@ -60,10 +62,8 @@ class Synchronizer(Node):
         ext = self.params["extrinsics"] or {}
         if not isinstance(ext, dict):
             raise TwinFocusError(f"node {self.name!r}: parameter 'extrinsics' must be a mapping, got {ext!r}")
-        self.extrinsics = None
+        self.extrinsics: RadarCameraExtrinsics | None = None
         if ext:
-            from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
-
             self.extrinsics = RadarCameraExtrinsics.from_dict(ext, where=f"node {self.name!r} parameter 'extrinsics'")
         self.out = self.create_publisher("sar/measurement")
         self.create_subscription("vio/pose", self.on_pose)
@@ -146,6 +146,7 @@ class Synchronizer(Node):
         )
         pose = bracket.interpolate(np.array([t], dtype=np.int64))
         if p0.child_frame_id == "camera":
+            assert self.extrinsics is not None, "on_pose refuses camera poses without extrinsics"
             pose = self.extrinsics.radar_poses(pose)
         k = frame.channel_offsets_m.shape[0]
         array = VirtualArray(frame.channel_offsets_m, np.zeros(k, int), np.zeros(k, int), np.zeros((k, 2)))
@@ -212,7 +213,6 @@ class Synchronizer(Node):
 
 def _gaps(frame: RadarFrame) -> dict:
     """The frame's capture gaps (counts since the stream began), which its measurement carries on."""
-    from twinfocus.sensors.capture_to_scan import stream_gaps
 
     return stream_gaps(frame.frames_lost, frame.frames_zero_filled, frame.bytes_lost)
 

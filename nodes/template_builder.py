@@ -43,7 +43,15 @@ import numpy as np
 from msgs import Header, SarMeasurement, StereoFrame, TwinTemplate, now_ns
 from nodes.node import Node, run_node
 from nodes.params import REQUIRED, Param
+from twinfocus.board import default_board
+from twinfocus.cache import TemplateCache, array_sha256, file_sha256, template_key, template_scan_key
+from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M, Intrinsics, StereoCamera, pose_matrix
+from twinfocus.digital_twin.rig import Rig, camera_identity
+from twinfocus.digital_twin.segment import box_from_scene_roi
+from twinfocus.digital_twin.template import load_points
 from twinfocus.errors import TwinFocusError
+from twinfocus.grid import ImageGrid
+from twinfocus.scan import Scan
 
 
 class TemplateBuilder(Node):
@@ -81,7 +89,6 @@ class TemplateBuilder(Node):
 
     def __init__(self, **kw):
         super().__init__(**kw)
-        from twinfocus.grid import ImageGrid
 
         p = self.params
         if len(p["reference_roi"]) != 5:
@@ -101,9 +108,6 @@ class TemplateBuilder(Node):
         if p["rig"]:
             if src not in ("points", "stereo"):
                 raise TwinFocusError(f"node {self.name!r}: 'rig' moves a camera's cloud: source points or stereo")
-            from twinfocus.board import default_board
-            from twinfocus.cache import file_sha256
-            from twinfocus.digital_twin.rig import Rig, camera_identity
 
             rig = Rig.load(p["rig"])
             rig.check(default_board().name, camera_identity(path) if src == "points" else None, p["rig"])
@@ -114,12 +118,8 @@ class TemplateBuilder(Node):
             self.positions: list[np.ndarray] = []
             self.scan_id = None
             if src == "points":
-                from twinfocus.digital_twin.template import load_points
-
                 self.points = load_points(path, allow_non_finite=True)
             else:
-                from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M, StereoCamera, pose_matrix
-
                 self.pose = (
                     StereoCamera.load(path).scene_from_left
                     if path
@@ -134,8 +134,6 @@ class TemplateBuilder(Node):
             self.msg = self._build_static(src, path)
 
     def _build_static(self, src: str, path: str) -> TwinTemplate:
-        from twinfocus.cache import TemplateCache, array_sha256, template_key, template_scan_key
-        from twinfocus.scan import Scan
         from twinfocus.templates import load_template, template_from_scan
 
         # a physical twin's phase travels with it (TwinTemplate.phase_rad): the solver's closed form needs it
@@ -174,7 +172,7 @@ class TemplateBuilder(Node):
         image, self.cache_status = cache.get_or_compute(
             key, self.grid, lambda: template_from_scan(load(), self.grid, keep_phase=True, **self.bp)
         )
-        if self.cache_status == "hit":
+        if self.cache_status == "hit" and key is not None:  # a hit has a key
             self.log(f"template scan's image from the cache ({cache.path(key)})")
         if cache.warning:
             self.log(f"warning: {cache.warning}")
@@ -208,6 +206,7 @@ class TemplateBuilder(Node):
                 self.create_timer(self.params["republish_s"], self._send)
 
     def _send(self) -> None:
+        assert self.msg is not None, "scheduled only once the template is built"
         self.msg.header.stamp_ns = now_ns()
         self.pub.publish(self.msg)
         self.status_message = f"published {self.msg.kind} template from {self.msg.source}"
@@ -268,9 +267,7 @@ def stereo_cloud(frame: StereoFrame, scene_from_left: np.ndarray, reference_roi)
     left picture; and a summary dict."""
     import cv2
 
-    from twinfocus.digital_twin.camera import Intrinsics, StereoCamera
     from twinfocus.digital_twin.pipeline import reference_from_stereo
-    from twinfocus.digital_twin.segment import box_from_scene_roi
 
     k = np.asarray(frame.camera_matrix, dtype=np.float64)
     h, w = frame.left.shape[:2]

@@ -20,10 +20,11 @@ import os
 import queue
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
+from msgs import Header, Pose, RadarFrame
 from nodes.bus import Broker, topic_frame
 from nodes.node import Node
 
@@ -64,9 +65,9 @@ class Probe(Node):
     def __init__(
         self,
         broker: str,
-        listen: list[str] = (),
-        publish: list[str] = (),
-        wait_for: list[str] = (),
+        listen: Sequence[str] = (),
+        publish: Sequence[str] = (),
+        wait_for: Sequence[str] = (),
         name: str = "probe",
         **kw,
     ):
@@ -170,11 +171,11 @@ def write_driver_messages(writer, radar, vio, data, chirp, array) -> None:
     one scan, in the order it would have arrived: each pose 5 ms and each radar frame 20 ms after
     its stamp. radar, vio : :class:`twinfocus.trajectory.Poses` (radar frames, tracker poses);
     data : complex (M, K, N) IF samples; array : the virtual array (its ``offsets_m``)."""
-    from msgs import Header, Pose, RadarFrame
 
     events = [(int(t) + 5_000_000, "vio/pose", i) for i, t in enumerate(vio.timestamps_ns)]
     events += [(int(t) + 20_000_000, "radar/frame", m) for m, t in enumerate(radar.timestamps_ns)]
     for log_t, topic, i in sorted(events):
+        msg: Pose | RadarFrame
         if topic == "vio/pose":
             msg = Pose(
                 header=Header(int(vio.timestamps_ns[i]), i, "scene"),

@@ -198,7 +198,7 @@ class Visualizer(Node):
             ) from None
         self.server.daemon_threads = True
         threading.Thread(target=self.server.serve_forever, name="visualizer-http", daemon=True).start()
-        host, port = self.server.server_address[:2]
+        host, port = self.server.socket.getsockname()[:2]  # the TCP server's (host, port) as bound
         self.url = f"http://{host}:{port}/"
         self.log(f"live page at {self.url}")
         self.status_message = f"page at {self.url}"

@@ -125,11 +125,11 @@ def test_batch_on_a_two_worker_local_cluster_equals_separate_focus_runs(scans, t
 
 @pytest.mark.slow
 def test_summary_lists_pending_items_from_the_start_and_the_local_cluster_opens_no_dashboard(scans, tmp_path):
-    from twinfocus.cli.batch_jobs import run_batch
-    from twinfocus.cluster import dask_client
-
     import urllib.error
     import urllib.request
+
+    from twinfocus.cli.batch_jobs import run_batch
+    from twinfocus.cluster import dask_client
 
     with dask_client(workers=1) as client:
         port = client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.http_server.port)

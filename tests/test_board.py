@@ -109,7 +109,7 @@ def test_a_wrong_tx_offset_shows_in_a_corner_reflectors_channels(tmp_path):
         tx, rx = mmwcas_antenna_positions_body_m(board=true_board)
         frame = simulate_mimo_frames(chirp, pose, corner, tx_body_m=tx, rx_body_m=rx)[0]
 
-        def residual(board):
+        def residual(board, frame=frame):
             ch = frame_to_virtual_channels(frame, chirp, z0, mmwcas_virtual_array(board))
             return np.angle((ch * np.conj(truth)).mean(axis=-1))  # per channel, rad
 

@@ -1,8 +1,8 @@
 """Faults a careless or hostile user makes: each refused in one line, exit 2, earlier
 results unchanged, nothing written outside the folder the output belongs in."""
 import errno
-import json
 import hashlib
+import json
 
 import numpy as np
 import pytest

@@ -142,7 +142,9 @@ def test_bad_inputs_give_clear_errors_and_keep_old_results(small_scans, tmp_path
     (out / "target.npy").write_bytes(b"earlier result")
     z = np.load(scan)
     cases = {
-        "NaN or inf": _corrupt(scan, tmp_path / "nan.npz", data=np.where(np.arange(z["data"].size).reshape(z["data"].shape) == 5, np.nan, z["data"]).astype(np.complex64)),
+        "NaN or inf": _corrupt(scan, tmp_path / "nan.npz",
+                               data=np.where(np.arange(z["data"].size).reshape(z["data"].shape) == 5, np.nan,
+                                             z["data"]).astype(np.complex64)),
         "positions must have shape": _corrupt(scan, tmp_path / "shape.npz", positions=z["positions"][:, :10]),
         "all zeros": _corrupt(scan, tmp_path / "zeros.npz", data=np.zeros_like(z["data"])),
         "must be complex": _corrupt(scan, tmp_path / "real.npz", data=z["data"].real.astype(np.float32)),

@@ -88,14 +88,14 @@ def test_the_template_reaches_its_subscriber_whatever_the_start_order(tmp_path, 
         with local_broker() as ep:
             wait_for = names if graph else []
             made = {
-                "template": lambda: TemplateBuilder(
+                "template": lambda wait_for=wait_for: TemplateBuilder(
                     name="template",
                     broker=ep,
                     params={"source": "file", "path": str(path), "reference_roi": REF_ROI, "size": 12,
                             "wait_for": wait_for, "heartbeat_s": 0.2},
                 ),
-                "probe": lambda: Probe(ep, listen=["twin/template"], wait_for=wait_for),
-                "everything": lambda: Everything(broker=ep, params={"wait_for": wait_for, "heartbeat_s": 0.2}),
+                "probe": lambda wait_for=wait_for: Probe(ep, listen=["twin/template"], wait_for=wait_for),
+                "everything": lambda wait_for=wait_for: Everything(broker=ep, params={"wait_for": wait_for, "heartbeat_s": 0.2}),
             }
             nodes, threads = {}, []
             try:

@@ -223,7 +223,7 @@ def good_log(tmp_path):
     finally:
         g.kill()
     assert LogReader(out).complete and LogReader(out).counts["radar/frame"] == 100, g.text
-    assert _partials(out.parent) == [] and f"wrote " in g.text and str(out) in g.text, g.text
+    assert _partials(out.parent) == [] and "wrote " in g.text and str(out) in g.text, g.text
     return src, out, out.read_bytes()
 
 

@@ -57,7 +57,7 @@ def test_the_reference_mcap_reader_reads_our_files(tmp_path):
         assert all(c.message_encoding == "msgpack" for c in summary.channels.values())
         got = list(reader.iter_messages())
     assert len(got) == len(msgs)
-    for (schema, channel, rec), m in zip(got, msgs):
+    for (_schema, channel, rec), m in zip(got, msgs):
         assert channel.topic == m.TOPIC and rec.sequence == m.header.seq
         assert_same(m, decode(rec.data))
         # one clock per field: publish time is the log time (wall clock), never a sensor stamp,

@@ -225,7 +225,6 @@ def test_a_node_process_stops_cleanly_on_sigint():
 def test_synchronizer_interpolates_poses_and_reports_what_it_cannot_pair(capfd):
     from nodes.synchronizer import Synchronizer
 
-    rng = np.random.default_rng(3)
     offsets = np.stack([np.linspace(-0.04, 0.04, 5), np.zeros(5), np.zeros(5)], axis=1)
     # Poses every 33 ms with a curving path and a turning orientation; a 0.5 s hole in the middle.
     t_pose = np.arange(0, 2_000_000_000, 33_333_333)

@@ -10,13 +10,13 @@ import pytest
 
 from nodes import launch
 from nodes.params import resolve
-from twinfocus.option_types import CHECKS, finite_float
 from nodes.solver import Solver
 from nodes.testing import local_broker
 from twinfocus import settings
 from twinfocus.autofocus import AutofocusConfig
 from twinfocus.cli import focus
 from twinfocus.errors import TwinFocusError
+from twinfocus.option_types import CHECKS, finite_float
 from twinfocus.radar import Chirp
 from twinfocus.settings import FOCUS_SETTINGS, default_settings, resolve_device
 

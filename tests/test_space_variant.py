@@ -505,7 +505,7 @@ def test_the_fits_adam_steps_as_torchs_adam():
     ref = [torch.tensor(a0), torch.tensor(b0)]
     opt_mine = _Adam([{"params": [mine[0]], "lr": 0.01}, {"params": [mine[1]], "lr": 0.2}])
     opt_ref = torch.optim.Adam([{"params": [ref[0]], "lr": 0.01}, {"params": [ref[1]], "lr": 0.2}])
-    for step in range(6):
+    for _step in range(6):
         grads = [torch.tensor(rng.normal(size=p.shape).astype(np.float32)) for p in mine]
         for p, q, g in zip(mine, ref, grads):
             p.grad, q.grad = g.clone(), g.clone()

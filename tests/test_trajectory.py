@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from twinfocus.errors import TwinFocusError
 from twinfocus.board import default_board
+from twinfocus.errors import TwinFocusError
 from twinfocus.radar import mmwcas_virtual_array
 from twinfocus.trajectory import (
     Poses,

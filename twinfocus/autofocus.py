@@ -33,7 +33,15 @@ from twinfocus.phase_ramp import (  # fit_linear_phase: also found here by its c
     ramp_free_coherence,
 )
 from twinfocus.settings import FOCUS_SETTINGS, config_default, resolve_device
-from twinfocus.template_match import OUTLINE_CHOICE, OUTLINE_CHOICES
+from twinfocus.template_match import (
+    OUTLINE_CHOICE,
+    OUTLINE_CHOICES,
+    averaged_outline_phase,
+    correlation_phase,
+    outline_phase,
+    projection_phase,
+    register_template,
+)
 
 if TYPE_CHECKING:  # torch is imported where the optimiser runs: the closed-form estimators need none
     import torch
@@ -355,67 +363,101 @@ def twin_autofocus(
     extra: dict = {}
     t0 = time.perf_counter()
     if cfg.template_registration == "correlation":
-        from twinfocus.template_match import register_template
-
         template, _, extra["registration"] = register_template(
             basis, template, int(cfg.registration_max_shift_px), scores=registration_scores
         )
     if cfg.init == "correlation":
-        from twinfocus.template_match import correlation_phase
-
         init_phase_rad = correlation_phase(basis, template)
     elif cfg.init == "projection":
-        from twinfocus.template_match import projection_phase
-
-        starts = [init_phase_rad]
-        # fixed seed: the same scan gives the same estimate
-        rng = np.random.default_rng(0)
-        starts += [rng.uniform(-np.pi, np.pi, int(basis.shape[0])) for _ in range(int(cfg.projection_restarts))]
-        ends = [projection_phase(basis, template, int(cfg.projection_iterations), s) for s in starts]
-        init_phase_rad = ends[0]
-        if len(ends) > 1:
-            end_losses = [template_loss(basis, e, template, cfg) for e in ends]
-            best = int(np.argmin(end_losses))
-            init_phase_rad = ends[best]
-            extra["projection_restarts"] = {"losses": end_losses, "chosen": best}
-        if cfg.refine_below_coherence > 0 and int(cfg.iterations) > 0:
-            if aperture_m is None:
-                raise TwinFocusError(
-                    "refine_below_coherence needs each radar position's place in the aperture (aperture_m, (M, 2) "
-                    "metres) to take the ramp out of the projections' phases"
-                )
-            extra["refine_check"] = refine_check(init_phase_rad, aperture_m, cfg.refine_below_coherence)
-            if not extra["refine_check"]["refined"]:
-                cfg = replace(cfg, iterations=0)
+        init_phase_rad, cfg = _projection_start(basis, template, cfg, init_phase_rad, aperture_m, extra)
     elif cfg.init == "outline":
-        from twinfocus.template_match import averaged_outline_phase, outline_phase
-
-        if support is None:
-            raise TwinFocusError(
-                "the outline estimator needs the reference's outline (a digital twin from a point "
-                "cloud gives one: --digital-twin); choose another --estimator for this template"
-            )
-        if cfg.outline_ensemble:
-            if aperture_m is None:
-                raise TwinFocusError(
-                    "outline_ensemble needs each radar position's place in the aperture (aperture_m, (M, 2) metres) "
-                    "to line the estimates up"
-                )
-            init_phase_rad, ensemble = averaged_outline_phase(
-                basis, support, aperture_m, growth_rounds=cfg.outline_growth_rounds, choose=cfg.outline_choice
-            )
-            extra["outline"] = ensemble.pop("first")
-            extra["outline_ensemble"] = ensemble
-        else:
-            init_phase_rad, extra["outline"] = outline_phase(basis, support, choose=cfg.outline_choice)
+        init_phase_rad = _outline_start(basis, cfg, support, aperture_m, extra)
+    extra["template"] = template
     if cfg.init != "zero" and int(cfg.iterations) == 0:
         assert init_phase_rad is not None  # every init but "zero" has set it above
         loss = np.array([template_loss(basis, init_phase_rad, template, cfg)])
-        extra["template"] = template
         return AutofocusResult(
             init_phase_rad, loss, form_image(basis, init_phase_rad), time.perf_counter() - t0, "twin", extra
         )
-    extra["template"] = template
+    phase, losses = _optimise(basis, template, cfg, progress, init_phase_rad)
+    elapsed = time.perf_counter() - t0
+    return AutofocusResult(phase, losses, form_image(basis, phase), elapsed, "twin", extra)
+
+
+def _projection_start(
+    basis: np.ndarray,
+    template: np.ndarray,
+    cfg: AutofocusConfig,
+    init_phase_rad: np.ndarray | None,
+    aperture_m: np.ndarray | None,
+    extra: dict,
+) -> tuple[np.ndarray, AutofocusConfig]:
+    """``init="projection"``: the projections from ``init_phase_rad`` and ``projection_restarts``
+    random starts, the lowest template loss kept; with ``refine_below_coherence``, ``cfg`` comes
+    back with no iterations when the projections' coherence says the optimiser would not help.
+    Returns (phase float (M,) rad, config); what it chose goes into ``extra``."""
+
+    starts = [init_phase_rad]
+    # fixed seed: the same scan gives the same estimate
+    rng = np.random.default_rng(0)
+    starts += [rng.uniform(-np.pi, np.pi, int(basis.shape[0])) for _ in range(int(cfg.projection_restarts))]
+    ends = [projection_phase(basis, template, int(cfg.projection_iterations), s) for s in starts]
+    init_phase_rad = ends[0]
+    if len(ends) > 1:
+        end_losses = [template_loss(basis, e, template, cfg) for e in ends]
+        best = int(np.argmin(end_losses))
+        init_phase_rad = ends[best]
+        extra["projection_restarts"] = {"losses": end_losses, "chosen": best}
+    if cfg.refine_below_coherence > 0 and int(cfg.iterations) > 0:
+        if aperture_m is None:
+            raise TwinFocusError(
+                "refine_below_coherence needs each radar position's place in the aperture (aperture_m, (M, 2) "
+                "metres) to take the ramp out of the projections' phases"
+            )
+        extra["refine_check"] = refine_check(init_phase_rad, aperture_m, cfg.refine_below_coherence)
+        if not extra["refine_check"]["refined"]:
+            cfg = replace(cfg, iterations=0)
+    return init_phase_rad, cfg
+
+
+def _outline_start(
+    basis: np.ndarray, cfg: AutofocusConfig, support: np.ndarray | None, aperture_m: np.ndarray | None, extra: dict
+) -> np.ndarray:
+    """``init="outline"``: the phase that fills the reference's outline ``support`` (bool (H, W)),
+    averaged over the ensemble with ``outline_ensemble``. Returns float (M,) rad; the outline's
+    info goes into ``extra``."""
+
+    if support is None:
+        raise TwinFocusError(
+            "the outline estimator needs the reference's outline (a digital twin from a point "
+            "cloud gives one: --digital-twin); choose another --estimator for this template"
+        )
+    if not cfg.outline_ensemble:
+        phase, extra["outline"] = outline_phase(basis, support, choose=cfg.outline_choice)
+        return phase
+    if aperture_m is None:
+        raise TwinFocusError(
+            "outline_ensemble needs each radar position's place in the aperture (aperture_m, (M, 2) metres) "
+            "to line the estimates up"
+        )
+    phase, ensemble = averaged_outline_phase(
+        basis, support, aperture_m, growth_rounds=cfg.outline_growth_rounds, choose=cfg.outline_choice
+    )
+    extra["outline"] = ensemble.pop("first")
+    extra["outline_ensemble"] = ensemble
+    return phase
+
+
+def _optimise(
+    basis: np.ndarray,
+    template: np.ndarray,
+    cfg: AutofocusConfig,
+    progress: ProgressFn | None,
+    init_phase_rad: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's optimiser: Adam on 1 - SSIM(soft-thresholded image, template), after
+    ``coarse_iterations`` on blurred images when asked. Returns (phase float (M,) rad, the loss
+    of every iteration, coarse ones first)."""
     import torch
 
     dtype = _torch_dtype(cfg)
@@ -452,8 +494,7 @@ def twin_autofocus(
         history.append(coarse_losses)
     phase, losses = _run_adam(make_loss(0.0), basis.shape[0], cfg, dtype, progress, init)
     history.append(losses)
-    elapsed = time.perf_counter() - t0
-    return AutofocusResult(phase, np.concatenate(history), form_image(basis, phase), elapsed, "twin", extra)
+    return phase, np.concatenate(history)
 
 
 def refine_check(phase_rad: np.ndarray, aperture_m: np.ndarray, refine_below: float) -> dict:

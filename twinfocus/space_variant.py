@@ -701,10 +701,11 @@ class _DriftMatch:
             c_out, h_out, theta = self._buffers
             image = np.empty(self.b.shape[1], np.complex64)
             torch.addmm(phase[:, None], slopes, self.q_t, out=theta)
+            assert e is None or self.half is not None, "the tilted basis comes with the half basis"
             _rotate(
                 theta.numpy(),
                 self.b.numpy(),
-                None if e is None else self.half.numpy(),
+                None if e is None or self.half is None else self.half.numpy(),
                 None if e is None else e.numpy(),
                 None if e is None else s2.numpy(),
                 self._kc,

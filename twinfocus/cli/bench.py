@@ -14,15 +14,20 @@ from __future__ import annotations
 import argparse
 import shlex
 import sys
+from pathlib import Path
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.evaluation.beyond import run_beyond, write_beyond_report
+from twinfocus.evaluation.experiments import EXPERIMENT_NAMES
+from twinfocus.evaluation.report import write_report
+from twinfocus.evaluation.where import run_where, write_where_report
 from twinfocus.option_types import positive_int
+from twinfocus.settings import resolve_device
 
 SUITES = ("paper", "beyond", "where")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from twinfocus.evaluation.experiments import EXPERIMENT_NAMES
 
     p.add_argument(
         "suite",
@@ -74,10 +79,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
 
-    from twinfocus.evaluation.beyond import run_beyond, write_beyond_report
-    from twinfocus.evaluation.report import write_report
     from twinfocus.evaluation.runner import run_paper
 
     args.out = args.out or f"bench_{args.suite}"
@@ -90,13 +92,11 @@ def run(args: argparse.Namespace) -> int:
             raise TwinFocusError(
                 f"--report-only: {Path(args.out) / 'raw'} holds no raw results; run the benchmark first"
             )
-        from twinfocus.evaluation.where import write_where_report
 
         writer = {"beyond": write_beyond_report, "where": write_where_report}.get(args.suite, write_report)
         print(writer(args.out, args.markdown))
         return 0
     only = [s.strip() for s in args.only.split(",") if s.strip()] or None
-    from twinfocus.settings import resolve_device
 
     resolve_device(args.device)  # a CUDA device that is not there fails before any work
     if args.trade_scenes is not None and args.trade_scenes < 1:
@@ -110,8 +110,6 @@ def run(args: argparse.Namespace) -> int:
     log = (lambda msg: None) if args.quiet else None
     kw = {} if log is None else {"log": log}
     if args.suite == "where":
-        from twinfocus.evaluation.where import run_where
-
         print(run_where(args.out, draws=args.draws or 1, quick=args.quick, markdown=args.markdown, command=command))
         return 0
     if args.suite == "beyond":

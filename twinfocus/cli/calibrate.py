@@ -16,9 +16,17 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from twinfocus.atomic import output_files
+from twinfocus.board import load_board
+from twinfocus.calibration import find_corner, make_calibration, pair_array, save_calibration_png
+from twinfocus.cli import convert
 from twinfocus.errors import TwinFocusError
 from twinfocus.option_types import non_negative_int, positive_float, positive_int
+from twinfocus.radar import mmwcas_virtual_array
+from twinfocus.scan import Scan
+from twinfocus.sensors.frames import frame_to_virtual_channels, mmwcas_antenna_positions_body_m
 
 #: convert's options that have no meaning for a still capture of a corner.
 _NOT_FOR_CALIBRATION = {
@@ -43,7 +51,6 @@ _NOT_FOR_CALIBRATION = {
 
 
 def _convert_parser() -> argparse.ArgumentParser:
-    from twinfocus.cli import convert
 
     p = argparse.ArgumentParser(add_help=False)
     convert.add_arguments(p)
@@ -85,12 +92,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _calibrate(args: argparse.Namespace, out: Path, picture: Path) -> int:
-    import numpy as np
-
-    from twinfocus.board import load_board
-    from twinfocus.calibration import find_corner, make_calibration, pair_array, save_calibration_png
-    from twinfocus.radar import mmwcas_virtual_array
-    from twinfocus.sensors.frames import frame_to_virtual_channels, mmwcas_antenna_positions_body_m
 
     if not args.range_m > 0 or not args.window_m > 0:
         raise TwinFocusError(f"--range-m and --window-m must be positive, got {args.range_m} and {args.window_m}")
@@ -104,8 +105,6 @@ def _calibrate(args: argparse.Namespace, out: Path, picture: Path) -> int:
     board = load_board(getattr(args, "board", None))
     array = mmwcas_virtual_array(board)
     if capture.suffix == ".npz":
-        from twinfocus.scan import Scan
-
         scan = Scan.load(capture)
         if scan.n_channels != array.n_channels:
             raise TwinFocusError(
@@ -163,9 +162,6 @@ def quality_warnings(q: dict) -> list[str]:
 
 def _read_frames(args, capture: Path, say):
     """Up to --max-frames usable frames of a capture, complex64 (F, 12, 16, N), and its chirp."""
-    import numpy as np
-
-    from twinfocus.cli import convert
 
     cargs = _convert_parser().parse_args([str(capture), "--trajectory", "-", "--out", "unused.npz"])
     for k, v in vars(args).items():

@@ -20,12 +20,44 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
+from msgs import Header, Pose, RadarFrame
+from msgs.mcap_log import LogWriter
+from nodes.recorder import radar_metadata
 from twinfocus.atomic import output_files
+from twinfocus.board import load_board
+from twinfocus.calibration import apply_calibration, calibration_for
+from twinfocus.clock_offset import range_history_offset
 from twinfocus.errors import TwinFocusError
 from twinfocus.option_types import finite_float, non_negative_int, positive_float, positive_int
+from twinfocus.progress import Progress
+from twinfocus.radar import mmwcas_virtual_array
+from twinfocus.sensors.capture_to_scan import capture_report_path, scan_from_frames, stream_gaps
+from twinfocus.sensors.chirp_profile import chirp_record, resolve_chirp
+from twinfocus.sensors.dca1000 import RawFrameLayout
+from twinfocus.sensors.dca1000_files import Dca1000FileCapture, find_cli_json, read_cli_json
+from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
+from twinfocus.sensors.rosbag2_files import read_any_trajectory
+from twinfocus.sensors.ti_cli import RadarCliConfig
+from twinfocus.sensors.ti_mmwcas import MmwcasCapture, find_capture_setup, resolve_config
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    _add_input_arguments(p)
+    _add_chirp_arguments(p)
+    _add_cascade_arguments(p)
+    _add_dca1000_arguments(p)
+    p.add_argument(
+        "--board",
+        help="board file (YAML) of the radar's antenna layout (default: TI's MMWCAS-RF-EVM, "
+        "twinfocus/boards/mmwcas_rf_evm.yaml; docs/real_array.md)",
+    )
+    p.add_argument("--quiet", action="store_true")
+
+
+def _add_input_arguments(p: argparse.ArgumentParser) -> None:
+    """The capture, the trajectory and how the two are put together; the outputs."""
     p.add_argument(
         "capture",
         help="MMWCAS capture folder (master_0000_data.bin, master_0000_idx.bin, slave1_..., ...), "
@@ -72,6 +104,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--keep-first-frame", action="store_true", help="keep the capture card's first frame (known bad)")
     p.add_argument("--keep-flagged", action="store_true", help="keep frames flagged as device-skewed")
+
+
+def _add_chirp_arguments(p: argparse.ArgumentParser) -> None:
+    """The chirp and the index files' clock when the capture's configuration does not say; the calibration."""
     p.add_argument(
         "--n-samples",
         type=positive_int,
@@ -101,6 +137,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--calibration",
         help="channel calibration to apply (.npz from `twinfocus calibrate`); without one a warning is printed",
     )
+
+
+def _add_cascade_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group(
         "cascade chirp and layout (read from the capture's mmWave Studio JSON / Lua setup when there; "
         "the chirp options above override it, with a note)"
@@ -126,6 +165,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="drop the first frame of every capture slice _0000, _0001, ... as TI's cascade processing does "
         "(default: only the capture's first)",
     )
+
+
+def _add_dca1000_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("DCA1000 capture files")
     g.add_argument("--cfg", help="mmWave SDK .cfg the radar ran (chirp, frame layout, frame period)")
     g.add_argument(
@@ -146,12 +188,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="mmwcas",
         help="'mmwcas' (default): 12 chirps = TX 0..11 x 16 RX as the emulated rig streams; 'cfg': from --cfg",
     )
-    p.add_argument(
-        "--board",
-        help="board file (YAML) of the radar's antenna layout (default: TI's MMWCAS-RF-EVM, "
-        "twinfocus/boards/mmwcas_rf_evm.yaml; docs/real_array.md)",
-    )
-    p.add_argument("--quiet", action="store_true")
 
 
 def _is_mmwcas(path: Path) -> bool:
@@ -159,7 +195,6 @@ def _is_mmwcas(path: Path) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from twinfocus.sensors.capture_to_scan import capture_report_path
 
     out = Path(args.out)
     if out.suffix != ".npz":
@@ -170,13 +205,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _convert(args: argparse.Namespace, out: Path) -> int:
-    from twinfocus.board import load_board
     from twinfocus.evaluation.runner import write_json_atomic
-    from twinfocus.progress import Progress
-    from twinfocus.radar import mmwcas_virtual_array
-    from twinfocus.sensors.capture_to_scan import capture_report_path, scan_from_frames
-    from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
-    from twinfocus.sensors.rosbag2_files import read_any_trajectory
 
     if not args.z0 > 0:
         raise TwinFocusError(f"--z0 must be positive, got {args.z0}")
@@ -270,7 +299,6 @@ DEFAULT_MIN_APPLIED_OFFSET_S = 0.025
 def _align_by_scan(convert, scan, radar_traj, report, args, say):
     """``--align scan``: the clock offset from the first conversion's data, then the conversion again
     with it applied. Returns (scan, radar trajectory, report, the estimate's record or None)."""
-    from twinfocus.clock_offset import range_history_offset
 
     t0 = int(radar_traj.timestamps_ns[0])
     try:
@@ -310,7 +338,6 @@ def _calibrate(args, scan, array, board: str, say) -> dict | None:
             file=sys.stderr,
         )
         return None
-    from twinfocus.calibration import apply_calibration, calibration_for
 
     correction, record = calibration_for(args.calibration, scan.chirp, array, board)
     scan.data = apply_calibration(scan.data, correction)
@@ -320,8 +347,6 @@ def _calibrate(args, scan, array, board: str, say) -> dict | None:
 
 
 def _open_mmwcas(args, capture: Path, say):
-    from twinfocus.sensors.chirp_profile import chirp_record
-    from twinfocus.sensors.ti_mmwcas import MmwcasCapture, find_capture_setup, resolve_config
 
     config, notes = resolve_config(
         capture,
@@ -363,11 +388,6 @@ class _Closing:
 
 
 def _open_dca1000(args, capture: Path, say):
-    from twinfocus.sensors.capture_to_scan import stream_gaps
-    from twinfocus.sensors.chirp_profile import chirp_record, resolve_chirp
-    from twinfocus.sensors.dca1000 import RawFrameLayout
-    from twinfocus.sensors.dca1000_files import Dca1000FileCapture, find_cli_json, read_cli_json
-    from twinfocus.sensors.ti_cli import RadarCliConfig
 
     period = args.frame_period_s
     if args.cfg:
@@ -418,11 +438,6 @@ def _open_dca1000(args, capture: Path, say):
 
 def _write_mcap(path: Path, scan, radar_traj, array, chirp, extrinsics, scan_id: str, overwrite: bool) -> None:
     """radar/frame per scan position and vio/pose per trajectory sample, in stamp order."""
-    import numpy as np
-
-    from msgs import Header, Pose, RadarFrame
-    from msgs.mcap_log import LogWriter
-    from nodes.recorder import radar_metadata
 
     t0, t1 = int(scan.timestamps_ns[0]), int(scan.timestamps_ns[-1])
     in_span = np.flatnonzero((radar_traj.timestamps_ns >= t0) & (radar_traj.timestamps_ns <= t1))

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import asdict
+
+from twinfocus.sensors.usb_devices import list_devices
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -12,9 +15,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import asdict
-
-    from twinfocus.sensors.usb_devices import list_devices
 
     devices = list_devices(include_unknown=args.all)
     if args.json:

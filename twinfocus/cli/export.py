@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import sys
+
+from nodes.foxglove_convert import export_log
+from twinfocus.progress import Progress
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -19,10 +23,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import sys
-
-    from nodes.foxglove_convert import export_log
-    from twinfocus.progress import Progress
 
     counts = export_log(
         args.log,

@@ -8,8 +8,13 @@ import argparse
 import json
 import sys
 
+import numpy as np
+
 from twinfocus.cli.simulate import add_layout_arguments, layout_kwargs
+from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M, StereoCamera, pose_matrix
+from twinfocus.digital_twin.render import render_memory_bytes, render_scene
 from twinfocus.errors import TwinFocusError
+from twinfocus.machine import require_memory
 from twinfocus.option_types import finite_float, non_negative_float, non_negative_int, positive_int
 
 
@@ -42,10 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
 
-    from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M, StereoCamera, pose_matrix
-    from twinfocus.digital_twin.render import render_scene
     from twinfocus.scenario import Scenario
 
     if args.noise_dn < 0:
@@ -74,8 +76,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _check_memory(scene, width: int, height: int) -> None:
     """Refuse, before anything is drawn, a rendering that cannot fit in memory."""
-    from twinfocus.digital_twin.render import render_memory_bytes
-    from twinfocus.machine import require_memory
 
     require_memory(
         render_memory_bytes(scene, width, height),

@@ -12,6 +12,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
+
+from twinfocus.board import load_board
+from twinfocus.digital_twin.render import write_image_atomic
+from twinfocus.digital_twin.rig import camera_identity, measure_rig, overlay_picture, scan_board
+from twinfocus.digital_twin.template import load_points
+from twinfocus.errors import TwinFocusError
+from twinfocus.grid import ImageGrid
+from twinfocus.scan import Scan
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -27,22 +36,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from twinfocus.digital_twin.render import write_image_atomic
-    from twinfocus.digital_twin.rig import camera_identity, measure_rig, overlay_picture, scan_board
-    from twinfocus.digital_twin.template import load_points
-    from twinfocus.errors import TwinFocusError
-    from twinfocus.grid import ImageGrid
-    from twinfocus.scan import Scan
 
     if not str(args.out).endswith(".json"):
         raise TwinFocusError(f"--out must name a .json file, got {args.out}")
     picture = args.picture or str(Path(args.out).with_suffix(".png"))
     scan = Scan.load(args.scan)
     if args.board:
-        from twinfocus.board import load_board
-
         board = load_board(args.board).name
     else:
         board = scan_board(scan)

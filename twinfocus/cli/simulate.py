@@ -8,8 +8,14 @@ import json
 import sys
 import time
 
+import numpy as np
+
+from twinfocus.array_errors import NONE, array_error_levels, array_errors_stream, draw_array_errors
 from twinfocus.atomic import output_files
+from twinfocus.board import load_board
+from twinfocus.digital_twin.template import save_points
 from twinfocus.errors import TwinFocusError
+from twinfocus.machine import available_memory_bytes, require_memory
 from twinfocus.motion import ERROR_MODELS
 from twinfocus.option_types import (
     bounded_float,
@@ -20,6 +26,8 @@ from twinfocus.option_types import (
     positive_float,
     positive_int,
 )
+from twinfocus.progress import Progress
+from twinfocus.radar import Chirp, mmwcas_virtual_array
 
 
 def add_layout_arguments(p: argparse.ArgumentParser) -> None:
@@ -67,6 +75,15 @@ def layout_kwargs(args: argparse.Namespace) -> dict:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    _add_scan_arguments(p)
+    _add_field_arguments(p)
+    _add_cloud_arguments(p)
+    _add_array_arguments(p)
+    p.add_argument("--quiet", action="store_true")
+
+
+def _add_scan_arguments(p: argparse.ArgumentParser) -> None:
+    """The outputs, the scene, the trajectory and its tracking error, the noise."""
     p.add_argument(
         "--out", required=True, help="scan file to write (.npz; an existing one is refused without --overwrite)"
     )
@@ -119,6 +136,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--columns", type=positive_int, default=6, help="raster columns (default 6)")
     p.add_argument("--rows", type=positive_int, default=130, help="raster rows per column (default 130)")
     p.add_argument("--seed", type=non_negative_int, default=0)
+
+
+def _add_field_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("field-like scenes (rough, curved references; deeper targets)")
     g.add_argument(
         "--reference-roughness-deg",
@@ -155,6 +175,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="M",
         help="put the target this many metres further than the reference, along its ray (default 0)",
     )
+
+
+def _add_cloud_arguments(p: argparse.ArgumentParser) -> None:
     c = p.add_argument_group("camera cloud of the reference (for focus --digital-twin)")
     c.add_argument(
         "--reference-cloud-out",
@@ -195,6 +218,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="MM",
         help="rigid offset of the cloud: a length (random direction) or three (x y z), mm (default 2)",
     )
+
+
+def _add_array_arguments(p: argparse.ArgumentParser) -> None:
     a = p.add_argument_group(
         "the array as hardware is (docs/calibration.md): a level, then any knob replaces its value"
     )
@@ -213,7 +239,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     a.add_argument("--iq-gain-db", type=finite_float, help="I/Q gain mismatch bound, dB (typical 1)")
     a.add_argument("--iq-phase-deg", type=finite_float, help="I/Q phase mismatch bound, degrees (typical 2)")
     a.add_argument("--beamwidth-deg", type=finite_float, help="antenna half-power beam width, degrees (typical 60)")
-    p.add_argument("--quiet", action="store_true")
 
 
 _ARRAY_KNOBS = (
@@ -230,7 +255,6 @@ _ARRAY_KNOBS = (
 
 def array_errors_from_args(args: argparse.Namespace):
     """The :class:`~twinfocus.array_errors.ArrayErrors` draw the options ask for (None: the perfect array)."""
-    from twinfocus.array_errors import NONE, array_error_levels, array_errors_stream, draw_array_errors
 
     levels = array_error_levels(args.array_errors, **{k: getattr(args, k) for k in _ARRAY_KNOBS})
     if levels == NONE:
@@ -259,9 +283,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    import numpy as np
 
-    from twinfocus.progress import Progress
     from twinfocus.scenario import Scenario, simulate_scenario
 
     snr = None if np.isinf(args.snr_db) else args.snr_db
@@ -286,8 +308,6 @@ def _simulate(args: argparse.Namespace) -> int:
         board=args.board,
     )
     if args.board:
-        from twinfocus.board import load_board
-
         load_board(args.board)  # a bad board file is refused before the (long) simulation
     _check_cost(sc, args)
     array_errors, levels = array_errors_from_args(args)
@@ -314,8 +334,6 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.template_out:
         template_scan.save(args.template_out)
     if cloud is not None:
-        from twinfocus.digital_twin.template import save_points
-
         save_points(args.reference_cloud_out, cloud)
     info = {
         "scan": str(args.out),
@@ -336,8 +354,6 @@ def _simulate(args: argparse.Namespace) -> int:
 def _check_cost(sc, args) -> None:
     """Refuse, before any work, a simulation that cannot fit in memory (``--rows
     100000`` would run for minutes and die); say how long a large one will take."""
-    from twinfocus.machine import available_memory_bytes, require_memory
-    from twinfocus.radar import Chirp, mmwcas_virtual_array
     from twinfocus.scene import scatterer_spacing_m
     from twinfocus.simulate import BYTES_PER_SCATTERER_CELL, scatterer_cells, simulation_cost
 

@@ -14,12 +14,25 @@ Every output is computed before anything is written, and each file is written at
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import sys
 import time
 
+import numpy as np
+
+from twinfocus.atomic import write_bytes_atomic, write_text_atomic
+from twinfocus.digital_twin.align import RadarCameraCalibration, calibrate_offset
+from twinfocus.digital_twin.camera import Intrinsics, StereoCamera
+from twinfocus.digital_twin.render import read_image, write_image_atomic
+from twinfocus.digital_twin.rig import Rig, scan_board
+from twinfocus.digital_twin.segment import Seed, box_from_scene_roi, load_segmenter
+from twinfocus.digital_twin.template import digital_twin_template
 from twinfocus.errors import TwinFocusError
+from twinfocus.grid import ImageGrid
 from twinfocus.option_types import finite_float, positive_float, positive_int
+from twinfocus.scan import Scan
+from twinfocus.sensors.rosbag2_files import read_bag_stereo, split_bag_source
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -113,12 +126,9 @@ def _check_args(args) -> None:
 
 def _pair_from_bag(args):
     """(StereoCamera, left, right) from a rosbag2's rectified Image pair and their CameraInfo."""
-    import numpy as np
-
-    from twinfocus.digital_twin.camera import Intrinsics, StereoCamera
-    from twinfocus.sensors.rosbag2_files import read_bag_stereo, split_bag_source
 
     left_src, right_src = split_bag_source(args.left), split_bag_source(args.right)
+    assert left_src is not None, "called for a --left of the form BAG:TOPIC"
     if right_src is None or right_src.path != left_src.path:
         raise TwinFocusError(f"{args.right}: with a bag's left image, the right must be BAG:TOPIC of the same bag")
     pair = read_bag_stereo(left_src.path, left_src.topic, right_src.topic, left_src.at_ns)
@@ -133,66 +143,19 @@ def _pair_from_bag(args):
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from twinfocus.atomic import write_bytes_atomic
-    from twinfocus.digital_twin.camera import StereoCamera
     from twinfocus.digital_twin.pipeline import reference_from_stereo
-    from twinfocus.digital_twin.pointcloud import PointCloudConfig, radar_point_spacing
-    from twinfocus.digital_twin.render import read_image, write_image_atomic
-    from twinfocus.digital_twin.segment import Seed, box_from_scene_roi, load_segmenter
-    from twinfocus.grid import ImageGrid
-    from twinfocus.scan import Scan
+    from twinfocus.digital_twin.pointcloud import PointCloudConfig
 
     _check_args(args)
     say = (lambda *a: None) if args.quiet else (lambda *a: print("twinfocus twin:", *a, file=sys.stderr))
     t_all = time.perf_counter()
-    from twinfocus.sensors.rosbag2_files import split_bag_source
 
-    if split_bag_source(args.left) is not None:
-        camera, left, right = _pair_from_bag(args)
-    elif not args.camera:
-        raise TwinFocusError("--camera (camera.json) is needed with picture files")
-    else:
-        camera = StereoCamera.load(args.camera)
-        left, right = read_image(args.left), read_image(args.right)
-    if left.shape != right.shape:
-        raise TwinFocusError(
-            f"{args.left} is {left.shape[1]}x{left.shape[0]} but {args.right} is {right.shape[1]}x{right.shape[0]}: "
-            "a stereo pair must have one size"
-        )
+    camera, left, right = _stereo_pair(args)
     scan = Scan.load(args.scan) if args.scan else None
-    calib_offset = None
-    if args.calibration:
-        from twinfocus.digital_twin.align import RadarCameraCalibration
-
-        calib_offset = RadarCameraCalibration.load(args.calibration).offset_m
-    if getattr(args, "rig", None):
-        if args.calibration:
-            raise TwinFocusError("give --rig or --calibration, not both")
-        from twinfocus.digital_twin.rig import Rig, scan_board
-
-        rig = Rig.load(args.rig)
-        if scan is not None:
-            rig.check(scan_board(scan), None, args.rig)
-        calib_offset = rig.offset_m
+    calib_offset = _calibration_offset(args, scan)
     grid = ImageGrid.from_roi(args.reference_roi, args.size) if args.reference_roi else None
-
-    if args.seed_point:
-        seed = Seed.point(*args.seed_point)
-    elif args.seed_box:
-        seed = Seed.box(*args.seed_box)
-    elif args.seed_roi:
-        seed = box_from_scene_roi(args.seed_roi, camera)
-    else:
-        seed = Seed.nearest()
-
-    if args.voxel_mm is not None:
-        voxel = args.voxel_mm * 1e-3
-    elif scan is not None and grid is not None:
-        voxel = radar_point_spacing(scan.chirp.wavelength_m, scan.positions, grid.centre_m)
-    else:
-        voxel = 1.0e-3
+    seed = _seed(args, camera)
+    voxel = _voxel_m(args, scan, grid)
     segmenter = load_segmenter(args.segmenter)
     say(f"segmenting and reconstructing the reference (seed: {seed.kind}, voxel {voxel * 1e3:.2f} mm)")
     twin = reference_from_stereo(
@@ -209,75 +172,20 @@ def run(args: argparse.Namespace) -> int:
 
     calibration = None
     if args.calibrate_scan:
-        from twinfocus.backprojection import backproject
-        from twinfocus.digital_twin.align import calibrate_offset
-        from twinfocus.digital_twin.template import digital_twin_template
-
-        assert grid is not None  # _check_args: --calibrate-scan needs --reference-roi
-        cal_scan = Scan.load(args.calibrate_scan)
-        pos = cal_scan.positions_true if cal_scan.positions_true is not None else cal_scan.positions
-        say("calibrating the radar-camera offset against the accurate-position scan")
-        t = time.perf_counter()
-        measured = np.abs(backproject(cal_scan.data, pos, cal_scan.chirp, grid))
-        sim = digital_twin_template(
-            points, pos, cal_scan.chirp, grid, method=args.template_method, coherent=not args.incoherent
-        )
-        calibration = calibrate_offset(sim, measured, grid)
-        calibration.source.update({"calibrate_scan": str(args.calibrate_scan)})
+        calibration = _calibrate(args, points, grid, say, timings)
         calib_offset = calibration.offset_m
-        timings["calibration"] = time.perf_counter() - t
         report["calibration_offset_m"] = calibration.offset_m.tolist()
 
     # The cloud as the radar sees it: the calibration's offset applied (what focus --digital-twin takes).
     points_radar = points if calib_offset is None else points + calib_offset
-    template = None
+    ref = None
     if args.out:
-        from twinfocus.digital_twin.condition import ConditionConfig, digital_twin_reference
-
-        assert scan is not None and grid is not None  # _check_args: --out needs --scan and --reference-roi
-        say(
-            f"conditioning the cloud and simulating the template ({args.template_method}) over "
-            f"{scan.n_positions} x {scan.n_channels} phase centres"
-        )
-        t = time.perf_counter()
-        # --incoherent: a rough reference, whose radar texture no camera sees: its outline alone.
-        ref = digital_twin_reference(
-            points_radar,
-            scan.positions,
-            scan.chirp,
-            grid,
-            method=args.template_method,
-            config=ConditionConfig(surface="outline" if args.incoherent else "auto"),
-        )
-        template = ref.template
+        ref = _reference(args, points_radar, scan, grid, say, timings)
         report["conditioning"] = ref.info
-        say(f"surface model: {ref.surface} ({ref.info['surface_reason']})")
-        timings["template"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     report["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
 
-    # Everything is computed: write the outputs (each atomically).
-    import io
-
-    buf = io.BytesIO()
-    np.save(buf, points_radar.astype(np.float64))
-    write_bytes_atomic(args.points_out, buf.getvalue())
-    if args.mask_out:
-        write_image_atomic(args.mask_out, twin.mask.astype(np.uint8) * 255)
-    if calibration is not None:
-        calibration.save(args.calibration_out)
-    if template is not None:
-        from twinfocus.templates import save_template
-
-        assert grid is not None  # a template is made only on a grid
-        # the outline and the conditioning travel with it: focus --template runs the outline estimator
-        save_template(args.out, template, grid, support=ref.support, info=ref.info)
-        if args.support_out:
-            write_image_atomic(args.support_out, ref.support.astype(np.uint8) * 255)
-    if args.report:
-        from twinfocus.atomic import write_text_atomic
-
-        write_text_atomic(args.report, json.dumps(report, indent=2, default=float) + "\n")
+    _write_outputs(args, points_radar, twin, calibration, ref, grid, report)
     say(
         f"{points.shape[0]} points ({twin.cloud.surface} surface), stages "
         + ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
@@ -293,3 +201,126 @@ def run(args: argparse.Namespace) -> int:
         )
     )
     return 0
+
+
+def _stereo_pair(args: argparse.Namespace):
+    """(StereoCamera, left, right) from a bag's image topics or from picture files and --camera."""
+    if split_bag_source(args.left) is not None:
+        camera, left, right = _pair_from_bag(args)
+    elif not args.camera:
+        raise TwinFocusError("--camera (camera.json) is needed with picture files")
+    else:
+        camera = StereoCamera.load(args.camera)
+        left, right = read_image(args.left), read_image(args.right)
+    if left.shape != right.shape:
+        raise TwinFocusError(
+            f"{args.left} is {left.shape[1]}x{left.shape[0]} but {args.right} is {right.shape[1]}x{right.shape[0]}: "
+            "a stereo pair must have one size"
+        )
+    return camera, left, right
+
+
+def _calibration_offset(args: argparse.Namespace, scan: Scan | None) -> np.ndarray | None:
+    """The radar-camera offset (3,) metres of --calibration or --rig (checked against the scan's board), or None."""
+    calib_offset = None
+    if args.calibration:
+        calib_offset = RadarCameraCalibration.load(args.calibration).offset_m
+    if getattr(args, "rig", None):
+        if args.calibration:
+            raise TwinFocusError("give --rig or --calibration, not both")
+
+        rig = Rig.load(args.rig)
+        if scan is not None:
+            rig.check(scan_board(scan), None, args.rig)
+        calib_offset = rig.offset_m
+    return calib_offset
+
+
+def _seed(args: argparse.Namespace, camera) -> Seed:
+    """Where the segmenter starts: --seed-point, --seed-box, --seed-roi, else the nearest object."""
+    if args.seed_point:
+        return Seed.point(*args.seed_point)
+    if args.seed_box:
+        return Seed.box(*args.seed_box)
+    if args.seed_roi:
+        return box_from_scene_roi(args.seed_roi, camera)
+    return Seed.nearest()
+
+
+def _voxel_m(args: argparse.Namespace, scan: Scan | None, grid: ImageGrid | None) -> float:
+    """The cloud's voxel, metres: --voxel-mm, else the radar's point spacing on the grid, else 1 mm."""
+    from twinfocus.digital_twin.pointcloud import radar_point_spacing
+
+    if args.voxel_mm is not None:
+        return args.voxel_mm * 1e-3
+    if scan is not None and grid is not None:
+        return radar_point_spacing(scan.chirp.wavelength_m, scan.positions, grid.centre_m)
+    return 1.0e-3
+
+
+def _calibrate(args: argparse.Namespace, points: np.ndarray, grid: ImageGrid | None, say, timings: dict):
+    """The radar-camera offset fitted on --calibrate-scan (accurate positions): the cloud's
+    simulated image against the measured one. Adds its seconds to ``timings``."""
+    from twinfocus.backprojection import backproject
+
+    assert grid is not None  # _check_args: --calibrate-scan needs --reference-roi
+    cal_scan = Scan.load(args.calibrate_scan)
+    pos = cal_scan.positions_true if cal_scan.positions_true is not None else cal_scan.positions
+    say("calibrating the radar-camera offset against the accurate-position scan")
+    t = time.perf_counter()
+    measured = np.abs(backproject(cal_scan.data, pos, cal_scan.chirp, grid))
+    sim = digital_twin_template(
+        points, pos, cal_scan.chirp, grid, method=args.template_method, coherent=not args.incoherent
+    )
+    calibration = calibrate_offset(sim, measured, grid)
+    calibration.source.update({"calibrate_scan": str(args.calibrate_scan)})
+    timings["calibration"] = time.perf_counter() - t
+    return calibration
+
+
+def _reference(
+    args: argparse.Namespace, points_radar: np.ndarray, scan: Scan | None, grid: ImageGrid | None, say, timings: dict
+):
+    """The conditioned digital-twin reference (template, outline, info) of the radar-frame cloud
+    over the scan's phase centres. Adds its seconds to ``timings``."""
+    from twinfocus.digital_twin.condition import ConditionConfig, digital_twin_reference
+
+    assert scan is not None and grid is not None  # _check_args: --out needs --scan and --reference-roi
+    say(
+        f"conditioning the cloud and simulating the template ({args.template_method}) over "
+        f"{scan.n_positions} x {scan.n_channels} phase centres"
+    )
+    t = time.perf_counter()
+    # --incoherent: a rough reference, whose radar texture no camera sees: its outline alone.
+    ref = digital_twin_reference(
+        points_radar,
+        scan.positions,
+        scan.chirp,
+        grid,
+        method=args.template_method,
+        config=ConditionConfig(surface="outline" if args.incoherent else "auto"),
+    )
+    say(f"surface model: {ref.surface} ({ref.info['surface_reason']})")
+    timings["template"] = time.perf_counter() - t
+    return ref
+
+
+def _write_outputs(args: argparse.Namespace, points_radar: np.ndarray, twin, calibration, ref, grid, report: dict):
+    """Everything is computed: write the outputs (each atomically)."""
+    buf = io.BytesIO()
+    np.save(buf, points_radar.astype(np.float64))
+    write_bytes_atomic(args.points_out, buf.getvalue())
+    if args.mask_out:
+        write_image_atomic(args.mask_out, twin.mask.astype(np.uint8) * 255)
+    if calibration is not None:
+        calibration.save(args.calibration_out)
+    if ref is not None:
+        from twinfocus.templates import save_template
+
+        assert grid is not None  # a template is made only on a grid
+        # the outline and the conditioning travel with it: focus --template runs the outline estimator
+        save_template(args.out, ref.template, grid, support=ref.support, info=ref.info)
+        if args.support_out:
+            write_image_atomic(args.support_out, ref.support.astype(np.uint8) * 255)
+    if args.report:
+        write_text_atomic(args.report, json.dumps(report, indent=2, default=float) + "\n")

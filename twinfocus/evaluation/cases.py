@@ -29,6 +29,11 @@ from twinfocus.autofocus import AutofocusConfig, sharpness_autofocus, twin_autof
 from twinfocus.autofocus import transfer_phase as autofocus_transfer_phase
 from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.basis import form_image
+from twinfocus.digital_twin.align import refine_template_shift_by_loss
+from twinfocus.digital_twin.camera import StereoCamera
+from twinfocus.digital_twin.render import render_scene
+from twinfocus.digital_twin.segment import box_from_scene_roi
+from twinfocus.digital_twin.template import digital_twin_template
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import estimator_settings
 from twinfocus.evaluation.batched import batchable, paper_estimates
@@ -108,8 +113,8 @@ class EvalScenario(Scenario):
         if self.clutter and self.clutter_near_m is not None:
             d = max(self.distance_m, self.reference_distance_m or 0.0)
             scene.clutter = Clutter(
-                (-0.4, -0.3, min(self.distance_m, self.reference_distance_m or 9.9) - self.clutter_near_m),
-                (0.4, 0.3, d + 0.6),
+                np.array([-0.4, -0.3, min(self.distance_m, self.reference_distance_m or 9.9) - self.clutter_near_m]),
+                np.array([0.4, 0.3, d + 0.6]),
                 n_points=2000,
                 amplitude=0.1,
                 n_strong=40,
@@ -223,10 +228,7 @@ def digital_twin_points(sc: Scenario, ref_roi, seed: int) -> tuple[np.ndarray, d
 
     Returns (float64 (N, 3) scene-frame points, {stage: seconds}).
     """
-    from twinfocus.digital_twin.camera import StereoCamera
     from twinfocus.digital_twin.pipeline import reference_from_stereo
-    from twinfocus.digital_twin.render import render_scene
-    from twinfocus.digital_twin.segment import box_from_scene_roi
 
     cam = StereoCamera.zed2i()
     t = time.perf_counter()
@@ -253,7 +255,6 @@ def digital_twin_for(
 
     Returns (float32 (H, W) template, {stage: seconds, "points": N}).
     """
-    from twinfocus.digital_twin.template import digital_twin_template
 
     points, info = digital_twin_points(sc, ref_grid.roi, seed)
     t = time.perf_counter()
@@ -515,8 +516,6 @@ def estimate_phase(
             raise TwinFocusError("the reference basis was not formed for this draw")
         t = time.perf_counter()
         if register_by_loss:
-            from twinfocus.digital_twin.align import refine_template_shift_by_loss
-
             tpl, _, _ = refine_template_shift_by_loss(bases.reference, np.abs(tpl), cfg)
         res = twin_autofocus(bases.reference, tpl, replace(cfg, **overrides))
         return res.phase_rad, time.perf_counter() - t

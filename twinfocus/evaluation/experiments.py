@@ -101,6 +101,11 @@ class Experiment:
 
 
 def _full_experiments() -> list[Experiment]:
+    return _geometry_experiments() + _object_experiments() + _room_experiments()
+
+
+def _geometry_experiments() -> list[Experiment]:
+    """The baseline set and the sweeps of the scan's geometry: tracking error, separation, distance."""
     kp = (("K", "P"),)
     return [
         Experiment(
@@ -143,6 +148,12 @@ def _full_experiments() -> list[Experiment]:
             draws=1,
             numeric=True,
         ),
+    ]
+
+
+def _object_experiments() -> list[Experiment]:
+    """The sweeps of the objects: size, size ratio, material, a sheet in front."""
+    return [
         Experiment(
             "size",
             "Target size (3 in reference N)",
@@ -194,6 +205,12 @@ def _full_experiments() -> list[Experiment]:
             ],
             draws=1,
         ),
+    ]
+
+
+def _room_experiments() -> list[Experiment]:
+    """The room around the objects (open or cluttered, templates swapped) and the handheld sweep."""
+    return [
         Experiment(
             "environment",
             "Open vs cluttered room, templates swapped across rooms",

@@ -258,7 +258,14 @@ def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
     fig = out / "baseline.png"
     baseline_figure(doc, fig)
     lines += [f"![baseline]({_rel(fig, md)})", ""]
-    # Shapes (Fig. 13): per-pair improvements.
+    _section_shapes(doc, out, md, lines)
+    _baseline_examples(out, md, lines)
+    return st
+
+
+def _section_shapes(doc: dict, out: Path, md: Path, lines: list[str]) -> None:
+    """Shapes (Fig. 13): each method's improvement per reference-target pair, and its figure."""
+    rec = doc["records"]
     sp = PAPER["shapes"]
     rows = []
     for m in ("digital", "physical"):
@@ -282,6 +289,10 @@ def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
         fig = out / "baseline_pairs.png"
         pairs_figure(doc, fig)
         lines += [f"![pairs]({_rel(fig, md)})", ""]
+
+
+def _baseline_examples(out: Path, md: Path, lines: list[str]) -> None:
+    """The baseline's example images of one draw, when the run saved them."""
     ex = out / "raw" / "baseline_examples.npz"
     if ex.exists():
         z = dict(np.load(ex, allow_pickle=False))
@@ -289,7 +300,6 @@ def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
         p = out / "baseline_examples.png"
         examples_figure(z, p, f"Target {meta['pair'].split('>')[1]} (reference {meta['pair'].split('>')[0]}), one draw")
         lines += [f"![examples]({_rel(p, md)})", ""]
-    return st
 
 
 def _section_limits(raw: dict, out: Path, md: Path, lines: list[str]) -> dict:
@@ -405,59 +415,67 @@ def _section_trade(doc: dict, out: Path, md: Path, lines: list[str], machine: di
     lines += [f"![pareto]({_rel(fig, md)})", ""]
     presets = doc.get("presets", {})
     if presets:
-        lines += [
-            "**Recommended presets** (per knob, the cheapest setting within 0.02 (fast) or 0.003 (accurate) of that "
-            "knob's best mean SSIM, combined and measured):",
-            "",
-        ]
-        tab = []
-        for name, p in presets.items():
-            measured = next((x for x in means if x["knob"] == "preset" and x["label"] == name), None)
-            coarse = p.get("coarse_iterations", 0)
-            cli = (
-                f"`--size {p['size']} --iterations {p['iterations']} --lr {p['lr']:g} --basis-dtype {p['basis_dtype']}`"
-            )
-            if p["precision"] != "float32":
-                cli = cli[:-1] + f" --precision {p['precision']}`"
-            if coarse:
-                cli = cli[:-1] + f" --coarse-iterations {coarse}`"
-            tab.append(
-                [
-                    name,
-                    f"{p['size']} x {p['size']}",
-                    str(p["iterations"]),
-                    str(coarse),
-                    f"{p['lr']:g}",
-                    p["basis_dtype"],
-                    p["precision"],
-                    _f(measured["time_s"] if measured else None, 2),
-                    _f(measured["ssim"] if measured else None),
-                    cli,
-                ]
-            )
-        lines += _table(
-            [
-                "preset",
-                "reference image",
-                "iterations",
-                "coarse it.",
-                "lr",
-                "basis",
-                "arithmetic",
-                "total s",
-                "target SSIM",
-                "`twinfocus focus` options",
-            ],
-            tab,
-        ) + [""]
-        lines += [
-            "`--size` sets both regions in `twinfocus focus`; the estimated phase focuses a target image of any size "
-            "(the table's SSIM is on the 100 x 100 target). The choice rests on the scene(s) above: rerun with "
-            "`--trade-scenes 2` before relying on it.",
-            "",
-        ]
+        _presets_table(presets, means, lines)
+    _table1(doc, rows, means, machine, lines)
+    return {"means": means, "presets": presets}
 
-    # Table 1 counterpart.
+
+def _presets_table(presets: dict, means: list, lines: list[str]) -> None:
+    """The recommended presets, as measured, with the ``twinfocus focus`` options that give each."""
+    lines += [
+        "**Recommended presets** (per knob, the cheapest setting within 0.02 (fast) or 0.003 (accurate) of that "
+        "knob's best mean SSIM, combined and measured):",
+        "",
+    ]
+    tab = []
+    for name, p in presets.items():
+        measured = next((x for x in means if x["knob"] == "preset" and x["label"] == name), None)
+        coarse = p.get("coarse_iterations", 0)
+        cli = f"`--size {p['size']} --iterations {p['iterations']} --lr {p['lr']:g} --basis-dtype {p['basis_dtype']}`"
+        if p["precision"] != "float32":
+            cli = cli[:-1] + f" --precision {p['precision']}`"
+        if coarse:
+            cli = cli[:-1] + f" --coarse-iterations {coarse}`"
+        tab.append(
+            [
+                name,
+                f"{p['size']} x {p['size']}",
+                str(p["iterations"]),
+                str(coarse),
+                f"{p['lr']:g}",
+                p["basis_dtype"],
+                p["precision"],
+                _f(measured["time_s"] if measured else None, 2),
+                _f(measured["ssim"] if measured else None),
+                cli,
+            ]
+        )
+    lines += _table(
+        [
+            "preset",
+            "reference image",
+            "iterations",
+            "coarse it.",
+            "lr",
+            "basis",
+            "arithmetic",
+            "total s",
+            "target SSIM",
+            "`twinfocus focus` options",
+        ],
+        tab,
+    ) + [""]
+    lines += [
+        "`--size` sets both regions in `twinfocus focus`; the estimated phase focuses a target image of any size "
+        "(the table's SSIM is on the 100 x 100 target). The choice rests on the scene(s) above: rerun with "
+        "`--trade-scenes 2` before relying on it.",
+        "",
+    ]
+
+
+def _table1(doc: dict, rows: list, means: list, machine: dict, lines: list[str]) -> None:
+    """The paper's Table 1 row by row beside our seconds."""
+
     def af(knob, label):
         m = next((x for x in means if x["knob"] == knob and x["label"] == label), None)
         return None if m is None else m["autofocus_s"]
@@ -508,7 +526,6 @@ def _section_trade(doc: dict, out: Path, md: Path, lines: list[str], machine: di
         "",
     ]
     lines += _table(["operation", "paper s", "ours s"], t1) + [""]
-    return {"means": means, "presets": presets}
 
 
 def _field_cell(recs: list, key: str) -> str:

@@ -69,6 +69,64 @@ def _scene_units(exp: Experiment) -> list[dict]:
 EXAMPLE_EXPERIMENTS = ("baseline", "nlos", "handheld")
 
 
+def _prepare_unit(exp: Experiment, settings: EvalSettings, unit: dict, cache: dict):
+    """One scene unit of ``exp`` simulated and prepared (:func:`prepare_scene`) for every
+    condition's templates. Returns (scenario, case, the scene's record for the result)."""
+    ref, tgt = unit["pair"]
+    conds = unit["conditions"]
+    sc = EvalScenario(
+        reference=ref,
+        target=tgt,
+        seed=exp.seed,
+        n_columns=settings.n_columns,
+        n_rows=settings.n_rows,
+        spacing_m=settings.spacing_m,
+        **unit["scene"],
+    )
+    methods_all = {m for c in conds for m in (c.methods or exp.methods)}
+    envs = tuple(sorted({c.template_env for c in conds}))
+    case = prepare_scene(
+        sc,
+        settings,
+        exp.roi,
+        envs,
+        digital=any(needs_digital_twin(m) for m in methods_all),
+        template_cache=cache,
+        roi_margin_m=exp.roi_margin_m,
+    )
+    scene = {
+        "pair": f"{ref}>{tgt}",
+        "scene": unit["scene"],
+        "timings_s": case.timings_s,
+        "notes": case.notes,
+        "reference_roi": list(case.ref_grid.roi),
+        "target_roi": list(case.tgt_grid.roi),
+    }
+    return sc, case, scene
+
+
+def _record_keys(exp: Experiment, c, ref: str, tgt: str, d: int) -> dict:
+    """What names a record: the experiment, its condition, the pair and the draw."""
+    return {
+        "experiment": exp.name,
+        "condition": c.label,
+        "x": c.x,
+        "in_paper": c.in_paper,
+        "template_env": c.template_env,
+        "pair": f"{ref}>{tgt}",
+        "reference": ref,
+        "target": tgt,
+        "draw": d,
+    }
+
+
+def _ssim_summary(recs: list[dict]) -> str:
+    """``method SSIM`` of each record, ``method failed`` where it has none, for the progress line."""
+    return " ".join(
+        f"{r['method']} {r['ssim']:.3f}" if r["ssim"] is not None else f"{r['method']} failed" for r in recs
+    )
+
+
 def run_experiment(
     exp: Experiment,
     settings: EvalSettings,
@@ -100,37 +158,9 @@ def run_experiment(
     for i in chosen:
         unit = all_units[i]
         ref, tgt = unit["pair"]
-        sc = EvalScenario(
-            reference=ref,
-            target=tgt,
-            seed=exp.seed,
-            n_columns=settings.n_columns,
-            n_rows=settings.n_rows,
-            spacing_m=settings.spacing_m,
-            **unit["scene"],
-        )
+        sc, case, scene = _prepare_unit(exp, settings, unit, cache)
+        scenes.append(scene)
         conds = unit["conditions"]
-        methods_all = {m for c in conds for m in (c.methods or exp.methods)}
-        envs = tuple(sorted({c.template_env for c in conds}))
-        case = prepare_scene(
-            sc,
-            settings,
-            exp.roi,
-            envs,
-            digital=any(needs_digital_twin(m) for m in methods_all),
-            template_cache=cache,
-            roi_margin_m=exp.roi_margin_m,
-        )
-        scenes.append(
-            {
-                "pair": f"{ref}>{tgt}",
-                "scene": unit["scene"],
-                "timings_s": case.timings_s,
-                "notes": case.notes,
-                "reference_roi": list(case.ref_grid.roi),
-                "target_roi": list(case.tgt_grid.roi),
-            }
-        )
         # Conditions with the same tracking error share each draw's positions and bases.
         by_errors: dict = {}
         for c in conds:
@@ -176,27 +206,9 @@ def run_experiment(
                             "truth": metrics.display_image(case.truth_target).astype(np.float32),
                             **{r["method"]: r.pop("image") for r in recs if "image" in r},
                         }
-                    for r in recs:
-                        records.append(
-                            {
-                                "experiment": exp.name,
-                                "condition": c.label,
-                                "x": c.x,
-                                "in_paper": c.in_paper,
-                                "template_env": c.template_env,
-                                "pair": f"{ref}>{tgt}",
-                                "reference": ref,
-                                "target": tgt,
-                                "draw": d,
-                                **bases.shared,
-                                **r,
-                            }
-                        )
+                    records += [{**_record_keys(exp, c, ref, tgt, d), **bases.shared, **r} for r in recs]
                     done += 1
-                    summary = " ".join(
-                        f"{r['method']} {r['ssim']:.3f}" if r["ssim"] is not None else f"{r['method']} failed"
-                        for r in recs
-                    )
+                    summary = _ssim_summary(recs)
                     spent = time.perf_counter() - t_start
                     left = f", about {remaining_text(spent * (total - done) / done)} left" if done < total else ""
                     log(

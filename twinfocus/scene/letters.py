@@ -3,6 +3,8 @@ uniform stroke, and the planar object made of it."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -96,6 +98,16 @@ def letter_mask(
     r = np.flatnonzero(mask.any(axis=1))
     c = np.flatnonzero(mask.any(axis=0))
     return mask[r[0] : r[-1] + 1, c[0] : c[-1] + 1].copy()
+
+
+@dataclass(frozen=True)
+class LetterStyle:
+    """How :func:`letter` draws: ``font`` (a Hershey font name), ``stroke_m`` (stroke width,
+    metres; None: the font's own for the height) and ``width_scale`` (width over height)."""
+
+    font: str | int = "simplex"
+    stroke_m: float | None = None
+    width_scale: float = 0.65
 
 
 def letter(

@@ -9,7 +9,7 @@ from twinfocus.errors import TwinFocusError
 from twinfocus.scene.assembly import Scene
 from twinfocus.scene.checks import positive
 from twinfocus.scene.clutter import Clutter
-from twinfocus.scene.letters import letter
+from twinfocus.scene.letters import LetterStyle, letter
 from twinfocus.scene.occluders import Occluder
 from twinfocus.scene.tools import OBJECT_SHAPES, shaped_object
 
@@ -26,9 +26,7 @@ def paper_scene(
     occluder: str | Occluder | None = None,
     occluder_distance_m: float | None = None,
     clutter: bool | Clutter = False,
-    font="simplex",
-    stroke_m: float | None = None,
-    width_scale: float = 0.65,
+    style: LetterStyle | None = None,
 ) -> Scene:
     """The paper's two-letter scene: a reference letter on the -x side, the target on +x.
     ``reference`` and ``target`` are letters, or plates and tools by their names in
@@ -46,9 +44,11 @@ def paper_scene(
         aperture, default 10 cm in front of the target, covering the target with a 2 cm margin
         as seen from the aperture centre) or an :class:`Occluder`.
     clutter : False, True (:meth:`Clutter.room`) or a :class:`Clutter`.
+    style : how the letters are drawn (:class:`~twinfocus.scene.letters.LetterStyle`; None: its defaults).
 
     Objects are named ``"reference"`` and ``"target"``.
     """
+    style = style or LetterStyle()
     distance_m = positive("distance_m", distance_m)
     ref_z = distance_m if reference_distance_m is None else positive("reference_distance_m", reference_distance_m)
     sep = float(separation_deg)
@@ -59,7 +59,7 @@ def paper_scene(
     def cut_out(what: str, centre: tuple, material: str, name: str):
         if what in OBJECT_SHAPES:
             return shaped_object(what, height_m, centre, material, name=name)
-        return letter(what, height_m, centre, material, font, stroke_m, width_scale, name=name)
+        return letter(what, height_m, centre, material, style.font, style.stroke_m, style.width_scale, name=name)
 
     ref = cut_out(reference, (-ref_z * np.tan(half), 0.0, ref_z), reference_material, "reference")
     tgt = cut_out(target, (distance_m * np.tan(half), 0.0, distance_m), target_material, "target")

@@ -608,52 +608,7 @@ class MmwcasCapture:
         raw: list[tuple[int, int, tuple[int, ...], list[int]]] = []
         fb = self.config.device_frame_bytes
         for pos, sid in enumerate(slices):
-            idx_files, data_paths, sizes = [], [], []
-            for dev in DEVICES:
-                ip = self.folder / f"{dev}_{sid}_idx.bin"
-                dp = self.folder / f"{dev}_{sid}_data.bin"
-                for p in (ip, dp):
-                    if not p.is_file():
-                        raise TwinFocusError(
-                            f"{p}: missing; a capture slice needs the data and index files of all four devices"
-                        )
-                idx = read_index(ip)
-                self.warnings.extend(idx.warnings)
-                idx_files.append(idx)
-                data_paths.append(dp)
-                sizes.append(dp.stat().st_size)
-            self._data_paths.append(data_paths)
-            self._maps.append([None] * len(DEVICES))
-            n = min(len(i.entries) for i in idx_files)
-            counts = [len(i.entries) for i in idx_files]
-            if len(set(counts)) > 1:
-                self.warnings.append(f"slice {sid}: devices index {counts} frames; only the first {n} are used")
-            for _dev, idx in zip(DEVICES, idx_files):
-                sz = idx.entries["size"][:n]
-                wrong = np.flatnonzero(sz != fb)
-                if wrong.size:
-                    i = int(wrong[0])
-                    raise TwinFocusError(
-                        f"{idx.path}: frame {i} is {int(sz[i])} bytes but the configuration expects {fb} "
-                        f"({self.config.n_loops} loops x {self.config.n_chirps} chirps x {self.config.n_samples} "
-                        f"samples x 4 RX x 4 bytes); check n_samples, n_chirps and n_loops"
-                    )
-            for i in range(n):
-                offs = tuple(int(idx_files[d].entries["offset"][i]) for d in range(len(DEVICES)))
-                cut = [DEVICES[d] for d in range(len(DEVICES)) if offs[d] + fb > sizes[d]]
-                if cut:
-                    self.warnings.append(
-                        f"slice {sid}: data files of {', '.join(cut)} end inside frame {i}; "
-                        f"{n - i} indexed frame(s) from there on are dropped (truncated capture)"
-                    )
-                    break
-                ticks = [int(idx_files[d].entries["timestamp"][i]) for d in range(len(DEVICES))]
-                if max(ticks) >= (1 << 63) // int(self.config.timestamp_unit_ns):
-                    raise TwinFocusError(
-                        f"slice {sid} frame {i}: time stamp {max(ticks)} does not fit nanoseconds in 64 bits "
-                        f"(timestamp_unit_ns = {self.config.timestamp_unit_ns}); is the index file damaged?"
-                    )
-                raw.append((pos, i, offs, ticks))
+            raw += self._index_slice(pos, sid, fb)
         # TI's cascade processing (cascade_MIMO_signalProcessing.m) skips the first frame of every
         # slice file it reads; the capture card writes slices back to back, so only the capture's
         # very first frame is known bad and that is all the default drops (docs/sensors.md).
@@ -709,6 +664,59 @@ class MmwcasCapture:
                 f"{self.frames_missing} frame(s) missing from every device (index time stamps jump by two or more "
                 "frame periods)"
             )
+
+    def _index_slice(self, pos: int, sid: str, fb: int) -> list[tuple[int, int, tuple[int, ...], list[int]]]:
+        """The frames of capture slice ``sid`` (the ``pos``-th) that all four devices hold whole:
+        (pos, frame in the slice, each device's byte offset, each device's time stamp ticks).
+        Reads the slice's index files, notes its data files and adds its warnings."""
+        frames: list[tuple[int, int, tuple[int, ...], list[int]]] = []
+        idx_files, data_paths, sizes = [], [], []
+        for dev in DEVICES:
+            ip = self.folder / f"{dev}_{sid}_idx.bin"
+            dp = self.folder / f"{dev}_{sid}_data.bin"
+            for p in (ip, dp):
+                if not p.is_file():
+                    raise TwinFocusError(
+                        f"{p}: missing; a capture slice needs the data and index files of all four devices"
+                    )
+            idx = read_index(ip)
+            self.warnings.extend(idx.warnings)
+            idx_files.append(idx)
+            data_paths.append(dp)
+            sizes.append(dp.stat().st_size)
+        self._data_paths.append(data_paths)
+        self._maps.append([None] * len(DEVICES))
+        n = min(len(i.entries) for i in idx_files)
+        counts = [len(i.entries) for i in idx_files]
+        if len(set(counts)) > 1:
+            self.warnings.append(f"slice {sid}: devices index {counts} frames; only the first {n} are used")
+        for _dev, idx in zip(DEVICES, idx_files):
+            sz = idx.entries["size"][:n]
+            wrong = np.flatnonzero(sz != fb)
+            if wrong.size:
+                i = int(wrong[0])
+                raise TwinFocusError(
+                    f"{idx.path}: frame {i} is {int(sz[i])} bytes but the configuration expects {fb} "
+                    f"({self.config.n_loops} loops x {self.config.n_chirps} chirps x {self.config.n_samples} "
+                    f"samples x 4 RX x 4 bytes); check n_samples, n_chirps and n_loops"
+                )
+        for i in range(n):
+            offs = tuple(int(idx_files[d].entries["offset"][i]) for d in range(len(DEVICES)))
+            cut = [DEVICES[d] for d in range(len(DEVICES)) if offs[d] + fb > sizes[d]]
+            if cut:
+                self.warnings.append(
+                    f"slice {sid}: data files of {', '.join(cut)} end inside frame {i}; "
+                    f"{n - i} indexed frame(s) from there on are dropped (truncated capture)"
+                )
+                break
+            ticks = [int(idx_files[d].entries["timestamp"][i]) for d in range(len(DEVICES))]
+            if max(ticks) >= (1 << 63) // int(self.config.timestamp_unit_ns):
+                raise TwinFocusError(
+                    f"slice {sid} frame {i}: time stamp {max(ticks)} does not fit nanoseconds in 64 bits "
+                    f"(timestamp_unit_ns = {self.config.timestamp_unit_ns}); is the index file damaged?"
+                )
+            frames.append((pos, i, offs, ticks))
+        return frames
 
     def _flag_if_zero(self, ref: _FrameRef) -> _FrameRef:
         """The frame, flagged ZERO_FILLED when a device's first loop is all zeros (a real ADC
