@@ -43,7 +43,31 @@ SCENES = {
          "--target-depth-offset", "0.08"],
         Scenario(reference="R", target="Z", distance_m=0.7, separation_deg=12.0, seed=2, target_depth_offset_m=0.08),
     ),
+    "k_t_near": (
+        "K, T at 0.55 m, 12 deg, seed 11",
+        ["--reference", "K", "--target", "T", "--distance", "0.55", "--separation-deg", "12", "--seed", "11"],
+        Scenario(reference="K", target="T", distance_m=0.55, separation_deg=12.0, seed=11),
+    ),
+    "e_h_far": (
+        "E, H at 0.65 m, 11 deg, seed 12",
+        ["--reference", "E", "--target", "H", "--distance", "0.65", "--separation-deg", "11", "--seed", "12"],
+        Scenario(reference="E", target="H", distance_m=0.65, separation_deg=11.0, seed=12),
+    ),
+    # held out: never looked at while the edge rule (twinfocus.boxes.EDGE_DB) was chosen
+    "heldout_p_l": (
+        "P, L at 0.6 m, 13 deg, seed 21 (held out)",
+        ["--reference", "P", "--target", "L", "--distance", "0.6", "--separation-deg", "13", "--seed", "21"],
+        Scenario(reference="P", target="L", distance_m=0.6, separation_deg=13.0, seed=21),
+    ),
+    "heldout_b_n_deeper": (
+        "B, N at 0.55 m, 10 deg, target 5 cm deeper, seed 22 (held out)",
+        ["--reference", "B", "--target", "N", "--distance", "0.55", "--separation-deg", "10", "--seed", "22",
+         "--target-depth-offset", "0.05"],
+        Scenario(reference="B", target="N", distance_m=0.55, separation_deg=10.0, seed=22, target_depth_offset_m=0.05),
+    ),
 }  # fmt: skip
+#: the scenes not used while the edge rule was chosen
+HELD_OUT = ("heldout_p_l", "heldout_b_n_deeper")
 
 
 def truth_extent(sc: Scenario, name: str) -> list[float]:
@@ -100,18 +124,19 @@ def run_scene(d: Path, sim: list[str], sc: Scenario) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default="benchmarks/results")
+    p.add_argument("--name", default="boxes_found.json", help="the result file's name in --out")
     args = p.parse_args(argv)
     rows = {}
     for key, (label, sim, sc) in SCENES.items():
         with tempfile.TemporaryDirectory() as tmp:
-            rows[key] = {"scene": label, **run_scene(Path(tmp), sim, sc)}
+            rows[key] = {"scene": label, "held_out": key in HELD_OUT, **run_scene(Path(tmp), sim, sc)}
         print(
             label, json.dumps({k: rows[key][k] for k in ("target_ssim_typed", "target_ssim_found", "regions_overlap")})
         )
     worst = max(abs(r["target_ssim_found_less_typed"]) for r in rows.values())
     roles = ("reference", "target")
     doc = {
-        "command": "python -m benchmarks.bench_boxes_found --out benchmarks/results",
+        "command": f"python -m benchmarks.bench_boxes_found --out benchmarks/results --name {args.name}",
         "size": SIZE,
         "scenes": rows,
         "summary": {
@@ -124,13 +149,20 @@ def main(argv: list[str] | None = None) -> int:
             ),
             "largest_edge_out_demo_m": max(max(rows["demo"][k]["region_edge_out_m"]) for k in roles),
             "largest_edge_out_m": max(max(r[k]["region_edge_out_m"]) for r in rows.values() for k in roles),
+            "largest_region_edge_error_m": max(
+                abs(v) for r in rows.values() for k in roles for v in r[k]["region_edge_out_m"]
+            ),
+            "largest_region_edge_error_held_out_m": max(
+                (abs(v) for key, r in rows.items() if key in HELD_OUT for k in roles for v in r[k]["region_edge_out_m"]),
+                default=None,
+            ),
         },
         "machine": machine_info(),
     }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out / "boxes_found.json", json.dumps(doc, indent=2, default=float) + "\n")
-    print(f"wrote {out / 'boxes_found.json'}")
+    write_text_atomic(out / args.name, json.dumps(doc, indent=2, default=float) + "\n")
+    print(f"wrote {out / args.name}")
     return 0
 
 
