@@ -54,11 +54,14 @@ OBJECT_DB = -10.0
 #: objects of one plane closer than this, metres, are pieces of one (a gap of less than about two
 #: resolution cells at the scene's depths; the demo's letters lie 3.7 cm apart)
 MERGE_GAP_M = 0.012
-#: an object's edge is where its smoothed energy falls this many dB below its own peak
-#: (:func:`object_edges`), searched this many pixels beyond its pixels, in pieces holding at least
-#: this share of its brightest piece's energy
+#: an object's edge is where its smoothed energy falls this many dB below the brightest of its
+#: pixels within this many pixels (:func:`object_edges`), searched this many pixels beyond its
+#: pixels, no fainter than this many dB below its peak, in pieces holding at least this share of
+#: its brightest piece's energy
 EDGE_DB = -6.0
+EDGE_LOCAL_PX = 5
 EDGE_SEARCH_PX = 3
+EDGE_FLOOR_DB = -12.0
 EDGE_MIN_PIECE = 0.05
 #: a blob or an object with less than this share of the bright energy is ignored; at most this many blobs
 MIN_SHARE = 0.02
@@ -116,9 +119,9 @@ def objects_in(image: np.ndarray, plane: ImageGrid, smoothing_px: float, db: flo
 
     Objects are found as the connected pixels within ``db`` of the image's brightest; each one's
     extent is then its edge (:func:`object_edges`): where its energy falls :data:`EDGE_DB` below
-    its own peak, to a fraction of a pixel. The ``db`` threshold alone, relative to the brightest
-    object, put a fainter object's edges where its blur, not the object, ends (4-9 mm out on the
-    letters of benchmarks/bench_boxes_found.py)."""
+    its own bright pixels nearby, to a fraction of a pixel. The ``db`` threshold alone, relative to
+    the brightest object, put the brightest's edges where its blur ends and a fainter one's inside
+    it (benchmarks/results/boxes_found.json)."""
     from scipy import ndimage  # only on this path
 
     e = ndimage.gaussian_filter(np.asarray(image, np.float64) ** 2, smoothing_px)
@@ -140,15 +143,19 @@ def objects_in(image: np.ndarray, plane: ImageGrid, smoothing_px: float, db: flo
 
 
 def object_edges(energy: np.ndarray, plane: ImageGrid, where: tuple[slice, slice]) -> tuple[float, float, float, float]:
-    """An object's x/y edges (X0, X1, Y0, Y1) metres: where its smoothed energy falls to
-    :data:`EDGE_DB` below its own peak, interpolated between pixels.
+    """An object's x/y edges (X0, X1, Y0, Y1) metres: where its smoothed energy falls
+    :data:`EDGE_DB` below the brightest of its pixels nearby (within :data:`EDGE_LOCAL_PX`),
+    interpolated between pixels.
 
     energy : float64 (H, W), the smoothed |image|^2 on ``plane``; where : the (rows, cols)
     slices of the object's pixels. Searched in that box grown by :data:`EDGE_SEARCH_PX` (a blurred
-    edge can reach beyond the pixels the coarser threshold kept), keeping the pieces above the
-    level that hold at least :data:`EDGE_MIN_PIECE` of the brightest piece's energy (speckle
-    islands of a neighbour that reach into the window do not). Why -6 dB: a flat object's edge,
-    blurred by a symmetric point response, sits where its amplitude is half the inside's."""
+    edge can reach beyond the pixels the coarser threshold kept), among pixels no fainter than
+    :data:`EDGE_FLOOR_DB` below the object's peak, keeping the pieces that hold at least
+    :data:`EDGE_MIN_PIECE` of the brightest piece's energy (a neighbour's speckle reaching into the
+    window does not count). Why -6 dB: a flat object's edge, blurred by a symmetric point response,
+    sits where its amplitude is half the inside's. Why nearby, not the object's peak: an object
+    whose parts differ in brightness (a glint, a letter of metal balls) would lose its fainter
+    parts below a level set by its brightest."""
     from scipy import ndimage  # only on this path
 
     rows, cols = where
@@ -157,34 +164,31 @@ def object_edges(energy: np.ndarray, plane: ImageGrid, where: tuple[slice, slice
     r0, r1 = max(rows.start - g, 0), min(rows.stop + g, h)
     c0, c1 = max(cols.start - g, 0), min(cols.stop + g, w)
     win = energy[r0:r1, c0:c1]
-    level = float(energy[rows, cols].max()) * 10 ** (EDGE_DB / 10)
-    labels, n = ndimage.label(win >= level)
+    near = ndimage.maximum_filter(energy, size=2 * EDGE_LOCAL_PX + 1)[r0:r1, c0:c1] * 10 ** (EDGE_DB / 10)
+    floor = float(energy[rows, cols].max()) * 10 ** (EDGE_FLOOR_DB / 10)
+    labels, n = ndimage.label((win >= near) & (win >= floor))
     sums = np.asarray(ndimage.sum(win, labels, range(1, n + 1)), np.float64)
     mask = np.isin(labels, 1 + np.flatnonzero(sums >= EDGE_MIN_PIECE * sums.max()))
-    # each axis's profile: the brightest of the object's pixels in every column (row), and of
-    # the whole window beside them, for the crossing just outside
-    prof_x = np.where(mask, win, 0.0).max(axis=0)
-    prof_y = np.where(mask, win, 0.0).max(axis=1)
-    full_x = win[mask.any(axis=1)].max(axis=0)
-    full_y = win[:, mask.any(axis=0)].max(axis=1)
-    x0, x1 = _crossings(prof_x, full_x, plane.x_m[c0:c1], level)
-    y0, y1 = _crossings(prof_y, full_y, plane.y_m[r0:r1], level)
+    x0, x1 = _crossings(win.T, near.T, mask.T, plane.x_m[c0:c1])
+    y0, y1 = _crossings(win, near, mask, plane.y_m[r0:r1])
     return (x0, x1, y0, y1)
 
 
-def _crossings(profile: np.ndarray, full: np.ndarray, coords: np.ndarray, level: float) -> tuple[float, float]:
-    """The first and last places (metres) where ``profile`` (float (L,) on ``coords``) crosses
-    ``level``: linear between the outermost pixel above it and its neighbour outside (``full``,
-    the window's profile there), or that pixel's outer edge at the window's border."""
-    above = np.flatnonzero(profile >= level)
-    lo, hi = int(above[0]), int(above[-1])
+def _crossings(win: np.ndarray, level: np.ndarray, mask: np.ndarray, coords: np.ndarray) -> tuple[float, float]:
+    """The first and last places (metres) along axis 0 of ``win`` (float (L, P) energy on
+    ``coords`` (L,)) where the object (``mask``, bool (L, P)) ends: between its outermost line and
+    the next one out, where the brightest of its pixels on that line falls to their ``level``
+    (linear), or that line's outer half-pixel at the window's border."""
+    lines = np.flatnonzero(mask.any(axis=1))
+    lo, hi = int(lines[0]), int(lines[-1])
     step = float(coords[1] - coords[0]) if len(coords) > 1 else 0.0
 
     def cross(i: int, j: int) -> float:
-        if not 0 <= j < len(full):
+        if not 0 <= j < len(coords):
             return float(coords[i] + (j - i) * step / 2)
-        a, b = float(full[i]), float(full[j])
-        t = (a - level) / (a - b) if a > b else 0.5
+        sel = mask[i]
+        a, b, lv = float(win[i, sel].max()), float(win[j, sel].max()), float(level[i, sel].max())
+        t = (a - lv) / (a - b) if a > b else 0.5
         return float(coords[i] + min(max(t, 0.0), 1.0) * (j - i) * step)
 
     return cross(lo, lo - 1), cross(hi, hi + 1)
