@@ -217,7 +217,8 @@ def _looks_only(args) -> int:
         print(label, json.dumps({k: rows[key][k]["region_edge_out_m"] for k in ("reference", "target")}), flush=True)
     edges = lambda keys: [abs(v) for k in keys for role in ("reference", "target") for v in rows[k][role]["region_edge_out_m"]]  # noqa: E731
     doc = {
-        "command": f"python -m benchmarks.bench_boxes_found --looks-only --out benchmarks/results --name {args.name}",
+        "command": f"python -m benchmarks.bench_boxes_found --looks-only --out benchmarks/results --name {args.name}"
+        + (f" --scenes {' '.join(args.scenes)}" if args.scenes else ""),
         "what": "region edges less the letter's (outward +), metres; reference from the stage scan as focus finds it, "
         "target from the look on the true positions",
         "scenes": rows,
