@@ -40,6 +40,13 @@ def test_the_bag_puts_the_radar_back_on_its_track_and_the_cloud_where_it_was(tmp
     assert cloud.shape == want.shape and np.allclose(cloud, want, atol=1e-6)  # float32 in the message
 
 
+def test_the_bags_cloud_camera_is_where_focus_places_it():
+    from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M
+    from twinfocus.sensors.emulators.zed_bag import BAG_CLOUD_CAMERA_M
+
+    assert BAG_CLOUD_CAMERA_M == DEFAULT_LEFT_CAMERA_POSITION_M
+
+
 def test_ball_points_ring_each_centre():
     pts = ball_points(np.array([[0.0, 0.0, 0.5]]))
     assert pts.shape == (7, 3) and np.allclose(pts.mean(axis=0), [0, 0, 0.5])

@@ -38,6 +38,10 @@ from twinfocus.errors import TwinFocusError
 
 POSE_TOPIC = "/zed/zed_node/pose"
 CLOUD_TOPIC = "/zed/zed_node/point_cloud/cloud_registered"
+#: where ``focus`` places a bag's cloud's camera in the scene frame, metres: the digital twin's
+#: default left camera, twinfocus.digital_twin.camera.DEFAULT_LEFT_CAMERA_POSITION_M (not imported:
+#: the sensors sit below the digital twin; tests/test_zed_bag_emulator.py checks they agree)
+BAG_CLOUD_CAMERA_M = (-0.06, -0.08, 0.0)
 #: poses the camera records before the radar's first frame and after its last
 PAD_POSES = 4
 #: the camera sees each of the scene's metal balls as a small disc of points facing it: this
@@ -84,7 +88,6 @@ def write_zed_bag(
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M
     from twinfocus.sensors.rosbag2 import R_BODY_OPTICAL
     from twinfocus.trajectory import matrix_to_quat, quat_to_matrix
 
@@ -117,7 +120,7 @@ def write_zed_bag(
             w.write(pose_c, ns + 5_000_000, ts_store.serialize_cdr(msg, pose_c.msgtype))  # received 5 ms later
         mid = int(timestamps_ns[len(timestamps_ns) // 2])
         # focus puts a bag's cloud at the default camera place (the aperture's centre less the arm)
-        opt = np.asarray(cloud_scene_m, np.float64) - np.asarray(DEFAULT_LEFT_CAMERA_POSITION_M)
+        opt = np.asarray(cloud_scene_m, np.float64) - np.asarray(BAG_CLOUD_CAMERA_M)
         rec = np.zeros(len(opt), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<f4")])
         rec["x"], rec["y"], rec["z"] = (opt @ R_BODY_OPTICAL.T).T
         pf = T["sensor_msgs/msg/PointField"]
