@@ -54,6 +54,15 @@ OBJECT_DB = -10.0
 #: objects of one plane closer than this, metres, are pieces of one (a gap of less than about two
 #: resolution cells at the scene's depths; the demo's letters lie 3.7 cm apart)
 MERGE_GAP_M = 0.012
+#: an object's edge is where its smoothed energy falls this many dB below the brightest of its
+#: pixels within this many pixels (:func:`object_edges`), searched this many pixels beyond its
+#: pixels, no fainter than this many dB below its peak, in pieces holding at least this share of
+#: its brightest piece's energy
+EDGE_DB = -6.0
+EDGE_LOCAL_PX = 5
+EDGE_SEARCH_PX = 3
+EDGE_FLOOR_DB = -12.0
+EDGE_MIN_PIECE = 0.05
 #: a blob or an object with less than this share of the bright energy is ignored; at most this many blobs
 MIN_SHARE = 0.02
 MAX_BLOBS = 4
@@ -106,7 +115,13 @@ def near_centre(positions_m: np.ndarray, count: int = LOOK_POSITIONS) -> np.ndar
 def objects_in(image: np.ndarray, plane: ImageGrid, smoothing_px: float, db: float = OBJECT_DB) -> list:
     """The bright objects of an amplitude image: [(extent (X0, X1, Y0, Y1) metres, energy)], the
     brightest first. image : float (H, W) on ``plane``. Energy is summed |image|^2 times the
-    pixel's area, so that planes of different pixel sizes compare."""
+    pixel's area, so that planes of different pixel sizes compare.
+
+    Objects are found as the connected pixels within ``db`` of the image's brightest; each one's
+    extent is then its edge (:func:`object_edges`): where its energy falls :data:`EDGE_DB` below
+    its own bright pixels nearby, to a fraction of a pixel. The ``db`` threshold alone, relative to
+    the brightest object, put the brightest's edges where its blur ends and a fainter one's inside
+    it (benchmarks/results/boxes_found.json)."""
     from scipy import ndimage  # only on this path
 
     e = ndimage.gaussian_filter(np.asarray(image, np.float64) ** 2, smoothing_px)
@@ -123,8 +138,60 @@ def objects_in(image: np.ndarray, plane: ImageGrid, smoothing_px: float, db: flo
             float(plane.y_m[rows.start] - dy / 2),
             float(plane.y_m[rows.stop - 1] + dy / 2),
         )
-        found.append((box, float(e[labels == k].sum()) * dx * dy))
-    return sorted(_merge_near(found), key=lambda f: -f[1])
+        found.append((box, float(e[labels == k].sum()) * dx * dy, object_edges(e, plane, sl)))
+    return [(edge, energy) for _, energy, edge in sorted(_merge_near(found), key=lambda f: -f[1])]
+
+
+def object_edges(energy: np.ndarray, plane: ImageGrid, where: tuple[slice, slice]) -> tuple[float, float, float, float]:
+    """An object's x/y edges (X0, X1, Y0, Y1) metres: where its smoothed energy falls
+    :data:`EDGE_DB` below the brightest of its pixels nearby (within :data:`EDGE_LOCAL_PX`),
+    interpolated between pixels.
+
+    energy : float64 (H, W), the smoothed |image|^2 on ``plane``; where : the (rows, cols)
+    slices of the object's pixels. Searched in that box grown by :data:`EDGE_SEARCH_PX` (a blurred
+    edge can reach beyond the pixels the coarser threshold kept), among pixels no fainter than
+    :data:`EDGE_FLOOR_DB` below the object's peak, keeping the pieces that hold at least
+    :data:`EDGE_MIN_PIECE` of the brightest piece's energy (a neighbour's speckle reaching into the
+    window does not count). Why -6 dB: a flat object's edge, blurred by a symmetric point response,
+    sits where its amplitude is half the inside's. Why nearby, not the object's peak: an object
+    whose parts differ in brightness (a glint, a letter of metal balls) would lose its fainter
+    parts below a level set by its brightest."""
+    from scipy import ndimage  # only on this path
+
+    rows, cols = where
+    h, w = energy.shape
+    g = EDGE_SEARCH_PX
+    r0, r1 = max(rows.start - g, 0), min(rows.stop + g, h)
+    c0, c1 = max(cols.start - g, 0), min(cols.stop + g, w)
+    win = energy[r0:r1, c0:c1]
+    near = ndimage.maximum_filter(energy, size=2 * EDGE_LOCAL_PX + 1)[r0:r1, c0:c1] * 10 ** (EDGE_DB / 10)
+    floor = float(energy[rows, cols].max()) * 10 ** (EDGE_FLOOR_DB / 10)
+    labels, n = ndimage.label((win >= near) & (win >= floor))
+    sums = np.asarray(ndimage.sum(win, labels, range(1, n + 1)), np.float64)
+    mask = np.isin(labels, 1 + np.flatnonzero(sums >= EDGE_MIN_PIECE * sums.max()))
+    x0, x1 = _crossings(win.T, near.T, mask.T, plane.x_m[c0:c1])
+    y0, y1 = _crossings(win, near, mask, plane.y_m[r0:r1])
+    return (x0, x1, y0, y1)
+
+
+def _crossings(win: np.ndarray, level: np.ndarray, mask: np.ndarray, coords: np.ndarray) -> tuple[float, float]:
+    """The first and last places (metres) along axis 0 of ``win`` (float (L, P) energy on
+    ``coords`` (L,)) where the object (``mask``, bool (L, P)) ends: between its outermost line and
+    the next one out, where the brightest of its pixels on that line falls to their ``level``
+    (linear), or that line's outer half-pixel at the window's border."""
+    lines = np.flatnonzero(mask.any(axis=1))
+    lo, hi = int(lines[0]), int(lines[-1])
+    step = float(coords[1] - coords[0]) if len(coords) > 1 else 0.0
+
+    def cross(i: int, j: int) -> float:
+        if not 0 <= j < len(coords):
+            return float(coords[i] + (j - i) * step / 2)
+        sel = mask[i]
+        a, b, lv = float(win[i, sel].max()), float(win[j, sel].max()), float(level[i, sel].max())
+        t = (a - lv) / (a - b) if a > b else 0.5
+        return float(coords[i] + min(max(t, 0.0), 1.0) * (j - i) * step)
+
+    return cross(lo, lo - 1), cross(hi, hi + 1)
 
 
 def _gap(a, b) -> float:
@@ -132,19 +199,23 @@ def _gap(a, b) -> float:
     return max(max(a[0], b[0]) - min(a[1], b[1]), max(a[2], b[2]) - min(a[3], b[3]))
 
 
+def _union(a, b) -> tuple[float, float, float, float]:
+    return (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
+
+
 def _merge_near(found: list) -> list:
     """Pieces of one object (a letter's speckle can leave a bar apart from its stem) joined: boxes
-    closer than :data:`MERGE_GAP_M` become one, their energies summed."""
+    (each found item: (box, energy, edges)) closer than :data:`MERGE_GAP_M` become one, their
+    energies summed, their edges the union."""
     found = list(found)
     merged = True
     while merged:
         merged = False
         for i in range(len(found)):
             for j in range(i + 1, len(found)):
-                (a, ea), (b, eb) = found[i], found[j]
+                (a, ea, ga), (b, eb, gb) = found[i], found[j]
                 if _gap(a, b) < MERGE_GAP_M:
-                    box = (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
-                    found[i] = (box, ea + eb)
+                    found[i] = (_union(a, b), ea + eb, _union(ga, gb))
                     del found[j]
                     merged = True
                     break
