@@ -15,6 +15,11 @@ object is confounded with the outline's own errors; a rig file says ``"rotation"
 How sure: a bootstrap over the scan's positions (each draw sums the per-position sub-images with
 multinomial weights and registers again); the spread is the uncertainty written to the rig file.
 
+Applied (``--rig``): the cloud is moved by the offset (:func:`rig_reference`), and the focus then
+places the reference on the calibrated outline (:func:`rig_placed`, :func:`place_on_rig`: the
+estimate's ramp that holds the reference's energy most inside it, taken out when that is clear);
+the confidence report reads that placement (:func:`rig_trust`).
+
 Refusals (one line, :class:`TwinFocusError`): an object too small to register (its outline covers
 fewer than :data:`MIN_SUPPORT_PIXELS` pixels, or spans fewer than :data:`MIN_EXTENT_CELLS`
 resolution cells), a cloud and image that disagree in shape (correlation below
