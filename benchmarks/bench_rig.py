@@ -6,11 +6,18 @@ digital twin from their camera clouds, with and without the rig, beside the phys
 digital twin's placement ceiling (its target's best SSIM over sub-pixel shifts).
 
     python -m benchmarks.bench_rig --draws 3 --rows 33 --size 48      (~15 min on 2 cores)
+    python -m benchmarks.bench_rig --draws 3 --heldout                 (the held-out sets)
+    python -m benchmarks.bench_rig --summarise benchmarks/results/rig.json   (the summary again)
 
-Seeds start at ``RIG_SEED`` (held-out shapes, seeds the family bench does not draw; 3001-3004 were
-looked at while building, 3101 on were not). Writes
-``benchmarks/results/rig.json`` (records and a summary: mean, sd, worst per condition) and prints
-a markdown table.
+With the rig, the focus places the reference on the calibrated cloud's outline
+(:func:`twinfocus.digital_twin.rig.rig_placed`); each record keeps what that placement found
+(``rig placement``), both results' confidence reports (trusted, warnings) and where each put the
+target (``error_mm``). The summary adds the report's false trust (trusted, below 0.90) and false
+alarms (flagged, at or above 0.95) with and without the rig.
+
+Seeds: the build sets start at ``RIG_SEED`` (held-out shapes, seeds the family bench does not draw;
+the placement was built on them: ``rig.json``), the held-out sets at ``HELDOUT_RIG_SEED`` (never
+looked at while building: ``rig_heldout.json``). Prints a markdown table.
 """
 
 from __future__ import annotations
@@ -29,9 +36,12 @@ from benchmarks.bench_dtwin_family import (
     digital_twin_focus,
     draw_inputs,
     placement,
+    surface_of,
 )
 
 RIG_SEED = 3101
+#: the held-out sets' first seed: never run while the rig's placement was built
+HELDOUT_RIG_SEED = 3701
 CONDITIONS = ("paper", "1 mm deeper", "1.6 mm")
 
 
@@ -67,9 +77,13 @@ def calibrate(seed: int, offset: np.ndarray, rows: int, size: int) -> dict:
 
 
 def focus_set(condition: str, seed: int, offset: np.ndarray, rig_offset: np.ndarray, rows: int, size: int) -> dict:
+    """One scan of the set: the digital twin from its camera cloud without and with the rig
+    (``twinfocus focus --digital-twin CLOUD [--rig RIG]``), its confidence report and placement
+    ceiling each, and the physical twin."""
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.digital_twin.camera_cloud import camera_cloud
     from twinfocus.digital_twin.condition import digital_twin_reference
+    from twinfocus.digital_twin.rig import Rig, rig_reference
     from twinfocus.estimators import estimator_settings
     from twinfocus.pipeline import focus_bases, half_array_bases
     from twinfocus.templates import template_from_scan
@@ -77,13 +91,29 @@ def focus_set(condition: str, seed: int, offset: np.ndarray, rig_offset: np.ndar
     d = draw_inputs(condition, seed, HELDOUT_SHAPES, rows, size)
     scan, rg = d["scan"], d["rg"]
     cloud = camera_cloud(d["reference_points"], *CLOUD, offset, rng=np.random.default_rng([seed, 15]))
-    rec: dict = {"seed": seed, "reference": d["kw"]["reference"], "target": d["kw"]["target"]}
-    for name, off in (("no rig", None), ("rig", rig_offset)):
-        d["twin"] = digital_twin_reference(cloud, scan.positions, scan.chirp, rg, offset_m=off)
+    rec: dict = {
+        "seed": seed,
+        "reference": d["kw"]["reference"],
+        "target": d["kw"]["target"],
+        "surface": surface_of(d["kw"]),
+    }
+    rig = Rig(rig_offset, np.zeros(3), "bench", None)
+    for name in ("no rig", "rig"):
+        d["twin"] = (
+            digital_twin_reference(cloud, scan.positions, scan.chirp, rg)
+            if name == "no rig"
+            else rig_reference(cloud, scan, rg, rig)
+        )
         out = digital_twin_focus(d)
+        conf = out.metrics["confidence"]
         rec[name] = round(out.metrics["target_ssim_corrected"], 4)
-        rec[f"{name} trusted"] = out.metrics["confidence"]["trusted"]
-        rec[f"{name} ceiling"] = placement(d, out)["best_shift_ssim"]
+        rec[f"{name} trusted"] = conf["trusted"]
+        rec[f"{name} warnings"] = conf["warnings"]
+        where = placement(d, out)
+        rec[f"{name} ceiling"] = where["best_shift_ssim"]
+        rec[f"{name} error_mm"] = where["error_mm"]
+        if "rig_placement" in conf:
+            rec["rig placement"] = conf["rig_placement"]
     pt = focus_bases(
         d["rb"],
         d["tb"],
@@ -110,19 +140,105 @@ def summary(records: list, key: str) -> dict:
     }
 
 
-def main(out: str, draws: int, rows: int, size: int, calibration_rows: int = 65, truth_rig: bool = False) -> dict:
-    path = Path(out) / ("rig_truth.json" if truth_rig else "rig.json")
+#: what a result must reach to count as good (a flag on it is a false alarm) and below which a
+#: trusted one is a false trust (the family bench's lines)
+GOOD, POOR = 0.95, 0.90
+
+
+def trust_errors(records: list, key: str) -> dict:
+    """The confidence report's errors on the ``key`` results ("no rig" or "rig") of ``records``:
+    trusted below ``POOR`` (false trust) and flagged at or above ``GOOD`` (false alarm)."""
+    n = len(records)
+    trusted = [r for r in records if r[f"{key} trusted"]]
+    false_trust = sum(r[key] < POOR for r in trusted)
+    false_alarm = sum(r[key] >= GOOD and not r[f"{key} trusted"] for r in records)
+    return {
+        "results": n,
+        "trusted": len(trusted),
+        "false_trust": false_trust,
+        "false_alarm": false_alarm,
+        "false_trust_rate": round(false_trust / max(n, 1), 4),
+        "false_alarm_rate": round(false_alarm / max(n, 1), 4),
+    }
+
+
+KEYS = ("no rig", "rig", "physical", "no rig ceiling", "rig ceiling")
+#: the summary's names of the conditions and columns (no spaces or dots: docs quote them by path)
+NAMES = {
+    "paper": "paper",
+    "1 mm deeper": "deeper_1mm",
+    "1.6 mm": "wrapped_1p6mm",
+    "no rig": "no_rig",
+    "rig": "rig",
+    "physical": "physical",
+    "no rig ceiling": "no_rig_ceiling",
+    "rig ceiling": "rig_ceiling",
+}
+
+
+def summarise(res: dict) -> dict:
+    """The result file's summary: per condition mean, sd, worst of every column of ``KEYS``; the
+    confidence report's errors with and without the rig over every scan; the rig placements."""
+    out: dict = {
+        NAMES[cond]: {NAMES[key]: summary([s["scans"][cond] for s in res["sets"]], key) for key in KEYS}
+        for cond in CONDITIONS
+    }
+    recs = [s["scans"][cond] for s in res["sets"] for cond in CONDITIONS]
+    out["confidence"] = {NAMES[key]: trust_errors(recs, key) for key in ("no rig", "rig")}
+    placed = [r["rig placement"] for r in recs if "rig placement" in r]
+    moved = np.abs([p["moved_m"] for p in placed if p["placed"]] or [[0.0, 0.0]]) * 1e3
+    out["rig_placement"] = {
+        "scans": len(placed),
+        "placed": sum(p["placed"] for p in placed),
+        "moved_mm_median": [round(float(v), 2) for v in np.median(moved, axis=0)],
+        "moved_mm_max": [round(float(v), 2) for v in moved.max(axis=0)],
+    }
+    return out
+
+
+def table(res: dict) -> str:
+    s = res["summary"]
+    lines = [
+        "| condition | digital twin, no rig | digital twin, rig | physical twin | ceiling (best over shifts), no rig | ceiling, rig |",
+        "|---|---|---|---|---|---|",
+    ]
+    for cond in CONDITIONS:
+        cell = {k: f"{v['mean']:.3f} +- {v['sd']:.3f} (worst {v['worst']:.3f})" for k, v in s[NAMES[cond]].items()}
+        lines.append(
+            f"| {cond} | {cell['no_rig']} | {cell['rig']} | {cell['physical']} | {cell['no_rig_ceiling']} | {cell['rig_ceiling']} |"
+        )
+    for key, c in s["confidence"].items():
+        lines.append(
+            f"\n{key}: {c['trusted']}/{c['results']} trusted, false trust {c['false_trust']} ({c['false_trust_rate']:.0%}), "
+            f"false alarm {c['false_alarm']} ({c['false_alarm_rate']:.0%})"
+        )
+    return "\n".join(lines)
+
+
+def main(
+    out: str,
+    draws: int,
+    rows: int,
+    size: int,
+    calibration_rows: int = 65,
+    truth_rig: bool = False,
+    heldout: bool = False,
+) -> dict:
+    name = "rig" + ("_truth" if truth_rig else "") + ("_heldout" if heldout else "")
+    path = Path(out) / f"{name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
+    first = HELDOUT_RIG_SEED if heldout else RIG_SEED
     res: dict = {
         "scan": {"positions": rows * 6, "pixels": size, "calibration_positions": calibration_rows * 6},
+        "seeds": "held-out (never looked at while building)" if heldout else "build (looked at while building)",
         "sets": [],
     }
+    from twinfocus.errors import TwinFocusError
+
     for k in range(draws):
-        seed = RIG_SEED + 10 * k
+        seed = first + 10 * k
         offset = draw_rig(seed)
         print(f"[rig bench] set {k}: camera offset {np.round(offset * 1e3, 2)} mm", file=sys.stderr, flush=True)
-        from twinfocus.errors import TwinFocusError
-
         refused = []
         # a refused calibration is what a user is told: scan the calibration object again (the
         # next paper-protocol draw of the set), up to three times
@@ -141,23 +257,18 @@ def main(out: str, draws: int, rows: int, size: int, calibration_rows: int = 65,
             # --truth-rig: the exact offset instead of the measured one (what a perfect rig would give)
             rig_offset = -offset if truth_rig else np.asarray(cal["offset_m"])
             s["scans"][cond] = focus_set(cond, seed + 1 + i, offset, rig_offset, rows, size)
+            r = s["scans"][cond]
+            print(
+                f"[rig bench]   no rig {r['no rig']} ({r['no rig trusted']}), rig {r['rig']} ({r['rig trusted']}), "
+                f"physical {r['physical']}, placement {r.get('rig placement')}",
+                file=sys.stderr,
+                flush=True,
+            )
         res["sets"].append(s)
         path.write_text(json.dumps(res, indent=1, default=float))
-    res["summary"] = {
-        cond: {
-            key: summary([s["scans"][cond] for s in res["sets"]], key)
-            for key in ("no rig", "rig", "physical", "no rig ceiling", "rig ceiling")
-        }
-        for cond in CONDITIONS
-    }
+    res["summary"] = summarise(res)
     path.write_text(json.dumps(res, indent=1, default=float))
-    print(
-        "| condition | digital twin, no rig | digital twin, rig | physical twin | ceiling (best over shifts), no rig |"
-    )
-    print("|---|---|---|---|---|")
-    for cond, s in res["summary"].items():
-        cell = {k: f"{v['mean']:.3f} +- {v['sd']:.3f} (worst {v['worst']:.3f})" for k, v in s.items()}
-        print(f"| {cond} | {cell['no rig']} | {cell['rig']} | {cell['physical']} | {cell['no rig ceiling']} |")
+    print(table(res))
     return res
 
 
@@ -169,5 +280,15 @@ if __name__ == "__main__":
     ap.add_argument("--size", type=int, default=48, help="pixels per side of each region (the paper: 100)")
     ap.add_argument("--calibration-rows", type=int, default=65, help="rows of the calibration's stage scan")
     ap.add_argument("--truth-rig", action="store_true", help="apply the exact offset (rig_truth.json): a perfect rig")
+    ap.add_argument(
+        "--heldout", action="store_true", help="the held-out sets (rig_heldout.json), never looked at while building"
+    )
+    ap.add_argument("--summarise", metavar="FILE", help="only (re)write FILE's summary from its records")
     a = ap.parse_args()
-    main(a.out, a.draws, a.rows, a.size, a.calibration_rows, a.truth_rig)
+    if a.summarise:
+        res = json.loads(Path(a.summarise).read_text())
+        res["summary"] = summarise(res)
+        Path(a.summarise).write_text(json.dumps(res, indent=1, default=float))
+        print(table(res))
+        sys.exit(0)
+    main(a.out, a.draws, a.rows, a.size, a.calibration_rows, a.truth_rig, a.heldout)

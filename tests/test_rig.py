@@ -158,6 +158,10 @@ def test_focus_with_rig_records_it(stage, capsys):
     assert m["rig"]["sha256"] == hashlib.sha256((d / "known.json").read_bytes()).hexdigest()
     np.testing.assert_allclose(m["rig"]["reference_moved_m"], -OFFSET)
     np.testing.assert_allclose(m["digital_twin"]["offset_m"], -OFFSET)
+    # the placement on the calibrated outline: how far it moved the reference and how sure
+    placement = m["rig"]["placement"]
+    assert set(placement) >= {"moved_m", "sd_m", "prominence", "placed", "why"}
+    assert m["confidence"]["rig_placement"] == placement
 
 
 def test_rig_needs_a_digital_twin(tmp_path, capsys):
@@ -201,10 +205,62 @@ def test_template_builder_takes_a_rig_and_refuses_another_boards(tmp_path):
     np.save(tmp_path / "cloud.npy", np.random.default_rng(0).normal(0, 0.01, (50, 3)) + [-0.02, 0.0, 0.3])
     Rig([1e-3, 0, 0], [1e-4] * 3, "MMWCAS-RF-EVM", None).save(tmp_path / "rig.json")
     Rig([1e-3, 0, 0], [1e-4] * 3, "another board", None).save(tmp_path / "other.json")
-    params = {"source": "points", "path": str(tmp_path / "cloud.npy"), "reference_roi": [-0.045, -0.005, -0.02, 0.02, 0.3]}
+    params = {
+        "source": "points",
+        "path": str(tmp_path / "cloud.npy"),
+        "reference_roi": [-0.045, -0.005, -0.02, 0.02, 0.3],
+    }
     with local_broker() as ep:
         tb = TemplateBuilder(broker=ep, params={**params, "rig": str(tmp_path / "rig.json")})
         np.testing.assert_allclose(tb.rig[0], [1e-3, 0, 0])
         assert len(tb.rig[1]["sha256"]) == 64
         with pytest.raises(TwinFocusError, match="another board"):
             TemplateBuilder(broker=ep, params={**params, "rig": str(tmp_path / "other.json")})
+
+
+def test_place_on_rig_finds_an_injected_ramp_and_carries_the_target(stage):
+    """On the stage scan (positions exact: the true phase is 0) a ramp that moves the image 5 mm
+    across y and 1 mm across x is put into the phase; the placement on the exact surface's outline
+    finds it to a fraction of the 3.3 mm pixel, takes it out, and the target, formed with the
+    placed phase, is back on its image on the true positions."""
+    from twinfocus.backprojection import subimage_basis
+    from twinfocus.basis import form_image
+    from twinfocus.digital_twin.condition import support_on_grid
+    from twinfocus.digital_twin.rig import place_on_rig
+    from twinfocus.metrics import image_ssim
+
+    scan, grid, tg = stage["scan"], stage["grid"], stage["target_grid"]
+    rb = subimage_basis(scan.data, scan.positions, scan.chirp, grid)
+    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+    support = support_on_grid(stage["surface"], grid)
+    centres = scan.positions.mean(axis=1)
+    ap = centres[:, :2] - centres[:, :2].mean(axis=0)
+    range_m = float(grid.z - centres[:, 2].mean())
+    per_m = 4 * np.pi / (scan.chirp.wavelength_m * range_m)
+    injected = np.array([1e-3, 5e-3])
+    phase = per_m * (ap @ injected)
+    placed, info = place_on_rig(rb, support, phase, scan.positions, range_m, scan.chirp.wavelength_m, bootstrap=6)
+    assert info["placed"], info
+    np.testing.assert_allclose(info["moved_m"], injected, atol=1.0e-3)
+    assert all(0 < s < 1.5e-3 for s in info["sd_m"])
+    truth = form_image(tb, np.zeros(scan.n_positions))
+    assert image_ssim(form_image(tb, placed), truth) > image_ssim(form_image(tb, phase), truth) + 0.02
+
+
+def test_rig_placement_only_on_a_rig_and_trust_lifts_only_the_wrapped_warning():
+    from types import SimpleNamespace
+
+    from twinfocus.digital_twin.rig import WRAPPED_WARNING, rig_placed, rig_trust
+
+    model = SimpleNamespace(drift_m=None)
+    problem = SimpleNamespace(support=np.ones((2, 2), bool))
+    # no rig (or no digital twin): the correction is the ladder's, untouched
+    assert rig_placed(model, problem, None) is model
+    assert rig_placed(model, problem, {"offset_m": None}) is model
+    assert rig_trust(None, ["w"]) == {} and rig_trust({"sd_m": [0, 0, 0]}, ["w"]) == {}
+    warnings = [f"the estimate's {WRAPPED_WARNING} (coherence 1.0)", "the corrected target is not at its focus"]
+    placed = {"placed": True, "moved_m": [0.0, 1e-3], "sd_m": [1e-4, 3e-4], "prominence": 0.05, "why": "placed"}
+    out = rig_trust({"placement": placed}, warnings)
+    assert out["warnings"] == warnings[1:] and out["rig_placement"] == placed
+    unsure = {**placed, "placed": False}
+    assert rig_trust({"placement": unsure}, warnings)["warnings"] == warnings

@@ -34,6 +34,7 @@ from twinfocus.autofocus import (
 from twinfocus.backprojection import backproject, subimage_basis, subimage_basis_points
 from twinfocus.band_delay import half_band_chirps, half_band_data
 from twinfocus.basis import form_image
+from twinfocus.digital_twin.rig import rig_placed, rig_trust
 from twinfocus.drift_check import phase_concentration, step_coherence
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE
@@ -378,6 +379,7 @@ def focus_bases(
     problem = Problem(ref_basis, tgt_basis, positions, chirp, reference_grid, target_grid, cfg, template, support,
                       registration_scores, half_bases, upper_band, progress_factory, reference_trust)  # fmt: skip
     kept, section = climb(problem, rungs)
+    kept = rig_placed(kept, problem, reference_info)  # a calibrated rig: the reference where the camera saw it
     targets = section.pop("targets")
     m: dict = {"method": method, "n_positions": int(positions.shape[0]), "n_channels": int(positions.shape[1])}
     if reference_info is not None:
@@ -818,6 +820,7 @@ def confidence_report(
         )
     if "model" in m:
         out["model"] = m["model"]["result"]
+    out.update(rig_trust((m.get("digital_twin") or {}).get("rig"), out["warnings"]))
     out["trusted"] = not out["warnings"]
     return out
 
