@@ -440,11 +440,7 @@ def fit_smooth_drift(
     t0 = time.perf_counter()
     cfg = settings or DriftFitSettings()
     b, tpl, c, fitted = _check_drift_inputs(basis, template, centres_m, grid, half_basis, pixels)
-    stride = _row_stride(c, grid, wavelength_m, cfg.row_cell_share)
-    if stride > 1:  # the correlation on every stride-th row: still within row_cell_share of a cell apart
-        fitted = fitted & (np.arange(grid.shape[0]) % stride == 0)[:, None]
-        if not fitted.any():
-            raise TwinFocusError(f"no pixel of the fit is left on every {stride}th row")
+    fitted, stride = _on_rows(fitted, tpl, _row_stride(c, grid, wavelength_m, cfg.row_cell_share))
     m = b.shape[0]
     whole = _drift_match(b, half_basis, tpl, c, grid, wavelength_m, device)
     match = coarse = whole if fitted.all() else whole.on(fitted.ravel())
@@ -482,6 +478,19 @@ def fit_smooth_drift(
     }
     tilt = fit.tilt()
     return fit.phase.copy(), dp, np.zeros(m) if tilt is None else tilt.astype(np.float64), info
+
+
+def _on_rows(fitted: np.ndarray, template: np.ndarray, stride: int) -> tuple[np.ndarray, int]:
+    """The fitted pixels (bool (H, W)) on every ``stride``-th row, and the stride taken: 1 (all
+    of ``fitted``) when those rows hold less than half their share of the template's energy on
+    ``fitted`` (a mask in step with the rows, e.g. a held-out half of one-row blocks)."""
+    if stride <= 1:
+        return fitted, 1
+    rows = fitted & (np.arange(fitted.shape[0]) % stride == 0)[:, None]
+    energy = np.abs(template) ** 2
+    if energy[rows].sum() >= 0.5 * energy[fitted].sum() / stride > 0:
+        return rows, stride
+    return fitted, 1
 
 
 def _check_drift_inputs(basis, template, centres_m, grid, half_basis, pixels):
