@@ -519,7 +519,7 @@ def test_the_fits_adam_steps_as_torchs_adam():
     ref = [torch.tensor(a0), torch.tensor(b0)]
     opt_mine = _Adam(mine, [0.01, 0.2])
     opt_ref = torch.optim.Adam([{"params": [ref[0]], "lr": 0.01}, {"params": [ref[1]], "lr": 0.2}])
-    for step in range(6):
+    for _ in range(6):
         grads = [rng.normal(size=p.shape) for p in mine]
         for q, g in zip(ref, grads):
             q.grad = torch.tensor(g)
