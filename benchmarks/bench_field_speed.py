@@ -111,6 +111,9 @@ def one_draw(seed: int, baseline) -> dict:
         kwargs.pop("device", None)
         if kwargs.get("pixels") is None:
             kwargs.pop("pixels", None)  # an earlier version has no such argument; the whole fit needs none
+        settings = kwargs.pop("settings", None)
+        if settings is not None:  # earlier versions took the settings as keywords
+            kwargs.update({k: v for k, v in vars(settings).items() if k != "row_cell_share"})
         if baseline is not None:
             # copies: an earlier version may scale its inputs in place (2ec245c did)
             copies = [np.array(a) if isinstance(a, np.ndarray) else a for a in args]

@@ -309,16 +309,15 @@ class Solver(Node):
 
     def _warm_up_drift(self, basis: np.ndarray, pos: np.ndarray, grid, wavelength_m: float) -> None:
         """The drift + tilt fit once on the toy problem of :meth:`_warm_up`, when the ladder may
-        climb to it: a hand-held scan's first fit then does not pay torch's import (1.5 s) and
-        loading the fit's numba kernels after its last frame. basis : complex (2, 4, 4) on
-        ``grid``; pos : (2, K, 3) metres."""
+        climb to it: a hand-held scan's first fit then does not pay loading the fit's numba kernels
+        after its last frame. basis : complex (2, 4, 4) on ``grid``; pos : (2, K, 3) metres."""
         from twinfocus.ladder import climbs_to
 
         if self.params["method"] != "twin" or not climbs_to(
             "drift", self.params["model"], self.params["space_variant"]
         ):
             return
-        from twinfocus.space_variant import fit_smooth_drift
+        from twinfocus.space_variant import DriftFitSettings, fit_smooth_drift
 
         template = np.asarray(basis.sum(axis=0))
         fit_smooth_drift(
@@ -328,8 +327,7 @@ class Solver(Node):
             pos.mean(axis=1),
             grid,
             wavelength_m,
-            iterations=2,
-            refine_iterations=2,
+            DriftFitSettings(iterations=2, refine_iterations=2),
             half_basis=basis,
             device=self.cfg.device,
         )

@@ -428,7 +428,7 @@ def test_sharpness_baseline_at_extreme_scales():
 @pytest.mark.parametrize("amplitude", [1e-20, 1e20])
 def test_space_variant_fit_at_extreme_amplitudes_matches_unit_amplitude(unit_scene, amplitude):
     """The smooth-drift fit (a physical twin under a hand's drift) is scale-free too."""
-    from twinfocus.space_variant import fit_smooth_drift
+    from twinfocus.space_variant import DriftFitSettings, fit_smooth_drift
 
     def fit(s):
         phase = correlation_phase(s["ref_basis"], s["truth_reference"])
@@ -440,8 +440,7 @@ def test_space_variant_fit_at_extreme_amplitudes_matches_unit_amplitude(unit_sce
             centres,
             s["reference_grid"],
             s["chirp"].wavelength_m,
-            iterations=5,
-            refine_iterations=5,
+            DriftFitSettings(iterations=5, refine_iterations=5),
         )
 
     _, drift, _, info = fit(scene(amplitude=amplitude, snr_db=None))

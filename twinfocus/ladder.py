@@ -740,7 +740,7 @@ class SmoothDrift(Rung):
 
     def _fit(self, problem: Problem, model: Model, halves, fitted: np.ndarray | None = None, **settings):
         """fit_smooth_drift on the reference, or on its ``fitted`` pixels alone (bool (H, W))."""
-        from twinfocus.space_variant import fit_smooth_drift  # torch and scipy: only on this path
+        from twinfocus.space_variant import DriftFitSettings, fit_smooth_drift  # scipy: only on this path
 
         assert model.template is not None
         return fit_smooth_drift(
@@ -754,7 +754,7 @@ class SmoothDrift(Rung):
             pixels=fitted,
             device=problem.config.device,
             progress=problem.progress("space-variant fit" if fitted is None else "space-variant held-out fit"),
-            **settings,
+            settings=DriftFitSettings(**settings),
         )
 
     def fit(self, problem: Problem, model: Model) -> Model:

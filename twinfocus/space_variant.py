@@ -42,6 +42,7 @@ import contextlib
 import os
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -317,6 +318,69 @@ REFINE_WINDOW = 10
 #: written out)
 KNOT_ENERGY_FRACTION = 0.9
 
+#: :func:`fit_smooth_drift` correlates on rows up to this share of the resolution cell across y
+#: apart (the share ``--model fast`` forms its reference at, twinfocus.ladder.FAST_REFERENCE_CELL_SHARE):
+#: every other row on the hand-drift scene (100 x 100 over 4.4 mm cells, rows 1.6 mm apart), half
+#: the fit's work, its target SSIM within 0.001 of every row's
+#: (benchmarks/results/drift_fit_speed.json)
+ROW_CELL_SHARE = 0.8
+
+
+def _row_stride(centres_m: np.ndarray, grid: ImageGrid, wavelength_m: float, share: float) -> int:
+    """Rows of ``grid`` per row the drift fit correlates on: the largest stride that keeps them
+    within ``share`` of the resolution cell across y (:func:`twinfocus.reference_free.resolution_cell_m`
+    of the phase centres (M, 3), metres) apart; 1 for ``share`` <= 0 or a grid of one row."""
+    if share <= 0 or grid.height < 2:
+        return 1
+    from twinfocus.reference_free import resolution_cell_m
+
+    cell_y, _ = resolution_cell_m(np.asarray(centres_m, float)[:, None, :], grid, wavelength_m)
+    return max(1, int(share * cell_y / ((grid.y1 - grid.y0) / (grid.height - 1))))
+
+
+@dataclass(frozen=True)
+class DriftFitSettings:
+    """How :func:`fit_smooth_drift` climbs: its knots, stages, steps and penalty.
+
+    knot_spacing : positions between knots (a hand's drift stays correlated over ~20 positions of
+    a 10 Hz sweep, and wanders within that: knots every 10 follow it better than every 20).
+    iterations, step_m : Adam's iterations and step on the knots, metres. phase_step_rad : Adam's
+    step on phi, radians (0: phi fixed). refine_iterations : the per-position stage's iterations
+    (same steps; 0: the knots' curve as it is). refine_stop : the per-position stage ends early
+    once its last ``REFINE_WINDOW`` steps gained less than this share of all it gained (0: every
+    step). smoothness_per_mm2 : its penalty weight, per mm^2 of squared step between neighbours
+    (against a correlation of at most 1). tilt_step_rad : Adam's step on the tilt's knots, radians.
+    knot_energy_fraction : the knots' stage runs on the template's brightest pixels that hold this
+    share of its energy (1: every pixel). row_cell_share : the fit's
+    correlation on every k-th row of the grid, k the largest stride that keeps its rows within this
+    share of the scan's resolution cell across y apart (:func:`_row_stride`; 0: every row).
+
+    phi moves in steps ten times smaller than it may: the closed-form scalar phase is already
+    near the best one phase per position, and 780 phases moving as fast as the drift fit the
+    reference's noise and pull the drift off (handheld draws 3 / 4, docs/handheld.md: 0.893 /
+    0.899 with phi steps of 0.02 rad and knots every 20 positions; 0.912 / 0.928 with phi fixed
+    and knots every 10; 0.914 / 0.932 with steps of 0.002 rad). The per-position stage stops
+    early: on the hand-drift draws 3, 5, 8, 11, 13 of benchmarks/bench_field_speed.py after 73-90
+    steps, target SSIM 0.9429 against 0.9431 with all 100.
+    """
+
+    knot_spacing: int = 10
+    iterations: int = 100
+    step_m: float = 2e-5
+    phase_step_rad: float = 0.002
+    refine_iterations: int = 100
+    refine_stop: float = REFINE_STOP
+    smoothness_per_mm2: float = 1e-4
+    tilt_step_rad: float = 0.01
+    knot_energy_fraction: float = KNOT_ENERGY_FRACTION
+    row_cell_share: float = ROW_CELL_SHARE
+
+    def __post_init__(self) -> None:
+        if not 0.0 < float(self.knot_energy_fraction) <= 1.0:
+            raise TwinFocusError(f"knot_energy_fraction must be in (0, 1], got {self.knot_energy_fraction!r}")
+        if int(self.knot_spacing) < 1 or min(self.iterations, self.refine_iterations) < 0:
+            raise TwinFocusError("knot_spacing must be >= 1 and the iterations >= 0")
+
 
 def fit_smooth_drift(
     basis: np.ndarray,
@@ -325,16 +389,8 @@ def fit_smooth_drift(
     centres_m: np.ndarray,
     grid: ImageGrid,
     wavelength_m: float,
-    knot_spacing: int = 10,
-    iterations: int = 100,
-    step_m: float = 2e-5,
-    phase_step_rad: float = 0.002,
-    refine_iterations: int = 100,
-    refine_stop: float = REFINE_STOP,
-    smoothness_per_mm2: float = 1e-4,
+    settings: DriftFitSettings | None = None,
     half_basis: np.ndarray | None = None,
-    tilt_step_rad: float = 0.01,
-    knot_energy_fraction: float = KNOT_ENERGY_FRACTION,
     pixels: np.ndarray | None = None,
     device: str | None = "cpu",
     progress: Callable[[int, int, float], None] | None = None,
@@ -347,76 +403,99 @@ def fit_smooth_drift(
         I(p) = sum_m B_m(p) exp(j (phi_m + k (u_{m,p} - u_{m,c}) . dp_m)),  dp = S c,
 
     over the knot values c of dp's x and y (S: :func:`knot_basis`; along z the line of sight
-    barely turns over a region, so phi holds it) with Adam from dp = 0, and phi (one per position)
-    from ``phase0_rad`` in small steps. u_{m,p}: unit line of sight from position m to pixel p; u_{m,c}: to the
-    region's centre, where phi is the phase. Then dp is refined position by position, from the
-    knots' curve, with a penalty ``smoothness_per_mm2`` * sum_m |dp_{m+1} - dp_m|^2 (mm^2) on the
-    correlation: the knots' straight segments miss a hand's wander within 10 positions, and the
-    penalty keeps each position's noise out (handheld draws 1-10, docs/handheld.md: 1e-4 gains
-    0.006 on average over the knots alone; 3e-4 and more pull the drift in, 3e-5 lets noise in).
-
-    phi moves in steps ten times smaller than it may: the closed-form scalar phase is already
-    near the best one phase per position, and 780 phases moving as fast as the drift fit the
-    reference's noise and pull the drift off (handheld draws 3 / 4, docs/handheld.md: 0.893 /
-    0.899 with phi steps of 0.02 rad and knots every 20 positions; 0.912 / 0.928 with phi fixed
-    and knots every 10; 0.914 / 0.932 with steps of 0.002 rad, which also take up the closed
-    form's own approximation where the positions' sub-images overlap).
+    barely turns over a region, so phi holds it) with Adam from dp = 0, and phi
+    (one per position) from ``phase0_rad`` in small steps. u_{m,p}: unit line of sight from
+    position m to pixel p; u_{m,c}: to the region's centre, where phi is the phase. Then dp is
+    refined position by position, from the knots' curve, with a penalty ``smoothness_per_mm2`` *
+    sum_m |dp_{m+1} - dp_m|^2 (mm^2) on the correlation: the knots' straight segments miss a
+    hand's wander within 10 positions, and the penalty keeps each position's noise out (handheld
+    draws 1-10, docs/handheld.md: 1e-4 gains 0.006 on average over the knots alone; 3e-4 and more
+    pull the drift in, 3e-5 lets noise in). ``settings``: :class:`DriftFitSettings`.
 
     basis : complex (M, H, W) the reference's sub-image basis on ``grid``; template : complex
     (H, W), registered to the scan (its phase is what pins the fit); phase0_rad : float (M,) the
     scalar estimate (e.g. :func:`twinfocus.template_match.correlation_phase`); centres_m : float
     (M, 3) phase centres (channel mean), metres, in capture order (smoothness runs along it).
-    knot_spacing : positions between knots (a hand's drift stays correlated over ~20 positions of
-    a 10 Hz sweep, and wanders within that: knots every 10 follow it better than every 20);
-    iterations, step_m : Adam's iterations and step on the knots, metres; phase_step_rad : Adam's
-    step on phi, radians (0: phi fixed); refine_iterations : the per-position stage's iterations
-    (same steps; 0: the knots' curve as it is); smoothness_per_mm2 : its penalty weight, per mm^2
-    of squared step between neighbours (against a correlation of at most 1); refine_stop : the
-    per-position stage ends early once its last ``REFINE_WINDOW`` steps gained less than this
-    share of all it gained (0: every step). Each of its steps costs four of the knots' (every
-    pixel against a fifth of them). On the hand-drift draws 3, 5, 8, 11, 13 of
-    benchmarks/bench_field_speed.py it stops after 73-90 steps: target SSIM 0.9429 against
-    0.9431 with all 100, the drift's error 0.358 against 0.359 mm r.m.s., 3.6-4.2 s against
-    4.7-5.1 on an idle 2-core machine (benchmarks/results/idle/field_speed.json). At 2 % it
-    stopped at ~50 (0.9421); steps of 4e-5 m, 50 of them, held the hand scans (0.9424) but
-    lost 0.01-0.03 on the 48-position scans of benchmarks/bench_model_ladder.py (Adam's jitter at
-    twice the step), where this rule loses nothing; a fixed 30 steps lost 0.004, and the stage on
-    the pixels with 99 % of the template's energy 0.003 (the pixels around the reference weigh in
-    the image's norm).
 
     half_basis : complex (M, H, W) the reference's sub-images from the channels of
     :func:`array_half` alone: the fit then also follows the array's tilt, a differential phase
-    psi_m between its halves (:func:`tilted_basis`) on the same knots, in Adam steps of
-    ``tilt_step_rad``. A hand turns the array as it drifts (0.15 degrees tilts the ends of an
-    83 mm array by 0.11 mm, +-0.17 rad between the halves' centres); left out, the fit takes the
-    halves' sub-images moving apart for a drift across the line of sight (handheld draws 3 / 5:
-    0.922 / 0.917 without, 0.948 / 0.947 with, docs/handheld.md).
+    psi_m between its halves (:func:`tilted_basis`) on the same knots (a hand turns the array as
+    it drifts; handheld draws 3 / 5: 0.922 / 0.917 without, 0.948 / 0.947 with).
 
-    knot_energy_fraction : the knots' stage runs on the template's brightest pixels that hold
-    this share of its energy (:func:`twinfocus.band_delay.bright_pixels`; 1: every pixel), the
-    per-position stage on every pixel: the knots' curve is set by where the reference is, and the
-    pixels around it, which only weigh in the image's norm, are left to the last stage.
     pixels : bool (H, W), the fit on these pixels alone (a held-out fit: the same as zeroing the
-    others in the bases and the template, on copies of these pixels' columns only; None: every
-    pixel).
-    device : the torch device (cpu, cuda, cuda:N; None:
-    :func:`twinfocus.settings.resolve_device`'s choice), the same code on each. On a CPU torch's
-    part runs on one thread, numba's on its own count or, when the load average is at or above
-    the cores, on one too (:func:`_threads_for_the_load`: 2-3x faster than both on two).
+    others in the bases and the template; None: every pixel).
+    device : cpu (numpy and numba, :class:`_CpuDriftMatch`: no torch import) or a torch device
+    (cuda, cuda:N; :class:`_TorchDriftMatch`); None: :func:`twinfocus.settings.resolve_device`'s
+    choice. On a CPU the BLAS products run on one thread, numba's pass on its own count or, when
+    the load average is at or above the cores, on one too (:func:`_threads_for_the_load`).
 
     Returns (phase float64 (M,) radians at the region's centre (``phase0_rad`` when phi is
     fixed), dp float64 (M, 3) metres in the correction's sense (z is 0), tilt float64 (M,)
     radians (zeros without ``half_basis``), info: ``match_before`` / ``match_after`` (the
-    correlation on every pixel of ``pixels``), the settings, ``knot_pixels``, ``device``, ``threads`` (numba's on
-    a CPU, None elsewhere), ``time_s``).
-    Memory on the CPU: the bases as given (no copy of complex64 ones) and 12 bytes per position
-    and pixel of working arrays (0.1 GB at 780 x 100 x 100), 20 with ``half_basis``, and a copy of
-    the bases on the knots' stage's pixels; on another device about 40 bytes per position and
-    pixel, 56 with ``half_basis``.
+    correlation on every pixel of ``pixels``), the settings, ``knot_pixels``, ``device``,
+    ``threads`` (numba's on a CPU, None elsewhere), ``row_stride``, ``cost_evaluations``,
+    ``time_s``). Memory on the CPU: the bases as given, 12 bytes per position and fitted pixel of
+    working arrays (20 with ``half_basis``) and copies of the bases on the fitted pixels.
     """
-    import torch
-
     t0 = time.perf_counter()
+    cfg = settings or DriftFitSettings()
+    b, tpl, c, fitted = _check_drift_inputs(basis, template, centres_m, grid, half_basis, pixels)
+    fitted, stride = _on_rows(fitted, tpl, _row_stride(c, grid, wavelength_m, cfg.row_cell_share))
+    m = b.shape[0]
+    whole = _drift_match(b, half_basis, tpl, c, grid, wavelength_m, device)
+    match = coarse = whole if fitted.all() else whole.on(fitted.ravel())
+    if cfg.knot_energy_fraction < 1.0:
+        coarse = whole.on((bright_pixels(np.where(fitted, tpl, 0), cfg.knot_energy_fraction) & fitted).ravel())
+    fit = _DriftDescent(cfg, knot_basis(m, int(cfg.knot_spacing)), np.asarray(phase0_rad, np.float64),
+                        half_basis is not None, progress)  # fmt: skip
+    knot_steps, refine_steps = int(cfg.iterations), int(cfg.refine_iterations)
+    with _threads_for_the_load(whole.device) as threads:
+        before = match.value_and_gradients(fit.phase, fit.s @ fit.coef, fit.tilt())[0]
+        fit.total = knot_steps + refine_steps
+        fit.descend(fit.coef, True, knot_steps, 0.0, coarse)
+        # Per-position refinement: the knots' straight segments cannot follow a drift that wanders
+        # within 10 positions; a penalty on the step between neighbours keeps the noise out.
+        drift = fit.s @ fit.coef
+        refined = fit.descend(drift, False, refine_steps, float(cfg.smoothness_per_mm2), match, float(cfg.refine_stop))
+        after = match.value_and_gradients(fit.phase, drift, fit.tilt())[0] if fit.total else before
+    dp = np.zeros((m, 3))
+    dp[:, :2] = drift
+    info = {
+        "match_before": before,
+        "match_after": after,
+        "knot_spacing_positions": int(cfg.knot_spacing),
+        "iterations": knot_steps,
+        "refine_iterations": refined,
+        "smoothness_per_mm2": float(cfg.smoothness_per_mm2),
+        "knot_pixels": int(coarse.n_pixels),
+        "row_stride": stride,
+        "phase_fitted": cfg.phase_step_rad > 0,
+        "tilt_fitted": half_basis is not None,
+        "cost_evaluations": len(fit.matches) + 1 + (1 if fit.total else 0),
+        "device": str(whole.device),
+        "threads": threads,
+        "time_s": time.perf_counter() - t0,
+    }
+    tilt = fit.tilt()
+    return fit.phase.copy(), dp, np.zeros(m) if tilt is None else tilt.astype(np.float64), info
+
+
+def _on_rows(fitted: np.ndarray, template: np.ndarray, stride: int) -> tuple[np.ndarray, int]:
+    """The fitted pixels (bool (H, W)) on every ``stride``-th row, and the stride taken: 1 (all
+    of ``fitted``) when those rows hold less than half their share of the template's energy on
+    ``fitted`` (a mask in step with the rows, e.g. a held-out half of one-row blocks)."""
+    if stride <= 1:
+        return fitted, 1
+    rows = fitted & (np.arange(fitted.shape[0]) % stride == 0)[:, None]
+    energy = np.abs(template) ** 2
+    if energy[rows].sum() >= 0.5 * energy[fitted].sum() / stride > 0:
+        return rows, stride
+    return fitted, 1
+
+
+def _check_drift_inputs(basis, template, centres_m, grid, half_basis, pixels):
+    """:func:`fit_smooth_drift`'s inputs checked: (basis, template, centres float64 (M, 3), the
+    fitted pixels' bool (H, W) mask)."""
     b = np.asarray(basis)
     tpl = np.asarray(template)
     m = b.shape[0]
@@ -429,151 +508,158 @@ def fit_smooth_drift(
     c = np.asarray(centres_m, np.float64)
     if c.shape != (m, 3):
         raise TwinFocusError(f"centres must be (M, 3) = ({m}, 3), got {c.shape}")
-    if not 0.0 < float(knot_energy_fraction) <= 1.0:
-        raise TwinFocusError(f"knot_energy_fraction must be in (0, 1], got {knot_energy_fraction!r}")
     fitted = np.ones(grid.shape, bool) if pixels is None else np.asarray(pixels, bool)
     if fitted.shape != grid.shape or not fitted.any():
         raise TwinFocusError(f"pixels must be a {grid.shape} mask with a pixel in it, got {fitted.shape}")
-    whole = _DriftMatch(b, half_basis, tpl, c, grid, wavelength_m, device)
-    match = coarse = whole if pixels is None else whole.on(fitted.ravel())
-    if knot_energy_fraction < 1.0:
-        bright = bright_pixels(np.where(fitted, tpl, 0), knot_energy_fraction) & fitted
-        coarse = whole.on(bright.ravel())
-    dev = match.device
-    s = torch.from_numpy(knot_basis(m, int(knot_spacing)).astype(np.float32)).to(dev)
-    coef = torch.zeros(s.shape[1], 2, device=dev)
-    phase = torch.tensor(np.asarray(phase0_rad, np.float32), device=dev)
-    tilted = half_basis is not None
-    tilt_coef = torch.zeros(s.shape[1], device=dev)
-    total = int(iterations) + int(refine_iterations)
-    matches: list[float] = []  # the correlation before each step, over both stages
+    return b, tpl, c, fitted
 
-    def descend(
-        parameter: torch.Tensor, knots: bool, steps: int, smoothness: float, objective: _DriftMatch, stop: float = 0.0
-    ) -> int:
-        """Adam on ``parameter`` (metres: the knots' values when ``knots``, else each position's
-        drift) and phi and the tilt's knots, each at its own step, maximising the correlation less
-        ``smoothness`` * sum |dp_{m+1} - dp_m|^2 (mm^2) on ``objective``'s pixels. The gradients are the correlation's own
-        (:meth:`_DriftMatch.value_and_gradients`): no graph is kept between steps. ``stop`` > 0:
-        done once the last ``REFINE_WINDOW`` steps gained less than ``stop`` of all this stage's
-        gain (after at least two windows). Returns the steps taken."""
-        groups = [{"params": [parameter], "lr": step_m}]
-        if phase_step_rad > 0:
-            groups.append({"params": [phase], "lr": phase_step_rad})
-        if tilted:
-            groups.append({"params": [tilt_coef], "lr": tilt_step_rad})
-        opt = _Adam(groups)
-        first = len(matches)
+
+class _DriftDescent:
+    """The state of one :func:`fit_smooth_drift`: the knot basis ``s`` float64 (M, n_knots), the
+    knots' values ``coef`` (n_knots, 2) metres, the phase (M,) radians, the tilt's knots (n_knots,)
+    radians (None without the tilt) and the correlation before each step (``matches``)."""
+
+    def __init__(self, cfg, s, phase0, tilted, progress):
+        self.cfg, self.s, self.progress = cfg, s, progress
+        self.phase = phase0.copy()
+        self.coef = np.zeros((s.shape[1], 2))
+        self.tilt_coef = np.zeros(s.shape[1]) if tilted else None
+        self.matches: list[float] = []
+        self.total = 0
+
+    def tilt(self) -> np.ndarray | None:
+        return None if self.tilt_coef is None else self.s @ self.tilt_coef
+
+    def descend(self, parameter, knots: bool, steps: int, smoothness: float, objective, stop: float = 0.0) -> int:
+        """Adam on ``parameter`` (float64, in place; metres: the knots' values when ``knots``, else
+        each position's drift) and phi and the tilt's knots, each at its own step, maximising the
+        correlation less ``smoothness`` * sum |dp_{m+1} - dp_m|^2 (mm^2) on ``objective``'s pixels.
+        The gradients are the correlation's own (``value_and_gradients``). ``stop`` > 0: done once
+        the last ``REFINE_WINDOW`` steps gained less than ``stop`` of all this stage's gain (after
+        at least two windows). Returns the steps taken."""
+        cfg, s = self.cfg, self.s
+        params, rates = [parameter], [cfg.step_m]
+        if cfg.phase_step_rad > 0:
+            params.append(self.phase)
+            rates.append(cfg.phase_step_rad)
+        if self.tilt_coef is not None:
+            params.append(self.tilt_coef)
+            rates.append(cfg.tilt_step_rad)
+        opt = _Adam(params, rates)
+        first = len(self.matches)
         for n in range(int(steps)):
             if stop > 0 and n >= 2 * REFINE_WINDOW:
-                gained, recent = matches[-1] - matches[first], matches[-1] - matches[-1 - REFINE_WINDOW]
+                gained = self.matches[-1] - self.matches[first]
+                recent = self.matches[-1] - self.matches[-1 - REFINE_WINDOW]
                 if gained > 0 and recent < stop * gained:
                     return n
             dp = s @ parameter if knots else parameter
-            corr, g_phase, g_dp, g_tilt = objective.value_and_gradients(phase, dp, s @ tilt_coef if tilted else None)
-            matches.append(corr)
+            corr, g_phase, g_dp, g_tilt = objective.value_and_gradients(self.phase, dp, self.tilt())
+            self.matches.append(corr)
             grad = -g_dp
             if smoothness:
                 step = (dp[1:] - dp[:-1]) * (2e6 * smoothness)  # d/d dp of smoothness * |1e3 step|^2
-                grad = grad.clone()
                 grad[1:] += step
                 grad[:-1] -= step
-            parameter.grad = s.T @ grad if knots else grad
-            phase.grad = -g_phase
-            if tilted:
-                tilt_coef.grad = -(s.T @ g_tilt)
-            opt.step()
-            if progress is not None:
-                progress(len(matches), total, -matches[-1])
+            grads = [s.T @ grad if knots else grad]
+            if cfg.phase_step_rad > 0:
+                grads.append(-g_phase)
+            if self.tilt_coef is not None:
+                grads.append(-(s.T @ g_tilt))
+            opt.step(grads)
+            if self.progress is not None:
+                self.progress(len(self.matches), self.total, -self.matches[-1])
         return int(steps)
-
-    with _threads_for_the_load(dev) as threads:
-        before = match.value_and_gradients(phase, s @ coef, s @ tilt_coef if tilted else None)[0]
-        descend(coef, True, iterations, 0.0, coarse)
-        # Per-position refinement: the knots' straight segments cannot follow a drift that wanders
-        # within 10 positions; a penalty on the step between neighbours keeps the noise out.
-        drift = s @ coef
-        refined = descend(drift, False, refine_iterations, float(smoothness_per_mm2), match, float(refine_stop))
-        after = match.value_and_gradients(phase, drift, s @ tilt_coef if tilted else None)[0] if total else before
-    dp = np.zeros((m, 3))
-    dp[:, :2] = drift.cpu().numpy()
-    info = {
-        "match_before": before,
-        "match_after": after,
-        "knot_spacing_positions": int(knot_spacing),
-        "iterations": int(iterations),
-        "refine_iterations": refined,
-        "smoothness_per_mm2": float(smoothness_per_mm2),
-        "knot_pixels": int(coarse.t.shape[0]),
-        "phase_fitted": phase_step_rad > 0,
-        "tilt_fitted": tilted,
-        "device": str(dev),
-        "threads": threads,
-        "time_s": time.perf_counter() - t0,
-    }
-    tilt = (s @ tilt_coef).cpu().numpy().astype(np.float64)
-    return phase.cpu().numpy().astype(np.float64), dp, tilt, info
 
 
 class _Adam:
-    """torch's Adam (betas 0.9 / 0.999, eps 1e-8), stepped through its functional form
-    ``torch.optim.adam.adam`` on parameter groups ``[{"params": [tensor], "lr": float}]`` whose
-    ``.grad`` the caller sets: the same update as ``torch.optim.Adam``, whose construction imports
-    ``torch._dynamo`` the first time (1.0-1.3 s on the 2-core machine, a fifth of the whole fit)."""
+    """Adam (betas 0.9 / 0.999, eps 1e-8: torch.optim.Adam's update) on float64 numpy arrays, each
+    with its own step, updated in place: no torch, whose import and optimiser set-up (1.5 s and
+    1.0-1.3 s on the 2-core machine) cost more than a whole fit."""
 
-    def __init__(self, groups: list[dict]) -> None:
-        import torch
-        from torch.optim.adam import adam
+    def __init__(self, params: list[np.ndarray], rates: list[float]) -> None:
+        self.params, self.rates = params, [float(r) for r in rates]
+        self.avg = [np.zeros_like(p) for p in params]
+        self.avg_sq = [np.zeros_like(p) for p in params]
+        self.n = 0
 
-        self.adam = adam
-        self.state = [
-            (g["params"][0], float(g["lr"]), torch.zeros_like(g["params"][0]), torch.zeros_like(g["params"][0]),
-             torch.zeros((), dtype=torch.float32))
-            for g in groups
-        ]  # fmt: skip
-
-    def step(self) -> None:
-        for p, lr, avg, avg_sq, steps in self.state:
-            self.adam([p], [p.grad], [avg], [avg_sq], [], [steps], foreach=False, amsgrad=False, beta1=0.9,
-                      beta2=0.999, lr=lr, weight_decay=0.0, eps=1e-8, maximize=False)  # fmt: skip
+    def step(self, grads: list[np.ndarray]) -> None:
+        self.n += 1
+        c1, c2 = 1.0 - 0.9**self.n, np.sqrt(1.0 - 0.999**self.n)
+        for p, g, avg, avg_sq, lr in zip(self.params, grads, self.avg, self.avg_sq, self.rates, strict=True):
+            avg *= 0.9
+            avg += 0.1 * g
+            avg_sq *= 0.999
+            avg_sq += 0.001 * g * g
+            p -= (lr / c1) * avg / (np.sqrt(avg_sq) / c2 + 1e-8)
 
 
 @contextlib.contextmanager
-def _threads_for_the_load(device) -> Iterator[int | None]:
-    """The fit's threads on a CPU (restored after): torch's matrix products on one, numba's pass on
-    its own count, or on one too when the load average is at or above the cores; yields numba's
-    count (None on another device).
+def _threads_for_the_load(device: str) -> Iterator[int | None]:
+    """The fit's threads on a CPU (restored after): BLAS's products on one, numba's pass on its own
+    count, or on one too when the load average is at or above the cores; yields numba's count
+    (None on another device).
 
-    Each step is a numba parallel region then several small torch ones: with both libraries'
-    thread pools at two threads, each pool's idle threads spin while the other's work (780 x 100
-    x 100 on 2 cores at load 5: 22-35 s wall and 20-22 s CPU against 9-10 s and 6.3 s on one
-    thread), and on a busy machine each region waits for whichever thread was descheduled (load
-    10-12: 25-36 s against 7-11 s)."""
-    if device.type != "cpu":
+    Each step is a numba parallel region then small BLAS products: with both pools at two threads,
+    each pool's idle threads spin while the other's work (780 x 100 x 100 on 2 cores at load 5:
+    22-35 s wall against 9-10 s on one thread), and on a busy machine each region waits for
+    whichever thread was descheduled (load 10-12: 25-36 s against 7-11 s)."""
+    if device != "cpu":
         yield None
         return
     import numba
-    import torch
+    from threadpoolctl import threadpool_limits
 
     cores = os.cpu_count() or 1
     busy = hasattr(os, "getloadavg") and os.getloadavg()[0] >= cores
-    before = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(1)
+    before = numba.get_num_threads()
     if busy:
         numba.set_num_threads(1)
     try:
-        yield numba.get_num_threads()
+        with threadpool_limits(1, user_api="blas"):
+            yield numba.get_num_threads()
     finally:
-        torch.set_num_threads(before[0])
-        numba.set_num_threads(before[1])
+        numba.set_num_threads(before)
 
 
 #: degree of the polynomial in the pixel's place that stands for each position's line-of-sight
 #: term a_m(p) (:class:`_DriftMatch`): 4 keeps it within 3e-5 rad of the exact phase at 2 mm of
 #: drift over a 100 x 100 region at 0.6 m (degree 3: 3e-4)
-LINE_OF_SIGHT_DEGREE = 4
+LINE_OF_SIGHT_DEGREE = 2
 #: pixels per side of the lattice that polynomial is fitted on
 LINE_OF_SIGHT_SAMPLES = 16
+
+
+def _line_of_sight_polynomial(centres_m, grid: ImageGrid, wavelength_m: float):
+    """a_m(p) = k (u_{m,p} - u_{m,c}) as U_m . q(p): (q float64 (P, n) orthonormal over the pixels,
+    U float64 (2 M, n): x rows, then y rows), fitted on a lattice of ``LINE_OF_SIGHT_SAMPLES``^2
+    pixels (it is smooth, and the exact lines of sight of every position to every pixel were most
+    of the set-up's time; monomials = q r, so q's coefficients are r times the monomials')."""
+    pts = grid.points()
+    x = (pts[:, 0] - grid.centre_m[0]) / max(grid.x1 - grid.x0, 1e-12) * 2.0
+    y = (pts[:, 1] - grid.centre_m[1]) / max(grid.y1 - grid.y0, 1e-12) * 2.0
+    deg = LINE_OF_SIGHT_DEGREE
+    monomials = np.stack([x**i * y**j for i in range(deg + 1) for j in range(deg + 1 - i)], axis=1)
+    q, r = np.linalg.qr(monomials)
+    h, w = grid.shape
+    rows = np.unique(np.linspace(0, h - 1, min(h, LINE_OF_SIGHT_SAMPLES)).round().astype(int))
+    cols = np.unique(np.linspace(0, w - 1, min(w, LINE_OF_SIGHT_SAMPLES)).round().astype(int))
+    sample = (rows[:, None] * w + cols[None, :]).ravel()
+    k = 4.0 * np.pi / float(wavelength_m)
+    d = k * (lines_of_sight(centres_m, pts[sample]) - lines_of_sight(centres_m, grid.centre_m)[:, None, :])
+    fit = np.linalg.lstsq(monomials[sample], np.concatenate([d[..., 0], d[..., 1]]).T, rcond=None)[0]
+    return q, (r @ fit).T
+
+
+def _drift_match(basis, half_basis, template, centres_m, grid, wavelength_m, device):
+    """The correlation of :func:`fit_smooth_drift` on ``device``: :class:`_CpuDriftMatch` on the
+    CPU, :class:`_TorchDriftMatch` elsewhere (one implementation per device)."""
+    from twinfocus.settings import resolve_device
+
+    dev = resolve_device(device)
+    q, u = _line_of_sight_polynomial(centres_m, grid, wavelength_m)
+    cls = _CpuDriftMatch if dev == "cpu" else _TorchDriftMatch
+    return cls(basis, half_basis, template, q, u, dev)
 
 
 class _DriftMatch:
@@ -585,67 +671,127 @@ class _DriftMatch:
     W = T / (|I| |T|) - corr I / |I|^2, so d corr / d theta_m(p) = -Im(C_m(p) conj W(p)).
 
     a_m(p) = k (u_{m,p} - u_{m,c}) turns slowly over the region: each position's is a polynomial
-    of degree ``LINE_OF_SIGHT_DEGREE`` in the pixel's place, a_m(p) = U_m . q(p) (q: an
-    orthonormal polynomial basis over the pixels, U_m its least-squares coefficients). Then
-    theta is one matrix product, and the gradients' sums over the pixels are products of the
-    contributions with the few columns conj(W) [1, q]: no (M, P) array beyond theta, C and
-    L exp(j theta) is formed, and no autograd graph is kept. On the CPU C comes from one fused
-    numba pass (:func:`_rotate`: exp(j theta), the tilted basis and the image's sum in one read of
-    the bases), elsewhere from torch's elementwise products.
+    of degree ``LINE_OF_SIGHT_DEGREE`` in the pixel's place, a_m(p) = U_m . q(p)
+    (:func:`_line_of_sight_polynomial`). Then theta is one matrix product, and the gradients' sums
+    over the pixels are products of the contributions with the few columns conj(W) [1, q]: no
+    (M, P) array beyond theta, C and L exp(j theta) is formed, and no autograd graph is kept.
+    Subclasses hold the arrays on their device and form C: :class:`_CpuDriftMatch` (numpy, numba),
+    :class:`_TorchDriftMatch`. The bases are used as they are (on the CPU no copy of a complex64
+    basis): the correlation is scale-free, and its image is taken to the basis' unit peak before
+    any sum of squares, so a scan at 1e20 does not overflow float32 (nor flush at 1e-20).
     """
 
-    def __init__(self, basis, half_basis, template, centres_m, grid, wavelength_m, device):
+    device: str
+    n_pixels: int
+
+    def on(self, pixels: np.ndarray) -> _DriftMatch:
+        """The same correlation on the pixels of a bool (P,) mask (the polynomial basis is the one
+        fitted over every pixel)."""
+        raise NotImplementedError
+
+    def value_and_gradients(self, phase, dp, tilt):
+        """(corr float, d corr / d phi (M,), d corr / d dp (M, 2), d corr / d psi (M,) or None)
+        at phase (M,) radians, dp (M, 2) metres, tilt (M,) radians or None: float64 numpy arrays."""
+        raise NotImplementedError
+
+
+class _CpuDriftMatch(_DriftMatch):
+    """:class:`_DriftMatch` in numpy (BLAS products) and one fused numba pass (:func:`_rotate`:
+    exp(j theta), the tilted basis and the image's sum in one read of the bases)."""
+
+    def __init__(self, basis, half_basis, template, q, u, device="cpu"):
+        m = basis.shape[0]
+        self.device = device
+        self.ux, self.uy = np.ascontiguousarray(u[:m], np.float32), np.ascontiguousarray(u[m:], np.float32)
+        self.q_t = np.ascontiguousarray(q.T, np.float32)  # (n, P)
+        self.columns = np.ascontiguousarray(np.c_[np.ones(q.shape[0]), q], np.complex64)  # (P, 1 + n)
+        self.unit = 1.0 / max(float(np.abs(basis).max()), 1e-30)
+        self.b = np.ascontiguousarray(np.asarray(basis).reshape(m, -1), np.complex64)
+        self.half = (
+            None if half_basis is None else np.ascontiguousarray(np.asarray(half_basis).reshape(m, -1), np.complex64)
+        )
+        tpl = np.asarray(template).reshape(-1)
+        self.t = (tpl / max(float(np.abs(tpl).max()), 1e-30)).astype(np.complex64)
+        self._set_pixels()
+
+    def _set_pixels(self) -> None:
+        self.n_pixels = int(self.t.shape[0])
+        self.t_norm = float(np.linalg.norm(self.t))
+        shape = self.b.shape
+        # kept across steps: a fresh 60 MB array each step costs its page faults
+        self._theta = np.empty(shape, np.float32)
+        self._c = np.empty(shape, np.complex64)
+        self._h = np.empty(shape if self.half is not None else (0, 0), np.complex64)
+        self._kc = _rotation_constants()
+
+    def on(self, pixels: np.ndarray) -> _CpuDriftMatch:
+        sub = object.__new__(_CpuDriftMatch)
+        sub.__dict__.update(self.__dict__)
+        idx = np.flatnonzero(pixels)
+        sub.q_t = np.ascontiguousarray(self.q_t[:, idx])
+        sub.columns = np.ascontiguousarray(self.columns[idx])
+        sub.b = np.ascontiguousarray(self.b[:, idx])
+        sub.half = None if self.half is None else np.ascontiguousarray(self.half[:, idx])
+        sub.t = self.t[idx]
+        sub._set_pixels()
+        return sub
+
+    def value_and_gradients(self, phase, dp, tilt):
+        slopes = (self.ux * dp[:, :1].astype(np.float32) + self.uy * dp[:, 1:].astype(np.float32)).astype(np.float32)
+        theta = self._theta
+        np.matmul(slopes, self.q_t, out=theta)
+        theta += phase.astype(np.float32)[:, None]
+        e = s2 = None
+        if tilt is not None:
+            e, s2 = _tilt_factors(tilt)
+        image32 = np.empty(self.n_pixels, np.complex64)
+        _rotate(theta, self.b, self.half if e is not None else None, e, s2, self._kc,
+                _rotate_block(self.n_pixels), self._c, self._h, image32)  # fmt: skip
+        image = image32.astype(np.complex128) * self.unit
+        i_norm = float(np.linalg.norm(image))
+        corr = float(np.vdot(self.t, image).real) / max(i_norm * self.t_norm, 1e-300)
+        w = self.t / max(i_norm * self.t_norm, 1e-300) - image * (corr / max(i_norm * i_norm, 1e-300))
+        # conj W [1, q], W of the unscaled image
+        x = self.columns * (w.conj() * self.unit).astype(np.complex64)[:, None]
+        sums = self._c @ x  # (M, 1 + n)
+        g = -sums.imag.astype(np.float64)  # sum_p d corr / d theta_m(p) [1, q(p)]
+        g_dp = np.stack(((self.ux * g[:, 1:]).sum(1), (self.uy * g[:, 1:]).sum(1)), axis=1)
+        g_tilt = None
+        if e is not None:
+            # d C_m / d psi_m = -j C_m + 2j exp(j psi) L exp(j theta)
+            yh = self._h @ np.ascontiguousarray(x[:, 0])
+            g_tilt = sums[:, 0].imag.astype(np.float64) - 2.0 * (np.conj(e) * yh).imag
+        return corr, g[:, 0], g_dp, g_tilt
+
+
+class _TorchDriftMatch(_DriftMatch):
+    """:class:`_DriftMatch` with torch's element-wise products on a torch device (a GPU); numpy
+    in, numpy out (the optimiser's few thousand numbers cross each step)."""
+
+    def __init__(self, basis, half_basis, template, q, u, device):
         import torch
 
-        from twinfocus.settings import resolve_device
-
         self.torch = torch
-        self.device = torch.device(resolve_device(device))
+        self.device = device
         m = basis.shape[0]
-        pts = grid.points()
-        x = (pts[:, 0] - grid.centre_m[0]) / max(grid.x1 - grid.x0, 1e-12) * 2.0
-        y = (pts[:, 1] - grid.centre_m[1]) / max(grid.y1 - grid.y0, 1e-12) * 2.0
-        deg = LINE_OF_SIGHT_DEGREE
-        monomials = np.stack([x**i * y**j for i in range(deg + 1) for j in range(deg + 1 - i)], axis=1)
-        q, r = np.linalg.qr(monomials)
-        # The polynomial is fitted on a lattice of LINE_OF_SIGHT_SAMPLES^2 pixels, not all of them:
-        # it is smooth, and the exact lines of sight of every position to every pixel were most
-        # of the setup's time. monomials = q r, so q's coefficients are r times the monomials'.
-        h, w = grid.shape
-        rows = np.unique(np.linspace(0, h - 1, min(h, LINE_OF_SIGHT_SAMPLES)).round().astype(int))
-        cols = np.unique(np.linspace(0, w - 1, min(w, LINE_OF_SIGHT_SAMPLES)).round().astype(int))
-        sample = (rows[:, None] * w + cols[None, :]).ravel()
-        k = 4.0 * np.pi / float(wavelength_m)
-        d = k * (lines_of_sight(centres_m, pts[sample]) - lines_of_sight(centres_m, grid.centre_m)[:, None, :])
-        fit = np.linalg.lstsq(monomials[sample], np.concatenate([d[..., 0], d[..., 1]]).T, rcond=None)[0]
-        u = (r @ fit).T  # (2 M, n): x rows, then y rows
 
         def put(v, dtype):
-            return torch.from_numpy(np.ascontiguousarray(v, dtype)).to(self.device)
+            return torch.from_numpy(np.ascontiguousarray(v, dtype)).to(device)
 
         self.ux, self.uy = put(u[:m], np.float32), put(u[m:], np.float32)
         self.q_t = put(q.T, np.float32)  # (n, P)
         self.columns = put(np.c_[np.ones(q.shape[0]), q], np.float32)  # (P, 1 + n)
-        # Used as they are (on the CPU, no copy of a complex64 basis): the correlation is
-        # scale-free, and its image is taken to the basis' unit peak before any sum of squares,
-        # so a scan at 1e20 does not overflow float32 (nor flush at 1e-20).
         self.unit = 1.0 / max(float(np.abs(basis).max()), 1e-30)
         self.b = put(np.asarray(basis).reshape(m, -1), np.complex64)
         self.half = None if half_basis is None else put(np.asarray(half_basis).reshape(m, -1), np.complex64)
         tpl = np.asarray(template).reshape(-1)
         self.t = put(tpl / max(float(np.abs(tpl).max()), 1e-30), np.complex64)
         self.t_norm = float(torch.linalg.vector_norm(self.t))
-        self.one = torch.ones((1, 1), dtype=torch.float32, device=self.device)  # |exp(j theta)|, broadcast
-        # numba on the CPU (one fused pass: 18 ms a step at 780 x 100 x 100 with the tilt on one
-        # core, against ~150 for torch's element-wise products), torch on any other device
-        self.kernel = "numba" if self.device.type == "cpu" else "torch"
-        self._kc = _rotation_constants()
-        self._buffers: tuple[np.ndarray, np.ndarray, torch.Tensor] | None = None
+        self.n_pixels = int(self.t.shape[0])
+        self.one = torch.ones((1, 1), dtype=torch.float32, device=device)  # |exp(j theta)|, broadcast
 
-    def on(self, pixels: np.ndarray) -> _DriftMatch:
-        """The same correlation on the pixels of a bool (P,) mask: copies of this one's arrays'
-        columns (the polynomial basis is the one fitted over every pixel)."""
-        sub = object.__new__(_DriftMatch)
+    def on(self, pixels: np.ndarray) -> _TorchDriftMatch:
+        sub = object.__new__(_TorchDriftMatch)
         sub.__dict__.update(self.__dict__)
         idx = self.torch.from_numpy(np.flatnonzero(pixels)).to(self.device)
         sub.q_t = self.q_t[:, idx].contiguous()
@@ -654,74 +800,40 @@ class _DriftMatch:
         sub.half = None if self.half is None else self.half[:, idx].contiguous()
         sub.t = self.t[idx]
         sub.t_norm = float(self.torch.linalg.vector_norm(sub.t))
-        sub._buffers = None
+        sub.n_pixels = int(sub.t.shape[0])
         return sub
 
     def value_and_gradients(self, phase, dp, tilt):
-        """(corr float, d corr / d phi (M,), d corr / d dp (M, 2), d corr / d psi (M,) or None)
-        at phase (M,), dp (M, 2) metres, tilt (M,) radians or None: float32 tensors."""
         torch = self.torch
-        slopes = self.ux * dp[:, :1] + self.uy * dp[:, 1:]  # (M, n): theta_m(p) = phi_m + slopes_m . q(p)
+
+        def put(v):
+            return torch.from_numpy(np.ascontiguousarray(v, np.float32)).to(self.device)
+
+        ph, d = put(phase), put(dp)
+        slopes = self.ux * d[:, :1] + self.uy * d[:, 1:]  # (M, n): theta_m(p) = phi_m + slopes_m . q(p)
+        rot = torch.polar(self.one, torch.addmm(ph[:, None], slopes, self.q_t))
         if tilt is None:
-            e = s2 = None
+            contributions = rot.mul_(self.b)
         else:
-            e = torch.polar(torch.ones_like(tilt), -tilt)
-            s2 = torch.complex(torch.zeros_like(tilt), 2.0 * torch.sin(tilt))
-        contributions, half_rotated, image = self._contributions(phase, slopes, e, s2)
-        image = image * self.unit
+            psi = put(tilt)
+            e = torch.polar(torch.ones_like(psi), -psi)
+            s2 = torch.complex(torch.zeros_like(psi), 2.0 * torch.sin(psi))
+            half_rotated = self.half * rot
+            contributions = rot.mul_(self.b).mul_(e[:, None]).add_(half_rotated * s2[:, None])
+        image = contributions.sum(0) * self.unit
         i_norm = float(torch.linalg.vector_norm(image))
         corr = float(torch.vdot(self.t, image).real) / max(i_norm * self.t_norm, 1e-300)
         w = self.t / max(i_norm * self.t_norm, 1e-300) - image * (corr / max(i_norm * i_norm, 1e-300))
-        x = self.columns * (w.conj() * self.unit)[:, None]  # (P, 1 + n): conj W [1, q], W of the unscaled image
+        x = self.columns * (w.conj() * self.unit)[:, None]
         sums = contributions @ x
-        g = -sums.imag  # (M, 1 + n): sum_p d corr / d theta_m(p) [1, q(p)]
+        g = -sums.imag
         g_dp = torch.stack(((self.ux * g[:, 1:]).sum(1), (self.uy * g[:, 1:]).sum(1)), dim=1)
         g_tilt = None
         if tilt is not None:
-            # d C_m / d psi_m = (-j B exp(-j psi) + 2j cos(psi) L) exp(j theta) = -j C_m + 2j exp(j psi) L exp(j theta)
             yh = half_rotated @ x[:, 0].contiguous()
-            g_tilt = sums[:, 0].imag - 2.0 * (torch.conj(e) * yh).imag
-        return corr, g[:, 0], g_dp, g_tilt
-
-    def _contributions(self, phase, slopes, e, s2):
-        """C (M, P) = E exp(j theta), L exp(j theta) (M, P) or None, and the image sum_m C (P,):
-        complex64 tensors (on the CPU in this match's buffers, overwritten at the next call).
-        theta = phase (M,) + slopes (M, n) @ q (n, P) (a matrix product: a loop for it in the
-        kernel was slower); e, s2: (M,) exp(-j psi) and 2j sin(psi)
-        of the tilted basis, or None."""
-        torch = self.torch
-        if self.kernel == "numba":
-            if self._buffers is None:
-                shape = tuple(self.b.shape)
-                self._buffers = (  # kept across steps: a fresh 60 MB array each step costs its page faults
-                    np.empty(shape, np.complex64),
-                    np.empty(shape if e is not None else (0, 0), np.complex64),
-                    torch.empty(shape, dtype=torch.float32),
-                )
-            c_out, h_out, theta = self._buffers
-            image = np.empty(self.b.shape[1], np.complex64)
-            torch.addmm(phase[:, None], slopes, self.q_t, out=theta)
-            assert e is None or self.half is not None, "the tilted basis comes with the half basis"
-            _rotate(
-                theta.numpy(),
-                self.b.numpy(),
-                None if e is None or self.half is None else self.half.numpy(),
-                None if e is None else e.numpy(),
-                None if e is None else s2.numpy(),
-                self._kc,
-                _rotate_block(image.shape[0]),
-                c_out,
-                h_out,
-                image,
-            )
-            return torch.from_numpy(c_out), None if e is None else torch.from_numpy(h_out), torch.from_numpy(image)
-        rot = torch.polar(self.one, torch.addmm(phase[:, None], slopes, self.q_t))
-        if e is None:
-            contributions = rot.mul_(self.b)
-            return contributions, None, contributions.sum(0)
-        half_rotated = self.half * rot
-        contributions = rot.mul_(self.b).mul_(e[:, None]).add_(half_rotated * s2[:, None])
-        return contributions, half_rotated, contributions.sum(0)
+            g_tilt = (sums[:, 0].imag - 2.0 * (torch.conj(e) * yh).imag).cpu().numpy().astype(np.float64)
+        g_np = g.cpu().numpy().astype(np.float64)
+        return corr, g_np[:, 0], g_dp.cpu().numpy().astype(np.float64), g_tilt
 
 
 def _rotation_constants() -> np.ndarray:
