@@ -38,7 +38,8 @@ def _function_times(stats: pstats.Stats, name: str) -> tuple[int, float, float]:
 def main(argv: list[str] | None = None) -> dict:
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.estimators import estimator_settings
-    from twinfocus.pipeline import focus_scan
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Reference
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.templates import template_from_scan
 
@@ -55,7 +56,7 @@ def main(argv: list[str] | None = None) -> dict:
     prof = cProfile.Profile()
     t0 = time.perf_counter()
     prof.enable()
-    out = focus_scan(scan, rg, tg, template=tpl, config=cfg)
+    out = FocusPlan.make(config=cfg).focus_scan(scan, rg, tg, Reference(template=tpl))
     prof.disable()
     wall = time.perf_counter() - t0
     stats = pstats.Stats(prof)

@@ -54,8 +54,9 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
     from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.errors import TwinFocusError
     from twinfocus.estimators import TWIN_RUNGS, estimator_settings
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.ladder import fast_reference
-    from twinfocus.pipeline import focus_bases, half_array_bases, upper_band_basis
+    from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases, upper_band_basis
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.settings import default_settings
     from twinfocus.templates import template_from_scan
@@ -94,12 +95,29 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
         g, tpl, (ky, kx) = fast_reference(model, template, support, scan.positions, rg, scan.chirp.wavelength_m)
         t = time.perf_counter()
         try:
-            out = focus_bases(rb[:, ::ky, ::kx], tb, scan.positions, scan.chirp, g, tg, template=tpl, support=support,
-                              config=cfg, model=model, phase_ramp=settings["phase_ramp"],
-                              space_variant=settings["space_variant"],
-                              half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, g, tg),
-                              upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, g),
-                              **{**truth, "truth_reference": truth["truth_reference"][::ky, ::kx]})
+            out = FocusPlan.make(
+                config=cfg,
+                model=model,
+                phase_ramp=settings["phase_ramp"],
+                space_variant=settings["space_variant"],
+            ).focus_bases(
+                Bases(
+                    rb[:, ::ky, ::kx],
+                    tb,
+                    scan.positions,
+                    scan.chirp,
+                    g,
+                    tg,
+                    half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, g, tg),
+                    upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, g),
+                ),
+                Reference(template=tpl, support=support),
+                Truth(
+                    {**truth, "truth_reference": truth["truth_reference"][::ky, ::kx]}["truth_target"],
+                    {**truth, "truth_reference": truth["truth_reference"][::ky, ::kx]}["truth_reference"],
+                    {**truth, "truth_reference": truth["truth_reference"][::ky, ::kx]}["positions_true"],
+                ),
+            )
         except TwinFocusError as exc:  # the rung cannot run on this scene
             rec.setdefault("cannot run", {})[model] = str(exc)
             continue

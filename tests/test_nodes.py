@@ -648,8 +648,9 @@ def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_wh
     focus_bases gives on the whole scan's bases."""
     from nodes.solver import Solver
     from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import focus_bases
+    from twinfocus.pipeline import Bases, Reference
 
     scan = point_scene_scan(m_side=20)  # 40 positions: the 20 before the template are scored at once
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 16), ImageGrid.from_roi(TGT_ROI, 16)
@@ -676,10 +677,22 @@ def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_wh
             cfg = solver._config(CHIRP)
     assert cfg.template_registration == "correlation" and "registration_streamed" in res.timing_s
     p = solver.params
-    want = focus_bases(subimage_basis(scan.data, scan.positions, CHIRP, ref_grid),
-                       subimage_basis(scan.data, scan.positions, CHIRP, tgt_grid), scan.positions, CHIRP, ref_grid,
-                       tgt_grid, template=solver.template, config=cfg, phase_ramp=p["phase_ramp"],
-                       space_variant=p["space_variant"], tracking_error_m=p["tracking_error_mm"] * 1e-3)
+    want = FocusPlan.make(
+        config=cfg,
+        phase_ramp=p["phase_ramp"],
+        space_variant=p["space_variant"],
+        tracking_error_m=p["tracking_error_mm"] * 1e-3,
+    ).focus_bases(
+        Bases(
+            subimage_basis(scan.data, scan.positions, CHIRP, ref_grid),
+            subimage_basis(scan.data, scan.positions, CHIRP, tgt_grid),
+            scan.positions,
+            CHIRP,
+            ref_grid,
+            tgt_grid,
+        ),
+        Reference(template=solver.template),
+    )
     assert "template_registration" in want.metrics
     np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
 
@@ -691,8 +704,9 @@ def test_solver_with_model_fast_forms_the_reference_as_focus_does():
     the reference back-projected on those pixels alone."""
     from nodes.solver import Solver
     from twinfocus.backprojection import backproject
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import focus_scan
+    from twinfocus.pipeline import Reference
 
     scan = point_scene_scan(m_side=20)
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 32), ImageGrid.from_roi(TGT_ROI, 32)
@@ -711,9 +725,18 @@ def test_solver_with_model_fast_forms_the_reference_as_focus_does():
             cfg = solver._config(CHIRP)
     p = solver.params
     scan.positions_true = None
-    want = focus_scan(scan, ref_grid, tgt_grid, template=solver.template, config=cfg, model="fast",
-                      phase_ramp=p["phase_ramp"], space_variant=p["space_variant"],
-                      tracking_error_m=p["tracking_error_mm"] * 1e-3)
+    want = FocusPlan.make(
+        config=cfg,
+        model="fast",
+        phase_ramp=p["phase_ramp"],
+        space_variant=p["space_variant"],
+        tracking_error_m=p["tracking_error_mm"] * 1e-3,
+    ).focus_scan(
+        scan,
+        ref_grid,
+        tgt_grid,
+        Reference(template=solver.template),
+    )
     assert want.metrics["model"]["reference_strides"] == [2, 2] and want.reference.shape == (16, 16)
     np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
 

@@ -4,20 +4,24 @@
 from __future__ import annotations
 
 import argparse
-import functools
 import os
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from twinfocus import boxes
 from twinfocus.atomic import output_folder, refuse_existing
-from twinfocus.depth_search import DEFAULT_HALF_RANGE_M
+from twinfocus.boxes import cut_away
+from twinfocus.cache import TemplateCache
+from twinfocus.depth_search import DEFAULT_HALF_RANGE_M, range_to_search
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import REFERENCE_FREE_RUNGS
+from twinfocus.focus_plan import FocusPlan, Target
 from twinfocus.grid import ImageGrid
 from twinfocus.machine import require_memory
 from twinfocus.option_types import finite_float, positive_float
+from twinfocus.pipeline import Reference
 from twinfocus.settings import add_focus_options, preload_torch, resolve_device
 
 #: bytes per radar position and pixel that a run holds at its peak: the two sub-image bases
@@ -399,27 +403,12 @@ def _write_where(out_dir, search, typed_depth, volume, grid, cloud, pictures: st
         volume_pictures(out_dir, *projections(volume, grid), grid)
 
 
-def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, device: str, progress) -> dict:
-    """Everything ``focus`` does with one reference (``args`` names one template source): its
-    region (typed or found), its template, the target's depth when it is searched, the focused
-    outputs. Returns a dict of them (``outputs``, ``search``, ``template``, ``support``,
-    ``twin_info``, ``ref_grid``, ``cache_status``, ``method``)."""
-    import numpy as np
-
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.cache import TemplateCache
-    from twinfocus.depth_search import find_target_depth, range_to_search
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.ladder import climbs_to
-    from twinfocus.pipeline import focus_scan
-
-    timings: dict[str, float] = {}
+def _found_region(args: argparse.Namespace, box, bp: dict, progress, rig, timings: dict) -> tuple[tuple, dict]:
+    """The reference region (typed, or found from the twin and cut away from a typed target's box)
+    and how it was found; the search's time into ``timings``."""
     t = time.perf_counter()
-    rig = _rig(args, scan)  # checked against the scan and the cloud before any work
     reference_roi, reference_found = _reference_region(args, bp, progress, rig)
     if box is not None and reference_found["source"] != "typed":
-        from twinfocus.boxes import cut_away  # a found region stops short of the typed target's
-
         extent = reference_found.get("extent_m", reference_roi)
         reference_roi = (*cut_away(list(reference_roi[:4]), box, extent, box), reference_roi[4])
     if reference_found["source"] != "typed":
@@ -430,63 +419,44 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
                 + " ".join(f"{v:.3f}" for v in reference_roi),
                 file=sys.stderr,
             )
+    return reference_roi, reference_found
+
+
+def _focus_with(args: argparse.Namespace, scan, box, typed_depth, plan: FocusPlan, progress) -> dict:
+    """Everything ``focus`` does with one reference (``args`` names one template source) under
+    ``plan`` (:class:`~twinfocus.focus_plan.FocusPlan`, made from the settings): its region (typed
+    or found), its template, the target's depth when it is searched, the focused outputs. Returns
+    a dict of them (``outputs``, ``search``, ``template``, ``support``, ``twin_info``,
+    ``ref_grid``, ``method``, ``boxes``, ``typed_depth``)."""
+    timings: dict[str, float] = {}
+    bp = dict(plan.bp_options)
+    rig = _rig(args, scan)  # checked against the scan and the cloud before any work
+    reference_roi, reference_found = _found_region(args, box, bp, progress, rig, timings)
     ref_grid = ImageGrid.from_roi(reference_roi, args.size)
     depth_range = range_to_search(typed_depth, args.refine_depth, ref_grid.z)
-    if (args.template_scan or args.template) and climbs_to("drift", args.model, args.space_variant):
+    if (args.template_scan or args.template) and plan.needs.torch:
         preload_torch()  # a template with phase: the ladder may fit a drift, with torch
     t = time.perf_counter()
     template, cache_status, support, twin_info = _template(
         args, scan, ref_grid, bp, progress, TemplateCache(enabled=not args.no_cache), rig
     )
     timings["template"] = time.perf_counter() - t
-    method = "twin" if template is not None else args.method
-    has_phase = template is not None and np.iscomplexobj(template)
-    chosen = {}
-    if method == "twin":
-        chosen = estimator_settings(args.estimator, has_phase, has_support=support is not None, model=args.model)
-    if args.loss_steepness is not None:
-        chosen["loss_steepness"] = args.loss_steepness
-    cfg = AutofocusConfig.from_settings({**vars(args), "device": device}, **chosen)  # validated
-    focus = functools.partial(
-        focus_scan,
-        reference_grid=ref_grid,
-        template=template,
-        support=support,
-        reference_info=twin_info,
-        method=method,
-        config=cfg,
-        bp_options=bp,
-        progress_factory=progress,
-        model=args.model,
-        phase_ramp=args.phase_ramp,
-        tracking_error_m=args.tracking_error_mm * 1e-3,
-    )
-    found_boxes = None
+    plan = plan.for_reference(template, support)
+    reference = Reference(template, support, twin_info)
+    found_boxes = seen = None
     if box is None:
-        from twinfocus import boxes
-
         t = time.perf_counter()
         extent = reference_found.get("extent_m", reference_roi)
         found_boxes, seen = boxes.find_target(
-            focus, scan, reference_roi, extent, reference_found["source"], bp, progress
+            plan.focuser(ref_grid, reference), scan, reference_roi, extent, reference_found["source"], bp, progress
         )
         timings["boxes"] = time.perf_counter() - t
         box, typed_depth = found_boxes.target_roi[:4], found_boxes.target_roi[4]
         depth_range = range_to_search(typed_depth, args.refine_depth, ref_grid.z)
         if not args.quiet:
             print(found_boxes.line(), file=sys.stderr)
-    search = None
-    if depth_range is not None:
-        t = time.perf_counter()
-        search, search_info = find_target_depth(focus, scan, box, depth_range, method, bp, progress)
-        timings["target_depth"] = time.perf_counter() - t
-        tgt_grid = ImageGrid.from_roi((*box, search.depth_m), args.size)
-    else:
-        assert isinstance(typed_depth, float)
-        tgt_grid = ImageGrid.from_roi((*box, typed_depth), args.size)
-    outputs = focus(scan, target_grid=tgt_grid, space_variant=args.space_variant)
-    if search is not None:
-        outputs.metrics["target_depth"] = {**search_info, **search.to_dict()}
+    target = Target(tuple(box), typed_depth if isinstance(typed_depth, float) else None, depth_range, args.size)
+    outputs, search = plan.focus_target(scan, ref_grid, reference, target)
     outputs.metrics["reference_search"] = {**reference_found, "roi": list(reference_roi)}
     if found_boxes is not None:
         outputs.metrics["boxes"] = found_boxes.info
@@ -502,7 +472,7 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
         "support": support,
         "twin_info": twin_info,
         "ref_grid": ref_grid,
-        "method": method,
+        "method": plan.method,
         "boxes": (found_boxes, seen) if found_boxes is not None else None,
         "typed_depth": typed_depth,
     }
@@ -560,6 +530,9 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
         bp.update(backend="torch", device=device)
     progress = lambda label: Progress(label, enabled=not args.quiet)
     box, typed_depth = target_region(args.target_roi)
+    # made once for every candidate: a template source focuses with the twin, else --method
+    method = "twin" if args.template or args.template_scan or args.digital_twin else args.method
+    plan = FocusPlan.from_settings({**vars(args), "device": device}, method, bp_options=bp, progress_factory=progress)
 
     t = time.perf_counter()
     scan = Scan.load(args.scan)
@@ -582,7 +555,7 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
     for path, cand_args in candidates:
         if len(candidates) > 1 and not args.quiet:
             print(f"[reference] candidate {path}", file=sys.stderr)
-        r = _focus_with(cand_args, scan, box, typed_depth, bp, device, progress)
+        r = _focus_with(cand_args, scan, box, typed_depth, plan, progress)
         conf = r["outputs"].metrics["confidence"]
         results.append(r)
         listed.append(
