@@ -296,7 +296,7 @@ class Solver(Node):
         climb to it: a hand-held scan's first fit then does not pay torch's import (1.5 s) and
         loading the fit's numba kernels after its last frame. basis : complex (2, 4, 4) on
         ``grid``; pos : (2, K, 3) metres."""
-        from twinfocus.ladder import climbs_to
+        from twinfocus.focus_plan import climbs_to
 
         if self.params["method"] != "twin" or not climbs_to(
             "drift", self.params["model"], self.params["space_variant"]

@@ -14,14 +14,13 @@ from twinfocus.focus_plan import build_rungs, climbs_to
 from twinfocus.ladder import (
     FAST_FIT,
     Problem,
-    climb,
     complex_match,
     heldout_gain,
     heldout_verdict,
 )
 from twinfocus.pipeline import Bases, Reference
 from twinfocus.radar import Chirp
-from twinfocus.rungs import RUNGS, ReferenceFree
+from twinfocus.rungs import RUNGS, ReferenceFree, climb
 
 M, N = 40, 16
 GRID = ImageGrid(-0.02, 0.02, -0.02, 0.02, 0.3, N, N)

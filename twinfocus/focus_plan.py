@@ -35,22 +35,48 @@ from typing import Any
 import numpy as np
 
 from twinfocus.autofocus import RAMP_MODES, AutofocusConfig
+from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.depth_search import DepthSearch, find_target_depth
+from twinfocus.drift_check import phase_concentration, step_coherence
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import (
     MODEL_CHOICES,
+    REFERENCE_FREE_RUNGS,
     TWIN_RUNGS,
     estimator_settings,
     estimator_that_ran,
     resolve_estimator,
 )
 from twinfocus.grid import ImageGrid
-from twinfocus.ladder import SPACE_VARIANT_MODES, Model, Problem, climb, fast_reference, rung_entry
-from twinfocus.pipeline import Bases, FocusOutputs, Reference, Truth, focus_bases, focus_scan
+from twinfocus.ladder import (
+    SPACE_VARIANT_MODES,
+    Model,
+    Problem,
+    fast_reference,
+    legacy_entries,
+    rung_entry,
+    rung_timings,
+)
+from twinfocus.outline_fill import outline_fill
+from twinfocus.pipeline import (
+    Bases,
+    FocusOutputs,
+    Reference,
+    Truth,
+    add_template_metrics,
+    add_truth_metrics,
+    check_method,
+    confidence_report,
+    half_array_bases,
+    reference_trust,
+    upper_band_basis,
+)
 from twinfocus.radar import Chirp
-from twinfocus.rungs import RUNGS, LadderSettings, Rung, reference_free_rungs
+from twinfocus.rungs import RUNGS, LadderSettings, Rung, climb, reference_free_rungs
 from twinfocus.scan import Scan
 from twinfocus.settings import default_settings, resolve_device
+from twinfocus.target_focus import defocus_gain_nats
+from twinfocus.templates import check_has_signal
 
 #: ``--phase-ramp``'s words as the placement rung's mode
 PHASE_RAMP_MODES = {"auto": "auto", "remove": "on", "keep": "off"}
@@ -302,8 +328,9 @@ class FocusPlan:
     def focus_scan(
         self, scan: Scan, reference_grid: ImageGrid, target_grid: ImageGrid, reference: Reference | None = None
     ) -> FocusOutputs:
-        """Focus a validated scan (:func:`twinfocus.pipeline.focus_scan`)."""
-        return focus_scan(self, scan, reference_grid, target_grid, reference or Reference())
+        """Focus a validated scan: its sub-image bases (and the truth images when it carries
+        ``positions_true``), then :meth:`focus_bases`."""
+        return _focus_scan(self, scan, reference_grid, target_grid, reference or Reference())
 
     def focuser(self, reference_grid: ImageGrid, reference: Reference) -> Callable[..., FocusOutputs]:
         """``focus(scan, target_grid, space_variant)``: :meth:`focus_scan` with the reference bound,
@@ -343,8 +370,157 @@ class FocusPlan:
         return out, search
 
     def focus_bases(self, bases: Bases, reference: Reference | None = None, truth: Truth | None = None) -> FocusOutputs:
-        """Focus on sub-image bases built elsewhere (:func:`twinfocus.pipeline.focus_bases`)."""
-        return focus_bases(self, bases, reference or Reference(), truth)
+        """Focus on sub-image bases built elsewhere (the solver node streams them): the ladder
+        climbed on the reference, the kept model applied to both regions, the metrics
+        (metrics.json ``model`` records every rung) and the confidence report; with ``truth``, the
+        metrics against it."""
+        return _focus_bases(self, bases, reference or Reference(), truth)
+
+
+def _focus_scan(
+    plan: FocusPlan, scan: Scan, reference_grid: ImageGrid, target_grid: ImageGrid, reference: Reference
+) -> FocusOutputs:
+    """Run the offline focusing steps on a validated scan: the two sub-image bases (and the
+    truth images when the scan carries ``positions_true``), then :func:`_focus_bases`. The
+    back-projection's keywords are the plan's ``bp_options`` (oversample, precision, backend,
+    device); ``--model fast`` forms the reference at its resolution (:meth:`FocusPlan.reference_for
+    <twinfocus.focus_plan.FocusPlan.reference_for>`)."""
+    check_method(plan.method, reference.template)
+    bp = dict(plan.bp_options)
+    prog = plan.progress_factory or (lambda label: None)
+    timings: dict[str, float] = {}
+    reference_grid, reference, strides = plan.reference_for(
+        reference, scan.positions, reference_grid, scan.chirp.wavelength_m
+    )
+
+    t = time.perf_counter()
+    ref_basis = subimage_basis(
+        scan.data, scan.positions, scan.chirp, reference_grid, progress=prog("reference basis"), **bp
+    )
+    timings["reference_basis"] = time.perf_counter() - t
+    # Fail before the second back-projection, not after it (focus_bases checks these again).
+    check_has_signal(ref_basis.sum(axis=0), "the reference region", basis=ref_basis)
+    if reference.template is not None:
+        check_has_signal(reference.template, "the template")
+
+    t = time.perf_counter()
+    tgt_basis = subimage_basis(scan.data, scan.positions, scan.chirp, target_grid, progress=prog("target basis"), **bp)
+    timings["target_basis"] = time.perf_counter() - t
+
+    truth = None
+    if scan.positions_true is not None:
+        t = time.perf_counter()
+        truth = Truth(
+            backproject(scan.data, scan.positions_true, scan.chirp, target_grid, progress=prog("target truth"), **bp),
+            backproject(
+                scan.data, scan.positions_true, scan.chirp, reference_grid, progress=prog("reference truth"), **bp
+            ),
+            scan.positions_true,
+        )
+        truth_time = time.perf_counter() - t
+
+    needs, geometry = plan.needs, (scan.data, scan.positions, scan.chirp, reference_grid)
+    bases = Bases(
+        ref_basis,
+        tgt_basis,
+        scan.positions,
+        scan.chirp,
+        reference_grid,
+        target_grid,
+        half_bases=half_array_bases(*geometry, target_grid, bp, plan.progress_factory) if needs.half_bases else None,
+        upper_band=upper_band_basis(*geometry, bp, plan.progress_factory) if needs.upper_band else None,
+    )
+    out = _focus_bases(plan, bases, reference, truth)
+    timings.update(out.timings_s)
+    out.metrics["model"]["reference_strides"] = list(strides)
+    if truth is not None:
+        timings["truth_images"] = truth_time
+    out.timings_s = timings
+    out.metrics["timings_s"] = timings
+    return out
+
+
+def _focus_bases(plan: FocusPlan, bases: Bases, reference: Reference, truth: Truth | None = None) -> FocusOutputs:
+    """The focusing steps that follow the sub-image bases: the plan's ladder of correction models
+    (:mod:`twinfocus.rungs`, docs/model_ladder.md) climbed on the reference, the kept model applied
+    to both regions, the metrics (metrics.json ``model`` records every rung) and the confidence
+    report; with ``truth``, the metrics against it.
+
+    Shared by ``twinfocus focus`` (:func:`focus_scan`) and the solver node (bases streamed batch
+    by batch), so both give the same phase, images and metrics keys. The plan's config is handed
+    to the autofocus as is.
+
+    Returns :class:`FocusOutputs` (``timings_s`` holds ``autofocus``; ``metrics`` has no
+    ``timings_s``: the caller adds its own).
+    """
+    template, support, method = reference.template, reference.support, plan.method
+    check_method(method, template)
+    cfg = plan.config
+    cfg.validate()
+    check_has_signal(bases.ref.sum(axis=0), "the reference region", basis=bases.ref)
+    if template is not None:
+        check_has_signal(template, "the template")
+    problem = Problem(bases.ref, bases.tgt, bases.positions, bases.chirp, bases.reference_grid, bases.target_grid,
+                      cfg, template, support, bases.registration_scores, bases.half_bases, bases.upper_band,
+                      plan.progress_factory, reference_trust)  # fmt: skip
+    kept, section = climb(problem, plan.rungs)
+    targets = section.pop("targets")
+    m: dict = {
+        "method": method,
+        "n_positions": int(bases.positions.shape[0]),
+        "n_channels": int(bases.positions.shape[1]),
+    }
+    if reference.info is not None:
+        m["digital_twin"] = reference.info
+    m["model"] = {"asked": plan.model, **section}
+    m.update(legacy_entries(problem, kept, section))
+    free = [e["info"] for e in section["rungs"] if e["rung"] in REFERENCE_FREE_RUNGS and e["kept"] and e.get("info")]
+    if free:
+        m["reference_free"] = free[0]
+    out = FocusOutputs(
+        reference_grid=bases.reference_grid,
+        target_grid=bases.target_grid,
+        method=method,
+        phase_rad=kept.target_phase(problem),
+        reference=kept.apply(problem, "reference"),
+        reference_uncorrected=bases.ref.sum(axis=0),
+        target=kept.apply(problem, "target"),
+        target_uncorrected=bases.tgt.sum(axis=0),
+        template=None if template is None else np.abs(template).astype(np.float32),
+        loss_history=kept.loss_history,
+        metrics=m,
+        timings_s=rung_timings(section),
+        config={**cfg.to_dict(), **{f"bp_{k}": v for k, v in plan.bp_options.items()}},
+        drift_m=kept.drift_m,
+        rung_targets=targets,
+    )
+    # metrics against the template the phases were fitted to (moved when registered)
+    add_template_metrics(m, out, kept.template, cfg.threshold_centre, cfg.threshold_steepness)
+    if method == "twin":
+        _twin_checks(m, out, problem, kept, support)
+    m["confidence"] = confidence_report(
+        m, bases.positions, bases.chirp, bases.reference_grid, bases.target_grid, plan.tracking_error_m
+    )
+    if truth is not None:
+        add_truth_metrics(out, bases.tgt, bases.positions, bases.chirp, truth.target, truth.reference,
+                          truth.positions, cfg.threshold_centre, cfg.threshold_steepness)  # fmt: skip
+    return out
+
+
+def _twin_checks(m: dict, out: FocusOutputs, problem: Problem, kept: Model, support: np.ndarray | None) -> None:
+    """The twin's checks the confidence report reads, into ``m``: a digital twin's like-with-like
+    reading of the reference against its outline, the phase's drift measures, and with one phase
+    per position from an outline whether a defocus is left on the target."""
+    if support is not None:
+        m["reference_outline"] = {**outline_fill(out.reference, support), **(problem.surface or {})}
+    m["phase_step_coherence"] = round(step_coherence(out.phase_rad), 4)
+    m["phase_concentration"] = round(phase_concentration(out.phase_rad), 4)
+    if support is not None and kept.drift_m is None:
+        # the target formed by one phase per position: is a defocus left on it?
+        t = time.perf_counter()
+        gain, quadratic = defocus_gain_nats(problem.tgt_basis, out.phase_rad, problem.centres)
+        m["target_defocus"] = {"entropy_gain_nats": round(gain, 4), "quadratic_rad": [round(float(q), 3) for q in quadratic],
+                               "time_s": round(time.perf_counter() - t, 3)}  # fmt: skip
 
 
 def place_estimate(

@@ -37,25 +37,19 @@ climbs a costly rung only while the reference is below the confidence report's t
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from twinfocus import metrics
 from twinfocus.autofocus import AutofocusConfig
 from twinfocus.basis import form_image
-from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
 from twinfocus.outline_fill import surface_from_positions
 from twinfocus.radar import Chirp
 from twinfocus.reference_free import resolution_cell_m
-
-if TYPE_CHECKING:  # the rungs' module imports this one
-    from twinfocus.rungs import Rung
 
 #: a rung's mode: "off" (not tried), "auto" (its rule decides whether to fit and whether to keep),
 #: "try" (fitted whenever it can run, kept by its rule), "on" (fitted and kept; refused when it cannot run)
@@ -328,96 +322,6 @@ def reference_evidence(problem: Problem, model: Model) -> dict:
             metrics.display_image(ref, c, s), metrics.display_image(template, c, s)
         )
     }
-
-
-def climb(problem: Problem, rungs: Sequence[Rung], start: Model | None = None) -> tuple[Model, dict]:
-    """Climb ``rungs`` (:meth:`twinfocus.focus_plan.FocusPlan.rungs`) on ``problem`` from
-    ``start`` (None: no correction): returns the kept model and
-    metrics.json's ``model`` section: ``rungs``, one entry per rung (``rung``, ``adds``,
-    ``mode``, ``tried``, ``kept``, ``why``, ``time_s``, and when tried ``evidence``: the
-    reference's match before and after and the ``parameters`` it adds, and ``info``: what its
-    fit recorded), ``kept`` (the kept rungs' names), ``result`` (the top kept rung) and
-    ``time_s``; and ``targets``, each tried rung's target image (complex (H, W)), for the caller
-    to take out."""
-    m = problem.ref_basis.shape[0]
-    model = start or Model(phase_rad=np.zeros(m), estimate_rad=np.zeros(m), template=problem.template)
-    entries: list[dict] = []
-    kept: list[str] = []
-    targets: dict[str, np.ndarray] = {}
-    t_all = time.perf_counter()
-    for rung in rungs:
-        t = time.perf_counter()
-        entry, model, target = _climb_rung(problem, rung, model, kept)
-        if target is not None:
-            targets[rung.name] = target
-        info = entry.pop("info")
-        entry["time_s"] = time.perf_counter() - t
-        if info:
-            entry["info"] = info
-        entries.append(entry)
-    section = {
-        "rungs": entries,
-        "kept": kept,
-        "result": kept[-1] if kept else None,
-        "time_s": time.perf_counter() - t_all,
-    }
-    section["targets"] = targets  # the images, for the pictures: not written to metrics.json
-    return model, section
-
-
-def _climb_rung(problem: Problem, rung: Rung, model: Model, kept: list[str]) -> tuple[dict, Model, np.ndarray | None]:
-    """One rung of :func:`climb` from ``model`` (``kept``: the names kept so far, appended to):
-    its entry (without ``time_s``), the model the rungs above start from, and its target image
-    when it was tried."""
-    entry: dict = {"rung": rung.name, "adds": rung.adds, "mode": rung.mode, "tried": False, "kept": False}
-    info = rung.record()
-    if rung.mode == "off" and not rung.measured_when_off:
-        why, recorded = rung.off()
-        info.update(recorded)
-    else:
-        why = rung.cannot(problem, model)
-        if why is not None:
-            info.update(rung.refused(why))
-    if why is None and rung.until_trusted and problem.trust is not None:
-        below = problem.trust(problem, model)
-        if below is None:
-            why = f"fast: the reference passes the trust line at {kept[-1]}"
-        else:
-            entry["below_trust_line"] = below
-    measured: dict = {}
-    if why is None:
-        why, measured = rung.skip(problem, model)
-        info.update(measured)
-    elif rung.mode == "on":
-        raise TwinFocusError(f"{rung.refused_as} {why}")
-    target = None
-    if why is None:
-        before = reference_evidence(problem, model) if rung.name != "none" else {}
-        fitted = rung.fit(problem, model)
-        info.update(fitted.info)
-        verdict = rung.keep(problem, model, fitted, measured)
-        info.update(verdict.info)
-        why = verdict.why
-        after = reference_evidence(problem, fitted.model)
-        entry.update(tried=True, kept=verdict.kept)
-        target = fitted.model.apply(problem, "target")
-        entry["evidence"] = {"before": before, "after": after, "parameters": rung.parameters(problem)}
-        if verdict.heldout is not None:
-            entry["evidence"]["heldout"] = verdict.heldout
-        if verdict.kept:
-            model = verdict.model
-            kept.append(rung.name)
-        else:
-            model = rung.not_kept(model, fitted)
-    entry.update(why=why, info=info)
-    return entry, model, target
-
-
-def climbs_to(rung: str, model: str = "auto", space_variant: str = "auto") -> bool:
-    """:func:`twinfocus.focus_plan.climbs_to`, for the callers that ask the ladder."""
-    from twinfocus.focus_plan import climbs_to as plan_climbs_to  # the plan's module imports this one
-
-    return plan_climbs_to(rung, model, space_variant)
 
 
 def rung_entry(section: dict, name: str) -> dict:
