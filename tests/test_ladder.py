@@ -8,9 +8,8 @@ import pytest
 from twinfocus.autofocus import AutofocusConfig
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import TWIN_RUNGS, estimator_settings
-from twinfocus.focus_plan import FocusPlan
+from twinfocus.focus_plan import FocusPlan, build_rungs, climbs_to
 from twinfocus.grid import ImageGrid
-from twinfocus.focus_plan import build_rungs, climbs_to
 from twinfocus.ladder import (
     FAST_FIT,
     Problem,
@@ -320,7 +319,7 @@ def test_the_half_array_bases_are_a_stage_of_their_own_in_the_timings():
     """``timings_s``: the tilt's back-projection of half the channels as ``half_array_bases``, the
     kept drift or tilt rung's time less it as ``space_variant``, the estimate's rungs summed as
     ``autofocus``; a rung not kept gives no ``space_variant``."""
-    from twinfocus.pipeline import rung_timings
+    from twinfocus.ladder import rung_timings
 
     def section(tilt_kept: bool) -> dict:
         return {"rungs": [

@@ -741,37 +741,6 @@ def test_solver_with_model_fast_forms_the_reference_as_focus_does():
     np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
 
 
-def test_solver_picks_the_estimator_as_twinfocus_focus_does():
-    from nodes.solver import Solver
-    from twinfocus.estimators import estimator_settings
-
-    chirp = Chirp()
-    with local_broker() as ep:
-        base = {"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 8, "warm_up": False}
-        solver = Solver(broker=ep, params=base)
-        amplitude = np.ones((8, 8), np.float32)
-        amplitude[2:5, 3] = 4.0
-        solver.template = amplitude
-        # an amplitude template: the projections, the optimiser only if their phases have wrapped
-        cfg = solver._config(chirp)
-        assert (cfg.init, cfg.loss_steepness, cfg.refine_below_coherence) == ("projection", 5.0, 2.5)
-        assert cfg.iterations > 0
-        solver.template = amplitude.astype(np.complex64)  # a template with its phase: the closed form
-        assert solver._config(chirp).init == "correlation"
-        solver = Solver(broker=ep, params={**base, "estimator": "projection-refined", "loss_steepness": 2.0,
-                                           "iterations": 40, "tracking_error_mm": 2.0})
-        solver.template = amplitude
-        cfg = solver._config(chirp)
-        want = {**estimator_settings("projection-refined", False), "loss_steepness": 2.0}
-        assert {k: getattr(cfg, k) for k in want} == want and cfg.iterations == 40
-        with pytest.raises(TwinFocusError, match="estimator"):
-            Solver(broker=ep, params={**base, "estimator": "random"})
-        solver = Solver(broker=ep, params={**base, "estimator": "correlation"})
-        solver.template = amplitude
-        with pytest.raises(TwinFocusError, match="needs the template's phase"):
-            solver._config(chirp)
-
-
 def test_solver_without_a_template_says_so_and_drops_the_scan(capfd):
     from nodes.solver import Solver
 
