@@ -47,12 +47,12 @@ from twinfocus.basis import BasisRows
 from twinfocus.depth_search import DEFAULT_HALF_RANGE_M, parse_depth, range_to_search
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import REFERENCE_FREE_RUNGS
-from twinfocus.focus_plan import FocusPlan, Target
-from twinfocus.pipeline import Bases, Reference, upper_band_basis
 from twinfocus.safe_paths import child_path
 from twinfocus.settings import FOCUS_SETTINGS
 
-if TYPE_CHECKING:  # imported where used (_score_registration)
+if TYPE_CHECKING:  # imported where used: the node starts without the numerics (numba, scipy: 1.0 s
+    # against 3.5-4.7 s for `import nodes.solver` at load 25), which a launch's checks import
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.template_match import MatchScores
 
 
@@ -198,6 +198,8 @@ class Solver(Node):
         self.bp = {"oversample": p["oversample"], "precision": p["precision"]}
         if device != "cpu":
             self.bp.update(backend="torch", device=device)
+        from twinfocus.focus_plan import FocusPlan
+
         # the focusing policy, made once from the parameters (twinfocus/focus_plan.py)
         self.plan = FocusPlan.from_settings(
             {**p, "device": device}, p["method"], bp_options=self.bp, progress_factory=lambda label: self._progress
@@ -652,6 +654,9 @@ class Solver(Node):
     def _focus_whole(self, scan):
         """The plan's focus of the assembled scan (:meth:`twinfocus.focus_plan.FocusPlan.focus_target`),
         as ``twinfocus focus`` runs it: the target's depth searched first when it is not typed."""
+        from twinfocus.focus_plan import Target
+        from twinfocus.pipeline import Reference
+
         if self.ref_grid is None:
             raise TwinFocusError("no reference region: none typed and no template yet")
         depth_range = range_to_search(self.typed_depth, self.params["refine_depth"] or None, self.ref_grid.z)
@@ -707,6 +712,8 @@ class Solver(Node):
         phase), without the truth: :meth:`_truth_metrics` adds it once the image is out. Returns the
         outputs and the target basis (the oracle-phase image needs it)."""
         from threadpoolctl import threadpool_limits
+
+        from twinfocus.pipeline import Bases, Reference, upper_band_basis
 
         plan = self._plan()
         tgt_basis = s.tgt_rows.array()
