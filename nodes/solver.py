@@ -7,9 +7,9 @@ whatever has arrived while the previous batch ran, and, when the estimator regis
 twin's template, the registration's scores of those rows
 (:class:`twinfocus.template_match.MatchScores`). So when the scan's ``last`` measurement
 arrives, the back-projection is already done and only the optimiser and the metrics remain
-(:func:`twinfocus.pipeline.focus_bases`, the steps ``twinfocus focus`` runs after its
+(:meth:`twinfocus.focus_plan.FocusPlan.focus_bases`, the steps ``twinfocus focus`` runs after its
 back-projections: ``twin``, or the baselines ``sharpness`` / ``none``). With
-``basis:=after_scan`` it instead keeps the samples and runs :func:`twinfocus.pipeline.focus_scan`
+``basis:=after_scan`` it instead keeps the samples and runs :meth:`twinfocus.focus_plan.FocusPlan.focus_scan`
 on the assembled scan at the end (the same call as ``twinfocus focus``; the benchmark's
 baseline).
 
@@ -759,7 +759,7 @@ class Solver(Node):
     def _truth_metrics(self, s: _Scan, out, tgt_basis: np.ndarray, positions: np.ndarray, truth: np.ndarray) -> None:
         """:func:`twinfocus.pipeline.add_truth_metrics` (what ``focus_bases`` adds when handed the
         truth), on images formed from the kept samples at the true positions, as
-        :func:`twinfocus.pipeline.focus_scan` forms them."""
+        :meth:`twinfocus.focus_plan.FocusPlan.focus_scan` forms them."""
         from twinfocus.backprojection import backproject
         from twinfocus.pipeline import add_truth_metrics
 

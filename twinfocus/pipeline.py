@@ -1,11 +1,14 @@
 """Offline focusing of one scan: the steps behind ``twinfocus focus`` and the solver node.
 
-:func:`focus_scan` does steps 1-4 on a scan; :func:`focus_bases` does steps 3-4 on bases built
-elsewhere (the solver node builds them batch by batch as measurements arrive).
+The focus plan runs them (:class:`twinfocus.focus_plan.FocusPlan`: ``focus_scan`` does steps 1-4
+on a scan, ``focus_bases`` steps 3-4 on bases built elsewhere, as the solver node builds them
+batch by batch); here are its inputs (:class:`Bases`, :class:`Reference`, :class:`Truth`), its
+outputs (:class:`FocusOutputs`, :func:`write_outputs`), the bases it may ask for
+(:func:`half_array_bases`, :func:`upper_band_basis`), the metrics and the confidence report.
 
 1. sub-image bases of the reference and target regions (one back-projection each);
 2. the reference template (file, motion-stage scan, digital twin) — or none for the baselines;
-3. the ladder of correction models climbed on the reference (:mod:`twinfocus.ladder`: one phase
+3. the ladder of correction models climbed on the reference (:mod:`twinfocus.rungs`: one phase
    per position, the optimiser, the placement, the range errors, the drift, the tilt), or a
    reference-free autofocus of the target;
 4. the kept model applied to the target, metrics against the truth when the scan carries it.
@@ -85,7 +88,7 @@ def half_array_bases(
     bp_options: dict | None = None,
     progress_factory=None,
 ) -> Callable[[], tuple[np.ndarray, np.ndarray]] | None:
-    """What :func:`focus_bases` calls for the half-array bases (``half_bases``): the reference's
+    """What :meth:`FocusPlan.focus_bases <twinfocus.focus_plan.FocusPlan.focus_bases>` calls for the half-array bases (``half_bases``): the reference's
     and the target's sub-image bases from the channels of
     :func:`twinfocus.space_variant.array_half` alone, back-projected only when it is called.
 
@@ -120,7 +123,7 @@ def upper_band_basis(
     bp_options: dict | None = None,
     progress_factory=None,
 ) -> Callable[[np.ndarray], np.ndarray] | None:
-    """What :func:`focus_bases` calls for the reference's sub-image basis from the upper half of
+    """What :meth:`FocusPlan.focus_bases <twinfocus.focus_plan.FocusPlan.focus_bases>` calls for the reference's sub-image basis from the upper half of
     the chirp's band (``upper_band``; the lower half's is the whole basis minus it): ``pixels`` bool
     (H, W) on ``reference_grid`` -> complex64 (M, pixels.sum()), back-projected only when called
     and only on those pixels (:mod:`twinfocus.band_delay`).

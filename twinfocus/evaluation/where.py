@@ -4,7 +4,7 @@ as a row against both regions typed.
 ``twinfocus bench where`` simulates scenes of the baseline letters with the realistic
 impairments of the paper evaluation (:class:`twinfocus.scenario.Scenario`'s defaults: speckle,
 10 dB noise, 0.5 mm x/y/z tracking error, a physical twin captured 1 mm off), and focuses each
-with the physical twin (:func:`twinfocus.pipeline.focus_scan`, one phase per position):
+with the physical twin (:meth:`twinfocus.focus_plan.FocusPlan.focus_scan`, one phase per position):
 
 * ``typed``: both regions typed (the baseline of every other row);
 * ``reference found``: the reference's region from a coarse search of the twin's own scan
