@@ -461,7 +461,7 @@ def test_a_digital_twins_template_file_goes_out_with_its_outline_and_conditionin
     with local_broker() as ep:
         solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 12, "warm_up": False})
         solver.on_template(t)
-        assert solver._estimator() == "outline" and solver.twin_info == {"surface": "smooth", "curved": True,
+        assert solver._plan().estimator == "outline" and solver.twin_info == {"surface": "smooth", "curved": True,
                                                                          "curvature_m": 0.004}
 
 

@@ -165,7 +165,7 @@ def test_the_outline_is_resampled_with_the_template_and_an_empty_one_is_dropped(
         want = resample_support(reference.support, msg.x_m, msg.y_m, ImageGrid.from_roi(REF_ROI, 17))
         assert solver.support.dtype == bool and np.array_equal(solver.support, want) and solver.template.shape == (17, 17)
         assert 0.7 < want.sum() / (reference.support.sum() * (17 / SIZE) ** 2) < 1.3  # about the same area
-        assert solver._config(CHIRP).init == "outline" and solver._estimator() == "outline"
+        assert solver._config(CHIRP).init == "outline" and solver._plan().estimator == "outline"
         solver.on_template(_twin_template(reference, np.zeros_like(reference.support)))
         assert solver.support is None and solver.template.shape == (17, 17)  # the template alone is kept
         assert solver._config(CHIRP).init == "projection"
