@@ -26,7 +26,8 @@ def one_scene(z_m: float, rough: bool, seed: int) -> dict:
     from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.digital_twin.condition import digital_twin_reference
     from twinfocus.estimators import estimator_settings
-    from twinfocus.pipeline import focus_bases
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Bases, Reference, Truth
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
 
     sc = Scenario(error_sigma_m=(0.2e-3, 0.2e-3, z_m), snr_db=15, reference_roughness_deg=90.0 if rough else 0.0,
@@ -43,8 +44,11 @@ def one_scene(z_m: float, rough: bool, seed: int) -> dict:
     old_auto = "projection" if stated <= scan.chirp.wavelength_m / 4 else "projection-refined"
     rec: dict = {"z_mm": z_m * 1e3, "rough": rough, "seed": seed, "old auto chose": old_auto}
     for name, est in (("projection", "projection"), ("projection-refined", "projection-refined"), ("auto", "auto")):
-        out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=twin.template,
-                          config=AutofocusConfig(**estimator_settings(est, False)), **truth)
+        out = FocusPlan.make(config=AutofocusConfig(**estimator_settings(est, False))).focus_bases(
+            Bases(rb, tb, scan.positions, scan.chirp, rg, tg),
+            Reference(template=twin.template),
+            Truth(truth["truth_target"], truth["truth_reference"], truth["positions_true"]),
+        )
         rec[name] = out.metrics["target_ssim_corrected"]
         rec[f"{name} time_s"] = out.timings_s["autofocus"]
         if name == "auto":

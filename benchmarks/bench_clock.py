@@ -28,8 +28,9 @@ from twinfocus.autofocus import AutofocusConfig
 from twinfocus.clock_offset import position_times_s, range_history_offset, search_scan_clock, shift_positions
 from twinfocus.digital_twin.template import psf_template
 from twinfocus.estimators import estimator_settings
+from twinfocus.focus_plan import FocusPlan
 from twinfocus.grid import ImageGrid
-from twinfocus.pipeline import focus_scan
+from twinfocus.pipeline import Reference
 from twinfocus.scenario import Scenario, scenario_grids, scenario_scatterers, simulate_scenario
 from twinfocus.templates import template_from_scan
 
@@ -41,7 +42,7 @@ LEG_M = 0.258  # twinfocus.trajectory.handheld_zigzag's column height
 
 def _ssim(scan, rg, tg, template) -> float:
     cfg = AutofocusConfig(**estimator_settings("auto", np.iscomplexobj(template)))
-    out = focus_scan(scan, rg, tg, template=template, method="twin", config=cfg)
+    out = FocusPlan.make(method="twin", config=cfg).focus_scan(scan, rg, tg, Reference(template=template))
     return float(out.metrics["target_ssim_corrected"])
 
 

@@ -377,22 +377,19 @@ def bench_end_to_end(scan, template_scan, sc, quick) -> dict:
             )
         solver_code = (
             "import numpy as np; from twinfocus.scan import Scan; from twinfocus.scenario import Scenario, scenario_grids; "
-            "from twinfocus.backprojection import subimage_basis; from twinfocus.pipeline import focus_bases; "
+            "from twinfocus.backprojection import subimage_basis; from twinfocus.focus_plan import FocusPlan; "
+            "from twinfocus.pipeline import Bases, Reference; "
             "from twinfocus.autofocus import AutofocusConfig; from twinfocus.estimators import estimator_settings; "
             "from twinfocus.templates import template_from_scan; "
             f"s = Scan.load({str(d / 'scan.npz')!r}); t = Scan.load({str(d / 'tpl.npz')!r}); rg, tg = scenario_grids(Scenario(), 100); "
             "tpl = template_from_scan(t, rg, keep_phase=True); del t; ref, tgt = [], []; "
             "[(ref.append(subimage_basis(s.data[i:i+20], s.positions[i:i+20], s.chirp, rg)), "
             "tgt.append(subimage_basis(s.data[i:i+20], s.positions[i:i+20], s.chirp, tg))) for i in range(0, s.n_positions, 20)]; "
-            "focus_bases(np.concatenate(ref), np.concatenate(tgt), s.positions, s.chirp, rg, tg, template=tpl, "
-            "config=AutofocusConfig(**estimator_settings('correlation', True))); "
-            f"import sys; {_PEAK}"
-        )
-        solver_mb = _peak_mb(
-            subprocess.run(
-                [sys.executable, "-c", solver_code], env=env, check=True, capture_output=True, text=True
-            ).stderr
-        )
+            "FocusPlan.make(config=AutofocusConfig(**estimator_settings('correlation', True))).focus_bases("
+            "Bases(np.concatenate(ref), np.concatenate(tgt), s.positions, s.chirp, rg, tg), Reference(tpl)); "
+            f"import sys; {_PEAK}")
+        solver_mb = _peak_mb(subprocess.run([sys.executable, "-c", solver_code], env=env, check=True, capture_output=True,
+                                            text=True).stderr)
         print(f"  solver-node work: peak {solver_mb:.0f} MB")
     return {
         "import_s": min(imports),

@@ -36,7 +36,7 @@ HANDHELD = Path("benchmarks/results/handheld.json")
 def _cpu_time_of(cpu: dict, reference_grid) -> Iterator[None]:
     """Adds to ``cpu`` the process CPU seconds of every drift fit (``fit``) and of the reference's
     sub-image basis (``basis``: the pipeline's back-projection onto ``reference_grid``)."""
-    import twinfocus.pipeline as pipeline
+    import twinfocus.focus_plan as pipeline
     import twinfocus.space_variant as sv
 
     def timed(fn, key, only=None):
@@ -64,7 +64,8 @@ def one_draw(seed: int) -> dict:
     """focus_scan on one draw: stage times, their ratio, target SSIM, the fit's record."""
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.estimators import estimator_settings
-    from twinfocus.pipeline import focus_scan
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Reference
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.templates import template_from_scan
 
@@ -77,7 +78,7 @@ def one_draw(seed: int) -> dict:
     cpu: dict[str, float] = {"fit": 0.0, "basis": 0.0}
     t0 = time.perf_counter()
     with _cpu_time_of(cpu, rg):
-        out = focus_scan(scan, rg, tg, template=tpl, config=cfg)
+        out = FocusPlan.make(config=cfg).focus_scan(scan, rg, tg, Reference(template=tpl))
     wall = time.perf_counter() - t0
     timings = out.metrics["timings_s"]
     rungs = {e["rung"]: e for e in out.metrics["model"]["rungs"] if e["rung"] in ("drift", "tilt")}

@@ -135,13 +135,16 @@ def digital_twin_focus(d: dict, **config):
     ``config``: AutofocusConfig fields over the defaults."""
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.estimators import estimator_settings
-    from twinfocus.pipeline import focus_bases
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Bases, Reference, Truth
 
     twin, scan = d["twin"], d["scan"]
     cfg = AutofocusConfig(**{**estimator_settings("auto", False, has_support=True), **config})
-    return focus_bases(d["rb"], d["tb"], scan.positions, scan.chirp, d["rg"], d["tg"], template=twin.template,
-                       support=twin.support, reference_info=twin.info, config=cfg, upper_band=d["upper_band"],
-                       **d["truth"])
+    return FocusPlan.make(config=cfg).focus_bases(
+        Bases(d["rb"], d["tb"], scan.positions, scan.chirp, d["rg"], d["tg"], upper_band=d["upper_band"]),
+        Reference(template=twin.template, support=twin.support, info=twin.info),
+        Truth(d["truth"]["truth_target"], d["truth"]["truth_reference"], d["truth"]["positions_true"]),
+    )
 
 
 def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> dict:
@@ -149,9 +152,10 @@ def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> 
     from twinfocus.basis import form_image
     from twinfocus.drift_check import step_coherence
     from twinfocus.estimators import estimator_settings
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.metrics import image_ssim, oracle_phase
     from twinfocus.outline_fill import outline_fill
-    from twinfocus.pipeline import focus_bases, half_array_bases
+    from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases
     from twinfocus.templates import template_from_scan
 
     d = draw_inputs(condition, seed, shapes, rows, size)
@@ -162,9 +166,19 @@ def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> 
                  "separation_deg": round(kw["separation_deg"], 2)}
     dt = digital_twin_focus(d)
     # what `twinfocus focus --template-scan` runs
-    pt = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template_from_scan(tpl_scan, rg, keep_phase=True),
-                     config=AutofocusConfig(**estimator_settings("auto", True)),
-                     half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg), **truth)
+    pt = FocusPlan.make(config=AutofocusConfig(**estimator_settings("auto", True))).focus_bases(
+        Bases(
+            rb,
+            tb,
+            scan.positions,
+            scan.chirp,
+            rg,
+            tg,
+            half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg),
+        ),
+        Reference(template=template_from_scan(tpl_scan, rg, keep_phase=True)),
+        Truth(truth["truth_target"], truth["truth_reference"], truth["positions_true"]),
+    )
     for name, out in (("digital", dt), ("physical", pt)):
         m, conf = out.metrics, out.metrics["confidence"]
         rec[name] = m["target_ssim_corrected"]
@@ -257,12 +271,17 @@ def cloud_parts(d: dict) -> dict:
 def baselines(d: dict) -> dict:
     """The reference-free methods on :func:`draw_inputs`' draw ``d``: each one's target SSIM
     (``sharpness``, ...), whether the confidence report trusts it and its warnings."""
-    from twinfocus.pipeline import focus_bases
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Bases, Reference, Truth
 
     out: dict = {}
     scan = d["scan"]
     for method in BASELINES:
-        f = focus_bases(d["rb"], d["tb"], scan.positions, scan.chirp, d["rg"], d["tg"], method=method, **d["truth"])
+        f = FocusPlan.make(method=method).focus_bases(
+            Bases(d["rb"], d["tb"], scan.positions, scan.chirp, d["rg"], d["tg"]),
+            Reference(),
+            Truth(d["truth"]["truth_target"], d["truth"]["truth_reference"], d["truth"]["positions_true"]),
+        )
         out[method] = f.metrics["target_ssim_corrected"]
         out[f"{method} trusted"] = f.metrics["confidence"]["trusted"]
         out[f"{method} warnings"] = f.metrics["confidence"]["warnings"]

@@ -50,8 +50,9 @@ from twinfocus import metrics
 from twinfocus import space_variant as sv
 from twinfocus.autofocus import AutofocusConfig
 from twinfocus.estimators import estimator_settings
+from twinfocus.focus_plan import FocusPlan
 from twinfocus.machine import machine_info
-from twinfocus.pipeline import focus_bases, half_array_bases
+from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases
 
 #: the scene of bench_handheld's "hand 0.8 mm + 0.15 deg"
 SCENE = CONDITIONS["hand 0.8 mm + 0.15 deg"]
@@ -132,10 +133,15 @@ def one_draw(seed: int, baseline) -> dict:
 
     sv.fit_smooth_drift = fit_and_compare  # the pipeline imports it from the module when it runs
     try:
-        out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=tpl,
-                          config=AutofocusConfig(**estimator_settings("correlation", True)), phase_ramp="auto",
-                          space_variant="on", truth_target=truth_t, truth_reference=truth_r,
-                          positions_true=scan.positions_true, half_bases=lambda: halves)
+        out = FocusPlan.make(
+            config=AutofocusConfig(**estimator_settings("correlation", True)),
+            phase_ramp="auto",
+            space_variant="on",
+        ).focus_bases(
+            Bases(rb, tb, scan.positions, scan.chirp, rg, tg, half_bases=lambda: halves),
+            Reference(template=tpl),
+            Truth(truth_t, truth_r, scan.positions_true),
+        )
     finally:
         sv.fit_smooth_drift = current
     return {"seed": seed, "pipeline_target_ssim": out.metrics["target_ssim_corrected"],

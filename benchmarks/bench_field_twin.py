@@ -71,9 +71,10 @@ def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
     from twinfocus.basis import form_image
     from twinfocus.digital_twin.condition import digital_twin_reference
     from twinfocus.estimators import estimator_settings
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.metrics import image_ssim, oracle_phase
     from twinfocus.phase_ramp import fit_linear_phase
-    from twinfocus.pipeline import focus_bases, upper_band_basis
+    from twinfocus.pipeline import Bases, Reference, Truth, upper_band_basis
     from twinfocus.templates import template_from_scan
 
     d = field_draw(SCENES[scene], seed, impairments)
@@ -103,8 +104,11 @@ def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
     for name, (template, support, settings) in runs.items():
         # what `twinfocus focus --digital-twin` hands on of the cloud's conditioning (the confidence report reads it)
         info = twin.info if support is twin.support else None
-        out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template, support=support,
-                          reference_info=info, config=AutofocusConfig(**settings), upper_band=upper, **truth)
+        out = FocusPlan.make(config=AutofocusConfig(**settings)).focus_bases(
+            Bases(rb, tb, scan.positions, scan.chirp, rg, tg, upper_band=upper),
+            Reference(template=template, support=support, info=info),
+            Truth(truth["truth_target"], truth["truth_reference"], truth["positions_true"]),
+        )
         rec[name] = out.metrics["target_ssim_corrected"]
         rec[f"{name} time_s"] = out.timings_s["autofocus"]
         if name == "default":
@@ -308,8 +312,9 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
     from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.basis import form_image
     from twinfocus.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.focus_plan import place_estimate
     from twinfocus.metrics import image_ssim, oracle_phase, true_range_errors_m
-    from twinfocus.pipeline import place_estimate, upper_band_basis
+    from twinfocus.pipeline import upper_band_basis
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
 
     out_dir = Path(out_dir)
@@ -384,8 +389,9 @@ def template_file(out_dir: str | os.PathLike = "benchmarks/results", draws: int 
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.backprojection import backproject
     from twinfocus.estimators import estimator_settings
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.metrics import image_ssim
-    from twinfocus.pipeline import focus_bases, upper_band_basis
+    from twinfocus.pipeline import Bases, Reference, upper_band_basis
     from twinfocus.templates import load_template, save_template
 
     out_dir = Path(out_dir)
@@ -402,8 +408,10 @@ def template_file(out_dir: str | os.PathLike = "benchmarks/results", draws: int 
                 save_template(path, twin.template, rg, **extra)
                 template, support, info = load_template(path, rg, with_outline=True)
                 settings = estimator_settings("auto", False, has_support=support is not None)
-                out = focus_bases(d.rb, d.tb, scan.positions, scan.chirp, rg, tg, template=template, support=support,
-                                  reference_info=info, config=AutofocusConfig(**settings), upper_band=upper)
+                out = FocusPlan.make(config=AutofocusConfig(**settings)).focus_bases(
+                    Bases(d.rb, d.tb, scan.positions, scan.chirp, rg, tg, upper_band=upper),
+                    Reference(template=template, support=support, info=info),
+                )
                 rec[name] = image_ssim(out.target, truth)
                 rec[f"{name} trusted"] = out.metrics["confidence"]["trusted"]
                 rec[f"{name} time_s"] = out.timings_s["autofocus"]

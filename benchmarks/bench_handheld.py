@@ -23,7 +23,8 @@ from twinfocus.autofocus import AutofocusConfig
 from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.basis import form_image
 from twinfocus.estimators import estimator_settings
-from twinfocus.pipeline import focus_bases, half_array_bases
+from twinfocus.focus_plan import FocusPlan
+from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases
 from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
 from twinfocus.templates import template_from_scan
 
@@ -77,11 +78,23 @@ def one_draw(kw: dict, seed: int) -> dict:
             ("projections_auto", np.abs(tpl), "projection", "auto", "auto"))
     for name, template, est, ramp, sv in runs:
         t0 = time.perf_counter()
-        out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template,
-                          config=AutofocusConfig(**estimator_settings(est, np.iscomplexobj(template))),
-                          phase_ramp=ramp, space_variant=sv, truth_target=truth_t, truth_reference=truth_r,
-                          positions_true=scan.positions_true,
-                          half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg))
+        out = FocusPlan.make(
+            config=AutofocusConfig(**estimator_settings(est, np.iscomplexobj(template))),
+            phase_ramp=ramp,
+            space_variant=sv,
+        ).focus_bases(
+            Bases(
+                rb,
+                tb,
+                scan.positions,
+                scan.chirp,
+                rg,
+                tg,
+                half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg),
+            ),
+            Reference(template=template),
+            Truth(truth_t, truth_r, scan.positions_true),
+        )
         rec[name] = out.metrics["target_ssim_corrected"]
         if name == "default":
             rec["default_time_s"] = time.perf_counter() - t0

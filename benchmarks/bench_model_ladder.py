@@ -50,12 +50,11 @@ MODELS = ("auto", "fast", "full")
 
 
 def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) -> dict:
-    from twinfocus.autofocus import AutofocusConfig
     from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.errors import TwinFocusError
-    from twinfocus.estimators import TWIN_RUNGS, estimator_settings
-    from twinfocus.ladder import fast_reference
-    from twinfocus.pipeline import focus_bases, half_array_bases, upper_band_basis
+    from twinfocus.estimators import TWIN_RUNGS
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases, upper_band_basis
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.settings import default_settings
     from twinfocus.templates import template_from_scan
@@ -87,19 +86,20 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
     for model in TWIN_RUNGS + MODELS:
         if only_models is not None and model not in only_models:
             continue
-        chosen = estimator_settings(settings["estimator"], np.iscomplexobj(template), support is not None, model=model)
-        cfg = AutofocusConfig.from_settings(settings, **chosen)
-        # fast's reference at its resolution, as focus_scan forms it (ladder.fast_reference; every
-        # pixel at this bench's 20 x 20): the slice of the bases, the same pixels
-        g, tpl, (ky, kx) = fast_reference(model, template, support, scan.positions, rg, scan.chirp.wavelength_m)
+        # what `twinfocus focus --model MODEL` runs: its plan for this template, and fast's
+        # reference at its resolution (every pixel at this bench's 20 x 20): the slice of the bases
+        plan = FocusPlan.from_settings({**settings, "model": model}).for_reference(template, support)
+        g, reference, (ky, kx) = plan.reference_for(Reference(template, support), scan.positions, rg,
+                                                    scan.chirp.wavelength_m)
         t = time.perf_counter()
         try:
-            out = focus_bases(rb[:, ::ky, ::kx], tb, scan.positions, scan.chirp, g, tg, template=tpl, support=support,
-                              config=cfg, model=model, phase_ramp=settings["phase_ramp"],
-                              space_variant=settings["space_variant"],
-                              half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, g, tg),
-                              upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, g),
-                              **{**truth, "truth_reference": truth["truth_reference"][::ky, ::kx]})
+            needs = plan.needs
+            bases = Bases(rb[:, ::ky, ::kx], tb, scan.positions, scan.chirp, g, tg,
+                          half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, g, tg)
+                          if needs.half_bases else None,
+                          upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, g) if needs.upper_band else None)
+            out = plan.focus_bases(bases, reference, Truth(truth["truth_target"], truth["truth_reference"][::ky, ::kx],
+                                                           truth["positions_true"]))
         except TwinFocusError as exc:  # the rung cannot run on this scene
             rec.setdefault("cannot run", {})[model] = str(exc)
             continue

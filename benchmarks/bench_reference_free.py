@@ -24,7 +24,8 @@ import numpy as np
 from twinfocus.autofocus import AutofocusConfig
 from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.estimators import estimator_settings
-from twinfocus.pipeline import focus_bases, half_array_bases
+from twinfocus.focus_plan import FocusPlan
+from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases
 from twinfocus.scenario import PAPER_IMAGE_SIZE, Scenario, scenario_grids, simulate_scenario
 from twinfocus.templates import template_from_scan
 
@@ -47,9 +48,19 @@ def one_draw(seed: int, size: int) -> dict:
             template = template_from_scan(tpl_scan, rg, keep_phase=True)
             cfg = AutofocusConfig(**estimator_settings("auto", True))
         t0 = time.perf_counter()
-        out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template,
-                          method="twin" if template is not None else method, config=cfg,
-                          half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg), **truth)
+        out = FocusPlan.make(method="twin" if template is not None else method, config=cfg).focus_bases(
+            Bases(
+                rb,
+                tb,
+                scan.positions,
+                scan.chirp,
+                rg,
+                tg,
+                half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg),
+            ),
+            Reference(template=template),
+            Truth(truth["truth_target"], truth["truth_reference"], truth["positions_true"]),
+        )
         rec[method] = {"target_ssim": out.metrics["target_ssim_corrected"], "time_s": time.perf_counter() - t0}
     rec["oracle phase"] = {"target_ssim": out.metrics["target_ssim_oracle_phase"], "time_s": 0.0}
     return rec

@@ -85,7 +85,8 @@ def focus_set(condition: str, seed: int, offset: np.ndarray, rig_offset: np.ndar
     from twinfocus.digital_twin.condition import digital_twin_reference
     from twinfocus.digital_twin.rig import Rig, rig_reference
     from twinfocus.estimators import estimator_settings
-    from twinfocus.pipeline import focus_bases, half_array_bases
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases
     from twinfocus.templates import template_from_scan
 
     d = draw_inputs(condition, seed, HELDOUT_SHAPES, rows, size)
@@ -114,17 +115,18 @@ def focus_set(condition: str, seed: int, offset: np.ndarray, rig_offset: np.ndar
         rec[f"{name} error_mm"] = where["error_mm"]
         if "rig_placement" in conf:
             rec["rig placement"] = conf["rig_placement"]
-    pt = focus_bases(
-        d["rb"],
-        d["tb"],
-        scan.positions,
-        scan.chirp,
-        rg,
-        d["tg"],
-        template=template_from_scan(d["template_scan"], rg, keep_phase=True),
-        config=AutofocusConfig(**estimator_settings("auto", True)),
-        half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, d["tg"]),
-        **d["truth"],
+    pt = FocusPlan.make(config=AutofocusConfig(**estimator_settings("auto", True))).focus_bases(
+        Bases(
+            d["rb"],
+            d["tb"],
+            scan.positions,
+            scan.chirp,
+            rg,
+            d["tg"],
+            half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, d["tg"]),
+        ),
+        Reference(template=template_from_scan(d["template_scan"], rg, keep_phase=True)),
+        Truth(d["truth"]["truth_target"], d["truth"]["truth_reference"], d["truth"]["positions_true"]),
     )
     rec["physical"] = round(pt.metrics["target_ssim_corrected"], 4)
     return rec

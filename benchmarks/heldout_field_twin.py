@@ -42,9 +42,10 @@ def one_draw(kw: dict, seed: int) -> dict:
     from twinfocus.backprojection import backproject
     from twinfocus.basis import form_image
     from twinfocus.estimators import estimator_settings
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.metrics import image_ssim, oracle_phase
     from twinfocus.phase_ramp import fit_linear_phase
-    from twinfocus.pipeline import focus_bases, upper_band_basis
+    from twinfocus.pipeline import Bases, Reference, Truth, upper_band_basis
     from twinfocus.templates import template_from_scan
 
     d = field_draw(kw, seed)
@@ -56,8 +57,11 @@ def one_draw(kw: dict, seed: int) -> dict:
     settings = estimator_settings("auto", False, has_support=True)
     rec: dict = {"seed": seed}
     for name, growth in (("before", {"outline_growth_rounds": 0}), ("default", {})):
-        out = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=twin.template, support=twin.support,
-                          reference_info=twin.info, config=AutofocusConfig(**settings, **growth), upper_band=upper, **truth)
+        out = FocusPlan.make(config=AutofocusConfig(**settings, **growth)).focus_bases(
+            Bases(rb, tb, scan.positions, scan.chirp, rg, tg, upper_band=upper),
+            Reference(template=twin.template, support=twin.support, info=twin.info),
+            Truth(truth["truth_target"], truth["truth_reference"], truth["positions_true"]),
+        )
         rec[name] = out.metrics["target_ssim_corrected"]
         rec[f"{name} trusted"] = out.metrics["confidence"]["trusted"]
     rec["ranged coh"] = out.metrics["phase_ramp"].get("ramp_coherence_sqrt_m")
@@ -72,8 +76,14 @@ def one_draw(kw: dict, seed: int) -> dict:
     reference_true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
     ramp, _ = fit_linear_phase(np.angle(np.exp(1j * (out.phase_rad - reference_true))), scan.positions.mean(axis=1)[:, :2])
     rec["truth-placed"] = image_ssim(form_image(tb, out.phase_rad - ramp), truth["truth_target"])
-    phys = focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template_from_scan(tpl_scan, rg, keep_phase=True),
-                       config=AutofocusConfig(**estimator_settings("correlation", True)), space_variant="off", **truth)
+    phys = FocusPlan.make(
+        config=AutofocusConfig(**estimator_settings("correlation", True)),
+        space_variant="off",
+    ).focus_bases(
+        Bases(rb, tb, scan.positions, scan.chirp, rg, tg),
+        Reference(template=template_from_scan(tpl_scan, rg, keep_phase=True)),
+        Truth(truth["truth_target"], truth["truth_reference"], truth["positions_true"]),
+    )
     rec["physical"] = phys.metrics["target_ssim_corrected"]
     return rec
 
@@ -87,8 +97,9 @@ def figure(path: str | os.PathLike, seed: int = 2) -> None:
     from twinfocus.band_delay import bright_pixels, position_range_errors_m
     from twinfocus.basis import form_image
     from twinfocus.estimators import estimator_settings
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.metrics import image_ssim, true_range_errors_m
-    from twinfocus.pipeline import focus_bases, upper_band_basis
+    from twinfocus.pipeline import Bases, Reference, upper_band_basis
     from twinfocus.plotting import pyplot
 
     d = field_draw(SCENES["B"], seed)
@@ -97,8 +108,10 @@ def figure(path: str | os.PathLike, seed: int = 2) -> None:
     upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
     # the outline as the cloud gives it (no growth first): the picture shows the placement alone
     config = AutofocusConfig(**estimator_settings("auto", False, has_support=True), outline_growth_rounds=0)
-    outs = {name: focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=twin.template, support=twin.support,
-                              config=config, upper_band=band) for name, band in (("before", None), ("placed", upper))}
+    outs = {name: FocusPlan.make(config=config).focus_bases(
+        Bases(rb, tb, scan.positions, scan.chirp, rg, tg, upper_band=band),
+        Reference(template=twin.template, support=twin.support),
+    ) for name, band in (("before", None), ("placed", upper))}
     phase = outs["before"].phase_rad
     pixels = bright_pixels(form_image(rb, phase))
     high = upper(pixels)

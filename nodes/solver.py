@@ -7,9 +7,9 @@ whatever has arrived while the previous batch ran, and, when the estimator regis
 twin's template, the registration's scores of those rows
 (:class:`twinfocus.template_match.MatchScores`). So when the scan's ``last`` measurement
 arrives, the back-projection is already done and only the optimiser and the metrics remain
-(:func:`twinfocus.pipeline.focus_bases`, the steps ``twinfocus focus`` runs after its
+(:meth:`twinfocus.focus_plan.FocusPlan.focus_bases`, the steps ``twinfocus focus`` runs after its
 back-projections: ``twin``, or the baselines ``sharpness`` / ``none``). With
-``basis:=after_scan`` it instead keeps the samples and runs :func:`twinfocus.pipeline.focus_scan`
+``basis:=after_scan`` it instead keeps the samples and runs :meth:`twinfocus.focus_plan.FocusPlan.focus_scan`
 on the assembled scan at the end (the same call as ``twinfocus focus``; the benchmark's
 baseline).
 
@@ -45,14 +45,16 @@ from msgs import AutofocusResult, Header, Image, SarMeasurement, TwinTemplate, n
 from nodes.node import Node, Shutdown, run_node
 from nodes.params import REQUIRED, Param, param_of
 from twinfocus.basis import BasisRows
-from twinfocus.depth_search import DEFAULT_HALF_RANGE_M, parse_depth
+from twinfocus.depth_search import DEFAULT_HALF_RANGE_M, parse_depth, range_to_search
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import REFERENCE_FREE_RUNGS
 from twinfocus.radar import Chirp
 from twinfocus.safe_paths import child_path
 from twinfocus.settings import FOCUS_SETTINGS
 
-if TYPE_CHECKING:  # imported where used: the node starts without scipy
+if TYPE_CHECKING:  # imported where used: the node starts without the numerics (numba, scipy: 1.0 s
+    # against 3.5-4.7 s for `import nodes.solver` at load 25), which a launch's checks import
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.template_match import MatchScores
 
 
@@ -198,6 +200,12 @@ class Solver(Node):
         self.bp = {"oversample": p["oversample"], "precision": p["precision"]}
         if device != "cpu":
             self.bp.update(backend="torch", device=device)
+        from twinfocus.focus_plan import FocusPlan
+
+        # the focusing policy, made once from the parameters (twinfocus/focus_plan.py)
+        self.plan = FocusPlan.from_settings(
+            {**p, "device": device}, p["method"], bp_options=self.bp, progress_factory=lambda label: self._progress
+        )
         self.template: np.ndarray | None = None
         self.support: np.ndarray | None = None  # the reference's outline on ref_grid (a digital twin's)
         self.twin_info: dict | None = None  # a digital twin's conditioning (on_template)
@@ -261,35 +269,14 @@ class Solver(Node):
                 None,
             )
 
-    def _estimator(self) -> str:
-        """The named estimator for the template at hand (``auto`` resolved as ``twinfocus focus``
-        resolves it: :func:`twinfocus.estimators.resolve_estimator`); empty without one."""
-        from twinfocus.estimators import resolve_estimator
-
-        if self.params["method"] != "twin" or self.template is None:
-            return ""
-        return resolve_estimator(
-            self.params["estimator"], bool(np.iscomplexobj(self.template)), has_support=self.support is not None
-        )
+    def _plan(self) -> FocusPlan:
+        """The focus plan for the template at hand (:meth:`twinfocus.focus_plan.FocusPlan.for_reference`:
+        the estimator resolved as ``twinfocus focus`` resolves it)."""
+        return self.plan.for_reference(self.template if self.params["method"] == "twin" else None, self.support)
 
     def _config(self, chirp):
-        """The AutofocusConfig for the template at hand: the parameters plus the estimator's
-        (:func:`twinfocus.estimators.estimator_settings`, the policy of ``twinfocus focus``)."""
-        from dataclasses import replace
-
-        from twinfocus.estimators import estimator_settings
-
-        if self.params["method"] != "twin" or self.template is None:
-            return self.cfg
-        chosen = estimator_settings(
-            self.params["estimator"],
-            bool(np.iscomplexobj(self.template)),
-            has_support=self.support is not None,
-            model=self.params["model"],
-        )
-        if self.params["loss_steepness"] is not None:
-            chosen["loss_steepness"] = self.params["loss_steepness"]
-        return replace(self.cfg, **chosen)
+        """The AutofocusConfig for the template at hand: the plan's (:meth:`_plan`)."""
+        return self._plan().config
 
     def _warm_up(self) -> None:
         from twinfocus.autofocus import AutofocusConfig, twin_autofocus
@@ -311,7 +298,7 @@ class Solver(Node):
         """The drift + tilt fit once on the toy problem of :meth:`_warm_up`, when the ladder may
         climb to it: a hand-held scan's first fit then does not pay loading the fit's numba kernels
         after its last frame. basis : complex (2, 4, 4) on ``grid``; pos : (2, K, 3) metres."""
-        from twinfocus.ladder import climbs_to
+        from twinfocus.focus_plan import climbs_to
 
         if self.params["method"] != "twin" or not climbs_to(
             "drift", self.params["model"], self.params["space_variant"]
@@ -474,7 +461,6 @@ class Solver(Node):
         --model that climbs to the tilt). Their back-projection is then paid while the scan
         arrives, not after its last frame (1.3 s at 780 positions x 100 x 100 on the 2-core
         machine); a scan whose drift is not fitted paid it for nothing."""
-        from twinfocus.ladder import climbs_to
         from twinfocus.space_variant import array_half
 
         if s.batches == 0 and s.half is None:
@@ -482,7 +468,7 @@ class Solver(Node):
                 self.params["method"] == "twin"
                 and self.template is not None
                 and np.iscomplexobj(self.template)
-                and climbs_to("tilt", self.params["model"], self.params["space_variant"])
+                and self.plan.needs.half_bases
             )
             if tilt_possible:
                 try:
@@ -668,49 +654,21 @@ class Solver(Node):
         self._count_done()
 
     def _focus_whole(self, scan):
-        """:func:`twinfocus.pipeline.focus_scan` on the assembled scan, as ``twinfocus focus`` runs
-        it: the target's depth searched first when it is not typed
-        (:func:`twinfocus.depth_search.find_target_depth`)."""
-        import functools
-
-        from twinfocus.depth_search import find_target_depth, range_to_search
-        from twinfocus.grid import ImageGrid
-        from twinfocus.pipeline import focus_scan
+        """The plan's focus of the assembled scan (:meth:`twinfocus.focus_plan.FocusPlan.focus_target`),
+        as ``twinfocus focus`` runs it: the target's depth searched first when it is not typed."""
+        from twinfocus.focus_plan import Target
+        from twinfocus.pipeline import Reference
 
         if self.ref_grid is None:
             raise TwinFocusError("no reference region: none typed and no template yet")
-        progress = self._progress
-        focus = functools.partial(
-            focus_scan,
-            reference_grid=self.ref_grid,
-            template=self.template,
-            support=self.support,
-            reference_info=self.twin_info,
-            method=self.params["method"],
-            config=self._config(scan.chirp),
-            bp_options=self.bp,
-            progress_factory=lambda label: progress,
-            model=self.params["model"],
-            phase_ramp=self.params["phase_ramp"],
-            tracking_error_m=self.tracking_error_m,
-        )
         depth_range = range_to_search(self.typed_depth, self.params["refine_depth"] or None, self.ref_grid.z)
-        search = None
-        t = time.perf_counter()
-        if depth_range is not None:
-            search, info = find_target_depth(
-                focus, scan, self.target_box, depth_range, self.params["method"], self.bp, lambda label: progress
-            )
-            tgt_grid = ImageGrid.from_roi((*self.target_box, search.depth_m), self.params["size"])
-            self.log(f"target depth {search.depth_m:.4f} m (searched {depth_range[0]:.3f} to {depth_range[1]:.3f} m)")
-        else:
-            assert isinstance(self.typed_depth, float)
-            tgt_grid = ImageGrid.from_roi((*self.target_box, self.typed_depth), self.params["size"])
-        searched_s = time.perf_counter() - t
-        out = focus(scan, target_grid=tgt_grid, space_variant=self.params["space_variant"])
+        typed = self.typed_depth if isinstance(self.typed_depth, float) else None
+        target = Target(self.target_box, typed, depth_range, self.params["size"])
+        reference = Reference(self.template, self.support, self.twin_info)
+        out, search = self._plan().focus_target(scan, self.ref_grid, reference, target)
         if search is not None:
-            out.metrics["target_depth"] = {**info, **search.to_dict()}
-            out.timings_s = {"target_depth": searched_s, **out.timings_s}
+            assert depth_range is not None
+            self.log(f"target depth {search.depth_m:.4f} m (searched {depth_range[0]:.3f} to {depth_range[1]:.3f} m)")
         if not self.params["reference_roi"]:
             out.metrics["reference_search"] = {"source": "template on twin/template", "roi": list(self.ref_grid.roi)}
         return out
@@ -751,27 +709,26 @@ class Solver(Node):
             self.log(f"focusing: {done} of {total} of the current step, about {remaining_text(left)} left")
 
     def _focus_bases(self, s: _Scan, positions: np.ndarray):
-        """:func:`twinfocus.pipeline.focus_bases` on the streamed bases (the same call as
-        ``twinfocus focus`` after its back-projections; tests/test_graph.py checks the phase),
-        without the truth: :meth:`_truth_metrics` adds it once the image is out. Returns the
+        """The plan's focus of the streamed bases (:meth:`twinfocus.focus_plan.FocusPlan.focus_bases`,
+        what ``twinfocus focus`` runs after its back-projections; tests/test_graph.py checks the
+        phase), without the truth: :meth:`_truth_metrics` adds it once the image is out. Returns the
         outputs and the target basis (the oracle-phase image needs it)."""
         from threadpoolctl import threadpool_limits
 
-        from twinfocus.ladder import fast_reference
-        from twinfocus.pipeline import focus_bases, upper_band_basis
+        from twinfocus.pipeline import Bases, Reference, upper_band_basis
 
         assert self.ref_grid is not None and self.tgt_grid is not None, "the streamed path has both regions"
-
+        plan = self._plan()
         tgt_basis = s.tgt_rows.array()
         self._score_registration(s, final=True)  # the rows left (all of them if the template came after the scan)
         scores = s.scores.scores() if s.scores is not None else None
         # --model fast: the reference at its resolution, as twinfocus focus forms it (the streamed
         # rows' slice: the same pixels; the registration is scored again on them)
-        ref_grid, template, (ky, kx) = fast_reference(
-            self.params["model"], self.template, self.support, positions, self.ref_grid, s.chirp.wavelength_m
+        ref_grid, reference, (ky, kx) = plan.reference_for(
+            Reference(self.template, self.support, self.twin_info), positions, self.ref_grid, s.chirp.wavelength_m
         )
         ref_basis = s.ref_rows.array()[:, ::ky, ::kx]
-        whole_halves = self._half_bases(s, positions)
+        whole_halves = self._half_bases(s, positions) if plan.needs.half_bases else None
         half_bases = whole_halves
         if (ky, kx) != (1, 1):
             scores = None
@@ -781,6 +738,11 @@ class Solver(Node):
                     ref_half, tgt_half = whole_halves()
                     return ref_half[:, ::ky, ::kx], tgt_half
 
+        upper_band = None
+        if s.data and plan.needs.upper_band:
+            samples = lambda: np.concatenate(s.data)  # noqa: E731
+            upper_band = upper_band_basis(samples, positions, s.chirp, ref_grid, self.bp, plan.progress_factory)
+        bases = Bases(ref_basis, tgt_basis, positions, s.chirp, ref_grid, self.tgt_grid, scores, half_bases, upper_band)
         t = time.perf_counter()
         # The BLAS work of these steps (SSIM filters, form_image, small fits on 100 x 100 images)
         # is too small to gain from threads, and OpenBLAS's spinning threads fight numba's and the
@@ -790,37 +752,7 @@ class Solver(Node):
         # whole node, the live uncorrected image differed from focus's by 4e-5 of its maximum
         # under load, above tests/test_graph_offline.py's 1e-5).
         with threadpool_limits(1, user_api="blas"):
-            out = focus_bases(
-                ref_basis,
-                tgt_basis,
-                positions,
-                s.chirp,
-                ref_grid,
-                self.tgt_grid,
-                template=template,
-                support=self.support,
-                reference_info=self.twin_info,
-                method=self.params["method"],
-                config=self._config(s.chirp),
-                bp_options=self.bp,
-                progress_factory=lambda label: self._progress,
-                model=self.params["model"],
-                phase_ramp=self.params["phase_ramp"],
-                space_variant=self.params["space_variant"],
-                tracking_error_m=self.tracking_error_m,
-                registration_scores=scores,
-                half_bases=half_bases,
-                upper_band=upper_band_basis(
-                    lambda: np.concatenate(s.data),
-                    positions,
-                    s.chirp,
-                    ref_grid,
-                    self.bp,
-                    lambda label: self._progress,
-                )
-                if s.data
-                else None,
-            )
+            out = plan.focus_bases(bases, reference)
         out.timings_s["focus_bases"] = time.perf_counter() - t  # autofocus and the rest of the steps
         out.metrics["model"]["reference_strides"] = [ky, kx]
         if s.half_handed:
@@ -830,7 +762,7 @@ class Solver(Node):
     def _truth_metrics(self, s: _Scan, out, tgt_basis: np.ndarray, positions: np.ndarray, truth: np.ndarray) -> None:
         """:func:`twinfocus.pipeline.add_truth_metrics` (what ``focus_bases`` adds when handed the
         truth), on images formed from the kept samples at the true positions, as
-        :func:`twinfocus.pipeline.focus_scan` forms them."""
+        :meth:`twinfocus.focus_plan.FocusPlan.focus_scan` forms them."""
         from twinfocus.backprojection import backproject
         from twinfocus.pipeline import add_truth_metrics
 
@@ -852,8 +784,6 @@ class Solver(Node):
         )
 
     def _publish_result(self, s: _Scan, out, timing: dict, latency: float, pending: bool) -> None:
-        from twinfocus.estimators import estimator_that_ran
-
         numeric = {
             k: float(v)
             for k, v in out.metrics.items()
@@ -881,9 +811,7 @@ class Solver(Node):
                 latency_s=latency,
                 metrics_pending=pending,
                 # still the template the scan was focused with: on_template waits for this callback to end
-                estimator=estimator_that_ran(self._estimator(), out.metrics.get("estimator", {}))
-                if out.method == "twin"
-                else "",
+                estimator=self._plan().estimator_that_ran(out.metrics) if out.method == "twin" else "",
             )
         )
 

@@ -9,9 +9,10 @@ from twinfocus.backprojection import subimage_basis
 from twinfocus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
+from twinfocus.focus_plan import FocusPlan
 from twinfocus.metrics import oracle_phase, true_range_errors_m
 from twinfocus.phase_ramp import fit_linear_phase
-from twinfocus.pipeline import focus_bases, upper_band_basis
+from twinfocus.pipeline import Bases, Reference, upper_band_basis
 from twinfocus.radar import Chirp
 
 
@@ -136,7 +137,7 @@ def test_focus_places_a_misplaced_outline_by_the_band_halves(wrapped):
     oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
     ap = tracked.mean(axis=1)[:, :2]
     cfg = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
-    common = dict(template=support.astype(np.float32), support=support, config=cfg)
+    reference = Reference(template=support.astype(np.float32), support=support)
     calls = []
 
     def upper(pixels):
@@ -145,7 +146,10 @@ def test_focus_places_a_misplaced_outline_by_the_band_halves(wrapped):
 
     runs = {}
     for name, band in (("without", None), ("with", upper)):
-        out = focus_bases(basis, basis, tracked, ch, GRID, GRID, upper_band=band, **common)
+        out = FocusPlan.make(config=cfg).focus_bases(
+            Bases(basis, basis, tracked, ch, GRID, GRID, upper_band=band),
+            reference,
+        )
         _, coeffs = fit_linear_phase(np.angle(np.exp(1j * (out.phase_rad - oracle))), ap, min_coherence_sqrt_m=0)
         runs[name] = (abs(coeffs[2]) * (Z - tracked[..., 2].mean()) * ch.wavelength_m / (4 * np.pi), out.metrics)
     assert len(calls) == 1 and 0.05 < calls[0] < 0.8  # once, on the reference's bright pixels
@@ -181,7 +185,10 @@ def test_focus_asks_the_band_halves_when_a_coherent_estimates_ramp_is_too_large(
     cfg = AutofocusConfig(**estimator_settings("projection", False))
     off = {}
     for name, band in (("without", None), ("with", upper_band_basis(data, tracked, ch, GRID))):
-        out = focus_bases(basis, basis, tracked, ch, GRID, GRID, template=template, config=cfg, upper_band=band)
+        out = FocusPlan.make(config=cfg).focus_bases(
+            Bases(basis, basis, tracked, ch, GRID, GRID, upper_band=band),
+            Reference(template=template),
+        )
         _, coeffs = fit_linear_phase(np.angle(np.exp(1j * (out.phase_rad - oracle))), ap, min_coherence_sqrt_m=0)
         off[name] = (abs(coeffs[2]) * (Z - tracked[..., 2].mean()) * ch.wavelength_m / (4 * np.pi), out.metrics["phase_ramp"])
     assert off["without"][0] > 4e-3 and not off["without"][1]["removed"]  # kept as if it were tracking error
@@ -194,7 +201,7 @@ def test_place_estimate_moves_back_a_known_misplacement_of_the_exact_phase(wrapp
     camera put there does to an exact estimate), every phase wrapped: the plain fit alone cannot
     see the ramp and keeps it; with the band's halves most of it is taken out, and the true phase
     itself is moved by less than that."""
-    from twinfocus.pipeline import place_estimate
+    from twinfocus.focus_plan import place_estimate
 
     ch, true, tracked, data, basis = wrapped
     oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)

@@ -384,7 +384,8 @@ def test_captured_scene_calibrated_focuses_like_the_perfect_array(captures, tmp_
     """TI-format captures end to end, autofocus on, the same tracking errors: a scene through an
     imperfect array, converted with the calibration from a corner capture of that array, focuses
     to within 0.02 SSIM of the same scene through a perfect array; uncalibrated far below."""
-    from twinfocus.pipeline import focus_scan
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Reference
     from twinfocus.templates import template_from_scan
 
     cap, traj = captures, captures["traj"]
@@ -421,7 +422,7 @@ def test_captured_scene_calibrated_focuses_like_the_perfect_array(captures, tmp_
     for name, (scan, stage) in variants.items():
         template = template_from_scan(stage, ref_grid, keep_phase=True)
         try:
-            image = focus_scan(scan, ref_grid, tgt_grid, template=template).target
+            image = FocusPlan.make().focus_scan(scan, ref_grid, tgt_grid, Reference(template=template)).target
         except TwinFocusError:  # the smeared reference is not recognised: the user has the raw image
             image = backproject(scan.data, scan.positions, scan.chirp, tgt_grid)
         score[name] = image_ssim(image, truth)

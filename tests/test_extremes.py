@@ -19,10 +19,11 @@ from twinfocus.autofocus import AutofocusConfig, sharpness_autofocus, transfer_p
 from twinfocus.backprojection import backproject, subimage_basis
 from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
+from twinfocus.focus_plan import FocusPlan
 from twinfocus.grid import ImageGrid
 from twinfocus.metrics import display_image, entropy, image_ssim, ssim
 from twinfocus.phase_ramp import fit_linear_phase, ramp_free_coherence
-from twinfocus.pipeline import focus_bases
+from twinfocus.pipeline import Bases, Reference, Truth
 from twinfocus.radar import Chirp, mmwcas_virtual_array, uniform_virtual_array
 from twinfocus.reference_free import minimum_entropy_phase, phase_gradient_phase
 from twinfocus.simulate import add_thermal_noise, simulate_if
@@ -96,21 +97,15 @@ def focus(s: dict, method: str = "twin", template=None, config: AutofocusConfig 
     space-variant fit, 15 s on 2 cores even here, has its own test below."""
     if method == "twin" and template is None:
         template = s["truth_reference"]
-    return focus_bases(
-        s["ref_basis"],
-        s["tgt_basis"],
-        s["positions"],
-        s["chirp"],
-        s["reference_grid"],
-        s["target_grid"],
-        template=template if method == "twin" else None,
+    return FocusPlan.make(
         method=method,
         config=config if method == "twin" else AutofocusConfig(iterations=15),
         space_variant="off",
         tracking_error_m=max(float(np.sqrt(3.0) * s["error_m"]), 1e-4),
-        truth_target=s["truth_target"],
-        truth_reference=s["truth_reference"],
-        positions_true=s["positions_true"],
+    ).focus_bases(
+        Bases(s["ref_basis"], s["tgt_basis"], s["positions"], s["chirp"], s["reference_grid"], s["target_grid"]),
+        Reference(template=template if method == "twin" else None),
+        Truth(s["truth_target"], s["truth_reference"], s["positions_true"]),
     )
 
 

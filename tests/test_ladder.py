@@ -8,20 +8,18 @@ import pytest
 from twinfocus.autofocus import AutofocusConfig
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import TWIN_RUNGS, estimator_settings
+from twinfocus.focus_plan import FocusPlan, build_rungs, climbs_to
 from twinfocus.grid import ImageGrid
 from twinfocus.ladder import (
     FAST_FIT,
-    REFERENCE_FREE,
     Problem,
-    build_ladder,
-    climb,
-    climbs_to,
     complex_match,
     heldout_gain,
     heldout_verdict,
 )
-from twinfocus.pipeline import focus_bases
+from twinfocus.pipeline import Bases, Reference
 from twinfocus.radar import Chirp
+from twinfocus.rungs import RUNGS, ReferenceFree, climb
 
 M, N = 40, 16
 GRID = ImageGrid(-0.02, 0.02, -0.02, 0.02, 0.3, N, N)
@@ -48,7 +46,8 @@ def _focus(s, template=None, estimator="correlation", **kw):
     template = s["template"] if template is None else template
     has_phase = np.iscomplexobj(template)
     cfg = AutofocusConfig(**{"iterations": 5, **estimator_settings(estimator, has_phase), **kw.pop("cfg", {})})
-    return focus_bases(s["basis"], s["basis"], s["positions"], Chirp(), GRID, GRID, template=template, config=cfg, **kw)
+    bases = Bases(s["basis"], s["basis"], s["positions"], Chirp(), GRID, GRID)
+    return FocusPlan.make(config=cfg, **kw).focus_bases(bases, Reference(template))
 
 
 def _wrapped_error(phase, truth):
@@ -194,7 +193,10 @@ def test_a_real_drift_is_kept():
     template = template_from_scan(tpl, rg, keep_phase=True)
     rb, tb = (subimage_basis(scan.data, scan.positions, scan.chirp, g) for g in (rg, tg))
     cfg = AutofocusConfig(**estimator_settings("correlation", True))
-    outs = {model: focus_bases(rb, tb, scan.positions, scan.chirp, rg, tg, template=template, config=cfg, model=model)
+    outs = {model: FocusPlan.make(config=cfg, model=model).focus_bases(
+        Bases(rb, tb, scan.positions, scan.chirp, rg, tg),
+        Reference(template=template),
+    )
             for model in ("phase", "auto", "fast")}  # fmt: skip
     drift = {e["rung"]: e for e in outs["auto"].metrics["model"]["rungs"]}["drift"]
     assert drift["kept"] and outs["auto"].metrics["model"]["result"] == "drift"
@@ -229,33 +231,61 @@ def test_climbs_to_says_which_costly_rungs_a_setting_can_reach():
 def test_refusals_name_the_problem(scene):
     s = scene
     with pytest.raises(TwinFocusError, match="model must be one of"):
-        build_ladder("everything")
+        build_rungs("everything")
     with pytest.raises(TwinFocusError, match="needs a template with phase"):
         _focus(s, template=np.abs(s["template"]), estimator="projection", model="drift")
     with pytest.raises(TwinFocusError, match="need --method"):
         _focus(s, model="sharpness")
     with pytest.raises(TwinFocusError, match="needs a template"):
-        build_ladder("drift", method="sharpness")
+        build_rungs("drift", method="sharpness")
     with pytest.raises(TwinFocusError, match="--model range_errors: no upper-band basis"):
         _focus(s, template=np.abs(s["template"]), estimator="projection", model="range_errors")
 
 
-def test_a_reference_free_rung_plugs_in_by_name(scene, monkeypatch):
-    """A reference-free estimator added to the table becomes a ladder of its own: none, it, the
-    placement; here the injected error itself, so the image is its brute-force sum."""
+def test_a_new_rung_is_one_class_and_one_registry_line(scene, monkeypatch):
+    """A reference-free estimator added to the registry (one class, one line: docs/architecture.md)
+    becomes a ladder of its own: none, it, the placement; here the injected error itself, so the
+    image is its brute-force sum."""
     s = scene
 
-    def oracle(basis, config, progress, problem):
-        return s["phi"], {"source": "injected"}, np.zeros(0)
+    class Oracle(ReferenceFree):
+        name, adds = "oracle", "the injected phases"
 
-    monkeypatch.setitem(REFERENCE_FREE, "oracle", (oracle, "the injected phases"))
-    rungs = build_ladder("auto", method="oracle", phase_ramp="keep")
+        def estimate(self, problem):
+            return s["phi"], {"source": "injected"}, np.zeros(0)
+
+    monkeypatch.setitem(RUNGS, "oracle", Oracle)
+    rungs = build_rungs("auto", method="oracle", phase_ramp="keep")
     assert [r.name for r in rungs] == ["none", "oracle", "placement"]
     problem = Problem(s["basis"], s["basis"], s["positions"], Chirp(), GRID, GRID, AutofocusConfig())
     model, section = climb(problem, rungs)
     assert section["kept"] == ["none", "oracle"] and section["rungs"][1]["info"] == {"source": "injected"}
     want = np.einsum("m,mhw->hw", np.exp(1j * s["phi"]), s["basis"].astype(np.complex128))
     assert np.allclose(model.apply(problem, "target"), want, rtol=1e-4, atol=1e-4)
+
+
+def test_rungs_are_plain_estimators_that_climb_any_number_of_times(scene):
+    """Nothing is written on a rung while it is climbed (its settings are its constructor's), so the
+    plan's rungs, built once, give the same record and phase on a second climb, and a climb on
+    another problem in between changes neither."""
+    s = scene
+    cfg = AutofocusConfig(**{"iterations": 5, **estimator_settings("correlation", True)})
+    rungs = build_rungs("full", space_variant="off")
+    settings = [dict(vars(r)) for r in rungs]
+
+    def problem(basis):
+        return Problem(basis, basis, s["positions"], Chirp(), GRID, GRID, cfg, s["template"])
+
+    def record(section):
+        return [{k: v for k, v in e.items() if k != "time_s"} for e in section["rungs"]]
+
+    first, section = climb(problem(s["basis"]), rungs)
+    other = s["basis"] * np.exp(1j * np.linspace(0, 3, M)).astype(np.complex64)[:, None, None]
+    climb(problem(other), rungs)  # another scan's errors in between
+    again, section_again = climb(problem(s["basis"]), rungs)
+    assert [dict(vars(r)) for r in rungs] == settings
+    assert json.dumps(record(section), default=float) == json.dumps(record(section_again), default=float)
+    assert np.array_equal(first.phase_rad, again.phase_rad)
 
 
 @pytest.mark.slow
@@ -289,7 +319,7 @@ def test_the_half_array_bases_are_a_stage_of_their_own_in_the_timings():
     """``timings_s``: the tilt's back-projection of half the channels as ``half_array_bases``, the
     kept drift or tilt rung's time less it as ``space_variant``, the estimate's rungs summed as
     ``autofocus``; a rung not kept gives no ``space_variant``."""
-    from twinfocus.pipeline import rung_timings
+    from twinfocus.ladder import rung_timings
 
     def section(tilt_kept: bool) -> dict:
         return {"rungs": [
@@ -376,8 +406,9 @@ def test_fast_on_a_reference_at_its_resolution_focuses_as_on_every_pixel(monkeyp
     on the true positions."""
     import twinfocus.ladder as ladder
     from twinfocus.backprojection import backproject
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.metrics import image_ssim
-    from twinfocus.pipeline import focus_scan
+    from twinfocus.pipeline import Reference
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.templates import template_from_scan
 
@@ -388,14 +419,16 @@ def test_fast_on_a_reference_at_its_resolution_focuses_as_on_every_pixel(monkeyp
     template = template_from_scan(tpl_scan, rg, keep_phase=True)
     truth = backproject(scan.data, scan.positions_true, scan.chirp, tg)
     cfg = AutofocusConfig(**estimator_settings("auto", True, model="fast"))
-    strided = focus_scan(scan, rg, tg, template=template, config=cfg, model="fast")
+    strided = FocusPlan.make(config=cfg, model="fast").focus_scan(scan, rg, tg, Reference(template=template))
     ky, kx = strided.metrics["model"]["reference_strides"]
     assert ky > 1 and kx > 1 and strided.reference_grid == rg.every(ky, kx)
     assert strided.reference.shape == strided.reference_grid.shape and strided.target.shape == tg.shape
     monkeypatch.setattr(ladder, "FAST_REFERENCE_CELL_SHARE", 0.0)  # every pixel
-    whole = focus_scan(scan, rg, tg, template=template, config=cfg, model="fast")
+    whole = FocusPlan.make(config=cfg, model="fast").focus_scan(scan, rg, tg, Reference(template=template))
     assert whole.metrics["model"]["reference_strides"] == [1, 1] and whole.reference.shape == rg.shape
     assert strided.metrics["model"]["kept"] == whole.metrics["model"]["kept"]
     uncorrected = image_ssim(whole.target_uncorrected, truth)
     a, b = image_ssim(strided.target, truth), image_ssim(whole.target, truth)
-    assert b > uncorrected + 0.05 and abs(a - b) < 0.02, (uncorrected, a, b)
+    # the strided reference must not focus worse than every pixel (it may focus better: the drift fit
+    # on every pixel also skips every other row, docs/performance_field_fits.md)
+    assert b > uncorrected + 0.05 and a > b - 0.02, (uncorrected, a, b)

@@ -460,7 +460,7 @@ def test_a_digital_twins_template_file_goes_out_with_its_outline_and_conditionin
     with local_broker() as ep:
         solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 12, "warm_up": False})
         solver.on_template(t)
-        assert solver._estimator() == "outline" and solver.twin_info == {"surface": "smooth", "curved": True,
+        assert solver._plan().estimator == "outline" and solver.twin_info == {"surface": "smooth", "curved": True,
                                                                          "curvature_m": 0.004}
 
 
@@ -647,8 +647,9 @@ def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_wh
     focus_bases gives on the whole scan's bases."""
     from nodes.solver import Solver
     from twinfocus.backprojection import backproject, subimage_basis
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import focus_bases
+    from twinfocus.pipeline import Bases, Reference
 
     scan = point_scene_scan(m_side=20)  # 40 positions: the 20 before the template are scored at once
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 16), ImageGrid.from_roi(TGT_ROI, 16)
@@ -675,10 +676,22 @@ def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_wh
             cfg = solver._config(CHIRP)
     assert cfg.template_registration == "correlation" and "registration_streamed" in res.timing_s
     p = solver.params
-    want = focus_bases(subimage_basis(scan.data, scan.positions, CHIRP, ref_grid),
-                       subimage_basis(scan.data, scan.positions, CHIRP, tgt_grid), scan.positions, CHIRP, ref_grid,
-                       tgt_grid, template=solver.template, config=cfg, phase_ramp=p["phase_ramp"],
-                       space_variant=p["space_variant"], tracking_error_m=p["tracking_error_mm"] * 1e-3)
+    want = FocusPlan.make(
+        config=cfg,
+        phase_ramp=p["phase_ramp"],
+        space_variant=p["space_variant"],
+        tracking_error_m=p["tracking_error_mm"] * 1e-3,
+    ).focus_bases(
+        Bases(
+            subimage_basis(scan.data, scan.positions, CHIRP, ref_grid),
+            subimage_basis(scan.data, scan.positions, CHIRP, tgt_grid),
+            scan.positions,
+            CHIRP,
+            ref_grid,
+            tgt_grid,
+        ),
+        Reference(template=solver.template),
+    )
     assert "template_registration" in want.metrics
     np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
 
@@ -690,8 +703,9 @@ def test_solver_with_model_fast_forms_the_reference_as_focus_does():
     the reference back-projected on those pixels alone."""
     from nodes.solver import Solver
     from twinfocus.backprojection import backproject
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import focus_scan
+    from twinfocus.pipeline import Reference
 
     scan = point_scene_scan(m_side=20)
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 32), ImageGrid.from_roi(TGT_ROI, 32)
@@ -710,42 +724,20 @@ def test_solver_with_model_fast_forms_the_reference_as_focus_does():
             cfg = solver._config(CHIRP)
     p = solver.params
     scan.positions_true = None
-    want = focus_scan(scan, ref_grid, tgt_grid, template=solver.template, config=cfg, model="fast",
-                      phase_ramp=p["phase_ramp"], space_variant=p["space_variant"],
-                      tracking_error_m=p["tracking_error_mm"] * 1e-3)
+    want = FocusPlan.make(
+        config=cfg,
+        model="fast",
+        phase_ramp=p["phase_ramp"],
+        space_variant=p["space_variant"],
+        tracking_error_m=p["tracking_error_mm"] * 1e-3,
+    ).focus_scan(
+        scan,
+        ref_grid,
+        tgt_grid,
+        Reference(template=solver.template),
+    )
     assert want.metrics["model"]["reference_strides"] == [2, 2] and want.reference.shape == (16, 16)
     np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
-
-
-def test_solver_picks_the_estimator_as_twinfocus_focus_does():
-    from nodes.solver import Solver
-    from twinfocus.estimators import estimator_settings
-
-    chirp = Chirp()
-    with local_broker() as ep:
-        base = {"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 8, "warm_up": False}
-        solver = Solver(broker=ep, params=base)
-        amplitude = np.ones((8, 8), np.float32)
-        amplitude[2:5, 3] = 4.0
-        solver.template = amplitude
-        # an amplitude template: the projections, the optimiser only if their phases have wrapped
-        cfg = solver._config(chirp)
-        assert (cfg.init, cfg.loss_steepness, cfg.refine_below_coherence) == ("projection", 5.0, 2.5)
-        assert cfg.iterations > 0
-        solver.template = amplitude.astype(np.complex64)  # a template with its phase: the closed form
-        assert solver._config(chirp).init == "correlation"
-        solver = Solver(broker=ep, params={**base, "estimator": "projection-refined", "loss_steepness": 2.0,
-                                           "iterations": 40, "tracking_error_mm": 2.0})
-        solver.template = amplitude
-        cfg = solver._config(chirp)
-        want = {**estimator_settings("projection-refined", False), "loss_steepness": 2.0}
-        assert {k: getattr(cfg, k) for k in want} == want and cfg.iterations == 40
-        with pytest.raises(TwinFocusError, match="estimator"):
-            Solver(broker=ep, params={**base, "estimator": "random"})
-        solver = Solver(broker=ep, params={**base, "estimator": "correlation"})
-        solver.template = amplitude
-        with pytest.raises(TwinFocusError, match="needs the template's phase"):
-            solver._config(chirp)
 
 
 def test_solver_without_a_template_says_so_and_drops_the_scan(capfd):

@@ -238,8 +238,9 @@ def test_focus_reads_a_digital_twin_against_its_outline(small_scene):
     outline statistics, and its confidence report judges them, not the picture match."""
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.estimators import estimator_settings
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST, focus_bases, outline_warnings
+    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST, Bases, Reference, outline_warnings
     from twinfocus.radar import Chirp, uniform_virtual_array
     from twinfocus.trajectory import paper_raster, phase_centres
 
@@ -248,8 +249,10 @@ def test_focus_reads_a_digital_twin_against_its_outline(small_scene):
     positions = phase_centres(paper_raster(n_columns=2, n_rows=24, column_pitch_m=0.128, row_pitch_m=0.004),
                               uniform_virtual_array(16, 0.002))
     cfg = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
-    out = focus_bases(basis, basis, positions, Chirp(n_samples=64), grid, grid, template=support.astype(np.float32),
-                      support=support, config=cfg)
+    out = FocusPlan.make(config=cfg).focus_bases(
+        Bases(basis, basis, positions, Chirp(n_samples=64), grid, grid),
+        Reference(template=support.astype(np.float32), support=support),
+    )
     fill = out.metrics["reference_outline"]
     extent = positions.reshape(-1, 3)
     aperture = round(float(np.ptp(extent[:, 0]) * np.ptp(extent[:, 1])), 5)

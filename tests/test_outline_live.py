@@ -81,7 +81,8 @@ def test_a_points_twin_carries_its_outline_and_the_solver_runs_the_outline_estim
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.backprojection import subimage_basis
     from twinfocus.estimators import estimator_settings
-    from twinfocus.pipeline import focus_bases, upper_band_basis
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Bases, Reference, upper_band_basis
 
     data, tracked, cloud = scene
     np.save(tmp_path / "F.npy", cloud)
@@ -115,10 +116,22 @@ def test_a_points_twin_carries_its_outline_and_the_solver_runs_the_outline_estim
     # the phase focus_bases gives offline with the same template and outline
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, SIZE), ImageGrid.from_roi(TGT_ROI, SIZE)
     cfg = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
-    want = focus_bases(subimage_basis(data, tracked, CHIRP, ref_grid), subimage_basis(data, tracked, CHIRP, tgt_grid),
-                       tracked, CHIRP, ref_grid, tgt_grid, template=reference.template, support=reference.support,
-                       config=cfg, phase_ramp=solver.params["phase_ramp"], space_variant=solver.params["space_variant"],
-                       upper_band=upper_band_basis(data, tracked, CHIRP, ref_grid))
+    want = FocusPlan.make(
+        config=cfg,
+        phase_ramp=solver.params["phase_ramp"],
+        space_variant=solver.params["space_variant"],
+    ).focus_bases(
+        Bases(
+            subimage_basis(data, tracked, CHIRP, ref_grid),
+            subimage_basis(data, tracked, CHIRP, tgt_grid),
+            tracked,
+            CHIRP,
+            ref_grid,
+            tgt_grid,
+            upper_band=upper_band_basis(data, tracked, CHIRP, ref_grid),
+        ),
+        Reference(template=reference.template, support=reference.support),
+    )
     np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
 
 
@@ -152,7 +165,7 @@ def test_the_outline_is_resampled_with_the_template_and_an_empty_one_is_dropped(
         want = resample_support(reference.support, msg.x_m, msg.y_m, ImageGrid.from_roi(REF_ROI, 17))
         assert solver.support.dtype == bool and np.array_equal(solver.support, want) and solver.template.shape == (17, 17)
         assert 0.7 < want.sum() / (reference.support.sum() * (17 / SIZE) ** 2) < 1.3  # about the same area
-        assert solver._config(CHIRP).init == "outline" and solver._estimator() == "outline"
+        assert solver._config(CHIRP).init == "outline" and solver._plan().estimator == "outline"
         solver.on_template(_twin_template(reference, np.zeros_like(reference.support)))
         assert solver.support is None and solver.template.shape == (17, 17)  # the template alone is kept
         assert solver._config(CHIRP).init == "projection"
@@ -206,7 +219,8 @@ def test_a_curved_reference_is_reported_and_not_trusted(scene, reference):
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.backprojection import subimage_basis
     from twinfocus.estimators import estimator_settings
-    from twinfocus.pipeline import focus_bases
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Bases, Reference
 
     data, tracked, _ = scene
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, SIZE), ImageGrid.from_roi(TGT_ROI, SIZE)
@@ -215,8 +229,10 @@ def test_a_curved_reference_is_reported_and_not_trusted(scene, reference):
     cfg = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
     reports = {}
     for name, info in (("flat", reference.info), ("bent", bent)):
-        out = focus_bases(rb, tb, tracked, CHIRP, ref_grid, tgt_grid, template=reference.template,
-                          support=reference.support, reference_info=info, config=cfg)
+        out = FocusPlan.make(config=cfg).focus_bases(
+            Bases(rb, tb, tracked, CHIRP, ref_grid, tgt_grid),
+            Reference(template=reference.template, support=reference.support, info=info),
+        )
         assert out.metrics["digital_twin"] == info
         reports[name] = ([w for w in out.metrics["confidence"]["warnings"] if "is curved" in w],
                          out.metrics["confidence"]["trusted"])

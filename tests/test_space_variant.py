@@ -153,15 +153,18 @@ def test_smooth_drift_fit_recovers_an_injected_drift_and_the_targets_phase(drift
 def test_focus_uses_the_space_variant_fit_only_when_the_data_ask_for_it(drifting_scan):
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.estimators import estimator_settings
-    from twinfocus.pipeline import focus_bases
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Bases, Reference, Truth
 
     s = drifting_scan
     cfg = AutofocusConfig(**estimator_settings("correlation", True))
 
     def focus(tracked, ref_basis, tgt_basis, mode):
-        return focus_bases(ref_basis, tgt_basis, tracked, s["chirp"], s["rg"], s["tg"], template=s["template"],
-                           config=cfg, space_variant=mode, truth_target=s["truth_target"],
-                           truth_reference=s["truth_reference"], positions_true=s["true"])
+        return FocusPlan.make(config=cfg, space_variant=mode).focus_bases(
+            Bases(ref_basis, tgt_basis, tracked, s["chirp"], s["rg"], s["tg"]),
+            Reference(template=s["template"]),
+            Truth(s["truth_target"], s["truth_reference"], s["true"]),
+        )
 
     off = focus(s["tracked"], s["ref_basis"], s["tgt_basis"], "off")
     auto = focus(s["tracked"], s["ref_basis"], s["tgt_basis"], "auto")
@@ -184,17 +187,28 @@ def test_focus_uses_the_space_variant_fit_only_when_the_data_ask_for_it(drifting
 def test_space_variant_bad_requests_are_named(drifting_scan):
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.estimators import estimator_settings
-    from twinfocus.pipeline import focus_bases
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Bases, Reference
 
     s = drifting_scan
     args = (s["ref_basis"], s["tgt_basis"], s["tracked"], s["chirp"], s["rg"], s["tg"])
     with pytest.raises(TwinFocusError, match="space_variant must be one of"):
-        focus_bases(*args, template=s["template"], config=AutofocusConfig(**estimator_settings("correlation", True)),
-                    space_variant="sometimes")
+        FocusPlan.make(
+            config=AutofocusConfig(**estimator_settings("correlation", True)),
+            space_variant="sometimes",
+        ).focus_bases(
+            Bases(*args),
+            Reference(template=s["template"]),
+        )
     # "on" with an amplitude template: nothing to fit the drift to
     with pytest.raises(TwinFocusError, match="needs a template with phase"):
-        focus_bases(*args, template=np.abs(s["template"]), config=AutofocusConfig(**estimator_settings("projection", False)),
-                    space_variant="on")
+        FocusPlan.make(
+            config=AutofocusConfig(**estimator_settings("projection", False)),
+            space_variant="on",
+        ).focus_bases(
+            Bases(*args),
+            Reference(template=np.abs(s["template"])),
+        )
     # a half-array basis that is not the reference's shape
     from twinfocus.space_variant import fit_smooth_drift
 

@@ -345,10 +345,14 @@ def test_averaged_outlines_beat_one_outline_with_a_hole(placed):
     one, _ = outline_phase(basis, support)
     # as `twinfocus focus` runs the outline estimator with outline_ensemble (the aperture from the
     # tracked positions), the reference region standing in for the target too
-    from twinfocus.pipeline import focus_bases
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Bases, Reference
 
     cfg = AutofocusConfig(init="outline", iterations=0, outline_ensemble=True)
-    out = focus_bases(basis, basis, tracked, ch, GRID, GRID, template=np.abs(basis.sum(axis=0)), support=support, config=cfg)
+    out = FocusPlan.make(config=cfg).focus_bases(
+        Bases(basis, basis, tracked, ch, GRID, GRID),
+        Reference(template=np.abs(basis.sum(axis=0)), support=support),
+    )
     assert err(one) > 0.2  # the hole costs the single outline
     assert err(out.phase_rad) < 0.7 * err(one)
     est = out.metrics["estimator"]
@@ -366,8 +370,10 @@ def test_averaged_outlines_beat_one_outline_with_a_hole(placed):
     # the cloud's outline's run, which the confidence report reads
     assert "energy_inside" in est["outline"] and "outline_energy_inside" in out.metrics["confidence"]
     # the config's choice of end reaches every run: the least contrast's end, each time
-    by_speckle = focus_bases(basis, basis, tracked, ch, GRID, GRID, template=np.abs(basis.sum(axis=0)),
-                             support=support, config=replace(cfg, outline_choice="speckle"))
+    by_speckle = FocusPlan.make(config=replace(cfg, outline_choice="speckle")).focus_bases(
+        Bases(basis, basis, tracked, ch, GRID, GRID),
+        Reference(template=np.abs(basis.sum(axis=0)), support=support),
+    )
     run = by_speckle.metrics["estimator"]["outline"]
     assert run["chosen_by"] == "speckle" and run["contrast"][run["chosen"]] == min(run["contrast"])
     with pytest.raises(TwinFocusError, match="aperture"):
@@ -442,13 +448,16 @@ def test_the_report_warns_that_an_outline_cannot_be_placed_once_the_phases_wrap(
     """With the phases wrapped, nothing in the scan checks where the outline put the reference, and
     the confidence report says so; while they hold together it does not."""
     from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
-    from twinfocus.pipeline import focus_bases
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import Bases, Reference
 
     for (ch, true, tracked, basis, template), wraps in ((placed, True), (coherent, False)):
         oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
         assert (np.abs(np.exp(1j * oracle).mean()) * np.sqrt(oracle.size) < AUTO_REFINE_BELOW_COHERENCE) == wraps
-        out = focus_bases(basis, basis, tracked, ch, GRID, GRID, template=np.abs(template), support=_outline(GRID),
-                          config=AutofocusConfig(**estimator_settings("auto", False, has_support=True)))
+        out = FocusPlan.make(config=AutofocusConfig(**estimator_settings("auto", False, has_support=True))).focus_bases(
+            Bases(basis, basis, tracked, ch, GRID, GRID),
+            Reference(template=np.abs(template), support=_outline(GRID)),
+        )
         est, conf = out.metrics["estimator"], out.metrics["confidence"]
         assert (est["phase_coherence_sqrt_m"] < AUTO_REFINE_BELOW_COHERENCE) == wraps
         assert any("phases have wrapped" in w for w in conf["warnings"]) == wraps

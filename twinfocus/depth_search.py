@@ -189,7 +189,7 @@ def find_target_depth(
     then :func:`search_depth` with it. What ``twinfocus focus`` and the solver node both run.
 
     focus : ``focus(scan, target_grid=, space_variant=)`` returning outputs with ``phase_rad``
-    (:func:`twinfocus.pipeline.focus_scan` with the reference bound); scan :
+    (:meth:`twinfocus.focus_plan.FocusPlan.focus_scan` with the reference bound); scan :
     :class:`twinfocus.scan.Scan`; box : (X0, X1, Y0, Y1) metres; method : ``twin`` or a
     reference-free one (then the uncorrected scan is searched). Returns (the search, {"range_m",
     "phase": what phase it used})."""

@@ -3,10 +3,10 @@ simplest, a richer one kept only when its rule says the reference asks for it: t
 tilt on held-out evidence (fitted on one half of the reference's pixels, judged on the other:
 :func:`heldout_split`, :func:`heldout_gain`, :func:`heldout_verdict`).
 
-A rung (:class:`Rung`) is made from settings only (its ``mode``), ``fit`` on the reference
-(:class:`Problem`: the sub-image bases, the scan's geometry, the template) starting from the
-:class:`Model` the rungs beneath it left, and gives a new :class:`Model` that ``apply`` turns into
-an image of any region's basis. :func:`climb` runs the rungs in order and records, per rung, what
+A rung (:class:`twinfocus.rungs.Rung`, a plain estimator: settings in its constructor) is
+``fit`` on the reference (:class:`Problem`: the sub-image bases, the scan's geometry, the
+template) starting from the :class:`Model` the rungs beneath it left, and gives a new
+:class:`Model` that ``apply`` turns into an image of any region's basis. :func:`climb` runs the rungs in order and records, per rung, what
 it adds, whether it was tried, its evidence (the reference's match before and after, the
 parameters it adds), whether it was kept and why, and its time: metrics.json's ``model`` section.
 
@@ -26,41 +26,30 @@ The twin's ladder (``TWIN_RUNGS``), simplest first:
 * ``tilt``: the drift with the array's tilt, from the half-array bases (one fit with the drift).
 
 Without a reference in view the reference-free rungs (``REFERENCE_FREE_RUNGS``: sharpness) stand
-on ``none`` instead, each with the placement above it. :func:`build_ladder` makes the rungs from
-the ``model`` setting (``auto``, ``fast``, ``full`` or one rung's name) and the rungs' own settings
-(``phase_ramp``, ``space_variant``; an explicit value of those wins over ``model``). ``fast``
+on ``none`` instead, each with the placement above it. The focus plan
+(:class:`twinfocus.focus_plan.FocusPlan`) makes the rungs from the registry
+(:data:`twinfocus.rungs.RUNGS`) and the ``model`` setting (``auto``, ``fast``, ``full`` or one
+rung's name) and the rungs' own settings (``phase_ramp``, ``space_variant``; an explicit value of
+those wins over ``model``). ``fast``
 climbs a costly rung only while the reference is below the confidence report's trust line
 (``Problem.trust``).
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any
 
 import numpy as np
 
 from twinfocus import metrics
-from twinfocus.autofocus import (
-    RAMP_MODES,
-    AutofocusConfig,
-    refine_check,
-    sharpness_autofocus,
-    transfer_phase,
-    twin_autofocus,
-)
-from twinfocus.band_delay import bright_pixels, position_range_errors_m
+from twinfocus.autofocus import AutofocusConfig
 from twinfocus.basis import form_image
-from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import MODEL_CHOICES, REFERENCE_FREE_RUNGS, TWIN_RUNGS
 from twinfocus.grid import ImageGrid
 from twinfocus.outline_fill import surface_from_positions
-from twinfocus.phase_ramp import MIN_RAMP_COHERENCE_SQRT_M, ramp_free_coherence
 from twinfocus.radar import Chirp
-from twinfocus.settings import config_default
+from twinfocus.reference_free import resolution_cell_m
 
 #: a rung's mode: "off" (not tried), "auto" (its rule decides whether to fit and whether to keep),
 #: "try" (fitted whenever it can run, kept by its rule), "on" (fitted and kept; refused when it cannot run)
@@ -119,8 +108,6 @@ def fast_reference(
     user's size; template : (H, W) on it."""
     if model != "fast" or template is None or not np.iscomplexobj(template) or support is not None:
         return grid, template, (1, 1)
-    from twinfocus.reference_free import resolution_cell_m
-
     strides = []
     cells = resolution_cell_m(positions_m, grid, wavelength_m)
     for cell, (lo, hi, n) in zip(cells, ((grid.y0, grid.y1, grid.height), (grid.x0, grid.x1, grid.width))):
@@ -337,659 +324,6 @@ def reference_evidence(problem: Problem, model: Model) -> dict:
     }
 
 
-class Rung:
-    """One correction model. Subclasses set ``name``, ``adds`` (one line) and ``cheap`` (closed
-    form: ``--model fast`` climbs it whatever the trust line says), and define :meth:`fit`; :meth:`cannot`, :meth:`skip` and
-    :meth:`keep` default to "can", "fit" and "keep"."""
-
-    name = ""
-    adds = ""
-    cheap = True
-
-    def __init__(self, mode: str = "auto"):
-        if mode not in MODES:
-            raise TwinFocusError(f"rung mode must be one of {', '.join(MODES)}, got {mode!r}")
-        self.mode = mode
-        #: what the rung's checks and fit recorded (metrics.json ``model.rungs[].info``)
-        self.info_: dict = {}
-        #: the held-out evidence its keep rule read (``model.rungs[].evidence.heldout``), or None
-        self.heldout_: dict | None = None
-        #: ``--model fast``: the rung is climbed only while the model beneath is not trusted
-        self.until_trusted = False
-
-    def cannot(self, problem: Problem, model: Model) -> str | None:
-        """Why this rung cannot run on ``problem`` (refused in mode "on"), or None."""
-        return None
-
-    def skip(self, problem: Problem, model: Model) -> str | None:
-        """Why the fit is not run although it could (auto's checks before fitting), or None."""
-        return None
-
-    def fit(self, problem: Problem, model: Model) -> Model:
-        """The richer model fitted on the reference from ``model``; ``self.info_`` says how."""
-        raise NotImplementedError
-
-    def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
-        """Whether the fitted model is kept, and why."""
-        return True, "kept on request" if self.mode == "on" else "fitted"
-
-    def parameters(self, problem: Problem) -> int:
-        """How many numbers the rung adds to the model."""
-        return 0
-
-    def not_kept(self, before: Model, after: Model) -> Model:
-        """The model the rungs above start from when this one's fit is not kept: ``before``."""
-        return before
-
-    def off_reason(self) -> str:
-        return "off"
-
-
-class NoCorrection(Rung):
-    name, adds = "none", "nothing: every position's phase 0"
-
-    def fit(self, problem: Problem, model: Model) -> Model:
-        return model
-
-    def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
-        return True, "the baseline the rungs above are measured against"
-
-
-class PhasePerPosition(Rung):
-    """One phase per position from the reference, the estimator's closed form (the config's
-    ``init``: correlation after the registration, projections or outline); the paper's estimator
-    ("zero") has none: its phases are the optimiser's (``refine``)."""
-
-    name, adds = "phase", "one phase per position, the estimator's closed form"
-
-    def cannot(self, problem: Problem, model: Model) -> str | None:
-        return None if problem.template is not None else "needs a template"
-
-    def parameters(self, problem: Problem) -> int:
-        return int(problem.positions.shape[0])
-
-    def fit(self, problem: Problem, model: Model) -> Model:
-        cfg = problem.config
-        assert problem.template is not None  # cannot() refuses without one
-        if cfg.init == "zero":
-            template, extra = problem.template, dict[str, Any]()
-            if cfg.template_registration == "correlation":
-                from twinfocus.template_match import register_template
-
-                template, _, extra["registration"] = register_template(
-                    problem.ref_basis,
-                    template,
-                    int(cfg.registration_max_shift_px),
-                    scores=problem.registration_scores,
-                )
-            zero = np.zeros(problem.ref_basis.shape[0])
-            self.info_ = {"closed_form": "none (the paper's estimator starts the optimiser from 0)", **extra}
-            extra["template"] = template
-            registered = "registration" in extra
-            return model.evolve(
-                phase_rad=zero, estimate_rad=zero, template=template, extra=extra, registered=registered, estimated=True
-            )
-        closed = replace(cfg, iterations=0, refine_below_coherence=0.0)
-        result = twin_autofocus(
-            problem.ref_basis,
-            problem.template,
-            closed,
-            progress=problem.progress("autofocus"),
-            support=problem.support,
-            registration_scores=problem.registration_scores,
-            aperture_m=problem.centres[:, :2],
-        )
-        extra = result.extra
-        self.info_ = {"closed_form": cfg.init}
-        self.info_.update(
-            {k: extra[k] for k in ("registration", "projection_restarts", "outline", "outline_ensemble") if k in extra}
-        )
-        if "outline" in extra:
-            # the scan can check where the outline put the reference only while the phases hold
-            # together (their ramp is then seen, and the transfer takes a misplacement's out)
-            self.info_["phase_coherence_sqrt_m"] = round(
-                ramp_free_coherence(result.phase_rad, problem.centres[:, :2]), 3
-            )
-        return model.evolve(
-            phase_rad=result.phase_rad,
-            estimate_rad=result.phase_rad,
-            template=result.extra.get("template", problem.template),
-            registered="registration" in result.extra,
-            loss_history=result.loss_history,
-            extra=result.extra,
-            estimated=True,
-        )
-
-
-class Refine(Rung):
-    """The paper's optimiser (Adam on 1 - SSIM against the template) from the closed form's
-    phases. Auto: the estimator decides (``config.iterations``; with ``refine_below_coherence`` and
-    the projections, only when their phases have wrapped: :func:`twinfocus.autofocus.refine_check`)."""
-
-    name, adds, cheap = "refine", "the same phases refined by the paper's optimiser", False
-
-    def cannot(self, problem: Problem, model: Model) -> str | None:
-        return None if problem.template is not None else "needs a template"
-
-    def _iterations(self, problem: Problem) -> int:
-        # a closed-form estimator's config has none: the settings table's then
-        return int(problem.config.iterations or config_default("iterations"))
-
-    def skip(self, problem: Problem, model: Model) -> str | None:
-        cfg = problem.config
-        if self.mode != "auto":
-            return None
-        if int(cfg.iterations) == 0:
-            return f"the estimator is closed form ({cfg.init}): no optimiser"
-        if cfg.init == "projection" and cfg.refine_below_coherence > 0:
-            check = refine_check(model.estimate_rad, problem.centres[:, :2], cfg.refine_below_coherence)
-            self.info_["refine_check"] = check
-            return None if check["refined"] else check["why"]
-        return None
-
-    def fit(self, problem: Problem, model: Model) -> Model:
-        cfg = replace(
-            problem.config,
-            init="zero",
-            template_registration="none",
-            refine_below_coherence=0.0,
-            iterations=self._iterations(problem),
-        )
-        assert model.template is not None
-        result = twin_autofocus(
-            problem.ref_basis,
-            model.template,
-            cfg,
-            progress=problem.progress("autofocus"),
-            init_phase_rad=model.estimate_rad,
-        )
-        self.info_["iterations"] = int(cfg.iterations)
-        return model.evolve(phase_rad=result.phase_rad, estimate_rad=result.phase_rad, loss_history=result.loss_history)
-
-    def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
-        check = self.info_.get("refine_check")
-        if self.mode == "auto" and check is not None:
-            return True, check["why"]
-        return True, "the estimator refines its phases with the optimiser" if self.mode == "auto" else "on request"
-
-
-class ReferenceFree(Rung):
-    """Autofocus of the target itself, no reference: ``estimate(basis, config, progress) ->
-    (phase float (M,) radians, info dict, loss history)``."""
-
-    cheap = False
-
-    def __init__(self, name: str, estimate: Callable, adds: str, mode: str = "auto"):
-        super().__init__(mode)
-        self.name, self.estimate, self.adds = name, estimate, adds
-
-    def parameters(self, problem: Problem) -> int:
-        return int(problem.positions.shape[0])
-
-    def fit(self, problem: Problem, model: Model) -> Model:
-        phase, self.info_, losses = self.estimate(
-            problem.tgt_basis, problem.config, problem.progress(f"{self.name} autofocus"), problem
-        )
-        return model.evolve(phase_rad=phase, estimate_rad=phase, loss_history=losses, estimated=True)
-
-
-def _target_cells(problem: Problem) -> float:
-    """The target region's resolution cells for the scan's aperture
-    (:func:`twinfocus.reference_free.resolution_cells`)."""
-    from twinfocus.reference_free import resolution_cells
-
-    return resolution_cells(problem.positions, problem.target_grid, problem.chirp.wavelength_m)
-
-
-def _sharpness(
-    basis: np.ndarray, config: AutofocusConfig, progress, problem: Problem
-) -> tuple[np.ndarray, dict, np.ndarray]:
-    """The paper's sharpness optimiser as a rung's estimate; its info carries the region's
-    resolution cells per position and a warning when they are too few, as the other
-    reference-free rungs' do."""
-    from twinfocus.reference_free import cells_summary
-
-    result = sharpness_autofocus(basis, config, progress=progress)
-    return result.phase_rad, cells_summary("sharpness", _target_cells(problem), basis.shape[0]), result.loss_history
-
-
-def _free(method: str) -> Callable:
-    """A :mod:`twinfocus.reference_free` method as a rung's estimate; its info carries the
-    region's resolution cells per position and a warning when they are too few."""
-
-    def estimate(
-        basis: np.ndarray, config: AutofocusConfig, progress, problem: Problem
-    ) -> tuple[np.ndarray, dict, np.ndarray]:
-        from twinfocus.reference_free import reference_free_autofocus
-
-        result = reference_free_autofocus(basis, method, cells=_target_cells(problem))
-        return result.phase_rad, result.extra["reference_free"], result.loss_history
-
-    return estimate
-
-
-#: the reference-free rungs by name: (estimate, what it adds); ``estimate(basis, config,
-#: progress, problem) -> (phase float (M,) radians, info dict, loss history float (n,))``
-REFERENCE_FREE: dict[str, tuple[Callable, str]] = {
-    "sharpness": (_sharpness, "one phase per position maximising the target's sharpness (no reference)"),
-    "entropy": (_free("entropy"), "one phase per position minimising the target's entropy (no reference)"),
-    "pga": (_free("pga"), "one phase per position from the target's brightest scatterers (no reference)"),
-}
-
-
-def _transfer(problem: Problem, model: Model, mode: str, range_errors_m: np.ndarray | None = None):
-    centres = problem.centres
-    return transfer_phase(
-        model.estimate_rad,
-        centres[:, :2],
-        float(problem.reference_grid.z - centres[:, 2].mean()),
-        problem.chirp.wavelength_m,
-        mode,
-        registered=model.registered,
-        range_errors_m=range_errors_m,
-    )
-
-
-class Placement(Rung):
-    """The estimate's constant + linear ramp, which moves the image, taken out where a template's
-    misplacement explains it (:func:`twinfocus.autofocus.transfer_phase`; ``ramp_mode``
-    ``--phase-ramp``). Always measured: off, the ramp is reported and transferred as is."""
-
-    name, adds = "placement", "the template's place: the estimate's ramp taken out"
-    ramp_mode = "auto"
-
-    def __init__(self, mode: str = "auto"):
-        super().__init__(mode)
-        self.ramp_mode = {"on": "remove", "off": "keep"}.get(mode, "auto")
-
-    def parameters(self, problem: Problem) -> int:
-        return 3
-
-    def cannot(self, problem: Problem, model: Model) -> str | None:
-        return None if model.estimated else "no estimate to place"
-
-    def fit(self, problem: Problem, model: Model) -> Model:
-        phase, self.info_ = _transfer(problem, model, self.ramp_mode)
-        return model.evolve(phase_rad=phase, ramp=self.info_)
-
-    def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
-        assert after.ramp is not None
-        return bool(after.ramp["removed"]), after.ramp["reason"]
-
-    def not_kept(self, before: Model, after: Model) -> Model:
-        # the ramp stays in the phase, and its measurement goes on to the rungs above
-        return replace(before, ramp=after.ramp)
-
-
-class RangeErrors(Rung):
-    """Each position's range error read from the band's halves (on the pixels holding 99 % of the
-    estimate's image energy), taken out of the estimate before its ramp is fitted
-    (docs/digital_twin_autofocus.md, "Placing the reference by the band's halves"). Auto: only when the
-    estimate's phases have wrapped (its ramp is out of sight) or its ramp is larger than a
-    misplacement explains."""
-
-    name, adds = "range_errors", "each position's range error from the band's halves, before the ramp fit"
-
-    def __init__(self, mode: str = "auto", ramp_mode: str = "auto"):
-        super().__init__(mode)
-        self.ramp_mode = ramp_mode
-
-    def parameters(self, problem: Problem) -> int:
-        return int(problem.positions.shape[0])
-
-    def cannot(self, problem: Problem, model: Model) -> str | None:
-        if not model.estimated:
-            return "no estimate to place"
-        if model.registered:
-            return "the template was registered to the scan: no misplacement is left to place"
-        if problem.upper_band is None:
-            return "no upper-band basis (a chirp too short to halve, or none given)"
-        return None
-
-    def skip(self, problem: Problem, model: Model) -> str | None:
-        coherence = ramp_free_coherence(model.estimate_rad, problem.centres[:, :2])
-        self.because_ = (
-            "the estimate's phases have wrapped"
-            if coherence < MIN_RAMP_COHERENCE_SQRT_M
-            else "its ramp is larger than a misplacement explains"
-            if model.ramp is not None and np.any(model.ramp["slope_rad_per_m"]) and not model.ramp["removed"]
-            else None
-        )
-        if self.mode == "auto" and self.because_ is None:
-            return "not needed: the estimate's ramp is in sight and within what a misplacement explains"
-        return None
-
-    def fit(self, problem: Problem, model: Model) -> Model:
-        assert problem.upper_band is not None
-        pixels = bright_pixels(form_image(problem.ref_basis, model.estimate_rad))
-        high = problem.upper_band(pixels)
-        range_errors = position_range_errors_m(
-            problem.ref_basis[:, pixels] - high, high, model.estimate_rad, problem.chirp
-        )
-        phase, self.info_ = _transfer(problem, model, self.ramp_mode, range_errors)
-        self.info_["asked_range_errors_because"] = self.because_ or "asked for"
-        return model.evolve(phase_rad=phase, ramp=self.info_)
-
-    def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
-        # the transfer's own rule: a ramp taken out only when it stands out of the range errors
-        assert after.ramp is not None
-        return True, after.ramp["reason"]
-
-
-class SmoothDrift(Rung):
-    """A smooth across-sight drift fitted to the whole reference and transferred per pixel
-    (:func:`twinfocus.space_variant.fit_smooth_drift`); with ``tilt`` also the array's tilt, from
-    the half-array bases, in the same fit. Needs a registered template with phase (a physical
-    twin) and the whole estimate (its ramp kept). Auto: fitted only when the scalar phase leaves
-    more than ``SPACE_VARIANT_MIN_RESIDUAL`` of the reference unmatched (the fit's cost); kept
-    only on held-out evidence: fitted again on half of the reference's blocks
-    (:func:`heldout_split`), it must match the other half better than the model beneath fitted on
-    the same half, by more than the gain's noise (:func:`heldout_gain`). ``with_tilt_above``: the
-    tilt rung above fits the drift too, so this one leaves it to that rung when the half-array
-    bases are there."""
-
-    cheap = False
-
-    def __init__(self, mode: str = "auto", tilt: bool = False, with_tilt_above: bool = False, setting: str = "auto"):
-        super().__init__(mode)
-        self.tilt, self.with_tilt_above, self.setting = tilt, with_tilt_above, setting
-        self.name = "tilt" if tilt else "drift"
-        self.adds = (
-            "the array's tilt per position, fitted with the drift (half-array bases)"
-            if tilt
-            else "a smooth across-sight drift per position, transferred per pixel"
-        )
-        self.info_: dict = {"mode": setting, "used": False}
-        #: ``--model fast``: the fit itself is a quick one (``FAST_FIT``), and its held-out evidence
-        #: comes from one half alone, where auto judges both
-        self.quick = False
-
-    def parameters(self, problem: Problem) -> int:
-        m = int(problem.positions.shape[0])
-        return 2 * m + (m // 10 + 1 if self.tilt else 0)
-
-    def off_reason(self) -> str:
-        self.info_["reason"] = "off on request"
-        return "off on request"
-
-    def cannot(self, problem: Problem, model: Model) -> str | None:
-        why = None
-        if model.template is None or not np.iscomplexobj(model.template) or not model.registered:
-            why = "needs a template with phase registered to the scan (a physical twin)"
-        elif model.ramp is not None and model.ramp["removed"]:
-            why = "the phase ramp was removed before the transfer; the drift fit needs the whole estimate"
-        if why:
-            self.info_["reason"] = why
-        return why
-
-    def skip(self, problem: Problem, model: Model) -> str | None:
-        if self.tilt and problem.half_bases is None:
-            return "no half-array bases (an array of one channel, or none given)"
-        if not self.tilt and self.with_tilt_above and problem.half_bases is not None:
-            return "fitted with the array's tilt, one rung up"
-        assert model.template is not None
-        residual = 1.0 - complex_match(model.apply(problem, "reference"), model.template)
-        self.info_["residual_scalar"] = residual
-        if self.mode == "auto" and residual <= SPACE_VARIANT_MIN_RESIDUAL:
-            self.info_["reason"] = (
-                f"not needed: the scalar phase leaves {residual:.4f} of the reference "
-                f"unmatched (<= {SPACE_VARIANT_MIN_RESIDUAL})"
-            )
-            return self.info_["reason"]
-        return None
-
-    def _fit(self, problem: Problem, model: Model, halves, fitted: np.ndarray | None = None, **settings):
-        """fit_smooth_drift on the reference, or on its ``fitted`` pixels alone (bool (H, W))."""
-        from twinfocus.space_variant import DriftFitSettings, fit_smooth_drift  # scipy: only on this path
-
-        assert model.template is not None
-        return fit_smooth_drift(
-            problem.ref_basis,
-            model.template,
-            model.phase_rad,
-            problem.centres,
-            problem.reference_grid,
-            problem.chirp.wavelength_m,
-            half_basis=None if halves is None else halves[0],
-            pixels=fitted,
-            device=problem.config.device,
-            progress=problem.progress("space-variant fit" if fitted is None else "space-variant held-out fit"),
-            settings=DriftFitSettings(**settings),
-        )
-
-    def fit(self, problem: Problem, model: Model) -> Model:
-        t = time.perf_counter()
-        halves = problem.half_bases() if self.tilt and problem.half_bases is not None else None
-        if halves is not None:
-            # a back-projection like the whole bases', reported as a stage of its own
-            self.info_["half_array_bases_s"] = time.perf_counter() - t
-        phase, drift, tilt, fit = self._fit(problem, model, halves, None, **(FAST_FIT if self.quick else {}))
-        if self.quick:
-            self.info_["fit"] = (
-                f"quick (--model fast): {FAST_FIT['iterations']} steps on the knots, "
-                f"at most {FAST_FIT['refine_iterations']} per position"
-            )
-        self.info_.update(
-            residual_space_variant=1.0 - fit["match_after"],
-            knot_spacing_positions=fit["knot_spacing_positions"],
-            iterations=fit["iterations"],
-            refine_iterations=fit["refine_iterations"],
-            smoothness_per_mm2=fit["smoothness_per_mm2"],
-            time_s=fit["time_s"],
-            drift_rms_mm=[float(v) for v in np.sqrt((drift[:, :2] ** 2).mean(axis=0)) * 1e3],
-            tilt_fitted=bool(fit["tilt_fitted"]),
-            tilt_rms_rad=float(np.sqrt((tilt**2).mean())),
-        )
-        return model.evolve(phase_rad=phase, drift_m=drift, tilt_rad=tilt, halves=halves)
-
-    def heldout(
-        self, problem: Problem, before: Model, after: Model, halves_only: int = 2
-    ) -> tuple[dict, tuple[Model, ...]]:
-        """The held-out evidence (:func:`heldout_verdict`): on each half of :func:`heldout_split`
-        (the first ``halves_only``) this rung and the model beneath, each fitted on that half,
-        judged on the other half; and this rung's half fits (the rungs above judge themselves
-        against them)."""
-        from twinfocus.template_match import correlation_phase
-
-        assert before.template is not None
-        first = heldout_split(problem)
-        folds, fits = [], []
-        for i, fitted in enumerate((first, ~first)[:halves_only]):
-            if before.heldout is not None:
-                base = before.heldout[i]
-            else:
-                # the model beneath is one phase per position: its closed form on the same half (a sum
-                # over the template's pixels, so zeroing the template's other half is enough)
-                phase = correlation_phase(problem.ref_basis, before.template * fitted)
-                base = before.evolve(phase_rad=phase)
-            phase, drift, tilt, _ = self._fit(problem, base, after.halves, fitted, **HELDOUT_FIT)
-            fits.append(after.evolve(phase_rad=phase, drift_m=drift, tilt_rad=tilt))
-            folds.append(
-                heldout_gain(
-                    base.apply(problem, "reference"), fits[-1].apply(problem, "reference"), before.template, ~fitted
-                )
-            )
-        return heldout_verdict(folds), tuple(fits)
-
-    def keep(self, problem: Problem, before: Model, after: Model) -> tuple[bool, str]:
-        if self.mode == "on":
-            self.info_["used"] = True
-            self.info_["reason"] = "on request"
-            return True, "on request"
-        evidence, half_fits = self.heldout(problem, before, after, halves_only=1 if self.quick else 2)
-        self.info_["heldout_fit"] = (
-            f"{'one half (--model fast)' if self.quick else 'two halves'}, "
-            f"the knots' stage alone at {HELDOUT_FIT['iterations']} steps"
-        )
-        self.heldout_ = self.info_["heldout"] = evidence
-        held = (
-            f"fitted on one half of the reference's blocks and judged on the other, it leaves "
-            f"{evidence['unmatched_after']:.4f} unmatched against {evidence['unmatched_before']:.4f} beneath it "
-            f"(gain {evidence['gain']:.4f}, noise {evidence['noise']:.4f} over {len(evidence['folds'])} halves)"
-        )
-        if evidence["kept"]:
-            self.info_["used"] = True
-            after.heldout = None if self.quick else half_fits
-            why = f"kept: {held}"
-        else:
-            why = f"fitted but not kept: {held}; the error is not a smooth drift this reference shows"
-        self.info_["reason"] = why
-        return self.info_["used"], why
-
-
-def build_ladder(
-    model: str = "auto",
-    *,
-    method: str = "twin",
-    phase_ramp: str = "auto",
-    space_variant: str = "auto",
-) -> list[Rung]:
-    """The rungs for one scan, simplest first, each with its mode.
-
-    model : "auto" (each rung by its rule), "fast" (auto's rules, but a costly rung, the
-        optimiser or the drift, only while the reference is below the trust line
-        (``Problem.trust``), the drift as a quick fit (``FAST_FIT``) judged on one held-out
-        half, and no tilt: the cheapest trusted rung), "full" (every rung fitted where it can run, each
-        kept by its rule; the optimiser always) or a rung's name (that rung forced, those beneath
-        it by their rules, none above it).
-    method : "twin" (the twin's ladder), a reference-free rung's name, or "none".
-    phase_ramp, space_variant : the placement's and the drift's own settings; other than "auto"
-        they win over ``model`` for their rungs.
-    """
-    if model not in MODEL_CHOICES:
-        raise TwinFocusError(f"model must be one of {', '.join(MODEL_CHOICES)}, got {model!r}")
-    if space_variant not in SPACE_VARIANT_MODES:
-        raise TwinFocusError(f"space_variant must be one of {', '.join(SPACE_VARIANT_MODES)}, got {space_variant!r}")
-    if phase_ramp not in RAMP_MODES:
-        raise TwinFocusError(f"phase ramp mode must be one of {', '.join(RAMP_MODES)}, got {phase_ramp!r}")
-    if method == "none":
-        names: tuple[str, ...] = ("none",)
-    elif method == "twin":
-        names = TWIN_RUNGS
-    elif method in REFERENCE_FREE:
-        names = ("none", method, "placement")
-    else:
-        raise TwinFocusError(f"unknown method {method!r}")
-    if model in MODEL_CHOICES[3:] and model not in names:
-        raise TwinFocusError(
-            f"--model {model}: not a rung of this ladder ({', '.join(names)}): "
-            + (
-                "the reference-free rungs need --method"
-                if model in REFERENCE_FREE_RUNGS
-                else "it needs a template (--template, --template-scan or --digital-twin)"
-            )
-        )
-    modes = {name: "auto" for name in names}
-    if model == "fast":
-        # the tilt, the costliest rung (the half-array bases and a fit with them), is left out
-        modes.update(tilt="off")
-    elif model == "full":
-        modes.update(refine="on", range_errors="try", drift="try", tilt="try")
-    elif model != "auto":
-        above = names[names.index(model) + 1 :]
-        modes.update({n: "off" for n in above})
-        modes[model] = "on"
-    # a rung's own explicit setting wins over the model
-    if phase_ramp != "auto":
-        modes["placement"] = {"remove": "on", "keep": "off"}[phase_ramp]
-        modes["range_errors"] = "off"
-    if space_variant != "auto":
-        modes["drift"] = modes["tilt"] = space_variant
-    rungs: list[Rung] = []
-    for name in names:
-        mode = modes[name]
-        if name == "none":
-            rungs.append(NoCorrection("on"))
-        elif name == "phase":
-            rungs.append(PhasePerPosition("on" if mode != "off" else "off"))
-        elif name == "refine":
-            rungs.append(Refine(mode))
-        elif name == "placement":
-            rungs.append(Placement(mode))
-        elif name == "range_errors":
-            rungs.append(RangeErrors(mode, ramp_mode=phase_ramp))
-        elif name in ("drift", "tilt"):
-            setting = space_variant if space_variant != "auto" or model == "auto" else model
-            rungs.append(
-                SmoothDrift(mode, tilt=name == "tilt", with_tilt_above=modes["tilt"] != "off", setting=setting)
-            )
-        else:
-            estimate, adds = REFERENCE_FREE[name]
-            rungs.append(ReferenceFree(name, estimate, adds, "on" if mode != "off" else "off"))
-    if model == "fast":
-        for rung in rungs:
-            rung.until_trusted = not rung.cheap
-            if isinstance(rung, SmoothDrift):
-                rung.quick = True
-    return rungs
-
-
-def climbs_to(rung: str, model: str = "auto", space_variant: str = "auto") -> bool:
-    """Whether the twin's ladder for ``model`` and ``space_variant`` (:func:`build_ladder`) has
-    ``rung`` and may climb it (its mode not off): what a caller asks before paying for a rung's
-    inputs ahead of the climb (torch for the drift, the half-array bases for the tilt). False for
-    a ``model`` the twin's ladder refuses."""
-    try:
-        rungs = build_ladder(model, space_variant=space_variant)
-    except TwinFocusError:
-        return False
-    return any(r.name == rung and r.mode != "off" for r in rungs)
-
-
-def climb(problem: Problem, rungs: list[Rung]) -> tuple[Model, dict]:
-    """Climb ``rungs`` (:func:`build_ladder`) on ``problem``: returns the kept model and
-    metrics.json's ``model`` section: ``rungs``, one entry per rung (``rung``, ``adds``,
-    ``mode``, ``tried``, ``kept``, ``why``, ``time_s``, and when tried ``evidence``: the
-    reference's match before and after and the ``parameters`` it adds, and ``info``: what its
-    fit recorded), ``kept`` (the kept rungs' names), ``result`` (the top kept rung) and
-    ``time_s``; and ``targets``, each tried rung's target image (complex (H, W)), for the caller
-    to take out."""
-    m = problem.ref_basis.shape[0]
-    model = Model(phase_rad=np.zeros(m), estimate_rad=np.zeros(m), template=problem.template)
-    entries: list[dict] = []
-    kept: list[str] = []
-    targets: dict[str, np.ndarray] = {}
-    t_all = time.perf_counter()
-    for rung in rungs:
-        entry: dict = {"rung": rung.name, "adds": rung.adds, "mode": rung.mode, "tried": False, "kept": False}
-        t = time.perf_counter()
-        measured = rung.name == "placement"  # the ramp is reported whatever is done with it
-        why = rung.off_reason() if rung.mode == "off" and not measured else rung.cannot(problem, model)
-        if why is None and rung.until_trusted and problem.trust is not None:
-            below = problem.trust(problem, model)
-            if below is None:
-                why = f"fast: the reference passes the trust line at {kept[-1]}"
-            else:
-                entry["below_trust_line"] = below
-        if why is None:
-            why = rung.skip(problem, model)
-        elif rung.mode == "on":
-            what = "space-variant correction" if rung.name in ("drift", "tilt") else f"--model {rung.name}:"
-            raise TwinFocusError(f"{what} {why}")
-        if why is None:
-            before = reference_evidence(problem, model) if rung.name != "none" else {}
-            candidate = rung.fit(problem, model)
-            keep, why = rung.keep(problem, model, candidate)
-            after = reference_evidence(problem, candidate)
-            entry.update(tried=True, kept=keep)
-            targets[rung.name] = candidate.apply(problem, "target")
-            entry["evidence"] = {"before": before, "after": after, "parameters": rung.parameters(problem)}
-            if rung.heldout_ is not None:
-                entry["evidence"]["heldout"] = rung.heldout_
-            if keep:
-                model = candidate
-                kept.append(rung.name)
-            else:
-                model = rung.not_kept(model, candidate)
-        entry.update(why=why, time_s=time.perf_counter() - t)
-        if rung.info_:
-            entry["info"] = rung.info_
-        entries.append(entry)
-    section = {"rungs": entries, "kept": kept, "result": kept[-1], "time_s": time.perf_counter() - t_all}
-    section["targets"] = targets  # the images, for the pictures: not written to metrics.json
-    return model, section
-
-
 def rung_entry(section: dict, name: str) -> dict:
     """The ``model`` section's entry of rung ``name`` ({} when the ladder has none)."""
     return next((e for e in section.get("rungs", []) if e["rung"] == name), {})
@@ -1031,3 +365,40 @@ def legacy_entries(problem: Problem, model: Model, section: dict) -> dict:
         deferred = sv[1] and sv[1]["info"].get("reason") and (sv[1]["tried"] or "with the array's tilt" in sv[0]["why"])
         out["space_variant"] = sv[1]["info"] if deferred else sv[0]["info"]
     return out
+
+
+def rung_timings(section: dict) -> dict[str, float]:
+    """The timings_s entries of the ladder's rungs (read-only aliases of the ``model`` section's
+    ``time_s``): ``autofocus`` (the estimate: phase and refine, or a reference-free rung),
+    ``range_errors``, ``half_array_bases`` (the tilt's back-projection of one half of the array's
+    channels, when it ran) and ``space_variant`` (the drift or tilt kept, less those bases)."""
+    seconds = {e["rung"]: e["time_s"] for e in section["rungs"] if e["tried"]}
+    out = {
+        "autofocus": sum(
+            v for k, v in seconds.items() if k not in ("none", "placement", "range_errors", "drift", "tilt")
+        )
+    }
+    if "range_errors" in seconds:
+        out["range_errors"] = seconds["range_errors"]
+    for e in section["rungs"]:
+        halves_s = e.get("info", {}).get("half_array_bases_s") if e["tried"] else None
+        if halves_s is not None:
+            out["half_array_bases"] = halves_s
+        if e["rung"] in ("drift", "tilt") and e["kept"] and "space_variant" not in out:
+            out["space_variant"] = e["time_s"] - (halves_s or 0.0)
+    return out
+
+
+def model_view(m: dict) -> tuple[dict, dict, dict | None]:
+    """What the confidence report reads of the correction: (the estimate's record: the phase
+    rung's info with the refine rung's ``refine_check``; the placement's record: the range
+    errors' when they were read, else the placement's; the template registration or None), from
+    metrics.json's ``model`` section, or from the older entries when a metrics dict has none."""
+    if "model" not in m:
+        return m.get("estimator") or {}, m.get("phase_ramp") or {}, m.get("template_registration")
+    section = m["model"]
+    est = dict(rung_entry(section, "phase").get("info", {}))
+    est.update({k: v for k, v in rung_entry(section, "refine").get("info", {}).items() if k == "refine_check"})
+    ranged = rung_entry(section, "range_errors")
+    ramp = (ranged if ranged.get("tried") else rung_entry(section, "placement")).get("info", {})
+    return est, ramp, est.get("registration")

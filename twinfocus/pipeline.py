@@ -1,11 +1,14 @@
 """Offline focusing of one scan: the steps behind ``twinfocus focus`` and the solver node.
 
-:func:`focus_scan` does steps 1-4 on a scan; :func:`focus_bases` does steps 3-4 on bases built
-elsewhere (the solver node builds them batch by batch as measurements arrive).
+The focus plan runs them (:class:`twinfocus.focus_plan.FocusPlan`: ``focus_scan`` does steps 1-4
+on a scan, ``focus_bases`` steps 3-4 on bases built elsewhere, as the solver node builds them
+batch by batch); here are its inputs (:class:`Bases`, :class:`Reference`, :class:`Truth`), its
+outputs (:class:`FocusOutputs`, :func:`write_outputs`), the bases it may ask for
+(:func:`half_array_bases`, :func:`upper_band_basis`), the metrics and the confidence report.
 
 1. sub-image bases of the reference and target regions (one back-projection each);
 2. the reference template (file, motion-stage scan, digital twin) — or none for the baselines;
-3. the ladder of correction models climbed on the reference (:mod:`twinfocus.ladder`: one phase
+3. the ladder of correction models climbed on the reference (:mod:`twinfocus.rungs`: one phase
    per position, the optimiser, the placement, the range errors, the drift, the tilt), or a
    reference-free autofocus of the target;
 4. the kept model applied to the target, metrics against the truth when the scan carries it.
@@ -17,7 +20,6 @@ import json
 import os
 import shutil
 import tempfile
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,37 +31,20 @@ from twinfocus.atomic import record_written, remove_earlier
 from twinfocus.autofocus import (
     MAX_TEMPLATE_OFFSET_RANGED_M,
     MIN_RANGED_RAMP_COHERENCE_SQRT_M,
-    AutofocusConfig,
 )
-from twinfocus.backprojection import backproject, subimage_basis, subimage_basis_points
+from twinfocus.backprojection import subimage_basis, subimage_basis_points
 from twinfocus.band_delay import half_band_chirps, half_band_data
 from twinfocus.basis import form_image
-from twinfocus.digital_twin.rig import rig_placed, rig_trust
-from twinfocus.drift_check import phase_concentration, step_coherence
+from twinfocus.digital_twin.rig import rig_trust
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE
+from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE, REFERENCE_FREE_RUNGS
 from twinfocus.grid import ImageGrid
-from twinfocus.ladder import (
-    REFERENCE_FREE,
-    Model,
-    Placement,
-    Problem,
-    RangeErrors,
-    build_ladder,
-    climb,
-    complex_match,
-    fast_reference,
-    legacy_entries,
-    rung_entry,
-)
+from twinfocus.ladder import Model, Problem, complex_match, model_view
 from twinfocus.outline_fill import outline_fill
 from twinfocus.phase_ramp import ramp_free_coherence
 from twinfocus.radar import Chirp
-from twinfocus.scan import Scan
-from twinfocus.target_focus import defocus_gain_nats
-from twinfocus.templates import check_has_signal
 
-METHODS = ("twin",) + tuple(REFERENCE_FREE) + ("none",)
+METHODS = ("twin",) + REFERENCE_FREE_RUNGS + ("none",)
 
 
 @dataclass
@@ -88,7 +73,7 @@ class FocusOutputs:
     rung_targets: dict = field(default_factory=dict)
 
 
-def _check_method(method: str, template: np.ndarray | None) -> None:
+def check_method(method: str, template: np.ndarray | None) -> None:
     if method not in METHODS:
         raise TwinFocusError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if method == "twin" and template is None:
@@ -104,7 +89,7 @@ def half_array_bases(
     bp_options: dict | None = None,
     progress_factory=None,
 ) -> Callable[[], tuple[np.ndarray, np.ndarray]] | None:
-    """What :func:`focus_bases` calls for the half-array bases (``half_bases``): the reference's
+    """What :meth:`FocusPlan.focus_bases <twinfocus.focus_plan.FocusPlan.focus_bases>` calls for the half-array bases (``half_bases``): the reference's
     and the target's sub-image bases from the channels of
     :func:`twinfocus.space_variant.array_half` alone, back-projected only when it is called.
 
@@ -139,7 +124,7 @@ def upper_band_basis(
     bp_options: dict | None = None,
     progress_factory=None,
 ) -> Callable[[np.ndarray], np.ndarray] | None:
-    """What :func:`focus_bases` calls for the reference's sub-image basis from the upper half of
+    """What :meth:`FocusPlan.focus_bases <twinfocus.focus_plan.FocusPlan.focus_bases>` calls for the reference's sub-image basis from the upper half of
     the chirp's band (``upper_band``; the lower half's is the whole basis minus it): ``pixels`` bool
     (H, W) on ``reference_grid`` -> complex64 (M, pixels.sum()), back-projected only when called
     and only on those pixels (:mod:`twinfocus.band_delay`).
@@ -166,287 +151,52 @@ def upper_band_basis(
     return basis
 
 
-def focus_scan(
-    scan: Scan,
-    reference_grid: ImageGrid,
-    target_grid: ImageGrid,
-    *,
-    template: np.ndarray | None = None,
-    support: np.ndarray | None = None,
-    reference_info: dict | None = None,
-    method: str = "twin",
-    config: AutofocusConfig | None = None,
-    bp_options: dict | None = None,
-    progress_factory=None,
-    model: str = "auto",
-    phase_ramp: str = "auto",
-    space_variant: str = "auto",
-    tracking_error_m: float = 0.5e-3,
-) -> FocusOutputs:
-    """Run the offline focusing steps on a validated scan: the two sub-image bases (and the
-    truth images when the scan carries ``positions_true``), then :func:`focus_bases`.
+@dataclass
+class Reference:
+    """The twin's template, as the reference source gave it (all None for the reference-free
+    methods). template : float (H, W) amplitude, or complex (H, W) image with its phase, on the
+    reference's grid; support : bool (H, W) the reference's outline (a digital twin's), which the
+    outline estimator needs and the corrected reference is read against
+    (:func:`twinfocus.outline_fill.outline_fill`, metrics.json ``reference_outline``); info : what
+    a digital twin's cloud conditioning chose and why
+    (:attr:`twinfocus.digital_twin.condition.DigitalTwinReference.info`, metrics.json ``digital_twin``)."""
 
-    bp_options : keywords of :func:`twinfocus.backprojection.subimage_basis` (oversample,
-        precision, backend, device). Other arguments as :func:`focus_bases`.
-    """
-    _check_method(method, template)
-    if config is not None:  # a bad configuration fails before the back-projections
-        config.validate()
-    build_ladder(model, method=method, phase_ramp=phase_ramp, space_variant=space_variant)
-    bp = dict(bp_options or {})
-    prog = progress_factory or (lambda label: None)
-    timings: dict[str, float] = {}
-    strides = (1, 1)
-    if method == "twin":  # --model fast: the reference at its resolution (ladder.FAST_REFERENCE_CELL_SHARE)
-        reference_grid, template, strides = fast_reference(
-            model, template, support, scan.positions, reference_grid, scan.chirp.wavelength_m
-        )
-
-    t = time.perf_counter()
-    ref_basis = subimage_basis(
-        scan.data, scan.positions, scan.chirp, reference_grid, progress=prog("reference basis"), **bp
-    )
-    timings["reference_basis"] = time.perf_counter() - t
-    # Fail before the second back-projection, not after it (focus_bases checks these again).
-    check_has_signal(ref_basis.sum(axis=0), "the reference region", basis=ref_basis)
-    if template is not None:
-        check_has_signal(template, "the template")
-
-    t = time.perf_counter()
-    tgt_basis = subimage_basis(scan.data, scan.positions, scan.chirp, target_grid, progress=prog("target basis"), **bp)
-    timings["target_basis"] = time.perf_counter() - t
-
-    truth_tgt = truth_ref = None
-    if scan.positions_true is not None:
-        t = time.perf_counter()
-        truth_tgt = backproject(
-            scan.data, scan.positions_true, scan.chirp, target_grid, progress=prog("target truth"), **bp
-        )
-        truth_ref = backproject(
-            scan.data, scan.positions_true, scan.chirp, reference_grid, progress=prog("reference truth"), **bp
-        )
-        truth_time = time.perf_counter() - t
-
-    out = focus_bases(
-        ref_basis,
-        tgt_basis,
-        scan.positions,
-        scan.chirp,
-        reference_grid,
-        target_grid,
-        template=template,
-        support=support,
-        reference_info=reference_info,
-        method=method,
-        config=config,
-        bp_options=bp,
-        progress_factory=progress_factory,
-        model=model,
-        phase_ramp=phase_ramp,
-        space_variant=space_variant,
-        tracking_error_m=tracking_error_m,
-        truth_target=truth_tgt,
-        truth_reference=truth_ref,
-        positions_true=scan.positions_true,
-        half_bases=half_array_bases(
-            scan.data, scan.positions, scan.chirp, reference_grid, target_grid, bp, progress_factory
-        ),
-        upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, reference_grid, bp, progress_factory),
-    )
-    timings.update(out.timings_s)
-    out.metrics["model"]["reference_strides"] = list(strides)
-    if truth_tgt is not None:
-        timings["truth_images"] = truth_time
-    out.timings_s = timings
-    out.metrics["timings_s"] = timings
-    return out
+    template: np.ndarray | None = None
+    support: np.ndarray | None = None
+    info: dict | None = None
 
 
-def place_estimate(
-    phase: np.ndarray,
-    ref_basis: np.ndarray,
-    positions: np.ndarray,
-    chirp: Chirp,
-    reference_grid: ImageGrid,
-    phase_ramp: str = "auto",
-    *,
-    registered: bool = False,
-    upper_band: Callable[[np.ndarray], np.ndarray] | None = None,
-    coherence_sqrt_m: float | None = None,
-) -> tuple[np.ndarray, dict, float | None]:
-    """The ladder's placement and range-errors rungs on one estimate
-    (:class:`~twinfocus.ladder.Placement`, :class:`~twinfocus.ladder.RangeErrors`): the phase
-    :func:`focus_bases` transfers to the target, its constant + linear ramp handled by
-    :func:`~twinfocus.autofocus.transfer_phase` (``phase_ramp``).
+@dataclass
+class Bases:
+    """The sub-image bases of one scan and its geometry: what the ladder climbs on.
 
-    The plain ramp fit cannot place the reference when the estimate's phases have wrapped (its
-    ramp is out of sight) nor when its ramp is larger than a misplacement explains (it may be
-    tracking error): with ``upper_band`` (:func:`upper_band_basis`) and ``phase_ramp`` 'auto' the
-    range errors from the band's halves then take the tracking error out along the line of sight
-    and tell (docs/digital_twin_autofocus.md, "Placing the reference by the band's halves").
-
-    phase : float (M,) radians; ref_basis : complex (M, H, W) on ``reference_grid``; positions :
-    float64 (M, K, 3) phase centres, metres; coherence_sqrt_m : unused (the range-errors rung
-    measures it). Returns (float64 (M,) radians, the ``phase_ramp`` metrics, seconds the range
-    errors took or None when they were not read)."""
-    problem = Problem(ref_basis, ref_basis, positions, chirp, reference_grid, reference_grid, AutofocusConfig(),
-                      upper_band=upper_band)  # fmt: skip
-    estimate = np.asarray(phase, dtype=np.float64)
-    model = Model(estimate, estimate, registered=registered, estimated=True)
-    model = Placement({"remove": "on", "keep": "off"}.get(phase_ramp, "auto")).fit(problem, model)
-    ranged = RangeErrors("auto" if phase_ramp == "auto" else "off", ramp_mode=phase_ramp)
-    if ranged.mode == "off" or ranged.cannot(problem, model) or ranged.skip(problem, model):
-        assert model.ramp is not None
-        return model.phase_rad, model.ramp, None
-    t = time.perf_counter()
-    model = ranged.fit(problem, model)
-    assert model.ramp is not None
-    return model.phase_rad, model.ramp, time.perf_counter() - t
-
-
-def focus_bases(
-    ref_basis: np.ndarray,
-    tgt_basis: np.ndarray,
-    positions: np.ndarray,
-    chirp: Chirp,
-    reference_grid: ImageGrid,
-    target_grid: ImageGrid,
-    *,
-    template: np.ndarray | None = None,
-    support: np.ndarray | None = None,
-    reference_info: dict | None = None,
-    method: str = "twin",
-    config: AutofocusConfig | None = None,
-    bp_options: dict | None = None,
-    progress_factory=None,
-    model: str = "auto",
-    phase_ramp: str = "auto",
-    space_variant: str = "auto",
-    tracking_error_m: float = 0.5e-3,
-    truth_target: np.ndarray | None = None,
-    truth_reference: np.ndarray | None = None,
-    positions_true: np.ndarray | None = None,
-    registration_scores: np.ndarray | None = None,
-    half_bases: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
-    upper_band: Callable[[np.ndarray], np.ndarray] | None = None,
-) -> FocusOutputs:
-    """The focusing steps that follow the sub-image bases: the ladder of correction models
-    (:mod:`twinfocus.ladder`, docs/model_ladder.md) climbed on the reference, the kept model
-    applied to both regions, the metrics.
-
-    Shared by ``twinfocus focus`` (:func:`focus_scan`) and the solver node (bases streamed batch
-    by batch), so both give the same phase, images and metrics keys.
-
-    ref_basis, tgt_basis : complex (M, H, W) sub-image bases of the reference and target regions
-        (:func:`twinfocus.backprojection.subimage_basis`) on ``reference_grid`` / ``target_grid``.
+    ref, tgt : complex (M, H, W) sub-image bases of the reference and target regions
+    (:func:`twinfocus.backprojection.subimage_basis`) on ``reference_grid`` / ``target_grid``;
     positions : float64 (M, K, 3) tracked phase centres, metres; chirp : the scan's
-        :class:`~twinfocus.radar.Chirp`.
-    template : float (H, W) amplitude, or complex (H, W) image with its phase, on
-        ``reference_grid`` (required for ``method="twin"``; the phase is what
-        ``config.template_registration`` / ``config.init="correlation"`` need).
-    support : bool (H, W) the reference's outline on ``reference_grid`` (a digital twin's), which
-        ``config.init="outline"`` needs; the corrected reference is then read against it
-        (:func:`twinfocus.outline_fill.outline_fill`, metrics.json ``reference_outline``, which the
-        confidence report judges instead of the reference's SSIM against the template's picture).
-    reference_info : what a digital twin's cloud conditioning chose and why
-        (:attr:`twinfocus.digital_twin.condition.DigitalTwinReference.info`): written to metrics.json
-        as ``digital_twin``; the confidence report reads its ``curved``.
-    method : ``"twin"`` (reference vs template), ``"sharpness"``, ``"entropy"`` or ``"pga"`` (of the
-        target itself, :mod:`twinfocus.reference_free`; metrics.json ``reference_free``) or ``"none"``.
-    config : :class:`~twinfocus.autofocus.AutofocusConfig`, handed to the autofocus as is.
-    bp_options : the back-projection options the bases were built with (recorded in ``config``).
-    model, phase_ramp, space_variant : the ladder's knob and the placement's and the drift's own
-        settings (:func:`twinfocus.ladder.build_ladder`); metrics.json ``model`` records every rung.
-    tracking_error_m : the tracker's position error magnitude assumed by the confidence report.
-    progress_factory : ``label -> progress callable`` (see :class:`twinfocus.progress.Progress`).
-    truth_target, truth_reference : complex (H, W) images on the true positions, and
-        positions_true : float64 (M, K, 3): with all three, the metrics against the truth.
-    registration_scores : the template registration's scores, when already accumulated (the
-        solver node); see :func:`~twinfocus.autofocus.twin_autofocus`.
-    half_bases, upper_band : the half-array bases and the upper band's basis, called only when
-        the tilt and range-errors rungs run (:func:`half_array_bases`, :func:`upper_band_basis`).
+    :class:`~twinfocus.radar.Chirp`; registration_scores : the template registration's scores when
+    already accumulated (the solver node); half_bases, upper_band : the half-array bases and the
+    upper band's basis, called only when the tilt and range-errors rungs run
+    (:func:`half_array_bases`, :func:`upper_band_basis`)."""
 
-    Returns :class:`FocusOutputs` (``timings_s`` holds ``autofocus``; ``metrics`` has no
-    ``timings_s``: the caller adds its own).
-    """
-    _check_method(method, template)
-    cfg = config or AutofocusConfig()
-    cfg.validate()
-    rungs = build_ladder(model, method=method, phase_ramp=phase_ramp, space_variant=space_variant)
-    check_has_signal(ref_basis.sum(axis=0), "the reference region", basis=ref_basis)
-    if template is not None:
-        check_has_signal(template, "the template")
-    problem = Problem(ref_basis, tgt_basis, positions, chirp, reference_grid, target_grid, cfg, template, support,
-                      registration_scores, half_bases, upper_band, progress_factory, reference_trust)  # fmt: skip
-    kept, section = climb(problem, rungs)
-    kept = rig_placed(kept, problem, reference_info)  # a calibrated rig: the reference where the camera saw it
-    targets = section.pop("targets")
-    m: dict = {"method": method, "n_positions": int(positions.shape[0]), "n_channels": int(positions.shape[1])}
-    if reference_info is not None:
-        m["digital_twin"] = reference_info
-    m["model"] = {"asked": model, **section}
-    m.update(legacy_entries(problem, kept, section))
-    free = [e["info"] for e in section["rungs"] if e["rung"] in REFERENCE_FREE and e["kept"] and e.get("info")]
-    if free:
-        m["reference_free"] = free[0]
-    out = FocusOutputs(
-        reference_grid=reference_grid,
-        target_grid=target_grid,
-        method=method,
-        phase_rad=kept.target_phase(problem),
-        reference=kept.apply(problem, "reference"),
-        reference_uncorrected=ref_basis.sum(axis=0),
-        target=kept.apply(problem, "target"),
-        target_uncorrected=tgt_basis.sum(axis=0),
-        template=None if template is None else np.abs(template).astype(np.float32),
-        loss_history=kept.loss_history,
-        metrics=m,
-        timings_s=rung_timings(section),
-        config={**cfg.to_dict(), **{f"bp_{k}": v for k, v in (bp_options or {}).items()}},
-        drift_m=kept.drift_m,
-        rung_targets=targets,
-    )
-    # metrics against the template the phases were fitted to (moved when registered)
-    add_template_metrics(m, out, kept.template, cfg.threshold_centre, cfg.threshold_steepness)
-    if method == "twin" and support is not None:
-        # a digital twin's like-with-like check (the confidence report reads it)
-        m["reference_outline"] = {**outline_fill(out.reference, support), **(problem.surface or {})}
-    if method == "twin":
-        m["phase_step_coherence"] = round(step_coherence(out.phase_rad), 4)
-        m["phase_concentration"] = round(phase_concentration(out.phase_rad), 4)
-    if method == "twin" and support is not None and kept.drift_m is None:
-        # the target formed by one phase per position: is a defocus left on it?
-        t = time.perf_counter()
-        gain, quadratic = defocus_gain_nats(tgt_basis, out.phase_rad, problem.centres)
-        m["target_defocus"] = {"entropy_gain_nats": round(gain, 4), "quadratic_rad": [round(float(q), 3) for q in quadratic],
-                               "time_s": round(time.perf_counter() - t, 3)}  # fmt: skip
-    m["confidence"] = confidence_report(m, positions, chirp, reference_grid, target_grid, tracking_error_m)
-    if truth_target is not None and truth_reference is not None and positions_true is not None:
-        add_truth_metrics(out, tgt_basis, positions, chirp, truth_target, truth_reference, positions_true,
-                          cfg.threshold_centre, cfg.threshold_steepness)  # fmt: skip
-    return out
+    ref: np.ndarray
+    tgt: np.ndarray
+    positions: np.ndarray
+    chirp: Chirp
+    reference_grid: ImageGrid
+    target_grid: ImageGrid
+    registration_scores: np.ndarray | None = None
+    half_bases: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
+    upper_band: Callable[[np.ndarray], np.ndarray] | None = None
 
 
-def rung_timings(section: dict) -> dict[str, float]:
-    """The timings_s entries of the ladder's rungs (read-only aliases of the ``model`` section's
-    ``time_s``): ``autofocus`` (the estimate: phase and refine, or a reference-free rung),
-    ``range_errors``, ``half_array_bases`` (the tilt's back-projection of one half of the array's
-    channels, when it ran) and ``space_variant`` (the drift or tilt kept, less those bases)."""
-    seconds = {e["rung"]: e["time_s"] for e in section["rungs"] if e["tried"]}
-    out = {
-        "autofocus": sum(
-            v for k, v in seconds.items() if k not in ("none", "placement", "range_errors", "drift", "tilt")
-        )
-    }
-    if "range_errors" in seconds:
-        out["range_errors"] = seconds["range_errors"]
-    for e in section["rungs"]:
-        halves_s = e.get("info", {}).get("half_array_bases_s") if e["tried"] else None
-        if halves_s is not None:
-            out["half_array_bases"] = halves_s
-        if e["rung"] in ("drift", "tilt") and e["kept"] and "space_variant" not in out:
-            out["space_variant"] = e["time_s"] - (halves_s or 0.0)
-    return out
+@dataclass
+class Truth:
+    """What a simulated scan knows: complex (H, W) images of the target and the reference formed on
+    the true positions, and those positions, float64 (M, K, 3) metres."""
+
+    target: np.ndarray
+    reference: np.ndarray
+    positions: np.ndarray
 
 
 def add_template_metrics(
@@ -696,9 +446,51 @@ def confidence_report(
     transfer bound for this geometry (paper eq. 7) and warnings when either is poor.
 
     m : the metrics so far: ``reference_ssim_vs_template_corrected``, ``reference_residual``,
-    ``digital_twin`` and the ``model`` section (:func:`_model_view`); positions : float64 (M, K, 3)
-    phase centres, metres."""
-    est, ramp, reg = _model_view(m)
+    ``digital_twin`` and the ``model`` section (:func:`twinfocus.ladder.model_view`); positions :
+    float64 (M, K, 3) phase centres, metres."""
+    est, ramp, reg = model_view(m)
+    out = _transfer_checks(positions, chirp, reference_grid, target_grid, tracking_error_m)
+    out["reference_match_ssim"] = m.get("reference_ssim_vs_template_corrected")
+    out["warnings"] = out.pop("warnings")  # after the match, as the report has always listed them
+    match = out["reference_match_ssim"]
+    least = MIN_REFERENCE_MATCH_PHYSICAL if reg else MIN_REFERENCE_MATCH
+    fill = m.get("reference_outline")
+    if fill is not None:
+        _outline_fill_checks(out, m, est, fill)
+    elif match is not None and match < least:
+        out["warnings"].append(
+            f"the corrected reference matches its template poorly (SSIM {match:.2f} < {least}); "
+            "check the template, the reference region and the template's placement"
+        )
+    if "refine_check" in est:
+        # what auto chose for an amplitude template, from the projections' own phases
+        out["estimator_choice"] = est["refine_check"]["why"]
+    _placement_checks(out, est, ramp)
+    if "outline" in est:
+        _outline_estimator_checks(out, m, est)
+    _residual_and_drift_checks(out, m, fill is not None)
+    free = (m.get("reference_free") or {}).get("warning")
+    if free:
+        out["warnings"].append(free)
+    if m.get("method") in REFERENCE_FREE_RUNGS:
+        out["warnings"].append(unchecked_warning(m["method"]))
+    if reg and reg.get("at_limit"):
+        out["warnings"].append(
+            f"the template registration stopped at its search limit (shift {reg['shift_px'][0]:+.1f}, "
+            f"{reg['shift_px'][1]:+.1f} px): the template is placed farther off than that; check its placement"
+        )
+    if "model" in m:
+        out["model"] = m["model"]["result"]
+    out.update(rig_trust((m.get("digital_twin") or {}).get("rig"), out["warnings"]))
+    out["trusted"] = not out["warnings"]
+    return out
+
+
+def _transfer_checks(
+    positions: np.ndarray, chirp: Chirp, reference_grid: ImageGrid, target_grid: ImageGrid, tracking_error_m: float
+) -> dict:
+    """The report's geometry: the regions' separation seen from the scan's centre, the transfer
+    bound for ``tracking_error_m`` (paper eq. 7), and a warning when the bound passes pi/4."""
     bound = metrics.transfer_bound_rad(
         positions, reference_grid.centre_m, target_grid.centre_m, chirp.wavelength_m, tracking_error_m
     )
@@ -720,7 +512,6 @@ def confidence_report(
         "tracking_error_m_assumed": float(tracking_error_m),
         "transfer_bound_rad_max": float(bound.max()),
         "transfer_bound_rad_rms": float(np.sqrt((bound**2).mean())),
-        "reference_match_ssim": m.get("reference_ssim_vs_template_corrected"),
         "warnings": [],
     }
     if bound.max() > np.pi / 4:
@@ -728,34 +519,31 @@ def confidence_report(
             f"reference and target are {sep:.0f} deg apart: their phase errors may differ by up to "
             f"{bound.max():.2f} rad (> pi/4) for {tracking_error_m * 1e3:.1f} mm tracking error; the transfer is not to be trusted"
         )
-    match = out["reference_match_ssim"]
-    least = MIN_REFERENCE_MATCH_PHYSICAL if reg else MIN_REFERENCE_MATCH
-    fill = m.get("reference_outline")
-    if fill is not None:
-        # a digital twin: its template is an outline, which a speckled reference never matches
-        # as a picture; read the reference against the outline instead
-        out["reference_outline"] = fill
-        agreement = (est.get("outline_ensemble") or {}).get("agreement")
-        out["warnings"] += outline_warnings(fill, agreement)
-        defocus = m.get("target_defocus")
-        if defocus is not None:
-            out["target_defocus_gain_nats"] = defocus["entropy_gain_nats"]
-            if defocus["entropy_gain_nats"] > MAX_TARGET_DEFOCUS_GAIN_NATS:
-                out["warnings"].append(
-                    f"the corrected target is not at its focus: a quadratic phase across the aperture lowers its "
-                    f"entropy by {defocus['entropy_gain_nats']:.2f} nats (> {MAX_TARGET_DEFOCUS_GAIN_NATS}; at most 0.04 "
-                    "on bench results that reached 0.95), so the outline estimate left a defocus that the "
-                    f"reference did not show; expect the target below its ceiling; {DIGITAL_TWIN_NEXT} "
-                    "(docs/digital_twin_field.md)"
-                )
-    elif match is not None and match < least:
-        out["warnings"].append(
-            f"the corrected reference matches its template poorly (SSIM {match:.2f} < {least}); "
-            "check the template, the reference region and the template's placement"
-        )
-    if "refine_check" in est:
-        # what auto chose for an amplitude template, from the projections' own phases
-        out["estimator_choice"] = est["refine_check"]["why"]
+    return out
+
+
+def _outline_fill_checks(out: dict, m: dict, est: dict, fill: dict) -> None:
+    """A digital twin: its template is an outline, which a speckled reference never matches as a
+    picture; the reference is read against the outline instead, and the target for a defocus."""
+    out["reference_outline"] = fill
+    agreement = (est.get("outline_ensemble") or {}).get("agreement")
+    out["warnings"] += outline_warnings(fill, agreement)
+    defocus = m.get("target_defocus")
+    if defocus is not None:
+        out["target_defocus_gain_nats"] = defocus["entropy_gain_nats"]
+        if defocus["entropy_gain_nats"] > MAX_TARGET_DEFOCUS_GAIN_NATS:
+            out["warnings"].append(
+                f"the corrected target is not at its focus: a quadratic phase across the aperture lowers its "
+                f"entropy by {defocus['entropy_gain_nats']:.2f} nats (> {MAX_TARGET_DEFOCUS_GAIN_NATS}; at most 0.04 "
+                "on bench results that reached 0.95), so the outline estimate left a defocus that the "
+                f"reference did not show; expect the target below its ceiling; {DIGITAL_TWIN_NEXT} "
+                "(docs/digital_twin_field.md)"
+            )
+
+
+def _placement_checks(out: dict, est: dict, ramp: dict) -> None:
+    """Where the estimate put the reference: the band's halves' ramp when they were read, and a
+    warning when the estimate's phases have wrapped."""
     coherence = est.get("phase_coherence_sqrt_m")
     ranged = ramp.get("ramp_coherence_sqrt_m")
     if ranged is not None:
@@ -769,31 +557,38 @@ def confidence_report(
     if coherence is not None:
         out["phase_coherence_sqrt_m"] = coherence
         out["warnings"] += placement_warnings(coherence, ranged, bool(ramp.get("removed")), "outline" in est)
-    if "outline" in est:
-        # how sure the outline estimator is: the energy it put inside the outline, and how many of
-        # its starts ended within 0.01 of the chosen one (several far-apart maxima: less sure)
-        info = est["outline"]
-        inside = info["energy_inside"]
-        out["outline_energy_inside"] = inside[info.get("chosen", int(np.argmax(inside)))]
-        if "contrast" in info:
-            # the starts that ended within 5 % of the chosen end's speckle contrast
-            least = min(info["contrast"])
-            out["outline_starts_agreeing"] = f"{sum(c <= 1.05 * least for c in info['contrast'])}/{len(inside)}"
-        else:
-            best = max(inside)
-            out["outline_starts_agreeing"] = f"{sum(v >= best - 0.01 for v in inside)}/{len(inside)}"
-        if "outline_ensemble" in est:
-            out["outline_agreement"] = est["outline_ensemble"]["agreement"]
-        twin = m.get("digital_twin") or {}
-        if twin.get("curved"):
-            # measured, not modelled: the outline is drawn on the region's plane, which a curved
-            # reference leaves, and no draw of a bent plate came near its ceiling
-            out["warnings"].append(
-                f"the reference is curved (its cloud departs {1e3 * float(twin.get('curvature_m', 0.0)):.1f} mm from a "
-                "plane): the outline estimator reached 0.86 +- 0.06 of target SSIM on a bent plate and 0.87 +- 0.06 "
-                "on a cylinder section in held-out field scenes, against 0.94 flat and 0.99 with a physical twin; "
-                'expect the target below its ceiling (docs/digital_twin_autofocus.md, "Curved references")'
-            )
+
+
+def _outline_estimator_checks(out: dict, m: dict, est: dict) -> None:
+    """How sure the outline estimator is: the energy it put inside the outline, and how many of
+    its starts ended within 0.01 of the chosen one (several far-apart maxima: less sure); a
+    warning for a curved reference."""
+    info = est["outline"]
+    inside = info["energy_inside"]
+    out["outline_energy_inside"] = inside[info.get("chosen", int(np.argmax(inside)))]
+    if "contrast" in info:
+        # the starts that ended within 5 % of the chosen end's speckle contrast
+        least = min(info["contrast"])
+        out["outline_starts_agreeing"] = f"{sum(c <= 1.05 * least for c in info['contrast'])}/{len(inside)}"
+    else:
+        best = max(inside)
+        out["outline_starts_agreeing"] = f"{sum(v >= best - 0.01 for v in inside)}/{len(inside)}"
+    if "outline_ensemble" in est:
+        out["outline_agreement"] = est["outline_ensemble"]["agreement"]
+    twin = m.get("digital_twin") or {}
+    if twin.get("curved"):
+        # measured, not modelled: the outline is drawn on the region's plane, which a curved
+        # reference leaves, and no draw of a bent plate came near its ceiling
+        out["warnings"].append(
+            f"the reference is curved (its cloud departs {1e3 * float(twin.get('curvature_m', 0.0)):.1f} mm from a "
+            "plane): the outline estimator reached 0.86 +- 0.06 of target SSIM on a bent plate and 0.87 +- 0.06 "
+            "on a cylinder section in held-out field scenes, against 0.94 flat and 0.99 with a physical twin; "
+            'expect the target below its ceiling (docs/digital_twin_autofocus.md, "Curved references")'
+        )
+
+
+def _residual_and_drift_checks(out: dict, m: dict, digital: bool) -> None:
+    """The reference left unmatched by a template with phase, and the phase's drift along the scan."""
     residual = m.get("reference_residual")
     out["reference_residual"] = residual
     if residual is not None and residual > MAX_REFERENCE_RESIDUAL:
@@ -805,24 +600,9 @@ def confidence_report(
     if step is not None:
         out["phase_step_coherence"] = step
         out["phase_concentration"] = m.get("phase_concentration")
-        drifted = drift_warnings(step, m.get("phase_concentration"), fill is not None, float(sep))
+        drifted = drift_warnings(step, m.get("phase_concentration"), digital, out["separation_deg"])
         out["warnings"] += drifted
         out["drift_warnings"] = len(drifted)
-    free = (m.get("reference_free") or {}).get("warning")
-    if free:
-        out["warnings"].append(free)
-    if m.get("method") in REFERENCE_FREE:
-        out["warnings"].append(unchecked_warning(m["method"]))
-    if reg and reg.get("at_limit"):
-        out["warnings"].append(
-            f"the template registration stopped at its search limit (shift {reg['shift_px'][0]:+.1f}, "
-            f"{reg['shift_px'][1]:+.1f} px): the template is placed farther off than that; check its placement"
-        )
-    if "model" in m:
-        out["model"] = m["model"]["result"]
-    out.update(rig_trust((m.get("digital_twin") or {}).get("rig"), out["warnings"]))
-    out["trusted"] = not out["warnings"]
-    return out
 
 
 def reference_trust(problem: Problem, model: Model) -> str | None:
@@ -858,21 +638,6 @@ def reference_trust(problem: Problem, model: Model) -> str | None:
         if coherence < AUTO_REFINE_BELOW_COHERENCE:
             return f"the estimate's phases have wrapped (coherence x sqrt(M) {coherence:.1f} < {AUTO_REFINE_BELOW_COHERENCE})"
     return None
-
-
-def _model_view(m: dict) -> tuple[dict, dict, dict | None]:
-    """What the confidence report reads of the correction: (the estimate's record: the phase
-    rung's info with the refine rung's ``refine_check``; the placement's record: the range
-    errors' when they were read, else the placement's; the template registration or None), from
-    metrics.json's ``model`` section, or from the older entries when a metrics dict has none."""
-    if "model" not in m:
-        return m.get("estimator") or {}, m.get("phase_ramp") or {}, m.get("template_registration")
-    section = m["model"]
-    est = dict(rung_entry(section, "phase").get("info", {}))
-    est.update({k: v for k, v in rung_entry(section, "refine").get("info", {}).items() if k == "refine_check"})
-    ranged = rung_entry(section, "range_errors")
-    ramp = (ranged if ranged.get("tried") else rung_entry(section, "placement")).get("info", {})
-    return est, ramp, est.get("registration")
 
 
 def write_outputs(out_dir: str | os.PathLike, outputs: FocusOutputs, pictures: str | bool = "summary") -> Path:

@@ -4,21 +4,24 @@
 from __future__ import annotations
 
 import argparse
-import functools
 import os
 import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from twinfocus.atomic import output_folder, refuse_existing
-from twinfocus.depth_search import DEFAULT_HALF_RANGE_M
+from twinfocus.depth_search import DEFAULT_HALF_RANGE_M, range_to_search
 from twinfocus.errors import TwinFocusError
 from twinfocus.estimators import REFERENCE_FREE_RUNGS
 from twinfocus.grid import ImageGrid
 from twinfocus.machine import require_memory
 from twinfocus.option_types import finite_float, positive_float
 from twinfocus.settings import add_focus_options, preload_torch, resolve_device
+
+if TYPE_CHECKING:
+    from twinfocus.focus_plan import FocusPlan
 
 #: bytes per radar position and pixel that a run holds at its peak: the two sub-image bases
 #: (complex64, 8 B each) and the optimiser's copies of the reference basis (float32 [Re | Im]
@@ -72,34 +75,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="search the radar-camera clock offset: each position re-sampled along the scan's track (its time "
         "stamps, else its order) at the offset that focuses --reference-roi sharpest (metrics.json clock_search)",
     )
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument(
-        "--template",
-        nargs="+",
-        metavar="TEMPLATE",
-        help="template file (.npz: image, x_m, y_m, z_m; a digital twin's, from twinfocus twin --out, also its "
-        "outline and conditioning); several: each a reference candidate, the best by the confidence report used "
-        "(metrics.json reference_candidates)",
-    )
-    src.add_argument(
-        "--template-scan",
-        nargs="+",
-        metavar="SCAN",
-        help="scan of the reference alone on accurate positions (physical twin); several: candidates, as --template",
-    )
-    src.add_argument(
-        "--digital-twin",
-        nargs="+",
-        metavar="CLOUD",
-        help="reference point cloud (.npy, (N, 3) metres, scene frame; or BAG:TOPIC, a rosbag2's PointCloud2, "
-        "docs/reference/file_formats.md); several: candidates, as --template",
-    )
-    src.add_argument(
-        "--method",
-        choices=REFERENCE_FREE_RUNGS + ("none",),
-        help="without a template: the target's own sharpness, minimum entropy or phase-gradient autofocus "
-        "(docs/reference_free.md), or no correction",
-    )
+    _add_sources(p)
     p.add_argument(
         "--rig",
         metavar="RIG.json",
@@ -135,6 +111,38 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="also write the template used as a template file (.npz) that --template takes",
     )
     p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def _add_sources(p: argparse.ArgumentParser) -> None:
+    """The reference's source: one of the template options, or a reference-free --method."""
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument(
+        "--template",
+        nargs="+",
+        metavar="TEMPLATE",
+        help="template file (.npz: image, x_m, y_m, z_m; a digital twin's, from twinfocus twin --out, also its "
+        "outline and conditioning); several: each a reference candidate, the best by the confidence report used "
+        "(metrics.json reference_candidates)",
+    )
+    src.add_argument(
+        "--template-scan",
+        nargs="+",
+        metavar="SCAN",
+        help="scan of the reference alone on accurate positions (physical twin); several: candidates, as --template",
+    )
+    src.add_argument(
+        "--digital-twin",
+        nargs="+",
+        metavar="CLOUD",
+        help="reference point cloud (.npy, (N, 3) metres, scene frame; or BAG:TOPIC, a rosbag2's PointCloud2, "
+        "docs/reference/file_formats.md); several: candidates, as --template",
+    )
+    src.add_argument(
+        "--method",
+        choices=REFERENCE_FREE_RUNGS + ("none",),
+        help="without a template: the target's own sharpness, minimum entropy or phase-gradient autofocus "
+        "(docs/reference_free.md), or no correction",
+    )
 
 
 def _check_writable_target(path: str, option: str, folder: bool) -> None:
@@ -399,27 +407,14 @@ def _write_where(out_dir, search, typed_depth, volume, grid, cloud, pictures: st
         volume_pictures(out_dir, *projections(volume, grid), grid)
 
 
-def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, device: str, progress) -> dict:
-    """Everything ``focus`` does with one reference (``args`` names one template source): its
-    region (typed or found), its template, the target's depth when it is searched, the focused
-    outputs. Returns a dict of them (``outputs``, ``search``, ``template``, ``support``,
-    ``twin_info``, ``ref_grid``, ``cache_status``, ``method``)."""
-    import numpy as np
+def _found_region(args: argparse.Namespace, box, bp: dict, progress, rig, timings: dict) -> tuple[tuple, dict]:
+    """The reference region (typed, or found from the twin and cut away from a typed target's box)
+    and how it was found; the search's time into ``timings``."""
+    from twinfocus.boxes import cut_away
 
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.cache import TemplateCache
-    from twinfocus.depth_search import find_target_depth, range_to_search
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.ladder import climbs_to
-    from twinfocus.pipeline import focus_scan
-
-    timings: dict[str, float] = {}
     t = time.perf_counter()
-    rig = _rig(args, scan)  # checked against the scan and the cloud before any work
     reference_roi, reference_found = _reference_region(args, bp, progress, rig)
     if box is not None and reference_found["source"] != "typed":
-        from twinfocus.boxes import cut_away  # a found region stops short of the typed target's
-
         extent = reference_found.get("extent_m", reference_roi)
         reference_roi = (*cut_away(list(reference_roi[:4]), box, extent, box), reference_roi[4])
     if reference_found["source"] != "typed":
@@ -430,63 +425,49 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
                 + " ".join(f"{v:.3f}" for v in reference_roi),
                 file=sys.stderr,
             )
+    return reference_roi, reference_found
+
+
+def _focus_with(args: argparse.Namespace, scan, box, typed_depth, plan: FocusPlan, progress) -> dict:
+    """Everything ``focus`` does with one reference (``args`` names one template source) under
+    ``plan`` (:class:`~twinfocus.focus_plan.FocusPlan`, made from the settings): its region (typed
+    or found), its template, the target's depth when it is searched, the focused outputs. Returns
+    a dict of them (``outputs``, ``search``, ``template``, ``support``, ``twin_info``,
+    ``ref_grid``, ``method``, ``boxes``, ``typed_depth``)."""
+    from twinfocus import boxes
+    from twinfocus.cache import TemplateCache
+    from twinfocus.focus_plan import Target
+    from twinfocus.pipeline import Reference
+
+    timings: dict[str, float] = {}
+    bp = dict(plan.bp_options)
+    rig = _rig(args, scan)  # checked against the scan and the cloud before any work
+    reference_roi, reference_found = _found_region(args, box, bp, progress, rig, timings)
     ref_grid = ImageGrid.from_roi(reference_roi, args.size)
     depth_range = range_to_search(typed_depth, args.refine_depth, ref_grid.z)
-    if (args.template_scan or args.template) and climbs_to("drift", args.model, args.space_variant):
+    if (args.template_scan or args.template) and plan.needs.torch:
         preload_torch()  # a template with phase: the ladder may fit a drift, with torch
     t = time.perf_counter()
     template, cache_status, support, twin_info = _template(
         args, scan, ref_grid, bp, progress, TemplateCache(enabled=not args.no_cache), rig
     )
     timings["template"] = time.perf_counter() - t
-    method = "twin" if template is not None else args.method
-    has_phase = template is not None and np.iscomplexobj(template)
-    chosen = {}
-    if method == "twin":
-        chosen = estimator_settings(args.estimator, has_phase, has_support=support is not None, model=args.model)
-    if args.loss_steepness is not None:
-        chosen["loss_steepness"] = args.loss_steepness
-    cfg = AutofocusConfig.from_settings({**vars(args), "device": device}, **chosen)  # validated
-    focus = functools.partial(
-        focus_scan,
-        reference_grid=ref_grid,
-        template=template,
-        support=support,
-        reference_info=twin_info,
-        method=method,
-        config=cfg,
-        bp_options=bp,
-        progress_factory=progress,
-        model=args.model,
-        phase_ramp=args.phase_ramp,
-        tracking_error_m=args.tracking_error_mm * 1e-3,
-    )
-    found_boxes = None
+    plan = plan.for_reference(template, support)
+    reference = Reference(template, support, twin_info)
+    found_boxes = seen = None
     if box is None:
-        from twinfocus import boxes
-
         t = time.perf_counter()
         extent = reference_found.get("extent_m", reference_roi)
         found_boxes, seen = boxes.find_target(
-            focus, scan, reference_roi, extent, reference_found["source"], bp, progress
+            plan.focuser(ref_grid, reference), scan, reference_roi, extent, reference_found["source"], bp, progress
         )
         timings["boxes"] = time.perf_counter() - t
         box, typed_depth = found_boxes.target_roi[:4], found_boxes.target_roi[4]
         depth_range = range_to_search(typed_depth, args.refine_depth, ref_grid.z)
         if not args.quiet:
             print(found_boxes.line(), file=sys.stderr)
-    search = None
-    if depth_range is not None:
-        t = time.perf_counter()
-        search, search_info = find_target_depth(focus, scan, box, depth_range, method, bp, progress)
-        timings["target_depth"] = time.perf_counter() - t
-        tgt_grid = ImageGrid.from_roi((*box, search.depth_m), args.size)
-    else:
-        assert isinstance(typed_depth, float)
-        tgt_grid = ImageGrid.from_roi((*box, typed_depth), args.size)
-    outputs = focus(scan, target_grid=tgt_grid, space_variant=args.space_variant)
-    if search is not None:
-        outputs.metrics["target_depth"] = {**search_info, **search.to_dict()}
+    target = Target(tuple(box), typed_depth if isinstance(typed_depth, float) else None, depth_range, args.size)
+    outputs, search = plan.focus_target(scan, ref_grid, reference, target)
     outputs.metrics["reference_search"] = {**reference_found, "roi": list(reference_roi)}
     if found_boxes is not None:
         outputs.metrics["boxes"] = found_boxes.info
@@ -502,7 +483,7 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, bp: dict, devi
         "support": support,
         "twin_info": twin_info,
         "ref_grid": ref_grid,
-        "method": method,
+        "method": plan.method,
         "boxes": (found_boxes, seen) if found_boxes is not None else None,
         "typed_depth": typed_depth,
     }
@@ -546,83 +527,18 @@ def _saved_template_path(args: argparse.Namespace, out_dir: Path) -> Path:
     return path
 
 
-def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) -> int:
-    from twinfocus.pipeline import write_outputs
-    from twinfocus.progress import Progress
-    from twinfocus.reference_search import candidate_score
-    from twinfocus.scan import Scan
+def _form_volume(
+    args: argparse.Namespace, shapes: dict, scan, outputs, ref_grid: ImageGrid, bp: dict, progress, timings: dict
+):
+    """``--volume``: the corrected volume (:func:`twinfocus.volume.corrected_image` with the
+    outputs' phase), its bright voxels and its grid, its figures into ``outputs.metrics["volume"]``
+    and its time into ``timings``; (None, None, None) without ``--volume``."""
     from twinfocus.volume import bright_voxels, corrected_image
 
-    pictures = "none" if args.no_pictures else args.pictures
-    device = resolve_device(args.device)
-    bp = {"oversample": args.oversample, "precision": args.precision}
-    if device != "cpu":
-        bp.update(backend="torch", device=device)
-    progress = lambda label: Progress(label, enabled=not args.quiet)
-    box, typed_depth = target_region(args.target_roi)
-
-    t = time.perf_counter()
-    scan = Scan.load(args.scan)
-    if args.digital_twin:
-        from twinfocus.digital_twin.template import pin_bag_clouds
-
-        args.digital_twin = pin_bag_clouds(args.digital_twin, scan.timestamps_ns, quiet=args.quiet)
-    load_s = time.perf_counter() - t
-    clock = None
-    if args.clock_search:
-        from twinfocus.clock_offset import search_scan_clock
-
-        scan, clock = search_scan_clock(
-            scan, args.reference_roi, 32, bp, template=_clock_template(args), fine_size=args.size
-        )
-        if not args.quiet:
-            print(f"[clock] offset {clock['offset_s']:+.4f} {clock['unit']} by the reference's focus", file=sys.stderr)
-    candidates = _candidates(args)
-    results, listed = [], []
-    for path, cand_args in candidates:
-        if len(candidates) > 1 and not args.quiet:
-            print(f"[reference] candidate {path}", file=sys.stderr)
-        r = _focus_with(cand_args, scan, box, typed_depth, bp, device, progress)
-        conf = r["outputs"].metrics["confidence"]
-        results.append(r)
-        listed.append(
-            {
-                "path": path,
-                "reference_roi": list(r["ref_grid"].roi),
-                "score": candidate_score(conf),
-                "reference_match_ssim": conf.get("reference_match_ssim"),
-                "warnings": len(conf["warnings"]),
-                "target_roi": list(r["outputs"].target_grid.roi),
-                # known only for a simulated scan: how the choice fared
-                "target_ssim_corrected": r["outputs"].metrics.get("target_ssim_corrected"),
-            }
-        )
-    best = max(range(len(results)), key=lambda i: listed[i]["score"])
-    chosen = results[best]
-    outputs, search, template = chosen["outputs"], chosen["search"], chosen["template"]
-    support, twin_info, ref_grid, method = chosen["support"], chosen["twin_info"], chosen["ref_grid"], chosen["method"]
-    if len(candidates) > 1:
-        outputs.metrics["reference_candidates"] = {"chosen": best, "candidates": listed}
-        if not args.quiet:
-            print(f"[reference] chose {listed[best]['path']} (score {listed[best]['score']:.3f})", file=sys.stderr)
-    timings = {"load_scan": load_s, **outputs.timings_s}
-    outputs.timings_s = timings
-    outputs.metrics["timings_s"] = timings
-    from twinfocus.sensors.capture_to_scan import read_capture_report
-
-    if clock is not None:
-        outputs.metrics["clock_search"] = clock
-    gaps = read_capture_report(args.scan)  # written by `twinfocus convert` beside a real capture
-    if gaps:
-        outputs.metrics["capture"] = gaps
-    if args.save_template and template is not None:
-        from twinfocus.templates import save_template
-
-        save_template(_saved_template_path(args, out_dir), template, ref_grid, support=support, info=twin_info)
     volume, cloud = None, None
     plan = volume_plan(args, shapes["data"][0], shapes["data"][1], ref_grid.roi, outputs.target_grid.roi[:4])
     sub_arrays = None
-    if plan is not None and device == "cpu" and args.precision == "float32":
+    if plan is not None and bp.get("device", "cpu") == "cpu" and args.precision == "float32":
         from twinfocus.line_backprojection import plan as line_plan
         from twinfocus.volume import volume_cost
 
@@ -652,9 +568,99 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
         outputs.metrics["volume"].update(
             files=dict(VOLUME_FILES), points=len(cloud[0]), points_threshold_db=VOLUME_THRESHOLD_DB
         )
+    return volume, cloud, plan[0] if plan else None
+
+
+def _best_candidate(args: argparse.Namespace, candidates: list, scan, box, typed_depth, plan: FocusPlan, progress):
+    """Each reference candidate (:func:`_candidates`) focused (:func:`_focus_with`), the best by
+    the confidence report (:func:`twinfocus.reference_search.candidate_score`): (its result, its
+    index, every candidate's record for metrics.json ``reference_candidates``)."""
+    from twinfocus.reference_search import candidate_score
+
+    results, listed = [], []
+    for path, cand_args in candidates:
+        if len(candidates) > 1 and not args.quiet:
+            print(f"[reference] candidate {path}", file=sys.stderr)
+        r = _focus_with(cand_args, scan, box, typed_depth, plan, progress)
+        conf = r["outputs"].metrics["confidence"]
+        results.append(r)
+        listed.append(
+            {
+                "path": path,
+                "reference_roi": list(r["ref_grid"].roi),
+                "score": candidate_score(conf),
+                "reference_match_ssim": conf.get("reference_match_ssim"),
+                "warnings": len(conf["warnings"]),
+                "target_roi": list(r["outputs"].target_grid.roi),
+                # known only for a simulated scan: how the choice fared
+                "target_ssim_corrected": r["outputs"].metrics.get("target_ssim_corrected"),
+            }
+        )
+    best = max(range(len(results)), key=lambda i: listed[i]["score"])
+    return results[best], best, listed
+
+
+def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) -> int:
+    # the numerics load here, once a focus runs: `focus --help` and the refusals before any work
+    # take 1.0 s instead of 4.0 s with them in the module's header (load 25, 2 cores)
+    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.pipeline import write_outputs
+    from twinfocus.progress import Progress
+    from twinfocus.scan import Scan
+
+    pictures = "none" if args.no_pictures else args.pictures
+    device = resolve_device(args.device)
+    bp = {"oversample": args.oversample, "precision": args.precision}
+    if device != "cpu":
+        bp.update(backend="torch", device=device)
+    progress = lambda label: Progress(label, enabled=not args.quiet)
+    box, typed_depth = target_region(args.target_roi)
+    # made once for every candidate: a template source focuses with the twin, else --method
+    method = "twin" if args.template or args.template_scan or args.digital_twin else args.method
+    plan = FocusPlan.from_settings({**vars(args), "device": device}, method, bp_options=bp, progress_factory=progress)
+
+    t = time.perf_counter()
+    scan = Scan.load(args.scan)
+    if args.digital_twin:
+        from twinfocus.digital_twin.template import pin_bag_clouds
+
+        args.digital_twin = pin_bag_clouds(args.digital_twin, scan.timestamps_ns, quiet=args.quiet)
+    load_s = time.perf_counter() - t
+    clock = None
+    if args.clock_search:
+        from twinfocus.clock_offset import search_scan_clock
+
+        scan, clock = search_scan_clock(
+            scan, args.reference_roi, 32, bp, template=_clock_template(args), fine_size=args.size
+        )
+        if not args.quiet:
+            print(f"[clock] offset {clock['offset_s']:+.4f} {clock['unit']} by the reference's focus", file=sys.stderr)
+    candidates = _candidates(args)
+    chosen, best, listed = _best_candidate(args, candidates, scan, box, typed_depth, plan, progress)
+    outputs, search, template = chosen["outputs"], chosen["search"], chosen["template"]
+    support, twin_info, ref_grid, method = chosen["support"], chosen["twin_info"], chosen["ref_grid"], chosen["method"]
+    if len(candidates) > 1:
+        outputs.metrics["reference_candidates"] = {"chosen": best, "candidates": listed}
+        if not args.quiet:
+            print(f"[reference] chose {listed[best]['path']} (score {listed[best]['score']:.3f})", file=sys.stderr)
+    timings = {"load_scan": load_s, **outputs.timings_s}
+    outputs.timings_s = timings
+    outputs.metrics["timings_s"] = timings
+    from twinfocus.sensors.capture_to_scan import read_capture_report
+
+    if clock is not None:
+        outputs.metrics["clock_search"] = clock
+    gaps = read_capture_report(args.scan)  # written by `twinfocus convert` beside a real capture
+    if gaps:
+        outputs.metrics["capture"] = gaps
+    if args.save_template and template is not None:
+        from twinfocus.templates import save_template
+
+        save_template(_saved_template_path(args, out_dir), template, ref_grid, support=support, info=twin_info)
+    volume, cloud, volume_grid = _form_volume(args, shapes, scan, outputs, ref_grid, bp, progress, timings)
     t = time.perf_counter()
     write_outputs(out_dir, outputs, pictures=pictures)
-    _write_where(out_dir, search, chosen["typed_depth"], volume, plan[0] if plan else None, cloud, pictures)
+    _write_where(out_dir, search, chosen["typed_depth"], volume, volume_grid, cloud, pictures)
     if chosen["boxes"] is not None and pictures != "none":
         from twinfocus.atomic import atomic_writer
         from twinfocus.boxes import look_picture

@@ -24,8 +24,9 @@ from twinfocus.array_errors import (
 from twinfocus.backprojection import backproject
 from twinfocus.calibration import apply_calibration, find_corner, make_calibration
 from twinfocus.errors import TwinFocusError
+from twinfocus.focus_plan import FocusPlan
 from twinfocus.metrics import image_ssim
-from twinfocus.pipeline import focus_scan
+from twinfocus.pipeline import Reference
 from twinfocus.radar import mmwcas_virtual_array
 from twinfocus.scan import Scan
 from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
@@ -83,7 +84,7 @@ def calibration_case(
     for name, (s, t) in variants.items():
         template = template_from_scan(t, ref_grid, keep_phase=True)
         try:
-            focused = focus_scan(s, ref_grid, tgt_grid, template=template)
+            focused = FocusPlan.make().focus_scan(s, ref_grid, tgt_grid, Reference(template=template))
         except TwinFocusError as exc:
             # An uncalibrated array can smear the reference past recognition: focus refuses, and
             # what the user has is the image without autofocus.

@@ -4,7 +4,7 @@ as a row against both regions typed.
 ``twinfocus bench where`` simulates scenes of the baseline letters with the realistic
 impairments of the paper evaluation (:class:`twinfocus.scenario.Scenario`'s defaults: speckle,
 10 dB noise, 0.5 mm x/y/z tracking error, a physical twin captured 1 mm off), and focuses each
-with the physical twin (:func:`twinfocus.pipeline.focus_scan`, one phase per position):
+with the physical twin (:meth:`twinfocus.focus_plan.FocusPlan.focus_scan`, one phase per position):
 
 * ``typed``: both regions typed (the baseline of every other row);
 * ``reference found``: the reference's region from a coarse search of the twin's own scan
@@ -24,7 +24,6 @@ chosen. The report: one table row each, with its mean SSIM and its difference fr
 
 from __future__ import annotations
 
-import functools
 import json
 import time
 from dataclasses import replace
@@ -56,8 +55,9 @@ def where_case(
     ``ssim``, ``seconds`` and, per row, ``depth_error_m``, ``reference_roi``, ``right_twin``."""
     from twinfocus.autofocus import AutofocusConfig
     from twinfocus.depth_search import default_range, find_target_depth, range_to_search
+    from twinfocus.focus_plan import FocusPlan
     from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import focus_scan
+    from twinfocus.pipeline import Reference
     from twinfocus.reference_search import candidate_score, region_from_scan
     from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario, template_scan
     from twinfocus.templates import template_from_scan
@@ -69,13 +69,8 @@ def where_case(
     box, true_z = tgt_grid.roi[:4], tgt_grid.z
 
     def focus(ref: ImageGrid, twin_scan, tgt: ImageGrid | None = None, depth_range=None) -> tuple[dict, ImageGrid]:
-        run = functools.partial(
-            focus_scan,
-            reference_grid=ref,
-            template=template_from_scan(twin_scan, ref, keep_phase=True),
-            config=cfg,
-            space_variant="off",
-        )
+        reference = Reference(template_from_scan(twin_scan, ref, keep_phase=True))
+        run = FocusPlan.make(config=cfg, space_variant="off").focuser(ref, reference)
         if depth_range is not None:
             search, _ = find_target_depth(run, scan, box, depth_range, "twin", {})
             tgt = ImageGrid.from_roi((*box, search.depth_m), size)
