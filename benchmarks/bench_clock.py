@@ -16,7 +16,7 @@ and with the clocks agreeing.
 Bench draws (seeds 1001 on, letters ``BENCH_LETTERS``) are what the search was built on; held-out
 draws (seeds 2001 on, letters ``HELDOUT_LETTERS``, none shared) only check it.
 
-    python -m benchmarks.bench_clock [--draws 2] [--heldout] [--out benchmarks/results]
+    python -m benchmarks.bench_clock [--draws 2] [--heldout] [--offsets-ms 0,15,50,100] [--out benchmarks/results]
 
 Writes ``clock.json`` (``clock_heldout.json``); docs/sensors.md quotes them. Small on purpose (one
 core, a few minutes a draw): the sizes are in the file.
@@ -209,13 +209,13 @@ def summary(draws: list[dict]) -> dict:
 
 
 def main(out_dir="benchmarks/results", draws: int = 2, heldout: bool = False, columns: int = 3, rows: int = 130,
-         size: int = 48) -> dict:  # fmt: skip
+         size: int = 48, offsets=OFFSETS_S) -> dict:  # fmt: skip
     t_start = time.perf_counter()
     first, letters = (HELDOUT_SEED, HELDOUT_LETTERS) if heldout else (BENCH_SEED, BENCH_LETTERS)
     results = []
     for k in range(draws):
         sc, speed = draw(first + k, letters, columns, rows)
-        results.append(run_draw(sc, speed, size))
+        results.append(run_draw(sc, speed, size, offsets))
     doc = {
         "sizes": {"columns": columns, "rows": rows, "image": size, "search_image": SEARCH_SIZE},
         "heldout": heldout,
@@ -240,5 +240,6 @@ if __name__ == "__main__":
     ap.add_argument("--columns", type=int, default=3)
     ap.add_argument("--rows", type=int, default=130)
     ap.add_argument("--size", type=int, default=48)
+    ap.add_argument("--offsets-ms", default=",".join(f"{v * 1e3:g}" for v in OFFSETS_S))
     a = ap.parse_args()
-    main(a.out, a.draws, a.heldout, a.columns, a.rows, a.size)
+    main(a.out, a.draws, a.heldout, a.columns, a.rows, a.size, tuple(float(v) * 1e-3 for v in a.offsets_ms.split(",")))
