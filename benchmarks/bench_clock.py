@@ -75,7 +75,7 @@ def camera_positions(true: np.ndarray, tracked: np.ndarray, times_s: np.ndarray,
     starts = [*(int(v) for v in leg_starts(t, true)), len(t)]
     out = resample_track(t, true, at_s)
     for i in range(len(starts) - 1):
-        a, b = starts[i], starts[i + 1]
+        b = starts[i + 1]
         v_end = (true[b - 1] - true[b - 2]) / (t[b - 1] - t[b - 2])
         if i == 0:  # before the first frame: the hand already moving along the first leg
             v0 = (true[1] - true[0]) / (t[1] - t[0])
@@ -128,7 +128,11 @@ def run_draw(sc: Scenario, speed: float, size: int, offsets=OFFSETS_S, sharpness
     }
     rows_out = []
     for off in offsets:
-        print(f"[clock] {sc.reference} -> {sc.target} seed {sc.seed}: offset {off * 1e3:g} ms", file=sys.stderr, flush=True)
+        print(
+            f"[clock] {sc.reference} -> {sc.target} seed {sc.seed}: offset {off * 1e3:g} ms",
+            file=sys.stderr,
+            flush=True,
+        )
         late = replace(scan, positions=camera_positions(scan.positions_true, scan.positions, t, t + off))
         # convert's view: the camera's poses stamped off behind, the radar's frames at t
         centre = late.positions.mean(axis=1)
@@ -159,9 +163,7 @@ def run_draw(sc: Scenario, speed: float, size: int, offsets=OFFSETS_S, sharpness
             row[f"{name}_search_s"] = time.perf_counter() - t0
         row["physical_no_search"] = _ssim(late, rg, tg, physical)
         row["physical_clock_search"] = _ssim(found["physical"], rg, tg, physical)
-        row["digital_no_search"] = _ssim(
-            late, rg, tg, psf_template(ref_pts, late.positions, scan.chirp, rg, ref_amps)
-        )
+        row["digital_no_search"] = _ssim(late, rg, tg, psf_template(ref_pts, late.positions, scan.chirp, rg, ref_amps))
         for name in ("digital", "sharpness") if sharpness_search else ("digital",):
             dtw = psf_template(ref_pts, found[name].positions, scan.chirp, rg, ref_amps)
             row[f"digital_clock_search{'' if name == 'digital' else '_by_sharpness'}"] = _ssim(found[name], rg, tg, dtw)
@@ -196,7 +198,9 @@ def summary(draws: list[dict]) -> dict:
         out[key] = {
             "physical_worst_residual_ms": max(abs(r["physical_residual_ms"]) for r in rows),
             "digital_worst_residual_ms": max(abs(r["digital_residual_ms"]) for r in rows),
-            "physical_worst_loss": max(d["synced"]["physical"] - r["physical_clock_search"] for d, r in zip(draws, rows)),
+            "physical_worst_loss": max(
+                d["synced"]["physical"] - r["physical_clock_search"] for d, r in zip(draws, rows)
+            ),
             "digital_worst_loss": max(d["synced"]["digital"] - r["digital_clock_search"] for d, r in zip(draws, rows)),
             "mean_search_s": float(np.mean([r["physical_search_s"] for r in rows])),
         }

@@ -514,3 +514,12 @@ def search_scan_clock(
         "image_size": [int(size), fine_n],
     }
     return replace(scan, positions=shift_positions(scan.positions, times, offset)), record
+
+
+def clock_search_line(record: dict) -> str:
+    """One line for the user from :func:`search_scan_clock`'s record."""
+    scale, unit = (1e3, "ms") if record["unit"] == "s" else (1.0, "positions")
+    return (
+        f"[clock] offset {record['offset_s'] * scale:+.2f} +- {record['sigma_s'] * scale:.2f} {unit} by the "
+        f"reference's focus ({record['images_formed']} images, {record['seconds']:.1f} s)"
+    )

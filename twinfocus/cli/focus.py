@@ -570,13 +570,13 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
     load_s = time.perf_counter() - t
     clock = None
     if args.clock_search:
-        from twinfocus.clock_offset import search_scan_clock
+        from twinfocus.clock_offset import clock_search_line, search_scan_clock
 
         scan, clock = search_scan_clock(
             scan, args.reference_roi, 32, bp, template=_clock_template(args), fine_size=args.size
         )
         if not args.quiet:
-            print(f"[clock] offset {clock['offset_s']:+.4f} {clock['unit']} by the reference's focus", file=sys.stderr)
+            print(clock_search_line(clock), file=sys.stderr)
     candidates = _candidates(args)
     results, listed = [], []
     for path, cand_args in candidates:
