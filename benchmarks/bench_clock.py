@@ -17,6 +17,8 @@ Bench draws (seeds 1001 on, letters ``BENCH_LETTERS``) are what the search was b
 draws (seeds 2001 on, letters ``HELDOUT_LETTERS``, none shared) only check it.
 
     python -m benchmarks.bench_clock [--draws 2] [--heldout] [--offsets-ms 0,15,50,100] [--out benchmarks/results]
+    python -m benchmarks.bench_clock --heldout --draws 1 --start 1 --out tmp1      (one draw apart ...)
+    python -m benchmarks.bench_clock --heldout --merge tmp0/clock_heldout.json tmp1/clock_heldout.json  (... joined)
 
 Writes ``clock.json`` (``clock_heldout.json``); docs/sensors.md quotes them. Small on purpose (one
 core, a few minutes a draw): the sizes are in the file.
@@ -213,19 +215,24 @@ def summary(draws: list[dict]) -> dict:
 
 
 def main(out_dir="benchmarks/results", draws: int = 2, heldout: bool = False, columns: int = 3, rows: int = 130,
-         size: int = 48, offsets=OFFSETS_S) -> dict:  # fmt: skip
+         size: int = 48, offsets=OFFSETS_S, start: int = 0) -> dict:  # fmt: skip
     t_start = time.perf_counter()
     first, letters = (HELDOUT_SEED, HELDOUT_LETTERS) if heldout else (BENCH_SEED, BENCH_LETTERS)
     results = []
-    for k in range(draws):
+    for k in range(start, start + draws):
         sc, speed = draw(first + k, letters, columns, rows)
         results.append(run_draw(sc, speed, size, offsets))
+    return write(out_dir, results, heldout, {"columns": columns, "rows": rows}, size, time.perf_counter() - t_start)
+
+
+def write(out_dir, results: list[dict], heldout: bool, sizes: dict, size: int, seconds: float) -> dict:
+    """Write ``clock.json`` (``clock_heldout.json``) of the draws' results; returns the document."""
     doc = {
-        "sizes": {"columns": columns, "rows": rows, "image": size, "search_image": SEARCH_SIZE},
+        "sizes": {**sizes, "image": size, "search_image": SEARCH_SIZE},
         "heldout": heldout,
         "summary": summary(results),
         "draws": results,
-        "seconds": time.perf_counter() - t_start,
+        "seconds": seconds,
     }
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -244,6 +251,23 @@ if __name__ == "__main__":
     ap.add_argument("--columns", type=int, default=3)
     ap.add_argument("--rows", type=int, default=130)
     ap.add_argument("--size", type=int, default=48)
+    ap.add_argument("--start", type=int, default=0, help="the first draw's index (draws run apart, then --merge)")
+    ap.add_argument("--merge", nargs="+", metavar="JSON", help="write one file of these runs' draws (same sizes)")
     ap.add_argument("--offsets-ms", default=",".join(f"{v * 1e3:g}" for v in OFFSETS_S))
     a = ap.parse_args()
-    main(a.out, a.draws, a.heldout, a.columns, a.rows, a.size, tuple(float(v) * 1e-3 for v in a.offsets_ms.split(",")))
+    if a.merge:
+        docs = [json.loads(Path(f).read_text()) for f in a.merge]
+        sizes = {k: docs[0]["sizes"][k] for k in ("columns", "rows")}
+        runs = [d for doc in docs for d in doc["draws"]]
+        write(a.out, runs, a.heldout, sizes, docs[0]["sizes"]["image"], sum(doc["seconds"] for doc in docs))
+        sys.exit(0)
+    main(
+        a.out,
+        a.draws,
+        a.heldout,
+        a.columns,
+        a.rows,
+        a.size,
+        tuple(float(v) * 1e-3 for v in a.offsets_ms.split(",")),
+        a.start,
+    )
