@@ -261,3 +261,15 @@ def test_focus_clock_search_records_the_offset_it_undid(tmp_path):
     assert rc == 0
     clock = json.loads((out / "metrics.json").read_text())["clock_search"]
     assert clock["unit"] == "s" and abs(clock["offset_s"] + 0.04) < 2e-3
+
+
+def test_the_search_line_says_to_convert_again_only_past_a_large_offset():
+    from twinfocus.clock_offset import RECONVERT_ABOVE_S, clock_search_line
+
+    rec = {"unit": "s", "sigma_s": 1e-3, "images_formed": 76, "seconds": 2.0}
+    small = clock_search_line({**rec, "offset_s": -0.02})
+    large = clock_search_line({**rec, "offset_s": -(RECONVERT_ABOVE_S + 0.04)})
+    assert "-20.00 +- 1.00 ms" in small and "convert" not in small
+    assert "--time-offset-s" in large and f"{-(RECONVERT_ABOVE_S + 0.04):+.3f}" in large
+    counted = clock_search_line({**rec, "unit": "positions", "offset_s": -10.0})
+    assert "positions" in counted and "convert" not in counted

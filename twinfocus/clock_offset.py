@@ -516,10 +516,23 @@ def search_scan_clock(
     return replace(scan, positions=shift_positions(scan.positions, times, offset)), record
 
 
+#: above this offset (s) the search's line advises converting again with it: past a leg's ends the
+#: search can only go on straight, while the camera's trajectory has its poses through the turns
+#: (docs/sensors.md: the target lost 0.025-0.03 SSIM at 100 ms, 0.003 at 50 ms)
+RECONVERT_ABOVE_S = 0.06
+
+
 def clock_search_line(record: dict) -> str:
     """One line for the user from :func:`search_scan_clock`'s record."""
     scale, unit = (1e3, "ms") if record["unit"] == "s" else (1.0, "positions")
-    return (
+    line = (
         f"[clock] offset {record['offset_s'] * scale:+.2f} +- {record['sigma_s'] * scale:.2f} {unit} by the "
         f"reference's focus ({record['images_formed']} images, {record['seconds']:.1f} s)"
     )
+    if record["unit"] == "s" and abs(record["offset_s"]) > RECONVERT_ABOVE_S:
+        line += (
+            f"; so large an offset is better applied where the camera's poses through the turns are: convert "
+            f"again with --align none --time-offset-s the shift it applied (<scan>.capture.json clock "
+            f"applied_shift_s) {record['offset_s']:+.3f}"
+        )
+    return line
