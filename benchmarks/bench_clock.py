@@ -205,6 +205,11 @@ def summary(draws: list[dict]) -> dict:
             ),
             "digital_worst_loss": max(d["synced"]["digital"] - r["digital_clock_search"] for d, r in zip(draws, rows)),
             "mean_search_s": float(np.mean([r["physical_search_s"] for r in rows])),
+            # convert's estimate here reads the scan's own positions (no poses in the turns)
+            "range_history_worst_error_ms": max(
+                (abs(r["range_history_found_ms"] - off) for r in rows if r["range_history_found_ms"] is not None),
+                default=None,
+            ),
         }
         if "sharpness_residual_ms" in rows[0]:
             out[key]["sharpness_worst_residual_ms"] = max(abs(r["sharpness_residual_ms"]) for r in rows)
