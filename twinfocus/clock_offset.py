@@ -518,8 +518,9 @@ def search_scan_clock(
 
 #: above this offset (s) the search's line advises converting again with it: past a leg's ends the
 #: search can only go on straight, while the camera's trajectory has its poses through the turns
-#: (docs/sensors.md: the target lost 0.025-0.03 SSIM at 100 ms, 0.003 at 50 ms)
-RECONVERT_ABOVE_S = 0.06
+#: (docs/sensors.md: a digital twin's target lost up to 0.04 SSIM at 50 ms on the held-out draws,
+#: 0.01 at 15 ms; set after them, as convert's least applied offset is)
+RECONVERT_ABOVE_S = 0.025
 
 
 def clock_search_line(record: dict) -> str:
