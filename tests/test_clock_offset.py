@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from twinfocus.backprojection import backproject
-from twinfocus.clock_offset import focus_offset, range_history_offset, shift_positions
+from twinfocus.clock_offset import (
+    focus_offset,
+    leg_starts,
+    range_history_offset,
+    refine_offset,
+    shift_positions,
+    template_match,
+)
 from twinfocus.errors import TwinFocusError
 from twinfocus.grid import ImageGrid
 from twinfocus.radar import Chirp
@@ -56,6 +63,67 @@ def test_shift_positions_moves_each_position_along_its_motion():
     pos[:, 0, 1] = np.array([0, 1, 2, 1, 0]) * 0.02  # up, then down: the sign flips with the leg
     moved = shift_positions(pos, t, 0.05)
     np.testing.assert_allclose(moved[1:4, 0, 1], [0.03, 0.03, 0.01])
+
+
+def _two_legs():
+    # up a column at 0.2 m/s, a 1 s turn with no frame kept, down the next column
+    t = np.concatenate([np.arange(20) * 0.01, 1.2 + np.arange(20) * 0.01])
+    pos = np.zeros((40, 2, 3))
+    pos[:20, :, 1] = (np.arange(20) * 0.002)[:, None]
+    pos[20:, :, 0] = 0.08
+    pos[20:, :, 1] = (0.038 - np.arange(20) * 0.002)[:, None]
+    pos[:, 1, 0] += 0.01  # a second channel beside the first
+    return t, pos
+
+
+def test_legs_end_at_a_gap_in_time_or_without_stamps_at_a_jump_in_place():
+    t, pos = _two_legs()
+    np.testing.assert_array_equal(leg_starts(t, pos), [0, 20])
+    np.testing.assert_array_equal(leg_starts(np.arange(40.0), pos), [0, 20])
+    np.testing.assert_array_equal(leg_starts(np.arange(20) * 0.01, pos[:20]), [0])
+
+
+@pytest.mark.parametrize("offset_s", [0.03, -0.05])
+def test_a_shift_goes_on_along_each_leg_past_its_ends_not_across_the_turn(offset_s):
+    t, pos = _two_legs()
+    moved = shift_positions(pos, t, offset_s)
+    # every position, the ones past a leg's end included, moves along its own leg by 0.2 m/s x offset
+    np.testing.assert_allclose(moved[:20, :, 1] - pos[:20, :, 1], 0.2 * offset_s, atol=1e-12)
+    np.testing.assert_allclose(moved[20:, :, 1] - pos[20:, :, 1], -0.2 * offset_s, atol=1e-12)
+    np.testing.assert_allclose(moved[..., 0], pos[..., 0], atol=1e-12)  # never towards the other column
+    # jitter on the positions: the extrapolated ends stay within it (a line fitted over the end)
+    rng = np.random.default_rng(3)
+    noisy = pos + rng.normal(0, 2e-4, pos.shape[:1])[:, None, None]
+    err = shift_positions(noisy, t, offset_s) - shift_positions(pos, t, offset_s)
+    assert np.abs(err).max() < 1.5e-3
+
+
+def test_the_template_match_scores_focus_not_place():
+    rng = np.random.default_rng(0)
+    tpl = np.zeros((24, 24))
+    tpl[8:16, 6:18] = 1 + 0.3 * rng.random((8, 12))
+    moved = np.roll(tpl, (1, -2), axis=(0, 1))  # in focus, two pixels off
+    blurred = sum(np.roll(tpl, (0, k), axis=(0, 1)) for k in range(-3, 4)) / 7  # in place, smeared
+    assert template_match(tpl)(moved) > 0.99
+    assert template_match(tpl)(moved) > template_match(tpl)(blurred)
+    assert template_match(tpl, 0)(moved) < template_match(tpl, 0)(blurred)  # held in place it prefers the smear
+
+
+def test_refine_finds_the_centre_of_a_bumpy_peak():
+    # a broad peak at 12 ms with a dip of a frame's width on top of it: the best sample is off,
+    # the parabola through the peak's upper half is not
+    def score(shift_m):
+        dt = float(shift_m) / 0.2 - 0.012
+        return -((dt / 0.01) ** 2) - 0.15 * np.exp(-((dt / 0.0015) ** 2)) + 0.1 * np.cos(dt / 0.004)
+
+    t = np.arange(30) * 0.01
+    pos = np.zeros((30, 1, 3))
+    pos[:, 0, 1] = 0.2 * t
+    est, tried = refine_offset(lambda p: p[10, 0, 1] - pos[10, 0, 1], pos, t, 0.0, 0.002, score)
+    best_sample = max(tried, key=lambda kv: kv[1])[0]
+    assert abs(best_sample - 0.012) > 1.5e-3
+    assert abs(est.offset_s - 0.012) < 1e-3, (est, tried)
+    assert 0 < est.sigma_s < 5e-3
 
 
 @pytest.mark.parametrize("offset_s", [0.05, -0.03])
@@ -193,3 +261,15 @@ def test_focus_clock_search_records_the_offset_it_undid(tmp_path):
     assert rc == 0
     clock = json.loads((out / "metrics.json").read_text())["clock_search"]
     assert clock["unit"] == "s" and abs(clock["offset_s"] + 0.04) < 2e-3
+
+
+def test_the_search_line_says_to_convert_again_only_past_a_large_offset():
+    from twinfocus.clock_offset import RECONVERT_ABOVE_S, clock_search_line
+
+    rec = {"unit": "s", "sigma_s": 1e-3, "images_formed": 76, "seconds": 2.0}
+    small = clock_search_line({**rec, "offset_s": -0.02})
+    large = clock_search_line({**rec, "offset_s": -(RECONVERT_ABOVE_S + 0.04)})
+    assert "-20.00 +- 1.00 ms" in small and "convert" not in small
+    assert "--time-offset-s" in large and f"{-(RECONVERT_ABOVE_S + 0.04):+.3f}" in large
+    counted = clock_search_line({**rec, "unit": "positions", "offset_s": -10.0})
+    assert "positions" in counted and "convert" not in counted

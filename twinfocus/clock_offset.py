@@ -231,15 +231,91 @@ def position_times_s(timestamps_ns: np.ndarray | None, n_positions: int, period_
     return np.arange(n_positions, dtype=np.float64) * (1.0 if period_s is None else float(period_s))
 
 
-def shift_positions(positions_m: np.ndarray, times_s: np.ndarray, offset_s: float) -> np.ndarray:
-    """Positions (M, K, 3) re-sampled along the scan's own track at ``times_s + offset_s``."""
-    return resample_track(times_s, positions_m, np.asarray(times_s, np.float64) + offset_s)
+#: a step between consecutive positions longer than this many times the median step ends a leg
+#: (a turn between columns where no frame was kept, a pause, a run of lost frames)
+LEG_BREAK = 3.0
+#: least number of a leg's positions the velocity at its end is fitted over
+END_FIT_POSITIONS = 9
+
+
+def leg_starts(times_s: np.ndarray, positions_m: np.ndarray | None = None) -> np.ndarray:
+    """Indices (L,) int64 where each leg of uninterrupted motion starts (the first is 0).
+
+    times_s : (M,) seconds (:func:`position_times_s`); positions_m : (M, ...) metres. A leg ends
+    where the step in time exceeds :data:`LEG_BREAK` x the median step (stamps), or, on positions
+    counted by order (a uniform ``times_s``), where the step in place does: a scan keeps no frame
+    from the turn between a zig-zag's columns, and its track has no pose there to re-sample.
+    """
+    t = np.asarray(times_s, np.float64)
+    if len(t) < 3:
+        return np.zeros(1, np.int64)
+    step = np.diff(t)
+    if positions_m is not None and np.ptp(step) <= 1e-9 * max(float(np.abs(step).max()), 1e-300):
+        p = np.asarray(positions_m, np.float64).reshape(len(t), -1, 3).mean(axis=1)
+        step = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    med = float(np.median(step))
+    breaks = np.flatnonzero(step > LEG_BREAK * med) + 1 if med > 0 else np.zeros(0, np.int64)
+    return np.concatenate([[0], breaks]).astype(np.int64)
+
+
+def _end_velocity(t: np.ndarray, p: np.ndarray, span_s: float, last: bool) -> np.ndarray:
+    """Least-squares velocity (...) over a leg's end: its last (or first) positions within
+    ``span_s``, at least :data:`END_FIT_POSITIONS` of them (all, on a shorter leg)."""
+    n = len(t)
+    if n < 2:
+        return np.zeros(p.shape[1:])
+    within = int(np.count_nonzero((t[-1] - t <= span_s) if last else (t - t[0] <= span_s)))
+    k = min(n, max(END_FIT_POSITIONS, within))
+    sl = slice(n - k, n) if last else slice(0, k)
+    tt = t[sl] - t[sl].mean()
+    den = float(tt @ tt)
+    if den <= 0:
+        return np.zeros(p.shape[1:])
+    return np.tensordot(tt, p[sl] - p[sl].mean(axis=0), axes=(0, 0)) / den
+
+
+def shift_positions(
+    positions_m: np.ndarray, times_s: np.ndarray, offset_s: float, starts: np.ndarray | None = None
+) -> np.ndarray:
+    """Positions (M, ...) moved along each one's direction of motion to ``times_s + offset_s``.
+
+    Inside a leg (:func:`leg_starts`; ``starts`` to pass them found once) the leg's own track is
+    re-sampled (linear between positions); past either end of it the position goes on along the
+    leg's velocity at that end (a line fitted over the end's last ``|offset_s|``, at least
+    :data:`END_FIT_POSITIONS` positions), not across the turn to the next leg nor held still.
+    Returns float64 (M, ...) metres.
+    """
+    t = np.asarray(times_s, np.float64)
+    p = np.asarray(positions_m, np.float64)
+    if starts is None:
+        starts = leg_starts(t, p)
+    bounds = [*(int(v) for v in starts), len(t)]
+    out = p.copy()
+    for a, b in zip(bounds[:-1], bounds[1:], strict=False):
+        if b - a < 2:
+            continue
+        tl, pl = t[a:b], p[a:b]
+        at = tl + offset_s
+        moved = resample_track(tl, pl, at)
+        span = abs(float(offset_s))
+        for last, past in ((False, at < tl[0]), (True, at > tl[-1])):
+            if past.any():
+                v = _end_velocity(tl, pl, span, last)
+                end, t_end = (pl[-1], tl[-1]) if last else (pl[0], tl[0])
+                dt = (at[past] - t_end).reshape((-1,) + (1,) * (p.ndim - 1))
+                moved[past] = end + dt * v
+        out[a:b] = moved
+    return out
 
 
 def sharpness(image: np.ndarray) -> float:
     """Normalised intensity sharpness sum(|I|^4) / sum(|I|^2)^2 (larger = more focused)."""
     p = np.abs(np.asarray(image)) ** 2
     return float((p * p).sum() / max(p.sum() ** 2, 1e-300))
+
+
+#: the fine search's offsets: this many each side of its centre
+FINE_HALF_STEPS = 6
 
 
 def focus_offset(
@@ -249,49 +325,122 @@ def focus_offset(
     max_offset_s: float,
     coarse_steps: int = 13,
     score: Callable[[np.ndarray], float] = sharpness,
+    centre_s: float = 0.0,
+    refine: bool = True,
 ) -> tuple[ClockEstimate, list[tuple[float, float]]]:
-    """The offset whose re-sampled positions focus the reference best.
+    """The offset whose shifted positions (:func:`shift_positions`) focus the reference best.
 
     form_image : positions (M, K, 3) -> the reference region's image (any shape).
     times_s : (M,) each position's time (:func:`position_times_s`).
-    Coarse grid of ``coarse_steps`` offsets over +- ``max_offset_s``, then 7 around the best at a
-    sixth of the step, the vertex of a parabola through the best. Returns (estimate, the
-    (offset, score) pairs tried). sigma_s is the fine step over sqrt(12) (the grid's resolution).
+    A grid of ``coarse_steps`` offsets over ``centre_s`` +- ``max_offset_s``; its best, refined
+    (``refine``) by :func:`refine_offset` at a fifth of the grid's step. Returns (estimate, the
+    (offset, score) pairs tried); without ``refine`` the estimate is the grid's best, sigma_s the
+    step over sqrt(12).
     """
+    starts = leg_starts(times_s, positions_m)
     tried: dict[float, float] = {}
-
-    def cost(dt: float) -> float:
-        dt = round(float(dt), 9)
-        if dt not in tried:
-            tried[dt] = -score(form_image(shift_positions(positions_m, times_s, dt)))
-        return tried[dt]
-
-    coarse = np.linspace(-max_offset_s, max_offset_s, int(coarse_steps))
-    step = float(coarse[1] - coarse[0])
-    best = float(coarse[int(np.argmin([cost(v) for v in coarse]))])
-    for _ in range(2):
-        step /= 6
-        fine = best + step * np.arange(-3, 4)
-        vals = np.array([cost(v) for v in fine])
-        best, _ = _parabola_min(fine, vals)
-        best = float(np.clip(best, fine[0], fine[-1]))
-    cost(best)
-    if tried[round(best, 9)] > min(tried.values()):  # the vertex fell off the sampled best
-        best = min(tried, key=tried.__getitem__)
-    pairs = sorted((k, -v) for k, v in tried.items())
-    return ClockEstimate(best, step / np.sqrt(12), "focus"), pairs
+    coarse = centre_s + np.linspace(-max_offset_s, max_offset_s, int(coarse_steps))
+    step = float(coarse[1] - coarse[0]) if len(coarse) > 1 else float(max_offset_s)
+    for v in coarse:
+        _score_at(form_image, positions_m, times_s, starts, score, v, tried)
+    best = max(tried, key=tried.__getitem__)
+    if not refine:
+        return ClockEstimate(best, step / np.sqrt(12), "focus"), sorted(tried.items())
+    return refine_offset(form_image, positions_m, times_s, best, step / 5, score)
 
 
-def template_match(template: np.ndarray) -> Callable[[np.ndarray], float]:
-    """A score: correlation of an image's amplitude with ``template``'s (same shape), in [-1, 1]."""
-    b = np.abs(np.asarray(template, np.complex128)).ravel()
-    b = b - b.mean()
-    b /= max(float(np.linalg.norm(b)), 1e-300)
+def _score_at(form_image, positions_m, times_s, starts, score, dt: float, tried: dict) -> float:
+    dt = round(float(dt), 9)
+    if dt not in tried:
+        tried[dt] = float(score(form_image(shift_positions(positions_m, times_s, dt, starts))))
+    return tried[dt]
+
+
+def _peak_span(ys: np.ndarray, least: int = 5) -> tuple[int, int]:
+    """The run of samples around the best that stand in the upper half of the scores' range,
+    widened to ``least`` samples: (lo, hi) slice bounds."""
+    k = int(np.argmax(ys))
+    cut = ys.min() + 0.5 * (ys.max() - ys.min())
+    lo, hi = k, k + 1
+    while lo > 0 and ys[lo - 1] >= cut:
+        lo -= 1
+    while hi < len(ys) and ys[hi] >= cut:
+        hi += 1
+    while hi - lo < min(least, len(ys)):
+        if lo > 0 and (hi >= len(ys) or ys[lo - 1] >= ys[hi]):
+            lo -= 1
+        else:
+            hi += 1
+    return lo, hi
+
+
+def refine_offset(
+    form_image: Callable[[np.ndarray], np.ndarray],
+    positions_m: np.ndarray,
+    times_s: np.ndarray,
+    centre_s: float,
+    step_s: float,
+    score: Callable[[np.ndarray], float] = sharpness,
+) -> tuple[ClockEstimate, list[tuple[float, float]]]:
+    """The vertex of the least-squares parabola through the scores of 2 x
+    :data:`FINE_HALF_STEPS` + 1 offsets ``step_s`` apart around ``centre_s``, the window moved onto
+    the vertex (twice at most) when it lies more than two steps off its centre.
+
+    One parabola over the peak's upper half (at least 5 samples), not the best sample: near focus the score is bumpy on the
+    scale of a frame (a tracker's jitter re-sampled at a fraction of a frame averages neighbouring
+    errors, sharpening the image a little off the true offset), while the peak's breadth, the time
+    a hand takes to cross a resolution cell, is what places it. sigma_s from the fit's covariance
+    (at least the step over sqrt(12)). Returns (estimate, the (offset, score) pairs tried).
+    """
+    starts = leg_starts(times_s, positions_m)
+    tried: dict[float, float] = {}
+    centre, step = float(centre_s), float(step_s)
+    best, sigma = centre, float("inf")
+    for _ in range(3):
+        xs = centre + step * np.arange(-FINE_HALF_STEPS, FINE_HALF_STEPS + 1)
+        ys = np.array([_score_at(form_image, positions_m, times_s, starts, score, v, tried) for v in xs])
+        lo, hi = _peak_span(ys)
+        (qa, qb, _), cov = np.polyfit((xs[lo:hi] - centre) / step, ys[lo:hi], 2, cov=True)
+        if not qa < 0:  # no peak inside: the best sample
+            best, sigma = float(xs[int(np.argmax(ys))]), float("inf")
+            break
+        u = -qb / (2 * qa)
+        jac = np.array([qb / (2 * qa * qa), -1 / (2 * qa), 0.0])
+        best = centre + step * float(np.clip(u, -FINE_HALF_STEPS, FINE_HALF_STEPS))
+        sigma = step * float(np.sqrt(max(float(jac @ cov @ jac), 0.0)))
+        if abs(u) <= 2:
+            break
+        centre = centre + step * float(np.round(np.clip(u, -FINE_HALF_STEPS, FINE_HALF_STEPS)))
+    sigma = max(sigma, step / np.sqrt(12))
+    return ClockEstimate(float(best), float(sigma), "focus"), sorted(tried.items())
+
+
+#: the template match's best over the image's shifts within this many pixels each way: it
+#: scores the reference's focus, not its place (a clock offset on unequal legs moves the image as a
+#: whole, the ladder's phase ramp puts it back; a match held in place picks the offset of best place)
+MATCH_SHIFT_PX = 2
+
+
+def template_match(template: np.ndarray, max_shift_px: int = MATCH_SHIFT_PX) -> Callable[[np.ndarray], float]:
+    """A score: the best correlation, over whole-pixel shifts within ``max_shift_px`` each way, of an
+    image's amplitude with ``template``'s (same (H, W) shape) on their overlap, in [-1, 1]."""
+    b = np.abs(np.asarray(template, np.complex128))
+    h, w = b.shape
+    s = int(max_shift_px)
+    shifts = [(dy, dx) for dy in range(-s, s + 1) for dx in range(-s, s + 1)]
+
+    def corr(x: np.ndarray, y: np.ndarray) -> float:
+        x, y = x - x.mean(), y - y.mean()
+        return float((x * y).sum() / max(float(np.sqrt((x * x).sum() * (y * y).sum())), 1e-300))
 
     def score(image: np.ndarray) -> float:
-        a = np.abs(np.asarray(image)).ravel().astype(np.float64)
-        a = a - a.mean()
-        return float(a @ b / max(float(np.linalg.norm(a)), 1e-300))
+        a = np.abs(np.asarray(image)).astype(np.float64)
+        best = -1.0
+        for dy, dx in shifts:
+            ia = slice(max(dy, 0), h + min(dy, 0)), slice(max(dx, 0), w + min(dx, 0))
+            ib = slice(max(-dy, 0), h + min(-dy, 0)), slice(max(-dx, 0), w + min(-dx, 0))
+            best = max(best, corr(a[ia], b[ib]))
+        return best
 
     return score
 
@@ -316,13 +465,16 @@ def search_scan_clock(
     reference's image on the n x n grid (a twin's), matched by amplitude; None: the image's
     sharpness (weaker on a speckled object). step_s : the coarse grid's step (the match peaks
     within about the time a hand takes to cross a resolution cell, ~10 ms: keep it below that).
-    Returns (the scan with the positions moved, a record for metrics.json).
+    Returns (the scan with the positions moved, a record for metrics.json: the offset, its sigma,
+    the score, the images formed and the search's seconds).
     """
+    import time
     from dataclasses import replace
 
     from twinfocus.backprojection import backproject
     from twinfocus.grid import ImageGrid
 
+    t_start = time.perf_counter()
     if reference_roi is None:
         raise TwinFocusError("--clock-search needs --reference-roi (the offset is chosen by the reference's focus)")
     stamped = scan.timestamps_ns is not None
@@ -343,14 +495,12 @@ def search_scan_clock(
 
     image, score = stage(size)
     steps = 2 * int(np.ceil(limit / step)) + 1
-    coarse, _ = focus_offset(image, scan.positions, times, limit, coarse_steps=steps, score=score)
+    coarse, _ = focus_offset(image, scan.positions, times, limit, coarse_steps=steps, score=score, refine=False)
     fine_n = int(fine_size or size)
     image, score = stage(fine_n)
-    shifted = shift_positions(scan.positions, times, coarse.offset_s)
-    span = 1.2 * step
-    fine, tried = focus_offset(image, shifted, times, span, coarse_steps=7, score=score)
-    # shifting twice along the same track is one shift of the sum (linear re-sampling, inside the track)
-    offset = coarse.offset_s + fine.offset_s
+    # a fifth of the coarse step, over +- 1.2 coarse steps
+    fine, tried = refine_offset(image, scan.positions, times, coarse.offset_s, step / 5, score)
+    offset = fine.offset_s
     record = {
         **fine.to_dict(),
         "offset_s": offset,
@@ -358,7 +508,32 @@ def search_scan_clock(
         "searched": [-limit, limit],
         "score": "sharpness" if template is None else "template_match",
         "score_at_zero": score(image(scan.positions)),
-        "score_at_offset": max(v for _, v in tried),
+        "score_at_offset": score(image(shift_positions(scan.positions, times, offset))),
+        "images_formed": steps + len(tried) + 2,
+        "seconds": time.perf_counter() - t_start,
         "image_size": [int(size), fine_n],
     }
     return replace(scan, positions=shift_positions(scan.positions, times, offset)), record
+
+
+#: above this offset (s) the search's line advises converting again with it: past a leg's ends the
+#: search can only go on straight, while the camera's trajectory has its poses through the turns
+#: (docs/sensors.md: a digital twin's target lost up to 0.04 SSIM at 50 ms on the held-out draws,
+#: 0.01 at 15 ms; set after them, as convert's least applied offset is)
+RECONVERT_ABOVE_S = 0.025
+
+
+def clock_search_line(record: dict) -> str:
+    """One line for the user from :func:`search_scan_clock`'s record."""
+    scale, unit = (1e3, "ms") if record["unit"] == "s" else (1.0, "positions")
+    line = (
+        f"[clock] offset {record['offset_s'] * scale:+.2f} +- {record['sigma_s'] * scale:.2f} {unit} by the "
+        f"reference's focus ({record['images_formed']} images, {record['seconds']:.1f} s)"
+    )
+    if record["unit"] == "s" and abs(record["offset_s"]) > RECONVERT_ABOVE_S:
+        line += (
+            f"; so large an offset is better applied where the camera's poses through the turns are: convert "
+            f"again with --align none --time-offset-s the shift it applied (<scan>.capture.json clock "
+            f"applied_shift_s) {record['offset_s']:+.3f}"
+        )
+    return line

@@ -72,8 +72,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--clock-search",
         action="store_true",
-        help="search the radar-camera clock offset: each position re-sampled along the scan's track (its time "
-        "stamps, else its order) at the offset that focuses --reference-roi sharpest (metrics.json clock_search)",
+        help="search the radar-camera clock offset: each position re-sampled along its own leg of the sweep (legs "
+        "cut where the time stamps, else the steps, jump; continued along the leg's velocity past its ends) at the "
+        "offset that focuses --reference-roi best (metrics.json clock_search)",
     )
     _add_sources(p)
     p.add_argument(
@@ -628,13 +629,13 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
     load_s = time.perf_counter() - t
     clock = None
     if args.clock_search:
-        from twinfocus.clock_offset import search_scan_clock
+        from twinfocus.clock_offset import clock_search_line, search_scan_clock
 
         scan, clock = search_scan_clock(
             scan, args.reference_roi, 32, bp, template=_clock_template(args), fine_size=args.size
         )
         if not args.quiet:
-            print(f"[clock] offset {clock['offset_s']:+.4f} {clock['unit']} by the reference's focus", file=sys.stderr)
+            print(clock_search_line(clock), file=sys.stderr)
     candidates = _candidates(args)
     chosen, best, listed = _best_candidate(args, candidates, scan, box, typed_depth, plan, progress)
     outputs, search, template = chosen["outputs"], chosen["search"], chosen["template"]
