@@ -15,6 +15,7 @@ that true.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -29,9 +30,12 @@ RUNS = [
     ["docs/howto/replay_log.md", "docs/howto/foxglove.md"],
     ["docs/howto/focus_handheld.md"],
 ]
-RUNNABLE = [page for chain in RUNS for page in chain]
+#: pages whose blocks a test of their own runs in order (it checks more than this runner does)
+RUN_BY_OWN_TEST = {"docs/howto/your_own_rig.md": "tests/test_your_own_rig_page.py"}
+RUNNABLE = [page for chain in RUNS for page in chain] + list(RUN_BY_OWN_TEST)
 #: what a how-to that runs nothing here must say, in its own words, before the block it does not run
 NOT_RUN = ("not run by the test suite", "the test suite does not run")
+_COMMAND = re.compile(r"^\s*(?:\$\s*)?twinfocus [a-z][a-z-]*(?=\s|$)(?!:)", re.M)
 
 
 def test_a_runnable_page_has_commands_and_a_result_file() -> None:
@@ -47,10 +51,13 @@ def test_a_chain_runs_each_pages_prerequisites_first() -> None:
 
 
 def test_every_how_to_runs_or_says_why() -> None:
+    for own_test in RUN_BY_OWN_TEST.values():
+        assert (ROOT / own_test).is_file(), own_test
     for page in sorted((ROOT / "docs" / "howto").glob("*.md")):
         rel = page.relative_to(ROOT).as_posix()
         text = page.read_text(encoding="utf-8")
-        commands = [body for lang, body in blocks(text) if lang == "" and "twinfocus " in body]
+        # a plain block's line "twinfocus CMD ..." is a command shown; "twinfocus CMD: ..." is what one printed
+        commands = [body for lang, body in blocks(text) if lang == "" and _COMMAND.search(body)]
         runs_here = [body for lang, body in blocks(text) if lang == "sh"]
         assert not runs_here or rel in RUNNABLE, f"{rel} has ```sh blocks: list it in RUNS"
         if not commands:
