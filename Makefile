@@ -21,9 +21,9 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e '.[test]'
 	@touch $(STAMP)
 
-# The paper's regions and image size, from their one home (twinfocus.scenario; launch/paper.yaml
+# The paper's regions and image size, from their one home (twinfocus.simulation.scenario; launch/paper.yaml
 # holds the same for the launch files). Expanded only when a recipe uses it, after the venv exists.
-PAPER_FOCUS_ARGS = $(shell $(PY) -c 'from twinfocus.scenario import PAPER_REFERENCE_ROI as r, PAPER_TARGET_ROI as t, \
+PAPER_FOCUS_ARGS = $(shell $(PY) -c 'from twinfocus.simulation.scenario import PAPER_REFERENCE_ROI as r, PAPER_TARGET_ROI as t, \
 	PAPER_IMAGE_SIZE as s; print("--reference-roi", *r, "--target-roi", *t, "--size", s)')
 
 demo: $(STAMP)

@@ -11,6 +11,7 @@ given z tracking error, 15 dB; the template from the reference's exact points (t
 PSF template, no outline). Writes ``amplitude_auto.json`` (one record per scene) and prints a
 markdown table (mean over the seeds per error).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,24 +23,31 @@ import numpy as np
 
 
 def one_scene(z_m: float, rough: bool, seed: int) -> dict:
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.backprojection import backproject, subimage_basis
-    from twinfocus.digital_twin.condition import digital_twin_reference
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Bases, Reference, Truth
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.pipeline import Bases, Reference, Truth
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.twins.digital_twin.condition import digital_twin_reference
 
-    sc = Scenario(error_sigma_m=(0.2e-3, 0.2e-3, z_m), snr_db=15, reference_roughness_deg=90.0 if rough else 0.0,
-                  reference_amplitude_spread=0.3 if rough else 0.0, seed=seed)
+    sc = Scenario(
+        error_sigma_m=(0.2e-3, 0.2e-3, z_m),
+        snr_db=15,
+        reference_roughness_deg=90.0 if rough else 0.0,
+        reference_amplitude_spread=0.3 if rough else 0.0,
+        seed=seed,
+    )
     scan, _ = simulate_scenario(sc)
     rg, tg = scenario_grids(sc, 100)
     twin = digital_twin_reference(sc.scene().object("reference").surface_points(1e-3), scan.positions, scan.chirp, rg)
     rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
     tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
-    truth = dict(truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
-                 truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
-                 positions_true=scan.positions_true)
+    truth = dict(
+        truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
+        truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
+        positions_true=scan.positions_true,
+    )
     stated = float(np.linalg.norm(sc.error_sigma_m))  # what a user who knew the error would state
     old_auto = "projection" if stated <= scan.chirp.wavelength_m / 4 else "projection-refined"
     rec: dict = {"z_mm": z_m * 1e3, "rough": rough, "seed": seed, "old auto chose": old_auto}
@@ -69,11 +77,19 @@ def main(out_dir: str = "benchmarks/results", z_mm: str = "0.3,0.6,0.8,1.0,1.2,1
     for rough in (False, True):
         for z in (float(v) * 1e-3 for v in z_mm.split(",")):
             for seed in (int(v) for v in seeds.split(",")):
-                print(f"[amplitude auto] {'rough' if rough else 'smooth'}, z {z * 1e3:.1f} mm, seed {seed}", file=sys.stderr,
-                      flush=True)
+                print(
+                    f"[amplitude auto] {'rough' if rough else 'smooth'}, z {z * 1e3:.1f} mm, seed {seed}",
+                    file=sys.stderr,
+                    flush=True,
+                )
                 records.append(one_scene(z, rough, seed))
                 path.write_text(json.dumps(records, indent=2))
-    print("| reference | z error (mm) | " + " | ".join(COLUMNS) + " | auto refined |\n|---|---|" + "---|" * (len(COLUMNS) + 1))
+    print(
+        "| reference | z error (mm) | "
+        + " | ".join(COLUMNS)
+        + " | auto refined |\n|---|---|"
+        + "---|" * (len(COLUMNS) + 1)
+    )
     for rough in (False, True):
         for z in sorted({r["z_mm"] for r in records}):
             rs = [r for r in records if r["rough"] == rough and r["z_mm"] == z]

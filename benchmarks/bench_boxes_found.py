@@ -1,9 +1,9 @@
 """Boxes found against boxes typed: ``twinfocus focus`` with neither ``--reference-roi`` nor
-``--target-roi`` (twinfocus/boxes.py), on the demo scene and a few others of its family.
+``--target-roi`` (twinfocus/focus/boxes.py), on the demo scene and a few others of its family.
 
 For each scene: ``twinfocus simulate`` (the full 6 x 130 raster), then ``twinfocus focus
 --template-scan`` twice at ``--size 100``, once with the boxes typed (the demo's: the paper's
-regions, the Makefile's; the others: :meth:`twinfocus.scenario.Scenario.reference_roi` /
+regions, the Makefile's; the others: :meth:`twinfocus.simulation.scenario.Scenario.reference_roi` /
 ``target_roi``, each letter's extent grown by 1.5 cm) and once with both left out. Recorded:
 each found region's edges and depth less the letter's (the truth: the scene's object corners,
 :meth:`twinfocus.scene.PlanarObject.corners_m`, and its centre's depth), whether the two found
@@ -21,11 +21,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from twinfocus.atomic import write_text_atomic
-from twinfocus.boxes import overlap
 from twinfocus.cli import main as cli
-from twinfocus.machine import machine_info
-from twinfocus.scenario import Scenario, planar_object
+from twinfocus.focus.boxes import overlap
+from twinfocus.io.atomic import write_text_atomic
+from twinfocus.jobs.machine import machine_info
+from twinfocus.simulation.scenario import Scenario, planar_object
 
 SIZE = 100
 #: key -> (what it is, simulate's options, the Scenario they make); the demo first. Keys without
@@ -53,7 +53,7 @@ SCENES = {
         ["--reference", "E", "--target", "H", "--distance", "0.65", "--separation-deg", "11", "--seed", "12"],
         Scenario(reference="E", target="H", distance_m=0.65, separation_deg=11.0, seed=12),
     ),
-    # held out: never looked at while the edge rule (twinfocus.boxes.EDGE_DB) was chosen
+    # held out: never looked at while the edge rule (twinfocus.focus.boxes.EDGE_DB) was chosen
     "heldout_p_l": (
         "P, L at 0.6 m, 13 deg, seed 21 (held out)",
         ["--reference", "P", "--target", "L", "--distance", "0.6", "--separation-deg", "13", "--seed", "21"],
@@ -123,13 +123,13 @@ def run_scene(d: Path, sim: list[str], sc: Scenario) -> dict:
 
 def look_scene(d: Path, sim: list[str], sc: Scenario) -> dict:
     """The boxes' edges alone, without the two focus runs (``--looks-only``): the reference's region
-    as ``focus`` finds it from the stage scan (:func:`twinfocus.reference_search.region_from_scan`,
+    as ``focus`` finds it from the stage scan (:func:`twinfocus.focus.reference_search.region_from_scan`,
     the same call), the target's from the look at the scan on its true positions (a stand-in for
     ``focus``'s look through the reference's correction), the brightest object other than the
     reference's, grown as ``focus`` grows it. Edges less the letter's, outward positive."""
-    from twinfocus.boxes import REGION_MARGIN_M, grow, look
-    from twinfocus.reference_search import region_from_scan
-    from twinfocus.scan import Scan
+    from twinfocus.focus.boxes import REGION_MARGIN_M, grow, look
+    from twinfocus.focus.reference_search import region_from_scan
+    from twinfocus.radar.scan import Scan
 
     assert cli(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"), "--quiet", *sim]) == 0
     tpl, scan = Scan.load(d / "tpl.npz"), Scan.load(d / "scan.npz")
@@ -194,7 +194,13 @@ def main(argv: list[str] | None = None) -> int:
                 abs(v) for r in rows.values() for k in roles for v in r[k]["region_edge_out_m"]
             ),
             "largest_region_edge_error_held_out_m": max(
-                (abs(v) for key, r in rows.items() if key in HELD_OUT for k in roles for v in r[k]["region_edge_out_m"]),
+                (
+                    abs(v)
+                    for key, r in rows.items()
+                    if key in HELD_OUT
+                    for k in roles
+                    for v in r[k]["region_edge_out_m"]
+                ),
                 default=None,
             ),
         },
@@ -215,7 +221,9 @@ def _looks_only(args) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             rows[key] = {"scene": label, "held_out": key in HELD_OUT, **look_scene(Path(tmp), sim, sc)}
         print(label, json.dumps({k: rows[key][k]["region_edge_out_m"] for k in ("reference", "target")}), flush=True)
-    edges = lambda keys: [abs(v) for k in keys for role in ("reference", "target") for v in rows[k][role]["region_edge_out_m"]]  # noqa: E731
+    edges = lambda keys: [
+        abs(v) for k in keys for role in ("reference", "target") for v in rows[k][role]["region_edge_out_m"]
+    ]  # noqa: E731
     doc = {
         "command": f"python -m benchmarks.bench_boxes_found --looks-only --out benchmarks/results --name {args.name}"
         + (f" --scenes {' '.join(args.scenes)}" if args.scenes else ""),

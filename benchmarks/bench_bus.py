@@ -27,6 +27,7 @@
 
     python -m benchmarks.bench_bus --out benchmarks/results --hand-only [--quick] [--repeat 3]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,12 +45,19 @@ K, N = 86, 256
 
 def _radar_frame(i: int):
     from msgs import Header, RadarFrame
-    from twinfocus.radar import Chirp, mmwcas_virtual_array
+    from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 
     c = Chirp()
     data = np.full((K, N), i, np.complex64)
-    return RadarFrame(header=Header(frame_id="radar"), data=data, f0_hz=c.f0_hz, slope_hz_per_s=c.slope_hz_per_s,
-                      fs_hz=c.fs_hz, channel_offsets_m=mmwcas_virtual_array().offsets_m, index=i)
+    return RadarFrame(
+        header=Header(frame_id="radar"),
+        data=data,
+        f0_hz=c.f0_hz,
+        slope_hz_per_s=c.slope_hz_per_s,
+        fs_hz=c.fs_hz,
+        channel_offsets_m=mmwcas_virtual_array().offsets_m,
+        index=i,
+    )
 
 
 def _pose(i: int):
@@ -59,7 +67,7 @@ def _pose(i: int):
 
 
 def _publisher(endpoint: str, kind: str, n: int, rate_hz: float) -> None:
-    from nodes.node import Node
+    from nodes.runtime.node import Node
 
     class Pub(Node):
         NAME = "bench_pub"
@@ -99,7 +107,7 @@ def _publisher(endpoint: str, kind: str, n: int, rate_hz: float) -> None:
 
 
 def _subscriber(endpoint: str, kind: str, n: int, out) -> None:
-    from nodes.node import Node
+    from nodes.runtime.node import Node
 
     class Sub(Node):
         NAME = "bench_sub"
@@ -121,11 +129,13 @@ def _subscriber(endpoint: str, kind: str, n: int, out) -> None:
 
     s = Sub(broker=endpoint, params={"heartbeat_s": 0.5, "ready_timeout_s": 60})
     code = s.spin()
-    out.put({"code": code, "received": s.k, "lat": s.lat[: s.k].tolist(), "t": s.t[: s.k].tolist(), "lost": dict(s._lost)})
+    out.put(
+        {"code": code, "received": s.k, "lat": s.lat[: s.k].tolist(), "t": s.t[: s.k].tolist(), "lost": dict(s._lost)}
+    )
 
 
 def bus_run(kind: str, n: int, rate_hz: float) -> dict:
-    from nodes.bus import Broker
+    from nodes.runtime.bus import Broker
 
     ctx = mp.get_context("spawn")  # a fork would inherit the broker's ZeroMQ context
     q = ctx.Queue()
@@ -157,10 +167,11 @@ def bus_run(kind: str, n: int, rate_hz: float) -> dict:
 
 # --- scan end -> focused image -----------------------------------------------------------------
 
+
 def _scan(columns: int, rows: int):
-    from twinfocus.radar import Chirp, mmwcas_virtual_array
-    from twinfocus.simulate import add_thermal_noise, simulate_if
-    from twinfocus.trajectory import paper_raster, phase_centres
+    from twinfocus.motion.trajectory import paper_raster, phase_centres
+    from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+    from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if
 
     pos = phase_centres(paper_raster(columns, rows), mmwcas_virtual_array())
     # A few bright points in each region: enough signal for the solver's checks, cheap to simulate.
@@ -173,27 +184,43 @@ def latency_run(mode: str, columns: int, rows: int, size: int, iterations: int, 
     import subprocess
 
     from msgs import Header, SarMeasurement, TwinTemplate
-    from nodes.bus import Broker
-    from nodes.testing import Probe, running
-    from twinfocus.grid import ImageGrid
-    from twinfocus.radar import Chirp
+    from nodes.runtime.bus import Broker
+    from nodes.runtime.testing import Probe, running
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.radar.fmcw import Chirp
 
     data, pos = _scan(columns, rows)
     c = Chirp()
     ref, tgt = [-0.15, 0.0, -0.11, 0.12, 0.6], [0.02, 0.13, -0.11, 0.12, 0.6]
     g = ImageGrid.from_roi(ref, size)
-    from twinfocus.backprojection import backproject
+    from twinfocus.imaging.backprojection.numba_backend import backproject
 
     tpl = np.abs(backproject(data, pos, c, g)).astype(np.float32)  # the reference as focused on exact positions
     with Broker("tcp://127.0.0.1:0") as b:
-        params = {"reference_roi": ref, "target_roi": tgt, "size": size, "iterations": iterations, "basis": mode,
-                  "truth_metrics": False, "wait_for": []}
+        params = {
+            "reference_roi": ref,
+            "target_roi": tgt,
+            "size": size,
+            "iterations": iterations,
+            "basis": mode,
+            "truth_metrics": False,
+            "wait_for": [],
+        }
         repo = str(Path(__file__).resolve().parent.parent)
-        solver = subprocess.Popen([sys.executable, "-m", "nodes.solver", "--broker", b.endpoint, "--params", json.dumps(params)],
-                                  cwd=repo, env={**os.environ, "PYTHONPATH": repo})
+        solver = subprocess.Popen(
+            [sys.executable, "-m", "nodes.solver", "--broker", b.endpoint, "--params", json.dumps(params)],
+            cwd=repo,
+            env={**os.environ, "PYTHONPATH": repo},
+        )
         try:
-            probe = Probe(b.endpoint, listen=["image/focused", "autofocus/result"], publish=["sar/measurement", "twin/template"],
-                          wait_for=["solver"], name="bench_probe", params={"ready_timeout_s": 120})
+            probe = Probe(
+                b.endpoint,
+                listen=["image/focused", "autofocus/result"],
+                publish=["sar/measurement", "twin/template"],
+                wait_for=["solver"],
+                name="bench_probe",
+                params={"ready_timeout_s": 120},
+            )
             with running(probe, start_timeout_s=120):
                 probe.send("twin/template", TwinTemplate(image=tpl, x_m=g.x_m, y_m=g.y_m, z_m=0.6))
                 m_total = data.shape[0]
@@ -202,12 +229,28 @@ def latency_run(mode: str, columns: int, rows: int, size: int, iterations: int, 
                     due = t0 + m / rate_hz
                     while time.monotonic() < due:
                         time.sleep(0.001)
-                    probe.send("sar/measurement", SarMeasurement(
-                        header=Header(stamp_ns=m), data=data[m], positions_m=pos[m], f0_hz=c.f0_hz,
-                        slope_hz_per_s=c.slope_hz_per_s, fs_hz=c.fs_hz, scan_id="bench", index=m, last=m == m_total - 1))
+                    probe.send(
+                        "sar/measurement",
+                        SarMeasurement(
+                            header=Header(stamp_ns=m),
+                            data=data[m],
+                            positions_m=pos[m],
+                            f0_hz=c.f0_hz,
+                            slope_hz_per_s=c.slope_hz_per_s,
+                            fs_hz=c.fs_hz,
+                            scan_id="bench",
+                            index=m,
+                            last=m == m_total - 1,
+                        ),
+                    )
                 probe.sent_all(60)
                 t_last = time.monotonic()
-                probe.wait_for("image/focused", 1, timeout_s=float(os.environ.get("BENCH_TIMEOUT", 1800)), where=lambda i: i.name == "target")
+                probe.wait_for(
+                    "image/focused",
+                    1,
+                    timeout_s=float(os.environ.get("BENCH_TIMEOUT", 1800)),
+                    where=lambda i: i.name == "target",
+                )
                 t_image = probe.arrival["image/focused"][-1]
                 (res,) = probe.wait_for("autofocus/result", 1)
         finally:
@@ -224,8 +267,9 @@ def latency_run(mode: str, columns: int, rows: int, size: int, iterations: int, 
     }
 
 
-def graph_latency_run(columns: int, rows: int, size: int, rate: float, iterations: int = 300,
-                      hand: bool = False) -> dict:
+def graph_latency_run(
+    columns: int, rows: int, size: int, rate: float, iterations: int = 300, hand: bool = False
+) -> dict:
     """``twinfocus launch sim`` with a probe: last radar frame of the sweep -> focused target image.
     ``hand``: a hand sweep (``trajectory:=zigzag error_model:=hand``: the hand's drift and the
     array's turn in the tracked poses), whose drift + tilt fit runs in the solver."""
@@ -233,7 +277,7 @@ def graph_latency_run(columns: int, rows: int, size: int, rate: float, iteration
     import subprocess
     import tempfile
 
-    from nodes.testing import Probe, running
+    from nodes.runtime.testing import Probe, running
 
     def free_port() -> int:
         with socket.socket() as sock:
@@ -243,18 +287,36 @@ def graph_latency_run(columns: int, rows: int, size: int, rate: float, iteration
     repo = str(Path(__file__).resolve().parent.parent)
     port = free_port()
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "-c", "import sys; from twinfocus.cli import main; sys.exit(main())", "launch", "sim",
-               f"port:={port}", "web_port:=0", f"out:={tmp}", f"columns:={columns}", f"rows:={rows}", f"size:={size}",
-               f"rate:={rate}", f"iterations:={iterations}", "exit_after:=1"]
+        cmd = [
+            sys.executable,
+            "-c",
+            "import sys; from twinfocus.cli import main; sys.exit(main())",
+            "launch",
+            "sim",
+            f"port:={port}",
+            "web_port:=0",
+            f"out:={tmp}",
+            f"columns:={columns}",
+            f"rows:={rows}",
+            f"size:={size}",
+            f"rate:={rate}",
+            f"iterations:={iterations}",
+            "exit_after:=1",
+        ]
         if hand:
             cmd += ["trajectory:=zigzag", "error_model:=hand"]
         log = Path(tmp) / "graph.log"
         with open(log, "wb") as out:
-            g = subprocess.Popen(cmd, cwd=repo, env={**os.environ, "PYTHONPATH": repo}, stdout=out,
-                                 stderr=subprocess.STDOUT)
+            g = subprocess.Popen(
+                cmd, cwd=repo, env={**os.environ, "PYTHONPATH": repo}, stdout=out, stderr=subprocess.STDOUT
+            )
         try:
-            probe = Probe(f"tcp://127.0.0.1:{port}", name="bench_graph_probe", params={"ready_timeout_s": 300},
-                          listen=["radar/frame", "vio/pose", "sar/measurement", "image/focused", "autofocus/result"])
+            probe = Probe(
+                f"tcp://127.0.0.1:{port}",
+                name="bench_graph_probe",
+                params={"ready_timeout_s": 300},
+                listen=["radar/frame", "vio/pose", "sar/measurement", "image/focused", "autofocus/result"],
+            )
             with running(probe, start_timeout_s=300):
                 load_before = os.getloadavg()
                 deadline = time.monotonic() + float(os.environ.get("BENCH_TIMEOUT", 1800))
@@ -265,8 +327,9 @@ def graph_latency_run(columns: int, rows: int, size: int, rate: float, iteration
                     except TimeoutError:
                         if g.poll() is not None:
                             tail = log.read_text(errors="replace").strip().splitlines()[-5:]
-                            raise RuntimeError(f"the graph ended (status {g.returncode}) before its image: "
-                                               + " / ".join(tail)) from None
+                            raise RuntimeError(
+                                f"the graph ended (status {g.returncode}) before its image: " + " / ".join(tail)
+                            ) from None
                         if time.monotonic() > deadline:
                             raise
                 res = probe.wait_for("autofocus/result", 1, timeout_s=60)[0]  # the one published with the image
@@ -278,7 +341,11 @@ def graph_latency_run(columns: int, rows: int, size: int, rate: float, iteration
                 t_last = probe.arrival["radar/frame"][last[0]] if last else float("nan")
                 # the first pose at or after the last frame's stamp: what the synchronizer waits for
                 stamp = frames[last[0]].header.stamp_ns if last else None
-                after = [i for i, p in enumerate(probe.received["vio/pose"]) if stamp is not None and p.header.stamp_ns >= stamp]
+                after = [
+                    i
+                    for i, p in enumerate(probe.received["vio/pose"])
+                    if stamp is not None and p.header.stamp_ns >= stamp
+                ]
                 t_pose = probe.arrival["vio/pose"][after[0]] if after else float("nan")
                 ends = [i for i, m in enumerate(probe.received["sar/measurement"]) if m.last]
                 t_meas = probe.arrival["sar/measurement"][ends[0]] if ends else float("nan")
@@ -313,7 +380,9 @@ def graph_latency(repeat: int, *args) -> dict:
     runs = [graph_latency_run(*args) for _ in range(max(1, repeat))]
     if len(runs) == 1:
         return runs[0]
-    mean = {k: float(np.mean([r[k] for r in runs])) for k in ("last_radar_frame_to_focused_image_s", "solver_latency_s")}
+    mean = {
+        k: float(np.mean([r[k] for r in runs])) for k in ("last_radar_frame_to_focused_image_s", "solver_latency_s")
+    }
     return {
         **{k: v for k, v in runs[0].items() if k in ("graph", "positions", "image", "sensor_rate")},
         **mean,
@@ -330,10 +399,15 @@ def hand_sweep(out: Path, quick: bool, repeat: int) -> dict:
     sizes = (2, 40, 40, 1.0) if quick else (6, 130, 100, 1.0)
     runs = [graph_latency_run(*sizes, hand=True) for _ in range(max(1, repeat))]
     key = "last_radar_frame_to_focused_image_s"
-    hand = {**runs[0], "runs": len(runs), key: float(np.mean([r[key] for r in runs])),
-            "spread_s": [float(min(r[key] for r in runs)), float(max(r[key] for r in runs))],
-            "command": "python -m benchmarks.bench_bus --hand-only" + (" --quick" if quick else "")
-            + (f" --repeat {repeat}" if repeat > 1 else "")}
+    hand = {
+        **runs[0],
+        "runs": len(runs),
+        key: float(np.mean([r[key] for r in runs])),
+        "spread_s": [float(min(r[key] for r in runs)), float(max(r[key] for r in runs))],
+        "command": "python -m benchmarks.bench_bus --hand-only"
+        + (" --quick" if quick else "")
+        + (f" --repeat {repeat}" if repeat > 1 else ""),
+    }
     prev = json.loads((out / "bus.json").read_text()) if (out / "bus.json").is_file() else {}
     prev["live_hand_sweep"] = hand
     (out / "bus.json").write_text(json.dumps(prev, indent=2, default=float))
@@ -341,8 +415,13 @@ def hand_sweep(out: Path, quick: bool, repeat: int) -> dict:
     return hand
 
 
-def main(out_dir: str | Path = "benchmarks/results", quick: bool = False, graph_only: bool = False, repeat: int = 1,
-         hand_only: bool = False) -> dict:
+def main(
+    out_dir: str | Path = "benchmarks/results",
+    quick: bool = False,
+    graph_only: bool = False,
+    repeat: int = 1,
+    hand_only: bool = False,
+) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if hand_only:
@@ -365,7 +444,9 @@ def main(out_dir: str | Path = "benchmarks/results", quick: bool = False, graph_
         "scan_end_to_image": [],
         "live_graph": graph,
     }
-    prev_hand = json.loads((out / "bus.json").read_text()).get("live_hand_sweep") if (out / "bus.json").is_file() else None
+    prev_hand = (
+        json.loads((out / "bus.json").read_text()).get("live_hand_sweep") if (out / "bus.json").is_file() else None
+    )
     if prev_hand is not None:  # measured by --hand-only (minutes of its own): kept
         results["live_hand_sweep"] = prev_hand
     cols, rows, size, iters, rate = (2, 40, 40, 30, 20.0) if quick else (6, 130, 100, 300, 10.0)
@@ -375,16 +456,27 @@ def main(out_dir: str | Path = "benchmarks/results", quick: bool = False, graph_
     (out / "bus.json").write_text(json.dumps(results, indent=2, default=float))
     lines = ["| message | send rate | received | msgs/s | MB/s | p50 ms | p99 ms |", "|---|---|---|---|---|---|---|"]
     for r in results["bus"]:
-        lines.append(f"| {r['message']} | {r['send_rate_hz']} | {r['received']}/{r['sent']} | {r['msgs_per_s']:.0f} | "
-                     f"{r['payload_MB_per_s']:.1f} | {r['latency_p50_ms']:.2f} | {r['latency_p99_ms']:.2f} |")
-    lines += ["", "| basis | positions | image | iterations | feed Hz | last measurement -> focused image (s) |", "|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {r['message']} | {r['send_rate_hz']} | {r['received']}/{r['sent']} | {r['msgs_per_s']:.0f} | "
+            f"{r['payload_MB_per_s']:.1f} | {r['latency_p50_ms']:.2f} | {r['latency_p99_ms']:.2f} |"
+        )
+    lines += [
+        "",
+        "| basis | positions | image | iterations | feed Hz | last measurement -> focused image (s) |",
+        "|---|---|---|---|---|---|",
+    ]
     for r in results["scan_end_to_image"]:
-        lines.append(f"| {r['basis']} | {r['positions']} | {r['image']} | {r['iterations']} | {r['feed_rate_hz']:g} | "
-                     f"{r['last_measurement_to_focused_image_s']:.2f} |")
-    lines += ["", "| graph | positions | image | sensor rate | last radar frame -> focused image (s) | solver latency_s |",
-              "|---|---|---|---|---|---|",
-              f"| {graph['graph']} | {graph['positions']} | {graph['image']} | {graph['sensor_rate']:g} | "
-              f"{graph['last_radar_frame_to_focused_image_s']:.2f} | {graph['solver_latency_s']:.2f} |"]
+        lines.append(
+            f"| {r['basis']} | {r['positions']} | {r['image']} | {r['iterations']} | {r['feed_rate_hz']:g} | "
+            f"{r['last_measurement_to_focused_image_s']:.2f} |"
+        )
+    lines += [
+        "",
+        "| graph | positions | image | sensor rate | last radar frame -> focused image (s) | solver latency_s |",
+        "|---|---|---|---|---|---|",
+        f"| {graph['graph']} | {graph['positions']} | {graph['image']} | {graph['sensor_rate']:g} | "
+        f"{graph['last_radar_frame_to_focused_image_s']:.2f} | {graph['solver_latency_s']:.2f} |",
+    ]
     (out / "bus.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return results
@@ -394,9 +486,16 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--quick", action="store_true", help="small sizes (a minute), for checking the script")
-    ap.add_argument("--graph-only", action="store_true", help="only the live graph's latency (part 3), added to bus.json")
-    ap.add_argument("--repeat", type=int, default=1, help="run the live graph this many times (mean, spread and each run)")
-    ap.add_argument("--hand-only", action="store_true",
-                    help="only the live graph's hand sweep (trajectory:=zigzag error_model:=hand), added to bus.json")
+    ap.add_argument(
+        "--graph-only", action="store_true", help="only the live graph's latency (part 3), added to bus.json"
+    )
+    ap.add_argument(
+        "--repeat", type=int, default=1, help="run the live graph this many times (mean, spread and each run)"
+    )
+    ap.add_argument(
+        "--hand-only",
+        action="store_true",
+        help="only the live graph's hand sweep (trajectory:=zigzag error_model:=hand), added to bus.json",
+    )
     a = ap.parse_args()
     main(a.out, a.quick, a.graph_only, a.repeat, a.hand_only)

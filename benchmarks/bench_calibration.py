@@ -1,5 +1,5 @@
 """Channel calibration: the paper's scene focused (physical twin, autofocus on) through a perfect
-array, through an imperfect one ('typical' magnitudes of twinfocus.array_errors), and through the
+array, through an imperfect one ('typical' magnitudes of twinfocus.radar.array_errors), and through the
 imperfect one after a corner-reflector calibration, over draws of scene, tracking error and array.
 
     python -m benchmarks.bench_calibration [--draws 5] [--rows 50] [--size 64] [--out benchmarks/results]
@@ -22,8 +22,8 @@ import numpy as np
 
 
 def run(draws: int = 5, rows: int = 50, size: int = 64) -> dict:
-    from twinfocus.array_errors import TYPICAL
     from twinfocus.evaluation.array_calibration import calibration_case
+    from twinfocus.radar.array_errors import TYPICAL
 
     records = []
     for seed in range(1, draws + 1):

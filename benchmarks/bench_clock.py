@@ -35,19 +35,25 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus.autofocus import AutofocusConfig
-from twinfocus.clock_offset import leg_starts, position_times_s, range_history_offset, resample_track, search_scan_clock
-from twinfocus.digital_twin.template import psf_template
-from twinfocus.estimators import estimator_settings
-from twinfocus.focus_plan import FocusPlan
-from twinfocus.grid import ImageGrid
-from twinfocus.pipeline import Reference
-from twinfocus.scenario import Scenario, scenario_grids, scenario_scatterers, simulate_scenario
-from twinfocus.templates import template_from_scan
+from twinfocus.focus.autofocus import AutofocusConfig
+from twinfocus.focus.estimators import estimator_settings
+from twinfocus.focus.pipeline import Reference
+from twinfocus.focus.plan import FocusPlan
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.sensors.clock_offset import (
+    leg_starts,
+    position_times_s,
+    range_history_offset,
+    resample_track,
+    search_scan_clock,
+)
+from twinfocus.simulation.scenario import Scenario, scenario_grids, scenario_scatterers, simulate_scenario
+from twinfocus.twins.digital_twin.template import psf_template
+from twinfocus.twins.templates import template_from_scan
 
 OFFSETS_S = (0.0, 0.015, 0.05, 0.1)
 SEARCH_SIZE = 32
-LEG_M = 0.258  # twinfocus.trajectory.handheld_zigzag's column height
+LEG_M = 0.258  # twinfocus.motion.trajectory.handheld_zigzag's column height
 BENCH_LETTERS, HELDOUT_LETTERS = "ABOFHTE", "DPRQLKX"
 BENCH_SEED, HELDOUT_SEED = 1001, 2001
 
@@ -109,7 +115,7 @@ def _ssim(scan, rg, tg, template) -> float:
 
 def run_draw(sc: Scenario, speed: float, size: int, offsets=OFFSETS_S, sharpness_search: bool = True) -> dict:
     period_s = LEG_M / (speed * sc.n_rows)
-    import twinfocus.scenario as scenario_module
+    import twinfocus.simulation.scenario as scenario_module
 
     poses_fn = scenario_module.scenario_poses
     scenario_module.scenario_poses = lambda s, frame_period_s=0.1, t0_ns=0: poses_fn(s, period_s, t0_ns)
@@ -242,7 +248,7 @@ def write(out_dir, results: list[dict], heldout: bool, sizes: dict, size: int, s
     }
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    from twinfocus.atomic import atomic_writer
+    from twinfocus.io.atomic import atomic_writer
 
     with atomic_writer(out / ("clock_heldout.json" if heldout else "clock.json"), "w") as f:
         f.write(json.dumps(doc, indent=2) + "\n")

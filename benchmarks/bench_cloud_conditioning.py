@@ -1,4 +1,4 @@
-"""Cloud conditioning benchmark (twinfocus.digital_twin.condition): what it makes of camera clouds.
+"""Cloud conditioning benchmark (twinfocus.twins.digital_twin.condition): what it makes of camera clouds.
 
 For each reference shape (plane, cylinder, bent plate) and each camera of the field-like scenes
 (A: 0.5 mm z / 0.2 mm x, y; B: 1 mm z / 0.3 mm; C: 1.6 mm z / 0.3 mm; each with a quarter of the
@@ -11,6 +11,7 @@ output folder and ``docs/figures/cloud_conditioning.png`` (camera cloud -> outli
 
 Run: ``python -m benchmarks.bench_cloud_conditioning --out benchmarks/results [--draws 5]``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,11 +38,15 @@ def _depth_error(points, exact):
     return float(np.mean(np.abs(points[:, 2] - griddata(exact[:, :2], exact[:, 2], points[:, :2], method="nearest"))))
 
 
-def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, figure: str | None = "docs/figures/cloud_conditioning.png") -> dict:
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.digital_twin.condition import condition_cloud, support_on_grid
-    from twinfocus.grid import ImageGrid
-    from twinfocus.scenario import Scenario
+def main(
+    out_dir: str | os.PathLike = "benchmarks/results",
+    draws: int = 5,
+    figure: str | None = "docs/figures/cloud_conditioning.png",
+) -> dict:
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.simulation.scenario import Scenario
+    from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.twins.digital_twin.condition import condition_cloud, support_on_grid
 
     warnings.simplefilter("ignore")
     rows = []
@@ -58,15 +63,31 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, figu
                 r = condition_cloud(cloud, grid)
                 dt = time.perf_counter() - t0
                 s = support_on_grid(r.points_m, grid)
-                res.append((r.surface, r.info["noise_sd_m"] * 1e3, _depth_error(r.points_m, exact) * 1e3,
-                            _depth_error(cloud, exact) * 1e3, (s & truth).sum() / (s | truth).sum(), dt))
+                res.append(
+                    (
+                        r.surface,
+                        r.info["noise_sd_m"] * 1e3,
+                        _depth_error(r.points_m, exact) * 1e3,
+                        _depth_error(cloud, exact) * 1e3,
+                        (s & truth).sum() / (s | truth).sum(),
+                        dt,
+                    )
+                )
             surfaces = [x[0] for x in res]
             a = np.array([x[1:] for x in res], float)
-            row = {"shape": shape, "camera": cam, "surfaces": {k: surfaces.count(k) for k in set(surfaces)},
-                   **{f"{k}_mean": round(float(a[:, i].mean()), 3) for i, k in
-                      enumerate(("noise_mm", "model_dz_mm", "raw_dz_mm", "outline_iou", "seconds"))},
-                   **{f"{k}_sd": round(float(a[:, i].std()), 3) for i, k in
-                      enumerate(("noise_mm", "model_dz_mm", "raw_dz_mm", "outline_iou", "seconds"))}}
+            row = {
+                "shape": shape,
+                "camera": cam,
+                "surfaces": {k: surfaces.count(k) for k in set(surfaces)},
+                **{
+                    f"{k}_mean": round(float(a[:, i].mean()), 3)
+                    for i, k in enumerate(("noise_mm", "model_dz_mm", "raw_dz_mm", "outline_iou", "seconds"))
+                },
+                **{
+                    f"{k}_sd": round(float(a[:, i].std()), 3)
+                    for i, k in enumerate(("noise_mm", "model_dz_mm", "raw_dz_mm", "outline_iou", "seconds"))
+                },
+            }
             rows.append(row)
             print(json.dumps(row))
 
@@ -82,13 +103,25 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, figu
         r = condition_cloud(cloud, grid)
         dt = time.perf_counter() - t0
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        sizes.append({"points": n, "seconds": round(dt, 3), "peak_rss_growth_mb": round((peak - before) / 1024, 1),
-                      "peak_rss_mb": round(peak / 1024, 1), "surface": r.surface})
+        sizes.append(
+            {
+                "points": n,
+                "seconds": round(dt, 3),
+                "peak_rss_growth_mb": round((peak - before) / 1024, 1),
+                "peak_rss_mb": round(peak / 1024, 1),
+                "surface": r.surface,
+            }
+        )
         print(json.dumps(sizes[-1]))
 
-    doc = {"draws": draws, "cameras": {k: {"noise_sd_m": v[0], "hole_fraction": v[1], "outlier_fraction": v[2]}
-                                       for k, v in CAMERAS.items()},
-           "scenes": rows, "sizes": sizes}
+    doc = {
+        "draws": draws,
+        "cameras": {
+            k: {"noise_sd_m": v[0], "hole_fraction": v[1], "outlier_fraction": v[2]} for k, v in CAMERAS.items()
+        },
+        "scenes": rows,
+        "sizes": sizes,
+    }
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "cloud_conditioning.json").write_text(json.dumps(doc, indent=2) + "\n")
@@ -103,12 +136,12 @@ def _figure(path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.digital_twin.condition import digital_twin_reference, support_on_grid
-    from twinfocus.grid import ImageGrid
-    from twinfocus.radar import Chirp, mmwcas_virtual_array
-    from twinfocus.scenario import Scenario
-    from twinfocus.trajectory import paper_raster, phase_centres
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.motion.trajectory import paper_raster, phase_centres
+    from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+    from twinfocus.simulation.scenario import Scenario
+    from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.twins.digital_twin.condition import digital_twin_reference, support_on_grid
 
     pos = phase_centres(paper_raster(6, 65, row_pitch_m=0.004), mmwcas_virtual_array())
     fig, ax = plt.subplots(3, 4, figsize=(13, 9.5))
@@ -128,8 +161,13 @@ def _figure(path: Path) -> None:
         fig.colorbar(s, ax=a, label="z - 0.6 m (mm)")
         a.set_title(f"{shape}: camera cloud (1 mm z noise,\n25 % holes, 3 % outliers, 2 mm offset)", fontsize=9)
         a = ax[i, 1]
-        s = a.scatter(ref.cloud.points_m[:, 0] * 100, ref.cloud.points_m[:, 1] * 100,
-                      c=(ref.cloud.points_m[:, 2] - 0.6) * 1e3, s=1, cmap="viridis")
+        s = a.scatter(
+            ref.cloud.points_m[:, 0] * 100,
+            ref.cloud.points_m[:, 1] * 100,
+            c=(ref.cloud.points_m[:, 2] - 0.6) * 1e3,
+            s=1,
+            cmap="viridis",
+        )
         a.set_xlim(ext[0], ext[1])
         a.set_ylim(ext[2], ext[3])
         a.set_aspect("equal")

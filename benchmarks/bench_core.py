@@ -27,15 +27,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from twinfocus.autofocus import AutofocusConfig, twin_autofocus
-from twinfocus.backprojection import backproject, backproject_points, matched_filter_bruteforce, subimage_basis
-from twinfocus.basis import form_image
-from twinfocus.digital_twin.condition import digital_twin_reference
-from twinfocus.estimators import ESTIMATORS, PHASE_ESTIMATORS, estimator_settings
-from twinfocus.grid import ImageGrid
-from twinfocus.metrics import image_ssim
-from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
-from twinfocus.templates import template_from_scan
+from twinfocus.focus.autofocus import AutofocusConfig, twin_autofocus
+from twinfocus.focus.estimators import ESTIMATORS, PHASE_ESTIMATORS, estimator_settings
+from twinfocus.imaging.backprojection.numba_backend import (
+    backproject,
+    backproject_points,
+    matched_filter_bruteforce,
+    subimage_basis,
+)
+from twinfocus.imaging.basis import form_image
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import image_ssim
+from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+from twinfocus.twins.digital_twin.condition import digital_twin_reference
+from twinfocus.twins.templates import template_from_scan
 
 
 def _best(fn, repeats=2):
@@ -314,7 +319,7 @@ def bench_end_to_end(scan, template_scan, sc, quick) -> dict:
     runs it, in fresh processes: import time, the first run (template computed and cached), the
     second (template from the cache), wall time against the sum of the stages in metrics.json, and
     each process's peak memory; then the solver node's numerical work (bases built in batches of
-    20 positions as measurements arrive, then :func:`twinfocus.pipeline.focus_bases`) in a fresh
+    20 positions as measurements arrive, then :func:`twinfocus.focus.pipeline.focus_bases`) in a fresh
     process, for its peak memory."""
     with tempfile.TemporaryDirectory() as d:
         d = Path(d)
@@ -329,14 +334,14 @@ def bench_end_to_end(scan, template_scan, sc, quick) -> dict:
         for _ in range(3):
             t = time.perf_counter()
             subprocess.run(
-                [sys.executable, "-c", "import twinfocus.cli.focus, twinfocus.pipeline"], env=env, check=True
+                [sys.executable, "-c", "import twinfocus.cli.focus, twinfocus.focus.pipeline"], env=env, check=True
             )
             imports.append(time.perf_counter() - t)
         heavy = subprocess.run(
             [
                 sys.executable,
                 "-c",
-                "import sys, twinfocus.cli.focus, twinfocus.pipeline; "
+                "import sys, twinfocus.cli.focus, twinfocus.focus.pipeline; "
                 "print(','.join(m for m in ('torch', 'matplotlib', 'open3d', 'scipy') if m in sys.modules))",
             ],
             env=env,
@@ -376,20 +381,24 @@ def bench_end_to_end(scan, template_scan, sc, quick) -> dict:
                 f"  {name}: wall {r['wall_s']:.2f} s, stages {r['stages_sum_s']:.2f} s, peak {r['peak_rss_mb']:.0f} MB"
             )
         solver_code = (
-            "import numpy as np; from twinfocus.scan import Scan; from twinfocus.scenario import Scenario, scenario_grids; "
-            "from twinfocus.backprojection import subimage_basis; from twinfocus.focus_plan import FocusPlan; "
-            "from twinfocus.pipeline import Bases, Reference; "
-            "from twinfocus.autofocus import AutofocusConfig; from twinfocus.estimators import estimator_settings; "
-            "from twinfocus.templates import template_from_scan; "
+            "import numpy as np; from twinfocus.radar.scan import Scan; from twinfocus.simulation.scenario import Scenario, scenario_grids; "
+            "from twinfocus.imaging.backprojection.numba_backend import subimage_basis; from twinfocus.focus.plan import FocusPlan; "
+            "from twinfocus.focus.pipeline import Bases, Reference; "
+            "from twinfocus.focus.autofocus import AutofocusConfig; from twinfocus.focus.estimators import estimator_settings; "
+            "from twinfocus.twins.templates import template_from_scan; "
             f"s = Scan.load({str(d / 'scan.npz')!r}); t = Scan.load({str(d / 'tpl.npz')!r}); rg, tg = scenario_grids(Scenario(), 100); "
             "tpl = template_from_scan(t, rg, keep_phase=True); del t; ref, tgt = [], []; "
             "[(ref.append(subimage_basis(s.data[i:i+20], s.positions[i:i+20], s.chirp, rg)), "
             "tgt.append(subimage_basis(s.data[i:i+20], s.positions[i:i+20], s.chirp, tg))) for i in range(0, s.n_positions, 20)]; "
             "FocusPlan.make(config=AutofocusConfig(**estimator_settings('correlation', True))).focus_bases("
             "Bases(np.concatenate(ref), np.concatenate(tgt), s.positions, s.chirp, rg, tg), Reference(tpl)); "
-            f"import sys; {_PEAK}")
-        solver_mb = _peak_mb(subprocess.run([sys.executable, "-c", solver_code], env=env, check=True, capture_output=True,
-                                            text=True).stderr)
+            f"import sys; {_PEAK}"
+        )
+        solver_mb = _peak_mb(
+            subprocess.run(
+                [sys.executable, "-c", solver_code], env=env, check=True, capture_output=True, text=True
+            ).stderr
+        )
         print(f"  solver-node work: peak {solver_mb:.0f} MB")
     return {
         "import_s": min(imports),
@@ -624,7 +633,7 @@ def _markdown(res: dict) -> str:
             "",
             "## `twinfocus focus` end to end (780 x 86, 100 x 100, --template-scan, fresh processes)",
             "",
-            f"Imports of `twinfocus.cli.focus` + `twinfocus.pipeline`: {e['import_s']:.2f} s (heavy modules loaded: "
+            f"Imports of `twinfocus.cli.focus` + `twinfocus.focus.pipeline`: {e['import_s']:.2f} s (heavy modules loaded: "
             f"{', '.join(e['heavy_modules_imported']) or 'none'}).",
             "",
             "| run | wall s | sum of stages s | wall / stages | template | peak memory MB | stages s |",

@@ -13,6 +13,7 @@ Writes ``digital_twin.json`` to the output folder:
 
 Run: ``python -m benchmarks.bench_digital_twin --out benchmarks/results [--trials 2]``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -39,16 +40,16 @@ def _best(fn, repeats: int):
 def main(out_dir: str | os.PathLike = "benchmarks/results", repeats: int = 3, trials: int = 2) -> dict:
     import torch
 
-    from twinfocus.autofocus import AutofocusConfig, twin_autofocus
-    from twinfocus.backprojection import backproject, subimage_basis
-    from twinfocus.basis import form_image
-    from twinfocus.digital_twin.pipeline import reference_from_stereo
-    from twinfocus.digital_twin.render import render_scene
-    from twinfocus.digital_twin.segment import box_from_scene_roi, mask_iou
-    from twinfocus.digital_twin.template import exact_template, psf_template
-    from twinfocus.metrics import display_image, image_ssim, ssim
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
-    from twinfocus.templates import template_from_scan
+    from twinfocus.focus.autofocus import AutofocusConfig, twin_autofocus
+    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.imaging.basis import form_image
+    from twinfocus.imaging.metrics import display_image, image_ssim, ssim
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.twins.digital_twin.pipeline import reference_from_stereo
+    from twinfocus.twins.digital_twin.render import render_scene
+    from twinfocus.twins.digital_twin.segment import box_from_scene_roi, mask_iou
+    from twinfocus.twins.digital_twin.template import exact_template, psf_template
+    from twinfocus.twins.templates import template_from_scan
 
     load_at_start = os.getloadavg()[0]
     out_dir = Path(out_dir)
@@ -76,7 +77,9 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", repeats: int = 3, tr
     t0 = time.perf_counter()
     tpl_exact = exact_template(points, scan.positions, scan.chirp, rg)
     stages["template_exact"] = time.perf_counter() - t0
-    stages["twin_total_warm"] = sum(stages[k] for k in ("rectify", "disparity", "segmentation", "point_cloud", "template_psf"))
+    stages["twin_total_warm"] = sum(
+        stages[k] for k in ("rectify", "disparity", "segmentation", "point_cloud", "template_psf")
+    )
 
     dist = (points - ref.centre_m) @ ref.rotation[:, 2]
     quality = {
@@ -115,7 +118,10 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", repeats: int = 3, tr
             row[name] = image_ssim(form_image(tb, res.phase_rad), truth)
             row[f"{name}_autofocus_s"] = time.perf_counter() - t0
         rows.append(row)
-        print(f"[digital_twin] trial {trial}: " + ", ".join(f"{k} {v:.3f}" for k, v in row.items() if k != "trial"), flush=True)
+        print(
+            f"[digital_twin] trial {trial}: " + ", ".join(f"{k} {v:.3f}" for k, v in row.items() if k != "trial"),
+            flush=True,
+        )
     means = {k: float(np.mean([row[k] for row in rows])) for k in rows[0] if k != "trial"}
 
     doc = {

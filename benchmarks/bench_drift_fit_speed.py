@@ -25,7 +25,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from twinfocus.atomic import write_json_atomic
+from twinfocus.io.atomic import write_json_atomic
 
 #: the held-out hand-drift scene of benchmarks/bench_handheld.py
 HAND = dict(reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand", error_sigma_m=(0.8e-3,) * 3)
@@ -36,8 +36,8 @@ HANDHELD = Path("benchmarks/results/handheld.json")
 def _cpu_time_of(cpu: dict, reference_grid) -> Iterator[None]:
     """Adds to ``cpu`` the process CPU seconds of every drift fit (``fit``) and of the reference's
     sub-image basis (``basis``: the pipeline's back-projection onto ``reference_grid``)."""
-    import twinfocus.focus_plan as pipeline
-    import twinfocus.space_variant as sv
+    import twinfocus.focus.plan as pipeline
+    import twinfocus.focus.space_variant as sv
 
     def timed(fn, key, only=None):
         def call(*args, **kwargs):
@@ -62,12 +62,12 @@ def _cpu_time_of(cpu: dict, reference_grid) -> Iterator[None]:
 
 def one_draw(seed: int) -> dict:
     """focus_scan on one draw: stage times, their ratio, target SSIM, the fit's record."""
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Reference
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
-    from twinfocus.templates import template_from_scan
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.pipeline import Reference
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.twins.templates import template_from_scan
 
     sc = Scenario(**HAND, seed=seed)
     scan, tpl_scan = simulate_scenario(sc)

@@ -2,7 +2,7 @@
 true phase, on the family bench's draws (``benchmarks/bench_dtwin_family.py``, bench seeds only).
 
 Per draw, the digital twin as ``twinfocus focus --digital-twin`` runs it, and against the
-reference's true phase (one phase per position, :func:`twinfocus.metrics.oracle_phase`):
+reference's true phase (one phase per position, :func:`twinfocus.imaging.metrics.oracle_phase`):
 
 - ``error_rms_rad``: its error's r.m.s. over the positions (the error's mean phase taken out);
 - ``step_error_rms_rad``: the r.m.s. of its error's change from one position to the next along a
@@ -15,12 +15,12 @@ reference's true phase (one phase per position, :func:`twinfocus.metrics.oracle_
   the target's loss is smooth across the aperture;
 - ``blind_degree_2``: the target's SSIM once the estimate's *own* polynomial of degree 2 (fitted to
   its wrapped phases, :func:`own_polynomial`; no truth) is taken out, with ``ramp_free_coherence``
-  (:func:`twinfocus.phase_ramp.ramp_free_coherence`: whether the phases hold together enough to
-  fit it) and ``step_coherence`` (:func:`twinfocus.drift_check.step_coherence`: jitter near 0.1,
+  (:func:`twinfocus.focus.phase_ramp.ramp_free_coherence`: whether the phases hold together enough to
+  fit it) and ``step_coherence`` (:func:`twinfocus.focus.drift_check.step_coherence`: jitter near 0.1,
   a hand's drift near 0.45). Under jitter the true error has no smooth part beyond what 390
   random values project onto six terms, so the estimate's smooth part is mostly its own error;
 - ``self_template_drift`` (with ``--self-template``): the target's SSIM after the drift + tilt fit
-  (:func:`twinfocus.space_variant.fit_smooth_drift`) to the reference's own corrected image as
+  (:func:`twinfocus.focus.space_variant.fit_smooth_drift`) to the reference's own corrected image as
   the template, and ``self_template_match`` the fit's match at its end (1: it never left its
   start);
 - ``subaperture_shift_px``: how far apart the images of the two halves of the aperture (along the
@@ -56,9 +56,9 @@ from benchmarks.bench_dtwin_family import (
     draw_inputs,
     surface_of,
 )
-from twinfocus.phase_ramp import aperture_polynomial
-from twinfocus.reference_free import _centred as centred
-from twinfocus.subpixel import parabola_vertex
+from twinfocus.focus.phase_ramp import aperture_polynomial
+from twinfocus.focus.reference_free import _centred as centred
+from twinfocus.imaging.subpixel import parabola_vertex
 
 #: consecutive positions further apart than this start a new sweep, metres (the scans' steps along
 #: a sweep are ~2 mm; the sweeps are one array length, 83 mm, apart)
@@ -78,9 +78,9 @@ def wrapped(phase: np.ndarray) -> np.ndarray:
 
 def own_polynomial(phase_rad: np.ndarray, centres_m: np.ndarray, degree: int) -> np.ndarray:
     """The least-squares fit of :func:`aperture_polynomial` to wrapped phases (M,), radians: from
-    the coherent ramp (:func:`twinfocus.phase_ramp.fit_linear_phase`), Gauss-Newton steps on the
+    the coherent ramp (:func:`twinfocus.focus.phase_ramp.fit_linear_phase`), Gauss-Newton steps on the
     wrapped residual, so wrapping does not bias it."""
-    from twinfocus.phase_ramp import fit_linear_phase
+    from twinfocus.focus.phase_ramp import fit_linear_phase
 
     columns = aperture_polynomial(centres_m, degree)
     ramp, _ = fit_linear_phase(phase_rad, centres_m[:, :2], min_coherence_sqrt_m=0.0)
@@ -93,9 +93,9 @@ def own_polynomial(phase_rad: np.ndarray, centres_m: np.ndarray, degree: int) ->
 def self_template_drift(d: dict, dt) -> tuple[float, float]:
     """(target SSIM, the fit's final match) of the drift + tilt fit to the reference's own image as
     the digital twin corrected it (the template a reference with no phase template could have)."""
-    from twinfocus.metrics import image_ssim
-    from twinfocus.pipeline import half_array_bases
-    from twinfocus.space_variant import drift_image, fit_smooth_drift
+    from twinfocus.focus.pipeline import half_array_bases
+    from twinfocus.focus.space_variant import drift_image, fit_smooth_drift
+    from twinfocus.imaging.metrics import image_ssim
 
     scan, rg, tg = d["scan"], d["rg"], d["tg"]
     c, wl = scan.positions.mean(axis=1), scan.chirp.wavelength_m
@@ -121,12 +121,13 @@ def intensity_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     return refined(cc[:, j], i), refined(cc[i, :], j)
 
 
-def one_draw(condition: str, seed: int, rows: int, size: int, shapes: tuple = BENCH_SHAPES,
-             self_template: bool = False) -> dict:
-    from twinfocus.basis import form_image
-    from twinfocus.drift_check import step_coherence
-    from twinfocus.metrics import image_ssim, oracle_phase
-    from twinfocus.phase_ramp import ramp_free_coherence
+def one_draw(
+    condition: str, seed: int, rows: int, size: int, shapes: tuple = BENCH_SHAPES, self_template: bool = False
+) -> dict:
+    from twinfocus.focus.drift_check import step_coherence
+    from twinfocus.focus.phase_ramp import ramp_free_coherence
+    from twinfocus.imaging.basis import form_image
+    from twinfocus.imaging.metrics import image_ssim, oracle_phase
 
     d = draw_inputs(condition, seed, shapes, rows, size)
     scan, rb, tb = d["scan"], d["rb"], d["tb"]
@@ -136,10 +137,15 @@ def one_draw(condition: str, seed: int, rows: int, size: int, shapes: tuple = BE
     true_phase = oracle_phase(scan.positions_true, scan.positions, d["rg"].centre_m, scan.chirp)
     dt = digital_twin_focus(d)
     error = wrapped(dt.phase_rad - true_phase)
-    rec: dict = {"seed": seed, "reference": d["kw"]["reference"], "surface": surface_of(d["kw"]),
-                 "sweeps": len(runs), "digital": round(float(dt.metrics["target_ssim_corrected"]), 4),
-                 "reference true phase": round(image_ssim(form_image(tb, true_phase), truth), 4),
-                 "error_rms_rad": round(float(np.sqrt(np.mean(centred(error) ** 2))), 3)}
+    rec: dict = {
+        "seed": seed,
+        "reference": d["kw"]["reference"],
+        "surface": surface_of(d["kw"]),
+        "sweeps": len(runs),
+        "digital": round(float(dt.metrics["target_ssim_corrected"]), 4),
+        "reference true phase": round(image_ssim(form_image(tb, true_phase), truth), 4),
+        "error_rms_rad": round(float(np.sqrt(np.mean(centred(error) ** 2))), 3),
+    }
     b = rb.reshape(rb.shape[0], -1)
     own, neighbours = [], []
     for s in runs:
@@ -176,24 +182,37 @@ def one_draw(condition: str, seed: int, rows: int, size: int, shapes: tuple = BE
 
 
 def table(results: dict) -> str:
-    lines = ["| condition | draws | digital twin | error rms rad | its step error | neighbours' step error | "
-             "without ramp | without degree 2 | without degree 3 | true phase | its own degree 2 out |"
-             " self-template drift |", "|---" * 12 + "|"]
+    lines = [
+        "| condition | draws | digital twin | error rms rad | its step error | neighbours' step error | "
+        "without ramp | without degree 2 | without degree 3 | true phase | its own degree 2 out |"
+        " self-template drift |",
+        "|---" * 12 + "|",
+    ]
     for cond, recs in results.items():
+
         def mean(key: str, recs: list = recs) -> float:
             return float(np.mean([r[key] for r in recs]))
 
-        lines.append(f"| {cond} | {len(recs)} | {mean('digital'):.3f} | {mean('error_rms_rad'):.2f} | "
-                     f"{mean('step_error_rms_rad'):.2f} | {mean('neighbour_step_error_rms_rad'):.2f} | "
-                     f"{mean('without_degree_1'):.3f} | {mean('without_degree_2'):.3f} | "
-                     f"{mean('without_degree_3'):.3f} | {mean('reference true phase'):.3f} | "
-                     f"{mean('blind_degree_2'):.3f} | "
-                     + (f"{mean('self_template_drift'):.3f} |" if all("self_template_drift" in r for r in recs) else "- |"))
+        lines.append(
+            f"| {cond} | {len(recs)} | {mean('digital'):.3f} | {mean('error_rms_rad'):.2f} | "
+            f"{mean('step_error_rms_rad'):.2f} | {mean('neighbour_step_error_rms_rad'):.2f} | "
+            f"{mean('without_degree_1'):.3f} | {mean('without_degree_2'):.3f} | "
+            f"{mean('without_degree_3'):.3f} | {mean('reference true phase'):.3f} | "
+            f"{mean('blind_degree_2'):.3f} | "
+            + (f"{mean('self_template_drift'):.3f} |" if all("self_template_drift" in r for r in recs) else "- |")
+        )
     return "\n".join(lines)
 
 
-def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, conditions: tuple[str, ...] = tuple(CONDITIONS),
-         rows: int = 65, size: int = 64, heldout: bool = False, self_template: bool = False) -> dict:
+def main(
+    out_dir: str | os.PathLike = "benchmarks/results",
+    draws: int = 5,
+    conditions: tuple[str, ...] = tuple(CONDITIONS),
+    rows: int = 65,
+    size: int = 64,
+    heldout: bool = False,
+    self_template: bool = False,
+) -> dict:
     results: dict = {}
     t0 = time.perf_counter()
     first, shapes = (HELDOUT_SEED, HELDOUT_SHAPES) if heldout else (BENCH_SEED, BENCH_SHAPES)
@@ -202,8 +221,13 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, cond
         for seed in range(first, first + draws):
             results[cond].append(one_draw(cond, seed, rows, size, shapes, self_template))
             print(f"[dtwin_error] {cond} seed {seed}: {json.dumps(results[cond][-1])}", file=sys.stderr, flush=True)
-    out = {"command": "python -m benchmarks.bench_dtwin_error " + " ".join(sys.argv[1:]), "rows": rows, "size": size,
-           "wall_s": round(time.perf_counter() - t0, 1), "results": results}
+    out = {
+        "command": "python -m benchmarks.bench_dtwin_error " + " ".join(sys.argv[1:]),
+        "rows": rows,
+        "size": size,
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "results": results,
+    }
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     name = "dtwin_error_structure_heldout.json" if heldout else "dtwin_error_structure.json"
     (Path(out_dir) / name).write_text(json.dumps(out, indent=2))
@@ -219,6 +243,8 @@ if __name__ == "__main__":
     ap.add_argument("--rows", type=int, default=65)
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--heldout", action="store_true", help="the held-out draws (a check of what the bench chose)")
-    ap.add_argument("--self-template", action="store_true", help="also the drift + tilt fit to the reference's own image")
+    ap.add_argument(
+        "--self-template", action="store_true", help="also the drift + tilt fit to the reference's own image"
+    )
     a = ap.parse_args()
     main(a.out, a.draws, tuple(a.conditions.split(",")), a.rows, a.size, a.heldout, a.self_template)

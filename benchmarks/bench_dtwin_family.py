@@ -44,6 +44,7 @@ Writes ``dtwin_family.json`` (``dtwin_family_heldout.json``) and prints the tabl
 condition (mean +- sd, worst) and the confidence report's false trust (trusted, below 0.90) and
 false alarms (flagged, at or above 0.95).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -91,8 +92,15 @@ def family_scenario(condition: str, seed: int, shapes: tuple, rows: int, surface
     surface = drawn if surface is None else surface
     if surface not in SURFACES:
         raise ValueError(f"surface must be one of {', '.join(SURFACES)}, got {surface!r}")
-    kw = dict(reference=str(ref), target=str(tgt), separation_deg=separation,
-              reference_roughness_deg=SURFACES[surface], reference_amplitude_spread=0.3, n_rows=rows, seed=seed)
+    kw = dict(
+        reference=str(ref),
+        target=str(tgt),
+        separation_deg=separation,
+        reference_roughness_deg=SURFACES[surface],
+        reference_amplitude_spread=0.3,
+        n_rows=rows,
+        seed=seed,
+    )
     return {**kw, **CONDITIONS[condition]}
 
 
@@ -107,11 +115,11 @@ def draw_inputs(condition: str, seed: int, shapes: tuple, rows: int, size: int, 
     camera cloud as it comes), bases ``rb``/``tb``, ``truth`` (focus_bases' truth keywords) and
     ``upper_band`` (the reference's upper-band basis) and ``reference_points`` (its exact surface,
     float (N, 3) metres, what the camera cloud was made from)."""
-    from twinfocus.backprojection import backproject, subimage_basis
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.digital_twin.condition import digital_twin_reference
-    from twinfocus.pipeline import upper_band_basis
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.focus.pipeline import upper_band_basis
+    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.twins.digital_twin.condition import digital_twin_reference
 
     kw = family_scenario(condition, seed, shapes, rows, surface)
     sc = Scenario(**kw)
@@ -120,23 +128,33 @@ def draw_inputs(condition: str, seed: int, shapes: tuple, rows: int, size: int, 
     rng = np.random.default_rng([seed, 14])
     surface = sc.scene().object("reference").surface_points(1e-3)
     cloud = camera_cloud(surface, *CLOUD, float(rng.uniform(*OFFSET_RANGE_M)), rng=rng)
-    truth = dict(truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
-                 truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
-                 positions_true=scan.positions_true)
-    return dict(kw=kw, scan=scan, template_scan=tpl_scan, rg=rg, tg=tg,
-                twin=digital_twin_reference(cloud, scan.positions, scan.chirp, rg),
-                rb=subimage_basis(scan.data, scan.positions, scan.chirp, rg),
-                tb=subimage_basis(scan.data, scan.positions, scan.chirp, tg), truth=truth,
-                upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, rg), reference_points=surface)
+    truth = dict(
+        truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
+        truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
+        positions_true=scan.positions_true,
+    )
+    return dict(
+        kw=kw,
+        scan=scan,
+        template_scan=tpl_scan,
+        rg=rg,
+        tg=tg,
+        twin=digital_twin_reference(cloud, scan.positions, scan.chirp, rg),
+        rb=subimage_basis(scan.data, scan.positions, scan.chirp, rg),
+        tb=subimage_basis(scan.data, scan.positions, scan.chirp, tg),
+        truth=truth,
+        upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, rg),
+        reference_points=surface,
+    )
 
 
 def digital_twin_focus(d: dict, **config):
     """What `twinfocus focus --digital-twin CLOUD` runs on :func:`draw_inputs`' draw ``d``;
     ``config``: AutofocusConfig fields over the defaults."""
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Bases, Reference, Truth
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.pipeline import Bases, Reference, Truth
+    from twinfocus.focus.plan import FocusPlan
 
     twin, scan = d["twin"], d["scan"]
     cfg = AutofocusConfig(**{**estimator_settings("auto", False, has_support=True), **config})
@@ -148,22 +166,27 @@ def digital_twin_focus(d: dict, **config):
 
 
 def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> dict:
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.basis import form_image
-    from twinfocus.drift_check import step_coherence
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.metrics import image_ssim, oracle_phase
-    from twinfocus.outline_fill import outline_fill
-    from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases
-    from twinfocus.templates import template_from_scan
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.drift_check import step_coherence
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.outline_fill import outline_fill
+    from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.imaging.basis import form_image
+    from twinfocus.imaging.metrics import image_ssim, oracle_phase
+    from twinfocus.twins.templates import template_from_scan
 
     d = draw_inputs(condition, seed, shapes, rows, size)
-    kw, scan, tpl_scan, rg, tg, twin, rb, tb, truth = (d[k] for k in ("kw", "scan", "template_scan", "rg", "tg", "twin",
-                                                                       "rb", "tb", "truth"))
-    rec: dict = {"seed": seed, "reference": kw["reference"], "target": kw["target"],
-                 "surface": surface_of(kw),
-                 "separation_deg": round(kw["separation_deg"], 2)}
+    kw, scan, tpl_scan, rg, tg, twin, rb, tb, truth = (
+        d[k] for k in ("kw", "scan", "template_scan", "rg", "tg", "twin", "rb", "tb", "truth")
+    )
+    rec: dict = {
+        "seed": seed,
+        "reference": kw["reference"],
+        "target": kw["target"],
+        "surface": surface_of(kw),
+        "separation_deg": round(kw["separation_deg"], 2),
+    }
     dt = digital_twin_focus(d)
     # what `twinfocus focus --template-scan` runs
     pt = FocusPlan.make(config=AutofocusConfig(**estimator_settings("auto", True))).focus_bases(
@@ -213,21 +236,30 @@ def placement(d: dict, out) -> dict:
     target's SSIM once moved by the sub-pixel shift of ``BEST_SHIFT_PX`` that suits it best
     (``best_shift_px``, (dy, dx)): its focus apart from its place; and the estimate's
     ``phase_coherence_sqrt_m``, what the confidence report reads the wrapping from."""
-    from twinfocus.metrics import image_ssim, oracle_phase
-    from twinfocus.phase_ramp import fit_linear_phase
-    from twinfocus.subpixel import shift_image
+    from twinfocus.focus.phase_ramp import fit_linear_phase
+    from twinfocus.imaging.metrics import image_ssim, oracle_phase
+    from twinfocus.imaging.subpixel import shift_image
 
     scan, rg, truth = d["scan"], d["rg"], d["truth"]["truth_target"]
     centres = scan.positions.mean(axis=1)
     true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
-    _, coeffs = fit_linear_phase(np.angle(np.exp(1j * (out.phase_rad - true))), centres[:, :2], min_coherence_sqrt_m=0.0)
-    # a ramp b across the aperture moves the image by b R / k (twinfocus.autofocus.transfer_phase)
+    _, coeffs = fit_linear_phase(
+        np.angle(np.exp(1j * (out.phase_rad - true))), centres[:, :2], min_coherence_sqrt_m=0.0
+    )
+    # a ramp b across the aperture moves the image by b R / k (twinfocus.focus.autofocus.transfer_phase)
     error_m = coeffs[1:] * float(rg.z - centres[:, 2].mean()) * scan.chirp.wavelength_m / (4.0 * np.pi)
-    scores = {(dy, dx): image_ssim(shift_image(out.target, dy, dx), truth) for dy in BEST_SHIFT_PX[0] for dx in BEST_SHIFT_PX[1]}
+    scores = {
+        (dy, dx): image_ssim(shift_image(out.target, dy, dx), truth)
+        for dy in BEST_SHIFT_PX[0]
+        for dx in BEST_SHIFT_PX[1]
+    }
     best = max(scores, key=scores.get)
-    return {"error_mm": [round(float(v) * 1e3, 2) for v in error_m], "best_shift_ssim": round(scores[best], 4),
-            "best_shift_px": [float(best[0]), float(best[1])],
-            "phase_coherence_sqrt_m": out.metrics["estimator"].get("phase_coherence_sqrt_m")}
+    return {
+        "error_mm": [round(float(v) * 1e3, 2) for v in error_m],
+        "best_shift_ssim": round(scores[best], 4),
+        "best_shift_px": [float(best[0]), float(best[1])],
+        "phase_coherence_sqrt_m": out.metrics["estimator"].get("phase_coherence_sqrt_m"),
+    }
 
 
 #: the field's reference-free autofocus, run on the target itself as ``twinfocus focus --method``
@@ -247,16 +279,21 @@ def cloud_parts(d: dict) -> dict:
     offset is drawn anew (a length in ``OFFSET_RANGE_M``, a direction of its own); "two views" holds each point of the
     surface seen twice, so its holes are where both views lost the surface (a camera's holes from
     specular spots move with the view; those from a texture-less surface would not)."""
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.digital_twin.condition import digital_twin_reference
+    from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.twins.digital_twin.condition import digital_twin_reference
 
     seed, scan, rg, surface = d["kw"]["seed"], d["scan"], d["rg"], d["reference_points"]
     rng = np.random.default_rng([seed, 14, 1])
     direction = rng.normal(size=3)
     offset = float(rng.uniform(*OFFSET_RANGE_M)) * direction / np.linalg.norm(direction)
     noise, holes, outliers = CLOUD
-    clouds = {"exact": (0.0, 0.0, 0.0, 0.0), "noise only": (noise, 0.0, 0.0, 0.0), "holes only": (0.0, holes, 0.0, 0.0),
-              "offset only": (0.0, 0.0, 0.0, offset), "all but holes": (noise, 0.0, outliers, offset)}
+    clouds = {
+        "exact": (0.0, 0.0, 0.0, 0.0),
+        "noise only": (noise, 0.0, 0.0, 0.0),
+        "holes only": (0.0, holes, 0.0, 0.0),
+        "offset only": (0.0, 0.0, 0.0, offset),
+        "all but holes": (noise, 0.0, outliers, offset),
+    }
     out = {}
     for name in CLOUD_PARTS:
         if name == "two views":
@@ -271,8 +308,8 @@ def cloud_parts(d: dict) -> dict:
 def baselines(d: dict) -> dict:
     """The reference-free methods on :func:`draw_inputs`' draw ``d``: each one's target SSIM
     (``sharpness``, ...), whether the confidence report trusts it and its warnings."""
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Bases, Reference, Truth
+    from twinfocus.focus.pipeline import Bases, Reference, Truth
+    from twinfocus.focus.plan import FocusPlan
 
     out: dict = {}
     scan = d["scan"]
@@ -288,38 +325,55 @@ def baselines(d: dict) -> dict:
     return out
 
 
-#: the digital twin's own warnings (twinfocus.pipeline.outline_warnings), which ``trusted`` applies
+#: the digital twin's own warnings (twinfocus.focus.pipeline.outline_warnings), which ``trusted`` applies
 #: anew from each record's measurements, so that records of an earlier run are read by the present rules
-OWN_WARNINGS = ("matches its template poorly", "does not fill its outline", "not sure of the reference's phase",
-                "the tracking drifted", "to a few radar positions", "not at its focus", "phases have wrapped")
+OWN_WARNINGS = (
+    "matches its template poorly",
+    "does not fill its outline",
+    "not sure of the reference's phase",
+    "the tracking drifted",
+    "to a few radar positions",
+    "not at its focus",
+    "phases have wrapped",
+)
 
 
 def defocus_gain(rec: dict) -> float | None:
     """The digital twin's ``target_defocus_gain_nats`` of a record: from its confidence report, or
     from ``--add-defocus`` for records made before the check; None where not measured."""
-    return rec["digital confidence"].get("target_defocus_gain_nats",
-                                         (rec.get("digital target_defocus") or {}).get("entropy_gain_nats"))
+    return rec["digital confidence"].get(
+        "target_defocus_gain_nats", (rec.get("digital target_defocus") or {}).get("entropy_gain_nats")
+    )
 
 
 def trusted(rec: dict, twin: str, target_focus: bool = True) -> bool:
     """Whether the confidence report trusts this record's ``twin`` result, by the report's present
-    rules: the drift check (``twinfocus.pipeline.drift_warnings``) and, for the digital twin, its own
+    rules: the drift check (``twinfocus.focus.pipeline.drift_warnings``) and, for the digital twin, its own
     checks (``outline_warnings``: the reference's energy contrast over its outline unless the scan
     read it as speckled, the glint across the positions, the grown outlines' agreement, the
     target's own focus where the record measured it, the wrapping of its phases where the record
     kept their coherence) applied anew to the record's measurements,
     the report's other warnings as recorded."""
-    from twinfocus.pipeline import MAX_TARGET_DEFOCUS_GAIN_NATS, drift_warnings, outline_warnings, placement_warnings
+    from twinfocus.focus.pipeline import (
+        MAX_TARGET_DEFOCUS_GAIN_NATS,
+        drift_warnings,
+        outline_warnings,
+        placement_warnings,
+    )
 
     digital = twin == "digital"
     conf = rec[f"{twin} confidence"]
     others = [w for w in rec[f"{twin} warnings"] if not any(k in w for k in OWN_WARNINGS)]
     # (records before the concentration was measured: None, the drift judged by its steps alone)
-    own = drift_warnings(rec[f"{twin} step_coherence"], conf.get("phase_concentration"), digital, conf["separation_deg"])
+    own = drift_warnings(
+        rec[f"{twin} step_coherence"], conf.get("phase_concentration"), digital, conf["separation_deg"]
+    )
     if digital:
         fill = conf.get("reference_outline") or rec["digital outline"]
         own += outline_warnings(fill, conf.get("outline_agreement"))
-        coherence = conf.get("phase_coherence_sqrt_m", (rec.get("digital placement") or {}).get("phase_coherence_sqrt_m"))
+        coherence = conf.get(
+            "phase_coherence_sqrt_m", (rec.get("digital placement") or {}).get("phase_coherence_sqrt_m")
+        )
         if coherence is None:  # a record from before the coherence was kept: its wrapping warning as recorded
             own += [w for w in rec["digital warnings"] if "phases have wrapped" in w]
         else:
@@ -335,55 +389,83 @@ def table(results: dict) -> str:
     """Markdown: each twin per condition (mean +- sd, worst; draws the tool refused counted apart)
     and the confidence report's errors over every scored draw."""
     cols = ("digital", "physical", "reference true phase", "oracle")
-    lines = ["| condition | draws | refused | digital twin | physical twin | reference's true phase | target's own phase |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| condition | draws | refused | digital twin | physical twin | reference's true phase | target's own phase |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for cond, recs in results.items():
         scored = [r for r in recs if "refused" not in r]
         cells = [np.array([r[c] for r in scored]) for c in cols]
-        lines.append(f"| {cond} | {len(scored)} | {len(recs) - len(scored)} | "
-                     + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
-    lines += ["", "| condition | " + " | ".join(f"digital twin, {s} references" for s in SURFACES) + " |",
-              "|---|" + "---|" * len(SURFACES)]
+        lines.append(
+            f"| {cond} | {len(scored)} | {len(recs) - len(scored)} | "
+            + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells)
+            + " |"
+        )
+    lines += [
+        "",
+        "| condition | " + " | ".join(f"digital twin, {s} references" for s in SURFACES) + " |",
+        "|---|" + "---|" * len(SURFACES),
+    ]
     for cond, recs in results.items():
         cells = []
         for surface in SURFACES:
             v = np.array([r["digital"] for r in recs if "refused" not in r and r.get("surface") == surface])
             cells.append(f"{v.mean():.3f} ({len(v)} draws, worst {v.min():.3f})" if len(v) else "no draws")
         lines.append(f"| {cond} | " + " | ".join(cells) + " |")
-    lines += ["", "| condition | digital twin | " + " | ".join(f"`--method {m}`" for m in BASELINES) + " |",
-              "|---|---|" + "---|" * len(BASELINES)]
+    lines += [
+        "",
+        "| condition | digital twin | " + " | ".join(f"`--method {m}`" for m in BASELINES) + " |",
+        "|---|---|" + "---|" * len(BASELINES),
+    ]
     for cond, recs in results.items():
         scored = [r for r in recs if "refused" not in r and all(m in r for m in BASELINES)]
         if not scored:
             continue
         cells = [np.array([r[c] for r in scored]) for c in ("digital", *BASELINES)]
-        lines.append(f"| {cond} | " + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |")
+        lines.append(
+            f"| {cond} | " + " | ".join(f"{v.mean():.3f} ± {v.std():.3f} (worst {v.min():.3f})" for v in cells) + " |"
+        )
     placed = {cond: [r for r in recs if "digital placement" in r] for cond, recs in results.items()}
     if any(placed.values()):
-        lines += ["", "| condition | draws | digital twin | moved by its best shift: its focus "
-                  "| the target's place across y, off by (mm): median, 90th percentile, worst | across x |",
-                  "|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "| condition | draws | digital twin | moved by its best shift: its focus "
+            "| the target's place across y, off by (mm): median, 90th percentile, worst | across x |",
+            "|---|---|---|---|---|---|",
+        ]
         for cond, recs in placed.items():
             if not recs:
                 continue
             ssim = np.array([r["digital"] for r in recs])
             moved = np.array([r["digital placement"]["best_shift_ssim"] for r in recs])
             off = np.abs(np.array([r["digital placement"]["error_mm"] for r in recs]))
-            lines.append(f"| {cond} | {len(recs)} | {ssim.mean():.3f} | {moved.mean():.3f} | "
-                         + " | ".join(f"{np.median(o):.1f}, {np.percentile(o, 90):.1f}, {o.max():.1f}" for o in (off[:, 1], off[:, 0]))
-                         + " |")
+            lines.append(
+                f"| {cond} | {len(recs)} | {ssim.mean():.3f} | {moved.mean():.3f} | "
+                + " | ".join(
+                    f"{np.median(o):.1f}, {np.percentile(o, 90):.1f}, {o.max():.1f}" for o in (off[:, 1], off[:, 0])
+                )
+                + " |"
+            )
     parted = {cond: [r for r in recs if "digital cloud parts" in r] for cond, recs in results.items()}
     if any(parted.values()):
-        lines += ["", "| condition | draws | the cloud as it comes | " + " | ".join(CLOUD_PARTS) + " |",
-                  "|---|---|---|" + "---|" * len(CLOUD_PARTS)]
+        lines += [
+            "",
+            "| condition | draws | the cloud as it comes | " + " | ".join(CLOUD_PARTS) + " |",
+            "|---|---|---|" + "---|" * len(CLOUD_PARTS),
+        ]
         for cond, recs in parted.items():
             if not recs:
                 continue
             cells = [np.array([r["digital"] for r in recs])]
             cells += [np.array([r["digital cloud parts"][k] for r in recs]) for k in CLOUD_PARTS]
-            lines.append(f"| {cond} | {len(recs)} | " + " | ".join(f"{v.mean():.3f} (worst {v.min():.3f})" for v in cells) + " |")
-    lines += ["", "| twin | results | trusted (their worst) | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |",
-              "|---|---|---|---|---|"]
+            lines.append(
+                f"| {cond} | {len(recs)} | " + " | ".join(f"{v.mean():.3f} (worst {v.min():.3f})" for v in cells) + " |"
+            )
+    lines += [
+        "",
+        "| twin | results | trusted (their worst) | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |",
+        "|---|---|---|---|---|",
+    ]
     recs = [r for rs in results.values() for r in rs if "refused" not in r]
     for twin in ("digital", "physical", *BASELINES):
         rs = [r for r in recs if twin in r]
@@ -397,7 +479,9 @@ def table(results: dict) -> str:
         poor = sum(r[twin] < POOR and trust(r) for r in rs)
         alarm = sum(r[twin] >= GOOD and not trust(r) for r in rs)
         worst = f" ({min(kept):.3f})" if kept else ""
-        lines.append(f"| {twin} | {len(rs)} | {len(kept)}{worst} | {poor} ({poor / len(rs):.0%}) | {alarm} ({alarm / len(rs):.0%}) |")
+        lines.append(
+            f"| {twin} | {len(rs)} | {len(kept)}{worst} | {poor} ({poor / len(rs):.0%}) | {alarm} ({alarm / len(rs):.0%}) |"
+        )
     return "\n".join(lines)
 
 
@@ -406,12 +490,15 @@ def defocus_figure(path: str | os.PathLike, results_dir: str | os.PathLike = "be
     checks trust, its target SSIM against the entropy a quadratic still takes off the target
     (``target_defocus_gain_nats``), bench and held-out draws, with the threshold and the false
     trust and false alarm lines."""
-    from twinfocus.pipeline import MAX_TARGET_DEFOCUS_GAIN_NATS
-    from twinfocus.plotting import pyplot
+    from twinfocus.focus.pipeline import MAX_TARGET_DEFOCUS_GAIN_NATS
+    from twinfocus.io.png import pyplot
 
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(5.2, 3.6))
-    for name, marker, colour in (("dtwin_family.json", "o", "tab:blue"), ("dtwin_family_heldout.json", "^", "tab:orange")):
+    for name, marker, colour in (
+        ("dtwin_family.json", "o", "tab:blue"),
+        ("dtwin_family_heldout.json", "^", "tab:orange"),
+    ):
         results = json.loads((Path(results_dir) / name).read_text())
         results.pop("scan", None)
         points = []
@@ -447,14 +534,27 @@ def _wants(rec: dict, defocus: bool, placement_: bool, baselines_: bool, parts: 
         return not all(m in rec for m in BASELINES)
     if placement_:
         return "digital placement" not in rec
-    return ("target_defocus_gain_nats" not in rec["digital confidence"] and "digital target_defocus" not in rec
-            and trusted(rec, "digital"))
+    return (
+        "target_defocus_gain_nats" not in rec["digital confidence"]
+        and "digital target_defocus" not in rec
+        and trusted(rec, "digital")
+    )
 
 
-def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, heldout: bool = False,
-         rows: int = 65, size: int = 64, only: str | None = None, minutes: float | None = None,
-         resume: bool = False, add_baselines: bool = False, add_defocus: bool = False,
-         add_placement: bool = False, add_cloud_parts: int = 0) -> dict:
+def main(
+    out_dir: str | os.PathLike = "benchmarks/results",
+    draws: int = 3,
+    heldout: bool = False,
+    rows: int = 65,
+    size: int = 64,
+    only: str | None = None,
+    minutes: float | None = None,
+    resume: bool = False,
+    add_baselines: bool = False,
+    add_defocus: bool = False,
+    add_placement: bool = False,
+    add_cloud_parts: int = 0,
+) -> dict:
     from twinfocus.errors import TwinFocusError
 
     out_dir = Path(out_dir)
@@ -485,16 +585,23 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, held
                         # the focus check decides the record's verdict, so it must be the record's
                         # run; the placement describes the run it measured, which it names
                         if add_defocus:
-                            raise RuntimeError(f"{cond}, seed {rec['seed']}: the digital twin now gives {now:.4f}, "
-                                               f"the record {rec['digital']:.4f}")
-                        print(f"[dtwin family] {cond}, seed {rec['seed']}: the digital twin now gives {now:.4f}, "
-                              f"the record {rec['digital']:.4f}", file=sys.stderr, flush=True)
+                            raise RuntimeError(
+                                f"{cond}, seed {rec['seed']}: the digital twin now gives {now:.4f}, "
+                                f"the record {rec['digital']:.4f}"
+                            )
+                        print(
+                            f"[dtwin family] {cond}, seed {rec['seed']}: the digital twin now gives {now:.4f}, "
+                            f"the record {rec['digital']:.4f}",
+                            file=sys.stderr,
+                            flush=True,
+                        )
                     if add_defocus:
                         rec["digital target_defocus"] = out.metrics["target_defocus"]
                     if add_placement:
                         rec["digital placement"] = {**placement(d, out), "target_ssim": round(now, 4)}
-                path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1,
-                                           default=float))
+                path.write_text(
+                    json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1, default=float)
+                )
         print(table(results))
         return results
     conditions = [c for c in CONDITIONS if not only or only == c]
@@ -505,7 +612,10 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, held
     # draws of each
     for seed in range(first, first + draws):
         if minutes is not None and time.monotonic() - start > 60.0 * minutes:
-            print(f"[dtwin family] {minutes} minutes spent: stopping after {seed - first} draws per condition", file=sys.stderr)
+            print(
+                f"[dtwin family] {minutes} minutes spent: stopping after {seed - first} draws per condition",
+                file=sys.stderr,
+            )
             break
         for cond in conditions:
             if any(r["seed"] == seed for r in results[cond]):
@@ -516,8 +626,12 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, held
             except TwinFocusError as e:
                 # what a user would be told instead of a result (counted, not scored)
                 kw = family_scenario(cond, seed, shapes, rows)
-                results[cond].append({"seed": seed, "reference": kw["reference"], "target": kw["target"], "refused": str(e)})
-            path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1, default=float))
+                results[cond].append(
+                    {"seed": seed, "reference": kw["reference"], "target": kw["target"], "refused": str(e)}
+                )
+            path.write_text(
+                json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1, default=float)
+            )
     path.write_text(json.dumps({"scan": {"positions": rows * 6, "pixels": size}, **results}, indent=1, default=float))
     print(table(results))
     return results
@@ -533,20 +647,49 @@ if __name__ == "__main__":
     ap.add_argument("--only", default=None, help="one condition's name (replaces it in an earlier file)")
     ap.add_argument("--minutes", type=float, default=None, help="start no new seed after this many minutes")
     ap.add_argument("--resume", action="store_true", help="keep the draws an earlier run of this file holds")
-    ap.add_argument("--add-baselines", action="store_true",
-                    help="add the reference-free baselines to an earlier file's records (the twins are not rerun)")
-    ap.add_argument("--add-defocus", action="store_true",
-                    help="measure the target's focus check on an earlier file's trusted digital-twin results")
-    ap.add_argument("--add-placement", action="store_true",
-                    help="measure where the digital twin put the target (against the truth) on an earlier file's records")
-    ap.add_argument("--add-cloud-parts", type=int, default=0, metavar="N",
-                    help="on the first N draws of each condition of an earlier file, the digital twin with each of "
-                         "the camera cloud's impairments alone (and two views joined)")
-    ap.add_argument("--defocus-figure", default=None,
-                    help="draw the target's focus check from --out's two files into this picture (no draws run)")
+    ap.add_argument(
+        "--add-baselines",
+        action="store_true",
+        help="add the reference-free baselines to an earlier file's records (the twins are not rerun)",
+    )
+    ap.add_argument(
+        "--add-defocus",
+        action="store_true",
+        help="measure the target's focus check on an earlier file's trusted digital-twin results",
+    )
+    ap.add_argument(
+        "--add-placement",
+        action="store_true",
+        help="measure where the digital twin put the target (against the truth) on an earlier file's records",
+    )
+    ap.add_argument(
+        "--add-cloud-parts",
+        type=int,
+        default=0,
+        metavar="N",
+        help="on the first N draws of each condition of an earlier file, the digital twin with each of "
+        "the camera cloud's impairments alone (and two views joined)",
+    )
+    ap.add_argument(
+        "--defocus-figure",
+        default=None,
+        help="draw the target's focus check from --out's two files into this picture (no draws run)",
+    )
     a = ap.parse_args()
     if a.defocus_figure:
         defocus_figure(a.defocus_figure, a.out)
         sys.exit(0)
-    main(a.out, a.draws, a.heldout, a.rows, a.size, a.only, a.minutes, a.resume, a.add_baselines, a.add_defocus,
-         a.add_placement, a.add_cloud_parts)
+    main(
+        a.out,
+        a.draws,
+        a.heldout,
+        a.rows,
+        a.size,
+        a.only,
+        a.minutes,
+        a.resume,
+        a.add_baselines,
+        a.add_defocus,
+        a.add_placement,
+        a.add_cloud_parts,
+    )

@@ -1,4 +1,4 @@
-"""The hand's drift + tilt fit (``twinfocus.space_variant.fit_smooth_drift``) against an earlier
+"""The hand's drift + tilt fit (``twinfocus.focus.space_variant.fit_smooth_drift``) against an earlier
 version of it, side by side on the same draws and the same inputs: time, the target's SSIM against
 the image on the true positions, the drift's error against the true positions.
 
@@ -14,7 +14,7 @@ Each draw is the hand-drift scene of ``benchmarks/bench_handheld.py`` ("hand 0.8
 780 positions, 100 x 100 regions), focused by ``focus_bases`` with the space-variant fit on. The
 fit's inputs are taken as the pipeline hands them over; the pipeline's own call is the current
 fit's row, then the earlier version (``--baseline``, a git revision: its
-``twinfocus/space_variant.py``, loaded as it was) runs on the same inputs at once after it, so
+``twinfocus/focus/space_variant.py``, loaded as it was) runs on the same inputs at once after it, so
 both see the same load. With a CUDA device the current fit also runs there (after a warm-up fit)
 and writes its own rows. Writes ``field_speed.json`` (records per draw: each fit's wall seconds
 and the CPU seconds of all its threads, which vary less with the machine's load, the load average
@@ -46,13 +46,13 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.bench_handheld import CONDITIONS, draw_bases
-from twinfocus import metrics
-from twinfocus import space_variant as sv
-from twinfocus.autofocus import AutofocusConfig
-from twinfocus.estimators import estimator_settings
-from twinfocus.focus_plan import FocusPlan
-from twinfocus.machine import machine_info
-from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases
+from twinfocus.focus import space_variant as sv
+from twinfocus.focus.autofocus import AutofocusConfig
+from twinfocus.focus.estimators import estimator_settings
+from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases
+from twinfocus.focus.plan import FocusPlan
+from twinfocus.imaging import metrics
+from twinfocus.jobs.machine import machine_info
 
 #: the scene of bench_handheld's "hand 0.8 mm + 0.15 deg"
 SCENE = CONDITIONS["hand 0.8 mm + 0.15 deg"]
@@ -62,11 +62,16 @@ BASELINE = "2ec245c"
 
 
 def load_baseline(rev: str):
-    """``twinfocus/space_variant.py`` as it was at git revision ``rev``, as a module (None when
+    """``twinfocus/focus/space_variant.py`` as it was at git revision ``rev``, as a module (None when
     git or the revision is not there)."""
     try:
-        src = subprocess.run(["git", "show", f"{rev}:twinfocus/space_variant.py"], capture_output=True, text=True,
-                             check=True, cwd=Path(__file__).resolve().parents[1]).stdout
+        src = subprocess.run(
+            ["git", "show", f"{rev}:twinfocus/focus/space_variant.py"],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=Path(__file__).resolve().parents[1],
+        ).stdout
     except (OSError, subprocess.CalledProcessError):
         return None
     path = Path(tempfile.mkdtemp()) / f"space_variant_{rev}.py"
@@ -86,15 +91,23 @@ def one_draw(seed: int, baseline) -> dict:
 
     def scored(label: str, fit, load_before: float, cpu_s: float) -> dict:
         phase, dp, tilt, info = fit
-        img = sv.drift_image(tb, phase, dp, rg.centre_m, centres, tg, scan.chirp.wavelength_m, half_basis=halves[1],
-                             tilt_rad=tilt)
+        img = sv.drift_image(
+            tb, phase, dp, rg.centre_m, centres, tg, scan.chirp.wavelength_m, half_basis=halves[1], tilt_rad=tilt
+        )
         e = dp[:, :2] - true_drift
-        return {"fit": label, "time_s": info["time_s"], "cpu_s": cpu_s, "load_before": load_before,
-                "load_after": os.getloadavg()[0],
-                "match_before": info["match_before"], "match_after": info["match_after"],
-                "target_ssim": metrics.image_ssim(img, truth_t),
-                "drift_error_rms_mm": float(np.sqrt(((e - e.mean(axis=0)) ** 2).mean()) * 1e3),
-                "iterations": [info["iterations"], info["refine_iterations"]], "device": info.get("device", "cpu")}
+        return {
+            "fit": label,
+            "time_s": info["time_s"],
+            "cpu_s": cpu_s,
+            "load_before": load_before,
+            "load_after": os.getloadavg()[0],
+            "match_before": info["match_before"],
+            "match_after": info["match_after"],
+            "target_ssim": metrics.image_ssim(img, truth_t),
+            "drift_error_rms_mm": float(np.sqrt(((e - e.mean(axis=0)) ** 2).mean()) * 1e3),
+            "iterations": [info["iterations"], info["refine_iterations"]],
+            "device": info.get("device", "cpu"),
+        }
 
     rows: list[dict] = []
     current = sv.fit_smooth_drift
@@ -127,8 +140,9 @@ def one_draw(seed: int, baseline) -> dict:
             return out
         if torch.cuda.is_available():
             current(*args, **kwargs, device="cuda")  # warm-up: the CUDA context and kernels
-            rows.append(scored(f"current on {torch.cuda.get_device_name()}",
-                               *timed(current, *args, **kwargs, device="cuda")))
+            rows.append(
+                scored(f"current on {torch.cuda.get_device_name()}", *timed(current, *args, **kwargs, device="cuda"))
+            )
         return out
 
     sv.fit_smooth_drift = fit_and_compare  # the pipeline imports it from the module when it runs
@@ -144,12 +158,17 @@ def one_draw(seed: int, baseline) -> dict:
         )
     finally:
         sv.fit_smooth_drift = current
-    return {"seed": seed, "pipeline_target_ssim": out.metrics["target_ssim_corrected"],
-            "ceiling_target_phase": out.metrics["target_ssim_oracle_phase"], "fits": rows}
+    return {
+        "seed": seed,
+        "pipeline_target_ssim": out.metrics["target_ssim_corrected"],
+        "ceiling_target_phase": out.metrics["target_ssim_oracle_phase"],
+        "fits": rows,
+    }
 
 
-def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",), as_user: bool = False,
-                  warm: bool = False) -> list[dict]:
+def focus_profile(
+    seed: int, work: Path, models: tuple[str, ...] = ("auto",), as_user: bool = False, warm: bool = False
+) -> list[dict]:
     """``twinfocus simulate`` then ``twinfocus focus`` on one draw of the scene, as a user runs them,
     once per ``--model`` in ``models``: the stages' seconds (``metrics.json`` ``timings_s``), the
     drift fit's own (``space_variant_fit_s``), the ladder's (``model_s``: every rung, the half-array
@@ -164,19 +183,40 @@ def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",), as
     the live solver run scans one after another (``twinfocus.cli.focus.run``), after one untimed
     run of the same command: the start, the imports (torch's too), numba's kernels and the cache
     are paid once per process, not per scan. CPU seconds are then this process's own."""
-    from twinfocus.backprojection import backproject
-    from twinfocus.metrics import image_ssim
-    from twinfocus.scan import Scan
-    from twinfocus.scenario import Scenario, scenario_grids
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.metrics import image_ssim
+    from twinfocus.radar.scan import Scan
+    from twinfocus.simulation.scenario import Scenario, scenario_grids
 
     rg, tg = scenario_grids(Scenario(**SCENE, seed=seed), 100)
     scan, stage = work / f"hand{seed}.npz", work / f"hand{seed}_stage.npz"
     exe = [str(Path(sys.executable).parent / "twinfocus")]  # the console script beside this interpreter
-    subprocess.run(exe + ["simulate", "--out", str(scan), "--template-out", str(stage), "--reference", SCENE["reference"],
-                          "--target", SCENE["target"], "--separation-deg", str(SCENE["separation_deg"]),
-                          "--snr-db", str(SCENE["snr_db"]), "--error-model", SCENE["error_model"],
-                          "--error-sigma-mm", str(SCENE["error_sigma_m"][0] * 1e3), "--seed", str(seed), "--quiet"],
-                   check=True)
+    subprocess.run(
+        exe
+        + [
+            "simulate",
+            "--out",
+            str(scan),
+            "--template-out",
+            str(stage),
+            "--reference",
+            SCENE["reference"],
+            "--target",
+            SCENE["target"],
+            "--separation-deg",
+            str(SCENE["separation_deg"]),
+            "--snr-db",
+            str(SCENE["snr_db"]),
+            "--error-model",
+            SCENE["error_model"],
+            "--error-sigma-mm",
+            str(SCENE["error_sigma_m"][0] * 1e3),
+            "--seed",
+            str(seed),
+            "--quiet",
+        ],
+        check=True,
+    )
     roi = [[g.x0, g.x1, g.y0, g.y1, g.z] for g in (rg, tg)]
     env, truth = None, None
     if as_user:
@@ -188,9 +228,25 @@ def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",), as
         env = {**os.environ, "TWINFOCUS_CACHE_DIR": str(work / f"cache{seed}")}
 
     def command(model: str, out: Path) -> list[str]:
-        return ["focus", str(scan), "--template-scan", str(stage), "--reference-roi", *map(str, roi[0]),
-                "--target-roi", *map(str, roi[1]), "--size", "100", "--model", model, "--out", str(out),
-                "--no-pictures", *([] if as_user else ["--no-cache"]), "--quiet"]
+        return [
+            "focus",
+            str(scan),
+            "--template-scan",
+            str(stage),
+            "--reference-roi",
+            *map(str, roi[0]),
+            "--target-roi",
+            *map(str, roi[1]),
+            "--size",
+            "100",
+            "--model",
+            model,
+            "--out",
+            str(out),
+            "--no-pictures",
+            *([] if as_user else ["--no-cache"]),
+            "--quiet",
+        ]
 
     if as_user:  # the cache's first fill is not what a user waits for on later scans
         subprocess.run(exe + command("none", work / f"focus{seed}_warm"), check=True, env=env)
@@ -216,17 +272,33 @@ def focus_profile(seed: int, work: Path, models: tuple[str, ...] = ("auto",), as
         m = json.loads((out / "metrics.json").read_text())
         if truth is not None:
             m["target_ssim_corrected"] = image_ssim(np.load(out / "target.npy"), truth)
-        runs.append({"seed": seed, "model": model,
-                     "command": "twinfocus " + " ".join(cmd[:1] + ["SCAN", "--template-scan", "STAGE"] + cmd[4:]),
-                     "wall_s": wall, "cpu_s": cpu_s, "load_before": load,
-                     "timings_s": m["timings_s"], "model_s": m["model"]["time_s"], "kept": m["model"]["kept"],
-                     "space_variant_fit_s": (m.get("space_variant") or {}).get("time_s"),
-                     "target_ssim_corrected": m.get("target_ssim_corrected"), "as_user": as_user, "warm": warm})
+        runs.append(
+            {
+                "seed": seed,
+                "model": model,
+                "command": "twinfocus " + " ".join(cmd[:1] + ["SCAN", "--template-scan", "STAGE"] + cmd[4:]),
+                "wall_s": wall,
+                "cpu_s": cpu_s,
+                "load_before": load,
+                "timings_s": m["timings_s"],
+                "model_s": m["model"]["time_s"],
+                "kept": m["model"]["kept"],
+                "space_variant_fit_s": (m.get("space_variant") or {}).get("time_s"),
+                "target_ssim_corrected": m.get("target_ssim_corrected"),
+                "as_user": as_user,
+                "warm": warm,
+            }
+        )
     return runs
 
 
-def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 2, seeds: list[int] | None = None,
-         baseline_rev: str = BASELINE, threads: int | None = None) -> dict:
+def main(
+    out_dir: str | os.PathLike = "benchmarks/results",
+    draws: int = 2,
+    seeds: list[int] | None = None,
+    baseline_rev: str = BASELINE,
+    threads: int | None = None,
+) -> dict:
     if threads is not None:
         import numba
         import torch
@@ -244,17 +316,27 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 2, seed
         t0 = time.perf_counter()
         records.append(one_draw(seed, baseline))
         print(f"[field_speed] draw {seed} done in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
-    result = {"command": "python -m benchmarks.bench_field_speed " + " ".join(sys.argv[1:]), "threads": threads,
-              "scene": {k: list(v) if isinstance(v, tuple) else v for k, v in SCENE.items()},
-              "n_positions": 780, "region_px": [100, 100], "machine": machine_info(), "draws": records}
+    result = {
+        "command": "python -m benchmarks.bench_field_speed " + " ".join(sys.argv[1:]),
+        "threads": threads,
+        "scene": {k: list(v) if isinstance(v, tuple) else v for k, v in SCENE.items()},
+        "n_positions": 780,
+        "region_px": [100, 100],
+        "machine": machine_info(),
+        "draws": records,
+    }
     (out_dir / "field_speed.json").write_text(json.dumps(result, indent=2))
-    print("| draw | fit | time s | CPU s | load | target SSIM | drift error mm | match after |\n"
-          "|---|---|---|---|---|---|---|---|")
+    print(
+        "| draw | fit | time s | CPU s | load | target SSIM | drift error mm | match after |\n"
+        "|---|---|---|---|---|---|---|---|"
+    )
     for r in records:
         for f in r["fits"]:
-            print(f"| {r['seed']} | {f['fit']} | {f['time_s']:.1f} | {f['cpu_s']:.1f} | {f['load_before']:.0f} "
-                  f"| {f['target_ssim']:.4f} "
-                  f"| {f['drift_error_rms_mm']:.3f} | {f['match_after']:.5f} |")
+            print(
+                f"| {r['seed']} | {f['fit']} | {f['time_s']:.1f} | {f['cpu_s']:.1f} | {f['load_before']:.0f} "
+                f"| {f['target_ssim']:.4f} "
+                f"| {f['drift_error_rms_mm']:.3f} | {f['match_after']:.5f} |"
+            )
     return result
 
 
@@ -267,27 +349,50 @@ if __name__ == "__main__":
     ap.add_argument("--threads", type=int, default=None, help="torch's and numba's threads (default: theirs)")
     ap.add_argument("--focus-profile", action="store_true", help="time a whole twinfocus focus per draw instead")
     ap.add_argument("--models", default="auto", help="with --focus-profile: comma-separated --model values")
-    ap.add_argument("--as-user", action="store_true",
-                    help="with --focus-profile: the scan as captured (no truth images) and the template from the cache")
-    ap.add_argument("--warm", action="store_true",
-                    help="with --focus-profile (implies --as-user): each focus in this process after an untimed "
-                         "one, as twinfocus batch's workers and the solver run scans one after another")
+    ap.add_argument(
+        "--as-user",
+        action="store_true",
+        help="with --focus-profile: the scan as captured (no truth images) and the template from the cache",
+    )
+    ap.add_argument(
+        "--warm",
+        action="store_true",
+        help="with --focus-profile (implies --as-user): each focus in this process after an untimed "
+        "one, as twinfocus batch's workers and the solver run scans one after another",
+    )
     a = ap.parse_args()
     if a.focus_profile:
         Path(a.out).mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory() as work:
-            runs = [r for seed in ([int(s) for s in a.seeds.split(",")] if a.seeds else range(1, a.draws + 1))
-                    for r in focus_profile(seed, Path(work), tuple(a.models.split(",")), a.as_user or a.warm, a.warm)]
-        name = ("field_focus_profile_warm.json" if a.warm else "field_focus_profile_as_user.json" if a.as_user
-                else "field_focus_profile.json")
-        (Path(a.out) / name).write_text(json.dumps(
-            {"command": "python -m benchmarks.bench_field_speed " + " ".join(sys.argv[1:]),
-             "scene": {k: list(v) if isinstance(v, tuple) else v for k, v in SCENE.items()},
-             "machine": machine_info(), "runs": runs}, indent=2))
+            runs = [
+                r
+                for seed in ([int(s) for s in a.seeds.split(",")] if a.seeds else range(1, a.draws + 1))
+                for r in focus_profile(seed, Path(work), tuple(a.models.split(",")), a.as_user or a.warm, a.warm)
+            ]
+        name = (
+            "field_focus_profile_warm.json"
+            if a.warm
+            else "field_focus_profile_as_user.json"
+            if a.as_user
+            else "field_focus_profile.json"
+        )
+        (Path(a.out) / name).write_text(
+            json.dumps(
+                {
+                    "command": "python -m benchmarks.bench_field_speed " + " ".join(sys.argv[1:]),
+                    "scene": {k: list(v) if isinstance(v, tuple) else v for k, v in SCENE.items()},
+                    "machine": machine_info(),
+                    "runs": runs,
+                },
+                indent=2,
+            )
+        )
         for r in runs:
             slow = {k: round(v, 1) for k, v in r["timings_s"].items() if isinstance(v, (int, float)) and v > 1.0}
-            print(f"draw {r['seed']} --model {r['model']}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.0f} s CPU, ladder "
-                  f"{r['model_s']:.1f} s ({'/'.join(r['kept'])}), target SSIM {r['target_ssim_corrected']:.4f}; "
-                  f"stages over 1 s: {slow}")
+            print(
+                f"draw {r['seed']} --model {r['model']}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.0f} s CPU, ladder "
+                f"{r['model_s']:.1f} s ({'/'.join(r['kept'])}), target SSIM {r['target_ssim_corrected']:.4f}; "
+                f"stages over 1 s: {slow}"
+            )
         sys.exit(0)
     main(a.out, a.draws, [int(s) for s in a.seeds.split(",")] if a.seeds else None, a.baseline, a.threads)

@@ -15,6 +15,7 @@ Scenes (the reference 'A', the target 'F' 10 degrees apart at 0.6 m):
 and scene A with each cloud impairment alone. Writes ``field_twin.json`` (one record per
 condition and draw) and prints a markdown table (mean +- sd).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,9 +28,11 @@ from types import SimpleNamespace
 import numpy as np
 
 #: the scenes' tracking error and noise
-SCENES = {"A": dict(error_sigma_m=(0.2e-3, 0.2e-3, 0.5e-3), snr_db=15),
-          "B": dict(error_sigma_m=(0.3e-3, 0.3e-3, 1.0e-3), snr_db=10, target_depth_offset_m=0.1),
-          "C": dict(error_sigma_m=(0.3e-3, 0.3e-3, 1.6e-3), snr_db=15)}
+SCENES = {
+    "A": dict(error_sigma_m=(0.2e-3, 0.2e-3, 0.5e-3), snr_db=15),
+    "B": dict(error_sigma_m=(0.3e-3, 0.3e-3, 1.0e-3), snr_db=10, target_depth_offset_m=0.1),
+    "C": dict(error_sigma_m=(0.3e-3, 0.3e-3, 1.6e-3), snr_db=15),
+}
 #: camera-cloud impairments: (noise m, hole fraction, outlier fraction, offset m)
 ALL = (1e-3, 0.25, 0.02, 2.5e-3)
 CONDITIONS = {
@@ -49,10 +52,10 @@ def field_draw(kw: dict, seed: int, impairments: tuple = ALL) -> SimpleNamespace
     reference's exact ``surface`` points, the digital ``twin`` from its camera cloud (``impairments``:
     noise m, hole fraction, outlier fraction, offset m; the cloud drawn from ``[seed, 14]``) and the
     sub-image bases ``rb`` / ``tb``. kw: Scenario keywords (e.g. ``SCENES["B"]``)."""
-    from twinfocus.backprojection import subimage_basis
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.digital_twin.condition import digital_twin_reference
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.imaging.backprojection.numba_backend import subimage_basis
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.twins.digital_twin.condition import digital_twin_reference
 
     sc = Scenario(**kw, reference_roughness_deg=90.0, reference_amplitude_spread=0.3, seed=seed)
     scan, tpl_scan = simulate_scenario(sc)
@@ -66,36 +69,54 @@ def field_draw(kw: dict, seed: int, impairments: tuple = ALL) -> SimpleNamespace
 
 
 def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.backprojection import backproject
-    from twinfocus.basis import form_image
-    from twinfocus.digital_twin.condition import digital_twin_reference
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.metrics import image_ssim, oracle_phase
-    from twinfocus.phase_ramp import fit_linear_phase
-    from twinfocus.pipeline import Bases, Reference, Truth, upper_band_basis
-    from twinfocus.templates import template_from_scan
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.phase_ramp import fit_linear_phase
+    from twinfocus.focus.pipeline import Bases, Reference, Truth, upper_band_basis
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.basis import form_image
+    from twinfocus.imaging.metrics import image_ssim, oracle_phase
+    from twinfocus.twins.digital_twin.condition import digital_twin_reference
+    from twinfocus.twins.templates import template_from_scan
 
     d = field_draw(SCENES[scene], seed, impairments)
     sc, scan, tpl_scan, rg, tg, twin, rb, tb = d.sc, d.scan, d.tpl_scan, d.rg, d.tg, d.twin, d.rb, d.tb
     exact = digital_twin_reference(d.surface, scan.positions, scan.chirp, rg)
-    truth = dict(truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
-                 truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg), positions_true=scan.positions_true)
+    truth = dict(
+        truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
+        truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
+        positions_true=scan.positions_true,
+    )
     wl = scan.chirp.wavelength_m
     # the earlier auto for an amplitude template: chosen from the tracking error the user states
-    old_auto = estimator_settings("projection" if float(np.linalg.norm(sc.error_sigma_m)) <= wl / 4 else "projection-refined", False)
+    old_auto = estimator_settings(
+        "projection" if float(np.linalg.norm(sc.error_sigma_m)) <= wl / 4 else "projection-refined", False
+    )
     outline = estimator_settings("outline", False, has_support=True)
     # "default" is what `--estimator auto` takes for a point-cloud twin (the averaged outlines)
-    runs = {"default": (twin.template, twin.support, estimator_settings("auto", False, has_support=True)),
-            "outline, one": (twin.template, twin.support, {**outline, "outline_ensemble": False}),
-            # the default before the outline was grown first (template_match.grown_outline)
-            "default, outline not grown": (twin.template, twin.support,
-                                           {**estimator_settings("auto", False, has_support=True), "outline_growth_rounds": 0}),
-            "projection": (twin.template, None, estimator_settings("projection", False)),
-            "old auto": (twin.template, None, old_auto),
-            "exact points (outline)": (exact.template, exact.support, estimator_settings("outline", False, has_support=True)),
-            "physical twin": (template_from_scan(tpl_scan, rg, keep_phase=True), None, estimator_settings("correlation", True))}
+    runs = {
+        "default": (twin.template, twin.support, estimator_settings("auto", False, has_support=True)),
+        "outline, one": (twin.template, twin.support, {**outline, "outline_ensemble": False}),
+        # the default before the outline was grown first (template_match.grown_outline)
+        "default, outline not grown": (
+            twin.template,
+            twin.support,
+            {**estimator_settings("auto", False, has_support=True), "outline_growth_rounds": 0},
+        ),
+        "projection": (twin.template, None, estimator_settings("projection", False)),
+        "old auto": (twin.template, None, old_auto),
+        "exact points (outline)": (
+            exact.template,
+            exact.support,
+            estimator_settings("outline", False, has_support=True),
+        ),
+        "physical twin": (
+            template_from_scan(tpl_scan, rg, keep_phase=True),
+            None,
+            estimator_settings("correlation", True),
+        ),
+    }
     if full:
         runs["paper"] = (twin.template, None, estimator_settings("paper", False))
     rec: dict = {"seed": seed, "surface": twin.info.get("surface")}
@@ -127,13 +148,26 @@ def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
     aperture = scan.positions.mean(axis=1)[:, :2]
     ramp, coeffs = fit_linear_phase(np.angle(np.exp(1j * (default_phase - reference_true))), aperture)
     rec["default, position from the truth"] = image_ssim(form_image(tb, default_phase - ramp), truth["truth_target"])
-    rec["default position error_mm"] = (coeffs[1:] * float(rg.z - scan.positions[..., 2].mean()) * wl / (4 * np.pi) * 1e3).tolist()
+    rec["default position error_mm"] = (
+        coeffs[1:] * float(rg.z - scan.positions[..., 2].mean()) * wl / (4 * np.pi) * 1e3
+    ).tolist()
     return rec
 
 
-COLUMNS = ["uncorrected", "paper", "old auto", "projection", "outline, one", "default, outline not grown", "default",
-           "default, position from the truth",
-           "exact points (outline)", "physical twin", "reference true phase", "oracle phase"]
+COLUMNS = [
+    "uncorrected",
+    "paper",
+    "old auto",
+    "projection",
+    "outline, one",
+    "default, outline not grown",
+    "default",
+    "default, position from the truth",
+    "exact points (outline)",
+    "physical twin",
+    "reference true phase",
+    "oracle phase",
+]
 #: whose estimate times the table gives (mean over the draws)
 TIMED = ["outline, one", "default, outline not grown", "default"]
 
@@ -154,8 +188,12 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, only
             print(f"[field twin] {cond}, draw {seed}/{draws}", file=sys.stderr, flush=True)
             results[cond].append(one_draw(scene, imp, full, seed))
             path.write_text(json.dumps(results, indent=2))
-    print("| condition | " + " | ".join(COLUMNS + [f"{n} time (s)" for n in TIMED]) + " |\n|---|"
-          + "---|" * (len(COLUMNS) + len(TIMED)))
+    print(
+        "| condition | "
+        + " | ".join(COLUMNS + [f"{n} time (s)" for n in TIMED])
+        + " |\n|---|"
+        + "---|" * (len(COLUMNS) + len(TIMED))
+    )
     for cond, recs in results.items():
         cells = []
         for c in COLUMNS:
@@ -189,11 +227,11 @@ def growth_sweep(out_dir: str | os.PathLike = "benchmarks/results", draws: int =
     diagnostic column of the main table) and the outline's size. Writes ``field_twin_growth.json``."""
     import time
 
-    from twinfocus.backprojection import backproject
-    from twinfocus.basis import form_image
-    from twinfocus.metrics import image_ssim, oracle_phase
-    from twinfocus.phase_ramp import fit_linear_phase
-    from twinfocus.template_match import averaged_outline_phase
+    from twinfocus.focus.phase_ramp import fit_linear_phase
+    from twinfocus.focus.template_match import averaged_outline_phase
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.basis import form_image
+    from twinfocus.imaging.metrics import image_ssim, oracle_phase
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -209,11 +247,19 @@ def growth_sweep(out_dir: str | os.PathLike = "benchmarks/results", draws: int =
             phase, info = averaged_outline_phase(rb, twin.support, aperture, growth_rounds=rounds)
             took = time.perf_counter() - t0
             ramp, _ = fit_linear_phase(np.angle(np.exp(1j * (phase - reference_true))), aperture)
-            rec[str(rounds)] = {"placed by the truth": image_ssim(form_image(tb, phase - ramp), truth),
-                                "time_s": took, "outline_px": info["growth_px"][-1]}
+            rec[str(rounds)] = {
+                "placed by the truth": image_ssim(form_image(tb, phase - ramp), truth),
+                "time_s": took,
+                "outline_px": info["growth_px"][-1],
+            }
         results[scene].append(rec)
         (out_dir / "field_twin_growth.json").write_text(json.dumps(results, indent=1))
-    print("| growth rounds | " + " | ".join(results) + " | estimate's time (s, mean) |\n|---|" + "---|" * (len(results) + 1))
+    print(
+        "| growth rounds | "
+        + " | ".join(results)
+        + " | estimate's time (s, mean) |\n|---|"
+        + "---|" * (len(results) + 1)
+    )
     for rounds in GROWTH_ROUNDS:
         k = str(rounds)
         cells = [f"{np.mean([r[k]['placed by the truth'] for r in recs]):.3f}" for recs in results.values()]
@@ -223,28 +269,34 @@ def growth_sweep(out_dir: str | os.PathLike = "benchmarks/results", draws: int =
 
 
 #: range_error_floor's cases: the reference's texture (Scenario keywords) ...
-FLOOR_TEXTURES = {"rough (the field's)": dict(reference_roughness_deg=90.0, reference_amplitude_spread=0.3),
-                  "smooth plate": dict(reference_roughness_deg=None, reference_amplitude_spread=0.0, speckle=False)}
+FLOOR_TEXTURES = {
+    "rough (the field's)": dict(reference_roughness_deg=90.0, reference_amplitude_spread=0.3),
+    "smooth plate": dict(reference_roughness_deg=None, reference_amplitude_spread=0.0, speckle=False),
+}
 #: ... and the tracking error (x, y, z sigma, m) and noise
-FLOOR_ERRORS = {"none": ((0.0, 0.0, 0.0), 15), "0.5 mm z": ((0.3e-3, 0.3e-3, 0.5e-3), 15),
-                "1.6 mm z": ((0.3e-3, 0.3e-3, 1.6e-3), 15), "1.6 mm z, no noise": ((0.3e-3, 0.3e-3, 1.6e-3), None)}
+FLOOR_ERRORS = {
+    "none": ((0.0, 0.0, 0.0), 15),
+    "0.5 mm z": ((0.3e-3, 0.3e-3, 0.5e-3), 15),
+    "1.6 mm z": ((0.3e-3, 0.3e-3, 1.6e-3), 15),
+    "1.6 mm z, no noise": ((0.3e-3, 0.3e-3, 1.6e-3), None),
+}
 
 
 def range_error_floor(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3) -> dict:
     """How well the band's halves read each position's range error when the estimate is exact.
 
     On scene C's geometry, for a rough and a smooth reference and tracking errors from none to
-    1.6 mm: the range errors :func:`~twinfocus.band_delay.position_range_errors_m` reads with the
+    1.6 mm: the range errors :func:`~twinfocus.focus.band_delay.position_range_errors_m` reads with the
     true phase as the estimate, on the bright pixels of the focused reference, against the true
     ones (each position's mean over its channels of the range change to the reference's centre).
     Reports the error's sd (mm), the slope of measured on true, and the image shift (mm) that the
     ramp fit with them taken out asks for, which with the true phase should be none: the floor of
     the placement by the band's halves (docs/digital_twin.md). Writes ``field_twin_range_floor.json``."""
-    from twinfocus.backprojection import backproject, subimage_basis_points
-    from twinfocus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
-    from twinfocus.metrics import oracle_phase, true_range_errors_m
-    from twinfocus.phase_ramp import fit_linear_phase
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.focus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
+    from twinfocus.focus.phase_ramp import fit_linear_phase
+    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis_points
+    from twinfocus.imaging.metrics import oracle_phase, true_range_errors_m
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -264,8 +316,10 @@ def range_error_floor(out_dir: str | os.PathLike = "benchmarks/results", draws: 
                 true_m = true_range_errors_m(scan.positions_true, scan.positions, centre)
                 pixels = bright_pixels(backproject(scan.data, scan.positions_true, scan.chirp, rg)).ravel()
                 points = rg.points()[pixels]
-                halves = [subimage_basis_points(d, scan.positions, c, points)
-                          for d, c in zip(half_band_data(scan.data, scan.chirp), half_band_chirps(scan.chirp))]
+                halves = [
+                    subimage_basis_points(d, scan.positions, c, points)
+                    for d, c in zip(half_band_data(scan.data, scan.chirp), half_band_chirps(scan.chirp))
+                ]
                 measured = position_range_errors_m(*halves, true_phase, scan.chirp)
                 err = (measured - measured.mean()) - (true_m - true_m.mean())
                 aperture = scan.positions.mean(axis=1)[:, :2]
@@ -273,21 +327,32 @@ def range_error_floor(out_dir: str | os.PathLike = "benchmarks/results", draws: 
                 ramp, coeffs = fit_linear_phase(ranged, aperture, min_coherence_sqrt_m=0.0)
                 range_m = float(np.linalg.norm(centre - scan.positions.mean(axis=(0, 1))))
                 shift = coeffs[1:] * range_m * scan.chirp.wavelength_m / (4.0 * np.pi)
-                recs.append({"seed": seed, "error_sd_mm": 1e3 * float(err.std()),
-                             "slope": float(np.polyfit(true_m, measured, 1)[0]) if true_m.std() > 0 else None,
-                             "asked_shift_mm": (1e3 * shift).tolist(),
-                             "ramp_coherence_sqrt_m": float(np.abs(np.exp(1j * (ranged - ramp)).mean()) * np.sqrt(ranged.size)),
-                             "bright_px": int(pixels.sum())})
+                recs.append(
+                    {
+                        "seed": seed,
+                        "error_sd_mm": 1e3 * float(err.std()),
+                        "slope": float(np.polyfit(true_m, measured, 1)[0]) if true_m.std() > 0 else None,
+                        "asked_shift_mm": (1e3 * shift).tolist(),
+                        "ramp_coherence_sqrt_m": float(
+                            np.abs(np.exp(1j * (ranged - ramp)).mean()) * np.sqrt(ranged.size)
+                        ),
+                        "bright_px": int(pixels.sum()),
+                    }
+                )
                 (out_dir / "field_twin_range_floor.json").write_text(json.dumps(results, indent=1))
-    print("| reference, tracking error | range-error error, sd (mm) | slope "
-          "| shift asked with the true phase (mm, mean abs x, y) | coherence x sqrt(M) |")
+    print(
+        "| reference, tracking error | range-error error, sd (mm) | slope "
+        "| shift asked with the true phase (mm, mean abs x, y) | coherence x sqrt(M) |"
+    )
     print("|---|---|---|---|---|")
     for name, recs in results.items():
         slopes = [r["slope"] for r in recs if r["slope"] is not None]
         shifts = np.abs([r["asked_shift_mm"] for r in recs]).mean(axis=0)
-        print(f"| {name} | {np.mean([r['error_sd_mm'] for r in recs]):.2f} | "
-              + (f"{np.mean(slopes):.2f}" if slopes else "-")
-              + f" | {shifts[0]:.1f}, {shifts[1]:.1f} | {np.mean([r['ramp_coherence_sqrt_m'] for r in recs]):.1f} |")
+        print(
+            f"| {name} | {np.mean([r['error_sd_mm'] for r in recs]):.2f} | "
+            + (f"{np.mean(slopes):.2f}" if slopes else "-")
+            + f" | {shifts[0]:.1f}, {shifts[1]:.1f} | {np.mean([r['ramp_coherence_sqrt_m'] for r in recs]):.1f} |"
+        )
     return results
 
 
@@ -304,24 +369,27 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
     the image shift (mm) that part stands for. The bench's draws (seeds 1 to ``draws``) and the
     held-out ones (``benchmarks.heldout_field_twin``'s seeds, 6 on, ``heldout`` of them).
 
-    And what the product's own placement (:func:`twinfocus.pipeline.place_estimate`: the plain
+    And what the product's own placement (:func:`twinfocus.focus.pipeline.place_estimate`: the plain
     ramp fit, then the band's halves) makes of an exact estimate: the true phase as it stands, and
     moved by the ramp of that draw's camera offset (the x, y part of ``ALL``'s 2.5 mm in the
     direction the camera cloud draws), as an outline the camera put there would move it; and that
     moved phase kept as it is. Writes ``field_twin_placement_ceiling.json``."""
-    from twinfocus.backprojection import backproject, subimage_basis
-    from twinfocus.basis import form_image
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.focus_plan import place_estimate
-    from twinfocus.metrics import image_ssim, oracle_phase, true_range_errors_m
-    from twinfocus.pipeline import upper_band_basis
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.focus.pipeline import upper_band_basis
+    from twinfocus.focus.plan import place_estimate
+    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.imaging.basis import form_image
+    from twinfocus.imaging.metrics import image_ssim, oracle_phase, true_range_errors_m
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     seeds = {"bench": list(range(1, draws + 1)), "held-out": list(range(6, 6 + heldout))}
-    placed = ("exact, placed by the product", "exact moved by the camera's offset, placed by the product",
-              "exact moved by the camera's offset, kept")
+    placed = (
+        "exact, placed by the product",
+        "exact moved by the camera's offset, placed by the product",
+        "exact moved by the camera's offset, kept",
+    )
     results: dict = {}
     for scene in SCENES:
         results[scene] = []
@@ -341,10 +409,15 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
                 coeffs, *_ = np.linalg.lstsq(design, range_errors, rcond=None)
                 trend_phase = -4.0 * np.pi / scan.chirp.wavelength_m * (design @ coeffs)
                 range_m = float(np.linalg.norm(centre - scan.positions.mean(axis=(0, 1))))
-                rec = {"draws": which, "seed": seed,
-                       "true phase": image_ssim(form_image(tb, true_phase), truth),
-                       "true phase less the errors' linear part": image_ssim(form_image(tb, true_phase - trend_phase), truth),
-                       "linear part's shift_mm": (1e3 * coeffs[1:] * range_m).tolist()}
+                rec = {
+                    "draws": which,
+                    "seed": seed,
+                    "true phase": image_ssim(form_image(tb, true_phase), truth),
+                    "true phase less the errors' linear part": image_ssim(
+                        form_image(tb, true_phase - trend_phase), truth
+                    ),
+                    "linear part's shift_mm": (1e3 * coeffs[1:] * range_m).tolist(),
+                }
                 # the camera's offset as field_draw's cloud draws it (the same generator, the same order)
                 surface = sc.scene().object("reference").surface_points(1e-3)
                 _, cam = camera_cloud(surface, *ALL, rng=np.random.default_rng([seed, 14]), return_truth=True)
@@ -360,8 +433,11 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
                 rec["camera offset_mm"] = (1e3 * offset).tolist()
                 results[scene].append(rec)
                 (out_dir / "field_twin_placement_ceiling.json").write_text(json.dumps(results, indent=1))
-    print("| scene, draws | true phase | less the range errors' linear part (mean +- sd, lowest) | its shift (mm, mean \\|x\\|, \\|y\\|) | "
-          + " | ".join(placed) + " (mean +- sd, lowest) |")
+    print(
+        "| scene, draws | true phase | less the range errors' linear part (mean +- sd, lowest) | its shift (mm, mean \\|x\\|, \\|y\\|) | "
+        + " | ".join(placed)
+        + " (mean +- sd, lowest) |"
+    )
     print("|---|---|---|---|" + "---|" * len(placed))
     for scene, recs in results.items():
         for which in seeds:
@@ -371,9 +447,12 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
             less = [r["true phase less the errors' linear part"] for r in mine]
             shift = np.abs([r["linear part's shift_mm"] for r in mine]).mean(axis=0)
             cells = [[r[name] for r in mine] for name in placed]
-            print(f"| {scene}, {which} ({len(mine)}) | {np.mean([r['true phase'] for r in mine]):.3f} | "
-                  f"{np.mean(less):.3f} +- {np.std(less):.3f}, {np.min(less):.3f} | {shift[0]:.2f}, {shift[1]:.2f} | "
-                  + " | ".join(f"{np.mean(v):.3f} +- {np.std(v):.3f}, {np.min(v):.3f}" for v in cells) + " |")
+            print(
+                f"| {scene}, {which} ({len(mine)}) | {np.mean([r['true phase'] for r in mine]):.3f} | "
+                f"{np.mean(less):.3f} +- {np.std(less):.3f}, {np.min(less):.3f} | {shift[0]:.2f}, {shift[1]:.2f} | "
+                + " | ".join(f"{np.mean(v):.3f} +- {np.std(v):.3f}, {np.min(v):.3f}" for v in cells)
+                + " |"
+            )
     return results
 
 
@@ -386,13 +465,13 @@ def template_file(out_dir: str | os.PathLike = "benchmarks/results", draws: int 
     and the autofocus stage's time per draw; writes ``field_twin_template_file.json``."""
     import tempfile
 
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.backprojection import backproject
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.metrics import image_ssim
-    from twinfocus.pipeline import Bases, Reference, upper_band_basis
-    from twinfocus.templates import load_template, save_template
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.pipeline import Bases, Reference, upper_band_basis
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.metrics import image_ssim
+    from twinfocus.twins.templates import load_template, save_template
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -403,7 +482,10 @@ def template_file(out_dir: str | os.PathLike = "benchmarks/results", draws: int 
         upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
         rec: dict = {"seed": seed}
         with tempfile.TemporaryDirectory() as tmp:
-            for name, extra in (("image alone", {}), ("with its outline", {"support": twin.support, "info": twin.info})):
+            for name, extra in (
+                ("image alone", {}),
+                ("with its outline", {"support": twin.support, "info": twin.info}),
+            ):
                 path = Path(tmp) / "template.npz"
                 save_template(path, twin.template, rg, **extra)
                 template, support, info = load_template(path, rg, with_outline=True)
@@ -417,28 +499,45 @@ def template_file(out_dir: str | os.PathLike = "benchmarks/results", draws: int 
                 rec[f"{name} time_s"] = out.timings_s["autofocus"]
         results[scene].append(rec)
         (out_dir / "field_twin_template_file.json").write_text(json.dumps(results, indent=1))
-    print("| scene | template file, image alone (before) | **with its outline and conditioning** | time (s) before / now |")
+    print(
+        "| scene | template file, image alone (before) | **with its outline and conditioning** | time (s) before / now |"
+    )
     print("|---|---|---|---|")
     for scene, recs in results.items():
         cells = [[r[name] for r in recs] for name in ("image alone", "with its outline")]
         times = [np.mean([r[f"{name} time_s"] for r in recs]) for name in ("image alone", "with its outline")]
-        print(f"| {scene} ({len(recs)}) | " + " | ".join(f"{np.mean(v):.3f} +- {np.std(v):.3f}" for v in cells)
-              + f" | {times[0]:.2f} / {times[1]:.2f} |")
+        print(
+            f"| {scene} ({len(recs)}) | "
+            + " | ".join(f"{np.mean(v):.3f} +- {np.std(v):.3f}" for v in cells)
+            + f" | {times[0]:.2f} / {times[1]:.2f} |"
+        )
     return results
 
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="benchmarks/results")
-    ap.add_argument("--growth-sweep", action="store_true",
-                    help="measure the outline's growth rounds instead (field_twin_growth.json, ~6 min)")
-    ap.add_argument("--range-error-floor", action="store_true",
-                    help="how well the band's halves read the range errors with the true phase (field_twin_range_floor.json, ~8 min)")
-    ap.add_argument("--placement-ceiling", action="store_true",
-                    help="what a twin placed by the scan alone can reach on A, B and C, and what the product's "
-                    "placement makes of an exact estimate (field_twin_placement_ceiling.json, ~25 min)")
-    ap.add_argument("--template-file", action="store_true",
-                    help="the two-step way through a template file, before and with its outline (field_twin_template_file.json, ~3 min)")
+    ap.add_argument(
+        "--growth-sweep",
+        action="store_true",
+        help="measure the outline's growth rounds instead (field_twin_growth.json, ~6 min)",
+    )
+    ap.add_argument(
+        "--range-error-floor",
+        action="store_true",
+        help="how well the band's halves read the range errors with the true phase (field_twin_range_floor.json, ~8 min)",
+    )
+    ap.add_argument(
+        "--placement-ceiling",
+        action="store_true",
+        help="what a twin placed by the scan alone can reach on A, B and C, and what the product's "
+        "placement makes of an exact estimate (field_twin_placement_ceiling.json, ~25 min)",
+    )
+    ap.add_argument(
+        "--template-file",
+        action="store_true",
+        help="the two-step way through a template file, before and with its outline (field_twin_template_file.json, ~3 min)",
+    )
     ap.add_argument("--draws", type=int, default=5)
     ap.add_argument("--only", default=None, help="run only the conditions whose name contains this")
     a = ap.parse_args()

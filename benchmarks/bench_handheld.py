@@ -7,6 +7,7 @@ default (``--space-variant auto`` on top), and the two ceilings, per draw.
 Writes ``handheld.json`` (one record per condition and draw) and prints a markdown table of mean
 and sd; docs/handheld.md quotes it.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -18,22 +19,29 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus import metrics
-from twinfocus.autofocus import AutofocusConfig
-from twinfocus.backprojection import backproject, subimage_basis
-from twinfocus.basis import form_image
-from twinfocus.estimators import estimator_settings
-from twinfocus.focus_plan import FocusPlan
-from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases
-from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
-from twinfocus.templates import template_from_scan
+from twinfocus.focus.autofocus import AutofocusConfig
+from twinfocus.focus.estimators import estimator_settings
+from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases
+from twinfocus.focus.plan import FocusPlan
+from twinfocus.imaging import metrics
+from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+from twinfocus.imaging.basis import form_image
+from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+from twinfocus.twins.templates import template_from_scan
 
 #: held-out scenes: letters H and S 17.5 cm apart at 0.6 m, 15 dB; the demo scene as a check
 CONDITIONS = {
-    "hand 0.8 mm + 0.15 deg": dict(reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand",
-                                   error_sigma_m=(0.8e-3,) * 3),
-    "0.5 mm z jitter (paper protocol)": dict(reference="H", target="S", separation_deg=16.3, snr_db=15,
-                                             error_model="gaussian", error_sigma_m=(0.0, 0.0, 0.5e-3)),
+    "hand 0.8 mm + 0.15 deg": dict(
+        reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand", error_sigma_m=(0.8e-3,) * 3
+    ),
+    "0.5 mm z jitter (paper protocol)": dict(
+        reference="H",
+        target="S",
+        separation_deg=16.3,
+        snr_db=15,
+        error_model="gaussian",
+        error_sigma_m=(0.0, 0.0, 0.5e-3),
+    ),
     "demo scene, 0.5 mm x/y/z jitter": dict(error_model="gaussian", error_sigma_m=(0.5e-3,) * 3),
 }
 
@@ -46,7 +54,7 @@ def mean_offset_removed_ssim(target: np.ndarray, scan, grid, truth: np.ndarray) 
     correction then moves the target with it (docs/handheld.md). The gap between this figure and
     the default's is the share of the loss that offset explains; a diagnostic, never a result.
     """
-    from twinfocus.template_match import shift_image
+    from twinfocus.focus.template_match import shift_image
 
     mean_error_m = (scan.positions - scan.positions_true).reshape(-1, 3).mean(axis=0)
     dx_px = mean_error_m[0] / (grid.x_m[1] - grid.x_m[0])
@@ -72,10 +80,13 @@ def draw_bases(kw: dict, seed: int):
 def one_draw(kw: dict, seed: int) -> dict:
     scan, rg, tg, tpl, rb, tb, truth_t, truth_r = draw_bases(kw, seed)
     rec: dict = {"seed": seed}
-    runs = (("closed_form_remove", tpl, "correlation", "remove", "off"), ("closed_form_auto", tpl, "correlation", "auto", "off"),
-            ("default", tpl, "correlation", "auto", "auto"),
-            ("projections_remove", np.abs(tpl), "projection", "remove", "off"),
-            ("projections_auto", np.abs(tpl), "projection", "auto", "auto"))
+    runs = (
+        ("closed_form_remove", tpl, "correlation", "remove", "off"),
+        ("closed_form_auto", tpl, "correlation", "auto", "off"),
+        ("default", tpl, "correlation", "auto", "auto"),
+        ("projections_remove", np.abs(tpl), "projection", "remove", "off"),
+        ("projections_auto", np.abs(tpl), "projection", "auto", "auto"),
+    )
     for name, template, est, ramp, sv in runs:
         t0 = time.perf_counter()
         out = FocusPlan.make(
@@ -120,14 +131,26 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 2) -> d
             print(f"[handheld] {cond}, draw {seed}/{draws}", file=sys.stderr, flush=True)
             results[cond].append(one_draw(kw, seed))
     (out_dir / "handheld.json").write_text(json.dumps(results, indent=2))
-    cols = ["uncorrected", "closed_form_remove", "closed_form_auto", "default", "projections_remove", "projections_auto",
-            "reference_true_phase", "ceiling_target_phase", "default_mean_offset_removed", "default_time_s"]
+    cols = [
+        "uncorrected",
+        "closed_form_remove",
+        "closed_form_auto",
+        "default",
+        "projections_remove",
+        "projections_auto",
+        "reference_true_phase",
+        "ceiling_target_phase",
+        "default_mean_offset_removed",
+        "default_time_s",
+    ]
     print("| condition | " + " | ".join(cols) + " |\n|---|" + "---|" * len(cols))
     for cond, recs in results.items():
         cells = [f"{np.mean([r[c] for r in recs]):.3f} ± {np.std([r[c] for r in recs]):.3f}" for c in cols]
-        flags = (f"space-variant used {sum(r['default_space_variant_used'] for r in recs)}/{len(recs)}, "
-                 f"trusted {sum(r['default_trusted'] for r in recs)}/{len(recs)} "
-                 f"(one phase per position: {sum(r['closed_form_auto_trusted'] for r in recs)}/{len(recs)})")
+        flags = (
+            f"space-variant used {sum(r['default_space_variant_used'] for r in recs)}/{len(recs)}, "
+            f"trusted {sum(r['default_trusted'] for r in recs)}/{len(recs)} "
+            f"(one phase per position: {sum(r['closed_form_auto_trusted'] for r in recs)}/{len(recs)})"
+        )
         print(f"| {cond} | " + " | ".join(cells) + f" | {flags} |")
     return results
 

@@ -6,7 +6,7 @@ the truth says is best; ``--model fast``, ``auto`` and ``full`` in time and SSIM
 
 Each draw builds the scan's bases once and runs ``focus_bases`` once per rung (``--model RUNG``:
 that rung forced, those beneath it by their rules; its time is the whole climb to it) and with
-``--model auto``, ``fast`` and ``full``, its settings from the settings table (twinfocus/settings.py) as
+``--model auto``, ``fast`` and ``full``, its settings from the settings table (twinfocus/focus/settings.py) as
 ``twinfocus focus`` takes them. A rung that cannot run on the scene (``range_errors`` after a
 physical twin's registration, ``drift`` without one) has no entry. Small scans so that five
 draws of every scene fit a loaded 2-core machine in about 20 minutes: 3 columns of 20 positions,
@@ -24,6 +24,7 @@ unless said):
 Writes ``model_ladder.json`` (one record per scene and draw, and the summary) and
 docs/figures/model_ladder.png; prints a markdown table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -41,8 +42,10 @@ SCENES = {
     "paper protocol": (dict(error_model="gaussian", error_sigma_m=(0.5e-3,) * 3), "physical"),
     "hand drift + rotation": (HAND, "physical"),
     "1.6 mm wraps": (dict(error_sigma_m=(0.3e-3, 0.3e-3, 1.6e-3), snr_db=15), "amplitude"),
-    "rough reference": (dict(error_sigma_m=(0.2e-3, 0.2e-3, 0.5e-3), snr_db=15, reference_roughness_deg=90.0),
-                        "physical"),
+    "rough reference": (
+        dict(error_sigma_m=(0.2e-3, 0.2e-3, 0.5e-3), snr_db=15, reference_roughness_deg=90.0),
+        "physical",
+    ),
     "camera cloud": (dict(error_sigma_m=(0.2e-3, 0.2e-3, 0.5e-3), snr_db=15, reference_roughness_deg=90.0), "cloud"),
 }
 CLOUD = (1e-3, 0.25, 0.02, 2.5e-3)
@@ -50,14 +53,14 @@ MODELS = ("auto", "fast", "full")
 
 
 def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) -> dict:
-    from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.errors import TwinFocusError
-    from twinfocus.estimators import TWIN_RUNGS
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases, upper_band_basis
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
-    from twinfocus.settings import default_settings
-    from twinfocus.templates import template_from_scan
+    from twinfocus.focus.estimators import TWIN_RUNGS
+    from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases, upper_band_basis
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.focus.settings import default_settings
+    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.twins.templates import template_from_scan
 
     kw, kind = SCENES[scene]
     sc = Scenario(**kw, n_columns=COLUMNS, n_rows=ROWS, seed=seed)
@@ -65,12 +68,13 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
     rg, tg = scenario_grids(sc, SIZE)
     support = None
     if kind == "cloud":
-        from twinfocus.digital_twin.camera_cloud import camera_cloud
-        from twinfocus.digital_twin.condition import digital_twin_reference
+        from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
+        from twinfocus.twins.digital_twin.condition import digital_twin_reference
 
         surface = sc.scene().object("reference").surface_points(1e-3)
-        twin = digital_twin_reference(camera_cloud(surface, *CLOUD, rng=np.random.default_rng([seed, 14])),
-                                      scan.positions, scan.chirp, rg)
+        twin = digital_twin_reference(
+            camera_cloud(surface, *CLOUD, rng=np.random.default_rng([seed, 14])), scan.positions, scan.chirp, rg
+        )
         template, support = twin.template, twin.support
     else:
         template = template_from_scan(tpl_scan, rg, keep_phase=True)
@@ -78,9 +82,11 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
             template = np.abs(template)
     rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
     tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
-    truth = dict(truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
-                 truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
-                 positions_true=scan.positions_true)
+    truth = dict(
+        truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
+        truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
+        positions_true=scan.positions_true,
+    )
     settings = {**default_settings(), "iterations": ITERATIONS, "device": "cpu"}
     rec: dict = {"scene": scene, "seed": seed, "rungs": {}}
     for model in TWIN_RUNGS + MODELS:
@@ -89,27 +95,43 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
         # what `twinfocus focus --model MODEL` runs: its plan for this template, and fast's
         # reference at its resolution (every pixel at this bench's 20 x 20): the slice of the bases
         plan = FocusPlan.from_settings({**settings, "model": model}).for_reference(template, support)
-        g, reference, (ky, kx) = plan.reference_for(Reference(template, support), scan.positions, rg,
-                                                    scan.chirp.wavelength_m)
+        g, reference, (ky, kx) = plan.reference_for(
+            Reference(template, support), scan.positions, rg, scan.chirp.wavelength_m
+        )
         t = time.perf_counter()
         try:
             needs = plan.needs
-            bases = Bases(rb[:, ::ky, ::kx], tb, scan.positions, scan.chirp, g, tg,
-                          half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, g, tg)
-                          if needs.half_bases else None,
-                          upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, g) if needs.upper_band else None)
-            out = plan.focus_bases(bases, reference, Truth(truth["truth_target"], truth["truth_reference"][::ky, ::kx],
-                                                           truth["positions_true"]))
+            bases = Bases(
+                rb[:, ::ky, ::kx],
+                tb,
+                scan.positions,
+                scan.chirp,
+                g,
+                tg,
+                half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, g, tg) if needs.half_bases else None,
+                upper_band=upper_band_basis(scan.data, scan.positions, scan.chirp, g) if needs.upper_band else None,
+            )
+            out = plan.focus_bases(
+                bases,
+                reference,
+                Truth(truth["truth_target"], truth["truth_reference"][::ky, ::kx], truth["positions_true"]),
+            )
         except TwinFocusError as exc:  # the rung cannot run on this scene
             rec.setdefault("cannot run", {})[model] = str(exc)
             continue
         m = out.metrics
-        r = {"ssim": m["target_ssim_corrected"], "time_s": time.perf_counter() - t, "result": m["model"]["result"],
-             "reference_strides": [ky, kx],
-             "kept": m["model"]["kept"], "trusted": m["confidence"]["trusted"],
-             "heldout": {e["rung"]: e["evidence"]["heldout"] for e in m["model"]["rungs"]
-                         if "heldout" in e.get("evidence", {})},
-             "earlier_rule": _earlier_rule(m["model"])}
+        r = {
+            "ssim": m["target_ssim_corrected"],
+            "time_s": time.perf_counter() - t,
+            "result": m["model"]["result"],
+            "reference_strides": [ky, kx],
+            "kept": m["model"]["kept"],
+            "trusted": m["confidence"]["trusted"],
+            "heldout": {
+                e["rung"]: e["evidence"]["heldout"] for e in m["model"]["rungs"] if "heldout" in e.get("evidence", {})
+            },
+            "earlier_rule": _earlier_rule(m["model"]),
+        }
         if model in MODELS:
             rec[model] = r
         else:
@@ -144,13 +166,16 @@ def _earlier_rule(section: dict) -> dict:
 
 
 def _stats(values: list[dict]) -> dict:
-    return {"ssim_mean": float(np.mean([x["ssim"] for x in values])),
-            "ssim_sd": float(np.std([x["ssim"] for x in values])),
-            "time_s_mean": float(np.mean([x["time_s"] for x in values])), "draws": len(values)}
+    return {
+        "ssim_mean": float(np.mean([x["ssim"] for x in values])),
+        "ssim_sd": float(np.std([x["ssim"] for x in values])),
+        "time_s_mean": float(np.mean([x["time_s"] for x in values])),
+        "draws": len(values),
+    }
 
 
 def summary(records: list[dict]) -> dict:
-    from twinfocus.estimators import TWIN_RUNGS
+    from twinfocus.focus.estimators import TWIN_RUNGS
 
     out: dict = {}
     for scene in SCENES:
@@ -158,8 +183,10 @@ def summary(records: list[dict]) -> dict:
         if not recs:
             continue
         rungs = [n for n in TWIN_RUNGS if any(n in r["rungs"] for r in recs)]
-        s: dict = {"draws": len(recs), "rungs": {n: _stats([r["rungs"][n] for r in recs if n in r["rungs"]])
-                                                 for n in rungs}}
+        s: dict = {
+            "draws": len(recs),
+            "rungs": {n: _stats([r["rungs"][n] for r in recs if n in r["rungs"]]) for n in rungs},
+        }
         for model in MODELS:
             s[model] = {**_stats([r[model] for r in recs]), "results": [r[model]["result"] for r in recs]}
         s["best rung by truth"] = [r["best rung by truth"] for r in recs]
@@ -182,11 +209,15 @@ def summary(records: list[dict]) -> dict:
 def table(summ: dict) -> str:
     """One row per scene: each rung's, auto's, fast's and full's target SSIM (mean +- sd) and
     mean seconds, and how often auto stopped at the rung the truth says is best."""
-    from twinfocus.estimators import TWIN_RUNGS
+    from twinfocus.focus.estimators import TWIN_RUNGS
 
     cols = [*TWIN_RUNGS, *MODELS]
-    lines = ["| scene (uncorrected / oracle phase) | " + " | ".join(f"`{c}`" if c in TWIN_RUNGS else f"**{c}**" for c in cols)
-             + " | auto at the best rung |", "|---" * (len(cols) + 2) + "|"]
+    lines = [
+        "| scene (uncorrected / oracle phase) | "
+        + " | ".join(f"`{c}`" if c in TWIN_RUNGS else f"**{c}**" for c in cols)
+        + " | auto at the best rung |",
+        "|---" * (len(cols) + 2) + "|",
+    ]
     for scene, s in summ.items():
         if scene == "all scenes":
             continue
@@ -198,13 +229,16 @@ def table(summ: dict) -> str:
                 continue
             picks = f", {'/'.join(sorted(set(v['results'])))}" if c in MODELS else ""
             cells.append(f"{v['ssim_mean']:.3f} ± {v['ssim_sd']:.3f} ({v['time_s_mean']:.1f} s{picks})")
-        lines.append(f"| {scene} ({s['uncorrected']:.3f} / {s['oracle phase']:.3f}) | " + " | ".join(cells)
-                     + f" | {s['auto picks best']} (within 0.005: {s['auto within 0.005 of best']}) |")
+        lines.append(
+            f"| {scene} ({s['uncorrected']:.3f} / {s['oracle phase']:.3f}) | "
+            + " | ".join(cells)
+            + f" | {s['auto picks best']} (within 0.005: {s['auto within 0.005 of best']}) |"
+        )
     return "\n".join(lines)
 
 
 def figure(summ: dict, path: Path) -> None:
-    from twinfocus.plotting import pyplot
+    from twinfocus.io.png import pyplot
 
     plt = pyplot()
     scenes = {k: v for k, v in summ.items() if k != "all scenes"}
@@ -219,9 +253,20 @@ def figure(summ: dict, path: Path) -> None:
                 frontier.append((t, q))
                 best = q
         ax.step(*zip(*frontier), where="post", color="tab:blue", alpha=0.5, lw=1)
-        for model, marker, colour in (("auto", "*", "tab:red"), ("fast", "^", "tab:orange"), ("full", "s", "tab:green")):
-            ax.errorbar(s[model]["time_s_mean"], s[model]["ssim_mean"], yerr=s[model]["ssim_sd"], fmt=marker,
-                        color=colour, ms=7, label=model)
+        for model, marker, colour in (
+            ("auto", "*", "tab:red"),
+            ("fast", "^", "tab:orange"),
+            ("full", "s", "tab:green"),
+        ):
+            ax.errorbar(
+                s[model]["time_s_mean"],
+                s[model]["ssim_mean"],
+                yerr=s[model]["ssim_sd"],
+                fmt=marker,
+                color=colour,
+                ms=7,
+                label=model,
+            )
         ax.set_xscale("log")
         ax.set_title(scene, fontsize=8)
         ax.set_xlabel("time (s, loaded 2-core VM)", fontsize=7)
@@ -241,8 +286,13 @@ def _draw(args: tuple) -> dict:
     return rec
 
 
-def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, only: str | None = None,
-         workers: int = 1, rerun: tuple[str, ...] | None = None) -> dict:
+def main(
+    out_dir: str | os.PathLike = "benchmarks/results",
+    draws: int = 5,
+    only: str | None = None,
+    workers: int = 1,
+    rerun: tuple[str, ...] | None = None,
+) -> dict:
     """``rerun``: only these ``--model`` values, run again on the committed draws and put in
     place of theirs in ``model_ladder.json`` (the rest of each record kept)."""
     out_dir = Path(out_dir)
@@ -260,8 +310,10 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, only
             partial.write_text(json.dumps(records, default=float))
     records.sort(key=lambda r: (list(SCENES).index(r["scene"]), r["seed"]))
     partial.unlink()
-    command = (f"python -m benchmarks.bench_model_ladder --draws {draws} --workers {workers} --columns {COLUMNS} "
-               f"--rows {ROWS} --size {SIZE} --iterations {ITERATIONS}" + (f" --only '{only}'" if only else ""))
+    command = (
+        f"python -m benchmarks.bench_model_ladder --draws {draws} --workers {workers} --columns {COLUMNS} "
+        f"--rows {ROWS} --size {SIZE} --iterations {ITERATIONS}" + (f" --only '{only}'" if only else "")
+    )
     if earlier is not None:
         assert rerun is not None
         fresh = {(r["scene"], r["seed"]): r for r in records}
@@ -270,11 +322,20 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, only
             r.update({m: fresh[r["scene"], r["seed"]][m] for m in rerun if (r["scene"], r["seed"]) in fresh})
         command = f"{command}; then {command} --rerun {','.join(rerun)}"
     summ = summary(records)
-    doc = {"command": command,
-           "protocol": {"columns": COLUMNS, "rows": ROWS, "size_px": SIZE, "optimiser_iterations": ITERATIONS,
-                        "draws": draws, "wall_s": time.perf_counter() - t + (earlier["protocol"]["wall_s"] if earlier else 0),
-                        "note": "times on a loaded 2-core VM, shared with other work"},
-           "summary": summ, "records": records}
+    doc = {
+        "command": command,
+        "protocol": {
+            "columns": COLUMNS,
+            "rows": ROWS,
+            "size_px": SIZE,
+            "optimiser_iterations": ITERATIONS,
+            "draws": draws,
+            "wall_s": time.perf_counter() - t + (earlier["protocol"]["wall_s"] if earlier else 0),
+            "note": "times on a loaded 2-core VM, shared with other work",
+        },
+        "summary": summ,
+        "records": records,
+    }
     (out_dir / "model_ladder.json").write_text(json.dumps(doc, indent=1, default=float))
     figure(summ, Path(__file__).resolve().parent.parent / "docs" / "figures" / "model_ladder.png")
     print(table(summ))

@@ -1,6 +1,6 @@
 """How the outline estimator picks one of its starts' ends, on the same draws: the most energy
 inside the outline ("energy"), the least contrast of that energy ("speckle") and the default rule
-("auto": the most energy unless that end piled it; :data:`twinfocus.template_match.OUTLINE_CHOICE`).
+("auto": the most energy unless that end piled it; :data:`twinfocus.focus.template_match.OUTLINE_CHOICE`).
 
 Draws of the digital-twin family bench (:mod:`benchmarks.bench_dtwin_family`: shapes, places,
 camera clouds, conditions), each run once per surface of the family (smooth, rough, speckled), so
@@ -15,6 +15,7 @@ Writes ``outline_choice.json`` (``outline_choice_heldout.json``): per draw and c
 SSIM, the rule's pick and the seconds the digital twin took; prints mean target SSIM per surface
 and choice.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -60,8 +61,11 @@ def one_draw(job: tuple) -> dict:
         rec[f"{choice} trusted"] = out.metrics["confidence"]["trusted"]
         rec[f"{choice} s"] = round(time.perf_counter() - t0, 2)
     rec["oracle"] = round(out.metrics["target_ssim_oracle_phase"], 4)
-    print(f"[outline choice] {cond}, seed {seed}, {surface}: "
-          + ", ".join(f"{c} {rec[c]:.3f}" for c in CHOICES), file=sys.stderr, flush=True)
+    print(
+        f"[outline choice] {cond}, seed {seed}, {surface}: " + ", ".join(f"{c} {rec[c]:.3f}" for c in CHOICES),
+        file=sys.stderr,
+        flush=True,
+    )
     return rec
 
 

@@ -46,7 +46,7 @@ WORKERS = 2
 
 def _worker(name: str, draws: int, warmup: bool = False) -> dict:
     """One scene of experiment ``name`` with stage timers, in this process on one thread."""
-    from twinfocus.cluster import limit_threads
+    from twinfocus.jobs.cluster import limit_threads
 
     limit_threads(1)
     import twinfocus.evaluation.cases as cases
@@ -87,7 +87,9 @@ def _worker(name: str, draws: int, warmup: bool = False) -> dict:
         timed(cases, attr, stage)
     timed(cases.metrics, "image_ssim", "metrics")
     if warmup:  # numba compiles its kernels on first use into the version's folder: not a stage's time
-        runner.run_experiment(paper_experiments(quick=True, only=[name])[0], runner.quick_settings(), {}, lambda m: None)
+        runner.run_experiment(
+            paper_experiments(quick=True, only=[name])[0], runner.quick_settings(), {}, lambda m: None
+        )
         return {}
     exp = paper_experiments(draws=draws, only=[name])[0]
     w0, c0 = time.perf_counter(), time.process_time()
@@ -123,7 +125,11 @@ def _run(version_path: Path, name: str, draws: int, warmup: bool = False) -> dic
         [sys.executable, "-m", "benchmarks.bench_paper_time", "--worker", name, "--draws", str(draws)]
         + (["--warmup"] if warmup else []),
         # run from the version's folder: ``-m`` puts the working folder first on the path
-        capture_output=True, text=True, check=True, cwd=version_path, env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=version_path,
+        env=env,
     ).stdout
     return {**json.loads(out.strip().splitlines()[-1]), "load_average_before": round(load, 2)}
 
@@ -147,7 +153,7 @@ def kind_of(exp) -> str:
 
 def main(out_dir=None, only: str = "baseline,environment,handheld", draws: int = 1, baseline: str = BASELINE) -> dict:
     from twinfocus.evaluation.experiments import EXPERIMENT_NAMES, paper_experiments
-    from twinfocus.machine import machine_info
+    from twinfocus.jobs.machine import machine_info
 
     names = [n for n in EXPERIMENT_NAMES if not only or n in only.split(",")]
     old = _baseline_tree(baseline)
@@ -168,7 +174,9 @@ def main(out_dir=None, only: str = "baseline,environment,handheld", draws: int =
             (b["scene_cpu_s"] + FULL_DRAWS * b["draw_cpu_s"]) / (c["scene_cpu_s"] + FULL_DRAWS * c["draw_cpu_s"]), 2
         )
         rows.append(row)
-        print(json.dumps({k: v for k, v in row.items() if k not in ("baseline", "current")}), file=sys.stderr, flush=True)
+        print(
+            json.dumps({k: v for k, v in row.items() if k not in ("baseline", "current")}), file=sys.stderr, flush=True
+        )
     # The committed report's run (5 draws, two Dask workers) per experiment, each divided by the
     # measured ratio of its kind.
     ratio = {r["experiment"]: r["cpu_ratio_draws5"] for r in rows}
@@ -180,10 +188,15 @@ def main(out_dir=None, only: str = "baseline,environment,handheld", draws: int =
         if not path.is_file() or kind not in ratio:
             continue
         doc = json.loads(path.read_text())
-        committed.append({
-            "experiment": exp.name, "draws": doc["definition"]["draws"], "committed_min": round(doc["seconds"] / 60, 1),
-            "ratio_from": kind, "estimated_min": round(doc["seconds"] / 60 / ratio[kind], 1),
-        })
+        committed.append(
+            {
+                "experiment": exp.name,
+                "draws": doc["definition"]["draws"],
+                "committed_min": round(doc["seconds"] / 60, 1),
+                "ratio_from": kind,
+                "estimated_min": round(doc["seconds"] / 60 / ratio[kind], 1),
+            }
+        )
     trade = raw / "trade.json"
     trade_min = json.loads(trade.read_text())["seconds"] / 60 if trade.is_file() else 0.0
     run_json = raw / "run.json"
@@ -210,8 +223,10 @@ def main(out_dir=None, only: str = "baseline,environment,handheld", draws: int =
         (Path(out_dir) / "paper_time.json").write_text(json.dumps(doc, indent=1))
     print(f"{'experiment':12} {'old cpu s':>9} {'new cpu s':>9} {'ratio':>5} {'5 draws':>7} {'max dSSIM':>9}")
     for r in rows:
-        print(f"{r['experiment']:12} {r['baseline']['cpu_s']:9.1f} {r['current']['cpu_s']:9.1f} "
-              f"{r['cpu_ratio_measured']:5.2f} {r['cpu_ratio_draws5']:7.2f} {r['max_abs_ssim_change']:9.4f}")
+        print(
+            f"{r['experiment']:12} {r['baseline']['cpu_s']:9.1f} {r['current']['cpu_s']:9.1f} "
+            f"{r['cpu_ratio_measured']:5.2f} {r['cpu_ratio_draws5']:7.2f} {r['max_abs_ssim_change']:9.4f}"
+        )
     print(json.dumps(totals))
     return doc
 

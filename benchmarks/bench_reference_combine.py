@@ -5,7 +5,7 @@ Each scene is the small demo scan (3 columns x 40 rows, seeds 3 and 4) with two 
 of its reference as candidates: the simulator's own (placed 1 mm off on the motion stage) and a
 second one (placed exactly, 3 mm off, or another letter where the reference stands). Each
 candidate is fitted by ``twinfocus focus --template-scan`` alone and scored
-(:func:`twinfocus.reference_search.candidate_score`); the combined phase is
+(:func:`twinfocus.focus.reference_search.candidate_score`); the combined phase is
 angle(sum_i w_i exp(j (phi_i - c_i))) with w_i the candidate's reference match SSIM when it has
 no more warnings than the best-scored one (else 0) and c_i its constant offset from the best one's
 phase (an estimate is defined up to a constant). Each phase is scored by the target's SSIM
@@ -25,15 +25,15 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus.autofocus import AutofocusConfig
-from twinfocus.backprojection import backproject
 from twinfocus.cli import main as cli
-from twinfocus.grid import ImageGrid
-from twinfocus.machine import machine_info
-from twinfocus.metrics import image_ssim
-from twinfocus.scan import Scan
-from twinfocus.scenario import PAPER_REFERENCE_ROI, PAPER_TARGET_ROI
-from twinfocus.volume import corrected_image
+from twinfocus.focus.autofocus import AutofocusConfig
+from twinfocus.imaging.backprojection.numba_backend import backproject
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import image_ssim
+from twinfocus.imaging.volume import corrected_image
+from twinfocus.jobs.machine import machine_info
+from twinfocus.radar.scan import Scan
+from twinfocus.simulation.scenario import PAPER_REFERENCE_ROI, PAPER_TARGET_ROI
 
 SIZE = 48
 SECOND = {"exact twin": ["--template-offset-mm", "0", "0", "0"], "3 mm off": ["--template-offset-mm", "3", "0", "0"],
@@ -43,7 +43,7 @@ SECOND = {"exact twin": ["--template-offset-mm", "0", "0", "0"], "3 mm off": ["-
 def combined_phase(phases: list[np.ndarray], confidences: list[dict]) -> np.ndarray:
     """The candidates' phases combined (module docstring): float64 (M,) radians from (M,) each
     and their confidence reports (``reference_match_ssim``, ``warnings``)."""
-    from twinfocus.reference_search import candidate_score
+    from twinfocus.focus.reference_search import candidate_score
 
     scores = [candidate_score(c) for c in confidences]
     best = int(np.argmax(scores))
@@ -66,7 +66,7 @@ def _focus(d: Path, template: Path, out: Path) -> tuple[np.ndarray, dict]:
 
 
 def main(out_dir: str = "benchmarks/results") -> dict:
-    from twinfocus.reference_search import candidate_score
+    from twinfocus.focus.reference_search import candidate_score
 
     load_at_start = os.getloadavg()[0]
     cfg = AutofocusConfig()

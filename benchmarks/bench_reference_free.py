@@ -1,6 +1,6 @@
 """Reference-free autofocus against the twins on the default scene: target SSIM and time of no
 correction, sharpness, minimum entropy, phase-gradient autofocus and the physical twin, per draw,
-each as ``twinfocus focus`` runs it (:func:`twinfocus.pipeline.focus_bases`, default settings).
+each as ``twinfocus focus`` runs it (:func:`twinfocus.focus.pipeline.focus_bases`, default settings).
 
     python -m benchmarks.run --only reference_free   (or: python -m benchmarks.bench_reference_free --draws 3)
 
@@ -21,13 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus.autofocus import AutofocusConfig
-from twinfocus.backprojection import backproject, subimage_basis
-from twinfocus.estimators import estimator_settings
-from twinfocus.focus_plan import FocusPlan
-from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases
-from twinfocus.scenario import PAPER_IMAGE_SIZE, Scenario, scenario_grids, simulate_scenario
-from twinfocus.templates import template_from_scan
+from twinfocus.focus.autofocus import AutofocusConfig
+from twinfocus.focus.estimators import estimator_settings
+from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases
+from twinfocus.focus.plan import FocusPlan
+from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+from twinfocus.simulation.scenario import PAPER_IMAGE_SIZE, Scenario, scenario_grids, simulate_scenario
+from twinfocus.twins.templates import template_from_scan
 
 METHODS = ("none", "sharpness", "entropy", "pga", "physical twin")
 
@@ -38,9 +38,11 @@ def one_draw(seed: int, size: int) -> dict:
     rg, tg = scenario_grids(sc, size)
     rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
     tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
-    truth = {"truth_target": backproject(scan.data, scan.positions_true, scan.chirp, tg),
-             "truth_reference": backproject(scan.data, scan.positions_true, scan.chirp, rg),
-             "positions_true": scan.positions_true}
+    truth = {
+        "truth_target": backproject(scan.data, scan.positions_true, scan.chirp, tg),
+        "truth_reference": backproject(scan.data, scan.positions_true, scan.chirp, rg),
+        "positions_true": scan.positions_true,
+    }
     rec: dict = {"seed": seed}
     for method in METHODS:
         template, cfg = None, AutofocusConfig()
@@ -77,8 +79,11 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 3, size
     for method in (*METHODS, "oracle phase"):
         ssim = [r[method]["target_ssim"] for r in records]
         secs = [r[method]["time_s"] for r in records]
-        summary[method] = {"target_ssim_mean": float(np.mean(ssim)), "target_ssim_sd": float(np.std(ssim)),
-                           "time_s_mean": float(np.mean(secs))}
+        summary[method] = {
+            "target_ssim_mean": float(np.mean(ssim)),
+            "target_ssim_sd": float(np.std(ssim)),
+            "time_s_mean": float(np.mean(secs)),
+        }
     doc = {
         "scene": "default (paper) scene: A and F at 0.6 m, 780 positions, 0.5 mm x/y/z jitter, speckle, 10 dB",
         "size_px": size,

@@ -10,7 +10,7 @@ digital twin's placement ceiling (its target's best SSIM over sub-pixel shifts).
     python -m benchmarks.bench_rig --summarise benchmarks/results/rig.json   (the summary again)
 
 With the rig, the focus places the reference on the calibrated cloud's outline
-(:func:`twinfocus.digital_twin.rig.rig_placed`); each record keeps what that placement found
+(:func:`twinfocus.focus.rig_placement.rig_placed`); each record keeps what that placement found
 (``rig placement``), both results' confidence reports (trusted, warnings) and where each put the
 target (``error_mm``). The summary adds the report's false trust (trusted, below 0.90) and false
 alarms (flagged, at or above 0.95) with and without the rig.
@@ -56,10 +56,10 @@ def calibrate(seed: int, offset: np.ndarray, rows: int, size: int) -> dict:
     """The rig measured on the paper-protocol draw ``seed``'s scan (``rows`` rows) on its true
     positions, as a motion stage takes it."""
     from benchmarks.bench_dtwin_family import family_scenario
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.digital_twin.rig import measure_rig
-    from twinfocus.scan import Scan
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.radar.scan import Scan
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.twins.digital_twin.rig import measure_rig
 
     sc = Scenario(**family_scenario("paper", seed, HELDOUT_SHAPES, rows))
     scan, _ = simulate_scenario(sc)
@@ -80,14 +80,14 @@ def focus_set(condition: str, seed: int, offset: np.ndarray, rig_offset: np.ndar
     """One scan of the set: the digital twin from its camera cloud without and with the rig
     (``twinfocus focus --digital-twin CLOUD [--rig RIG]``), its confidence report and placement
     ceiling each, and the physical twin."""
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.digital_twin.condition import digital_twin_reference
-    from twinfocus.digital_twin.rig import Rig, rig_reference
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Bases, Reference, Truth, half_array_bases
-    from twinfocus.templates import template_from_scan
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.twins.digital_twin.condition import digital_twin_reference
+    from twinfocus.twins.digital_twin.rig import Rig, rig_reference
+    from twinfocus.twins.templates import template_from_scan
 
     d = draw_inputs(condition, seed, HELDOUT_SHAPES, rows, size)
     scan, rg = d["scan"], d["rg"]

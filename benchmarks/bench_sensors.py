@@ -18,6 +18,7 @@ the CLI's reordered form and its sequence-number records (one lost packet), read
 frames by ``Dca1000FileCapture`` (``--only dca1000_files`` runs this part alone and updates
 ``sensors.json`` in place).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus.radar import Chirp
+from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.dca1000 import Dca1000, RawFrameLayout
 from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
 from twinfocus.sensors.frames import frame_to_virtual_channels
@@ -42,8 +43,14 @@ def _sender(addr, rate, n_frames, ready):
     from twinfocus.sensors.emulators.fake_dca1000 import FakeDca1000
 
     frame = np.random.default_rng(0).integers(-2000, 2000, LAYOUT.frame_values, dtype=np.int16).tobytes()
-    with FakeDca1000(LAYOUT, frame_source=lambda k, lay: frame, host_data_addr=tuple(addr), frame_period_s=None,
-                     rate_bytes_per_s=rate, n_frames=n_frames) as board:
+    with FakeDca1000(
+        LAYOUT,
+        frame_source=lambda k, lay: frame,
+        host_data_addr=tuple(addr),
+        frame_period_s=None,
+        rate_bytes_per_s=rate,
+        n_frames=n_frames,
+    ) as board:
         ready.wait(5.0)
         board.start_streaming()
         board.done.wait(60.0)
@@ -54,8 +61,9 @@ def ingest_run(rate_mb_s: float, seconds: float) -> dict:
     n_frames = max(20, int(rate * seconds / LAYOUT.frame_bytes))
     ctx = mp.get_context("fork")
     ready = ctx.Event()
-    with Dca1000(board_addr=("127.0.0.1", 9), host_ip="127.0.0.1", config_port=0, data_port=0,
-                 recv_buffer_bytes=32 << 20) as host:
+    with Dca1000(
+        board_addr=("127.0.0.1", 9), host_ip="127.0.0.1", config_port=0, data_port=0, recv_buffer_bytes=32 << 20
+    ) as host:
         proc = ctx.Process(target=_sender, args=(host.data_addr, rate, n_frames, ready), daemon=True)
         proc.start()
         ready.set()
@@ -87,11 +95,13 @@ def ingest_run(rate_mb_s: float, seconds: float) -> dict:
 def bench_ingest(quick: bool) -> dict:
     rows = []
     best = 0.0
-    for rate in ([10, 40, 160] if quick else [10, 20, 40, 60, 80, 120, 160, 240, 320]):
+    for rate in [10, 40, 160] if quick else [10, 20, 40, 60, 80, 120, 160, 240, 320]:
         row = ingest_run(rate, 1.0 if quick else 2.0)
         rows.append(row)
-        print(f"  UDP {rate:5.0f} MB/s offered: {row['frames_received_intact']}/{row['frames_sent']} intact, "
-              f"ingest {row['ingest_MB_per_s']:.1f} MB/s")
+        print(
+            f"  UDP {rate:5.0f} MB/s offered: {row['frames_received_intact']}/{row['frames_sent']} intact, "
+            f"ingest {row['ingest_MB_per_s']:.1f} MB/s"
+        )
         if row["frames_damaged_or_lost"] == 0:
             best = max(best, row["ingest_MB_per_s"])
         else:
@@ -130,8 +140,10 @@ def bench_capture_read(quick: bool) -> dict:
         "decoded_MB_per_s": raw_bytes / best_frames / 1e6,
         "virtual_channels_frames_per_s": n / best_virtual,
     }
-    print(f"  capture read: raw {out['raw_read_MB_per_s']:.0f} MB/s, decoded {out['decoded_frames_per_s']:.0f} frames/s "
-          f"({out['decoded_MB_per_s']:.0f} MB/s), to virtual channels {out['virtual_channels_frames_per_s']:.0f} frames/s")
+    print(
+        f"  capture read: raw {out['raw_read_MB_per_s']:.0f} MB/s, decoded {out['decoded_frames_per_s']:.0f} frames/s "
+        f"({out['decoded_MB_per_s']:.0f} MB/s), to virtual channels {out['virtual_channels_frames_per_s']:.0f} frames/s"
+    )
     return out
 
 
@@ -150,7 +162,7 @@ def bench_dca1000_files(quick: bool) -> dict:
     recs = []
     for k, start in enumerate(range(0, len(raw), 1456)):
         if k != 7:  # one lost packet
-            payload = raw[start:start + 1456]
+            payload = raw[start : start + 1456]
             recs.append(struct.pack("<II", k + 1, len(payload)) + start.to_bytes(6, "little") + payload)
     forms["records"] = b"".join(recs)
     out = {"frames": n, "frame_bytes": LAYOUT.frame_bytes}
@@ -165,8 +177,11 @@ def bench_dca1000_files(quick: bool) -> dict:
                 cap = Dca1000FileCapture(path, LAYOUT, 0.1, name, settings)
                 best = min(best, time.perf_counter() - t)
             assert len(cap.frames) == n, (name, len(cap.frames), cap.warnings)
-            out[name] = {"decoded_frames_per_s": n / best, "MB_per_s": len(data) / best / 1e6,
-                         "frames_zero_filled": cap.stats.frames_zero_filled}
+            out[name] = {
+                "decoded_frames_per_s": n / best,
+                "MB_per_s": len(data) / best / 1e6,
+                "frames_zero_filled": cap.stats.frames_zero_filled,
+            }
             print(f"  DCA1000 file '{name}': {n / best:.0f} frames/s ({len(data) / best / 1e6:.0f} MB/s)")
     return out
 
@@ -189,6 +204,8 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--only", choices=["udp_ingest", "capture_read", "dca1000_files"], help="run one part, update sensors.json")
+    ap.add_argument(
+        "--only", choices=["udp_ingest", "capture_read", "dca1000_files"], help="run one part, update sensors.json"
+    )
     a = ap.parse_args()
     main(a.out, a.quick, a.only)

@@ -1,7 +1,7 @@
 """Radar simulator benchmark: speed on the paper scene, error against the brute-force sum.
 
 Writes ``simulate.json`` to the output folder:
-- ``paper_scene``: time of :func:`twinfocus.simulate.simulate_if` for the default two-letter
+- ``paper_scene``: time of :func:`twinfocus.simulation.if_simulator.simulate_if` for the default two-letter
   scene on the 780 x 86 raster with 256 samples (best of ``repeats`` after a warm-up), the
   number of scatterers and (phase centre, scatterer) pairs, and the brute-force time
   extrapolated from the small case;
@@ -13,6 +13,7 @@ Writes ``simulate.json`` to the output folder:
 
 Run: ``python -m benchmarks.bench_simulate --out benchmarks/results``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus.radar import C_M_PER_S, Chirp, mmwcas_virtual_array
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array
 from twinfocus.scene import paper_scene
-from twinfocus.simulate import DEFAULT_ORDER, DEFAULT_RANGE_STEP_M, simulate_if, simulate_if_exact
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.simulation.if_simulator import DEFAULT_ORDER, DEFAULT_RANGE_STEP_M, simulate_if, simulate_if_exact
 
 
 def _best_time(fn, repeats: int) -> tuple[float, float]:
@@ -63,7 +64,9 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", repeats: int = 3) ->
     # Small case (the tests'): 3 positions x 86 channels x 300 points around 0.6 m.
     rng = np.random.default_rng(0)
     small_pos = positions[[0, 400, 779]]
-    pts = np.column_stack([rng.uniform(-0.1, 0.1, 300), rng.uniform(-0.07, 0.07, 300), 0.6 + rng.uniform(-0.02, 0.02, 300)])
+    pts = np.column_stack(
+        [rng.uniform(-0.1, 0.1, 300), rng.uniform(-0.07, 0.07, 300), 0.6 + rng.uniform(-0.02, 0.02, 300)]
+    )
     amp = np.exp(2j * np.pi * rng.random(300)) * rng.uniform(0.2, 1.0, 300)
     t0 = time.perf_counter()
     exact = simulate_if_exact(pts, amp, small_pos, chirp)
@@ -85,7 +88,9 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", repeats: int = 3) ->
             row = {
                 "range_step_m": step,
                 "order": order,
-                "relative_error": _rel_err(simulate_if(pts, amp, small_pos, chirp, range_step_m=step, order=order), exact),
+                "relative_error": _rel_err(
+                    simulate_if(pts, amp, small_pos, chirp, range_step_m=step, order=order), exact
+                ),
                 "bound_per_scatterer": float((beta_max * step / 2) ** q / math.factorial(q)),
             }
             if (step, order) in ((1e-3, 1), (4e-3, 2), (8e-3, 3)):
@@ -124,7 +129,11 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", repeats: int = 3) ->
             "relative_error_default": err_default,
         },
         "sweep": sweep,
-        "cluttered": {"n_scatterers": int(cl_pts.shape[0]), "simulate_if_s": t_clutter, "simulate_if_cpu_s": cpu_clutter},
+        "cluttered": {
+            "n_scatterers": int(cl_pts.shape[0]),
+            "simulate_if_s": t_clutter,
+            "simulate_if_cpu_s": cpu_clutter,
+        },
     }
     (out_dir / "simulate.json").write_text(json.dumps(result, indent=2))
     return result

@@ -19,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-from twinfocus.atomic import write_json_atomic
+from twinfocus.io.atomic import write_json_atomic
 
 #: one line of pytest's ``--durations`` report: "12.34s call     tests/test_x.py::test_y[p]"
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)s\s+(setup|call|teardown)\s+(\S.*?)\s*$")

@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus.cli import main as cli
-from twinfocus.grid import ImageGrid
-from twinfocus.machine import machine_info
-from twinfocus.scenario import PAPER_REFERENCE_ROI, PAPER_TARGET_ROI
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.jobs.machine import machine_info
+from twinfocus.simulation.scenario import PAPER_REFERENCE_ROI, PAPER_TARGET_ROI
 
 VOLUME = ("0.5", "0.695", "0.005")
 

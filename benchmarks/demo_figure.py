@@ -17,7 +17,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from twinfocus.atomic import write_text_atomic
+from twinfocus.io.atomic import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 PICTURE = ROOT / "docs" / "images" / "demo_summary.png"

@@ -28,8 +28,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from twinfocus.atomic import write_text_atomic
-from twinfocus.machine import machine_info
+from twinfocus.io.atomic import write_text_atomic
+from twinfocus.jobs.machine import machine_info
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "pages"

@@ -12,6 +12,7 @@ placed by the truth (diagnostic), the physical twin (space-variant off) and the 
 Not one of ``make bench``'s benchmarks (no ``bench_`` prefix): it checks a default on new draws
 rather than measuring a knob. Writes ``field_twin_heldout.json`` and prints a markdown table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,21 +39,23 @@ CONDITIONS = {
 
 
 def one_draw(kw: dict, seed: int) -> dict:
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.backprojection import backproject
-    from twinfocus.basis import form_image
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.metrics import image_ssim, oracle_phase
-    from twinfocus.phase_ramp import fit_linear_phase
-    from twinfocus.pipeline import Bases, Reference, Truth, upper_band_basis
-    from twinfocus.templates import template_from_scan
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.phase_ramp import fit_linear_phase
+    from twinfocus.focus.pipeline import Bases, Reference, Truth, upper_band_basis
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.basis import form_image
+    from twinfocus.imaging.metrics import image_ssim, oracle_phase
+    from twinfocus.twins.templates import template_from_scan
 
     d = field_draw(kw, seed)
     scan, tpl_scan, rg, tg, twin, rb, tb = d.scan, d.tpl_scan, d.rg, d.tg, d.twin, d.rb, d.tb
-    truth = dict(truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
-                 truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
-                 positions_true=scan.positions_true)
+    truth = dict(
+        truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
+        truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
+        positions_true=scan.positions_true,
+    )
     upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
     settings = estimator_settings("auto", False, has_support=True)
     rec: dict = {"seed": seed}
@@ -74,7 +77,9 @@ def one_draw(kw: dict, seed: int) -> dict:
     rec["oracle"] = out.metrics["target_ssim_oracle_phase"]
     # diagnostic: the default's image moved to where the reference really is
     reference_true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
-    ramp, _ = fit_linear_phase(np.angle(np.exp(1j * (out.phase_rad - reference_true))), scan.positions.mean(axis=1)[:, :2])
+    ramp, _ = fit_linear_phase(
+        np.angle(np.exp(1j * (out.phase_rad - reference_true))), scan.positions.mean(axis=1)[:, :2]
+    )
     rec["truth-placed"] = image_ssim(form_image(tb, out.phase_rad - ramp), truth["truth_target"])
     phys = FocusPlan.make(
         config=AutofocusConfig(**estimator_settings("correlation", True)),
@@ -92,15 +97,15 @@ def figure(path: str | os.PathLike, seed: int = 2) -> None:
     """One draw of scene B (the bench's seed 2: the cloud's outline, not grown, put the reference
     6 mm off across y): each position's range error from the band's halves against the truth, and
     the target before and after the placement beside the image on the true positions."""
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.backprojection import backproject
-    from twinfocus.band_delay import bright_pixels, position_range_errors_m
-    from twinfocus.basis import form_image
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.metrics import image_ssim, true_range_errors_m
-    from twinfocus.pipeline import Bases, Reference, upper_band_basis
-    from twinfocus.plotting import pyplot
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.band_delay import bright_pixels, position_range_errors_m
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.pipeline import Bases, Reference, upper_band_basis
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.basis import form_image
+    from twinfocus.imaging.metrics import image_ssim, true_range_errors_m
+    from twinfocus.io.png import pyplot
 
     d = field_draw(SCENES["B"], seed)
     scan, rg, tg, twin, rb, tb = d.scan, d.rg, d.tg, d.twin, d.rb, d.tb
@@ -108,10 +113,13 @@ def figure(path: str | os.PathLike, seed: int = 2) -> None:
     upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
     # the outline as the cloud gives it (no growth first): the picture shows the placement alone
     config = AutofocusConfig(**estimator_settings("auto", False, has_support=True), outline_growth_rounds=0)
-    outs = {name: FocusPlan.make(config=config).focus_bases(
-        Bases(rb, tb, scan.positions, scan.chirp, rg, tg, upper_band=band),
-        Reference(template=twin.template, support=twin.support),
-    ) for name, band in (("before", None), ("placed", upper))}
+    outs = {
+        name: FocusPlan.make(config=config).focus_bases(
+            Bases(rb, tb, scan.positions, scan.chirp, rg, tg, upper_band=band),
+            Reference(template=twin.template, support=twin.support),
+        )
+        for name, band in (("before", None), ("placed", upper))
+    }
     phase = outs["before"].phase_rad
     pixels = bright_pixels(form_image(rb, phase))
     high = upper(pixels)
@@ -123,17 +131,29 @@ def figure(path: str | os.PathLike, seed: int = 2) -> None:
     ax.scatter((true - true.mean()) * 1e3, (measured - measured.mean()) * 1e3, s=3, alpha=0.5)
     lim = 3.5
     ax.plot([-lim, lim], [-lim, lim], "k--", lw=0.8)
-    ax.set(xlim=(-lim, lim), ylim=(-lim, lim), xlabel="true range error (mm)", ylabel="from the band's halves (mm)",
-           title=f"each position (corr {np.corrcoef(true, measured)[0, 1]:.2f})")
+    ax.set(
+        xlim=(-lim, lim),
+        ylim=(-lim, lim),
+        xlabel="true range error (mm)",
+        ylabel="from the band's halves (mm)",
+        title=f"each position (corr {np.corrcoef(true, measured)[0, 1]:.2f})",
+    )
     extent = [tg.x0 * 100, tg.x1 * 100, tg.y0 * 100, tg.y1 * 100]
     vmax = float(np.abs(truth).max())
-    for ax, (img, title) in zip(axes[1:], ((truth, "target on the true positions"),
-                                          (outs["before"].target, f"before: SSIM {image_ssim(outs['before'].target, truth):.3f}"),
-                                          (outs["placed"].target, f"placed: SSIM {image_ssim(outs['placed'].target, truth):.3f}"))):
+    for ax, (img, title) in zip(
+        axes[1:],
+        (
+            (truth, "target on the true positions"),
+            (outs["before"].target, f"before: SSIM {image_ssim(outs['before'].target, truth):.3f}"),
+            (outs["placed"].target, f"placed: SSIM {image_ssim(outs['placed'].target, truth):.3f}"),
+        ),
+    ):
         ax.imshow(np.abs(img), origin="lower", extent=extent, cmap="inferno", vmin=0, vmax=vmax)
         ax.set(title=title, xlabel="x (cm)", ylabel="y (cm)")
     shift = np.asarray(outs["placed"].metrics["phase_ramp"]["implied_shift_m"]) * 1e3
-    fig.suptitle(f"scene B, camera cloud, seed {seed}: the placement moved the reference by ({shift[0]:+.1f}, {shift[1]:+.1f}) mm")
+    fig.suptitle(
+        f"scene B, camera cloud, seed {seed}: the placement moved the reference by ({shift[0]:+.1f}, {shift[1]:+.1f}) mm"
+    )
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=80)
@@ -142,25 +162,29 @@ def figure(path: str | os.PathLike, seed: int = 2) -> None:
 
 def trusted(rec: dict) -> bool:
     """Whether the confidence report trusts a record's default by the present rules: its verdict
-    as recorded, and the placement check (``twinfocus.pipeline.placement_warnings``, which flags
+    as recorded, and the placement check (``twinfocus.focus.pipeline.placement_warnings``, which flags
     every estimate whose phases have wrapped) applied anew to the coherences the record kept."""
-    from twinfocus.pipeline import placement_warnings
+    from twinfocus.focus.pipeline import placement_warnings
 
     return bool(rec["default trusted"]) and not placement_warnings(rec["coh"], rec["ranged coh"], bool(rec["removed"]))
 
 
 def table(results: dict) -> str:
     ms = lambda a: f"{np.mean(a):.3f} ± {np.std(a):.3f}"  # noqa: E731
-    lines = ["| condition | draws | before (outline not grown) | default | up / down (> 0.005) | default trusted (draws, their mean) "
-             "| placed by the truth | physical twin | target's own phase |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| condition | draws | before (outline not grown) | default | up / down (> 0.005) | default trusted (draws, their mean) "
+        "| placed by the truth | physical twin | target's own phase |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for cond, recs in results.items():
         b = np.array([r["before"] for r in recs])
         d = np.array([r["default"] for r in recs])
         kept = [r["default"] for r in recs if trusted(r)]
-        lines.append(f"| {cond} | {len(recs)} | {ms(b)} | {ms(d)} | {int((d - b > 0.005).sum())} / {int((b - d > 0.005).sum())} | "
-                     f"{len(kept)}" + (f", {np.mean(kept):.3f}" if kept else "") + " | "
-                     f"{ms([r['truth-placed'] for r in recs])} | {ms([r['physical'] for r in recs])} | {ms([r['oracle'] for r in recs])} |")
+        lines.append(
+            f"| {cond} | {len(recs)} | {ms(b)} | {ms(d)} | {int((d - b > 0.005).sum())} / {int((b - d > 0.005).sum())} | "
+            f"{len(kept)}" + (f", {np.mean(kept):.3f}" if kept else "") + " | "
+            f"{ms([r['truth-placed'] for r in recs])} | {ms([r['physical'] for r in recs])} | {ms([r['oracle'] for r in recs])} |"
+        )
     return "\n".join(lines)
 
 

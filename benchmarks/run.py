@@ -3,6 +3,7 @@ figures in ``OUT/``: one JSON per area plus ``machine.json``.
 
     python -m benchmarks.run --out benchmarks/results [--only core,simulate]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -13,7 +14,7 @@ import time
 import traceback
 from pathlib import Path
 
-from twinfocus.machine import machine_info
+from twinfocus.jobs.machine import machine_info
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -25,7 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "machine.json").write_text(json.dumps(machine_info(), indent=2))
     here = Path(__file__).parent
-    areas = sorted(p.stem[len("bench_"):] for p in here.glob("bench_*.py"))
+    areas = sorted(p.stem[len("bench_") :] for p in here.glob("bench_*.py"))
     if args.only:
         wanted = set(args.only.split(","))
         areas = [a for a in areas if a in wanted]

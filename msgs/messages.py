@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from msgs.schema import BusMessage, Header, array, flag, integer, mapping, message, real, stamped, strings, text
-from twinfocus.radar import Chirp
+from twinfocus.radar.fmcw import Chirp
 
 
 @message(topic="radar/frame")
@@ -51,7 +51,7 @@ class RadarFrame(BusMessage):
         return _check_chirp(self)
 
     def chirp(self) -> Chirp:
-        """The :class:`~twinfocus.radar.Chirp` these samples were taken with."""
+        """The :class:`~twinfocus.radar.fmcw.Chirp` these samples were taken with."""
         return Chirp(self.f0_hz, self.slope_hz_per_s, self.fs_hz, int(self.data.shape[1]))
 
 
@@ -138,7 +138,7 @@ class SarMeasurement(BusMessage):
         return _check_chirp(self)
 
     def chirp(self) -> Chirp:
-        """The :class:`~twinfocus.radar.Chirp` these samples were taken with."""
+        """The :class:`~twinfocus.radar.fmcw.Chirp` these samples were taken with."""
         return Chirp(self.f0_hz, self.slope_hz_per_s, self.fs_hz, int(self.data.shape[1]))
 
 
@@ -188,7 +188,7 @@ class AutofocusResult(BusMessage):
     metrics_pending : True on a first result published as soon as the image was ready, whose
     metrics against the truth (simulation) follow in a second result for the same scan
     (False: this result is the scan's last, as in logs recorded before the field);
-    estimator : the named estimator that found the phase (``twinfocus.estimators.ESTIMATORS``,
+    estimator : the named estimator that found the phase (``twinfocus.focus.estimators.ESTIMATORS``,
     ``auto`` resolved: ``outline``, ``projection``, ``correlation``, ...) for ``method`` twin; empty
     for the baselines and in logs recorded before the field;
     dropped : non-empty when the scan was not focused, saying why (no template in time, too few

@@ -1,7 +1,7 @@
 """The node graph: one module per process plus the small runtime they share.
 
-Runtime: :mod:`nodes.bus` (broker, topic framing), :mod:`nodes.node` (node base class),
-:mod:`nodes.params` (parameters), :mod:`nodes.launch` (launch files).
+Runtime: :mod:`nodes.runtime.bus` (broker, topic framing), :mod:`nodes.runtime.node` (node base class),
+:mod:`nodes.runtime.params` (parameters), :mod:`nodes.runtime.launch` (launch files).
 Nodes (``python -m nodes.<module> name:=value ...``, or by type name in a launch file):
 """
 

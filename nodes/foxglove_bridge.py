@@ -28,8 +28,8 @@ from foxglove.websocket import ServerListener
 
 from msgs import now_ns
 from nodes.foxglove_convert import FoxgloveConverter, FoxgloveMessage
-from nodes.node import Node, run_node
-from nodes.params import Param
+from nodes.runtime.node import Node, run_node
+from nodes.runtime.params import Param
 from twinfocus.errors import TwinFocusError
 
 

@@ -32,8 +32,8 @@ import numpy as np
 
 from msgs import MESSAGE_TYPES, MessageError
 from msgs.mcap_log import LogReader
-from nodes.node import Node, run_node
-from nodes.params import REQUIRED, Param
+from nodes.runtime.node import Node, run_node
+from nodes.runtime.params import REQUIRED, Param
 from twinfocus.errors import TwinFocusError
 
 

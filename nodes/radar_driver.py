@@ -1,6 +1,6 @@
 """Radar driver node: publishes ``radar/frame`` from a backend (simulation, scan file, hardware).
 
-Backends are listed in :data:`nodes.backends.RADAR_BACKENDS` (``sim``: simulated scene,
+Backends are listed in :data:`nodes.runtime.backends.RADAR_BACKENDS` (``sim``: simulated scene,
 ``scan_file``: replay of a scan ``.npz``); hardware backends plug in there. Each sample becomes a
 :class:`msgs.RadarFrame` carrying the chirp and the virtual channel offsets, so every frame is
 self-describing (a log needs no side files).
@@ -13,9 +13,9 @@ import sys
 import numpy as np
 
 from msgs import Header, RadarFrame
-from nodes.backends import RADAR_BACKENDS, RadarSample
-from nodes.driver import DriverNode
-from nodes.node import run_node
+from nodes.runtime.backends import RADAR_BACKENDS, RadarSample
+from nodes.runtime.driver import DriverNode
+from nodes.runtime.node import run_node
 from twinfocus.sensors.capture_to_scan import stream_gaps
 
 

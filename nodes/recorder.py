@@ -11,7 +11,7 @@ and moved onto ``out`` only when the recorder stops at the planned end of its ru
 (:meth:`Recorder.unplanned_stop`): started by hand, on Ctrl-C or SIGTERM; under a launcher,
 when the launcher stops the graph and no node had failed (last status ``error``), fallen
 silent (no heartbeat for ``silent_s`` before the stop) or been named by the launcher as the
-node that failed the run (stopped from outside, killed, crashed: :func:`nodes.bus.query_verdict`).
+node that failed the run (stopped from outside, killed, crashed: :func:`nodes.runtime.bus.query_verdict`).
 Any other stop (the launcher killed, a node failing or hanging, the recorder crashing) finishes the partial file and keeps it beside
 the earlier log, which stays byte-identical, and says so in one line; a killed recorder leaves
 the partial file as it was. A run that recorded nothing leaves no file. A full disk: one line,
@@ -39,17 +39,17 @@ import zmq
 
 from msgs import NodeStatus, RadarFrame, SarMeasurement, encode, now_ns
 from msgs.mcap_log import LogWriteError, LogWriter
-from nodes.bus import query_verdict
 from nodes.foxglove_convert import FoxgloveConverter
-from nodes.node import ENV_LAUNCHER_PID, GONE_STATES, Node, run_node
-from nodes.params import REQUIRED, Param
+from nodes.runtime.bus import query_verdict
+from nodes.runtime.node import ENV_LAUNCHER_PID, GONE_STATES, Node, run_node
+from nodes.runtime.params import REQUIRED, Param
 from twinfocus.errors import TwinFocusError
 
 
 def radar_metadata(topic: str, msg: RadarFrame | SarMeasurement) -> dict:
     """The ``radar`` metadata record of a log, from its first radar message on ``topic``.
 
-    Flat: ``source_topic``, the chirp (:meth:`twinfocus.radar.Chirp.to_dict` keys), ``n_channels``
+    Flat: ``source_topic``, the chirp (:meth:`twinfocus.radar.fmcw.Chirp.to_dict` keys), ``n_channels``
     and, for a :class:`msgs.RadarFrame`, ``channel_offsets_m`` ((K, 3) list, metres). The one
     convention of the recorder and ``twinfocus convert``: ``Chirp(**{k: meta[k] for k in
     ("f0_hz", "slope_hz_per_s", "fs_hz", "n_samples")})`` reads the chirp back from either.

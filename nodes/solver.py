@@ -2,14 +2,14 @@
 
 As measurements of a scan arrive, the solver back-projects each onto the reference and the
 target regions: one row B_m of the sub-image basis per radar position
-(:func:`twinfocus.backprojection.subimage_basis`, rows are independent), computed in batches of
+(:func:`twinfocus.imaging.backprojection.numba_backend.subimage_basis`, rows are independent), computed in batches of
 whatever has arrived while the previous batch ran, and, when the estimator registers a physical
 twin's template, the registration's scores of those rows
-(:class:`twinfocus.template_match.MatchScores`). So when the scan's ``last`` measurement
+(:class:`twinfocus.focus.template_match.MatchScores`). So when the scan's ``last`` measurement
 arrives, the back-projection is already done and only the optimiser and the metrics remain
-(:meth:`twinfocus.focus_plan.FocusPlan.focus_bases`, the steps ``twinfocus focus`` runs after its
+(:meth:`twinfocus.focus.plan.FocusPlan.focus_bases`, the steps ``twinfocus focus`` runs after its
 back-projections: ``twin``, or the baselines ``sharpness`` / ``none``). With
-``basis:=after_scan`` it instead keeps the samples and runs :meth:`twinfocus.focus_plan.FocusPlan.focus_scan`
+``basis:=after_scan`` it instead keeps the samples and runs :meth:`twinfocus.focus.plan.FocusPlan.focus_scan`
 on the assembled scan at the end (the same call as ``twinfocus focus``; the benchmark's
 baseline).
 
@@ -21,7 +21,7 @@ Outputs per scan: :class:`msgs.AutofocusResult` (phase, loss curve, metrics, tim
 estimator that ran) and
 :class:`msgs.Image` on ``image/focused`` named ``target``, ``target_uncorrected``,
 ``reference``, ``reference_uncorrected``; with ``out_dir`` also ``twinfocus focus``'s files in
-``out_dir/<scan_id>/`` (:func:`twinfocus.pipeline.write_outputs`); a scan that ended without its
+``out_dir/<scan_id>/`` (:func:`twinfocus.focus.pipeline.write_outputs`); a scan that ended without its
 last measurement (its source went quiet, the graph was stopped) goes to
 ``out_dir/<scan_id>.incomplete/`` with ``complete: false`` and ``incomplete_reason`` in its metrics,
 so it never replaces a whole scan's result. Metrics against the truth
@@ -42,20 +42,20 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from msgs import AutofocusResult, Header, Image, SarMeasurement, TwinTemplate, now_ns
-from nodes.node import Node, Shutdown, run_node
-from nodes.params import REQUIRED, Param, param_of
-from twinfocus.basis import BasisRows
-from twinfocus.depth_search import DEFAULT_HALF_RANGE_M, parse_depth, range_to_search
+from nodes.runtime.node import Node, Shutdown, run_node
+from nodes.runtime.params import REQUIRED, Param, param_of
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import REFERENCE_FREE_RUNGS
-from twinfocus.radar import Chirp
-from twinfocus.safe_paths import child_path
-from twinfocus.settings import FOCUS_SETTINGS
+from twinfocus.focus.estimators import REFERENCE_FREE_RUNGS
+from twinfocus.focus.settings import FOCUS_SETTINGS
+from twinfocus.imaging.basis import BasisRows
+from twinfocus.imaging.depth_search import DEFAULT_HALF_RANGE_M, parse_depth, range_to_search
+from twinfocus.io.safe_paths import child_path
+from twinfocus.radar.fmcw import Chirp
 
 if TYPE_CHECKING:  # imported where used: the node starts without the numerics (numba, scipy: 1.0 s
     # against 3.5-4.7 s for `import nodes.solver` at load 25), which a launch's checks import
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.template_match import MatchScores
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.focus.template_match import MatchScores
 
 
 #: seconds of focusing work between two progress lines
@@ -74,7 +74,7 @@ class _Scan:
     ref_rows: BasisRows = field(default_factory=BasisRows)
     tgt_rows: BasisRows = field(default_factory=BasisRows)
     # the half-array bases (the tilt's), streamed from the first batch when the tilt may be fitted
-    half: np.ndarray | None = None  # bool (K,): the half's channels (twinfocus.space_variant.array_half)
+    half: np.ndarray | None = None  # bool (K,): the half's channels (twinfocus.focus.space_variant.array_half)
     ref_half_rows: BasisRows = field(default_factory=BasisRows)
     tgt_half_rows: BasisRows = field(default_factory=BasisRows)
     half_handed: bool = False  # the streamed half-array rows went to the fit
@@ -130,7 +130,7 @@ class Solver(Node):
             "twin (needs twin/template), a reference-free autofocus (sharpness, entropy, pga) or none",
             choices=("twin",) + REFERENCE_FREE_RUNGS + ("none",),
         ),
-        # the settings of `twinfocus focus`, same names and defaults (twinfocus/settings.py)
+        # the settings of `twinfocus focus`, same names and defaults (twinfocus/focus/settings.py)
         **{s.name: param_of(s) for s in FOCUS_SETTINGS},
         "basis": Param(
             "stream",
@@ -157,8 +157,8 @@ class Solver(Node):
 
     def __init__(self, **kw):
         super().__init__(**kw)
-        from twinfocus.autofocus import AutofocusConfig
-        from twinfocus.grid import ImageGrid
+        from twinfocus.focus.autofocus import AutofocusConfig
+        from twinfocus.imaging.grid import ImageGrid
 
         p = self.params
         if len(p["reference_roi"]) not in (0, 5):
@@ -200,9 +200,9 @@ class Solver(Node):
         self.bp = {"oversample": p["oversample"], "precision": p["precision"]}
         if device != "cpu":
             self.bp.update(backend="torch", device=device)
-        from twinfocus.focus_plan import FocusPlan
+        from twinfocus.focus.plan import FocusPlan
 
-        # the focusing policy, made once from the parameters (twinfocus/focus_plan.py)
+        # the focusing policy, made once from the parameters (twinfocus/focus/plan.py)
         self.plan = FocusPlan.from_settings(
             {**p, "device": device}, p["method"], bp_options=self.bp, progress_factory=lambda label: self._progress
         )
@@ -244,8 +244,8 @@ class Solver(Node):
     def _volume_grid(self, ref_grid):
         """The volume's grid over both regions' x/y box (``twinfocus focus --volume``'s), or None
         without ``volume``; ``ref_grid`` None: the target's box stands in for the reference's."""
-        from twinfocus.grid import ImageGrid
-        from twinfocus.volume import volume_grid
+        from twinfocus.imaging.grid import ImageGrid
+        from twinfocus.imaging.volume import volume_grid
 
         if not self.params["volume"]:
             return None
@@ -257,8 +257,8 @@ class Solver(Node):
 
     def _check_volume_memory(self) -> None:
         """A volume that cannot fit is refused when the node starts, not after a scan."""
-        from twinfocus.machine import require_memory
-        from twinfocus.volume import volume_cost
+        from twinfocus.imaging.volume import volume_cost
+        from twinfocus.jobs.machine import require_memory
 
         grid = self._volume_grid(self.ref_grid)
         if grid is not None:
@@ -270,7 +270,7 @@ class Solver(Node):
             )
 
     def _plan(self) -> FocusPlan:
-        """The focus plan for the template at hand (:meth:`twinfocus.focus_plan.FocusPlan.for_reference`:
+        """The focus plan for the template at hand (:meth:`twinfocus.focus.plan.FocusPlan.for_reference`:
         the estimator resolved as ``twinfocus focus`` resolves it)."""
         return self.plan.for_reference(self.template if self.params["method"] == "twin" else None, self.support)
 
@@ -279,9 +279,9 @@ class Solver(Node):
         return self._plan().config
 
     def _warm_up(self) -> None:
-        from twinfocus.autofocus import AutofocusConfig, twin_autofocus
-        from twinfocus.backprojection import subimage_basis
-        from twinfocus.grid import ImageGrid
+        from twinfocus.focus.autofocus import AutofocusConfig, twin_autofocus
+        from twinfocus.imaging.backprojection.numba_backend import subimage_basis
+        from twinfocus.imaging.grid import ImageGrid
 
         rng = np.random.default_rng(0)
         chirp = Chirp(n_samples=8)
@@ -298,13 +298,13 @@ class Solver(Node):
         """The drift + tilt fit once on the toy problem of :meth:`_warm_up`, when the ladder may
         climb to it: a hand-held scan's first fit then does not pay loading the fit's numba kernels
         after its last frame. basis : complex (2, 4, 4) on ``grid``; pos : (2, K, 3) metres."""
-        from twinfocus.focus_plan import climbs_to
+        from twinfocus.focus.plan import climbs_to
 
         if self.params["method"] != "twin" or not climbs_to(
             "drift", self.params["model"], self.params["space_variant"]
         ):
             return
-        from twinfocus.space_variant import DriftFitSettings, fit_smooth_drift
+        from twinfocus.focus.space_variant import DriftFitSettings, fit_smooth_drift
 
         template = np.asarray(basis.sum(axis=0))
         fit_smooth_drift(
@@ -321,13 +321,13 @@ class Solver(Node):
 
     # -- template -----------------------------------------------------------------------------
     def on_template(self, msg: TwinTemplate) -> None:
-        from twinfocus.templates import resample_support, resample_template
+        from twinfocus.twins.templates import resample_support, resample_template
 
         if self._same_template(msg):  # the same template again (sent for a node that started later)
             return
         if not self.params["reference_roi"]:
-            from twinfocus.grid import ImageGrid
-            from twinfocus.reference_search import region_from_template_file
+            from twinfocus.focus.reference_search import region_from_template_file
+            from twinfocus.imaging.grid import ImageGrid
 
             roi, _ = region_from_template_file(msg.x_m, msg.y_m, msg.z_m)
             self.ref_grid = ImageGrid.from_roi(roi, self.params["size"])
@@ -421,7 +421,7 @@ class Solver(Node):
             self.call_later(0, self._flush)
 
     def _flush(self) -> None:
-        from twinfocus.backprojection import subimage_basis
+        from twinfocus.imaging.backprojection.numba_backend import subimage_basis
 
         self._flush_scheduled = False
         s = self.scan
@@ -461,7 +461,7 @@ class Solver(Node):
         --model that climbs to the tilt). Their back-projection is then paid while the scan
         arrives, not after its last frame (1.3 s at 780 positions x 100 x 100 on the 2-core
         machine); a scan whose drift is not fitted paid it for nothing."""
-        from twinfocus.space_variant import array_half
+        from twinfocus.focus.space_variant import array_half
 
         if s.batches == 0 and s.half is None:
             tilt_possible = (
@@ -481,8 +481,8 @@ class Solver(Node):
         """``focus_bases``'s ``half_bases``: the streamed rows when they cover the scan and its
         channels split as the first batch's did (the whole scan's :func:`array_half`, as
         ``twinfocus focus`` takes it); else back-projected from the samples when the fit asks."""
-        from twinfocus.pipeline import half_array_bases
-        from twinfocus.space_variant import array_half
+        from twinfocus.focus.pipeline import half_array_bases
+        from twinfocus.focus.space_variant import array_half
 
         assert self.ref_grid is not None and self.tgt_grid is not None, "the streamed path has both regions"
 
@@ -508,13 +508,13 @@ class Solver(Node):
 
     def _score_registration(self, s: _Scan, final: bool = False) -> None:
         """Adds the reference rows not scored yet to the template registration's scores
-        (:class:`twinfocus.template_match.MatchScores`), when the estimator registers the
+        (:class:`twinfocus.focus.template_match.MatchScores`), when the estimator registers the
         template: at the scan's end (``final``) they are the whole basis's, and the
         registration's FFTs (0.15-0.7 s at the paper's size on the 2-core VM) are no longer paid
         after the last measurement. Rows are scored _REGISTRATION_ROWS at a time at least until
         the end: one FFT call per radar frame cost 2.5x as much per row (0.57 ms against 0.23).
         A new template starts the scores again from the rows kept."""
-        from twinfocus.template_match import MatchScores
+        from twinfocus.focus.template_match import MatchScores
 
         t = time.perf_counter()
         if s.scores is None or s.scores_template is not self.template:
@@ -579,7 +579,7 @@ class Solver(Node):
 
     # -- focusing -----------------------------------------------------------------------------
     def _finish(self, s: _Scan) -> None:
-        from twinfocus.scan import Scan
+        from twinfocus.radar.scan import Scan
 
         t_start = self._said_at = time.monotonic()
         positions = np.concatenate(s.positions)
@@ -634,7 +634,7 @@ class Solver(Node):
             self._publish_result(s, out, timing, latency, False)
             self._log_focused(s, out, timing)
         if self.params["out_dir"]:
-            from twinfocus.pipeline import write_outputs
+            from twinfocus.focus.pipeline import write_outputs
 
             out.metrics["timings_s"] = timing
             # a scan that did not end never replaces the result of one that did
@@ -654,10 +654,10 @@ class Solver(Node):
         self._count_done()
 
     def _focus_whole(self, scan):
-        """The plan's focus of the assembled scan (:meth:`twinfocus.focus_plan.FocusPlan.focus_target`),
+        """The plan's focus of the assembled scan (:meth:`twinfocus.focus.plan.FocusPlan.focus_target`),
         as ``twinfocus focus`` runs it: the target's depth searched first when it is not typed."""
-        from twinfocus.focus_plan import Target
-        from twinfocus.pipeline import Reference
+        from twinfocus.focus.pipeline import Reference
+        from twinfocus.focus.plan import Target
 
         if self.ref_grid is None:
             raise TwinFocusError("no reference region: none typed and no template yet")
@@ -674,9 +674,9 @@ class Solver(Node):
         return out
 
     def _volume(self, s: _Scan, positions: np.ndarray, out):
-        """The corrected volume (:func:`twinfocus.volume.corrected_image` with the scan's phase) and
+        """The corrected volume (:func:`twinfocus.imaging.volume.corrected_image` with the scan's phase) and
         its grid; its figures in ``out.metrics["volume"]``."""
-        from twinfocus.volume import corrected_image
+        from twinfocus.imaging.volume import corrected_image
 
         grid = self._volume_grid(self.ref_grid)  # the region typed or found, as twinfocus focus takes it
         t = time.perf_counter()
@@ -697,7 +697,7 @@ class Solver(Node):
         """The focusing steps' progress: heartbeats, and a line when focusing has gone on for a
         while without one (no silent stretch of more than a few seconds), with what is left of the
         current step at its pace so far."""
-        from twinfocus.progress import remaining_text
+        from twinfocus.jobs.progress import remaining_text
 
         self.heartbeat_if_due()
         now = time.monotonic()
@@ -709,13 +709,13 @@ class Solver(Node):
             self.log(f"focusing: {done} of {total} of the current step, about {remaining_text(left)} left")
 
     def _focus_bases(self, s: _Scan, positions: np.ndarray):
-        """The plan's focus of the streamed bases (:meth:`twinfocus.focus_plan.FocusPlan.focus_bases`,
+        """The plan's focus of the streamed bases (:meth:`twinfocus.focus.plan.FocusPlan.focus_bases`,
         what ``twinfocus focus`` runs after its back-projections; tests/test_graph.py checks the
         phase), without the truth: :meth:`_truth_metrics` adds it once the image is out. Returns the
         outputs and the target basis (the oracle-phase image needs it)."""
         from threadpoolctl import threadpool_limits
 
-        from twinfocus.pipeline import Bases, Reference, upper_band_basis
+        from twinfocus.focus.pipeline import Bases, Reference, upper_band_basis
 
         assert self.ref_grid is not None and self.tgt_grid is not None, "the streamed path has both regions"
         plan = self._plan()
@@ -760,11 +760,11 @@ class Solver(Node):
         return out, tgt_basis
 
     def _truth_metrics(self, s: _Scan, out, tgt_basis: np.ndarray, positions: np.ndarray, truth: np.ndarray) -> None:
-        """:func:`twinfocus.pipeline.add_truth_metrics` (what ``focus_bases`` adds when handed the
+        """:func:`twinfocus.focus.pipeline.add_truth_metrics` (what ``focus_bases`` adds when handed the
         truth), on images formed from the kept samples at the true positions, as
-        :meth:`twinfocus.focus_plan.FocusPlan.focus_scan` forms them."""
-        from twinfocus.backprojection import backproject
-        from twinfocus.pipeline import add_truth_metrics
+        :meth:`twinfocus.focus.plan.FocusPlan.focus_scan` forms them."""
+        from twinfocus.focus.pipeline import add_truth_metrics
+        from twinfocus.imaging.backprojection.numba_backend import backproject
 
         data = np.concatenate(s.data)
         s.data = []
@@ -825,7 +825,7 @@ class Solver(Node):
             ("reference", out.reference, out.reference_grid),
         ]
         if volume is not None:
-            from twinfocus.volume import projections
+            from twinfocus.imaging.volume import projections
 
             vol, vgrid = volume
             mip, _ = projections(vol, vgrid)
@@ -900,7 +900,7 @@ class Solver(Node):
         stops around the solver, and a publisher that ends later paired more); where a publisher
         sent no final heartbeat (killed, hung) its count may be short, and the radar frames
         published for the scan count too."""
-        from nodes.bus import query_graph
+        from nodes.runtime.bus import query_graph
 
         deadline = time.monotonic() + wait_s
         while True:

@@ -1,10 +1,10 @@
 """Synchronizer node: pairs radar frames with poses by time stamp -> ``sar/measurement``.
 
 For a radar frame stamped t it waits for poses on both sides of t, interpolates the pose
-(linear in position, slerp in orientation: :meth:`twinfocus.trajectory.Poses.interpolate`),
+(linear in position, slerp in orientation: :meth:`twinfocus.motion.trajectory.Poses.interpolate`),
 applies the camera-to-radar extrinsics when the poses are the camera's
 (``child_frame_id == "camera"``), places the frame's virtual channels
-(:func:`twinfocus.trajectory.phase_centres`) and publishes the frame's samples with those
+(:func:`twinfocus.motion.trajectory.phase_centres`) and publishes the frame's samples with those
 phase-centre positions, and the frame's capture gap counts (``frames_lost`` ...), which the
 solver turns into each scan's ``capture`` metrics.
 
@@ -28,13 +28,13 @@ from collections import deque
 import numpy as np
 
 from msgs import Header, Pose, RadarFrame, SarMeasurement
-from nodes.node import Node, run_node
-from nodes.params import Param
+from nodes.runtime.node import Node, run_node
+from nodes.runtime.params import Param
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import VirtualArray
+from twinfocus.motion.trajectory import Poses, phase_centres
+from twinfocus.radar.fmcw import VirtualArray
 from twinfocus.sensors.capture_to_scan import stream_gaps
 from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
-from twinfocus.trajectory import Poses, phase_centres
 
 
 class Synchronizer(Node):

@@ -3,22 +3,22 @@
 Sources (``source`` parameter):
 
 * ``file``: a template file (docs/architecture.md section 4), resampled onto the reference grid
-  (:func:`twinfocus.templates.load_template`); a digital twin's file (``twinfocus twin --out``)
+  (:func:`twinfocus.twins.templates.load_template`); a digital twin's file (``twinfocus twin --out``)
   goes out as ``digital`` with its outline and conditioning;
 * ``scan``: a physical twin from a motion-stage scan of the reference alone
-  (:func:`twinfocus.templates.template_from_scan`);
+  (:func:`twinfocus.twins.templates.template_from_scan`);
 * ``sim``: the same from a simulated motion-stage scan of the scenario's reference
-  (:func:`nodes.sim_backends.template_scan`);
+  (:func:`nodes.runtime.sim_backends.template_scan`);
 * ``points``: a digital twin from a reference point cloud (``.npy``, scene frame, any camera's);
 * ``stereo``: a live digital twin from the ``camera/stereo`` topic: the first frame (and every
-  ``stereo_every``-th after it) goes through the stereo stages of :mod:`twinfocus.digital_twin`
+  ``stereo_every``-th after it) goes through the stereo stages of :mod:`twinfocus.twins.digital_twin`
   (disparity, segmentation seeded by the reference region projected into the picture, point
-  cloud: :func:`twinfocus.digital_twin.pipeline.reference_from_stereo`); the camera's pose in the
+  cloud: :func:`twinfocus.twins.digital_twin.pipeline.reference_from_stereo`); the camera's pose in the
   scene frame comes from ``path`` (a ``camera.json``, only its pose is used: the frames carry
   their own rectified intrinsics and baseline) or, without it, the ZED default pose.
 
 A template scan's image (``scan``, ``sim``) is taken from the template cache
-(:mod:`twinfocus.cache`, the one ``twinfocus focus`` uses: ``$TWINFOCUS_CACHE_DIR``, else
+(:mod:`twinfocus.twins.cache`, the one ``twinfocus focus`` uses: ``$TWINFOCUS_CACHE_DIR``, else
 ``$XDG_CACHE_HOME/twinfocus``, else ``~/.cache/twinfocus``) when the same reference, grid and
 back-projection options were computed before, by the node or by ``focus``; ``cache: false``
 neither reads nor writes it. Keys: the template scan file's SHA-256 (``scan``, the key ``focus
@@ -27,7 +27,7 @@ neither reads nor writes it. Keys: the template scan file's SHA-256 (``scan``, t
 A digital twin's template depends on the aperture, so for ``points`` and ``stereo`` the node
 listens to ``sar/measurement`` and, when a scan's last measurement arrives, conditions the cloud
 and builds the template for that scan's positions
-(:func:`twinfocus.digital_twin.condition.digital_twin_reference`: outliers, holes, noise, the
+(:func:`twinfocus.twins.digital_twin.condition.digital_twin_reference`: outliers, holes, noise, the
 surface model chosen by what the cloud supports). The reference's outline on the grid goes with
 it (``TwinTemplate.support``), so the solver can take the outline estimator as ``twinfocus focus
 --digital-twin`` does. A scan that ends before any stereo frame gave a
@@ -41,17 +41,18 @@ import sys
 import numpy as np
 
 from msgs import Header, SarMeasurement, StereoFrame, TwinTemplate, now_ns
-from nodes.node import Node, run_node
-from nodes.params import REQUIRED, Param
-from twinfocus.board import default_board
-from twinfocus.cache import TemplateCache, array_sha256, file_sha256, template_key, template_scan_key
-from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M, Intrinsics, StereoCamera, pose_matrix
-from twinfocus.digital_twin.rig import Rig, camera_identity
-from twinfocus.digital_twin.segment import box_from_scene_roi
-from twinfocus.digital_twin.template import load_points
+from nodes.runtime.node import Node, run_node
+from nodes.runtime.params import REQUIRED, Param
 from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.scan import Scan
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.io.checksums import file_sha256
+from twinfocus.radar.board import default_board
+from twinfocus.radar.scan import Scan
+from twinfocus.twins.cache import TemplateCache, array_sha256, template_key, template_scan_key
+from twinfocus.twins.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M, Intrinsics, StereoCamera, pose_matrix
+from twinfocus.twins.digital_twin.rig import Rig, camera_identity
+from twinfocus.twins.digital_twin.segment import box_from_scene_roi
+from twinfocus.twins.digital_twin.template import load_points
 
 
 class TemplateBuilder(Node):
@@ -80,7 +81,7 @@ class TemplateBuilder(Node):
         "oversample": Param(16, "range-profile oversampling of the back-projection"),
         "precision": Param("float32", "float32 or float64", choices=("float32", "float64")),
         "cache": Param(
-            True, "reuse a template scan's image from the template cache (twinfocus.cache) and store it there"
+            True, "reuse a template scan's image from the template cache (twinfocus.twins.cache) and store it there"
         ),
         "republish_s": Param(
             0.0, "publish the template again this often (0: once; the topic is latched, so late joiners still get it)"
@@ -134,7 +135,7 @@ class TemplateBuilder(Node):
             self.msg = self._build_static(src, path)
 
     def _build_static(self, src: str, path: str) -> TwinTemplate:
-        from twinfocus.templates import load_template, template_from_scan
+        from twinfocus.twins.templates import load_template, template_from_scan
 
         # a physical twin's phase travels with it (TwinTemplate.phase_rad): the solver's closed form needs it
         if src == "file":
@@ -147,7 +148,7 @@ class TemplateBuilder(Node):
             load = lambda: Scan.load(path)  # noqa: E731 (only on a miss)
             source = path
         else:
-            from nodes.sim_backends import scenario_from, template_scan
+            from nodes.runtime.sim_backends import scenario_from, template_scan
 
             sc = scenario_from({"scenario": self.params["scenario"] or {}}, f"node {self.name!r}")
             scan = template_scan(sc)
@@ -229,7 +230,7 @@ class TemplateBuilder(Node):
         )
 
     def on_measurement(self, m: SarMeasurement) -> None:
-        from twinfocus.digital_twin.condition import digital_twin_reference
+        from twinfocus.twins.digital_twin.condition import digital_twin_reference
 
         if m.scan_id != self.scan_id:
             self.scan_id, self.positions = m.scan_id, []
@@ -263,11 +264,11 @@ class TemplateBuilder(Node):
 
 def stereo_cloud(frame: StereoFrame, scene_from_left: np.ndarray, reference_roi) -> tuple[np.ndarray, dict]:
     """The reference's cloud (float64 (N, 3), scene frame) from one rectified stereo frame, with
-    the stages of :mod:`twinfocus.digital_twin` seeded by ``reference_roi`` projected into the
+    the stages of :mod:`twinfocus.twins.digital_twin` seeded by ``reference_roi`` projected into the
     left picture; and a summary dict."""
     import cv2
 
-    from twinfocus.digital_twin.pipeline import reference_from_stereo
+    from twinfocus.twins.digital_twin.pipeline import reference_from_stereo
 
     k = np.asarray(frame.camera_matrix, dtype=np.float64)
     h, w = frame.left.shape[:2]

@@ -1,7 +1,7 @@
 """VIO driver node: publishes ``vio/pose`` from a backend (simulated tracker, trajectory file,
 hardware).
 
-Backends are listed in :data:`nodes.backends.VIO_BACKENDS` (``sim``: the scene's true trajectory
+Backends are listed in :data:`nodes.runtime.backends.VIO_BACKENDS` (``sim``: the scene's true trajectory
 with a ZED-like error model, ``trajectory_file``: TUM / EuRoC files); hardware backends plug in
 there.
 """
@@ -11,9 +11,9 @@ from __future__ import annotations
 import sys
 
 from msgs import Header, Pose
-from nodes.backends import VIO_BACKENDS, PoseSample
-from nodes.driver import DriverNode
-from nodes.node import run_node
+from nodes.runtime.backends import VIO_BACKENDS, PoseSample
+from nodes.runtime.driver import DriverNode
+from nodes.runtime.node import run_node
 
 
 class VioDriver(DriverNode):

@@ -29,10 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from msgs import AutofocusResult, Image, Pose, SarMeasurement
-from nodes.node import Node, run_node
-from nodes.params import Param
-from twinfocus.atomic import write_bytes_atomic
+from nodes.runtime.node import Node, run_node
+from nodes.runtime.params import Param
 from twinfocus.errors import TwinFocusError
+from twinfocus.io.atomic import write_bytes_atomic
 
 PANELS = (
     ("trajectory", "trajectory (aperture plane)"),

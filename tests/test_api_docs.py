@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 import twinfocus
-from twinfocus.atomic import atomic_writer
+from twinfocus.io.atomic import atomic_writer
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,5 +42,5 @@ def test_the_api_reference_builds(tmp_path: Path) -> None:
     missing = [m for m in modules if not (tmp_path / (m.replace(".", "/") + ".html")).is_file()]
     assert not missing, f"no API page for {missing}"
     # The docstring's words reach the page (pdoc renders ``code`` as markup, so the first words).
-    page = " ".join(html.unescape((tmp_path / "twinfocus" / "atomic.html").read_text(encoding="utf-8")).split())
+    page = " ".join(html.unescape((tmp_path / "twinfocus" / "io" / "atomic.html").read_text(encoding="utf-8")).split())
     assert " ".join(atomic_writer.__doc__.split()[:5]) in page

@@ -1,4 +1,5 @@
-"""twinfocus.atomic: a file appears whole or not at all; a failed write keeps the old file."""
+"""twinfocus.io.atomic: a file appears whole or not at all; a failed write keeps the old file."""
+
 from __future__ import annotations
 
 import json
@@ -7,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from twinfocus.atomic import atomic_writer, write_bytes_atomic, write_json_atomic, write_text_atomic
+from twinfocus.io.atomic import atomic_writer, write_bytes_atomic, write_json_atomic, write_text_atomic
 
 
 def test_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):

@@ -1,16 +1,16 @@
 import numpy as np
 import pytest
 
-from twinfocus.autofocus import AutofocusConfig, no_correction, sharpness_autofocus, twin_autofocus
-from twinfocus.backprojection import backproject, subimage_basis
-from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.metrics import image_ssim, oracle_phase, phase_error_rms
-from twinfocus.motion import apply_position_errors, drift_errors, gaussian_errors
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.simulate import add_thermal_noise, simulate_if
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.focus.autofocus import AutofocusConfig, no_correction, sharpness_autofocus, twin_autofocus
+from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+from twinfocus.imaging.basis import form_image
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import image_ssim, oracle_phase, phase_error_rms
+from twinfocus.motion.tracking_errors import apply_position_errors, drift_errors, gaussian_errors
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if
 
 Z = 0.4
 REF_GRID = ImageGrid(-0.075, -0.025, -0.025, 0.025, Z, 32, 32)
@@ -83,7 +83,9 @@ def test_twin_autofocus_with_independent_jitter_focuses_target():
     tgt_basis = subimage_basis(data, tracked, ch, TGT_GRID)
     truth = backproject(data, true, ch, TGT_GRID)
     result = twin_autofocus(ref_basis, np.abs(backproject(data, true, ch, REF_GRID)))
-    assert image_ssim(form_image(tgt_basis, result.phase_rad), truth) > max(0.9, image_ssim(tgt_basis.sum(0), truth) + 0.1)
+    assert image_ssim(form_image(tgt_basis, result.phase_rad), truth) > max(
+        0.9, image_ssim(tgt_basis.sum(0), truth) + 0.1
+    )
     oracle = oracle_phase(true, tracked, TGT_GRID.centre_m, ch)
     assert phase_error_rms(result.phase_rad, oracle) < 0.6 * phase_error_rms(np.zeros_like(oracle), oracle)
 
@@ -96,13 +98,19 @@ def test_float16_basis_gives_the_same_answer(scene_05mm):
     a = twin_autofocus(ref_basis, template, cfg32)
     b = twin_autofocus(ref_basis, template, cfg16)
     assert phase_error_rms(a.phase_rad, b.phase_rad) < 0.05
-    assert abs(image_ssim(form_image(tgt_basis, a.phase_rad), truth) - image_ssim(form_image(tgt_basis, b.phase_rad), truth)) < 0.01
+    assert (
+        abs(
+            image_ssim(form_image(tgt_basis, a.phase_rad), truth)
+            - image_ssim(form_image(tgt_basis, b.phase_rad), truth)
+        )
+        < 0.01
+    )
 
 
 def test_smoothness_penalty_is_the_mean_squared_chord():
     import torch
 
-    from twinfocus.autofocus import smoothness_penalty
+    from twinfocus.focus.autofocus import smoothness_penalty
 
     rng = np.random.default_rng(2)
     phi = rng.uniform(-np.pi, np.pi, 50)
@@ -118,7 +126,7 @@ def test_smoothness_penalty_is_the_mean_squared_chord():
 def test_smoothness_prior_smooths_the_estimate_of_a_smooth_drift(scene_05mm):
     import torch
 
-    from twinfocus.autofocus import smoothness_penalty
+    from twinfocus.focus.autofocus import smoothness_penalty
 
     ch, true, tracked, ref_basis, tgt_basis, template, truth = scene_05mm
     plain = twin_autofocus(ref_basis, template, AutofocusConfig(iterations=150))
@@ -169,7 +177,7 @@ def test_bad_templates_and_shapes_are_refused(scene_05mm):
 
 
 def test_linear_phase_fit_recovers_ramp_through_wrapping():
-    from twinfocus.autofocus import fit_linear_phase, transfer_phase
+    from twinfocus.focus.autofocus import fit_linear_phase, transfer_phase
 
     rng = np.random.default_rng(7)
     poses = paper_raster()
@@ -186,16 +194,19 @@ def test_linear_phase_fit_recovers_ramp_through_wrapping():
         fit_linear_phase(phase, ap[:10])
 
 
-@pytest.mark.parametrize("shift_mm, registered, mode, removed", [
-    (1.0, False, "auto", True),    # a misplaced template's ramp: taken out
-    (-2.5, False, "auto", True),
-    (8.0, False, "auto", False),   # no template is 8 mm off: tracking error, transferred
-    (1.0, True, "auto", False),    # registration already took the misplacement out
-    (8.0, False, "remove", True),
-    (1.0, False, "keep", False),
-])
+@pytest.mark.parametrize(
+    "shift_mm, registered, mode, removed",
+    [
+        (1.0, False, "auto", True),  # a misplaced template's ramp: taken out
+        (-2.5, False, "auto", True),
+        (8.0, False, "auto", False),  # no template is 8 mm off: tracking error, transferred
+        (1.0, True, "auto", False),  # registration already took the misplacement out
+        (8.0, False, "remove", True),
+        (1.0, False, "keep", False),
+    ],
+)
 def test_transfer_phase_removes_only_what_a_misplaced_template_explains(shift_mm, registered, mode, removed):
-    from twinfocus.autofocus import transfer_phase
+    from twinfocus.focus.autofocus import transfer_phase
 
     rng = np.random.default_rng(3)
     ap = paper_raster().position_m[:, :2]

@@ -1,16 +1,23 @@
 import numpy as np
 import pytest
 
-from twinfocus.backprojection import backproject, backproject_points, matched_filter_bruteforce, subimage_basis
 from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.radar import C_M_PER_S, Chirp, mmwcas_virtual_array, uniform_virtual_array
+from twinfocus.imaging.backprojection.numba_backend import (
+    backproject,
+    backproject_points,
+    matched_filter_bruteforce,
+    subimage_basis,
+)
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array, uniform_virtual_array
 
 
 def point_scan(chirp, positions, point, amplitude=1.0):
     """Data of one scatterer under the project's IF model (written out independently)."""
     r = np.linalg.norm(positions - np.asarray(point), axis=-1)
-    return (amplitude * np.exp(1j * 2 * np.pi * chirp.frequencies_hz * 2 * r[..., None] / C_M_PER_S)).astype(np.complex64)
+    return (amplitude * np.exp(1j * 2 * np.pi * chirp.frequencies_hz * 2 * r[..., None] / C_M_PER_S)).astype(
+        np.complex64
+    )
 
 
 def small_aperture(n_rows=24, row_pitch=0.004, columns=(0.0,)):
@@ -42,7 +49,9 @@ def test_numba_and_torch_agree_and_basis_sums_to_image():
     ch = Chirp()
     pos = small_aperture(n_rows=10)
     rng = np.random.default_rng(3)
-    data = (rng.standard_normal((*pos.shape[:2], ch.n_samples)) + 1j * rng.standard_normal((*pos.shape[:2], ch.n_samples))).astype(np.complex64)
+    data = (
+        rng.standard_normal((*pos.shape[:2], ch.n_samples)) + 1j * rng.standard_normal((*pos.shape[:2], ch.n_samples))
+    ).astype(np.complex64)
     grid = ImageGrid(-0.05, 0.05, -0.05, 0.05, 0.5, 16, 16)
     a = backproject(data, pos, ch, grid)
     b = backproject(data, pos, ch, grid, backend="torch")
@@ -133,7 +142,7 @@ def test_bad_inputs_are_named():
 
 
 def test_volume_backprojection_finds_the_point_in_depth():
-    from twinfocus.grid import VolumeGrid
+    from twinfocus.imaging.grid import VolumeGrid
 
     ch = Chirp()
     pos = small_aperture(n_rows=12, row_pitch=0.004)
@@ -170,15 +179,20 @@ def test_the_kernels_run_on_openmp_without_a_warning_beside_open3d():
     pytest.importorskip("open3d")
     code = (
         "import twinfocus, open3d, numba, numpy as np\n"
-        "from twinfocus.backprojection import subimage_basis\n"
-        "from twinfocus.grid import ImageGrid\n"
-        "from twinfocus.radar import Chirp\n"
+        "from twinfocus.imaging.backprojection.numba_backend import subimage_basis\n"
+        "from twinfocus.imaging.grid import ImageGrid\n"
+        "from twinfocus.radar.fmcw import Chirp\n"
         "pos = np.zeros((2, 2, 3)); pos[:, 1, 0] = 1e-3\n"
         "subimage_basis(np.ones((2, 2, 8), np.complex64), pos, Chirp(n_samples=8),"
         " ImageGrid(-0.01, 0.01, -0.01, 0.01, 0.3, 4, 4))\n"
         "print(numba.threading_layer())\n"
     )
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                       env={k: v for k, v in os.environ.items() if not k.startswith("NUMBA_THREADING")})
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={k: v for k, v in os.environ.items() if not k.startswith("NUMBA_THREADING")},
+    )
     assert r.returncode == 0, r.stderr
     assert r.stdout.split()[-1] == "omp" and "TBB" not in r.stderr, (r.stdout, r.stderr)

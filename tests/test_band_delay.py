@@ -1,19 +1,20 @@
-"""Range errors from the band's halves (twinfocus.band_delay) against the injected position errors,
+"""Range errors from the band's halves (twinfocus.focus.band_delay) against the injected position errors,
 and the transfer that uses them to find a misplaced outline's ramp once every phase has wrapped."""
+
 import numpy as np
 import pytest
 
 from tests.test_template_match import GRID, Z, _outline, _rough_f_samples
-from twinfocus.autofocus import MIN_RANGED_RAMP_COHERENCE_SQRT_M, AutofocusConfig, transfer_phase
-from twinfocus.backprojection import subimage_basis
-from twinfocus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
-from twinfocus.focus_plan import FocusPlan
-from twinfocus.metrics import oracle_phase, true_range_errors_m
-from twinfocus.phase_ramp import fit_linear_phase
-from twinfocus.pipeline import Bases, Reference, upper_band_basis
-from twinfocus.radar import Chirp
+from twinfocus.focus.autofocus import MIN_RANGED_RAMP_COHERENCE_SQRT_M, AutofocusConfig, transfer_phase
+from twinfocus.focus.band_delay import bright_pixels, half_band_chirps, half_band_data, position_range_errors_m
+from twinfocus.focus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
+from twinfocus.focus.phase_ramp import fit_linear_phase
+from twinfocus.focus.pipeline import Bases, Reference, upper_band_basis
+from twinfocus.focus.plan import FocusPlan
+from twinfocus.imaging.backprojection.numba_backend import subimage_basis
+from twinfocus.imaging.metrics import oracle_phase, true_range_errors_m
+from twinfocus.radar.fmcw import Chirp
 
 
 def _rough_f_scan(z_sigma_m):
@@ -109,7 +110,11 @@ def test_the_transfer_finds_a_wrapped_estimates_ramp_with_the_range_errors():
     kept, info = transfer_phase(phase, ap, 0.25, lam, "auto")
     assert not info["from_range_errors"] and np.allclose(info["slope_rad_per_m"], 0)  # the ramp is out of sight
     out, info = transfer_phase(phase, ap, 0.25, lam, "auto", range_errors_m=measured)
-    assert info["removed"] and info["from_range_errors"] and info["ramp_coherence_sqrt_m"] > MIN_RANGED_RAMP_COHERENCE_SQRT_M
+    assert (
+        info["removed"]
+        and info["from_range_errors"]
+        and info["ramp_coherence_sqrt_m"] > MIN_RANGED_RAMP_COHERENCE_SQRT_M
+    )
     assert np.allclose(info["slope_rad_per_m"], slope, atol=2.0)
     # what was taken is the ramp alone: the rest of the estimate is untouched
     left = np.angle(np.exp(1j * (phase - out)))
@@ -130,7 +135,7 @@ def test_focus_places_a_misplaced_outline_by_the_band_halves(wrapped):
     """An outline 2 px off across y (a camera's offset): the outline estimator keeps it there once
     the phases wrap; with the upper band's basis the transfer moves the image back, and the
     report no longer warns that nothing placed it."""
-    from twinfocus.template_match import _shift_mask
+    from twinfocus.focus.template_match import _shift_mask
 
     ch, true, tracked, data, basis = wrapped
     support = _shift_mask(_outline(GRID), 2, 0)
@@ -162,8 +167,10 @@ def test_focus_places_a_misplaced_outline_by_the_band_halves(wrapped):
     assert placed["removed"] and placed["ramp_coherence_sqrt_m"] >= MIN_RANGED_RAMP_COHERENCE_SQRT_M
     # wrapped either way, so flagged either way: placed by the halves, the report says the place
     # may still be a few mm off; not placed, that nothing checked where the outline put it
-    for m, says, not_says in ((m_with, "placed the reference", "cannot check"),
-                              (m_without, "cannot check", "placed the reference")):
+    for m, says, not_says in (
+        (m_with, "placed the reference", "cannot check"),
+        (m_without, "cannot check", "placed the reference"),
+    ):
         conf = m["confidence"]
         assert conf["phase_coherence_sqrt_m"] < AUTO_REFINE_BELOW_COHERENCE and not conf["trusted"]
         wrapped = [w for w in conf["warnings"] if "phases have wrapped" in w]
@@ -175,8 +182,8 @@ def test_focus_asks_the_band_halves_when_a_coherent_estimates_ramp_is_too_large(
     """0.2 mm of jitter (the phases hold together) and an amplitude template 3 px (5.8 mm) off
     across y: the plain ramp fit sees the shift but keeps it (more than the 3 mm a misplacement is
     allowed: it could be tracking error); the range errors show it is not, and it is removed."""
-    from twinfocus.backprojection import backproject
-    from twinfocus.template_match import shift_image
+    from twinfocus.focus.template_match import shift_image
+    from twinfocus.imaging.backprojection.numba_backend import backproject
 
     ch, true, tracked, data, basis = _rough_f_scan(0.2e-3)
     template = np.abs(shift_image(backproject(data, true, ch, GRID), 3, 0))
@@ -190,7 +197,10 @@ def test_focus_asks_the_band_halves_when_a_coherent_estimates_ramp_is_too_large(
             Reference(template=template),
         )
         _, coeffs = fit_linear_phase(np.angle(np.exp(1j * (out.phase_rad - oracle))), ap, min_coherence_sqrt_m=0)
-        off[name] = (abs(coeffs[2]) * (Z - tracked[..., 2].mean()) * ch.wavelength_m / (4 * np.pi), out.metrics["phase_ramp"])
+        off[name] = (
+            abs(coeffs[2]) * (Z - tracked[..., 2].mean()) * ch.wavelength_m / (4 * np.pi),
+            out.metrics["phase_ramp"],
+        )
     assert off["without"][0] > 4e-3 and not off["without"][1]["removed"]  # kept as if it were tracking error
     assert off["with"][0] < 1e-3 and off["with"][1]["removed"]
     assert off["with"][1]["asked_range_errors_because"] == "its ramp is larger than a misplacement explains"
@@ -201,7 +211,7 @@ def test_place_estimate_moves_back_a_known_misplacement_of_the_exact_phase(wrapp
     camera put there does to an exact estimate), every phase wrapped: the plain fit alone cannot
     see the ramp and keeps it; with the band's halves most of it is taken out, and the true phase
     itself is moved by less than that."""
-    from twinfocus.focus_plan import place_estimate
+    from twinfocus.focus.plan import place_estimate
 
     ch, true, tracked, data, basis = wrapped
     oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
@@ -232,7 +242,7 @@ def test_the_placement_check_flags_every_wrapped_estimate_and_says_whether_the_h
     """At and above the wrapping line nothing is said; below it the report warns whether or not
     the band's halves placed the reference (their ramp must reach the fit's coherence and have
     been taken out), and names what to do next only for a digital twin's outline."""
-    from twinfocus.pipeline import DIGITAL_TWIN_NEXT, placement_warnings
+    from twinfocus.focus.pipeline import DIGITAL_TWIN_NEXT, placement_warnings
 
     line, least = AUTO_REFINE_BELOW_COHERENCE, MIN_RANGED_RAMP_COHERENCE_SQRT_M
     assert placement_warnings(line, least, True) == [] and placement_warnings(9.0, None, False) == []

@@ -1,14 +1,17 @@
-"""twinfocus.basis.BasisRows: the streamed basis equals the basis built at once."""
+"""twinfocus.imaging.basis.BasisRows: the streamed basis equals the basis built at once."""
+
 import numpy as np
 import pytest
 
-from twinfocus.basis import BasisRows
 from twinfocus.errors import TwinFocusError
+from twinfocus.imaging.basis import BasisRows
 
 
 def test_rows_in_uneven_batches_equal_one_concatenation_and_come_back_without_a_copy():
     rng = np.random.default_rng(1)
-    batches = [(rng.normal(size=(k, 3, 4)) + 1j * rng.normal(size=(k, 3, 4))).astype(np.complex64) for k in (1, 70, 5, 200, 3)]
+    batches = [
+        (rng.normal(size=(k, 3, 4)) + 1j * rng.normal(size=(k, 3, 4))).astype(np.complex64) for k in (1, 70, 5, 200, 3)
+    ]
     rows = BasisRows()
     for i, b in enumerate(batches):
         rows.append(b)

@@ -1,5 +1,6 @@
 """``twinfocus batch`` and ``bench --workers/--scheduler``: manifests, a two-worker local cluster,
 and a real ``dask scheduler`` + two ``dask worker`` processes losing one worker mid-run."""
+
 import csv
 import json
 import os
@@ -27,8 +28,25 @@ BIN = Path(sys.executable).parent
 def scans(tmp_path_factory):
     d = tmp_path_factory.mktemp("sim")
     for seed in (3, 4):
-        assert main(["simulate", "--out", str(d / f"scan{seed}.npz"), "--template-out", str(d / f"tpl{seed}.npz"),
-                     "--columns", "3", "--rows", "30", "--quiet", "--seed", str(seed)]) == 0
+        assert (
+            main(
+                [
+                    "simulate",
+                    "--out",
+                    str(d / f"scan{seed}.npz"),
+                    "--template-out",
+                    str(d / f"tpl{seed}.npz"),
+                    "--columns",
+                    "3",
+                    "--rows",
+                    "30",
+                    "--quiet",
+                    "--seed",
+                    str(seed),
+                ]
+            )
+            == 0
+        )
     return d
 
 
@@ -51,25 +69,32 @@ def test_manifest_rows_become_focus_arguments(tmp_path):
 
     (tmp_path / "m").mkdir()
     m = tmp_path / "m" / "list.yaml"
-    m.write_text(f"defaults: {{reference_roi: {REF}, target-roi: [{TGT.replace(' ', ', ')}], size: 24}}\n"
-                 "items:\n  - {scan: a.npz, template_scan: ../t.npz, name: one}\n"
-                 "  - {scan: b.npz, method: none, no_pictures: true, size: 16}\n")
+    m.write_text(
+        f"defaults: {{reference_roi: {REF}, target-roi: [{TGT.replace(' ', ', ')}], size: 24}}\n"
+        "items:\n  - {scan: a.npz, template_scan: ../t.npz, name: one}\n"
+        "  - {scan: b.npz, method: none, no_pictures: true, size: 16}\n"
+    )
     a, b = read_manifest(m, tmp_path / "out")
     assert a.name == "one" and b.name == "0002_b"
     assert a.argv[0] == str(tmp_path / "m" / "a.npz")
     assert a.argv[a.argv.index("--template-scan") + 1] == str(tmp_path / "t.npz")
-    assert a.argv[a.argv.index("--reference-roi") + 1:][:5] == REF.split()
+    assert a.argv[a.argv.index("--reference-roi") + 1 :][:5] == REF.split()
     assert b.argv[b.argv.index("--size") + 1] == "16" and "--no-pictures" in b.argv and "--no-pictures" not in a.argv
     assert a.argv[-3:] == ["--out", str(tmp_path / "out" / "items" / "one"), "--quiet"]
     assert a.paths == [str(tmp_path / "m" / "a.npz"), str(tmp_path / "t.npz")]
-    for bad, words in ((f"- {{scan: a.npz, reference_roi: {REF}, target_roi: {TGT}, methd: none}}", "unknown option 'methd'"),
-                       (f"- {{scan: a.npz, reference_roi: {REF}, target_roi: {TGT}}}", "item 1: one of the arguments"),
-                       (f"- {{scan: a.npz, reference_roi: 1 2, target_roi: {TGT}, method: none}}", "--reference-roi"),
-                       ("- {reference_roi: 1}", "no 'scan'"),
-                       (f"- {{scan: a.npz, name: x, method: none, reference_roi: {REF}, target_roi: {TGT}}}\n"
-                        f"- {{scan: b.npz, name: x, method: none, reference_roi: {REF}, target_roi: {TGT}}}", "used twice"),
-                       (f"- {{scan: a.npz, name: ../x, method: none, reference_roi: {REF}, target_roi: {TGT}}}", "plain folder"),
-                       (f"- {{scan: a.npz, out: x, method: none, reference_roi: {REF}, target_roi: {TGT}}}", "set by twinfocus batch")):
+    for bad, words in (
+        (f"- {{scan: a.npz, reference_roi: {REF}, target_roi: {TGT}, methd: none}}", "unknown option 'methd'"),
+        (f"- {{scan: a.npz, reference_roi: {REF}, target_roi: {TGT}}}", "item 1: one of the arguments"),
+        (f"- {{scan: a.npz, reference_roi: 1 2, target_roi: {TGT}, method: none}}", "--reference-roi"),
+        ("- {reference_roi: 1}", "no 'scan'"),
+        (
+            f"- {{scan: a.npz, name: x, method: none, reference_roi: {REF}, target_roi: {TGT}}}\n"
+            f"- {{scan: b.npz, name: x, method: none, reference_roi: {REF}, target_roi: {TGT}}}",
+            "used twice",
+        ),
+        (f"- {{scan: a.npz, name: ../x, method: none, reference_roi: {REF}, target_roi: {TGT}}}", "plain folder"),
+        (f"- {{scan: a.npz, out: x, method: none, reference_roi: {REF}, target_roi: {TGT}}}", "set by twinfocus batch"),
+    ):
         m.write_text(bad + "\n")
         with pytest.raises(TwinFocusError, match="manifest") as e:
             read_manifest(m, tmp_path / "out")
@@ -85,10 +110,12 @@ def test_manifest_rows_become_focus_arguments(tmp_path):
 def test_batch_on_a_two_worker_local_cluster_equals_separate_focus_runs(scans, tmp_path, capsys):
     """Every item's files equal a separate ``twinfocus focus`` run; a missing template is recorded
     with its one-line error while the others finish; a re-run keeps finished items."""
-    items = [{"name": "phys3", "scan": "scan3.npz", "template_scan": "tpl3.npz"},
-             {"name": "phys4", "scan": "scan4.npz", "template_scan": "tpl4.npz", "estimator": "projection"},
-             {"name": "none4", "scan": "scan4.npz", "method": "none"},
-             {"name": "lost", "scan": "scan3.npz", "template_scan": "gone.npz"}]
+    items = [
+        {"name": "phys3", "scan": "scan3.npz", "template_scan": "tpl3.npz"},
+        {"name": "phys4", "scan": "scan4.npz", "template_scan": "tpl4.npz", "estimator": "projection"},
+        {"name": "none4", "scan": "scan4.npz", "method": "none"},
+        {"name": "lost", "scan": "scan3.npz", "template_scan": "gone.npz"},
+    ]
     for it in items:
         it.update(reference_roi=REF, target_roi=TGT, size="24", no_pictures="true")
     manifest = _write_csv(scans / "manifest.csv", items)
@@ -103,16 +130,43 @@ def test_batch_on_a_two_worker_local_cluster_equals_separate_focus_runs(scans, t
     assert (out / "summary.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     for it in items[:3]:
         sep = tmp_path / "separate" / it["name"]
-        src = ["--template-scan", str(scans / it["template_scan"])] if "template_scan" in it else ["--method", it["method"]]
+        src = (
+            ["--template-scan", str(scans / it["template_scan"])]
+            if "template_scan" in it
+            else ["--method", it["method"]]
+        )
         extra = ["--estimator", it["estimator"]] if "estimator" in it else []
-        assert main(["focus", str(scans / it["scan"]), "--reference-roi", *REF.split(), "--target-roi", *TGT.split(),
-                     "--size", "24", "--no-pictures", "--quiet", "--out", str(sep), *src, *extra]) == 0
+        assert (
+            main(
+                [
+                    "focus",
+                    str(scans / it["scan"]),
+                    "--reference-roi",
+                    *REF.split(),
+                    "--target-roi",
+                    *TGT.split(),
+                    "--size",
+                    "24",
+                    "--no-pictures",
+                    "--quiet",
+                    "--out",
+                    str(sep),
+                    *src,
+                    *extra,
+                ]
+            )
+            == 0
+        )
         got = out / "items" / it["name"]
         for f in ("target.npy", "reference.npy", "phase.npy"):
             # equal up to the order of parallel sums (workers run numba on 1 thread, this process on 2)
-            np.testing.assert_allclose(np.load(got / f), np.load(sep / f), rtol=1e-4, atol=1e-4 * np.abs(np.load(sep / f)).max())
+            np.testing.assert_allclose(
+                np.load(got / f), np.load(sep / f), rtol=1e-4, atol=1e-4 * np.abs(np.load(sep / f)).max()
+            )
         m_sep = json.loads((sep / "metrics.json").read_text())
-        assert float(rows[it["name"]]["target_ssim_corrected"]) == pytest.approx(m_sep["target_ssim_corrected"], abs=1e-4)
+        assert float(rows[it["name"]]["target_ssim_corrected"]) == pytest.approx(
+            m_sep["target_ssim_corrected"], abs=1e-4
+        )
     assert float(rows["phys3"]["target_ssim_corrected"]) > float(rows["phys3"]["target_ssim_uncorrected"]) + 0.03
     # Re-run: the finished items are kept (not focused again), the failed one is tried again.
     before = (out / "items" / "phys3" / "target.npy").stat().st_mtime_ns
@@ -129,7 +183,7 @@ def test_summary_lists_pending_items_from_the_start_and_the_local_cluster_opens_
     import urllib.request
 
     from twinfocus.cli.batch_jobs import run_batch
-    from twinfocus.cluster import dask_client
+    from twinfocus.jobs.cluster import dask_client
 
     with dask_client(workers=1) as client:
         port = client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.http_server.port)
@@ -139,8 +193,18 @@ def test_summary_lists_pending_items_from_the_start_and_the_local_cluster_opens_
             urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=30)
         assert e.value.code == 404
     assert port != 8787
-    items = [{"name": f"n{i}", "scan": "scan3.npz", "method": "none", "reference_roi": REF, "target_roi": TGT,
-              "size": "16", "no_pictures": "true"} for i in range(2)]
+    items = [
+        {
+            "name": f"n{i}",
+            "scan": "scan3.npz",
+            "method": "none",
+            "reference_roi": REF,
+            "target_roi": TGT,
+            "size": "16",
+            "no_pictures": "true",
+        }
+        for i in range(2)
+    ]
     manifest = _write_csv(scans / "pending.csv", items)
     out = tmp_path / "b"
     seen = {}
@@ -157,16 +221,42 @@ def test_summary_lists_pending_items_from_the_start_and_the_local_cluster_opens_
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_ctrl_c_stops_a_batch_with_one_line(scans, tmp_path):
-    items = [{"name": f"i{i}", "scan": "scan3.npz", "template_scan": "tpl3.npz", "reference_roi": REF,
-              "target_roi": TGT, "size": "24", "no_pictures": "true"} for i in range(8)]
+    items = [
+        {
+            "name": f"i{i}",
+            "scan": "scan3.npz",
+            "template_scan": "tpl3.npz",
+            "reference_roi": REF,
+            "target_roi": TGT,
+            "size": "24",
+            "no_pictures": "true",
+        }
+        for i in range(8)
+    ]
     manifest = _write_csv(scans / "many.csv", items)
     out = tmp_path / "b"
     # its own process group, as a terminal's foreground job: Ctrl-C reaches every process in it
-    p = subprocess.Popen([sys.executable, "-c", "import sys; from twinfocus.cli import main; sys.exit(main())", "batch", str(manifest), "--out", str(out),
-                          "--workers", "2"], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                         start_new_session=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
-                         # as from a terminal: SIGINT not ignored (a background shell job ignores it)
-                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    p = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from twinfocus.cli import main; sys.exit(main())",
+            "batch",
+            str(manifest),
+            "--out",
+            str(out),
+            "--workers",
+            "2",
+        ],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        # as from a terminal: SIGINT not ignored (a background shell job ignores it)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     lines = []
     for line in p.stderr:  # waits on the batch's own word that the cluster is up
         lines.append(line)
@@ -183,10 +273,12 @@ def test_ctrl_c_stops_a_batch_with_one_line(scans, tmp_path):
 def test_thread_budget_shares_each_host_among_its_workers():
     from distributed import Client, LocalCluster
 
-    from twinfocus.cluster import thread_budget
+    from twinfocus.jobs.cluster import thread_budget
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         budget = thread_budget(client)
     assert len(budget) == 2 and set(budget.values()) == {max(1, (os.cpu_count() or 1) // 2)}
 
@@ -205,10 +297,12 @@ def test_bench_on_dask_equals_the_serial_run(tmp_path):
     exps = paper_experiments(quick=True, only=["baseline", "tracking_error"])
     for name in ("serial", "dask"):
         (tmp_path / name).mkdir()
-    code = ("import sys; from pathlib import Path; from twinfocus.evaluation.experiments import paper_experiments; "
-            "from twinfocus.evaluation.runner import quick_settings, run_experiments; "
-            "sys.exit(len(run_experiments(paper_experiments(quick=True, only=['baseline', 'tracking_error']), quick_settings(), "
-            "Path(sys.argv[1]), log=lambda m: None)))")
+    code = (
+        "import sys; from pathlib import Path; from twinfocus.evaluation.experiments import paper_experiments; "
+        "from twinfocus.evaluation.runner import quick_settings, run_experiments; "
+        "sys.exit(len(run_experiments(paper_experiments(quick=True, only=['baseline', 'tracking_error']), quick_settings(), "
+        "Path(sys.argv[1]), log=lambda m: None)))"
+    )
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     subprocess.run([sys.executable, "-c", code, str(tmp_path / "serial")], env=env, check=True, timeout=600)
     assert run_experiments(exps, quick_settings(), tmp_path / "dask", log=lambda m: None, cluster={"workers": 2}) == []
@@ -245,12 +339,25 @@ def test_real_scheduler_and_workers_lose_one_worker_mid_run(scans, tmp_path):
 
     def start(name, *cmd):
         f = open(logs / f"{name}.log", "w")
-        procs.append(subprocess.Popen([str(BIN / "dask"), *cmd], env=env, stdout=f, stderr=subprocess.STDOUT,
-                                      start_new_session=True))
+        procs.append(
+            subprocess.Popen(
+                [str(BIN / "dask"), *cmd], env=env, stdout=f, stderr=subprocess.STDOUT, start_new_session=True
+            )
+        )
         return procs[-1]
 
-    items = [{"name": f"i{i}", "scan": f"scan{3 + i % 2}.npz", "reference_roi": REF, "target_roi": TGT, "size": "24",
-              "no_pictures": "true", "template_scan": f"tpl{3 + i % 2}.npz"} for i in range(6)]
+    items = [
+        {
+            "name": f"i{i}",
+            "scan": f"scan{3 + i % 2}.npz",
+            "reference_roi": REF,
+            "target_roi": TGT,
+            "size": "24",
+            "no_pictures": "true",
+            "template_scan": f"tpl{3 + i % 2}.npz",
+        }
+        for i in range(6)
+    ]
     manifest = _write_csv(scans / "six.csv", items)
     out = tmp_path / "batch"
     sched_file = tmp_path / "scheduler.json"
@@ -260,19 +367,46 @@ def test_real_scheduler_and_workers_lose_one_worker_mid_run(scans, tmp_path):
         # are in: three Python processes starting on a loaded 2-core machine can take longer than
         # the 20 s `twinfocus batch` gives a scheduler to answer, and a worker that joined late
         # would find no item left to take. Waiting up to 300 s for them is legitimate here.
-        start("scheduler", "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-              "--scheduler-file", str(sched_file))
+        start(
+            "scheduler",
+            "scheduler",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            "0",
+            "--no-dashboard",
+            "--scheduler-file",
+            str(sched_file),
+        )
         with Client(scheduler_file=str(sched_file), timeout="300s") as client:
-            workers = [start(f"worker{i}", "worker", "--scheduler-file", str(sched_file), "--name", f"w{i}",
-                             "--nthreads", "1", "--no-nanny", "--no-dashboard", "--host", "127.0.0.1")
-                       for i in range(2)]
+            workers = [
+                start(
+                    f"worker{i}",
+                    "worker",
+                    "--scheduler-file",
+                    str(sched_file),
+                    "--name",
+                    f"w{i}",
+                    "--nthreads",
+                    "1",
+                    "--no-nanny",
+                    "--no-dashboard",
+                    "--host",
+                    "127.0.0.1",
+                )
+                for i in range(2)
+            ]
             client.wait_for_workers(2, timeout=300)
             by_name = {w["name"]: a for a, w in client.scheduler_info(n_workers=-1)["workers"].items()}
         addr = json.loads(sched_file.read_text())["address"]
         waddr = [by_name["w0"], by_name["w1"]]
-        batch = subprocess.Popen([str(BIN / "twinfocus"), "batch", str(manifest), "--out", str(out),
-                                  "--scheduler", addr, "--quiet"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                 start_new_session=True)
+        batch = subprocess.Popen(
+            [str(BIN / "twinfocus"), "batch", str(manifest), "--out", str(out), "--scheduler", addr, "--quiet"],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            start_new_session=True,
+        )
         procs.append(batch)
         deadline = time.monotonic() + 300  # the first item (imports, numba's first calls): minutes under load
         done = {}
@@ -305,5 +439,8 @@ def test_real_scheduler_and_workers_lose_one_worker_mid_run(scans, tmp_path):
     assert sum(w != waddr[1 - victim] for w in late) <= 1, late
     # the same scan and template give the same image whichever worker focused it
     for i in range(2, 6):
-        np.testing.assert_allclose(np.load(out / "items" / f"i{i}" / "phase.npy"),
-                                   np.load(out / "items" / f"i{i % 2}" / "phase.npy"), atol=1e-4)
+        np.testing.assert_allclose(
+            np.load(out / "items" / f"i{i}" / "phase.npy"),
+            np.load(out / "items" / f"i{i % 2}" / "phase.npy"),
+            atol=1e-4,
+        )

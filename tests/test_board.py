@@ -1,15 +1,16 @@
 """The array as TI built it: the board file (TI's module_param.m positions at their 76.8 GHz design
 frequency), a user's own board file, bad board files refused in one line, and what a wrong TX
 offset does to a corner reflector's channels (what a calibration shows)."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import yaml
 
-from twinfocus.board import DEFAULT_BOARD_FILE, default_board, load_board
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import C_M_PER_S, Chirp, mmwcas_rx_positions_m, mmwcas_tx_positions_m, mmwcas_virtual_array
+from twinfocus.radar.board import DEFAULT_BOARD_FILE, default_board, load_board
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_rx_positions_m, mmwcas_tx_positions_m, mmwcas_virtual_array
 from twinfocus.sensors.ti_mmwcas import RX_ARRAY_ORDER
 
 # TI's module_param.m, copied by hand: TX1..TX12 azimuth / elevation, RX data channel 1..16 azimuth
@@ -55,13 +56,16 @@ def test_a_users_board_file_changes_the_array(tmp_path):
     assert va_near.separation_m[0, 1] == pytest.approx(5 * near.design_wavelength_m)  # another TX-RX separation
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"design_frequency_hz": 76.8}, "design_frequency_hz must be a frequency in Hz"),
-    ({"tx_along_half_wavelengths": [0, 1, 2]}, "tx_along_half_wavelengths must be a list of 12 numbers"),
-    ({"rx_across_half_wavelengths": "zero"}, "rx_across_half_wavelengths must be a list of 16 numbers"),
-    ({"tx_offset": [8, 17]}, "unknown board key(s) tx_offset"),
-    ({"rx_along_half_wavelengths": [0] * 16}, "two RX antennas share a position"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"design_frequency_hz": 76.8}, "design_frequency_hz must be a frequency in Hz"),
+        ({"tx_along_half_wavelengths": [0, 1, 2]}, "tx_along_half_wavelengths must be a list of 12 numbers"),
+        ({"rx_across_half_wavelengths": "zero"}, "rx_across_half_wavelengths must be a list of 16 numbers"),
+        ({"tx_offset": [8, 17]}, "unknown board key(s) tx_offset"),
+        ({"rx_along_half_wavelengths": [0] * 16}, "two RX antennas share a position"),
+    ],
+)
 def test_bad_board_files_are_one_line(tmp_path, change, message):
     with pytest.raises(TwinFocusError, match=message.replace("(", r"\(").replace(")", r"\)")):
         load_board(_board_file(tmp_path / "bad.yaml", **change))
@@ -74,8 +78,18 @@ def test_convert_and_simulate_refuse_a_bad_board_and_write_nothing(tmp_path, cap
     (tmp_path / "traj.txt").write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")
     (tmp_path / "cap").mkdir()
     (tmp_path / "cap" / "master_0000_idx.bin").write_bytes(b"")
-    rc = main(["convert", str(tmp_path / "cap"), "--trajectory", str(tmp_path / "traj.txt"), "--out",
-               str(tmp_path / "s.npz"), "--board", str(tmp_path / "bad.yaml")])
+    rc = main(
+        [
+            "convert",
+            str(tmp_path / "cap"),
+            "--trajectory",
+            str(tmp_path / "traj.txt"),
+            "--out",
+            str(tmp_path / "s.npz"),
+            "--board",
+            str(tmp_path / "bad.yaml"),
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 2 and "bad.yaml: not a YAML board file" in err and len(err.strip().splitlines()) == 1
     rc = main(["simulate", "--out", str(tmp_path / "sim.npz"), "--board", str(tmp_path / "missing.yaml")])
@@ -90,9 +104,9 @@ def test_a_wrong_tx_offset_shows_in_a_corner_reflectors_channels(tmp_path):
     k (|d_true|^2 - |d_file|^2) / (4 z0), d each channel's TX-RX separation -- the pattern a
     channel calibration finds. An error along the array spreads the channels' phases; one across
     it is nearly the same for every channel (a common phase, which imaging does not see)."""
+    from twinfocus.motion.trajectory import Poses
     from twinfocus.sensors.emulators.radar_scene import monostatic_if, simulate_mimo_frames
     from twinfocus.sensors.frames import frame_to_virtual_channels, mmwcas_antenna_positions_body_m
-    from twinfocus.trajectory import Poses
 
     chirp = Chirp(n_samples=16)
     z0 = 0.6

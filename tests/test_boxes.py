@@ -1,4 +1,4 @@
-"""The boxes found by the look (twinfocus/boxes.py): against the objects' own extents in
+"""The boxes found by the look (twinfocus/focus/boxes.py): against the objects' own extents in
 simulated scenes, and ``focus`` with no box typed against the same scene's typed boxes."""
 
 import json
@@ -6,13 +6,13 @@ import json
 import numpy as np
 import pytest
 
-from twinfocus.boxes import REGION_MARGIN_M, Look, LookObject, choose, cut_away, look, objects_in, overlap
 from twinfocus.cli import main
 from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.scenario import Scenario, planar_object
-from twinfocus.simulate import simulate_if
+from twinfocus.focus.boxes import REGION_MARGIN_M, Look, LookObject, choose, cut_away, look, objects_in, overlap
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+from twinfocus.simulation.if_simulator import simulate_if
+from twinfocus.simulation.scenario import Scenario, planar_object
 
 
 def _patch(x0, x1, y0, y1, z, rng):

@@ -1,16 +1,18 @@
 """The template cache: a reference is paid for once, its cached image equals the recomputed one,
 and any change of input, grid or back-projection option misses it."""
+
 import json
 
 import numpy as np
 import pytest
 
-from twinfocus import cache as cache_module
-from twinfocus.cache import TemplateCache, cache_dir, file_sha256, remembered_sha256, template_key
 from twinfocus.cli import main
-from twinfocus.grid import ImageGrid
-from twinfocus.scan import Scan
-from twinfocus.templates import load_template, template_from_scan
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.io.checksums import file_sha256
+from twinfocus.radar.scan import Scan
+from twinfocus.twins import cache as cache_module
+from twinfocus.twins.cache import TemplateCache, cache_dir, remembered_sha256, template_key
+from twinfocus.twins.templates import load_template, template_from_scan
 
 REF = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
 TGT = ["0.02", "0.13", "-0.11", "0.12", "0.6"]
@@ -19,14 +21,47 @@ TGT = ["0.02", "0.13", "-0.11", "0.12", "0.6"]
 @pytest.fixture(scope="module")
 def scans(tmp_path_factory):
     d = tmp_path_factory.mktemp("sim")
-    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"),
-                 "--columns", "2", "--rows", "30", "--quiet", "--seed", "5"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--out",
+                str(d / "scan.npz"),
+                "--template-out",
+                str(d / "tpl.npz"),
+                "--columns",
+                "2",
+                "--rows",
+                "30",
+                "--quiet",
+                "--seed",
+                "5",
+            ]
+        )
+        == 0
+    )
     return d
 
 
 def _focus(scans, out, *extra):
-    rc = main(["focus", str(scans / "scan.npz"), "--reference-roi", *REF, "--target-roi", *TGT, "--size", "40",
-               "--out", str(out), "--quiet", "--pictures", "none", *extra])
+    rc = main(
+        [
+            "focus",
+            str(scans / "scan.npz"),
+            "--reference-roi",
+            *REF,
+            "--target-roi",
+            *TGT,
+            "--size",
+            "40",
+            "--out",
+            str(out),
+            "--quiet",
+            "--pictures",
+            "none",
+            *extra,
+        ]
+    )
     assert rc == 0
     return json.loads((out / "metrics.json").read_text())
 
@@ -42,7 +77,7 @@ def test_second_focus_reads_the_template_from_the_cache(scans, tmp_path, monkeyp
         raise AssertionError("a cache hit must not form the template scan's image")
 
     with monkeypatch.context() as m:
-        m.setattr("twinfocus.templates.template_from_scan", no_back_projection)
+        m.setattr("twinfocus.twins.templates.template_from_scan", no_back_projection)
         second = _focus(scans, tmp_path / "b", *tpl)
     assert (first["template_cache"], second["template_cache"]) == ("miss", "hit")
     # the same result bit for bit, and the cached image is the recomputed one exactly
@@ -72,8 +107,24 @@ def test_changed_inputs_miss_the_cache(scans, tmp_path, monkeypatch):
     assert _focus(scans, tmp_path / "b", "--template-scan", str(tmp_path / "tpl2.npz"))["template_cache"] == "miss"
     # another back-projection option, then another grid
     assert _focus(scans, tmp_path / "c", *tpl, "--oversample", "8")["template_cache"] == "miss"
-    rc = main(["focus", str(scans / "scan.npz"), "--reference-roi", *REF, "--target-roi", *TGT, "--size", "41",
-               "--out", str(tmp_path / "d"), "--quiet", "--pictures", "none", *tpl])
+    rc = main(
+        [
+            "focus",
+            str(scans / "scan.npz"),
+            "--reference-roi",
+            *REF,
+            "--target-roi",
+            *TGT,
+            "--size",
+            "41",
+            "--out",
+            str(tmp_path / "d"),
+            "--quiet",
+            "--pictures",
+            "none",
+            *tpl,
+        ]
+    )
     assert rc == 0 and json.loads((tmp_path / "d" / "metrics.json").read_text())["template_cache"] == "miss"
     assert len(list((tmp_path / "cache" / "templates").glob("*.npz"))) == 4
     assert _focus(scans, tmp_path / "e", *tpl)["template_cache"] == "hit"
@@ -148,7 +199,7 @@ def test_an_entry_keeps_its_info_and_one_stored_without_it_is_recomputed(tmp_pat
 def test_digital_twin_template_is_cached_per_cloud_and_aperture(scans, tmp_path, monkeypatch):
     """A digital twin's template depends on the cloud and on the scan's aperture: the same pair
     hits, another scan (other tracked positions) misses."""
-    from twinfocus.scenario import Scenario
+    from twinfocus.simulation.scenario import Scenario
 
     monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
     pts, _ = Scenario().scene().scatterers(2e-3, 1, speckle=False)
@@ -162,8 +213,24 @@ def test_digital_twin_template_is_cached_per_cloud_and_aperture(scans, tmp_path,
     s = Scan.load(scans / "scan.npz")
     moved = Scan(s.data, s.positions + 1e-4, s.chirp, positions_true=s.positions_true)
     moved.save(tmp_path / "moved.npz")
-    rc = main(["focus", str(tmp_path / "moved.npz"), "--reference-roi", *REF, "--target-roi", *TGT, "--size", "40",
-               "--out", str(tmp_path / "c"), "--quiet", "--pictures", "none", *twin])
+    rc = main(
+        [
+            "focus",
+            str(tmp_path / "moved.npz"),
+            "--reference-roi",
+            *REF,
+            "--target-roi",
+            *TGT,
+            "--size",
+            "40",
+            "--out",
+            str(tmp_path / "c"),
+            "--quiet",
+            "--pictures",
+            "none",
+            *twin,
+        ]
+    )
     assert rc == 0 and json.loads((tmp_path / "c" / "metrics.json").read_text())["template_cache"] == "miss"
 
 

@@ -11,28 +11,28 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from twinfocus.array_errors import NONE, TYPICAL, draw_array_errors
-from twinfocus.backprojection import backproject
-from twinfocus.cache import file_sha256
-from twinfocus.calibration import (
+from twinfocus.errors import TwinFocusError
+from twinfocus.imaging.backprojection.numba_backend import backproject
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import image_ssim
+from twinfocus.io.checksums import file_sha256
+from twinfocus.motion.trajectory import Poses, paper_raster
+from twinfocus.radar.array_errors import NONE, TYPICAL, draw_array_errors
+from twinfocus.radar.calibration import (
     ChannelCalibration,
     channel_correction,
     find_corner,
     make_calibration,
     pair_array,
 )
-from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.metrics import image_ssim
-from twinfocus.radar import C_M_PER_S, Chirp, mmwcas_virtual_array, uniform_virtual_array
-from twinfocus.scan import Scan
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array, uniform_virtual_array
+from twinfocus.radar.scan import Scan
 from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
 from twinfocus.sensors.emulators.radar_scene import imperfect_mimo_frames, quantize_iq
 from twinfocus.sensors.emulators.rig import demo_scatterers
 from twinfocus.sensors.frames import frame_to_virtual_channels, mmwcas_antenna_positions_body_m
 from twinfocus.sensors.ti_mmwcas import MmwcasConfig
 from twinfocus.sensors.trajectory_files import write_tum
-from twinfocus.trajectory import Poses, paper_raster
 
 CHIRP = Chirp()
 
@@ -231,11 +231,15 @@ def test_two_corners_are_refused(tmp_path, capsys):
         ("board", "was made on board 'another board'"),
     ],
 )
-def test_calibration_of_another_array_or_chirp_is_refused(corner_and_scene, good_calibration, tmp_path, capsys, edit, phrase):
+def test_calibration_of_another_array_or_chirp_is_refused(
+    corner_and_scene, good_calibration, tmp_path, capsys, edit, phrase
+):
     cal = ChannelCalibration.load(good_calibration)
     if edit == "array":
         other = uniform_virtual_array(86, 1e-3)
-        cal = replace(cal, array_fingerprint=__import__("twinfocus.calibration").calibration.array_fingerprint(other))
+        cal = replace(
+            cal, array_fingerprint=__import__("twinfocus.radar.calibration").radar.calibration.array_fingerprint(other)
+        )
     elif edit == "channels":
         cal = replace(cal, gain=cal.gain[:48], delay_m=cal.delay_m[:48])
     elif edit == "board":
@@ -298,7 +302,7 @@ def test_autofocused_target_through_calibrated_array_matches_perfect_array():
 
 
 def test_beam_pattern_follows_cos_power_and_fast_simulator_agrees():
-    from twinfocus.simulate import simulate_if, simulate_if_exact
+    from twinfocus.simulation.if_simulator import simulate_if, simulate_if_exact
 
     q = TYPICAL.pattern_exponent
     assert np.cos(np.radians(30)) ** q == pytest.approx(0.5)  # half power 30 degrees off boresight
@@ -320,7 +324,7 @@ def test_beam_pattern_follows_cos_power_and_fast_simulator_agrees():
 
 def test_iq_imbalance_makes_the_closed_form_image_tone():
     """Q' = g (sin psi I + cos psi Q) turns a tone into mu tone + nu conj(tone)."""
-    from twinfocus.array_errors import iq_imbalance
+    from twinfocus.radar.array_errors import iq_imbalance
 
     g, psi = 10 ** (1 / 20), np.radians(2.0)
     tone = np.exp(1j * 0.3 * np.arange(64))[None]
@@ -347,7 +351,7 @@ def test_simulate_array_errors_switch(tmp_path, capsys):
     p, t, leak = scans["perfect"], scans["typical"], scans["leak"]
     np.testing.assert_array_equal(p.positions, t.positions)
     assert np.linalg.norm(t.data - p.data) > 0.5 * np.linalg.norm(p.data)
-    from twinfocus.radar import range_compress
+    from twinfocus.radar.fmcw import range_compress
 
     extra = np.abs(range_compress(leak.data - p.data, CHIRP, window="hann")).mean(axis=(0, 1))
     assert CHIRP.range_axis_m()[np.argmax(extra)] < 0.15
@@ -358,7 +362,7 @@ def test_simulate_array_errors_switch(tmp_path, capsys):
 def test_live_radar_backend_applies_the_calibration(corner_and_scene, good_calibration, tmp_path, capsys):
     """The radar driver's ``calibration`` option gives the channels `convert --calibration` gives;
     one of another chirp is refused; none warns."""
-    from nodes.backends import RADAR_BACKENDS, load_backend
+    from nodes.runtime.backends import RADAR_BACKENDS, load_backend
 
     captures = corner_and_scene
     cal = ChannelCalibration.load(good_calibration)
@@ -384,9 +388,9 @@ def test_captured_scene_calibrated_focuses_like_the_perfect_array(captures, tmp_
     """TI-format captures end to end, autofocus on, the same tracking errors: a scene through an
     imperfect array, converted with the calibration from a corner capture of that array, focuses
     to within 0.02 SSIM of the same scene through a perfect array; uncalibrated far below."""
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Reference
-    from twinfocus.templates import template_from_scan
+    from twinfocus.focus.pipeline import Reference
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.twins.templates import template_from_scan
 
     cap, traj = captures, captures["traj"]
     tracked = Poses(

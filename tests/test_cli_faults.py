@@ -1,5 +1,6 @@
 """Faults a careless or hostile user makes: each refused in one line, exit 2, earlier
 results unchanged, nothing written outside the folder the output belongs in."""
+
 import errno
 import hashlib
 import json
@@ -7,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from twinfocus.atomic import WRITTEN, output_folder, output_lock
 from twinfocus.cli import main
 from twinfocus.errors import TwinFocusError
-from twinfocus.safe_paths import child_path
+from twinfocus.io.atomic import WRITTEN, output_folder, output_lock
+from twinfocus.io.safe_paths import child_path
 
 REF = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
 TGT = ["0.02", "0.13", "-0.11", "0.12", "0.6"]
@@ -28,8 +29,26 @@ def scan(tmp_path_factory):
 
 
 def _focus(scan, out, *extra):
-    return main(["focus", str(scan), "--reference-roi", *REF, "--target-roi", *TGT, "--size", "12",
-                 "--method", "none", "--pictures", "none", "--out", str(out), "--quiet", *extra])
+    return main(
+        [
+            "focus",
+            str(scan),
+            "--reference-roi",
+            *REF,
+            "--target-roi",
+            *TGT,
+            "--size",
+            "12",
+            "--method",
+            "none",
+            "--pictures",
+            "none",
+            "--out",
+            str(out),
+            "--quiet",
+            *extra,
+        ]
+    )
 
 
 def _one_line(capsys, *words):
@@ -77,8 +96,9 @@ def test_a_second_run_on_a_locked_out_refuses(scan, tmp_path, capsys):
     assert not out.exists()
 
 
-@pytest.mark.parametrize("option,value", [("--iterations", "-1"), ("--lr", "nan"), ("--size", "inf"),
-                                          ("--tracking-error-mm", "-3")])
+@pytest.mark.parametrize(
+    "option,value", [("--iterations", "-1"), ("--lr", "nan"), ("--size", "inf"), ("--tracking-error-mm", "-3")]
+)
 def test_bad_numbers_are_one_line(scan, tmp_path, capsys, option, value):
     with pytest.raises(SystemExit) as exc:
         _focus(scan, tmp_path / "f", option, value)
@@ -87,8 +107,10 @@ def test_bad_numbers_are_one_line(scan, tmp_path, capsys, option, value):
     assert not (tmp_path / "f").exists()
 
 
-@pytest.mark.parametrize("option,value", [("--height", "1e308"), ("--target-height", "1e6"), ("--distance", "1e9"),
-                                          ("--rows", "abc"), ("--snr-db", "nan")])
+@pytest.mark.parametrize(
+    "option,value",
+    [("--height", "1e308"), ("--target-height", "1e6"), ("--distance", "1e9"), ("--rows", "abc"), ("--snr-db", "nan")],
+)
 def test_simulate_refuses_absurd_numbers(tmp_path, capsys, option, value):
     with pytest.raises(SystemExit) as exc:
         main(["simulate", "--out", str(tmp_path / "s.npz"), option, value])
@@ -101,7 +123,7 @@ def test_a_full_disk_is_one_line_and_keeps_the_earlier_result(scan, tmp_path, ca
     out = tmp_path / "f"
     assert _focus(scan, out) == 0
     before = _sha(out / "metrics.json")
-    import twinfocus.pipeline as pipeline
+    import twinfocus.focus.pipeline as pipeline
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device")
@@ -136,8 +158,10 @@ def test_batch_save_template_stays_inside_out(tmp_path, scan):
     from twinfocus.cli.batch_jobs import read_manifest
 
     m = tmp_path / "m.yaml"
-    m.write_text(f"- scan: {scan}\n  method: none\n  reference_roi: {' '.join(REF)}\n  target_roi: {' '.join(TGT)}\n"
-                 "  save_template: ../../t.npz\n")
+    m.write_text(
+        f"- scan: {scan}\n  method: none\n  reference_roi: {' '.join(REF)}\n  target_roi: {' '.join(TGT)}\n"
+        "  save_template: ../../t.npz\n"
+    )
     with pytest.raises(TwinFocusError, match="save_template"):
         read_manifest(m, tmp_path / "out")
     m.write_text(m.read_text().replace("../../t.npz", "templates/t.npz"))
@@ -148,17 +172,54 @@ def test_batch_save_template_stays_inside_out(tmp_path, scan):
 def test_a_cloud_with_nan_points_is_dropped_in_one_line_and_counted(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
     d = tmp_path / "sim"
-    assert main(["simulate", "--out", str(d / "scan.npz"), "--reference-cloud-out", str(d / "cloud.npy"),
-                 "--columns", "2", "--rows", "12", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--out",
+                str(d / "scan.npz"),
+                "--reference-cloud-out",
+                str(d / "cloud.npy"),
+                "--columns",
+                "2",
+                "--rows",
+                "12",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     cloud = np.load(d / "cloud.npy")
     cloud[::10] = np.nan  # as a stereo camera writes the points it could not match
     np.save(d / "cloud_nan.npy", cloud)
     capsys.readouterr()
     out = tmp_path / "out"
-    assert main(["focus", str(d / "scan.npz"), "--digital-twin", str(d / "cloud_nan.npy"), "--reference-roi", *REF,
-                 "--target-roi", *TGT, "--size", "12", "--pictures", "none", "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "focus",
+                str(d / "scan.npz"),
+                "--digital-twin",
+                str(d / "cloud_nan.npy"),
+                "--reference-roi",
+                *REF,
+                "--target-roi",
+                *TGT,
+                "--size",
+                "12",
+                "--pictures",
+                "none",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     warned = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln and "NaN" in ln]
     dropped = len(cloud[::10])
-    assert warned == [f"twinfocus focus: warning: reference point cloud: dropped {dropped} of {len(cloud)} rows holding NaN or inf"]
+    assert warned == [
+        f"twinfocus focus: warning: reference point cloud: dropped {dropped} of {len(cloud)} rows holding NaN or inf"
+    ]
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["digital_twin"]["non_finite_rows"] == dropped

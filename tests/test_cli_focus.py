@@ -1,4 +1,5 @@
 """The offline commands end to end on a small scene, and their answers to bad input."""
+
 import json
 
 import numpy as np
@@ -6,7 +7,7 @@ import pytest
 
 from twinfocus.cli import main
 from twinfocus.errors import TwinFocusError
-from twinfocus.scan import Scan, save_npz_atomic
+from twinfocus.radar.scan import Scan, save_npz_atomic
 
 REF = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
 TGT = ["0.02", "0.13", "-0.11", "0.12", "0.6"]
@@ -16,15 +17,45 @@ TGT = ["0.02", "0.13", "-0.11", "0.12", "0.6"]
 def small_scans(tmp_path_factory):
     d = tmp_path_factory.mktemp("sim")
     # 3 columns of 40 rows: a quarter of the paper's aperture, enough to image both letters
-    rc = main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"),
-               "--columns", "3", "--rows", "40", "--quiet", "--seed", "3"])
+    rc = main(
+        [
+            "simulate",
+            "--out",
+            str(d / "scan.npz"),
+            "--template-out",
+            str(d / "tpl.npz"),
+            "--columns",
+            "3",
+            "--rows",
+            "40",
+            "--quiet",
+            "--seed",
+            "3",
+        ]
+    )
     assert rc == 0
     return d
 
 
 def _focus(scan, out, *extra):
-    return main(["focus", str(scan), "--reference-roi", *REF, "--target-roi", *TGT, "--size", "48",
-                 "--iterations", "150", "--out", str(out), "--quiet", *extra])
+    return main(
+        [
+            "focus",
+            str(scan),
+            "--reference-roi",
+            *REF,
+            "--target-roi",
+            *TGT,
+            "--size",
+            "48",
+            "--iterations",
+            "150",
+            "--out",
+            str(out),
+            "--quiet",
+            *extra,
+        ]
+    )
 
 
 @pytest.mark.slow
@@ -35,8 +66,17 @@ def test_simulate_then_focus_with_template_scan(small_scans, tmp_path):
         assert (out / name).is_file(), name
     # by default only the summary picture (the others cost matplotlib's second or two)
     assert sorted(p.name for p in out.glob("*.png")) == ["summary.png"]
-    assert _focus(small_scans / "scan.npz", tmp_path / "all", "--template-scan", str(small_scans / "tpl.npz"),
-                  "--pictures", "all") == 0
+    assert (
+        _focus(
+            small_scans / "scan.npz",
+            tmp_path / "all",
+            "--template-scan",
+            str(small_scans / "tpl.npz"),
+            "--pictures",
+            "all",
+        )
+        == 0
+    )
     for name in ("summary.png", "target.png", "template.png", "loss.png", "phase.png"):
         assert (tmp_path / "all" / name).is_file(), name
     target = np.load(out / "target.npy")
@@ -51,8 +91,8 @@ def test_simulate_then_focus_with_template_scan(small_scans, tmp_path):
 def test_estimators_from_a_template_scan(small_scans, tmp_path, capsys):
     """auto = registration + closed form with a physical twin (its phase is known); every
     estimator improves the target; one that needs a phase refuses an amplitude template."""
-    from twinfocus.grid import ImageGrid
-    from twinfocus.templates import save_template, template_from_scan
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.twins.templates import save_template, template_from_scan
 
     tpl = ["--template-scan", str(small_scans / "tpl.npz")]
     ssim = {}
@@ -70,13 +110,28 @@ def test_estimators_from_a_template_scan(small_scans, tmp_path, capsys):
     grid = ImageGrid.from_roi([float(v) for v in REF], 48)
     save_template(tmp_path / "amp.npz", template_from_scan(Scan.load(small_scans / "tpl.npz"), grid), grid)
     capsys.readouterr()
-    assert _focus(small_scans / "scan.npz", tmp_path / "x", "--template", str(tmp_path / "amp.npz"), "--estimator", "correlation") == 2
+    assert (
+        _focus(
+            small_scans / "scan.npz",
+            tmp_path / "x",
+            "--template",
+            str(tmp_path / "amp.npz"),
+            "--estimator",
+            "correlation",
+        )
+        == 2
+    )
     assert "needs the template's phase" in capsys.readouterr().err
     # an amplitude template (a digital twin's kind): auto takes alternating projections, and the
     # optimiser after them only where their phases have wrapped; the scan decides, not the stated
     # tracking error (the choice against the truth: test_template_match)
     amp = ["--template", str(tmp_path / "amp.npz")]
-    expect = {"template_registration": "none", "projection_iterations": 30, "projection_restarts": 0, "init": "projection"}
+    expect = {
+        "template_registration": "none",
+        "projection_iterations": 30,
+        "projection_restarts": 0,
+        "init": "projection",
+    }
     chosen = []
     for err_mm in ("0.5", "1.6"):
         assert _focus(small_scans / "scan.npz", tmp_path / f"auto{err_mm}", *amp, "--tracking-error-mm", err_mm) == 0
@@ -91,11 +146,22 @@ def test_estimators_from_a_template_scan(small_scans, tmp_path, capsys):
     refined = [*amp, "--estimator", "projection-refined", "--coarse-iterations", "50", "--projection-restarts", "2"]
     assert _focus(small_scans / "scan.npz", tmp_path / "proj", *refined) == 0
     m = json.loads((tmp_path / "proj" / "metrics.json").read_text())
-    assert m["estimator"] == {**expect, "init": "projection", "iterations": 150, "projection_restarts": 2, "coarse_iterations": 50}
+    assert m["estimator"] == {
+        **expect,
+        "init": "projection",
+        "iterations": 150,
+        "projection_restarts": 2,
+        "coarse_iterations": 50,
+    }
     assert len(m["projection_restarts"]["losses"]) == 3
     assert m["target_ssim_corrected"] > m["target_ssim_uncorrected"] + 0.03
     capsys.readouterr()
-    assert _focus(small_scans / "scan.npz", tmp_path / "y", *amp, "--estimator", "projection", "--projection-iterations", "0") == 2
+    assert (
+        _focus(
+            small_scans / "scan.npz", tmp_path / "y", *amp, "--estimator", "projection", "--projection-iterations", "0"
+        )
+        == 2
+    )
     assert "projection_iterations must be >= 1" in capsys.readouterr().err
 
 
@@ -115,8 +181,8 @@ def test_confidence_report_warns_when_transfer_cannot_be_trusted(small_scans, tm
 
 @pytest.mark.slow
 def test_template_file_path_and_baselines(small_scans, tmp_path):
-    from twinfocus.grid import ImageGrid
-    from twinfocus.templates import save_template, template_from_scan
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.twins.templates import save_template, template_from_scan
 
     grid = ImageGrid.from_roi([float(v) for v in REF], 60)  # another grid: resampled on load
     save_template(tmp_path / "t.npz", template_from_scan(Scan.load(small_scans / "tpl.npz"), grid), grid)
@@ -142,9 +208,13 @@ def test_bad_inputs_give_clear_errors_and_keep_old_results(small_scans, tmp_path
     (out / "target.npy").write_bytes(b"earlier result")
     z = np.load(scan)
     cases = {
-        "NaN or inf": _corrupt(scan, tmp_path / "nan.npz",
-                               data=np.where(np.arange(z["data"].size).reshape(z["data"].shape) == 5, np.nan,
-                                             z["data"]).astype(np.complex64)),
+        "NaN or inf": _corrupt(
+            scan,
+            tmp_path / "nan.npz",
+            data=np.where(np.arange(z["data"].size).reshape(z["data"].shape) == 5, np.nan, z["data"]).astype(
+                np.complex64
+            ),
+        ),
         "positions must have shape": _corrupt(scan, tmp_path / "shape.npz", positions=z["positions"][:, :10]),
         "all zeros": _corrupt(scan, tmp_path / "zeros.npz", data=np.zeros_like(z["data"])),
         "must be complex": _corrupt(scan, tmp_path / "real.npz", data=z["data"].real.astype(np.float32)),
@@ -157,11 +227,27 @@ def test_bad_inputs_give_clear_errors_and_keep_old_results(small_scans, tmp_path
         assert message in err and "Traceback" not in err
     # a region of interest with nothing in it
     empty = ["-0.5", "-0.4", "0.3", "0.4", "0.6"]
-    rc = main(["focus", str(scan), "--reference-roi", *empty, "--target-roi", *TGT, "--size", "32", "--out", str(out), "--quiet", "--overwrite", *tpl])
+    rc = main(
+        [
+            "focus",
+            str(scan),
+            "--reference-roi",
+            *empty,
+            "--target-roi",
+            *TGT,
+            "--size",
+            "32",
+            "--out",
+            str(out),
+            "--quiet",
+            "--overwrite",
+            *tpl,
+        ]
+    )
     assert rc == 2 and "no object" in capsys.readouterr().err
     # a template file that is constant
-    from twinfocus.grid import ImageGrid
-    from twinfocus.templates import save_template
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.twins.templates import save_template
 
     grid = ImageGrid.from_roi([float(v) for v in REF], 48)
     save_template(tmp_path / "flat.npz", np.ones(grid.shape), grid)
@@ -183,16 +269,18 @@ def test_unknown_options_are_refused(capsys):
 
 
 def test_confidence_asks_more_of_a_registered_physical_twin_than_of_an_amplitude_template():
-    from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import MIN_REFERENCE_MATCH, MIN_REFERENCE_MATCH_PHYSICAL, confidence_report
-    from twinfocus.radar import Chirp, mmwcas_virtual_array
-    from twinfocus.trajectory import paper_raster, phase_centres
+    from twinfocus.focus.pipeline import MIN_REFERENCE_MATCH, MIN_REFERENCE_MATCH_PHYSICAL, confidence_report
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.motion.trajectory import paper_raster, phase_centres
+    from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 
     pos = phase_centres(paper_raster(6, 10), mmwcas_virtual_array())
     ref, tgt = ImageGrid.from_roi([float(v) for v in REF], 20), ImageGrid.from_roi([float(v) for v in TGT], 20)
     between = (MIN_REFERENCE_MATCH + MIN_REFERENCE_MATCH_PHYSICAL) / 2
-    registered = {"reference_ssim_vs_template_corrected": between,
-                  "template_registration": {"shift_px": [0.0, 0.0], "at_limit": False}}
+    registered = {
+        "reference_ssim_vs_template_corrected": between,
+        "template_registration": {"shift_px": [0.0, 0.0], "at_limit": False},
+    }
     physical = confidence_report(registered, pos, Chirp(), ref, tgt, 0.5e-3)
     amplitude = confidence_report({"reference_ssim_vs_template_corrected": between}, pos, Chirp(), ref, tgt, 0.5e-3)
     assert not physical["trusted"] and "matches its template poorly" in physical["warnings"][0]
@@ -217,13 +305,19 @@ def test_inputs_are_checked_before_any_work(small_scans, tmp_path, capsys):
     raw = scan.read_bytes()
     (tmp_path / "trunc.npz").write_bytes(raw[: len(raw) // 2])
     damaged = bytearray(tpl_path.read_bytes())
-    damaged[len(damaged) // 3: len(damaged) // 3 + 64] = bytes(64)  # inside data.npy: a CRC failure on load
+    damaged[len(damaged) // 3 : len(damaged) // 3 + 64] = bytes(64)  # inside data.npy: a CRC failure on load
     (tmp_path / "damaged.npz").write_bytes(bytes(damaged))
     (tmp_path / "file").write_text("not a folder")
     cases = [
         ((tmp_path / "trunc.npz", tmp_path / "o1", *tpl), ("trunc.npz", "truncated or damaged")),
-        ((scan, tmp_path / "o2", "--template-scan", str(tmp_path / "trunc.npz")), ("trunc.npz", "truncated or damaged")),
-        ((scan, tmp_path / "o3", "--template-scan", str(tmp_path / "damaged.npz"), "--no-cache"), ("damaged.npz", "truncated or damaged")),
+        (
+            (scan, tmp_path / "o2", "--template-scan", str(tmp_path / "trunc.npz")),
+            ("trunc.npz", "truncated or damaged"),
+        ),
+        (
+            (scan, tmp_path / "o3", "--template-scan", str(tmp_path / "damaged.npz"), "--no-cache"),
+            ("damaged.npz", "truncated or damaged"),
+        ),
         ((scan, tmp_path / "o4", "--digital-twin", str(tpl_path)), ("--digital-twin", ".npz archive")),
         ((scan, tmp_path / "file", *tpl), ("--out", "existing file")),
         ((scan, tmp_path / "file" / "sub", *tpl), ("--out", "not a folder")),
@@ -239,8 +333,22 @@ def test_inputs_are_checked_before_any_work(small_scans, tmp_path, capsys):
     _one_line_error(capsys, "--out", "cannot write")
     # --size 100000: the memory estimate is refused with its figure, at once
     t = time.perf_counter()
-    rc = main(["focus", str(scan), "--reference-roi", *REF, "--target-roi", *TGT, "--size", "100000",
-               "--out", str(tmp_path / "o6"), "--quiet", *tpl])
+    rc = main(
+        [
+            "focus",
+            str(scan),
+            "--reference-roi",
+            *REF,
+            "--target-roi",
+            *TGT,
+            "--size",
+            "100000",
+            "--out",
+            str(tmp_path / "o6"),
+            "--quiet",
+            *tpl,
+        ]
+    )
     assert rc == 2 and time.perf_counter() - t < 5
     err = _one_line_error(capsys, "--size 100000", "GiB")
     import re
@@ -281,8 +389,16 @@ def test_capture_gaps_of_a_converted_scan_reach_metrics(small_scans, tmp_path):
 
     scan = tmp_path / "converted.npz"
     shutil.copy(small_scans / "scan.npz", scan)
-    gaps = {"capture": "/data/adc_data_Raw_0.bin", "frames": 122, "frames_used": 120, "frames_dropped_flagged": 2,
-            "frames_lost": 1, "frames_zero_filled": 1, "frames_device_skew": 0, "bytes_lost": 2912}
+    gaps = {
+        "capture": "/data/adc_data_Raw_0.bin",
+        "frames": 122,
+        "frames_used": 120,
+        "frames_dropped_flagged": 2,
+        "frames_lost": 1,
+        "frames_zero_filled": 1,
+        "frames_device_skew": 0,
+        "bytes_lost": 2912,
+    }
     capture_report_path(scan).write_text(json.dumps(gaps))
     assert _focus(scan, tmp_path / "f", "--method", "none", "--no-pictures") == 0
     assert json.loads((tmp_path / "f" / "metrics.json").read_text())["capture"] == gaps

@@ -1,4 +1,4 @@
-"""The radar-camera clock offset found from the data (twinfocus.clock_offset): injected offsets
+"""The radar-camera clock offset found from the data (twinfocus.sensors.clock_offset): injected offsets
 recovered, the scan's positions re-sampled along its track, one-line refusals."""
 
 from __future__ import annotations
@@ -6,8 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from twinfocus.backprojection import backproject
-from twinfocus.clock_offset import (
+from twinfocus.errors import TwinFocusError
+from twinfocus.imaging.backprojection.numba_backend import backproject
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.motion.trajectory import handheld_zigzag
+from twinfocus.radar.fmcw import Chirp
+from twinfocus.sensors.clock_offset import (
     focus_offset,
     leg_starts,
     range_history_offset,
@@ -15,11 +19,7 @@ from twinfocus.clock_offset import (
     shift_positions,
     template_match,
 )
-from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.radar import Chirp
 from twinfocus.sensors.emulators.radar_scene import monostatic_if
-from twinfocus.trajectory import handheld_zigzag
 
 CHIRP = Chirp(n_samples=64)
 POINT = np.array([[0.03, 0.02, 0.6]])
@@ -146,10 +146,10 @@ def _cli(*argv: str) -> int:
 
 
 def test_a_ti_capture_with_a_shifted_camera_clock_converts_to_the_synchronised_scan(tmp_path, capsys):
-    from twinfocus.scan import Scan
+    from twinfocus.motion.trajectory import Poses
+    from twinfocus.radar.scan import Scan
     from twinfocus.sensors.emulators.__main__ import main as emulate
     from twinfocus.sensors.trajectory_files import read_tum, write_tum
-    from twinfocus.trajectory import Poses
 
     cap = tmp_path / "cap"
     assert (
@@ -207,8 +207,8 @@ def test_a_ti_capture_with_a_shifted_camera_clock_converts_to_the_synchronised_s
 
 
 def test_clock_search_of_a_scan_without_stamps_counts_positions():
-    from twinfocus.clock_offset import search_scan_clock
-    from twinfocus.scan import Scan
+    from twinfocus.radar.scan import Scan
+    from twinfocus.sensors.clock_offset import search_scan_clock
 
     t, track = _sweep(rows=24, period_s=0.05)
     offsets = np.stack([np.linspace(-0.04, 0.04, 8), np.zeros(8), np.zeros(8)], axis=1)
@@ -230,7 +230,7 @@ def test_clock_search_of_a_scan_without_stamps_counts_positions():
 def test_focus_clock_search_records_the_offset_it_undid(tmp_path):
     import json
 
-    from twinfocus.scan import Scan
+    from twinfocus.radar.scan import Scan
 
     t, track = _sweep(rows=24, period_s=0.05)
     offsets = np.stack([np.linspace(-0.04, 0.04, 8), np.zeros(8), np.zeros(8)], axis=1)
@@ -264,7 +264,7 @@ def test_focus_clock_search_records_the_offset_it_undid(tmp_path):
 
 
 def test_the_search_line_says_to_convert_again_only_past_a_large_offset():
-    from twinfocus.clock_offset import RECONVERT_ABOVE_S, clock_search_line
+    from twinfocus.sensors.clock_offset import RECONVERT_ABOVE_S, clock_search_line
 
     rec = {"unit": "s", "sigma_s": 1e-3, "images_formed": 76, "seconds": 2.0}
     small = clock_search_line({**rec, "offset_s": -0.02})

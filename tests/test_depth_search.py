@@ -1,22 +1,27 @@
 """The target's depth from the scan: point scatterers at a known depth under injected phase
 errors, and ``twinfocus focus`` without the target's depth on a simulated scene whose target
 lies 8 cm behind the reference."""
+
 import json
 
 import numpy as np
 import pytest
 
 from twinfocus.cli import main
-from twinfocus.depth_search import default_range, parse_depth, search_depth, sharpness_score
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import C_M_PER_S, Chirp, mmwcas_virtual_array
-from twinfocus.scenario import Scenario, planar_object
+from twinfocus.imaging.depth_search import default_range, parse_depth, search_depth, sharpness_score
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array
+from twinfocus.simulation.scenario import Scenario, planar_object
 
 
 def _aperture(n_rows=20, pitch=0.004, columns=(-0.02, 0.0, 0.02)):
     va = mmwcas_virtual_array()
     return np.array(
-        [va.offsets_m + np.array([cx, y, 0.0]) for cx in columns for y in (np.arange(n_rows) - (n_rows - 1) / 2) * pitch]
+        [
+            va.offsets_m + np.array([cx, y, 0.0])
+            for cx in columns
+            for y in (np.arange(n_rows) - (n_rows - 1) / 2) * pitch
+        ]
     )
 
 
@@ -69,17 +74,57 @@ def test_depth_words_and_default_range():
 @pytest.fixture(scope="module")
 def deep_scene(tmp_path_factory):
     d = tmp_path_factory.mktemp("deep")
-    rc = main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"), "--columns", "3",
-               "--rows", "40", "--quiet", "--seed", "3", "--target-depth-offset", "0.08"])
+    rc = main(
+        [
+            "simulate",
+            "--out",
+            str(d / "scan.npz"),
+            "--template-out",
+            str(d / "tpl.npz"),
+            "--columns",
+            "3",
+            "--rows",
+            "40",
+            "--quiet",
+            "--seed",
+            "3",
+            "--target-depth-offset",
+            "0.08",
+        ]
+    )
     assert rc == 0
     sc = Scenario(target_depth_offset_m=0.08)
     return d, sc.target_roi(), float(planar_object(sc.scene(), "target").centre_m[2])
 
 
 def _focus(d, out, target, *extra):
-    return main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
-                 "--target-roi", *target, "--size", "48", "--iterations", "150", "--space-variant", "off",
-                 "--template-scan", str(d / "tpl.npz"), "--out", str(out), "--quiet", "--no-cache", *extra])
+    return main(
+        [
+            "focus",
+            str(d / "scan.npz"),
+            "--reference-roi",
+            "-0.15",
+            "0.0",
+            "-0.11",
+            "0.12",
+            "0.6",
+            "--target-roi",
+            *target,
+            "--size",
+            "48",
+            "--iterations",
+            "150",
+            "--space-variant",
+            "off",
+            "--template-scan",
+            str(d / "tpl.npz"),
+            "--out",
+            str(out),
+            "--quiet",
+            "--no-cache",
+            *extra,
+        ]
+    )
 
 
 @pytest.mark.slow

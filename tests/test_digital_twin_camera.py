@@ -1,16 +1,17 @@
 """Stereo camera model and renderer: file round trip, projection against the rendered truth,
 rectification of a rotated pair checked through depth against the true surface."""
+
 import json
 
 import numpy as np
 import pytest
 
-from twinfocus.digital_twin.camera import Intrinsics, StereoCamera, pose_matrix, transform_points
-from twinfocus.digital_twin.render import render_scene
-from twinfocus.digital_twin.segment import Seed
-from twinfocus.digital_twin.stereo import check_pair, depth_from_disparity
 from twinfocus.errors import TwinFocusError
 from twinfocus.scene import Scene, card
+from twinfocus.twins.digital_twin.camera import Intrinsics, StereoCamera, pose_matrix, transform_points
+from twinfocus.twins.digital_twin.render import render_scene
+from twinfocus.twins.digital_twin.segment import Seed
+from twinfocus.twins.digital_twin.stereo import check_pair, depth_from_disparity
 
 
 def _rot_y(deg):
@@ -25,7 +26,9 @@ def test_zed2i_defaults_and_json_round_trip(tmp_path):
     odd = StereoCamera(
         Intrinsics(701.9, 701.7, 641.3, 344.2, 1280, 720, (-0.175, 0.028, 6.7e-5, -1.5e-4, 0.0)),
         Intrinsics(701.0, 701.1, 633.5, 359.3, 1280, 720, (-0.173, 0.027, 1.6e-4, 1.0e-5, 0.0)),
-        _rot_y(0.36), np.array([-0.11998, 2.6e-5, 1.6e-5]), pose_matrix(_rot_y(2.0), (0.01, -0.02, 0.003)),
+        _rot_y(0.36),
+        np.array([-0.11998, 2.6e-5, 1.6e-5]),
+        pose_matrix(_rot_y(2.0), (0.01, -0.02, 0.003)),
     )
     path = odd.save(tmp_path / "camera.json")
     back = StereoCamera.load(path)
@@ -73,8 +76,8 @@ def test_rendered_truth_matches_projection():
 def test_rectification_of_a_verged_pair_gives_true_depth():
     # The right eye is turned by 1 degree and both eyes have distortion: unrectified, rows do not
     # correspond. After cv2 rectification the card's reconstructed points must lie on its plane.
-    from twinfocus.digital_twin.pipeline import reference_from_stereo
-    from twinfocus.digital_twin.pointcloud import PointCloudConfig
+    from twinfocus.twins.digital_twin.pipeline import reference_from_stereo
+    from twinfocus.twins.digital_twin.pointcloud import PointCloudConfig
 
     eye_l = Intrinsics(350, 350, 319.5, 179.5, 640, 360, (-0.05, 0.01, 0, 0, 0))
     eye_r = Intrinsics(352, 351, 322.0, 181.0, 640, 360, (-0.04, 0.01, 0, 0, 0))
@@ -84,8 +87,13 @@ def test_rectification_of_a_verged_pair_gives_true_depth():
     # The renderer draws ideal pinhole views; distortion is applied by warping with OpenCV's model.
     import cv2
 
-    ideal = StereoCamera(Intrinsics(350, 350, 319.5, 179.5, 640, 360), Intrinsics(352, 351, 322.0, 181.0, 640, 360),
-                         _rot_y(1.0), np.array([-0.12, 0.0, 0.0]), cam.scene_from_left)
+    ideal = StereoCamera(
+        Intrinsics(350, 350, 319.5, 179.5, 640, 360),
+        Intrinsics(352, 351, 322.0, 181.0, 640, 360),
+        _rot_y(1.0),
+        np.array([-0.12, 0.0, 0.0]),
+        cam.scene_from_left,
+    )
     r = render_scene(scene, ideal, seed=2, noise_dn=1.0)
 
     def distort(img, eye):

@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from twinfocus.digital_twin.camera_cloud import OUTLIER_MARGIN_M, camera_cloud
 from twinfocus.errors import TwinFocusError
 from twinfocus.scene import rectangle
+from twinfocus.twins.digital_twin.camera_cloud import OUTLIER_MARGIN_M, camera_cloud
 
 
 def _plate(spacing=1e-3):
@@ -59,8 +59,13 @@ def test_offset_length_and_vector():
 def test_seeded_and_bad_inputs():
     p = _plate(3e-3)
     np.testing.assert_array_equal(camera_cloud(p, rng=7), camera_cloud(p, rng=7))
-    for kw in ({"hole_fraction": 1.0}, {"outlier_fraction": 0.6}, {"noise_m": -1e-3}, {"offset_m": [1, 2]},
-               {"noise_m": float("nan")}):
+    for kw in (
+        {"hole_fraction": 1.0},
+        {"outlier_fraction": 0.6},
+        {"noise_m": -1e-3},
+        {"offset_m": [1, 2]},
+        {"noise_m": float("nan")},
+    ):
         with pytest.raises(TwinFocusError):
             camera_cloud(p, **kw)
     with pytest.raises(TwinFocusError, match="NaN"):

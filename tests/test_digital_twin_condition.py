@@ -1,5 +1,6 @@
-"""Cloud conditioning (twinfocus.digital_twin.condition) against clouds of known truth: exact
+"""Cloud conditioning (twinfocus.twins.digital_twin.condition) against clouds of known truth: exact
 surfaces impaired by camera_cloud, so the right surface, outline and removed points are known."""
+
 import json
 import warnings
 
@@ -7,19 +8,19 @@ import numpy as np
 import pytest
 from scipy.interpolate import griddata
 
-from twinfocus.digital_twin.camera_cloud import camera_cloud
-from twinfocus.digital_twin.condition import (
+from twinfocus.errors import TwinFocusError
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+from twinfocus.simulation.scenario import Scenario
+from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
+from twinfocus.twins.digital_twin.condition import (
     CloudWarning,
     ConditionConfig,
     condition_cloud,
     digital_twin_reference,
     support_on_grid,
 )
-from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.scenario import Scenario
-from twinfocus.trajectory import paper_raster, phase_centres
 
 
 def _case(shape="plane"):
@@ -34,8 +35,9 @@ def _depth_error(points, exact):
     return np.abs(points[:, 2] - griddata(exact[:, :2], exact[:, 2], points[:, :2], method="nearest"))
 
 
-@pytest.mark.parametrize("shape,surface,tol_mm", [("plane", "plane", 0.15), ("cylinder", "smooth", 0.35),
-                                                  ("bent", "smooth", 0.6)])
+@pytest.mark.parametrize(
+    "shape,surface,tol_mm", [("plane", "plane", 0.15), ("cylinder", "smooth", 0.35), ("bent", "smooth", 0.6)]
+)
 def test_surface_model_fits_the_true_surface(shape, surface, tol_mm):
     grid, exact = _case(shape)
     # The field-like scene B's camera: 1 mm depth noise, 0.3 mm across, a quarter missing, 3 % outliers.

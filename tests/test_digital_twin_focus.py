@@ -1,19 +1,20 @@
 """End to end: a rendered stereo pair and a raw scan of the same simulated scene; ``twinfocus twin``
 makes the reference's cloud and template from the pictures (no simulator truth), ``twinfocus focus
 --digital-twin`` must raise the target's SSIM. Bad inputs: clear errors, nothing written."""
+
 import json
 
 import numpy as np
 import pytest
 
 from twinfocus.cli import main
-from twinfocus.digital_twin.render import render_scene
-from twinfocus.motion import apply_position_errors, gaussian_errors
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.scan import Scan
+from twinfocus.motion.tracking_errors import apply_position_errors, gaussian_errors
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+from twinfocus.radar.scan import Scan
 from twinfocus.scene import paper_scene
-from twinfocus.simulate import add_thermal_noise, simulate_if
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if
+from twinfocus.twins.digital_twin.render import render_scene
 
 REF_ROI = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
 TGT_ROI = ["0.02", "0.13", "-0.11", "0.12", "0.6"]
@@ -46,10 +47,32 @@ def capture(tmp_path_factory):
 def test_twin_then_focus_raises_target_ssim(capture):
     d = capture
     st = d / "stereo"
-    rc = main(["twin", str(st / "left.png"), str(st / "right.png"), "--camera", str(st / "camera.json"),
-               "--seed-roi", *REF_ROI, "--points-out", str(d / "points.npy"), "--scan", str(d / "scan.npz"),
-               "--reference-roi", *REF_ROI, "--size", "48", "--out", str(d / "template.npz"),
-               "--support-out", str(d / "support.png"), "--report", str(d / "twin.json"), "--quiet"])
+    rc = main(
+        [
+            "twin",
+            str(st / "left.png"),
+            str(st / "right.png"),
+            "--camera",
+            str(st / "camera.json"),
+            "--seed-roi",
+            *REF_ROI,
+            "--points-out",
+            str(d / "points.npy"),
+            "--scan",
+            str(d / "scan.npz"),
+            "--reference-roi",
+            *REF_ROI,
+            "--size",
+            "48",
+            "--out",
+            str(d / "template.npz"),
+            "--support-out",
+            str(d / "support.png"),
+            "--report",
+            str(d / "twin.json"),
+            "--quiet",
+        ]
+    )
     assert rc == 0
     pts = np.load(d / "points.npy")
     assert pts.ndim == 2 and pts.shape[1] == 3 and pts.shape[0] > 500
@@ -64,16 +87,33 @@ def test_twin_then_focus_raises_target_ssim(capture):
     assert report["conditioning"]["surface"] == "plane" and report["conditioning"]["surface_reason"]
     import cv2
 
-    from twinfocus.digital_twin.condition import support_on_grid
-    from twinfocus.grid import ImageGrid
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.twins.digital_twin.condition import support_on_grid
 
     support = cv2.imread(str(d / "support.png"), cv2.IMREAD_GRAYSCALE) > 0
     truth = support_on_grid(ref.surface_points(1e-3), ImageGrid.from_roi(REF_ROI, 48))
     assert (support & truth).sum() / (support | truth).sum() > 0.7
 
-    rc = main(["focus", str(d / "scan.npz"), "--reference-roi", *REF_ROI, "--target-roi", *TGT_ROI,
-               "--size", "48", "--digital-twin", str(d / "points.npy"), "--out", str(d / "focus"),
-               "--no-pictures", "--quiet", "--device", "cpu"])
+    rc = main(
+        [
+            "focus",
+            str(d / "scan.npz"),
+            "--reference-roi",
+            *REF_ROI,
+            "--target-roi",
+            *TGT_ROI,
+            "--size",
+            "48",
+            "--digital-twin",
+            str(d / "points.npy"),
+            "--out",
+            str(d / "focus"),
+            "--no-pictures",
+            "--quiet",
+            "--device",
+            "cpu",
+        ]
+    )
     assert rc == 0
     m = json.loads((d / "focus" / "metrics.json").read_text())
     # Measured 0.70 -> 0.83 (seed 0); the physical twin gets about the same on this capture.
@@ -82,12 +122,30 @@ def test_twin_then_focus_raises_target_ssim(capture):
     # The two-step way: twin's template file carries the outline and the conditioning, so focus
     # --template runs what --digital-twin runs (the outline estimator, not the projections of an
     # amplitude template) and writes the same conditioning.
-    rc = main(["focus", str(d / "scan.npz"), "--reference-roi", *REF_ROI, "--target-roi", *TGT_ROI,
-               "--size", "48", "--template", str(d / "template.npz"), "--out", str(d / "focus_file"),
-               "--no-pictures", "--quiet", "--device", "cpu"])
+    rc = main(
+        [
+            "focus",
+            str(d / "scan.npz"),
+            "--reference-roi",
+            *REF_ROI,
+            "--target-roi",
+            *TGT_ROI,
+            "--size",
+            "48",
+            "--template",
+            str(d / "template.npz"),
+            "--out",
+            str(d / "focus_file"),
+            "--no-pictures",
+            "--quiet",
+            "--device",
+            "cpu",
+        ]
+    )
     assert rc == 0
     f = json.loads((d / "focus_file" / "metrics.json").read_text())
     assert m["estimator"]["init"] == f["estimator"]["init"] == "outline"
+
     def chosen(info):  # what the conditioning chose, not how long it took
         return {k: v for k, v in info.items() if "seconds" not in k}
 
@@ -112,14 +170,47 @@ def test_twin_bad_inputs_write_nothing(capture, tmp_path, capsys):
         assert list(tmp_path.glob("points*")) == [] and not (tmp_path / "tpl.npz").exists()
 
     fails(["twin", str(st / "left.png"), str(small), *base, "--seed-roi", *REF_ROI], "one size")
-    fails(["twin", str(st / "left.png"), str(st / "right.png"), *base, "--seed-roi", *REF_ROI,
-           "--calibration", str(tmp_path / "missing.json")], "no such radar-camera calibration")
+    fails(
+        [
+            "twin",
+            str(st / "left.png"),
+            str(st / "right.png"),
+            *base,
+            "--seed-roi",
+            *REF_ROI,
+            "--calibration",
+            str(tmp_path / "missing.json"),
+        ],
+        "no such radar-camera calibration",
+    )
     fails(["twin", str(st / "left.png"), str(st / "right.png"), *base, "--seed-point", "5000", "10"], "outside")
-    fails(["twin", str(st / "left.png"), str(st / "right.png"), *base, "--seed-roi", *REF_ROI,
-           "--out", str(tmp_path / "tpl.npz")], "needs --scan and --reference-roi")
+    fails(
+        [
+            "twin",
+            str(st / "left.png"),
+            str(st / "right.png"),
+            *base,
+            "--seed-roi",
+            *REF_ROI,
+            "--out",
+            str(tmp_path / "tpl.npz"),
+        ],
+        "needs --scan and --reference-roi",
+    )
     fails(["twin", str(tmp_path / "none.png"), str(st / "right.png"), *base, "--seed-roi", *REF_ROI], "no such image")
-    fails(["twin", str(st / "left.png"), str(st / "right.png"), *base, "--seed-roi", *REF_ROI,
-           "--segmenter", "sam2:" + str(tmp_path / "none.pt")], "checkpoint not found")
+    fails(
+        [
+            "twin",
+            str(st / "left.png"),
+            str(st / "right.png"),
+            *base,
+            "--seed-roi",
+            *REF_ROI,
+            "--segmenter",
+            "sam2:" + str(tmp_path / "none.pt"),
+        ],
+        "checkpoint not found",
+    )
 
 
 @pytest.mark.slow  # 5 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
@@ -137,18 +228,54 @@ def test_focus_digital_twin_extreme_clouds_one_line(capture, tmp_path, capsys):
     }
     for name, (pts, message) in clouds.items():
         np.save(tmp_path / name, pts)
-        rc = main(["focus", str(d / "scan.npz"), "--reference-roi", *REF_ROI, "--target-roi", *TGT_ROI,
-                   "--size", "24", "--digital-twin", str(tmp_path / name), "--out", str(tmp_path / "out"),
-                   "--no-pictures", "--quiet", "--device", "cpu"])
+        rc = main(
+            [
+                "focus",
+                str(d / "scan.npz"),
+                "--reference-roi",
+                *REF_ROI,
+                "--target-roi",
+                *TGT_ROI,
+                "--size",
+                "24",
+                "--digital-twin",
+                str(tmp_path / name),
+                "--out",
+                str(tmp_path / "out"),
+                "--no-pictures",
+                "--quiet",
+                "--device",
+                "cpu",
+            ]
+        )
         err = capsys.readouterr().err
         assert rc == 2 and message in err and name in err and "Traceback" not in err, err
         assert not (tmp_path / "out").exists()
     nan = exact.copy()
     nan[::40] = np.nan
     np.save(tmp_path / "nan.npy", nan)
-    rc = main(["focus", str(d / "scan.npz"), "--reference-roi", *REF_ROI, "--target-roi", *TGT_ROI,
-               "--size", "24", "--digital-twin", str(tmp_path / "nan.npy"), "--out", str(tmp_path / "out"),
-               "--no-pictures", "--quiet", "--device", "cpu", "--estimator", "projection"])
+    rc = main(
+        [
+            "focus",
+            str(d / "scan.npz"),
+            "--reference-roi",
+            *REF_ROI,
+            "--target-roi",
+            *TGT_ROI,
+            "--size",
+            "24",
+            "--digital-twin",
+            str(tmp_path / "nan.npy"),
+            "--out",
+            str(tmp_path / "out"),
+            "--no-pictures",
+            "--quiet",
+            "--device",
+            "cpu",
+            "--estimator",
+            "projection",
+        ]
+    )
     # the library's warning reaches the user as one printed line
     assert "warning: reference point cloud: dropped" in capsys.readouterr().err
     assert rc == 0 and (tmp_path / "out" / "metrics.json").exists()

@@ -1,15 +1,18 @@
 """Reference segmentation: IoU against the renderer's truth mask on several scenes (letters, with
 an occluder, card, disc; cluttered backgrounds), bad seeds, and the SAM-family plug-in (with
 test doubles standing in for the sam2 package, which is not installed here)."""
+
 import sys
 import types
 
 import numpy as np
 import pytest
 
-from twinfocus.digital_twin.pipeline import reference_from_stereo
-from twinfocus.digital_twin.render import render_scene
-from twinfocus.digital_twin.segment import (
+from twinfocus.errors import TwinFocusError
+from twinfocus.scene import Scene, card, disc, paper_scene
+from twinfocus.twins.digital_twin.pipeline import reference_from_stereo
+from twinfocus.twins.digital_twin.render import render_scene
+from twinfocus.twins.digital_twin.segment import (
     ClassicalSegmenter,
     PredictorSegmenter,
     Seed,
@@ -17,13 +20,17 @@ from twinfocus.digital_twin.segment import (
     load_segmenter,
     mask_iou,
 )
-from twinfocus.errors import TwinFocusError
-from twinfocus.scene import Scene, card, disc, paper_scene
 
 
 def _roi_of(obj, margin=0.01):
     c = obj.corners_m()
-    return (c[:, 0].min() - margin, c[:, 0].max() + margin, c[:, 1].min() - margin, c[:, 1].max() + margin, float(obj.centre_m[2]))
+    return (
+        c[:, 0].min() - margin,
+        c[:, 0].max() + margin,
+        c[:, 1].min() - margin,
+        c[:, 1].max() + margin,
+        float(obj.centre_m[2]),
+    )
 
 
 SCENES = {
@@ -125,8 +132,14 @@ class FakeSamPredictor:
         self.image = np.array(rgb)
 
     def predict(self, point_coords=None, point_labels=None, box=None, multimask_output=True):
-        self.calls.append({"point_coords": point_coords, "point_labels": point_labels, "box": box,
-                           "multimask_output": multimask_output})
+        self.calls.append(
+            {
+                "point_coords": point_coords,
+                "point_labels": point_labels,
+                "box": box,
+                "multimask_output": multimask_output,
+            }
+        )
         h, w = self.image.shape[:2]
         good = np.zeros((h, w), bool)
         if box is not None:
@@ -180,8 +193,12 @@ def test_load_segmenter_sam2_through_the_package_api(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "sam2.sam2_image_predictor", mod_pred)
 
     seg = load_segmenter(f"sam2:{ckpt}")
-    assert built == {"config": "configs/sam2.1/sam2.1_hiera_t.yaml", "checkpoint": str(ckpt), "device": "cpu",
-                     "predictor_model": "model"}
+    assert built == {
+        "config": "configs/sam2.1/sam2.1_hiera_t.yaml",
+        "checkpoint": str(ckpt),
+        "device": "cpu",
+        "predictor_model": "model",
+    }
     m = seg(np.zeros((50, 50, 3), np.uint8), Seed.box(5, 5, 25, 15))
     assert m.sum() == 20 * 10
     load_segmenter(f"sam2:{ckpt}:my/config.yaml")

@@ -1,21 +1,22 @@
 """Stereo depth against the renderer's truth, the reference point cloud against the true surface
 (mm), the radar point spacing against its closed form, and bad inputs."""
+
 import numpy as np
 import pytest
 
-from twinfocus.digital_twin.camera import StereoCamera
-from twinfocus.digital_twin.pipeline import reference_from_stereo
-from twinfocus.digital_twin.pointcloud import (
+from twinfocus.errors import TwinFocusError
+from twinfocus.scene import paper_scene
+from twinfocus.twins.digital_twin.camera import StereoCamera
+from twinfocus.twins.digital_twin.pipeline import reference_from_stereo
+from twinfocus.twins.digital_twin.pointcloud import (
     PointCloudConfig,
     check_not_degenerate,
     radar_point_spacing,
     reference_point_cloud,
 )
-from twinfocus.digital_twin.render import render_scene
-from twinfocus.digital_twin.segment import box_from_scene_roi
-from twinfocus.digital_twin.stereo import StereoConfig, compute_disparity
-from twinfocus.errors import TwinFocusError
-from twinfocus.scene import paper_scene
+from twinfocus.twins.digital_twin.render import render_scene
+from twinfocus.twins.digital_twin.segment import box_from_scene_roi
+from twinfocus.twins.digital_twin.stereo import StereoConfig, compute_disparity
 
 
 @pytest.fixture(scope="module")
@@ -54,8 +55,13 @@ def test_point_cloud_against_true_surface(letters):
     c = ref.corners_m()
     roi = (c[:, 0].min() - 0.01, c[:, 0].max() + 0.01, c[:, 1].min() - 0.01, c[:, 1].max() + 0.01, 0.613)
     for surface, max_rms_mm in (("plane", 0.5), ("raw", 1.5)):
-        twin = reference_from_stereo(r.left, r.right, r.camera, box_from_scene_roi(roi, r.camera),
-                                     cloud_config=PointCloudConfig(surface=surface, voxel_m=1e-3))
+        twin = reference_from_stereo(
+            r.left,
+            r.right,
+            r.camera,
+            box_from_scene_roi(roi, r.camera),
+            cloud_config=PointCloudConfig(surface=surface, voxel_m=1e-3),
+        )
         p = twin.points_m
         assert twin.cloud.surface == surface
         dist = (p - ref.centre_m) @ ref.rotation[:, 2]  # signed distance to the letter's plane

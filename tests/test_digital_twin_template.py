@@ -1,30 +1,31 @@
 """Template simulation: the sub-pixel PSF convolution against a direct sum, the PSF template
 against the exact point-scatterer model, the stereo-made template against the one from the true
 points, depth slabs, alignment (registration, offset calibration, loss-based refinement)."""
+
 import numpy as np
 import pytest
 
-from twinfocus.digital_twin.align import (
+from twinfocus.errors import TwinFocusError
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import display_image, ssim
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+from twinfocus.scene import paper_scene
+from twinfocus.twins.digital_twin.align import (
     RadarCameraCalibration,
     calibrate_offset,
     refine_template_shift_by_loss,
     register_translation,
     shift_image,
 )
-from twinfocus.digital_twin.condition import digital_twin_template_from_file
-from twinfocus.digital_twin.template import (
+from twinfocus.twins.digital_twin.condition import digital_twin_template_from_file
+from twinfocus.twins.digital_twin.template import (
     convolve_points,
     digital_twin_template,
     exact_template,
     load_points,
     psf_template,
 )
-from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.metrics import display_image, ssim
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.scene import paper_scene
-from twinfocus.trajectory import paper_raster, phase_centres
 
 ROI = (-0.15, 0.0, -0.11, 0.12, 0.6)
 
@@ -92,9 +93,9 @@ def test_depth_slabs_follow_a_tilted_plate(small):
 
 
 def test_stereo_template_matches_truth_template(small):
-    from twinfocus.digital_twin.pipeline import reference_from_stereo
-    from twinfocus.digital_twin.render import render_scene
-    from twinfocus.digital_twin.segment import box_from_scene_roi
+    from twinfocus.twins.digital_twin.pipeline import reference_from_stereo
+    from twinfocus.twins.digital_twin.render import render_scene
+    from twinfocus.twins.digital_twin.segment import box_from_scene_roi
 
     positions, grid, chirp, scene, pts = small
     r = render_scene(scene, seed=5)
@@ -131,9 +132,9 @@ def test_template_inputs_and_files(small, tmp_path):
 
     scan = _ScanLike()
     scan.positions, scan.chirp = positions, chirp
-    from twinfocus.digital_twin.condition import digital_twin_reference
+    from twinfocus.twins.digital_twin.condition import digital_twin_reference
 
-    # The file path conditions the cloud (twinfocus.digital_twin.condition) before the template.
+    # The file path conditions the cloud (twinfocus.twins.digital_twin.condition) before the template.
     a = digital_twin_template_from_file(good, scan, grid)
     np.testing.assert_array_equal(a, digital_twin_reference(pts, positions, chirp, grid).template)
     # On exact points the conditioned template is the raw points' template, up to re-sampling.
@@ -142,8 +143,9 @@ def test_template_inputs_and_files(small, tmp_path):
     cal = RadarCameraCalibration(np.array([0.004, 0.0, 0.0]))
     cal.save(tmp_path / "cal.json")
     b = digital_twin_template_from_file(good, scan, grid, calibration=tmp_path / "cal.json")
-    np.testing.assert_allclose(b, digital_twin_reference(pts + [0.004, 0, 0], positions, chirp, grid).template,
-                               rtol=1e-5, atol=1e-3 * b.max())
+    np.testing.assert_allclose(
+        b, digital_twin_reference(pts + [0.004, 0, 0], positions, chirp, grid).template, rtol=1e-5, atol=1e-3 * b.max()
+    )
     with pytest.raises(TwinFocusError, match="no such radar-camera calibration"):
         digital_twin_template_from_file(good, scan, grid, calibration=tmp_path / "missing.json")
 
@@ -174,9 +176,9 @@ def test_offset_calibration_round_trip(small, tmp_path):
 
 
 def test_refinement_by_loss_moves_template_back(small, one_torch_thread):
-    from twinfocus.backprojection import subimage_basis
-    from twinfocus.motion import apply_position_errors, gaussian_errors
-    from twinfocus.simulate import simulate_if
+    from twinfocus.imaging.backprojection.numba_backend import subimage_basis
+    from twinfocus.motion.tracking_errors import apply_position_errors, gaussian_errors
+    from twinfocus.simulation.if_simulator import simulate_if
 
     positions, grid, chirp, _, pts = small
     rng = np.random.default_rng(3)

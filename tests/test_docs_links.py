@@ -3,6 +3,7 @@
 A fresh clone holds only what git tracks, so a path counts when git tracks it (or, for a folder,
 tracks something under it); outside a git checkout the file system is asked instead.
 """
+
 from __future__ import annotations
 
 import re
@@ -63,8 +64,11 @@ def _named_paths(md: Path, text: str | None = None) -> list[tuple[str, str]]:
 @pytest.mark.parametrize("md", _markdown_files(), ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_every_named_path_exists(md: Path) -> None:
     tracked = _tracked()
-    missing = [f"{written} -> {rel}" for rel, written in _named_paths(md)
-               if rel not in KNOWN_MISSING and not _exists(rel, tracked)]
+    missing = [
+        f"{written} -> {rel}"
+        for rel, written in _named_paths(md)
+        if rel not in KNOWN_MISSING and not _exists(rel, tracked)
+    ]
     assert not missing, f"{md.relative_to(ROOT)} names paths not in the repository: {missing}"
 
 
@@ -75,8 +79,10 @@ def test_known_missing_are_still_missing() -> None:
 
 
 def test_the_walker_sees_links_pictures_and_code_paths() -> None:
-    text = ("![p](images/x.png) [a](architecture.md#s) [w](https://x.org) [h](#top) `launch/sim.yaml`\n"
-            "```\n[in code](nowhere.md)\n```\n`docs/results/raw/*.json` [up](../README.md)\n")
+    text = (
+        "![p](images/x.png) [a](architecture.md#s) [w](https://x.org) [h](#top) `launch/sim.yaml`\n"
+        "```\n[in code](nowhere.md)\n```\n`docs/results/raw/*.json` [up](../README.md)\n"
+    )
     got = sorted(rel for rel, _ in _named_paths(ROOT / "docs" / "probe.md", text))
     assert got == ["README.md", "docs/architecture.md", "docs/images/x.png", "launch/sim.yaml"]
     assert not _exists("docs/images/x.png", _tracked())

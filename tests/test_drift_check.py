@@ -1,12 +1,12 @@
-"""The estimate's step coherence (twinfocus.drift_check): closed forms, jitter against drift, and
+"""The estimate's step coherence (twinfocus.focus.drift_check): closed forms, jitter against drift, and
 the digital twin's warnings in the confidence report that read it."""
 
 import numpy as np
 import pytest
 
-from twinfocus.drift_check import phase_concentration, step_coherence
 from twinfocus.errors import TwinFocusError
-from twinfocus.motion import drift_errors, gaussian_errors
+from twinfocus.focus.drift_check import phase_concentration, step_coherence
+from twinfocus.motion.tracking_errors import drift_errors, gaussian_errors
 
 
 def test_closed_forms():
@@ -40,10 +40,10 @@ def test_jitter_is_incoherent_and_a_drift_of_the_same_size_is_not():
 
 
 def _report(contrast=2.5, agreement=None, step=None, digital=True, concentration=0.05):
-    from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import confidence_report
-    from twinfocus.radar import Chirp, mmwcas_virtual_array
-    from twinfocus.trajectory import paper_raster, phase_centres
+    from twinfocus.focus.pipeline import confidence_report
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.motion.trajectory import paper_raster, phase_centres
+    from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 
     pos = phase_centres(paper_raster(6, 10), mmwcas_virtual_array())
     ref = ImageGrid.from_roi([-0.15, 0.0, -0.11, 0.12, 0.6], 20)
@@ -57,7 +57,7 @@ def _report(contrast=2.5, agreement=None, step=None, digital=True, concentration
 
 
 def test_the_report_trusts_a_focused_outline_estimate_and_flags_a_drift_or_a_split_one():
-    from twinfocus.pipeline import MAX_STEP_COHERENCE, MIN_OUTLINE_AGREEMENT
+    from twinfocus.focus.pipeline import MAX_STEP_COHERENCE, MIN_OUTLINE_AGREEMENT
 
     good = _report(2.3, MIN_OUTLINE_AGREEMENT + 0.03, 0.05)
     assert good["trusted"] and good["phase_step_coherence"] == 0.05

@@ -6,10 +6,10 @@ from types import SimpleNamespace
 import numpy as np
 
 from benchmarks.bench_dtwin_family import placement
-from twinfocus.grid import ImageGrid
-from twinfocus.metrics import oracle_phase
-from twinfocus.radar import Chirp
-from twinfocus.subpixel import shift_image
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import oracle_phase
+from twinfocus.imaging.subpixel import shift_image
+from twinfocus.radar.fmcw import Chirp
 
 
 def test_placement_reads_an_injected_ramp_as_its_shift_and_finds_an_injected_image_shift():
@@ -29,10 +29,14 @@ def test_placement_reads_an_injected_ramp_as_its_shift_and_finds_an_injected_ima
     range_m = 0.6
     shift_m = slope * range_m * chirp.wavelength_m / (4 * np.pi)
     phase = oracle_phase(true, tracked, grid.centre_m, chirp) + (centres[:, :2] - centres[:, :2].mean(0)) @ slope + 0.7
-    d = {"scan": SimpleNamespace(positions=tracked, positions_true=true, chirp=chirp), "rg": grid,
-         "truth": {"truth_target": truth}}
-    out = SimpleNamespace(phase_rad=phase, target=shift_image(truth, 1.0, -0.5),
-                          metrics={"estimator": {"phase_coherence_sqrt_m": 3.2}})
+    d = {
+        "scan": SimpleNamespace(positions=tracked, positions_true=true, chirp=chirp),
+        "rg": grid,
+        "truth": {"truth_target": truth},
+    }
+    out = SimpleNamespace(
+        phase_rad=phase, target=shift_image(truth, 1.0, -0.5), metrics={"estimator": {"phase_coherence_sqrt_m": 3.2}}
+    )
     got = placement(d, out)
     assert np.allclose(got["error_mm"], shift_m * 1e3, atol=0.01)
     assert got["best_shift_px"] == [-1.0, 0.5] and got["best_shift_ssim"] > 0.99
@@ -43,8 +47,8 @@ def test_cloud_parts_gives_each_impairment_alone_and_two_views_under_one_offset(
     from scipy.spatial import cKDTree
 
     import benchmarks.bench_dtwin_family as bench
-    import twinfocus.digital_twin.condition as condition
-    from twinfocus.scenario import Scenario
+    import twinfocus.twins.digital_twin.condition as condition
+    from twinfocus.simulation.scenario import Scenario
 
     # seed 1003's offset lies mostly along z, across the reference's plane, where a view shows it
     kw = bench.family_scenario("paper", 1003, bench.BENCH_SHAPES, 65)
@@ -56,8 +60,11 @@ def test_cloud_parts_gives_each_impairment_alone_and_two_views_under_one_offset(
         return SimpleNamespace(cloud=cloud)
 
     monkeypatch.setattr(condition, "digital_twin_reference", twin)
-    monkeypatch.setattr(bench, "digital_twin_focus",
-                        lambda d: SimpleNamespace(metrics={"target_ssim_corrected": float(len(d["twin"].cloud))}))
+    monkeypatch.setattr(
+        bench,
+        "digital_twin_focus",
+        lambda d: SimpleNamespace(metrics={"target_ssim_corrected": float(len(d["twin"].cloud))}),
+    )
     d = {"kw": kw, "scan": SimpleNamespace(positions=None, chirp=None), "rg": None, "reference_points": surface}
     got = bench.cloud_parts(d)
     assert list(got) == list(bench.CLOUD_PARTS) == list(seen)

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from twinfocus.motion.trajectory import paper_raster
 from twinfocus.sensors.emulators.__main__ import main
 from twinfocus.sensors.emulators.rig import N_REFERENCE_SCATTERERS, demo_scatterers
 from twinfocus.sensors.trajectory_files import read_tum
-from twinfocus.trajectory import paper_raster
 
 
 def test_the_track_carries_the_requested_error_and_the_stage_scan_only_the_reference(tmp_path):

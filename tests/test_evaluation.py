@@ -1,6 +1,7 @@
 """Evaluation (``twinfocus bench paper``): the second metric against scikit-image, the first-order
 transfer terms against closed forms and exact phases, the experiment definitions, the report's
 aggregation, and the quick benchmark end to end (physical twin beats no correction; files written)."""
+
 from __future__ import annotations
 
 import json
@@ -9,7 +10,6 @@ import re
 import numpy as np
 import pytest
 
-from twinfocus import metrics
 from twinfocus.cli import main as cli_main
 from twinfocus.errors import TwinFocusError
 from twinfocus.evaluation.aggregate import crossing, method_stats, pareto_front, stops_helping
@@ -22,9 +22,10 @@ from twinfocus.evaluation.cases import (
 from twinfocus.evaluation.experiments import BASELINE_LETTERS, paper_experiments
 from twinfocus.evaluation.features import hog_descriptor, hog_similarity
 from twinfocus.evaluation.trade import central_rows
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.scenario import simulate_scenario
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.imaging import metrics
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+from twinfocus.simulation.scenario import simulate_scenario
 
 # --- second metric ---------------------------------------------------------------------------------
 
@@ -33,7 +34,9 @@ from twinfocus.trajectory import paper_raster, phase_centres
 def test_hog_matches_scikit_image(shape):
     hog = pytest.importorskip("skimage.feature").hog
     img = np.random.default_rng(shape[0]).random(shape)
-    ref = hog(img, orientations=9, pixels_per_cell=(8, 8), cells_per_block=(2, 2), block_norm="L2-Hys", feature_vector=True)
+    ref = hog(
+        img, orientations=9, pixels_per_cell=(8, 8), cells_per_block=(2, 2), block_norm="L2-Hys", feature_vector=True
+    )
     ours = hog_descriptor(img)
     assert ours.shape == ref.shape
     np.testing.assert_allclose(ours, ref, atol=1e-6)
@@ -44,7 +47,9 @@ def test_hog_similarity_orders_images():
     truth = ((np.abs(xx - 20) < 3) & (yy > 10) & (yy < 54)).astype(float)  # a vertical stroke
     assert hog_similarity(truth, truth) == pytest.approx(1.0)
     rotated = truth.T  # the same stroke, horizontal: different edge orientations
-    blurred = np.fft.ifft2(np.fft.fft2(truth) * np.exp(-((np.fft.fftfreq(64)[:, None] ** 2 + np.fft.fftfreq(64)[None] ** 2) * 40))).real
+    blurred = np.fft.ifft2(
+        np.fft.fft2(truth) * np.exp(-((np.fft.fftfreq(64)[:, None] ** 2 + np.fft.fftfreq(64)[None] ** 2) * 40))
+    ).real
     s_rot, s_blur = hog_similarity(rotated, truth), hog_similarity(blurred, truth)
     assert s_blur > s_rot
     assert 0.0 <= s_rot < 0.9
@@ -81,7 +86,9 @@ def test_first_order_prediction_matches_exact_transfer():
     err, _ = draw_position_errors(EvalScenario(error_sigma_m=(0.1e-3,) * 3), paper_raster(6, 20).timestamps_ns, 3)
     tracked = true + err[:, None, :]
     ref, tgt = np.array([-0.05, 0.0, 0.6]), np.array([0.06, 0.01, 0.6])
-    floor = metrics.phase_error_rms(metrics.oracle_phase(true, tracked, ref, chirp), metrics.oracle_phase(true, tracked, tgt, chirp))
+    floor = metrics.phase_error_rms(
+        metrics.oracle_phase(true, tracked, ref, chirp), metrics.oracle_phase(true, tracked, tgt, chirp)
+    )
     terms = phase_transfer_terms(true, tracked, ref, tgt, chirp.wavelength_m)
     assert floor == pytest.approx(terms["first_order"], rel=0.05)
     assert terms["first_order"] <= terms["bound"]
@@ -102,7 +109,10 @@ def test_error_draws_scale_with_sigma_and_ramp_removal_keeps_focus_part():
     ramp = 0.3 + 40.0 * xy[:, 0] - 25.0 * xy[:, 1]
     assert metrics.phase_error_rms(transfer_phase(ramp, pos, "remove"), np.zeros(60)) < 1e-6
     bumps = np.random.default_rng(0).normal(0, 0.5, 60)
-    assert metrics.phase_error_rms(transfer_phase(bumps + ramp, pos, "remove"), transfer_phase(bumps, pos, "remove")) < 1e-6
+    assert (
+        metrics.phase_error_rms(transfer_phase(bumps + ramp, pos, "remove"), transfer_phase(bumps, pos, "remove"))
+        < 1e-6
+    )
     np.testing.assert_array_equal(transfer_phase(bumps + ramp, pos, "keep"), bumps + ramp)
     # 40 rad/m at 0.6 m moves the image by 7 mm: more than a misplaced template, so auto keeps it
     np.testing.assert_array_equal(transfer_phase(bumps + ramp, pos, "auto"), bumps + ramp)
@@ -112,7 +122,7 @@ def test_error_draws_scale_with_sigma_and_ramp_removal_keeps_focus_part():
 
 
 def test_the_cluttered_rooms_template_scan_is_the_scenarios_plus_the_room():
-    from twinfocus.scenario import template_scan
+    from twinfocus.simulation.scenario import template_scan
 
     sc = EvalScenario(reference="C", target="X", n_rows=3, n_columns=2, spacing_m=6e-3, snr_db=None, clutter=True)
     _, template = simulate_scenario(sc)
@@ -140,7 +150,12 @@ def test_central_rows_keeps_the_middle_of_every_column():
         assert idx.size == expect
         y = pos[idx, :, 1].mean(axis=1)
         assert np.abs(y).max() <= (expect // 6) * 1e-3 + 1e-9  # rows 2 mm apart, symmetric about 0
-        assert np.bincount(np.round(pos[idx, 0, 0] * 1e3).astype(int) - np.round(pos[idx, 0, 0] * 1e3).astype(int).min()).max() <= expect // 6 + 1
+        assert (
+            np.bincount(
+                np.round(pos[idx, 0, 0] * 1e3).astype(int) - np.round(pos[idx, 0, 0] * 1e3).astype(int).min()
+            ).max()
+            <= expect // 6 + 1
+        )
 
 
 # --- experiment definitions and report aggregation --------------------------------------------------
@@ -172,9 +187,14 @@ def _rec(cond, pair, draw, method, ssim):
 
 
 def test_method_stats_is_the_ratio_of_paired_means():
-    rec = [_rec("c", "A>B", 0, "none", 0.5), _rec("c", "A>B", 1, "none", 0.7),
-           _rec("c", "A>B", 0, "physical", 0.8), _rec("c", "A>B", 1, "physical", 0.9),
-           {**_rec("c", "A>B", 0, "digital", None), "status": "failed: no twin"}, _rec("c", "A>B", 1, "digital", 0.84)]
+    rec = [
+        _rec("c", "A>B", 0, "none", 0.5),
+        _rec("c", "A>B", 1, "none", 0.7),
+        _rec("c", "A>B", 0, "physical", 0.8),
+        _rec("c", "A>B", 1, "physical", 0.9),
+        {**_rec("c", "A>B", 0, "digital", None), "status": "failed: no twin"},
+        _rec("c", "A>B", 1, "digital", 0.84),
+    ]
     st = method_stats(rec, "c")
     assert st["none"]["mean"] == pytest.approx(0.6)
     assert st["none"]["sd"] == pytest.approx(0.1)  # population sd of 0.5 and 0.7, as every table shows
@@ -194,7 +214,10 @@ def test_pareto_front_against_brute_force():
 
 
 def test_stops_helping_and_crossing():
-    rows = [{"x": x, "label": str(x), "stats": {"physical": {"gain": g}}} for x, g in ((1, 0.2), (2, 0.05), (3, 0.004), (4, -0.1))]
+    rows = [
+        {"x": x, "label": str(x), "stats": {"physical": {"gain": g}}}
+        for x, g in ((1, 0.2), (2, 0.05), (3, 0.004), (4, -0.1))
+    ]
     assert stops_helping(rows, "physical")["x"] == 3
     assert stops_helping(rows, "digital")["x"] is None
     assert crossing([0, 1, 2], [0.2, 0.6, 1.4], 1.0) == pytest.approx(1.5)
@@ -218,11 +241,25 @@ def test_cli_rejects_bad_arguments_before_any_work(tmp_path, capsys):
 def test_quick_benchmark_end_to_end(tmp_path):
     out = tmp_path / "bench"
     assert cli_main(["bench", "paper", "--quick", "--quiet", "--out", str(out)]) == 0
-    for f in ("report.md", "summary.json", "baseline.png", "baseline_pairs.png", "baseline_examples.png", "tracking_error.png",
-              "limits_tracking_error.png", "pareto.png", "raw/baseline.json", "raw/tracking_error.json", "raw/trade.json", "raw/run.json"):
+    for f in (
+        "report.md",
+        "summary.json",
+        "baseline.png",
+        "baseline_pairs.png",
+        "baseline_examples.png",
+        "tracking_error.png",
+        "limits_tracking_error.png",
+        "pareto.png",
+        "raw/baseline.json",
+        "raw/tracking_error.json",
+        "raw/trade.json",
+        "raw/run.json",
+    ):
         assert (out / f).is_file() and (out / f).stat().st_size > 0, f
     base = json.loads((out / "raw" / "baseline.json").read_text())["records"]
-    ssim = {m: np.mean([r["ssim"] for r in base if r["method"] == m and r["status"] == "ok"]) for m in ("none", "physical")}
+    ssim = {
+        m: np.mean([r["ssim"] for r in base if r["method"] == m and r["status"] == "ok"]) for m in ("none", "physical")
+    }
     assert ssim["physical"] > ssim["none"]
     report = (out / "report.md").read_text()
     assert "| physical twin | 0.85 | +41.7 %" in report  # the paper's number beside ours
@@ -303,9 +340,24 @@ def test_report_adds_the_field_conditions_from_the_benchmarks_figures(tmp_path):
     lines: list = []
     _section_field(tmp_path, lines)
     assert lines == []  # nothing there: no section
-    hand = {"hand": [{"uncorrected": 0.5, "closed_form_auto": 0.8, "default": 0.9, "reference_true_phase": 0.85,
-                      "ceiling_target_phase": 0.97}, {"uncorrected": 0.6, "closed_form_auto": 0.8, "default": 0.92,
-                                                      "reference_true_phase": 0.85, "ceiling_target_phase": 0.97}]}
+    hand = {
+        "hand": [
+            {
+                "uncorrected": 0.5,
+                "closed_form_auto": 0.8,
+                "default": 0.9,
+                "reference_true_phase": 0.85,
+                "ceiling_target_phase": 0.97,
+            },
+            {
+                "uncorrected": 0.6,
+                "closed_form_auto": 0.8,
+                "default": 0.92,
+                "reference_true_phase": 0.85,
+                "ceiling_target_phase": 0.97,
+            },
+        ]
+    }
     (tmp_path / "field_handheld.json").write_text(json.dumps(hand))
     _section_field(tmp_path, lines)
     text = "\n".join(lines)

@@ -7,13 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from twinfocus import metrics
-from twinfocus.autofocus import AutofocusConfig, twin_autofocus
-from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.evaluation import runner
 from twinfocus.evaluation.batched import paper_estimates
 from twinfocus.evaluation.experiments import paper_experiments
+from twinfocus.focus.autofocus import AutofocusConfig, twin_autofocus
+from twinfocus.imaging import metrics
+from twinfocus.imaging.basis import form_image
 
 CFG = AutofocusConfig(iterations=80, basis_dtype="float16")
 

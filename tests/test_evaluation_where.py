@@ -1,4 +1,5 @@
 """``twinfocus bench where``: each way focus finds what is not typed, as a row against typed."""
+
 import json
 
 import pytest
@@ -12,16 +13,28 @@ def _rec(row, ssim, seed, **extra):
 
 def test_rows_are_read_against_the_typed_regions_of_the_same_scene():
     records = [
-        _rec("typed", 0.9, 0), _rec("typed", 0.8, 1),
-        _rec("depth found", 0.85, 0, depth_error_m=-0.002), _rec("depth found", 0.8, 1, depth_error_m=0.004),
-        _rec("best of two twins", 0.9, 0, right_twin=True), _rec("best of two twins", 0.5, 1, right_twin=False),
+        _rec("typed", 0.9, 0),
+        _rec("typed", 0.8, 1),
+        _rec("depth found", 0.85, 0, depth_error_m=-0.002),
+        _rec("depth found", 0.8, 1, depth_error_m=0.004),
+        _rec("best of two twins", 0.9, 0, right_twin=True),
+        _rec("best of two twins", 0.5, 1, right_twin=False),
     ]
     s = summarise(records)
     assert list(s) == ["typed", "depth found", "best of two twins"]
-    assert s["depth found"]["minus_typed"] == pytest.approx(-0.025) and s["depth found"]["depth_error_mm"] == pytest.approx(3.0)
+    assert s["depth found"]["minus_typed"] == pytest.approx(-0.025) and s["depth found"][
+        "depth_error_mm"
+    ] == pytest.approx(3.0)
     assert s["best of two twins"]["right_twin"] == 0.5 and s["best of two twins"]["minus_typed"] == pytest.approx(-0.15)
-    md = where_markdown({"scenes": 2, "pairs": [["A", "C"]], "settings": {"columns": 3, "rows": 40, "size": 48},
-                         "command": "twinfocus bench where", "summary": s})
+    md = where_markdown(
+        {
+            "scenes": 2,
+            "pairs": [["A", "C"]],
+            "settings": {"columns": 3, "rows": 40, "size": 48},
+            "command": "twinfocus bench where",
+            "summary": s,
+        }
+    )
     assert "| depth found |" in md and "-0.025" in md and "50%" in md
 
 

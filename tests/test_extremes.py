@@ -15,20 +15,20 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from twinfocus.autofocus import AutofocusConfig, sharpness_autofocus, transfer_phase, twin_autofocus
-from twinfocus.backprojection import backproject, subimage_basis
-from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
-from twinfocus.focus_plan import FocusPlan
-from twinfocus.grid import ImageGrid
-from twinfocus.metrics import display_image, entropy, image_ssim, ssim
-from twinfocus.phase_ramp import fit_linear_phase, ramp_free_coherence
-from twinfocus.pipeline import Bases, Reference, Truth
-from twinfocus.radar import Chirp, mmwcas_virtual_array, uniform_virtual_array
-from twinfocus.reference_free import minimum_entropy_phase, phase_gradient_phase
-from twinfocus.simulate import add_thermal_noise, simulate_if
-from twinfocus.template_match import correlation_phase, projection_phase
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.focus.autofocus import AutofocusConfig, sharpness_autofocus, transfer_phase, twin_autofocus
+from twinfocus.focus.phase_ramp import fit_linear_phase, ramp_free_coherence
+from twinfocus.focus.pipeline import Bases, Reference, Truth
+from twinfocus.focus.plan import FocusPlan
+from twinfocus.focus.reference_free import minimum_entropy_phase, phase_gradient_phase
+from twinfocus.focus.template_match import correlation_phase, projection_phase
+from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+from twinfocus.imaging.basis import form_image
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import display_image, entropy, image_ssim, ssim
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array, uniform_virtual_array
+from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if
 
 #: a physical twin, fitted in closed form (what --estimator auto does with one), and the baselines
 CLOSED_FORM = AutofocusConfig(init="correlation", iterations=0, template_registration="correlation")
@@ -249,7 +249,7 @@ def _smeared_ring(m: int, seed: int, ring: float = 1.5) -> np.ndarray:
 
 
 def test_an_object_smeared_over_its_whole_region_is_kept_by_its_incoherent_image_and_noise_is_not():
-    from twinfocus.templates import NOISE_INCOHERENT_PEAK_SQRT_M, check_has_signal
+    from twinfocus.focus.signal_check import NOISE_INCOHERENT_PEAK_SQRT_M, check_has_signal
 
     basis = _smeared_ring(96, 0)
     image = basis.sum(axis=0)
@@ -262,7 +262,9 @@ def test_an_object_smeared_over_its_whole_region_is_kept_by_its_incoherent_image
     rng = np.random.default_rng(1)
     noise = (rng.standard_normal(basis.shape) + 1j * rng.standard_normal(basis.shape)).astype(np.complex64)
     bound = 1.0 + NOISE_INCOHERENT_PEAK_SQRT_M / np.sqrt(96)
-    with pytest.raises(TwinFocusError, match=rf"reference region shows no object .*noise on 96 positions reaches {bound:.2f}"):
+    with pytest.raises(
+        TwinFocusError, match=rf"reference region shows no object .*noise on 96 positions reaches {bound:.2f}"
+    ):
         check_has_signal(noise.sum(axis=0), "the reference region", basis=noise)
     # on 1-5 positions noise alone peaks as high as an object: the image alone decides, even where
     # the incoherent image (5.8 x) stands above the noise bound of 2 positions (5.2)
@@ -423,7 +425,7 @@ def test_sharpness_baseline_at_extreme_scales():
 @pytest.mark.parametrize("amplitude", [1e-20, 1e20])
 def test_space_variant_fit_at_extreme_amplitudes_matches_unit_amplitude(unit_scene, amplitude):
     """The smooth-drift fit (a physical twin under a hand's drift) is scale-free too."""
-    from twinfocus.space_variant import DriftFitSettings, fit_smooth_drift
+    from twinfocus.focus.space_variant import DriftFitSettings, fit_smooth_drift
 
     def fit(s):
         phase = correlation_phase(s["ref_basis"], s["truth_reference"])
@@ -446,7 +448,7 @@ def test_space_variant_fit_at_extreme_amplitudes_matches_unit_amplitude(unit_sce
 
 
 def test_a_template_of_a_plate_that_fills_most_of_its_region_is_kept_and_noise_is_not():
-    from twinfocus.templates import NOISE_PEAK_TO_DARK, check_has_signal
+    from twinfocus.focus.signal_check import NOISE_PEAK_TO_DARK, check_has_signal
 
     yy, xx = np.mgrid[:64, :64]
     rng = np.random.default_rng(3)

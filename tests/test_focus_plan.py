@@ -1,4 +1,4 @@
-"""The focus plan (twinfocus.focus_plan): what it makes of the settings and the template, what it
+"""The focus plan (twinfocus.focus.plan): what it makes of the settings and the template, what it
 says a run needs, and the refusals it makes before any work. The command and the solver node both
 focus through it, so these hold for both."""
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
-from twinfocus.focus_plan import FocusPlan, ladder_modes
+from twinfocus.focus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
+from twinfocus.focus.plan import FocusPlan, ladder_modes
 
 AMPLITUDE = np.ones((8, 8), np.float32)
 AMPLITUDE[2:5, 3] = 4.0

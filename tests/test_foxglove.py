@@ -5,6 +5,7 @@ schema record it declares (Google's protobuf runtime building the classes from t
 FileDescriptorSet; `jsonschema` for the JSON channels), then compared with the graph message it
 came from; the images are decoded as PNG and compared with matplotlib's inferno colour map.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -81,35 +82,71 @@ def _scene():
     tmpl[2:5, 3:6] = 1.0
     tmpl[7, 10] = 0.5
     rot = np.array([0.0, 0.0, np.sin(0.2), np.cos(0.2)])
-    poses = [Pose(header=Header(STAMP + i * 1000, i, "scene"), position_m=np.array([0.01 * i, 0.002 * i, -0.5]),
-                  quat_xyzw=rot, confidence=0.5 + 0.04 * i) for i in range(10)]
+    poses = [
+        Pose(
+            header=Header(STAMP + i * 1000, i, "scene"),
+            position_m=np.array([0.01 * i, 0.002 * i, -0.5]),
+            quat_xyzw=rot,
+            confidence=0.5 + 0.04 * i,
+        )
+        for i in range(10)
+    ]
     centres = rng.normal(size=(4, 3))
-    meas = SarMeasurement(header=Header(STAMP, 0, "scene"), data=np.ones((4, 8), np.complex64), positions_m=centres,
-                          f0_hz=77e9, slope_hz_per_s=7e13, fs_hz=8e6, scan_id="s1", index=3, pose_gap_ns=2_500_000)
-    result = AutofocusResult(header=Header(STAMP, 0, "scene"), scan_id="s1", method="twin",
-                             phase_rad=rng.uniform(-3, 3, 6), loss_history=np.array([3.0, 2.0, 1.5]),
-                             metrics={"ssim_target": 0.91}, timing_s={"autofocus": 1.25})
+    meas = SarMeasurement(
+        header=Header(STAMP, 0, "scene"),
+        data=np.ones((4, 8), np.complex64),
+        positions_m=centres,
+        f0_hz=77e9,
+        slope_hz_per_s=7e13,
+        fs_hz=8e6,
+        scan_id="s1",
+        index=3,
+        pose_gap_ns=2_500_000,
+    )
+    result = AutofocusResult(
+        header=Header(STAMP, 0, "scene"),
+        scan_id="s1",
+        method="twin",
+        phase_rad=rng.uniform(-3, 3, 6),
+        loss_history=np.array([3.0, 2.0, 1.5]),
+        metrics={"ssim_target": 0.91},
+        timing_s={"autofocus": 1.25},
+    )
     status = [
         NodeStatus(header=Header(STAMP, 0), node="solver", state="running"),
         NodeStatus(header=Header(STAMP + 1, 1), node="solver", state="running"),  # unchanged: no line
         NodeStatus(header=Header(STAMP + 2, 2), node="solver", state="running", lost={"sar/measurement": 3}),
         NodeStatus(header=Header(STAMP + 3, 3), node="solver", state="error", message="boom"),
     ]
-    images = {"target": img, "target_uncorrected": np.roll(img, 3, axis=1), "reference": img[::-1].copy(),
-              "reference_uncorrected": img * np.exp(1j * np.arange(w))}
+    images = {
+        "target": img,
+        "target_uncorrected": np.roll(img, 3, axis=1),
+        "reference": img[::-1].copy(),
+        "reference_uncorrected": img * np.exp(1j * np.arange(w)),
+    }
     left = rng.integers(0, 256, size=(6, 9, 3), dtype=np.uint8)
     stereo = StereoFrame(header=Header(STAMP, 0, "camera"), left=left, right=left.copy(), camera_matrix=np.eye(3))
     msgs = [
         ("camera/stereo", stereo),
-        *[("image/focused", Image(header=Header(STAMP, 0, "scene"), name=name, scan_id="s1", image=im, x_m=x, y_m=y, z_m=0.6))
-          for name, im in images.items()],
-        ("twin/template", TwinTemplate(header=Header(STAMP, 0, "scene"), image=tmpl, x_m=x, y_m=y, z_m=0.6, kind="digital")),
+        *[
+            (
+                "image/focused",
+                Image(header=Header(STAMP, 0, "scene"), name=name, scan_id="s1", image=im, x_m=x, y_m=y, z_m=0.6),
+            )
+            for name, im in images.items()
+        ],
+        (
+            "twin/template",
+            TwinTemplate(header=Header(STAMP, 0, "scene"), image=tmpl, x_m=x, y_m=y, z_m=0.6, kind="digital"),
+        ),
         *[("vio/pose", p) for p in poses],
         ("sar/measurement", meas),
         ("autofocus/result", result),
         *[("graph/status", s) for s in status],
     ]
-    return msgs, dict(left=left, images=images, img=img, tmpl=tmpl, x=x, y=y, poses=poses, centres=centres, result=result)
+    return msgs, dict(
+        left=left, images=images, img=img, tmpl=tmpl, x=x, y=y, poses=poses, centres=centres, result=result
+    )
 
 
 def _read_back(path) -> dict[str, list]:
@@ -123,7 +160,8 @@ def _read_back(path) -> dict[str, list]:
                 continue
             assert schema is not None, f"{channel.topic}: no schema record"
             out.setdefault(channel.topic, []).append(
-                (_decode(schema.name, schema.encoding, schema.data, channel.message_encoding, message.data), message))
+                (_decode(schema.name, schema.encoding, schema.data, channel.message_encoding, message.data), message)
+            )
     return out
 
 
@@ -132,25 +170,27 @@ def _check_content(got: dict[str, list], truth: dict, stamp: int | None = STAMP)
     the moment it ran)."""
     # images: PNG pixel (i, j) = inferno(|image (i, j)| / max)
     for name, im in truth["images"].items():
-        (img_msg, _), = got[f"/image/{name}"]
+        ((img_msg, _),) = got[f"/image/{name}"]
         assert img_msg.format == "png"
         assert stamp is None or img_msg.timestamp.seconds * 10**9 + img_msg.timestamp.nanos == stamp
         rgb = _png_rgb(img_msg.data)
         assert rgb.shape == im.shape + (3,)
         assert np.abs(rgb.astype(np.int32) - _inferno_rgb(im)).max() <= 3
-    (tm, _), = got["/twin/template"]
+    ((tm, _),) = got["/twin/template"]
     assert np.abs(_png_rgb(tm.data).astype(np.int32) - _inferno_rgb(truth["tmpl"])).max() <= 3
 
     # the camera's left image, row-major RGB
-    (cam, _), = got["/camera/left"]
+    ((cam, _),) = got["/camera/left"]
     assert (cam.encoding, cam.width, cam.height, cam.step) == ("rgb8", 9, 6, 27)
     assert np.array_equal(np.frombuffer(cam.data, np.uint8).reshape(6, 9, 3), truth["left"])
 
     # template points: every pixel above 20 % of the peak, at (x_j, y_i, z), intensity = amp / peak
-    (cloud, _), = got["/twin/points"]
+    ((cloud, _),) = got["/twin/points"]
     pts = _unpack(cloud)
-    want = {(round(truth["x"][j], 6), round(truth["y"][i], 6), float(truth["tmpl"][i, j]))
-            for i, j in zip(*np.nonzero(truth["tmpl"] >= 0.2))}
+    want = {
+        (round(truth["x"][j], 6), round(truth["y"][i], 6), float(truth["tmpl"][i, j]))
+        for i, j in zip(*np.nonzero(truth["tmpl"] >= 0.2))
+    }
     assert {(round(float(p["x"]), 6), round(float(p["y"]), 6), round(float(p["intensity"]), 6)) for p in pts} == want
     assert np.allclose(pts["z"], 0.6)
 
@@ -163,19 +203,19 @@ def _check_content(got: dict[str, list], truth: dict, stamp: int | None = STAMP)
         o = fp.pose.orientation
         assert np.allclose([o.x, o.y, o.z, o.w], p.quat_xyzw)
     assert np.allclose([m["confidence"] for m, _ in got["/vio/confidence"]], [p.confidence for p in truth["poses"]])
-    (traj, _), = got["/vio/trajectory"]
+    ((traj, _),) = got["/vio/trajectory"]
     line = traj.entities[0].lines[0]
     assert np.allclose([[q.x, q.y, q.z] for q in line.points], [p.position_m for p in truth["poses"]])
 
     # phase centres as a cloud, decoded through its declared fields
-    (pc, _), = got["/sar/phase_centres"]
+    ((pc, _),) = got["/sar/phase_centres"]
     c = _unpack(pc)
     assert np.allclose(np.column_stack([c["x"], c["y"], c["z"]]), truth["centres"], atol=1e-6)
-    (q, _), = got["/sar/quality"]
+    ((q, _),) = got["/sar/quality"]
     assert {k: v for k, v in q.items() if k != "timestamp"} == {"scan_id": "s1", "index": 3, "pose_gap_ms": 2.5}
 
     # the solver's result as plottable numbers
-    (r, _), = got["/autofocus/result"]
+    ((r, _),) = got["/autofocus/result"]
     assert np.allclose(r["phase_rad"], truth["result"].phase_rad) and r["metrics"] == {"ssim_target": 0.91}
 
     # log lines: first state, the loss (a warning), the error; the unchanged heartbeat is silent
@@ -232,17 +272,25 @@ def _check_layout_names_what_exists(got: dict[str, list]) -> None:
             value = got[topic][0][0]
             name = field.split("[")[0]
             assert name in value, f"layout plots {path}: no field {name!r}"
+
     # and every panel id the tree places is configured
     def leaves(node):
         return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+
     assert sorted(leaves(layout["layout"])) == sorted(layout["configById"])
 
 
 def _unpack(cloud) -> np.ndarray:
     """A PointCloud's data as a structured array, from its declared fields (FLOAT32 = 7)."""
     assert all(f.type == 7 for f in cloud.fields)
-    dt = np.dtype({"names": [f.name for f in cloud.fields], "formats": ["<f4"] * len(cloud.fields),
-                   "offsets": [f.offset for f in cloud.fields], "itemsize": cloud.point_stride})
+    dt = np.dtype(
+        {
+            "names": [f.name for f in cloud.fields],
+            "formats": ["<f4"] * len(cloud.fields),
+            "offsets": [f.offset for f in cloud.fields],
+            "itemsize": cloud.point_stride,
+        }
+    )
     return np.frombuffer(cloud.data, dt)
 
 
@@ -279,10 +327,24 @@ def test_export_puts_a_simulated_clock_on_the_wall_clock_and_draws_the_frame_tre
 
     wall = 1_780_000_000_000_000_000  # when the run was logged
     rot = Rotation.from_euler("z", 30, degrees=True).as_quat()  # x y z w
-    poses = [Pose(header=Header(i * 50_000_000, i, "scene"), position_m=np.array([0.01 * i, 0.0, -0.5]),
-                  quat_xyzw=rot, confidence=0.9) for i in range(4)]
-    result = AutofocusResult(header=Header(wall + 9_999, 0, "scene"), scan_id="s", method="twin",
-                             phase_rad=np.zeros(3), loss_history=np.ones(2), metrics={}, timing_s={})
+    poses = [
+        Pose(
+            header=Header(i * 50_000_000, i, "scene"),
+            position_m=np.array([0.01 * i, 0.0, -0.5]),
+            quat_xyzw=rot,
+            confidence=0.9,
+        )
+        for i in range(4)
+    ]
+    result = AutofocusResult(
+        header=Header(wall + 9_999, 0, "scene"),
+        scan_id="s",
+        method="twin",
+        phase_rad=np.zeros(3),
+        loss_history=np.ones(2),
+        metrics={},
+        timing_s={},
+    )
     log = tmp_path / "sim.mcap"
     t_cr = {"translation_m": [0.0, 0.085, 0.012], "rotation_rpy_deg": [0.0, 0.0, 90.0]}
     with LogWriter(log) as w:
@@ -296,18 +358,22 @@ def test_export_puts_a_simulated_clock_on_the_wall_clock_and_draws_the_frame_tre
     _check_indexed_one_clock(out, got)
     want = [wall + i * 50_000_000 for i in range(4)]
     assert [m.log_time for _, m in got["/vio/pose"]] == want
-    (res, m), = got["/autofocus/result"]
+    ((res, m),) = got["/autofocus/result"]
     assert m.log_time == want[-1]  # the latest sensor time, not its own (wall-clock) stamp
     tf = [d for d, _ in got["/tf"]]
     body = [d for d in tf if d.parent_frame_id == "scene"]
     assert [d.child_frame_id for d in body] == ["radar"] * 4
-    assert np.allclose([[d.translation.x, d.translation.y, d.translation.z] for d in body], [p.position_m for p in poses])
+    assert np.allclose(
+        [[d.translation.x, d.translation.y, d.translation.z] for d in body], [p.position_m for p in poses]
+    )
     assert np.allclose([d.rotation.x for d in body], rot[0]) and np.allclose([d.rotation.w for d in body], rot[3])
     (cam,) = [d for d in tf if d.parent_frame_id == "radar"]
     assert cam.child_frame_id == "camera"
     # the camera's origin in the radar frame: -R^T t, R = 90 deg about z
     r = Rotation.from_euler("z", 90, degrees=True).as_matrix()
-    assert np.allclose([cam.translation.x, cam.translation.y, cam.translation.z], -r.T @ np.array(t_cr["translation_m"]))
+    assert np.allclose(
+        [cam.translation.x, cam.translation.y, cam.translation.z], -r.T @ np.array(t_cr["translation_m"])
+    )
     q = Rotation.from_matrix(r.T).as_quat()
     got_q = np.array([cam.rotation.x, cam.rotation.y, cam.rotation.z, cam.rotation.w])
     assert np.allclose(got_q, q) or np.allclose(got_q, -q)
@@ -315,7 +381,7 @@ def test_export_puts_a_simulated_clock_on_the_wall_clock_and_draws_the_frame_tre
 
 def test_record_foxglove_writes_both_and_the_log_still_plays(tmp_path):
     from nodes.recorder import Recorder
-    from nodes.testing import Probe, local_broker, running
+    from nodes.runtime.testing import Probe, local_broker, running
 
     msgs, truth = _scene()
     log = tmp_path / "rec.mcap"
@@ -357,7 +423,7 @@ def test_live_bridge_serves_the_focused_image_over_websocket():
     before the client subscribed: the bridge sends a late subscriber the last image)."""
     tornado_ws = pytest.importorskip("tornado.websocket")
     from nodes.foxglove_bridge import FoxgloveBridge
-    from nodes.testing import Probe, local_broker, running
+    from nodes.runtime.testing import Probe, local_broker, running
 
     msgs, truth = _scene()
     image = next(m for t, m in msgs if t == "image/focused" and m.name == "target")
@@ -373,7 +439,9 @@ def test_live_bridge_serves_the_focused_image_over_websocket():
                 op = json.loads(msg)
                 if op.get("op") == "advertise":
                     channel = next((c for c in op["channels"] if c["topic"] == "/image/target"), None)
-        await conn.write_message(json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": channel["id"]}]}))
+        await conn.write_message(
+            json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": channel["id"]}]})
+        )
         while True:
             msg = await conn.read_message()
             assert msg is not None, "server closed the connection"
@@ -403,7 +471,7 @@ def test_a_client_connected_before_the_first_message_still_gets_it():
     that first pose was logged; the bridge sends it the channel's latest record then."""
     tornado_ws = pytest.importorskip("tornado.websocket")
     from nodes.foxglove_bridge import FoxgloveBridge
-    from nodes.testing import Probe, local_broker, running
+    from nodes.runtime.testing import Probe, local_broker, running
 
     msgs, truth = _scene()
     pose = truth["poses"][0]
@@ -420,7 +488,9 @@ def test_a_client_connected_before_the_first_message_still_gets_it():
             if op.get("op") == "advertise":
                 channel = next((c for c in op["channels"] if c["topic"] == "/vio/pose"), None)
         sub_id = 3
-        await conn.write_message(json.dumps({"op": "subscribe", "subscriptions": [{"id": sub_id, "channelId": channel["id"]}]}))
+        await conn.write_message(
+            json.dumps({"op": "subscribe", "subscriptions": [{"id": sub_id, "channelId": channel["id"]}]})
+        )
         while True:
             msg = await conn.read_message()
             assert msg is not None, "server closed the connection"
@@ -443,15 +513,17 @@ def test_a_client_connected_before_the_first_message_still_gets_it():
         bridge = FoxgloveBridge(broker=ep, params={"port": 0})
         probe = Probe(ep, publish=["vio/pose"], wait_for=["foxglove_bridge"])
         with running(bridge, probe):
-            channel, payload = asyncio.run(asyncio.wait_for(client(bridge.port, lambda: probe.send("vio/pose", pose)), 30))
+            channel, payload = asyncio.run(
+                asyncio.wait_for(client(bridge.port, lambda: probe.send("vio/pose", pose)), 30)
+            )
     decoded = _proto_class(channel["schemaName"], base64.b64decode(channel["schema"])).FromString(payload)
     assert np.allclose([decoded.pose.position.x, decoded.pose.position.y, decoded.pose.position.z], pose.position_m)
 
 
 def test_a_volumes_bright_voxels_read_back_as_a_foxglove_point_cloud(tmp_path):
     from nodes.foxglove_convert import write_point_cloud_log
-    from twinfocus.grid import ImageGrid
-    from twinfocus.volume import bright_voxels, volume_grid
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.imaging.volume import bright_voxels, volume_grid
 
     grid = volume_grid(ImageGrid(-0.1, 0.1, -0.05, 0.05, 1.0, 5, 7), 0.5, 0.6, 0.05)
     vol = np.zeros(grid.shape, np.complex64)

@@ -3,12 +3,13 @@
 The CUDA tests carry the ``gpu`` mark (skipped without a CUDA device, tests/conftest.py); the
 torch CPU back-end is checked everywhere on a small case (it is the CUDA code on another device).
 """
+
 import numpy as np
 import pytest
 
-from twinfocus.backprojection import backproject, subimage_basis
-from twinfocus.grid import ImageGrid
-from twinfocus.radar import C_M_PER_S, Chirp, mmwcas_virtual_array
+from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array
 
 
 def speckle_scan(n_positions=12, n_points=25, seed=0):
@@ -17,7 +18,9 @@ def speckle_scan(n_positions=12, n_points=25, seed=0):
     ch = Chirp()
     va = mmwcas_virtual_array()
     pos = np.array([va.offsets_m + np.array([0.0, y, 0.0]) for y in (np.arange(n_positions) - n_positions / 2) * 0.004])
-    pts = np.column_stack([rng.uniform(-0.03, 0.03, n_points), rng.uniform(-0.03, 0.03, n_points), np.full(n_points, 0.6)])
+    pts = np.column_stack(
+        [rng.uniform(-0.03, 0.03, n_points), rng.uniform(-0.03, 0.03, n_points), np.full(n_points, 0.6)]
+    )
     amp = rng.normal(size=n_points) + 1j * rng.normal(size=n_points)
     r = np.linalg.norm(pos[:, :, None, :] - pts[None, None], axis=-1)  # (M, K, S)
     data = np.einsum("s,mksn->mkn", amp, np.exp(1j * 2 * np.pi * ch.frequencies_hz * 2 * r[..., None] / C_M_PER_S))
@@ -31,7 +34,11 @@ def _rel(a, b):
     """max |a - b| relative to the peak of b, per leading row when 2-D or more."""
     a, b = np.asarray(a), np.asarray(b)
     peak = np.abs(b).reshape(b.shape[0], -1).max(axis=1) if b.ndim > 2 else np.abs(b).max()
-    return float((np.abs(a - b).reshape(b.shape[0], -1).max(axis=1) / peak).max()) if b.ndim > 2 else float(np.abs(a - b).max() / peak)
+    return (
+        float((np.abs(a - b).reshape(b.shape[0], -1).max(axis=1) / peak).max())
+        if b.ndim > 2
+        else float(np.abs(a - b).max() / peak)
+    )
 
 
 def _compare_backends(device, precision, tol):
@@ -59,7 +66,7 @@ def test_cuda_backend_matches_numba(precision, tol):
 def test_autofocus_on_cuda_matches_cpu():
     """The paper's optimiser from the same start on both devices: float32 round-off only, so the
     same phases (up to the constant no image shows) and the same loss."""
-    from twinfocus.autofocus import AutofocusConfig, twin_autofocus
+    from twinfocus.focus.autofocus import AutofocusConfig, twin_autofocus
 
     rng = np.random.default_rng(1)
     data, pos, ch = speckle_scan(n_positions=40, n_points=40)

@@ -6,6 +6,7 @@
   vector as ``twinfocus focus`` on the equivalent scan file.
 * a crashing node stops the graph with a clear message.
 """
+
 import json
 import os
 import re
@@ -24,7 +25,7 @@ import numpy as np
 import pytest
 
 from msgs.mcap_log import LogWriter
-from nodes.testing import Probe, patience, running, write_driver_messages
+from nodes.runtime.testing import Probe, patience, running, write_driver_messages
 
 REPO = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-c", "import sys; from twinfocus.cli import main; sys.exit(main())"]
@@ -40,8 +41,13 @@ class Launched:
     """``twinfocus launch ...`` in a subprocess, its output collected by a thread."""
 
     def __init__(self, *args, cwd=REPO):
-        self.proc = subprocess.Popen([*CLI, "launch", *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     env={**os.environ, "PYTHONPATH": str(REPO)})
+        self.proc = subprocess.Popen(
+            [*CLI, "launch", *args],
+            cwd=cwd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            env={**os.environ, "PYTHONPATH": str(REPO)},
+        )
         self.lines: list[str] = []
         self.thread = threading.Thread(target=self._pump, daemon=True)
         self.thread.start()
@@ -89,16 +95,29 @@ def alive(pid: int) -> bool:
 def chromium() -> str:
     exe = shutil.which("chromium") or shutil.which("chromium-browser")
     if exe is None:
-        pytest.skip("Debian's chromium is not installed and could not be installed (make test installs it: apt-get install chromium)")
+        pytest.skip(
+            "Debian's chromium is not installed and could not be installed (make test installs it: apt-get install chromium)"
+        )
     return exe
 
 
 def browser_dom(url: str) -> str:
     """The page's DOM after its scripts ran, from a fresh headless chromium profile."""
     with tempfile.TemporaryDirectory() as profile:
-        cmd = [chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-               "--disable-component-update", "--disable-sync", "--no-first-run", f"--user-data-dir={profile}",
-               "--virtual-time-budget=5000", "--dump-dom", url]
+        cmd = [
+            chromium(),
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--no-first-run",
+            f"--user-data-dir={profile}",
+            "--virtual-time-budget=5000",
+            "--dump-dom",
+            url,
+        ]
         out = subprocess.run(cmd, capture_output=True, timeout=90)
     return out.stdout.decode(errors="replace")
 
@@ -106,11 +125,24 @@ def browser_dom(url: str) -> str:
 @pytest.mark.slow
 def test_sim_launch_focuses_shows_the_page_in_a_browser_and_stops_on_ctrl_c(tmp_path):
     port, web = free_port(), free_port()
-    g = Launched("launch/sim.yaml", f"port:={port}", f"web_port:={web}", f"out:={tmp_path}", "columns:=2", "rows:=24",
-                 "size:=24", "iterations:=10", "rate:=0")
+    g = Launched(
+        "launch/sim.yaml",
+        f"port:={port}",
+        f"web_port:={web}",
+        f"out:={tmp_path}",
+        "columns:=2",
+        "rows:=24",
+        "size:=24",
+        "iterations:=10",
+        "rate:=0",
+    )
     try:
-        probe = Probe(f"tcp://127.0.0.1:{port}", listen=["image/focused", "autofocus/result"], name="e2e_probe",
-                      params={"ready_timeout_s": 120})
+        probe = Probe(
+            f"tcp://127.0.0.1:{port}",
+            listen=["image/focused", "autofocus/result"],
+            name="e2e_probe",
+            params={"ready_timeout_s": 120},
+        )
         with running(probe, start_timeout_s=120):
             target = probe.wait_for("image/focused", 1, timeout_s=180, where=lambda m: m.name == "target")[0]
             (result,) = probe.wait_for("autofocus/result", 1, where=lambda r: not r.metrics_pending)
@@ -166,16 +198,16 @@ def test_a_crashing_node_stops_the_graph_with_a_clear_message(tmp_path):
 
 @pytest.mark.slow
 def test_replayed_log_gives_the_phase_of_twinfocus_focus_on_the_equivalent_scan(tmp_path):
-    from twinfocus.backprojection import backproject
-    from twinfocus.grid import ImageGrid
-    from twinfocus.motion import gaussian_errors
-    from twinfocus.radar import Chirp, mmwcas_virtual_array
-    from twinfocus.scan import Scan
-    from twinfocus.scenario import Scenario
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.motion.tracking_errors import gaussian_errors
+    from twinfocus.motion.trajectory import Poses, handheld_zigzag, phase_centres
+    from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+    from twinfocus.radar.scan import Scan
     from twinfocus.scene import scatterer_spacing_m
-    from twinfocus.simulate import add_thermal_noise, simulate_if
-    from twinfocus.templates import save_template
-    from twinfocus.trajectory import Poses, handheld_zigzag, phase_centres
+    from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if
+    from twinfocus.simulation.scenario import Scenario
+    from twinfocus.twins.templates import save_template
 
     # A small hand sweep of the paper's scene; VIO poses at 30 Hz with jitter, radar at 10 Hz.
     sc = Scenario(n_columns=2, n_rows=20, seed=4)
@@ -184,7 +216,9 @@ def test_replayed_log_gives_the_phase_of_twinfocus_focus_on_the_equivalent_scan(
     radar = handheld_zigzag(2, 20, rng=rng, t0_ns=10**10, column_change_s=0.3)
     t_vio = np.arange(radar.timestamps_ns[0] - 10**8, radar.timestamps_ns[-1] + 10**8, 33_333_333, dtype=np.int64)
     truth_vio = radar.interpolate(t_vio)
-    vio = Poses(t_vio, truth_vio.position_m + gaussian_errors(t_vio.size, (0.3e-3, 0.3e-3, 0.5e-3), rng), truth_vio.quat_xyzw)
+    vio = Poses(
+        t_vio, truth_vio.position_m + gaussian_errors(t_vio.size, (0.3e-3, 0.3e-3, 0.5e-3), rng), truth_vio.quat_xyzw
+    )
     pts, amps = sc.scene().scatterers(scatterer_spacing_m(0.6), 1, speckle=True)
     data = add_thermal_noise(simulate_if(pts, amps, phase_centres(radar, array), chirp), 20.0, rng)
 
@@ -203,16 +237,45 @@ def test_replayed_log_gives_the_phase_of_twinfocus_focus_on_the_equivalent_scan(
     # projections, then the optimiser: both steps of an amplitude template's estimate
     common = ["--size", "24", "--iterations", "40", "--precision", "float64", "--estimator", "projection-refined"]
     roi = lambda r: [str(v) for v in r]  # noqa: E731
-    focus = subprocess.run([*CLI, "focus", str(tmp_path / "scan.npz"), "--reference-roi", *roi(ref_roi), "--target-roi",
-                            *roi(tgt_roi), "--template", str(tmp_path / "template.npz"), "--out", str(tmp_path / "offline"),
-                            "--no-pictures", "--quiet", *common], cwd=REPO, capture_output=True, timeout=300)
+    focus = subprocess.run(
+        [
+            *CLI,
+            "focus",
+            str(tmp_path / "scan.npz"),
+            "--reference-roi",
+            *roi(ref_roi),
+            "--target-roi",
+            *roi(tgt_roi),
+            "--template",
+            str(tmp_path / "template.npz"),
+            "--out",
+            str(tmp_path / "offline"),
+            "--no-pictures",
+            "--quiet",
+            *common,
+        ],
+        cwd=REPO,
+        capture_output=True,
+        timeout=300,
+    )
     assert focus.returncode == 0, focus.stderr.decode()
 
     yaml_list = lambda r: "[" + ",".join(roi(r)) + "]"  # noqa: E731
-    g = Launched("launch/replay.yaml", f"log:={tmp_path / 'run.mcap'}", f"out:={tmp_path / 'graph'}",
-                 f"template:={tmp_path / 'template.npz'}", f"port:={free_port()}", "web_port:=0", "size:=24",
-                 "iterations:=40", "precision:=float64", "estimator:=projection-refined", f"reference_roi:={yaml_list(ref_roi)}",
-                 f"target_roi:={yaml_list(tgt_roi)}", "rate:=4")
+    g = Launched(
+        "launch/replay.yaml",
+        f"log:={tmp_path / 'run.mcap'}",
+        f"out:={tmp_path / 'graph'}",
+        f"template:={tmp_path / 'template.npz'}",
+        f"port:={free_port()}",
+        "web_port:=0",
+        "size:=24",
+        "iterations:=40",
+        "precision:=float64",
+        "estimator:=projection-refined",
+        f"reference_roi:={yaml_list(ref_roi)}",
+        f"target_roi:={yaml_list(tgt_roi)}",
+        "rate:=4",
+    )
     try:
         code = g.wait(300)
     finally:

@@ -7,6 +7,7 @@ start offset, and a node that is respawned. Graphs are small (2 x 30 positions, 
 case is seconds of work; the per-node cases are marked slow (tests/test_graph.py's crashing node is the
 quick check).
 """
+
 import os
 import re
 import shutil
@@ -21,7 +22,7 @@ import pytest
 
 from msgs import Header, TwinTemplate
 from msgs.mcap_log import LogReader, LogWriter
-from nodes.testing import patience
+from nodes.runtime.testing import patience
 from tests.test_graph import CLI, REPO, Launched, alive, free_port
 
 SMALL = ["columns:=2", "rows:=30", "size:=16", "iterations:=5", "web_port:=0"]
@@ -107,9 +108,14 @@ def test_a_stopped_launcher_leaves_no_node_behind(tmp_path, sig):
 @pytest.mark.slow  # 16 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 @pytest.mark.timeout(240)
 def test_a_respawned_node_comes_back_and_the_graph_focuses(tmp_path):
-    launch = (REPO / "launch" / "sim.yaml").read_text().replace(
-        "  - name: synchronizer\n    node: synchronizer\n",
-        "  - name: synchronizer\n    node: synchronizer\n    respawn: true\n    respawn_delay: 0.2\n")
+    launch = (
+        (REPO / "launch" / "sim.yaml")
+        .read_text()
+        .replace(
+            "  - name: synchronizer\n    node: synchronizer\n",
+            "  - name: synchronizer\n    node: synchronizer\n    respawn: true\n    respawn_delay: 0.2\n",
+        )
+    )
     path = tmp_path / "respawn.yaml"
     path.write_text(launch)
     shutil.copy(REPO / "launch" / "paper.yaml", tmp_path / "paper.yaml")  # what sim.yaml includes, beside it
@@ -128,15 +134,16 @@ def test_a_respawned_node_comes_back_and_the_graph_focuses(tmp_path):
 
 # -- logs -----------------------------------------------------------------------------------------
 
+
 def small_log(path: Path, n_frames: int = 30, template: bool = True, seed: int = 0) -> None:
     """A replayable log: poses at 30 Hz around n_frames radar frames of a point scene."""
-    from nodes.testing import write_driver_messages
-    from twinfocus.backprojection import backproject
-    from twinfocus.grid import ImageGrid
-    from twinfocus.radar import Chirp, mmwcas_virtual_array
-    from twinfocus.scenario import Scenario, scenario_poses, scenario_scatterers
-    from twinfocus.simulate import simulate_if
-    from twinfocus.trajectory import phase_centres
+    from nodes.runtime.testing import write_driver_messages
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.motion.trajectory import phase_centres
+    from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+    from twinfocus.simulation.if_simulator import simulate_if
+    from twinfocus.simulation.scenario import Scenario, scenario_poses, scenario_scatterers
 
     sc = Scenario(n_columns=1, n_rows=n_frames, seed=seed, snr_db=None)
     chirp, array = Chirp(), mmwcas_virtual_array()
@@ -149,20 +156,39 @@ def small_log(path: Path, n_frames: int = 30, template: bool = True, seed: int =
     image = np.abs(backproject(data, phase_centres(radar, array), chirp, grid)).astype(np.float32)
     with LogWriter(path, overwrite=True) as w:
         if template:
-            w.write("twin/template", TwinTemplate(header=Header(10**10 - 10**9, 0, "scene"), kind="physical", source="test",
-                                                   image=image, x_m=grid.x_m, y_m=grid.y_m,
-                                                   z_m=grid.z), log_time_ns=10**10 - 10**9)
+            w.write(
+                "twin/template",
+                TwinTemplate(
+                    header=Header(10**10 - 10**9, 0, "scene"),
+                    kind="physical",
+                    source="test",
+                    image=image,
+                    x_m=grid.x_m,
+                    y_m=grid.y_m,
+                    z_m=grid.z,
+                ),
+                log_time_ns=10**10 - 10**9,
+            )
         write_driver_messages(w, radar, vio, data, chirp, array)
 
 
 def replay(tmp_path, log: Path, *extra) -> Launched:
     roi = lambda r: "[" + ",".join(str(v) for v in r) + "]"  # noqa: E731
-    from twinfocus.scenario import Scenario
+    from twinfocus.simulation.scenario import Scenario
 
     sc = Scenario(n_columns=1, n_rows=30)
-    return Launched("launch/replay.yaml", f"log:={log}", f"out:={tmp_path / 'out'}", f"port:={free_port()}", "web_port:=0",
-                    "size:=16", "iterations:=5", f"reference_roi:={roi(sc.reference_roi())}",
-                    f"target_roi:={roi(sc.target_roi())}", *extra)
+    return Launched(
+        "launch/replay.yaml",
+        f"log:={log}",
+        f"out:={tmp_path / 'out'}",
+        f"port:={free_port()}",
+        "web_port:=0",
+        "size:=16",
+        "iterations:=5",
+        f"reference_roi:={roi(sc.reference_roi())}",
+        f"target_roi:={roi(sc.target_roi())}",
+        *extra,
+    )
 
 
 @pytest.mark.slow  # 15 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
@@ -195,7 +221,7 @@ def test_a_log_damaged_in_the_middle_reads_on_past_the_damage(tmp_path):
     # 9 + 22 bytes before its payload) and the start of its payload: the walk breaks there.
     hit = data.find(logged[12].blob) - 9 - 22
     assert hit > 0
-    data[hit:hit + 40] = b"\xff" * 40
+    data[hit : hit + 40] = b"\xff" * 40
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(bytes(data))
     r = LogReader(bad)
@@ -213,11 +239,13 @@ def test_a_replay_with_a_start_offset_keeps_the_template(tmp_path):
     small_log(log)
     # The template is logged 1 s before the first pose: an offset of 1.5 s starts past it.
     from nodes.player import Player
-    from nodes.testing import Probe, local_broker, running
+    from nodes.runtime.testing import Probe, local_broker, running
 
     with local_broker() as endpoint:
         probe = Probe(endpoint, listen=["twin/template", "radar/frame"], name="probe")
-        player = Player(params={"log": str(log), "rate": 0.0, "start_offset_s": 1.5, "wait_for": ["probe"]}, broker=endpoint)
+        player = Player(
+            params={"log": str(log), "rate": 0.0, "start_offset_s": 1.5, "wait_for": ["probe"]}, broker=endpoint
+        )
         with running(probe, player):
             (tpl,) = probe.wait_for("twin/template", 1, timeout_s=30)
             frames = probe.wait_for("radar/frame", 1, timeout_s=30)
@@ -226,6 +254,7 @@ def test_a_replay_with_a_start_offset_keeps_the_template(tmp_path):
 
 # -- recordings and ports -------------------------------------------------------------------------
 
+
 @pytest.mark.slow  # 11 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_a_failed_recording_keeps_the_earlier_log_and_leaves_no_file(tmp_path):
     earlier = tmp_path / "y.mcap"
@@ -233,8 +262,13 @@ def test_a_failed_recording_keeps_the_earlier_log_and_leaves_no_file(tmp_path):
     before = earlier.read_bytes()
     dead = f"tcp://127.0.0.1:{free_port()}"  # no broker there
     t = time.monotonic()
-    out = subprocess.run([*CLI, "record", "-o", str(earlier), "--overwrite", "--broker", dead], cwd=REPO,
-                         capture_output=True, timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
+    out = subprocess.run(
+        [*CLI, "record", "-o", str(earlier), "--overwrite", "--broker", dead],
+        cwd=REPO,
+        capture_output=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
     text = (out.stdout + out.stderr).decode()
     assert out.returncode == 2, text
     assert "no broker answered" in text and "--broker" in text and "Traceback" not in text, text

@@ -1,7 +1,7 @@
 """The live graph's hand sweep against ``twinfocus focus`` of the same scan.
 
 ``twinfocus launch sim trajectory:=zigzag error_model:=hand``: the simulated tracker carries the
-hand's drift and the array's turn in its poses (nodes/sim_backends.py), so the solver fits the
+hand's drift and the array's turn in its poses (nodes/runtime/sim_backends.py), so the solver fits the
 drift + tilt on a hand-held scan; ``twinfocus simulate --trajectory zigzag --error-model hand`` +
 ``twinfocus focus`` is the same scan offline (its phase centres within 0.4 um of the live ones:
 the tracked pose turns the array exactly where the simulation turns it to first order). The two
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from tests.test_graph import CLI, REPO, Launched, free_port
-from twinfocus.metrics import image_ssim
-from twinfocus.scenario import Scenario
+from twinfocus.imaging.metrics import image_ssim
+from twinfocus.simulation.scenario import Scenario
 
 
 @pytest.mark.slow
@@ -29,20 +29,64 @@ def test_live_hand_sweep_equals_offline_focus(tmp_path):
     yaml_list = lambda r: "[" + ",".join(roi(r)) + "]"  # noqa: E731
     scene = ["--columns", cols, "--rows", rows, "--seed", seed, "--trajectory", "zigzag", "--error-model", "hand"]
     sim = subprocess.run(
-        [*CLI, "simulate", *scene, "--out", str(tmp_path / "scan.npz"), "--template-out", str(tmp_path / "ref.npz"),
-         "--quiet"], cwd=REPO, capture_output=True, timeout=300)
+        [
+            *CLI,
+            "simulate",
+            *scene,
+            "--out",
+            str(tmp_path / "scan.npz"),
+            "--template-out",
+            str(tmp_path / "ref.npz"),
+            "--quiet",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        timeout=300,
+    )
     assert sim.returncode == 0, sim.stderr.decode()
     focus = subprocess.run(
-        [*CLI, "focus", str(tmp_path / "scan.npz"), "--template-scan", str(tmp_path / "ref.npz"),
-         "--reference-roi", *roi(sc.reference_roi()), "--target-roi", *roi(sc.target_roi()), "--size", size,
-         "--iterations", iterations, "--out", str(tmp_path / "offline"), "--no-pictures", "--quiet"],
-        cwd=REPO, capture_output=True, timeout=600)
+        [
+            *CLI,
+            "focus",
+            str(tmp_path / "scan.npz"),
+            "--template-scan",
+            str(tmp_path / "ref.npz"),
+            "--reference-roi",
+            *roi(sc.reference_roi()),
+            "--target-roi",
+            *roi(sc.target_roi()),
+            "--size",
+            size,
+            "--iterations",
+            iterations,
+            "--out",
+            str(tmp_path / "offline"),
+            "--no-pictures",
+            "--quiet",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        timeout=600,
+    )
     assert focus.returncode == 0, focus.stderr.decode()
 
-    g = Launched("launch/sim.yaml", f"port:={free_port()}", "web_port:=0", f"out:={tmp_path / 'graph'}",
-                 f"columns:={cols}", f"rows:={rows}", f"seed:={seed}", "trajectory:=zigzag", "error_model:=hand",
-                 f"size:={size}", f"iterations:={iterations}", "rate:=0", "exit_after:=1",
-                 f"reference_roi:={yaml_list(sc.reference_roi())}", f"target_roi:={yaml_list(sc.target_roi())}")
+    g = Launched(
+        "launch/sim.yaml",
+        f"port:={free_port()}",
+        "web_port:=0",
+        f"out:={tmp_path / 'graph'}",
+        f"columns:={cols}",
+        f"rows:={rows}",
+        f"seed:={seed}",
+        "trajectory:=zigzag",
+        "error_model:=hand",
+        f"size:={size}",
+        f"iterations:={iterations}",
+        "rate:=0",
+        "exit_after:=1",
+        f"reference_roi:={yaml_list(sc.reference_roi())}",
+        f"target_roi:={yaml_list(sc.target_roi())}",
+    )
     try:
         code = g.wait(600)
     finally:
@@ -63,4 +107,6 @@ def test_live_hand_sweep_equals_offline_focus(tmp_path):
     live, off = np.load(live_dir / "target.npy"), np.load(off_dir / "target.npy")
     assert image_ssim(live, off) > 0.995, image_ssim(live, off)
     assert abs(live_m["target_ssim_corrected"] - off_m["target_ssim_corrected"]) < 0.005, (
-        live_m["target_ssim_corrected"], off_m["target_ssim_corrected"])
+        live_m["target_ssim_corrected"],
+        off_m["target_ssim_corrected"],
+    )

@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nodes.node import Node
-from nodes.testing import Probe, local_broker
+from nodes.runtime.node import Node
+from nodes.runtime.testing import Probe, local_broker
 from tests.test_graph import CLI, REPO, Launched, free_port
 from tests.test_graph_faults import wait_text
 
@@ -65,8 +65,8 @@ class Everything(Node):
 
 
 def _template_file(tmp_path: Path) -> Path:
-    from twinfocus.grid import ImageGrid
-    from twinfocus.templates import save_template
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.twins.templates import save_template
 
     grid = ImageGrid.from_roi(REF_ROI, 12)
     path = tmp_path / "t.npz"
@@ -91,11 +91,19 @@ def test_the_template_reaches_its_subscriber_whatever_the_start_order(tmp_path, 
                 "template": lambda wait_for=wait_for: TemplateBuilder(
                     name="template",
                     broker=ep,
-                    params={"source": "file", "path": str(path), "reference_roi": REF_ROI, "size": 12,
-                            "wait_for": wait_for, "heartbeat_s": 0.2},
+                    params={
+                        "source": "file",
+                        "path": str(path),
+                        "reference_roi": REF_ROI,
+                        "size": 12,
+                        "wait_for": wait_for,
+                        "heartbeat_s": 0.2,
+                    },
                 ),
                 "probe": lambda wait_for=wait_for: Probe(ep, listen=["twin/template"], wait_for=wait_for),
-                "everything": lambda wait_for=wait_for: Everything(broker=ep, params={"wait_for": wait_for, "heartbeat_s": 0.2}),
+                "everything": lambda wait_for=wait_for: Everything(
+                    broker=ep, params={"wait_for": wait_for, "heartbeat_s": 0.2}
+                ),
             }
             nodes, threads = {}, []
             try:
@@ -126,7 +134,7 @@ def test_a_node_is_ready_only_once_its_own_subscriptions_reached_the_broker(tmp_
     import zmq
 
     from msgs import Header, Image
-    from nodes.bus import discover
+    from nodes.runtime.bus import discover
 
     with local_broker() as ep:
         everything = Everything(broker=ep, params={"heartbeat_s": 0.2})
@@ -171,8 +179,10 @@ def test_a_node_is_ready_only_once_its_own_subscriptions_reached_the_broker(tmp_
             threads.append(t)
             wait_until("late ready", lambda: late.state != "starting")
             img = np.zeros((2, 2), np.complex64)
-            sender.send("image/focused", Image(header=Header(), name="x", image=img, x_m=np.arange(2.0),
-                                               y_m=np.arange(2.0), z_m=0.3))
+            sender.send(
+                "image/focused",
+                Image(header=Header(), name="x", image=img, x_m=np.arange(2.0), y_m=np.arange(2.0), z_m=0.3),
+            )
             assert late.wait_for("image/focused", 1, timeout_s=60)[0].name == "x"
         finally:
             for n in (everything, sender, late):
@@ -246,7 +256,9 @@ def test_a_stopped_node_is_named_and_the_result_is_marked_incomplete(tmp_path):
     finally:
         g.kill()
     assert code == 1, g.text
-    assert re.search(r"node 'synchronizer' stopped answering \(no heartbeat for [\d.]+ s; its process is stopped", g.text), g.text
+    assert re.search(
+        r"node 'synchronizer' stopped answering \(no heartbeat for [\d.]+ s; its process is stopped", g.text
+    ), g.text
     assert "Traceback" not in g.text, g.text
     m = json.loads((out / "focus" / "sim.incomplete" / "metrics.json").read_text())
     assert m["complete"] is False and "before its last measurement" in m["incomplete_reason"]
@@ -272,16 +284,25 @@ def test_a_stopped_node_that_may_respawn_is_replaced_and_the_graph_focuses(tmp_p
     finally:
         g.kill()
     assert code == 0, g.text
-    assert re.search(r"node 'synchronizer' stopped answering .*; respawning it in 0.2 s \(respawn 1 of 3\)", g.text), g.text
+    assert re.search(r"node 'synchronizer' stopped answering .*; respawning it in 0.2 s \(respawn 1 of 3\)", g.text), (
+        g.text
+    )
     assert re.search(r"focused scan 'sim': \d+ positions", g.text), g.text
 
 
 @pytest.mark.timeout(120)
-@pytest.mark.parametrize("command, words", [
-    # the tallest letters the options allow (5 m), close up: 0.1 mm scatterer spacing
-    (["simulate", "--out", "{tmp}/s.npz", "--height", "5", "--target-height", "5", "--distance", "0.05"], "placing this scene's"),
-    (["render", "--out", "{tmp}/r", "--width", "1000000", "--height-px", "1000000"], "this rendering needs about"),
-], ids=["simulate-height", "render-picture"])
+@pytest.mark.parametrize(
+    "command, words",
+    [
+        # the tallest letters the options allow (5 m), close up: 0.1 mm scatterer spacing
+        (
+            ["simulate", "--out", "{tmp}/s.npz", "--height", "5", "--target-height", "5", "--distance", "0.05"],
+            "placing this scene's",
+        ),
+        (["render", "--out", "{tmp}/r", "--width", "1000000", "--height-px", "1000000"], "this rendering needs about"),
+    ],
+    ids=["simulate-height", "render-picture"],
+)
 def test_what_cannot_fit_in_memory_is_refused_before_it_allocates(tmp_path, command, words):
     """Terabytes asked for: one line, status 2, nothing written (before, the check itself
     allocated them and ended in a traceback)."""

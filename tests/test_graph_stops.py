@@ -26,7 +26,7 @@ from pathlib import Path
 import pytest
 
 from msgs.mcap_log import LogReader
-from nodes.testing import patience
+from nodes.runtime.testing import patience
 from tests.test_graph import CLI, REPO, Launched, free_port
 from tests.test_graph_faults import SMALL, pids_by_name, replay, small_log
 from tests.test_log_faults import damage_frame, frames_log
@@ -63,8 +63,9 @@ def test_a_stopped_solver_fails_the_run_keeps_the_earlier_log_and_counts_the_sca
     earlier = frames_log(out / "graph.mcap", n=5)  # a good earlier log where the recorder writes
     before = sha256(earlier)
     # rate 0.5: the 60 frames take 12 s, so the solver is mid-scan when it is stopped
-    g = Launched("launch/sim.yaml", f"port:={free_port()}", f"out:={out}", *SMALL, "rate:=0.5",
-                 "exit_after:=1", "record:=true")
+    g = Launched(
+        "launch/sim.yaml", f"port:={free_port()}", f"out:={out}", *SMALL, "rate:=0.5", "exit_after:=1", "record:=true"
+    )
     try:
         wait_recorded(g, out, "sar/measurement", 10)
         os.kill(pids_by_name(g)["solver"], sig)
@@ -92,11 +93,14 @@ def test_a_stopped_solver_fails_the_run_keeps_the_earlier_log_and_counts_the_sca
     assert m["n_positions_expected"] == paired, (m, paired)
     assert m["n_positions_missing"] == paired - m["n_positions"] >= 0, m
     if m["n_positions_missing"]:
-        assert (f"scan 'sim': {m['n_positions_missing']} of its {paired} positions never reached the solver "
-                f"before it stopped; focused the {m['n_positions']} that did") in g.text, g.text
+        assert (
+            f"scan 'sim': {m['n_positions_missing']} of its {paired} positions never reached the solver "
+            f"before it stopped; focused the {m['n_positions']} that did"
+        ) in g.text, g.text
 
 
 # -- replays of cut and damaged logs --------------------------------------------------------------
+
 
 @pytest.mark.timeout(300)
 def test_a_replay_of_a_log_cut_in_half_exits_non_zero_and_says_what_it_lacked(tmp_path):
@@ -140,7 +144,7 @@ def test_a_replay_of_a_log_with_a_damaged_frame_exits_non_zero_and_counts_it(tmp
 
 
 def test_play_of_a_cut_log_exits_1_and_says_where_it_was_cut(tmp_path, capfd):
-    from nodes.testing import local_broker
+    from nodes.runtime.testing import local_broker
     from twinfocus.cli import main
 
     log = frames_log(tmp_path / "run.mcap", n=40)
@@ -158,19 +162,27 @@ def test_play_of_a_cut_log_exits_1_and_says_where_it_was_cut(tmp_path, capfd):
 
 # -- launch arguments -----------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize(
     "arg, words",
-    [("rows:=abc", "argument rows (default 130) must be an integer, got 'abc'"),
-     ("record:=maybe", "argument record (default False) must be true or false, got 'maybe'"),
-     ("estimator:=bogus", "node 'solver': parameter 'estimator' must be one of auto"),
-     ("rows:=-5", "argument rows (default 130) must be >= 2, got -5"),
-     ("rate:=nan", "argument rate (default 4.0) must be a number, got 'nan'"),
-     ("web_port:=70000", "argument web_port (default 8765) must be >= 0 and <= 65535, got 70000")],
+    [
+        ("rows:=abc", "argument rows (default 130) must be an integer, got 'abc'"),
+        ("record:=maybe", "argument record (default False) must be true or false, got 'maybe'"),
+        ("estimator:=bogus", "node 'solver': parameter 'estimator' must be one of auto"),
+        ("rows:=-5", "argument rows (default 130) must be >= 2, got -5"),
+        ("rate:=nan", "argument rate (default 4.0) must be a number, got 'nan'"),
+        ("web_port:=70000", "argument web_port (default 8765) must be >= 0 and <= 65535, got 70000"),
+    ],
 )
 def test_a_bad_launch_argument_is_one_line_and_exit_2_before_any_node_starts(tmp_path, arg, words):
     t = time.monotonic()
-    out = subprocess.run([*CLI, "launch", "launch/sim.yaml", f"port:={free_port()}", f"out:={tmp_path}", arg],
-                         cwd=REPO, capture_output=True, timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
+    out = subprocess.run(
+        [*CLI, "launch", "launch/sim.yaml", f"port:={free_port()}", f"out:={tmp_path}", arg],
+        cwd=REPO,
+        capture_output=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
     text = (out.stdout + out.stderr).decode()
     assert out.returncode == 2, text
     assert len(text.strip().splitlines()) == 1 and words in text, text

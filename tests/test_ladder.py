@@ -1,25 +1,26 @@
-"""The ladder of correction models (twinfocus.ladder): each rung against a brute-force sum or an
+"""The ladder of correction models (twinfocus.focus.ladder): each rung against a brute-force sum or an
 injected error, the knob's modes, the ``model`` record and its aliases, the refusals."""
+
 import json
 
 import numpy as np
 import pytest
 
-from twinfocus.autofocus import AutofocusConfig
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import TWIN_RUNGS, estimator_settings
-from twinfocus.focus_plan import FocusPlan, build_rungs, climbs_to
-from twinfocus.grid import ImageGrid
-from twinfocus.ladder import (
+from twinfocus.focus.autofocus import AutofocusConfig
+from twinfocus.focus.estimators import TWIN_RUNGS, estimator_settings
+from twinfocus.focus.ladder import (
     FAST_FIT,
     Problem,
     complex_match,
     heldout_gain,
     heldout_verdict,
 )
-from twinfocus.pipeline import Bases, Reference
-from twinfocus.radar import Chirp
-from twinfocus.rungs import RUNGS, ReferenceFree, climb
+from twinfocus.focus.pipeline import Bases, Reference
+from twinfocus.focus.plan import FocusPlan, build_rungs, climbs_to
+from twinfocus.focus.rungs import RUNGS, ReferenceFree, climb
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.radar.fmcw import Chirp
 
 M, N = 40, 16
 GRID = ImageGrid(-0.02, 0.02, -0.02, 0.02, 0.3, N, N)
@@ -181,10 +182,10 @@ def test_a_real_drift_is_kept():
     """A hand's drift and rotation on a small simulated scan (2 x 20 positions, 20 x 20 pixels):
     the drift, fitted on half the reference's blocks, matches the other half better; kept, the
     reference is nearer its image on the true positions than with one phase per position."""
-    from twinfocus.backprojection import backproject, subimage_basis
-    from twinfocus.metrics import image_ssim
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
-    from twinfocus.templates import template_from_scan
+    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.imaging.metrics import image_ssim
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.twins.templates import template_from_scan
 
     sc = Scenario(reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand",
                   error_sigma_m=(0.8e-3,) * 3, n_columns=2, n_rows=20, seed=1)  # fmt: skip
@@ -293,11 +294,46 @@ def test_focus_model_knob_end_to_end(tmp_path):
     from twinfocus.cli import main
 
     d = tmp_path / "sim"
-    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"), "--columns", "2",
-                 "--rows", "24", "--quiet", "--seed", "5"]) == 0
-    common = ["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
-              "--target-roi", "0.02", "0.13", "-0.11", "0.12", "0.6", "--size", "32", "--quiet",
-              "--template-scan", str(d / "tpl.npz")]
+    assert (
+        main(
+            [
+                "simulate",
+                "--out",
+                str(d / "scan.npz"),
+                "--template-out",
+                str(d / "tpl.npz"),
+                "--columns",
+                "2",
+                "--rows",
+                "24",
+                "--quiet",
+                "--seed",
+                "5",
+            ]
+        )
+        == 0
+    )
+    common = [
+        "focus",
+        str(d / "scan.npz"),
+        "--reference-roi",
+        "-0.15",
+        "0.0",
+        "-0.11",
+        "0.12",
+        "0.6",
+        "--target-roi",
+        "0.02",
+        "0.13",
+        "-0.11",
+        "0.12",
+        "0.6",
+        "--size",
+        "32",
+        "--quiet",
+        "--template-scan",
+        str(d / "tpl.npz"),
+    ]
     assert main([*common, "--out", str(tmp_path / "fast"), "--model", "fast", "--pictures", "all"]) == 0
     m = json.loads((tmp_path / "fast" / "metrics.json").read_text())
     assert m["model"]["asked"] == "fast"
@@ -319,7 +355,7 @@ def test_the_half_array_bases_are_a_stage_of_their_own_in_the_timings():
     """``timings_s``: the tilt's back-projection of half the channels as ``half_array_bases``, the
     kept drift or tilt rung's time less it as ``space_variant``, the estimate's rungs summed as
     ``autofocus``; a rung not kept gives no ``space_variant``."""
-    from twinfocus.ladder import rung_timings
+    from twinfocus.focus.ladder import rung_timings
 
     def section(tilt_kept: bool) -> dict:
         return {"rungs": [
@@ -343,8 +379,8 @@ def test_a_grid_of_every_kth_pixel_is_the_slice_of_the_whole_grids_images():
     """``ImageGrid.every``: the same points as the whole grid's ``[::rows, ::columns]``, so the
     sub-image basis formed on it is that slice of the whole one (a brute-force back-projection of
     each); a stride that leaves fewer than 2 pixels, or one that is not a whole number, is refused."""
-    from twinfocus.backprojection import subimage_basis
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.imaging.backprojection.numba_backend import subimage_basis
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
 
     sc = Scenario(n_columns=2, n_rows=6, seed=2)
     scan, _ = simulate_scenario(sc)
@@ -370,7 +406,7 @@ def test_fast_forms_a_physical_twins_reference_at_its_resolution_and_nothing_els
     k-th pixel, k the most pixels that fit in ``FAST_REFERENCE_CELL_SHARE`` of a resolution cell
     lambda R / (2 L), at least ``FAST_REFERENCE_MIN_SIDE`` pixels a side; any other model, an
     amplitude template or an outline (a digital twin's) keeps every pixel."""
-    from twinfocus.ladder import FAST_REFERENCE_CELL_SHARE, FAST_REFERENCE_MIN_SIDE, fast_reference
+    from twinfocus.focus.ladder import FAST_REFERENCE_CELL_SHARE, FAST_REFERENCE_MIN_SIDE, fast_reference
 
     chirp = Chirp()
     lam = chirp.wavelength_m
@@ -404,13 +440,13 @@ def test_fast_on_a_reference_at_its_resolution_focuses_as_on_every_pixel(monkeyp
     grid: the reference is formed on every other pixel (its outputs on that grid, the strides in
     the ``model`` record), and the target reaches what fast gives on every pixel, against the image
     on the true positions."""
-    import twinfocus.ladder as ladder
-    from twinfocus.backprojection import backproject
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.metrics import image_ssim
-    from twinfocus.pipeline import Reference
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
-    from twinfocus.templates import template_from_scan
+    import twinfocus.focus.ladder as ladder
+    from twinfocus.focus.pipeline import Reference
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.metrics import image_ssim
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.twins.templates import template_from_scan
 
     sc = Scenario(reference="H", target="S", separation_deg=16.3, snr_db=15, error_model="hand",
                   error_sigma_m=(0.8e-3,) * 3, n_columns=2, n_rows=24, seed=3)  # fmt: skip

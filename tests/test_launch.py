@@ -1,5 +1,6 @@
-"""nodes.launch: finding launch files from any folder, shared argument files (``include:``),
-and the paper's values in launch/paper.yaml agreeing with twinfocus.scenario."""
+"""nodes.runtime.launch: finding launch files from any folder, shared argument files (``include:``),
+and the paper's values in launch/paper.yaml agreeing with twinfocus.simulation.scenario."""
+
 from __future__ import annotations
 
 import os
@@ -10,17 +11,21 @@ from pathlib import Path
 import pytest
 import yaml
 
-from nodes import launch
-from twinfocus.autofocus import AutofocusConfig
+from nodes.runtime import launch
 from twinfocus.errors import TwinFocusError
-from twinfocus.scenario import PAPER_IMAGE_SIZE, PAPER_ITERATIONS, PAPER_REFERENCE_ROI, PAPER_TARGET_ROI
+from twinfocus.focus.autofocus import AutofocusConfig
+from twinfocus.simulation.scenario import PAPER_IMAGE_SIZE, PAPER_ITERATIONS, PAPER_REFERENCE_ROI, PAPER_TARGET_ROI
 
 REPO = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-c", "import sys; from twinfocus.cli import main; sys.exit(main())"]
 # The arguments each bundled file requires (no default).
 REQUIRED = {"sim": [], "live": ["template:=t.npz"], "replay": ["log:=run.mcap"]}
-SHARED = {"reference_roi": list(PAPER_REFERENCE_ROI), "target_roi": list(PAPER_TARGET_ROI),
-          "size": PAPER_IMAGE_SIZE, "iterations": PAPER_ITERATIONS}
+SHARED = {
+    "reference_roi": list(PAPER_REFERENCE_ROI),
+    "target_roi": list(PAPER_TARGET_ROI),
+    "size": PAPER_IMAGE_SIZE,
+    "iterations": PAPER_ITERATIONS,
+}
 
 
 def test_paper_yaml_holds_the_scenario_values():
@@ -51,11 +56,18 @@ def _write(path: Path, doc: dict) -> Path:
 
 
 def _graph_doc(**extra) -> dict:
-    return {**extra, "nodes": [{"name": "s", "node": "solver", "parameters": {"size": "$(arg size)", "reference_roi": "$(arg roi)"}}]}
+    return {
+        **extra,
+        "nodes": [
+            {"name": "s", "node": "solver", "parameters": {"size": "$(arg size)", "reference_roi": "$(arg roi)"}}
+        ],
+    }
 
 
 def test_includes_resolve_relative_to_the_launch_file_not_the_working_folder(tmp_path, monkeypatch):
-    _write(tmp_path / "conf" / "shared" / "geometry.yaml", {"arguments": {"size": {"default": 64}, "roi": [1, 2, 3, 4, 5]}})
+    _write(
+        tmp_path / "conf" / "shared" / "geometry.yaml", {"arguments": {"size": {"default": 64}, "roi": [1, 2, 3, 4, 5]}}
+    )
     lf = _write(tmp_path / "conf" / "g.yaml", _graph_doc(include=["shared/geometry.yaml"]))
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
@@ -98,7 +110,9 @@ def test_bundled_files_are_found_by_name_from_any_folder(tmp_path, monkeypatch):
     for name in ("sim", "sim.yaml", "launch/sim.yaml", str(want)):
         assert launch.find_launch_file(name) == want, name
     # A path that names another folder is not silently replaced by the bundled file of that name.
-    with pytest.raises(TwinFocusError, match=r"nowhere/sim.yaml: no such launch file \(bundled in .*: live, replay, sim\)"):
+    with pytest.raises(
+        TwinFocusError, match=r"nowhere/sim.yaml: no such launch file \(bundled in .*: live, replay, sim\)"
+    ):
         launch.find_launch_file("nowhere/sim.yaml")
     # A file in the working folder wins over a bundled one of the same name.
     mine = _write(tmp_path / "sim.yaml", _graph_doc(arguments={"size": 1, "roi": 2}))
@@ -115,11 +129,23 @@ def test_without_the_bundled_folder_the_error_says_so(tmp_path, monkeypatch):
 def test_cli_launch_show_from_another_folder(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     for name in ("launch/sim.yaml", "sim"):
-        r = subprocess.run([*CLI, "launch", "--show", name, "size:=40"], cwd=tmp_path, env=env, capture_output=True,
-                           text=True, timeout=60)
+        r = subprocess.run(
+            [*CLI, "launch", "--show", name, "size:=40"],
+            cwd=tmp_path,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert r.returncode == 0, r.stderr
         assert r.stdout.splitlines()[0].startswith(f"# {REPO / 'launch' / 'sim.yaml'}:")
         assert "reference_roi=[-0.15, 0.0, -0.11, 0.12, 0.6]" in r.stdout and "size=40" in r.stdout
-    r = subprocess.run([*CLI, "launch", "--show", "launch/nosuch.yaml"], cwd=tmp_path, env=env, capture_output=True,
-                       text=True, timeout=60)
+    r = subprocess.run(
+        [*CLI, "launch", "--show", "launch/nosuch.yaml"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "no such launch file" in r.stderr

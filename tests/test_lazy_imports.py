@@ -1,6 +1,7 @@
 """Heavy libraries load only on the paths that use them, and the torch-free replacements equal
 what they replace: numpy SSIM vs the torch SSIM the optimiser differentiates, the Pillow summary's
 colour map vs matplotlib's."""
+
 import subprocess
 import sys
 
@@ -17,18 +18,23 @@ def _loaded_after(imports: str) -> list[str]:
 
 
 def test_focus_command_and_numerics_import_no_heavy_library():
-    assert _loaded_after("import twinfocus.cli.focus, twinfocus.backprojection, twinfocus.templates, "
-                         "twinfocus.cache, twinfocus.plotting, twinfocus.metrics, twinfocus.scan, "
-                         "twinfocus.estimators") == []
+    assert (
+        _loaded_after(
+            "import twinfocus.cli.focus, twinfocus.imaging.backprojection.numba_backend, twinfocus.twins.templates, "
+            "twinfocus.twins.cache, twinfocus.outputs.plotting, twinfocus.imaging.metrics, twinfocus.radar.scan, "
+            "twinfocus.focus.estimators"
+        )
+        == []
+    )
 
 
 def test_pipeline_imports_no_torch():
-    assert _loaded_after("import twinfocus.pipeline") == []
+    assert _loaded_after("import twinfocus.focus.pipeline") == []
 
 
 def test_numpy_ssim_equals_torch_ssim():
     torch = pytest.importorskip("torch")
-    from twinfocus.metrics import ssim, ssim_torch
+    from twinfocus.imaging.metrics import ssim, ssim_torch
 
     rng = np.random.default_rng(0)
     for shape in ((40, 37), (9, 12)):
@@ -40,7 +46,7 @@ def test_numpy_ssim_equals_torch_ssim():
 
 def test_summary_colour_map_is_matplotlibs_inferno():
     matplotlib = pytest.importorskip("matplotlib")
-    from twinfocus.plotting import inferno
+    from twinfocus.outputs.plotting import inferno
 
     t = np.linspace(0, 1, 256)
     assert np.abs(inferno(t) - matplotlib.colormaps["inferno"](t)[:, :3]).max() < 0.034
@@ -50,8 +56,8 @@ def test_summary_png_shows_each_image_where_it_is(tmp_path):
     """A bright pixel of each panel's image lands inside that panel of the PNG."""
     from PIL import Image
 
-    from twinfocus.grid import ImageGrid
-    from twinfocus.plotting import write_summary_png
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.outputs.plotting import write_summary_png
 
     grid = ImageGrid(-0.05, 0.05, -0.05, 0.05, 0.6, 30, 30)
     panels = []
@@ -64,7 +70,7 @@ def test_summary_png_shows_each_image_where_it_is(tmp_path):
     cols, cell_w = 3, 90 + 24
     cell_h = rgb.shape[0] // 2
     for n in range(5):
-        cell = rgb[(n // cols) * cell_h:(n // cols + 1) * cell_h, (n % cols) * cell_w:(n % cols + 1) * cell_w]
+        cell = rgb[(n // cols) * cell_h : (n // cols + 1) * cell_h, (n % cols) * cell_w : (n % cols + 1) * cell_w]
         # inferno's top is pale yellow: R and G high; the background of the image is near black
         bright = np.argwhere((cell[..., 0] > 200) & (cell[..., 1] > 150) & (cell[..., 2] < 200))
         assert bright.size, n

@@ -5,11 +5,11 @@ back to the direct path."""
 import numpy as np
 import pytest
 
-from twinfocus import line_backprojection as lb
-from twinfocus.backprojection import backproject, matched_filter_bruteforce
-from twinfocus.grid import ImageGrid
-from twinfocus.radar import C_M_PER_S, Chirp, mmwcas_virtual_array
-from twinfocus.volume import corrected_image, volume_grid
+from twinfocus.imaging import line_backprojection as lb
+from twinfocus.imaging.backprojection.numba_backend import backproject, matched_filter_bruteforce
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.volume import corrected_image, volume_grid
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array
 
 
 def _aperture(n_rows=12, pitch=0.006, columns=(-0.06, 0.0, 0.06), yaw_rad=0.0):

@@ -10,6 +10,7 @@ byte-identical, the one line that names the fault, and the exit status.
 * a full disk while recording or exporting (the writer's file raises ENOSPC): one line, no
   partial file left, the earlier file kept; an export of a log with nothing to show refuses.
 """
+
 from __future__ import annotations
 
 import errno
@@ -26,9 +27,9 @@ import pytest
 
 from msgs import Header, Pose, RadarFrame
 from msgs.mcap_log import LogReader, LogWriter
-from nodes.testing import Probe, local_broker, running
+from nodes.runtime.testing import Probe, local_broker, running
 from tests.test_graph import Launched, free_port
-from twinfocus.radar import Chirp
+from twinfocus.radar.fmcw import Chirp
 
 N_FRAMES = 60
 
@@ -41,12 +42,30 @@ def frames_log(path: Path, n: int = N_FRAMES, spacing_ns: int = 50_000_000) -> P
         for i in range(n):
             t = 10**18 + i * spacing_ns
             data = np.full((4, 64), i + 1j * i, np.complex64)
-            w.write("radar/frame", RadarFrame(header=Header(t, i, "radar"), data=data, f0_hz=c.f0_hz,
-                                              slope_hz_per_s=c.slope_hz_per_s, fs_hz=c.fs_hz,
-                                              channel_offsets_m=np.zeros((4, 3)), scan_id="s", index=i,
-                                              last=i == n - 1), log_time_ns=t)
-            w.write("vio/pose", Pose(header=Header(t + 1, i, "scene"), position_m=np.array([0.001 * i, 0, 0]),
-                                     quat_xyzw=np.array([0, 0, 0, 1.0])), log_time_ns=t + 1)
+            w.write(
+                "radar/frame",
+                RadarFrame(
+                    header=Header(t, i, "radar"),
+                    data=data,
+                    f0_hz=c.f0_hz,
+                    slope_hz_per_s=c.slope_hz_per_s,
+                    fs_hz=c.fs_hz,
+                    channel_offsets_m=np.zeros((4, 3)),
+                    scan_id="s",
+                    index=i,
+                    last=i == n - 1,
+                ),
+                log_time_ns=t,
+            )
+            w.write(
+                "vio/pose",
+                Pose(
+                    header=Header(t + 1, i, "scene"),
+                    position_m=np.array([0.001 * i, 0, 0]),
+                    quat_xyzw=np.array([0, 0, 0, 1.0]),
+                ),
+                log_time_ns=t + 1,
+            )
     return path
 
 
@@ -57,13 +76,14 @@ def damage_frame(path: Path, index: int, seed: int = 0) -> tuple[Path, int]:
     data = bytearray(path.read_bytes())
     hit = data.find(logged[index].blob) + len(logged[index].blob) // 2
     noise = np.random.default_rng(seed).integers(0, 256, 512, dtype=np.uint8).tobytes()
-    data[hit:hit + len(noise)] = noise
+    data[hit : hit + len(noise)] = noise
     bad = path.with_name("damaged.mcap")
     bad.write_bytes(bytes(data))
     return bad, hit
 
 
 # -- damage ---------------------------------------------------------------------------------------
+
 
 def test_random_bytes_in_a_frame_cost_that_frame_named_by_topic_time_and_offset(tmp_path):
     log = frames_log(tmp_path / "run.mcap")
@@ -93,7 +113,7 @@ def test_4_kb_of_random_bytes_anywhere_in_the_middle_cost_only_the_messages_they
     rng = np.random.default_rng(seed)
     hit = int(rng.integers(len(whole) // 4, len(whole) // 2))
     bad = tmp_path / "bad.mcap"
-    bad.write_bytes(whole[:hit] + rng.integers(0, 256, 4096, dtype=np.uint8).tobytes() + whole[hit + 4096:])
+    bad.write_bytes(whole[:hit] + rng.integers(0, 256, 4096, dtype=np.uint8).tobytes() + whole[hit + 4096 :])
     r = LogReader(bad)
     assert r.damage and "damaged" in r.condition and "\n" not in r.condition
     assert any(d.offset <= hit + 4095 and hit < d.offset + d.length for d in r.damage)
@@ -140,7 +160,7 @@ def test_an_unchunked_log_with_nan_in_a_frame_plays_without_it(tmp_path, capfd):
     logged = list(LogReader(log).messages(["radar/frame"]))
     data = bytearray(log.read_bytes())
     at = data.find(np.complex64(2 + 2j).tobytes(), data.find(logged[2].blob))  # frame 2's first sample
-    data[at:at + 4] = np.array([np.nan], np.float32).tobytes()
+    data[at : at + 4] = np.array([np.nan], np.float32).tobytes()
     bad = tmp_path / "nan.mcap"
     bad.write_bytes(bytes(data))
     # the CRC catches it in a chunked log; here the check on the samples must
@@ -186,6 +206,7 @@ def test_a_replay_of_a_damaged_log_focuses_the_scan_without_the_frame_and_counts
 
 # -- a recorder under a launcher ------------------------------------------------------------------
 
+
 def _graph(tmp_path: Path, src: Path, out: Path, rate: float) -> Path:
     """player (on_exit: shutdown: its end is the run's planned end) -> recorder."""
     path = tmp_path / "rec.yaml"
@@ -194,7 +215,8 @@ def _graph(tmp_path: Path, src: Path, out: Path, rate: float) -> Path:
         "broker: tcp://127.0.0.1:$(arg port)\n"
         "nodes:\n"
         f"  - {{name: player, node: player, on_exit: shutdown, parameters: {{log: '{src}', rate: {rate}}}}}\n"
-        f"  - {{name: recorder, node: recorder, parameters: {{out: '{out}', overwrite: true}}}}\n")
+        f"  - {{name: recorder, node: recorder, parameters: {{out: '{out}', overwrite: true}}}}\n"
+    )
     return path
 
 
@@ -311,18 +333,20 @@ def test_a_silent_node_marks_the_stop_unplanned(tmp_path, monkeypatch):
     """The recorder's own judgement, from heartbeats: a node not heard from for silent_s before
     the launcher stopped the graph had hung."""
     from msgs import NodeStatus
-    from nodes.node import ENV_LAUNCHER_PID, Shutdown
     from nodes.recorder import Recorder
+    from nodes.runtime.node import ENV_LAUNCHER_PID, Shutdown
 
     monkeypatch.setenv(ENV_LAUNCHER_PID, str(os.getppid()))
     rec = Recorder(params={"out": str(tmp_path / "x.mcap"), "silent_s": 3.0}, broker="tcp://127.0.0.1:1")
     monkeypatch.setattr(rec, "launcher_gone", lambda: False)
     now = 10**18
-    rec.graph.update({
-        "recorder": NodeStatus(header=Header(now, 9), node="recorder", state="running"),
-        "solver": NodeStatus(header=Header(now - 10**9, 3), node="solver", state="running"),
-        "finished": NodeStatus(header=Header(now - 60 * 10**9, 3), node="finished", state="stopped"),
-    })
+    rec.graph.update(
+        {
+            "recorder": NodeStatus(header=Header(now, 9), node="recorder", state="running"),
+            "solver": NodeStatus(header=Header(now - 10**9, 3), node="solver", state="running"),
+            "finished": NodeStatus(header=Header(now - 60 * 10**9, 3), node="finished", state="stopped"),
+        }
+    )
     rec._signalled_ns = now
     rec._gone_at_signal = set()  # every node still running when the launcher's signal came
     rec._stop = Shutdown(128 + signal.SIGTERM, "received SIGTERM")
@@ -343,6 +367,7 @@ def test_a_silent_node_marks_the_stop_unplanned(tmp_path, monkeypatch):
 
 
 # -- a full disk ----------------------------------------------------------------------------------
+
 
 class _Disk(io.FileIO):
     """A file on a disk with ``room`` bytes left: the write past it raises ENOSPC."""
@@ -397,7 +422,9 @@ def test_a_full_disk_while_recording_is_one_line_and_leaves_no_partial(tmp_path,
     assert sorted(p.name for p in tmp_path.iterdir()) == ["graph.mcap", "src"]  # no partial filling the disk
     err = capfd.readouterr().err
     lines = [ln for ln in err.splitlines() if "[recorder]" in ln and "No space left on device" in ln]
-    assert len(lines) == 1 and "deleted its partial file" in lines[0] and "the earlier graph.mcap is kept" in lines[0], err
+    assert (
+        len(lines) == 1 and "deleted its partial file" in lines[0] and "the earlier graph.mcap is kept" in lines[0]
+    ), err
     assert "Traceback" not in err, err
 
 

@@ -1,4 +1,5 @@
 """MCAP logs: round trips, compatibility with the reference reader, crash safety of the recorder."""
+
 import os
 import signal
 import subprocess
@@ -13,10 +14,10 @@ from test_msgs import assert_same, one_of_each
 
 from msgs import Header, Pose, RadarFrame, decode
 from msgs.mcap_log import LogReader, LogWriter, read_messages
-from nodes.node import Node
-from nodes.testing import local_broker, running
+from nodes.runtime.node import Node
+from nodes.runtime.testing import local_broker, running
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp
+from twinfocus.radar.fmcw import Chirp
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -66,8 +67,10 @@ def test_the_reference_mcap_reader_reads_our_files(tmp_path):
 
 
 def test_every_cut_of_a_file_reads_as_a_prefix(tmp_path):
-    msgs = [Pose(header=Header(i, i, "scene"), position_m=np.array([i, 0.0, 0.0]), quat_xyzw=np.array([0, 0, 0, 1.0]))
-            for i in range(40)]
+    msgs = [
+        Pose(header=Header(i, i, "scene"), position_m=np.array([i, 0.0, 0.0]), quat_xyzw=np.array([0, 0, 0, 1.0]))
+        for i in range(40)
+    ]
     full = write_log(tmp_path / "c.mcap", msgs).read_bytes()
     cut_path = tmp_path / "cut.mcap"
     seen = set()
@@ -112,8 +115,13 @@ class _Ticker(Node):
         self.pub = self.create_publisher("radar/frame")
         self.sent = 0
         c = Chirp()
-        self.template = dict(f0_hz=c.f0_hz, slope_hz_per_s=c.slope_hz_per_s, fs_hz=c.fs_hz,
-                             channel_offsets_m=np.zeros((4, 3)), scan_id="k")
+        self.template = dict(
+            f0_hz=c.f0_hz,
+            slope_hz_per_s=c.slope_hz_per_s,
+            fs_hz=c.fs_hz,
+            channel_offsets_m=np.zeros((4, 3)),
+            scan_id="k",
+        )
 
     def on_start(self):
         self.create_timer(0.001, self.tick)
@@ -136,9 +144,21 @@ def test_a_killed_recorder_leaves_a_readable_log(tmp_path):
     out = tmp_path / "killed.mcap"
     with local_broker() as endpoint:
         env = {**os.environ, "PYTHONPATH": str(REPO)}
-        rec = subprocess.Popen([sys.executable, "-c", "import sys; from twinfocus.cli import main; sys.exit(main())",
-                                "record", "-o", str(out),
-                                "--broker", endpoint], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        rec = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                "import sys; from twinfocus.cli import main; sys.exit(main())",
+                "record",
+                "-o",
+                str(out),
+                "--broker",
+                endpoint,
+            ],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+        )
         try:
             ticker = _Ticker(broker=endpoint, params={"wait_for": ["recorder"], "ready_timeout_s": 60})
             with running(ticker):
@@ -176,36 +196,65 @@ def test_converted_and_recorded_logs_carry_the_same_metadata(tmp_path, capsys):
     from nodes.player import Player
     from nodes.recorder import Recorder
     from twinfocus.cli import main
-    from twinfocus.radar import mmwcas_virtual_array
-    from twinfocus.scan import Scan
+    from twinfocus.motion.trajectory import Poses
+    from twinfocus.radar.fmcw import mmwcas_virtual_array
+    from twinfocus.radar.scan import Scan
     from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
     from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
     from twinfocus.sensors.ti_mmwcas import MmwcasConfig
     from twinfocus.sensors.trajectory_files import write_tum
-    from twinfocus.trajectory import Poses
 
     chirp = Chirp(f0_hz=77.1e9, n_samples=16)  # not the default: the chirp must come from the file
     iq = np.random.default_rng(1).integers(-2000, 2000, size=(5, 12, 16, 16, 2), dtype=np.int16)
     write_mmwcas_capture(tmp_path / "cap", iq, 5_000_000_000 + np.arange(5) * 100_000_000, MmwcasConfig(chirp=chirp))
     t = 1_700_000_000_000_000_000 + np.arange(11) * 50_000_000
-    write_tum(tmp_path / "traj.txt", Poses(t, np.c_[np.arange(11) * 1e-3, np.zeros(11), np.zeros(11)], np.tile([0, 0, 0, 1.0], (11, 1))))
+    write_tum(
+        tmp_path / "traj.txt",
+        Poses(t, np.c_[np.arange(11) * 1e-3, np.zeros(11), np.zeros(11)], np.tile([0, 0, 0, 1.0], (11, 1))),
+    )
     extrinsics = {"translation_m": [0.0, 0.05, -0.01], "rotation_xyzw": [0.0, 0.0, 0.0, 1.0]}
-    (tmp_path / "ext.yaml").write_text(f"translation_m: {extrinsics['translation_m']}\nrotation_xyzw: {extrinsics['rotation_xyzw']}\n")
+    (tmp_path / "ext.yaml").write_text(
+        f"translation_m: {extrinsics['translation_m']}\nrotation_xyzw: {extrinsics['rotation_xyzw']}\n"
+    )
     converted, recorded = tmp_path / "converted.mcap", tmp_path / "recorded.mcap"
-    assert main(["convert", str(tmp_path / "cap"), "--trajectory", str(tmp_path / "traj.txt"), "--extrinsics",
-                 str(tmp_path / "ext.yaml"), "--out", str(tmp_path / "scan.npz"), "--mcap", str(converted),
-                 "--n-samples", "16", "--f0-hz", "77.1e9", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "convert",
+                str(tmp_path / "cap"),
+                "--trajectory",
+                str(tmp_path / "traj.txt"),
+                "--extrinsics",
+                str(tmp_path / "ext.yaml"),
+                "--out",
+                str(tmp_path / "scan.npz"),
+                "--mcap",
+                str(converted),
+                "--n-samples",
+                "16",
+                "--f0-hz",
+                "77.1e9",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
 
     with local_broker() as ep:
         # The recorder's parameters as launch/live.yaml sets them.
-        rec = Recorder(broker=ep, name="recorder", params={"out": str(recorded), "calibration": {"extrinsics": extrinsics}})
+        rec = Recorder(
+            broker=ep, name="recorder", params={"out": str(recorded), "calibration": {"extrinsics": extrinsics}}
+        )
         player = Player(broker=ep, params={"log": str(converted), "rate": 0, "wait_for": ["recorder"]})
         with running(rec):
             assert player.spin() == 0
             want = sum(LogReader(converted).counts.values())
             deadline = time.monotonic() + 20
-            while sum(n for t, n in rec.writer.counts.items() if t != "graph/status") < want and time.monotonic() < deadline:
+            while (
+                sum(n for t, n in rec.writer.counts.items() if t != "graph/status") < want
+                and time.monotonic() < deadline
+            ):
                 time.sleep(0.02)
 
     logs = {"converted": LogReader(converted), "recorded": LogReader(recorded)}

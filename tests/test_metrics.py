@@ -3,8 +3,15 @@ import pytest
 from skimage.metrics import structural_similarity
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.metrics import image_ssim, oracle_phase, phase_error_rms, soft_threshold, ssim, true_range_errors_m
-from twinfocus.radar import C_M_PER_S, Chirp
+from twinfocus.imaging.metrics import (
+    image_ssim,
+    oracle_phase,
+    phase_error_rms,
+    soft_threshold,
+    ssim,
+    true_range_errors_m,
+)
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp
 
 
 def _reference_ssim(a, b):
@@ -31,7 +38,7 @@ def _bruteforce_ssim(a, b, win, sigma=1.5):
     vals = []
     for i in range(a.shape[0] - win + 1):
         for j in range(a.shape[1] - win + 1):
-            pa, pb = a[i:i + win, j:j + win], b[i:i + win, j:j + win]
+            pa, pb = a[i : i + win, j : j + win], b[i : i + win, j : j + win]
             ma, mb = (w * pa).sum(), (w * pb).sum()
             va, vb = (w * (pa - ma) ** 2).sum(), (w * (pb - mb) ** 2).sum()
             cov = (w * (pa - ma) * (pb - mb)).sum()
@@ -102,7 +109,7 @@ def test_phase_error_rms_ignores_constant_and_wrapping():
 
 
 def test_transfer_bound_closed_form():
-    from twinfocus.metrics import transfer_bound_rad
+    from twinfocus.imaging.metrics import transfer_bound_rad
 
     pos = np.zeros((1, 2, 3))  # one position at the origin
     z = 0.6

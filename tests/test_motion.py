@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.motion import apply_position_errors, drift_errors, gaussian_errors, vio_errors
+from twinfocus.motion.tracking_errors import apply_position_errors, drift_errors, gaussian_errors, vio_errors
 
 
 def _autocorr(x, lag):
@@ -94,7 +94,7 @@ def test_apply_position_errors_one_offset_per_position():
 def test_pose_errors_rotate_the_array_about_its_centre_like_a_rigid_body():
     from scipy.spatial.transform import Rotation
 
-    from twinfocus.motion import apply_pose_errors
+    from twinfocus.motion.tracking_errors import apply_pose_errors
 
     rng = np.random.default_rng(5)
     centres = rng.normal(0, 0.05, (4, 86, 3))
@@ -112,7 +112,7 @@ def test_pose_errors_rotate_the_array_about_its_centre_like_a_rigid_body():
 
 
 def test_hand_errors_drift_jitter_and_rotation_sizes():
-    from twinfocus.motion import draw_errors, hand_errors
+    from twinfocus.motion.tracking_errors import draw_errors, hand_errors
 
     stamps = np.arange(20000, dtype=np.int64) * 100_000_000
     shift, turn = hand_errors(stamps, (0.8e-3,) * 3, 2.0, (0.2e-3,) * 3, np.radians(0.15), rng=1)

@@ -1,4 +1,5 @@
 """Typed messages and their msgpack codec: round trips, zero copy, rejection of malformed input."""
+
 import msgpack
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ from msgs import (
     encode_frames,
 )
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp, mmwcas_virtual_array
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 
 RNG = np.random.default_rng(7)
 
@@ -37,29 +38,88 @@ def one_of_each():
     offsets = mmwcas_virtual_array().offsets_m
     c = Chirp()
     return [
-        RadarFrame(header=Header(1_000, 3, "radar"), data=cplx(k, n), f0_hz=c.f0_hz, slope_hz_per_s=c.slope_hz_per_s,
-                   fs_hz=c.fs_hz, channel_offsets_m=offsets, scan_id="s1", index=5, last=False,
-                   positions_true_m=RNG.standard_normal((k, 3))),
-        Pose(header=Header(2_000, 0, "scene"), position_m=np.array([0.1, -0.2, 0.003]),
-             quat_xyzw=np.array([0.0, 0.0, np.sin(0.1), np.cos(0.1)]), confidence=0.9, child_frame_id="camera"),
-        StereoFrame(header=Header(3, 1, "camera"), left=RNG.integers(0, 255, (48, 64, 3), dtype=np.uint8),
-                    right=RNG.integers(0, 255, (48, 64, 3), dtype=np.uint8), camera_matrix=np.eye(3) * 500,
-                    baseline_m=0.12, depth_m=RNG.random((48, 64)).astype(np.float32)),
-        SarMeasurement(header=Header(4, 2, "scene"), data=cplx(k, n), positions_m=RNG.standard_normal((k, 3)),
-                       f0_hz=c.f0_hz, slope_hz_per_s=c.slope_hz_per_s, fs_hz=c.fs_hz, scan_id="s1", index=7,
-                       last=True, pose_gap_ns=33_333_333),
-        TwinTemplate(header=Header(5, 0, "scene"), image=RNG.random((30, 40)).astype(np.float32),
-                     x_m=np.linspace(-0.15, 0, 40), y_m=np.linspace(-0.11, 0.12, 30), z_m=0.6, kind="physical",
-                     source="stage.npz", phase_rad=RNG.uniform(-3, 3, (30, 40)).astype(np.float32),
-                     support=RNG.random((30, 40)) > 0.5),
-        AutofocusResult(header=Header(6, 0, "scene"), scan_id="s1", method="twin", phase_rad=RNG.standard_normal(780),
-                        loss_history=RNG.random(300), metrics={"ssim": 0.9, "n": 3.0}, timing_s={"autofocus": 1.5},
-                        estimator="outline"),
-        Image(header=Header(7, 0, "scene"), name="target", scan_id="s1", image=cplx(100, 100),
-              x_m=np.linspace(0.02, 0.13, 100), y_m=np.linspace(-0.11, 0.12, 100), z_m=0.6),
-        NodeStatus(header=Header(8, 9, ""), node="solver", state="running", pid=123, publishes=["a/b"],
-                   subscribes=["c/d", "*"], types={"a/b": "Image"}, received={"c/d": 4}, published={"a/b": 1},
-                   lost={"c/d": 2}, message="ok"),
+        RadarFrame(
+            header=Header(1_000, 3, "radar"),
+            data=cplx(k, n),
+            f0_hz=c.f0_hz,
+            slope_hz_per_s=c.slope_hz_per_s,
+            fs_hz=c.fs_hz,
+            channel_offsets_m=offsets,
+            scan_id="s1",
+            index=5,
+            last=False,
+            positions_true_m=RNG.standard_normal((k, 3)),
+        ),
+        Pose(
+            header=Header(2_000, 0, "scene"),
+            position_m=np.array([0.1, -0.2, 0.003]),
+            quat_xyzw=np.array([0.0, 0.0, np.sin(0.1), np.cos(0.1)]),
+            confidence=0.9,
+            child_frame_id="camera",
+        ),
+        StereoFrame(
+            header=Header(3, 1, "camera"),
+            left=RNG.integers(0, 255, (48, 64, 3), dtype=np.uint8),
+            right=RNG.integers(0, 255, (48, 64, 3), dtype=np.uint8),
+            camera_matrix=np.eye(3) * 500,
+            baseline_m=0.12,
+            depth_m=RNG.random((48, 64)).astype(np.float32),
+        ),
+        SarMeasurement(
+            header=Header(4, 2, "scene"),
+            data=cplx(k, n),
+            positions_m=RNG.standard_normal((k, 3)),
+            f0_hz=c.f0_hz,
+            slope_hz_per_s=c.slope_hz_per_s,
+            fs_hz=c.fs_hz,
+            scan_id="s1",
+            index=7,
+            last=True,
+            pose_gap_ns=33_333_333,
+        ),
+        TwinTemplate(
+            header=Header(5, 0, "scene"),
+            image=RNG.random((30, 40)).astype(np.float32),
+            x_m=np.linspace(-0.15, 0, 40),
+            y_m=np.linspace(-0.11, 0.12, 30),
+            z_m=0.6,
+            kind="physical",
+            source="stage.npz",
+            phase_rad=RNG.uniform(-3, 3, (30, 40)).astype(np.float32),
+            support=RNG.random((30, 40)) > 0.5,
+        ),
+        AutofocusResult(
+            header=Header(6, 0, "scene"),
+            scan_id="s1",
+            method="twin",
+            phase_rad=RNG.standard_normal(780),
+            loss_history=RNG.random(300),
+            metrics={"ssim": 0.9, "n": 3.0},
+            timing_s={"autofocus": 1.5},
+            estimator="outline",
+        ),
+        Image(
+            header=Header(7, 0, "scene"),
+            name="target",
+            scan_id="s1",
+            image=cplx(100, 100),
+            x_m=np.linspace(0.02, 0.13, 100),
+            y_m=np.linspace(-0.11, 0.12, 100),
+            z_m=0.6,
+        ),
+        NodeStatus(
+            header=Header(8, 9, ""),
+            node="solver",
+            state="running",
+            pid=123,
+            publishes=["a/b"],
+            subscribes=["c/d", "*"],
+            types={"a/b": "Image"},
+            received={"c/d": 4},
+            published={"a/b": 1},
+            lost={"c/d": 2},
+            message="ok",
+        ),
     ]
 
 
@@ -78,8 +138,16 @@ def assert_same(a, b):
 def test_every_topic_kind_has_a_type_and_the_instances_cover_them():
     covered = {type(m) for m in one_of_each()}
     assert covered == set(MESSAGE_TYPES.values()) == set(TOPIC_TYPES.values())
-    assert set(TOPIC_TYPES) == {"radar/frame", "vio/pose", "camera/stereo", "sar/measurement", "twin/template",
-                                "autofocus/result", "image/focused", "graph/status"}
+    assert set(TOPIC_TYPES) == {
+        "radar/frame",
+        "vio/pose",
+        "camera/stereo",
+        "sar/measurement",
+        "twin/template",
+        "autofocus/result",
+        "image/focused",
+        "graph/status",
+    }
 
 
 @pytest.mark.parametrize("msg", one_of_each(), ids=lambda m: type(m).__name__)
@@ -117,25 +185,62 @@ def test_non_contiguous_and_castable_inputs_are_normalised():
 @pytest.mark.parametrize(
     "build, expected",
     [
-        (lambda: RadarFrame(data=cplx(4, 8), f0_hz=1, slope_hz_per_s=1, fs_hz=1, channel_offsets_m=np.zeros((5, 3))),
-         "channel_offsets_m"),
-        (lambda: RadarFrame(data=np.ones((4, 8)), f0_hz=1, slope_hz_per_s=1, fs_hz=1, channel_offsets_m=np.zeros((4, 3))),
-         "ok"),  # real -> complex is a safe cast
-        (lambda: RadarFrame(data=cplx(4, 8), f0_hz=-1, slope_hz_per_s=1, fs_hz=1, channel_offsets_m=np.zeros((4, 3))),
-         "f0_hz"),
+        (
+            lambda: RadarFrame(data=cplx(4, 8), f0_hz=1, slope_hz_per_s=1, fs_hz=1, channel_offsets_m=np.zeros((5, 3))),
+            "channel_offsets_m",
+        ),
+        (
+            lambda: RadarFrame(
+                data=np.ones((4, 8)), f0_hz=1, slope_hz_per_s=1, fs_hz=1, channel_offsets_m=np.zeros((4, 3))
+            ),
+            "ok",
+        ),  # real -> complex is a safe cast
+        (
+            lambda: RadarFrame(
+                data=cplx(4, 8), f0_hz=-1, slope_hz_per_s=1, fs_hz=1, channel_offsets_m=np.zeros((4, 3))
+            ),
+            "f0_hz",
+        ),
         (lambda: Pose(position_m=np.zeros(3), quat_xyzw=np.array([1.0, 1.0, 0, 0])), "unit quaternion"),
         (lambda: Pose(position_m=np.zeros(2), quat_xyzw=np.array([0, 0, 0, 1.0])), "position_m"),
         (lambda: Image(image=np.ones((3, 4), complex), x_m=np.zeros(3), y_m=np.zeros(3)), "x_m"),
-        (lambda: StereoFrame(left=np.zeros((4, 4), np.uint8), right=np.zeros((4, 5), np.uint8), camera_matrix=np.eye(3)),
-         "right"),
+        (
+            lambda: StereoFrame(
+                left=np.zeros((4, 4), np.uint8), right=np.zeros((4, 5), np.uint8), camera_matrix=np.eye(3)
+            ),
+            "right",
+        ),
         (lambda: TwinTemplate(image=np.zeros((2, 2), complex), x_m=np.zeros(2), y_m=np.zeros(2), z_m=1), "image"),
-        (lambda: TwinTemplate(image=np.zeros((2, 2), np.float32), x_m=np.zeros(2), y_m=np.zeros(2), z_m=1,
-                              phase_rad=np.zeros((2, 3), np.float32)), "phase_rad"),
-        (lambda: TwinTemplate(image=np.zeros((2, 3), np.float32), x_m=np.zeros(3), y_m=np.zeros(2), z_m=1,
-                              support=np.ones((3, 2), bool)),
-         r"field 'support' must be bool array of shape \(H, W\) or None, got shape \(3, 2\) \(already bound: H=2, W=3\)"),
-        (lambda: TwinTemplate(image=np.zeros((2, 2), np.float32), x_m=np.zeros(2), y_m=np.zeros(2), z_m=1,
-                              support=np.ones((2, 2), np.uint8)), "'support' must be bool.*uint8"),
+        (
+            lambda: TwinTemplate(
+                image=np.zeros((2, 2), np.float32),
+                x_m=np.zeros(2),
+                y_m=np.zeros(2),
+                z_m=1,
+                phase_rad=np.zeros((2, 3), np.float32),
+            ),
+            "phase_rad",
+        ),
+        (
+            lambda: TwinTemplate(
+                image=np.zeros((2, 3), np.float32),
+                x_m=np.zeros(3),
+                y_m=np.zeros(2),
+                z_m=1,
+                support=np.ones((3, 2), bool),
+            ),
+            r"field 'support' must be bool array of shape \(H, W\) or None, got shape \(3, 2\) \(already bound: H=2, W=3\)",
+        ),
+        (
+            lambda: TwinTemplate(
+                image=np.zeros((2, 2), np.float32),
+                x_m=np.zeros(2),
+                y_m=np.zeros(2),
+                z_m=1,
+                support=np.ones((2, 2), np.uint8),
+            ),
+            "'support' must be bool.*uint8",
+        ),
         (lambda: NodeStatus(received={"a": 1.5}), "received"),
         (lambda: AutofocusResult(phase_rad=np.zeros(3), loss_history=np.zeros(2), metrics={"a": "x"}), "metrics"),
     ],
@@ -232,8 +337,15 @@ def test_chirp_of_a_frame_is_the_radar_model_chirp():
 
 def test_a_result_recorded_before_latency_and_metrics_pending_decodes_with_their_defaults():
     """Logs written before the fields existed: latency 0 (unknown) and a final result."""
-    msg = AutofocusResult(header=Header(6, 0, "scene"), scan_id="old", method="twin", phase_rad=np.zeros(3),
-                          loss_history=np.ones(2), latency_s=0.7, metrics_pending=True)
+    msg = AutofocusResult(
+        header=Header(6, 0, "scene"),
+        scan_id="old",
+        method="twin",
+        phase_rad=np.zeros(3),
+        loss_history=np.ones(2),
+        latency_s=0.7,
+        metrics_pending=True,
+    )
     env = msgpack.unpackb(encode(msg), raw=False)
     for name in ("latency_s", "metrics_pending", "estimator"):
         del env["fields"][name]
@@ -257,8 +369,11 @@ def test_a_template_recorded_before_support_decodes_without_an_outline_and_a_bad
     assert decode(_pack(env), TwinTemplate).support is None
     env = _envelope(msg)
     env["fields"]["support"].update(shape=[40, 30])  # same bytes, transposed shape
-    with pytest.raises(MessageError, match=r"TwinTemplate: field 'support' must be bool array of shape \(H, W\).*"
-                                           r"got shape \(40, 30\) \(already bound: H=30, W=40\)"):
+    with pytest.raises(
+        MessageError,
+        match=r"TwinTemplate: field 'support' must be bool array of shape \(H, W\).*"
+        r"got shape \(40, 30\) \(already bound: H=30, W=40\)",
+    ):
         decode(_pack(env), TwinTemplate)
     env = _envelope(msg)
     env["fields"]["support"]["dtype"] = "|u1"

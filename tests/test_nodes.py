@@ -1,8 +1,9 @@
 """The runtime (bus, node base, parameters) and each node alone, fed constructed messages.
 
-Nodes run in threads of this process around a loopback broker (:mod:`nodes.testing`); the
+Nodes run in threads of this process around a loopback broker (:mod:`nodes.runtime.testing`); the
 probe node publishes the inputs and records the outputs, over the real ZeroMQ bus.
 """
+
 import json
 import signal
 import subprocess
@@ -19,35 +20,54 @@ import zmq
 from scipy.spatial.transform import Rotation, Slerp
 
 from msgs import AutofocusResult, Header, Image, Pose, RadarFrame, SarMeasurement, TwinTemplate
-from nodes.bus import Broker
-from nodes.node import Node
-from nodes.params import REQUIRED, Param, parse_assignment, resolve
-from nodes.testing import Probe, local_broker, patience, running
+from nodes.runtime.bus import Broker
+from nodes.runtime.node import Node
+from nodes.runtime.params import REQUIRED, Param, parse_assignment, resolve
+from nodes.runtime.testing import Probe, local_broker, patience, running
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp
+from twinfocus.radar.fmcw import Chirp
 
 REPO = Path(__file__).resolve().parent.parent
 CHIRP = Chirp(n_samples=64)
 
 
 def pose(t, p=(0.0, 0.0, 0.0), q=(0.0, 0.0, 0.0, 1.0), child="radar"):
-    return Pose(header=Header(stamp_ns=int(t), frame_id="scene"), position_m=np.asarray(p, float),
-                quat_xyzw=np.asarray(q, float), child_frame_id=child)
+    return Pose(
+        header=Header(stamp_ns=int(t), frame_id="scene"),
+        position_m=np.asarray(p, float),
+        quat_xyzw=np.asarray(q, float),
+        child_frame_id=child,
+    )
 
 
 def frame(t, index, offsets, scan="s", last=False, fill=None):
     k = offsets.shape[0]
     data = np.full((k, CHIRP.n_samples), index if fill is None else fill, np.complex64)
-    return RadarFrame(header=Header(stamp_ns=int(t), frame_id="radar"), data=data, f0_hz=CHIRP.f0_hz,
-                      slope_hz_per_s=CHIRP.slope_hz_per_s, fs_hz=CHIRP.fs_hz, channel_offsets_m=offsets,
-                      scan_id=scan, index=index, last=last)
+    return RadarFrame(
+        header=Header(stamp_ns=int(t), frame_id="radar"),
+        data=data,
+        f0_hz=CHIRP.f0_hz,
+        slope_hz_per_s=CHIRP.slope_hz_per_s,
+        fs_hz=CHIRP.fs_hz,
+        channel_offsets_m=offsets,
+        scan_id=scan,
+        index=index,
+        last=last,
+    )
 
 
 # --- parameters -------------------------------------------------------------------------------
 
+
 def test_parameters_are_typed_by_their_defaults_and_errors_name_them():
-    declared = {"rate": Param(1.0), "n": Param(3), "name": Param("x"), "on": Param(False), "roi": Param([], type="floats"),
-                "must": Param(REQUIRED, "needed")}
+    declared = {
+        "rate": Param(1.0),
+        "n": Param(3),
+        "name": Param("x"),
+        "on": Param(False),
+        "roi": Param([], type="floats"),
+        "must": Param(REQUIRED, "needed"),
+    }
     got = resolve("demo", declared, {"rate": 2, "must": "yes"}, ["n:=7", "on:=true", "roi:=[1, 2.5]", "name:=007"])
     assert got == {"rate": 2.0, "n": 7, "name": "007", "on": True, "roi": [1.0, 2.5], "must": "yes"}
     assert parse_assignment("roi:=-0.1,0.2") == ("roi", "-0.1,0.2")
@@ -64,12 +84,14 @@ def test_parameters_are_typed_by_their_defaults_and_errors_name_them():
 
 def test_a_node_may_not_shadow_runtime_internals():
     with pytest.raises(TypeError, match="_dispatch"):
+
         class Bad(Node):  # noqa: F841
             def _dispatch(self, frames):
                 pass
 
 
 # --- bus semantics ----------------------------------------------------------------------------
+
 
 class Burst(Node):
     """Publishes ``n`` poses on each of its topics as soon as the graph is ready."""
@@ -205,10 +227,16 @@ def test_a_node_process_stops_cleanly_on_sigint():
     with local_broker() as ep:
         watcher = Probe(ep, listen=["graph/status"], name="watcher")
         with running(watcher):
-            proc = subprocess.Popen([sys.executable, "-m", "nodes.synchronizer", "--broker", ep, "--name", "sync_proc"],
-                                    cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "nodes.synchronizer", "--broker", ep, "--name", "sync_proc"],
+                cwd=REPO,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+            )
             try:
-                watcher.wait_for("graph/status", 1, timeout_s=60, where=lambda s: s.node == "sync_proc" and s.state == "running")
+                watcher.wait_for(
+                    "graph/status", 1, timeout_s=60, where=lambda s: s.node == "sync_proc" and s.state == "running"
+                )
                 proc.send_signal(signal.SIGINT)
                 out, _ = proc.communicate(timeout=20)
             finally:
@@ -221,6 +249,7 @@ def test_a_node_process_stops_cleanly_on_sigint():
 
 
 # --- synchronizer -----------------------------------------------------------------------------
+
 
 def test_synchronizer_interpolates_poses_and_reports_what_it_cannot_pair(capfd):
     from nodes.synchronizer import Synchronizer
@@ -287,11 +316,14 @@ def test_synchronizer_applies_camera_extrinsics():
 
 # --- drivers ----------------------------------------------------------------------------------
 
+
 def small_scan(m=12, k=6, seed=0):
-    from twinfocus.scan import Scan
+    from twinfocus.radar.scan import Scan
 
     rng = np.random.default_rng(seed)
-    data = (rng.standard_normal((m, k, CHIRP.n_samples)) + 1j * rng.standard_normal((m, k, CHIRP.n_samples))).astype(np.complex64)
+    data = (rng.standard_normal((m, k, CHIRP.n_samples)) + 1j * rng.standard_normal((m, k, CHIRP.n_samples))).astype(
+        np.complex64
+    )
     pos = np.zeros((m, k, 3))
     pos[:, :, 0] = np.linspace(-0.01, 0.01, k)[None, :]
     pos[:, :, 1] = np.linspace(-0.05, 0.05, m)[:, None]
@@ -305,8 +337,15 @@ def test_radar_driver_replays_a_scan_file_row_by_row(tmp_path):
     scan.save(tmp_path / "s.npz")
     with local_broker() as ep:
         probe = Probe(ep, listen=["radar/frame"])
-        drv = RadarDriver(broker=ep, params={"backend": "scan_file", "rate": 0, "wait_for": ["probe"],
-                                             "options": {"path": str(tmp_path / "s.npz"), "array": "scan"}})
+        drv = RadarDriver(
+            broker=ep,
+            params={
+                "backend": "scan_file",
+                "rate": 0,
+                "wait_for": ["probe"],
+                "options": {"path": str(tmp_path / "s.npz"), "array": "scan"},
+            },
+        )
         with running(probe):
             with running(drv):
                 got = probe.wait_for("radar/frame", scan.n_positions)
@@ -320,8 +359,8 @@ def test_radar_driver_replays_a_scan_file_row_by_row(tmp_path):
 
 def test_vio_driver_replays_a_tum_file_paced_by_its_stamps(tmp_path):
     from nodes.vio_driver import VioDriver
+    from twinfocus.motion.trajectory import Poses
     from twinfocus.sensors.trajectory_files import write_tum
-    from twinfocus.trajectory import Poses
 
     n = 8
     q = Rotation.from_rotvec(np.outer(np.arange(n), [0, 0, 0.1])).as_quat()
@@ -329,8 +368,15 @@ def test_vio_driver_replays_a_tum_file_paced_by_its_stamps(tmp_path):
     write_tum(tmp_path / "traj.txt", poses)
     with local_broker() as ep:
         probe = Probe(ep, listen=["vio/pose"])
-        drv = VioDriver(broker=ep, params={"backend": "trajectory_file", "rate": 1.0, "wait_for": ["probe"],
-                                           "options": {"path": str(tmp_path / "traj.txt"), "time_offset_ns": 7}})
+        drv = VioDriver(
+            broker=ep,
+            params={
+                "backend": "trajectory_file",
+                "rate": 1.0,
+                "wait_for": ["probe"],
+                "options": {"path": str(tmp_path / "traj.txt"), "time_offset_ns": 7},
+            },
+        )
         with running(probe):
             with running(drv):
                 got = probe.wait_for("vio/pose", n)
@@ -354,7 +400,7 @@ class ClockedPoses:
         pass
 
     def samples(self):
-        from nodes.backends import PoseSample
+        from nodes.runtime.backends import PoseSample
 
         for dt_s in (-5.0, -2.5, 0.0, 0.3):
             yield PoseSample(self.clock_start_ns + int(dt_s * 1e9), np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))
@@ -364,7 +410,7 @@ class ClockedPoses:
 
 
 def test_a_driver_paces_from_its_backends_clock_start_so_simulated_sensors_share_one_clock():
-    from nodes.sim_backends import SimRadar, SimVio
+    from nodes.runtime.sim_backends import SimRadar, SimVio
     from nodes.vio_driver import VioDriver
 
     with local_broker() as ep:
@@ -394,12 +440,13 @@ def test_unknown_backend_is_a_clear_error():
 
 # --- template builder, solver, visualizer -----------------------------------------------------
 
+
 def point_scene_scan(m_side=10, k=8):
     """Noise-free scan of a few point scatterers, on positions with a known error."""
-    from twinfocus.radar import uniform_virtual_array
-    from twinfocus.scan import Scan
-    from twinfocus.simulate import simulate_if
-    from twinfocus.trajectory import paper_raster, phase_centres
+    from twinfocus.motion.trajectory import paper_raster, phase_centres
+    from twinfocus.radar.fmcw import uniform_virtual_array
+    from twinfocus.radar.scan import Scan
+    from twinfocus.simulation.if_simulator import simulate_if
 
     poses = paper_raster(n_columns=2, n_rows=m_side, column_pitch_m=0.008 * k, row_pitch_m=0.004)
     true = phase_centres(poses, uniform_virtual_array(k, 0.002))
@@ -420,16 +467,18 @@ def _published_template(path, size=12):
 
     with local_broker() as ep:
         probe = Probe(ep, listen=["twin/template"])
-        tb = TemplateBuilder(broker=ep, params={"source": "file", "path": str(path), "reference_roi": REF_ROI, "size": size,
-                                                "wait_for": ["probe"]})
+        tb = TemplateBuilder(
+            broker=ep,
+            params={"source": "file", "path": str(path), "reference_roi": REF_ROI, "size": size, "wait_for": ["probe"]},
+        )
         with running(probe, tb):
             (t,) = probe.wait_for("twin/template", 1)
     return t
 
 
 def test_template_builder_publishes_the_resampled_template_file(tmp_path):
-    from twinfocus.grid import ImageGrid
-    from twinfocus.templates import load_template, save_template
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.twins.templates import load_template, save_template
 
     fine = ImageGrid.from_roi([-0.05, 0.0, -0.03, 0.03, 0.3], (31, 26))
     image = np.random.default_rng(0).random(fine.shape).astype(np.float32)
@@ -446,8 +495,8 @@ def test_a_digital_twins_template_file_goes_out_with_its_outline_and_conditionin
     it as a digital twin with both, so the solver runs the outline estimator and keeps the
     conditioning its confidence report needs."""
     from nodes.solver import Solver
-    from twinfocus.grid import ImageGrid
-    from twinfocus.templates import save_template
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.twins.templates import save_template
 
     grid = ImageGrid.from_roi(REF_ROI, 12)
     support = np.zeros(grid.shape, bool)
@@ -458,18 +507,23 @@ def test_a_digital_twins_template_file_goes_out_with_its_outline_and_conditionin
     assert t.kind == "digital" and np.array_equal(t.support, support)
     assert (t.surface, t.curved, t.curvature_m) == ("smooth", True, 0.004)
     with local_broker() as ep:
-        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 12, "warm_up": False})
+        solver = Solver(
+            broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 12, "warm_up": False}
+        )
         solver.on_template(t)
-        assert solver._plan().estimator == "outline" and solver.twin_info == {"surface": "smooth", "curved": True,
-                                                                         "curvature_m": 0.004}
+        assert solver._plan().estimator == "outline" and solver.twin_info == {
+            "surface": "smooth",
+            "curved": True,
+            "curvature_m": 0.004,
+        }
 
 
 def test_a_physical_twins_phase_travels_to_the_solver(tmp_path):
     """A template file with its phase: the builder sends it along (TwinTemplate.phase_rad), and the
     solver rebuilds the complex template, so auto picks the registered closed form."""
     from nodes.solver import Solver
-    from twinfocus.grid import ImageGrid
-    from twinfocus.templates import load_template, save_template
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.twins.templates import load_template, save_template
 
     grid = ImageGrid.from_roi(REF_ROI, 12)
     rng = np.random.default_rng(4)
@@ -480,18 +534,22 @@ def test_a_physical_twins_phase_travels_to_the_solver(tmp_path):
     np.testing.assert_allclose(t.image * np.exp(1j * t.phase_rad.astype(np.float64)), want, atol=1e-5)
     with local_broker() as ep:
         for size in (12, 9):  # the solver's own grid, then another one (resampled)
-            solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": size, "warm_up": False})
+            solver = Solver(
+                broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": size, "warm_up": False}
+            )
             solver.on_template(t)
             assert solver.template.dtype == np.complex64 and solver.template.shape == (size, size)
             assert solver._config(Chirp()).init == "correlation"
-        np.testing.assert_allclose(solver.template, load_template(tmp_path / "t.npz", ImageGrid.from_roi(REF_ROI, 9)), atol=1e-5)
+        np.testing.assert_allclose(
+            solver.template, load_template(tmp_path / "t.npz", ImageGrid.from_roi(REF_ROI, 9)), atol=1e-5
+        )
 
 
 @pytest.mark.slow  # 3 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_discover_says_at_once_that_it_waits_and_gives_up_naming_both_ways_to_name_a_broker():
     import io
 
-    from nodes.bus import discover
+    from nodes.runtime.bus import discover
     from tests.test_graph import free_port
 
     dead = f"tcp://127.0.0.1:{free_port()}"
@@ -521,10 +579,10 @@ def test_discover_says_at_once_that_it_waits_and_gives_up_naming_both_ways_to_na
 def test_template_builder_computes_a_template_scan_once_then_takes_it_from_the_cache(tmp_path, monkeypatch):
     """source scan: the first node computes the image and stores it; a later node (a later run)
     gets the same image from the cache without back-projecting; no cache or another grid computes it."""
-    import twinfocus.templates
+    import twinfocus.twins.templates
     from nodes.template_builder import TemplateBuilder
-    from twinfocus.grid import ImageGrid
-    from twinfocus.templates import template_from_scan
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.twins.templates import template_from_scan
 
     monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
     scan = point_scene_scan()
@@ -538,7 +596,7 @@ def test_template_builder_computes_a_template_scan_once_then_takes_it_from_the_c
         def no_backprojection(*a, **k):
             raise AssertionError("the template scan was back-projected again")
 
-        monkeypatch.setattr(twinfocus.templates, "template_from_scan", no_backprojection)
+        monkeypatch.setattr(twinfocus.twins.templates, "template_from_scan", no_backprojection)
         second = TemplateBuilder(broker=ep, params=params)
         assert second.cache_status == "hit"
         with pytest.raises(AssertionError, match="back-projected again"):
@@ -551,28 +609,53 @@ def test_template_builder_computes_a_template_scan_once_then_takes_it_from_the_c
 
 
 def measurements(scan, scan_id="p"):
-    return [SarMeasurement(header=Header(stamp_ns=int(scan.timestamps_ns[m])), data=scan.data[m],
-                           positions_m=scan.positions[m], f0_hz=CHIRP.f0_hz, slope_hz_per_s=CHIRP.slope_hz_per_s,
-                           fs_hz=CHIRP.fs_hz, scan_id=scan_id, index=m, last=m == scan.n_positions - 1,
-                           positions_true_m=scan.positions_true[m]) for m in range(scan.n_positions)]
+    return [
+        SarMeasurement(
+            header=Header(stamp_ns=int(scan.timestamps_ns[m])),
+            data=scan.data[m],
+            positions_m=scan.positions[m],
+            f0_hz=CHIRP.f0_hz,
+            slope_hz_per_s=CHIRP.slope_hz_per_s,
+            fs_hz=CHIRP.fs_hz,
+            scan_id=scan_id,
+            index=m,
+            last=m == scan.n_positions - 1,
+            positions_true_m=scan.positions_true[m],
+        )
+        for m in range(scan.n_positions)
+    ]
 
 
 def test_solver_streams_the_basis_and_focuses_with_the_template(tmp_path):
     from nodes.solver import Solver
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.backprojection import backproject
-    from twinfocus.grid import ImageGrid
-    from twinfocus.templates import template_from_scan
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.twins.templates import template_from_scan
 
     scan = point_scene_scan()
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 16), ImageGrid.from_roi(TGT_ROI, 16)
     template = template_from_scan(scan, ref_grid)  # the reference focused on the true positions
     with local_broker() as ep:
-        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16, "iterations": 40,
-                                           "estimator": "paper", "out_dir": str(tmp_path / "out"), "pictures": False,
-                                           "warm_up": False})
-        probe = Probe(ep, listen=["autofocus/result", "image/focused"], publish=["sar/measurement", "twin/template"],
-                      wait_for=["solver"])
+        solver = Solver(
+            broker=ep,
+            params={
+                "reference_roi": REF_ROI,
+                "target_roi": TGT_ROI,
+                "size": 16,
+                "iterations": 40,
+                "estimator": "paper",
+                "out_dir": str(tmp_path / "out"),
+                "pictures": False,
+                "warm_up": False,
+            },
+        )
+        probe = Probe(
+            ep,
+            listen=["autofocus/result", "image/focused"],
+            publish=["sar/measurement", "twin/template"],
+            wait_for=["solver"],
+        )
         with running(solver, probe):
             probe.send("twin/template", TwinTemplate(image=template, x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
             for m in measurements(scan):
@@ -603,17 +686,18 @@ def test_solver_streams_the_half_array_bases_only_when_the_tilt_may_be_fitted():
     same bases as the whole scan's (pipeline.half_array_bases, what twinfocus focus forms). With
     an amplitude template (no drift or tilt rung can run) it streams none."""
     from nodes.solver import Solver
-    from twinfocus.backprojection import backproject
-    from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import half_array_bases
+    from twinfocus.focus.pipeline import half_array_bases
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.grid import ImageGrid
 
     scan = point_scene_scan()
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 16), ImageGrid.from_roi(TGT_ROI, 16)
     template = backproject(scan.data, scan.positions_true, CHIRP, ref_grid)
     for phase in (True, False):
         with local_broker() as ep:
-            solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16,
-                                               "warm_up": False})
+            solver = Solver(
+                broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16, "warm_up": False}
+            )
             handed: dict = {}
             own = solver._half_bases
 
@@ -623,12 +707,20 @@ def test_solver_streams_the_half_array_bases_only_when_the_tilt_may_be_fitted():
                 return bases
 
             solver._half_bases = spy
-            probe = Probe(ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"],
-                          wait_for=["solver"])
+            probe = Probe(
+                ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"]
+            )
             with running(solver, probe):
-                probe.send("twin/template", TwinTemplate(
-                    image=np.abs(template), phase_rad=np.angle(template).astype(np.float32) if phase else None,
-                    x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
+                probe.send(
+                    "twin/template",
+                    TwinTemplate(
+                        image=np.abs(template),
+                        phase_rad=np.angle(template).astype(np.float32) if phase else None,
+                        x_m=ref_grid.x_m,
+                        y_m=ref_grid.y_m,
+                        z_m=0.3,
+                    ),
+                )
                 for m in measurements(scan):
                     probe.send("sar/measurement", m)
                 probe.wait_for("autofocus/result", 1, timeout_s=60, where=lambda r: not r.metrics_pending)
@@ -646,10 +738,10 @@ def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_wh
     (none of it after the last measurement but the last batch's), and gets the phase that
     focus_bases gives on the whole scan's bases."""
     from nodes.solver import Solver
-    from twinfocus.backprojection import backproject, subimage_basis
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import Bases, Reference
+    from twinfocus.focus.pipeline import Bases, Reference
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.imaging.grid import ImageGrid
 
     scan = point_scene_scan(m_side=20)  # 40 positions: the 20 before the template are scored at once
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 16), ImageGrid.from_roi(TGT_ROI, 16)
@@ -657,9 +749,12 @@ def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_wh
     msgs = measurements(scan)
     half = len(msgs) // 2
     with local_broker() as ep:
-        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16, "warm_up": False})
-        probe = Probe(ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"],
-                      wait_for=["solver"])
+        solver = Solver(
+            broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16, "warm_up": False}
+        )
+        probe = Probe(
+            ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"]
+        )
         with running(solver, probe):
             for m in msgs[:half]:
                 probe.send("sar/measurement", m)
@@ -668,8 +763,16 @@ def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_wh
             while (solver.scan is None or solver.scan.ref_rows.n < half) and time.monotonic() < deadline:
                 time.sleep(0.01)
             assert solver.scan.ref_rows.n == half and solver.scan.scores is None  # rows kept, no template yet
-            probe.send("twin/template", TwinTemplate(image=np.abs(template), phase_rad=np.angle(template).astype(np.float32),
-                                                     x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
+            probe.send(
+                "twin/template",
+                TwinTemplate(
+                    image=np.abs(template),
+                    phase_rad=np.angle(template).astype(np.float32),
+                    x_m=ref_grid.x_m,
+                    y_m=ref_grid.y_m,
+                    z_m=0.3,
+                ),
+            )
             for m in msgs[half:]:
                 probe.send("sar/measurement", m)
             res = probe.wait_for("autofocus/result", 1, timeout_s=60, where=lambda r: not r.metrics_pending)[0]
@@ -702,22 +805,33 @@ def test_solver_with_model_fast_forms_the_reference_as_focus_does():
     (ladder.fast_reference), and gets the phase that ``focus_scan`` (twinfocus focus) gets from
     the reference back-projected on those pixels alone."""
     from nodes.solver import Solver
-    from twinfocus.backprojection import backproject
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import Reference
+    from twinfocus.focus.pipeline import Reference
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.grid import ImageGrid
 
     scan = point_scene_scan(m_side=20)
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 32), ImageGrid.from_roi(TGT_ROI, 32)
     template = backproject(scan.data, scan.positions_true, CHIRP, ref_grid)
     with local_broker() as ep:
-        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 32,
-                                           "model": "fast", "warm_up": False})
-        probe = Probe(ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"],
-                      wait_for=["solver"])
+        solver = Solver(
+            broker=ep,
+            params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 32, "model": "fast", "warm_up": False},
+        )
+        probe = Probe(
+            ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"]
+        )
         with running(solver, probe):
-            probe.send("twin/template", TwinTemplate(image=np.abs(template), phase_rad=np.angle(template).astype(np.float32),
-                                                     x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
+            probe.send(
+                "twin/template",
+                TwinTemplate(
+                    image=np.abs(template),
+                    phase_rad=np.angle(template).astype(np.float32),
+                    x_m=ref_grid.x_m,
+                    y_m=ref_grid.y_m,
+                    z_m=0.3,
+                ),
+            )
             for m in measurements(scan):
                 probe.send("sar/measurement", m)
             res = probe.wait_for("autofocus/result", 1, timeout_s=60, where=lambda r: not r.metrics_pending)[0]
@@ -745,8 +859,16 @@ def test_solver_without_a_template_says_so_and_drops_the_scan(capfd):
 
     scan = point_scene_scan(m_side=3, k=4)
     with local_broker() as ep:
-        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 8,
-                                           "template_wait_s": 0.5, "warm_up": False})
+        solver = Solver(
+            broker=ep,
+            params={
+                "reference_roi": REF_ROI,
+                "target_roi": TGT_ROI,
+                "size": 8,
+                "template_wait_s": 0.5,
+                "warm_up": False,
+            },
+        )
         probe = Probe(ep, publish=["sar/measurement"], wait_for=["solver"])
         with running(solver, probe):
             for m in measurements(scan):
@@ -768,11 +890,23 @@ def test_visualizer_writes_and_serves_the_focused_image(tmp_path):
         with running(viz, probe):
             for i in range(5):
                 probe.send("vio/pose", pose(i, (0.01 * i, 0.0, 0.0)))
-            probe.send("image/focused", Image(name="target", scan_id="v", image=img, x_m=np.linspace(0, 1, 30),
-                                              y_m=np.linspace(0, 1, 20), z_m=0.5))
-            probe.send("autofocus/result", AutofocusResult(scan_id="v", method="twin", phase_rad=np.zeros(4),
-                                                           loss_history=np.linspace(1, 0.2, 10), metrics={"ssim": 0.5},
-                                                           latency_s=0.25))
+            probe.send(
+                "image/focused",
+                Image(
+                    name="target", scan_id="v", image=img, x_m=np.linspace(0, 1, 30), y_m=np.linspace(0, 1, 20), z_m=0.5
+                ),
+            )
+            probe.send(
+                "autofocus/result",
+                AutofocusResult(
+                    scan_id="v",
+                    method="twin",
+                    phase_rad=np.zeros(4),
+                    loss_history=np.linspace(1, 0.2, 10),
+                    metrics={"ssim": 0.5},
+                    latency_s=0.25,
+                ),
+            )
             deadline = time.monotonic() + 20
             while viz.results < 1 and time.monotonic() < deadline:
                 time.sleep(0.05)
@@ -791,6 +925,7 @@ def test_visualizer_writes_and_serves_the_focused_image(tmp_path):
 
 # --- recorder, player, introspection ----------------------------------------------------------
 
+
 def test_record_then_play_back_with_topic_selection_offset_and_loop(tmp_path):
     from nodes.player import Player
     from nodes.recorder import Recorder
@@ -808,13 +943,19 @@ def test_record_then_play_back_with_topic_selection_offset_and_loop(tmp_path):
                 time.sleep(0.01)
             assert probe.sent_all()
             deadline = time.monotonic() + 10
-            while rec.writer.counts.get("vio/pose", 0) + rec.writer.counts.get("radar/frame", 0) < 40 and time.monotonic() < deadline:
+            while (
+                rec.writer.counts.get("vio/pose", 0) + rec.writer.counts.get("radar/frame", 0) < 40
+                and time.monotonic() < deadline
+            ):
                 time.sleep(0.02)
     from msgs.mcap_log import LogReader
 
     r = LogReader(log)
     # with no topic list the nodes' state changes are recorded beside (Foxglove's log panel)
-    assert r.complete and {t: n for t, n in r.counts.items() if t != "graph/status"} == {"vio/pose": 30, "radar/frame": 10}
+    assert r.complete and {t: n for t, n in r.counts.items() if t != "graph/status"} == {
+        "vio/pose": 30,
+        "radar/frame": 10,
+    }
     assert all(m.decode().node in ("recorder", "probe") for m in r.messages(["graph/status"]))
     assert r.metadata["calibration"] == {"lever_arm_m": [0.0, 0.01, 0.0]} and r.metadata["radar"]["n_channels"] == 3
     # the offset of the 15th pose: the recorded node states lie before and after the poses by
@@ -852,8 +993,10 @@ def test_record_then_play_back_with_topic_selection_offset_and_loop(tmp_path):
     assert len(got["vio/pose"]) == 30 and elapsed > 0.9 * pose_span_s
     with local_broker() as ep:
         probe = Probe(ep, listen=["vio/pose"], name="listener")
-        looping = Player(broker=ep, params={"log": str(log), "rate": 0, "loop": True, "topics": ["vio/pose"],
-                                            "wait_for": ["listener"]})
+        looping = Player(
+            broker=ep,
+            params={"log": str(log), "rate": 0, "loop": True, "topics": ["vio/pose"], "wait_for": ["listener"]},
+        )
         with running(probe, looping):
             probe.wait_for("vio/pose", 75, timeout_s=20)
     poses = probe.received["vio/pose"]
@@ -875,8 +1018,14 @@ def test_loss_thousands_of_messages_replayed_at_full_speed_all_arrive(tmp_path):
             w.write("vio/pose", pose(i, (i, 0, 0)), log_time_ns=t)
             t += 1000
             if i % 50 == 0:
-                f = RadarFrame(data=np.full((86, 256), i, np.complex64), f0_hz=big.f0_hz, slope_hz_per_s=big.slope_hz_per_s,
-                               fs_hz=big.fs_hz, channel_offsets_m=offsets, index=i)
+                f = RadarFrame(
+                    data=np.full((86, 256), i, np.complex64),
+                    f0_hz=big.f0_hz,
+                    slope_hz_per_s=big.slope_hz_per_s,
+                    fs_hz=big.fs_hz,
+                    channel_offsets_m=offsets,
+                    index=i,
+                )
                 w.write("radar/frame", f, log_time_ns=t)
     with local_broker() as ep:
         slow = Probe(ep, listen=["vio/pose", "radar/frame"], name="slow")
@@ -886,9 +1035,25 @@ def test_loss_thousands_of_messages_replayed_at_full_speed_all_arrive(tmp_path):
         with running(slow, fast):
             # The player in its own process, which exits as soon as it has sent the last message:
             # what is still queued must get out before the process ends.
-            play = subprocess.run([sys.executable, "-c", "import sys; from twinfocus.cli import main; sys.exit(main())",
-                                   "play", str(log), "--rate", "0", "--wait-for", "slow", "fast", "--broker", ep],
-                                  cwd=REPO, capture_output=True, timeout=120)
+            play = subprocess.run(
+                [
+                    sys.executable,
+                    "-c",
+                    "import sys; from twinfocus.cli import main; sys.exit(main())",
+                    "play",
+                    str(log),
+                    "--rate",
+                    "0",
+                    "--wait-for",
+                    "slow",
+                    "fast",
+                    "--broker",
+                    ep,
+                ],
+                cwd=REPO,
+                capture_output=True,
+                timeout=120,
+            )
             assert play.returncode == 0, play.stderr.decode()
             for p in (slow, fast):
                 p.wait_for("vio/pose", 5000, timeout_s=60)
@@ -904,7 +1069,7 @@ def test_loss_thousands_of_messages_replayed_at_full_speed_all_arrive(tmp_path):
 def test_topic_list_echo_and_hz(tmp_path):
     import io
 
-    from nodes.introspect import TopicEcho, TopicHz, TopicList
+    from nodes.runtime.introspect import TopicEcho, TopicHz, TopicList
 
     with local_broker() as ep:
         src = Probe(ep, publish=["vio/pose"], name="src")
@@ -933,8 +1098,8 @@ def test_topic_list_echo_and_hz(tmp_path):
 @pytest.mark.parametrize("scan_id", ["../../escaped", "/tmp/absolute"])
 def test_a_scan_id_from_the_bus_never_writes_outside_out_dir(tmp_path, scan_id):
     from nodes.solver import Solver
-    from twinfocus.grid import ImageGrid
-    from twinfocus.templates import template_from_scan
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.twins.templates import template_from_scan
 
     scan = point_scene_scan()
     ref_grid = ImageGrid.from_roi(REF_ROI, 16)
@@ -943,10 +1108,22 @@ def test_a_scan_id_from_the_bus_never_writes_outside_out_dir(tmp_path, scan_id):
     out.mkdir(parents=True)
     (out / "earlier.png").write_bytes(b"not the solver's")
     with local_broker() as ep:
-        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16, "iterations": 10,
-                                           "estimator": "paper", "out_dir": str(out), "pictures": False,
-                                           "warm_up": False})
-        probe = Probe(ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"])
+        solver = Solver(
+            broker=ep,
+            params={
+                "reference_roi": REF_ROI,
+                "target_roi": TGT_ROI,
+                "size": 16,
+                "iterations": 10,
+                "estimator": "paper",
+                "out_dir": str(out),
+                "pictures": False,
+                "warm_up": False,
+            },
+        )
+        probe = Probe(
+            ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"]
+        )
         with running(solver, probe):
             probe.send("twin/template", TwinTemplate(image=template, x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
             for m in measurements(scan, scan_id=scan_id):

@@ -1,12 +1,13 @@
 """The solver node finds what ``twinfocus focus`` finds: the reference's region from the template,
 the target's depth from the scan, and the corrected volume, with the same answer."""
+
 import json
 
 import numpy as np
 import pytest
 
 from msgs import TwinTemplate
-from nodes.testing import Probe, local_broker, running
+from nodes.runtime.testing import Probe, local_broker, running
 from tests.test_nodes import CHIRP, REF_ROI, TGT_ROI, measurements, point_scene_scan
 from twinfocus.errors import TwinFocusError
 
@@ -16,9 +17,9 @@ VOLUME = [0.26, 0.34, 0.01]
 def test_solver_finds_the_region_the_depth_and_the_volume_as_focus_does(tmp_path):
     from nodes.solver import Solver
     from twinfocus.cli import main
-    from twinfocus.grid import ImageGrid
-    from twinfocus.templates import save_template, template_from_scan
-    from twinfocus.volume import projections, volume_grid
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.imaging.volume import projections, volume_grid
+    from twinfocus.twins.templates import save_template, template_from_scan
 
     scan = point_scene_scan()
     ref_grid = ImageGrid.from_roi(REF_ROI, 16)
@@ -26,17 +27,53 @@ def test_solver_finds_the_region_the_depth_and_the_volume_as_focus_does(tmp_path
     scan.save(tmp_path / "scan.npz")
     save_template(tmp_path / "tpl.npz", template, ref_grid)
     box = [str(v) for v in TGT_ROI[:4]]
-    assert main(["focus", str(tmp_path / "scan.npz"), "--template", str(tmp_path / "tpl.npz"), "--target-roi", *box,
-                 "--size", "16", "--iterations", "40", "--volume", *map(str, VOLUME), "--out", str(tmp_path / "off"),
-                 "--quiet", "--no-cache", "--pictures", "none"]) == 0
+    assert (
+        main(
+            [
+                "focus",
+                str(tmp_path / "scan.npz"),
+                "--template",
+                str(tmp_path / "tpl.npz"),
+                "--target-roi",
+                *box,
+                "--size",
+                "16",
+                "--iterations",
+                "40",
+                "--volume",
+                *map(str, VOLUME),
+                "--out",
+                str(tmp_path / "off"),
+                "--quiet",
+                "--no-cache",
+                "--pictures",
+                "none",
+            ]
+        )
+        == 0
+    )
     off = json.loads((tmp_path / "off" / "metrics.json").read_text())
 
     with local_broker() as ep:
         # no reference region and no depth: both found, as focus finds them
-        solver = Solver(broker=ep, params={"target_roi": TGT_ROI[:4], "size": 16, "iterations": 40, "volume": VOLUME,
-                                           "out_dir": str(tmp_path / "live"), "pictures": False, "warm_up": False})
-        probe = Probe(ep, listen=["autofocus/result", "image/focused"], publish=["sar/measurement", "twin/template"],
-                      wait_for=["solver"])
+        solver = Solver(
+            broker=ep,
+            params={
+                "target_roi": TGT_ROI[:4],
+                "size": 16,
+                "iterations": 40,
+                "volume": VOLUME,
+                "out_dir": str(tmp_path / "live"),
+                "pictures": False,
+                "warm_up": False,
+            },
+        )
+        probe = Probe(
+            ep,
+            listen=["autofocus/result", "image/focused"],
+            publish=["sar/measurement", "twin/template"],
+            wait_for=["solver"],
+        )
         with running(solver, probe):
             probe.send("twin/template", TwinTemplate(image=template, x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
             for m in measurements(scan):
@@ -61,7 +98,9 @@ def test_solver_finds_the_region_the_depth_and_the_volume_as_focus_does(tmp_path
     grid = volume_grid(ImageGrid(*off["volume"]["roi"], z=1.0, height=16, width=16), *VOLUME)
     mip, _ = projections(np.load(tmp_path / "off" / "volume.npy"), grid)
     np.testing.assert_allclose(images["volume_mip"].image, mip, atol=1e-3 * mip.max())
-    assert np.array_equal(images["volume_mip"].x_m, grid.plane.x_m) and live["volume"]["shape"] == off["volume"]["shape"]
+    assert (
+        np.array_equal(images["volume_mip"].x_m, grid.plane.x_m) and live["volume"]["shape"] == off["volume"]["shape"]
+    )
 
 
 def test_solver_refuses_regions_it_cannot_use():
@@ -69,10 +108,16 @@ def test_solver_refuses_regions_it_cannot_use():
 
     with local_broker() as ep:
         base = {"target_roi": TGT_ROI, "size": 8, "warm_up": False}
-        for bad, word in (({"target_roi": TGT_ROI[:3]}, "target_roi"), ({"reference_roi": REF_ROI[:4]}, "reference_roi"),
-                          ({"volume": [0.2, 0.3]}, "volume"), ({"target_roi": [*TGT_ROI[:4], 0.4, 0.3]}, "Z0 < Z1")):
+        for bad, word in (
+            ({"target_roi": TGT_ROI[:3]}, "target_roi"),
+            ({"reference_roi": REF_ROI[:4]}, "reference_roi"),
+            ({"volume": [0.2, 0.3]}, "volume"),
+            ({"target_roi": [*TGT_ROI[:4], 0.4, 0.3]}, "Z0 < Z1"),
+        ):
             with pytest.raises(TwinFocusError, match=word):
                 Solver(broker=ep, params={**base, **bad})
         # typed region and depth: streamed as before; a range: focused whole at the end
         assert not Solver(broker=ep, params={**base, "reference_roi": REF_ROI}).whole_scan
-        assert Solver(broker=ep, params={**base, "reference_roi": REF_ROI, "target_roi": [*TGT_ROI[:4], 0.2, 0.4]}).whole_scan
+        assert Solver(
+            broker=ep, params={**base, "reference_roi": REF_ROI, "target_roi": [*TGT_ROI[:4], 0.2, 0.4]}
+        ).whole_scan

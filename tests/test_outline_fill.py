@@ -1,11 +1,12 @@
-"""A digital twin's like-with-like check (twinfocus.outline_fill) and the confidence report that
+"""A digital twin's like-with-like check (twinfocus.focus.outline_fill) and the confidence report that
 reads it: closed forms for the statistics, a small simulated scene for what they tell apart, and
 the report trusting or flagging a digital twin's result by them (not by the template's picture)."""
+
 import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.outline_fill import SPECKLED_BELOW, outline_fill, surface_from_positions
+from twinfocus.focus.outline_fill import SPECKLED_BELOW, outline_fill, surface_from_positions
 
 
 def _outline(h=40, w=40):
@@ -60,19 +61,20 @@ def small_scene():
     """An 'F' of rough scatterers (each its own phase) 2 mm apart, 20 mm tall at 0.3 m, scanned by a
     16-channel array on 2 x 24 positions; the tracked positions off by 1.6 mm along z (every phase
     wraps); its sub-image basis, the image on the true positions and the letter's outline."""
-    from twinfocus.backprojection import backproject, subimage_basis
-    from twinfocus.grid import ImageGrid
-    from twinfocus.radar import Chirp, uniform_virtual_array
-    from twinfocus.simulate import simulate_if
-    from twinfocus.trajectory import paper_raster, phase_centres
+    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.motion.trajectory import paper_raster, phase_centres
+    from twinfocus.radar.fmcw import Chirp, uniform_virtual_array
+    from twinfocus.simulation.if_simulator import simulate_if
 
     chirp = Chirp(n_samples=64)
     rng = np.random.default_rng(1)
     s = np.arange(-0.010, 0.0101, 0.002)
     xy = [(-0.010, y) for y in s] + [(x, 0.010) for x in s] + [(x * 0.6, 0.0) for x in s]
     points = np.array([(x - 0.025, y, 0.3) for x, y in xy])
-    true = phase_centres(paper_raster(n_columns=2, n_rows=24, column_pitch_m=0.128, row_pitch_m=0.004),
-                         uniform_virtual_array(16, 0.002))
+    true = phase_centres(
+        paper_raster(n_columns=2, n_rows=24, column_pitch_m=0.128, row_pitch_m=0.004), uniform_virtual_array(16, 0.002)
+    )
     data = simulate_if(points, np.exp(2j * np.pi * rng.random(len(points))), true, chirp)
     tracked = true.copy()
     tracked[..., 2] += rng.normal(0, 1.6e-3, true.shape[0])[:, None]
@@ -93,10 +95,10 @@ def test_a_focused_reference_fills_its_outline_and_one_with_wrapped_errors_does_
 
 
 def _report(fill, match=0.68):
-    from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import confidence_report
-    from twinfocus.radar import Chirp, mmwcas_virtual_array
-    from twinfocus.trajectory import paper_raster, phase_centres
+    from twinfocus.focus.pipeline import confidence_report
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.motion.trajectory import paper_raster, phase_centres
+    from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 
     pos = phase_centres(paper_raster(6, 10), mmwcas_virtual_array())
     ref = ImageGrid.from_roi([-0.15, 0.0, -0.11, 0.12, 0.6], 20)
@@ -106,7 +108,7 @@ def _report(fill, match=0.68):
 
 
 def test_the_report_reads_a_digital_twin_against_its_outline_not_its_template_picture():
-    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST
+    from twinfocus.focus.pipeline import MAX_OUTLINE_CONTRAST
 
     good = {"energy_inside": 0.9, "contrast": MAX_OUTLINE_CONTRAST - 0.2}
     # a speckled reference matches an outline's picture at 0.68: no longer a reason to flag it
@@ -119,7 +121,7 @@ def test_the_report_reads_a_digital_twin_against_its_outline_not_its_template_pi
 
 
 def test_the_contrast_is_not_held_against_a_reference_the_scan_reads_as_speckled():
-    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST, outline_warnings
+    from twinfocus.focus.pipeline import MAX_OUTLINE_CONTRAST, outline_warnings
 
     piled = {"energy_inside": 0.9, "contrast": MAX_OUTLINE_CONTRAST + 0.3}
     # speckle in focus reaches the contrast of a coherent reference's piled energy: no reason to flag
@@ -133,7 +135,7 @@ def test_the_contrast_is_not_held_against_a_reference_the_scan_reads_as_speckled
 
 
 def test_a_reference_that_sends_its_return_to_a_few_positions_is_flagged():
-    from twinfocus.pipeline import MAX_POSITION_ENERGY_CONTRAST, outline_warnings
+    from twinfocus.focus.pipeline import MAX_POSITION_ENERGY_CONTRAST, outline_warnings
 
     filled = {"energy_inside": 0.95, "contrast": 1.7, "surface": "coherent"}
     assert outline_warnings({**filled, "position_energy_contrast": MAX_POSITION_ENERGY_CONTRAST - 0.5}, None) == []
@@ -145,17 +147,27 @@ def test_a_reference_that_sends_its_return_to_a_few_positions_is_flagged():
 def test_the_glint_threshold_grows_with_the_scans_aperture():
     """Measured on the same bench references scanned over 390 and 780 positions (0.0635 and
     0.128 m^2): a rough letter reads 4.5-5.4 at the longer scan, a smooth washer 8.0-8.2."""
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.grid import ImageGrid
-    from twinfocus.ladder import Problem
-    from twinfocus.pipeline import GLINT_APERTURE_M2, MAX_POSITION_ENERGY_CONTRAST, glint_threshold, outline_warnings
-    from twinfocus.radar import Chirp
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.ladder import Problem
+    from twinfocus.focus.pipeline import (
+        GLINT_APERTURE_M2,
+        MAX_POSITION_ENERGY_CONTRAST,
+        glint_threshold,
+        outline_warnings,
+    )
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.radar.fmcw import Chirp
 
     assert glint_threshold(None) == glint_threshold(GLINT_APERTURE_M2) == MAX_POSITION_ENERGY_CONTRAST
     assert glint_threshold(GLINT_APERTURE_M2 / 4) == MAX_POSITION_ENERGY_CONTRAST  # never below the bench's
     assert glint_threshold(2 * GLINT_APERTURE_M2) == pytest.approx(MAX_POSITION_ENERGY_CONTRAST * 2**0.8)
     filled = {"energy_inside": 0.95, "contrast": 1.7, "surface": "coherent"}
-    for contrast, aperture, glint in ((5.0, 0.128, False), (5.4, 0.128, False), (8.0, 0.128, True), (5.0, 0.0635, True)):
+    for contrast, aperture, glint in (
+        (5.0, 0.128, False),
+        (5.4, 0.128, False),
+        (8.0, 0.128, True),
+        (5.0, 0.0635, True),
+    ):
         warnings = outline_warnings({**filled, "position_energy_contrast": contrast, "aperture_m2": aperture}, None)
         assert any("to a few radar positions" in w for w in warnings) == glint, (contrast, aperture)
     # the scan's aperture, as the report reads it: the phase centres' extent across x times across y
@@ -181,8 +193,9 @@ def test_surface_from_positions_is_the_contrast_of_each_positions_energy_in_the_
     support = np.zeros((h, w), bool)
     support[5, 4] = True
     grown = np.array([[abs(r - 5) + abs(c - 4) <= 1 for c in range(w)] for r in range(h)])  # one step of dilation
-    energy = np.array([sum(abs(complex(basis[k, r, c])) ** 2 for r in range(h) for c in range(w) if grown[r, c])
-                       for k in range(m)])
+    energy = np.array(
+        [sum(abs(complex(basis[k, r, c])) ** 2 for r in range(h) for c in range(w) if grown[r, c]) for k in range(m)]
+    )
     expected = (energy**2).mean() / energy.mean() ** 2
     got = surface_from_positions(basis, support, grow_px=1)
     assert got["position_energy_contrast"] == pytest.approx(expected, abs=1e-3)
@@ -193,13 +206,20 @@ def test_surface_from_positions_is_the_contrast_of_each_positions_energy_in_the_
     lone = np.zeros_like(basis)
     lone[2] = 1.0
     assert surface_from_positions(lone, support)["position_energy_contrast"] == pytest.approx(m, rel=1e-3)
-    assert surface_from_positions(np.ones_like(basis), support) == {"position_energy_contrast": 1.0, "surface": "speckled"}
+    assert surface_from_positions(np.ones_like(basis), support) == {
+        "position_energy_contrast": 1.0,
+        "surface": "speckled",
+    }
 
 
 @pytest.mark.parametrize(
     ("basis_shape", "support_shape", "grow", "why"),
-    [((4, 5, 6), (5, 5), 0, "must be"), ((5, 6), (5, 6), 0, "must be"), ((4, 5, 6), (5, 6), -1, "grow_px"),
-     ((4, 5, 6), (5, 6), 0, "no finite energy")],
+    [
+        ((4, 5, 6), (5, 5), 0, "must be"),
+        ((5, 6), (5, 6), 0, "must be"),
+        ((4, 5, 6), (5, 6), -1, "grow_px"),
+        ((4, 5, 6), (5, 6), 0, "no finite energy"),
+    ],
 )
 def test_surface_from_positions_refuses_what_it_cannot_read(basis_shape, support_shape, grow, why):
     support = np.ones(support_shape, bool)
@@ -217,16 +237,21 @@ def test_the_scan_tells_a_speckled_reference_from_a_smooth_or_rough_one_whatever
     jitter and under a hand's drift alike."""
     from scipy.spatial import cKDTree
 
-    from twinfocus.backprojection import subimage_basis
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.imaging.backprojection.numba_backend import subimage_basis
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
 
-    for errors in ({"error_sigma_m": (0.3e-3, 0.3e-3, 1.6e-3)}, {"error_model": "hand", "error_sigma_m": (0.8e-3,) * 3}):
+    for errors in (
+        {"error_sigma_m": (0.3e-3, 0.3e-3, 1.6e-3)},
+        {"error_model": "hand", "error_sigma_m": (0.8e-3,) * 3},
+    ):
         for roughness_deg, surface in ((0.0, "coherent"), (90.0, "coherent"), (None, "speckled")):
             sc = Scenario(reference="H", reference_roughness_deg=roughness_deg, n_rows=20, snr_db=15, seed=4, **errors)
             scan, _ = simulate_scenario(sc)
             grid, _ = scenario_grids(sc, 32)
             # the outline: pixels within 2 mm of the letter's surface
-            distance, _ = cKDTree(sc.scene().object("reference").surface_points(1e-3)[:, :2]).query(grid.points()[:, :2])
+            distance, _ = cKDTree(sc.scene().object("reference").surface_points(1e-3)[:, :2]).query(
+                grid.points()[:, :2]
+            )
             support = (distance < 2e-3).reshape(grid.shape)
             got = surface_from_positions(subimage_basis(scan.data, scan.positions, scan.chirp, grid), support)
             assert got["surface"] == surface, (errors, roughness_deg, got)
@@ -236,18 +261,19 @@ def test_the_scan_tells_a_speckled_reference_from_a_smooth_or_rough_one_whatever
 def test_focus_reads_a_digital_twin_against_its_outline(small_scene):
     """focus_bases with an outline (what --digital-twin runs) writes the corrected reference's
     outline statistics, and its confidence report judges them, not the picture match."""
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import MAX_OUTLINE_CONTRAST, Bases, Reference, outline_warnings
-    from twinfocus.radar import Chirp, uniform_virtual_array
-    from twinfocus.trajectory import paper_raster, phase_centres
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.pipeline import MAX_OUTLINE_CONTRAST, Bases, Reference, outline_warnings
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.motion.trajectory import paper_raster, phase_centres
+    from twinfocus.radar.fmcw import Chirp, uniform_virtual_array
 
     basis, _, support = small_scene
     grid = ImageGrid.from_roi([-0.045, -0.005, -0.02, 0.02, 0.3], 24)
-    positions = phase_centres(paper_raster(n_columns=2, n_rows=24, column_pitch_m=0.128, row_pitch_m=0.004),
-                              uniform_virtual_array(16, 0.002))
+    positions = phase_centres(
+        paper_raster(n_columns=2, n_rows=24, column_pitch_m=0.128, row_pitch_m=0.004), uniform_virtual_array(16, 0.002)
+    )
     cfg = AutofocusConfig(**estimator_settings("auto", False, has_support=True))
     out = FocusPlan.make(config=cfg).focus_bases(
         Bases(basis, basis, positions, Chirp(n_samples=64), grid, grid),
@@ -264,4 +290,6 @@ def test_focus_reads_a_digital_twin_against_its_outline(small_scene):
     own = outline_warnings(fill, report.get("outline_agreement"))
     assert [w for w in report["warnings"] if w in own] == own
     judged = fill["surface"] != "speckled"
-    assert any("does not fill its outline" in w for w in report["warnings"]) == (judged and fill["contrast"] > MAX_OUTLINE_CONTRAST)
+    assert any("does not fill its outline" in w for w in report["warnings"]) == (
+        judged and fill["contrast"] > MAX_OUTLINE_CONTRAST
+    )

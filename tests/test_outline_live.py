@@ -2,6 +2,7 @@
 builder sends the outline of the reference it conditions, and the solver resamples it with the
 template and runs the outline estimator, as ``twinfocus focus --digital-twin`` does; a template
 without one keeps the projections; an outline that does not fit loses no scan."""
+
 import json
 import time
 
@@ -10,11 +11,11 @@ import numpy as np
 import pytest
 
 from msgs import Header, SarMeasurement, TwinTemplate, encode_frames
-from nodes.testing import Probe, local_broker, running
-from twinfocus.grid import ImageGrid
-from twinfocus.radar import Chirp, uniform_virtual_array
-from twinfocus.simulate import simulate_if
-from twinfocus.trajectory import paper_raster, phase_centres
+from nodes.runtime.testing import Probe, local_broker, running
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, uniform_virtual_array
+from twinfocus.simulation.if_simulator import simulate_if
 
 CHIRP = Chirp(n_samples=64)
 REF_ROI = [-0.045, -0.005, -0.02, 0.02, 0.3]
@@ -39,59 +40,99 @@ def scene():
     true = phase_centres(poses, uniform_virtual_array(k, 0.002))
     scatterers = _letter(0.002)
     data = simulate_if(scatterers, np.exp(2j * np.pi * rng.random(len(scatterers))), true, CHIRP)
-    tracked = true + np.stack([np.zeros(true.shape[0]), np.zeros(true.shape[0]),
-                               rng.normal(0, 0.3e-3, true.shape[0])], axis=1)[:, None, :]
+    tracked = (
+        true
+        + np.stack([np.zeros(true.shape[0]), np.zeros(true.shape[0]), rng.normal(0, 0.3e-3, true.shape[0])], axis=1)[
+            :, None, :
+        ]
+    )
     return data, tracked, _letter(0.001)
 
 
 def _measurements(data, positions, scan_id="s1"):
     m = data.shape[0]
-    return [SarMeasurement(header=Header(stamp_ns=i + 1), data=data[i], positions_m=positions[i], f0_hz=CHIRP.f0_hz,
-                           slope_hz_per_s=CHIRP.slope_hz_per_s, fs_hz=CHIRP.fs_hz, scan_id=scan_id, index=i,
-                           last=i == m - 1) for i in range(m)]
+    return [
+        SarMeasurement(
+            header=Header(stamp_ns=i + 1),
+            data=data[i],
+            positions_m=positions[i],
+            f0_hz=CHIRP.f0_hz,
+            slope_hz_per_s=CHIRP.slope_hz_per_s,
+            fs_hz=CHIRP.fs_hz,
+            scan_id=scan_id,
+            index=i,
+            last=i == m - 1,
+        )
+        for i in range(m)
+    ]
 
 
 def _solver(ep, tmp_path, **params):
     from nodes.solver import Solver
 
-    return Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": SIZE, "warm_up": False,
-                                     "out_dir": str(tmp_path), "pictures": False, **params})
+    return Solver(
+        broker=ep,
+        params={
+            "reference_roi": REF_ROI,
+            "target_roi": TGT_ROI,
+            "size": SIZE,
+            "warm_up": False,
+            "out_dir": str(tmp_path),
+            "pictures": False,
+            **params,
+        },
+    )
 
 
 def _twin_template(reference, support):
     grid = ImageGrid.from_roi(REF_ROI, SIZE)
-    return TwinTemplate(header=Header(stamp_ns=1, frame_id="scene"), image=reference.template, support=support,
-                        x_m=grid.x_m, y_m=grid.y_m, z_m=grid.z, kind="digital", source="F.npy")
+    return TwinTemplate(
+        header=Header(stamp_ns=1, frame_id="scene"),
+        image=reference.template,
+        support=support,
+        x_m=grid.x_m,
+        y_m=grid.y_m,
+        z_m=grid.z,
+        kind="digital",
+        source="F.npy",
+    )
 
 
 @pytest.fixture(scope="module")
 def reference(scene):
     """What ``twinfocus focus --digital-twin`` builds from the cloud for this scan."""
-    from twinfocus.digital_twin.condition import digital_twin_reference
+    from twinfocus.twins.digital_twin.condition import digital_twin_reference
 
     _, tracked, cloud = scene
-    return digital_twin_reference(cloud, tracked, CHIRP, ImageGrid.from_roi(REF_ROI, SIZE), oversample=16,
-                                  precision="float32")
+    return digital_twin_reference(
+        cloud, tracked, CHIRP, ImageGrid.from_roi(REF_ROI, SIZE), oversample=16, precision="float32"
+    )
 
 
 def test_a_points_twin_carries_its_outline_and_the_solver_runs_the_outline_estimator(scene, reference, tmp_path):
     """source points -> twin/template with the cloud's outline -> the solver's auto takes the
     outline estimator and finds the phase focus_bases finds offline with the same outline."""
     from nodes.template_builder import TemplateBuilder
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.backprojection import subimage_basis
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Bases, Reference, upper_band_basis
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.pipeline import Bases, Reference, upper_band_basis
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.imaging.backprojection.numba_backend import subimage_basis
 
     data, tracked, cloud = scene
     np.save(tmp_path / "F.npy", cloud)
     with local_broker() as ep:
-        builder = TemplateBuilder(broker=ep, params={"source": "points", "path": str(tmp_path / "F.npy"),
-                                                     "reference_roi": REF_ROI, "size": SIZE})
+        builder = TemplateBuilder(
+            broker=ep,
+            params={"source": "points", "path": str(tmp_path / "F.npy"), "reference_roi": REF_ROI, "size": SIZE},
+        )
         solver = _solver(ep, tmp_path / "out")
-        probe = Probe(ep, listen=["twin/template", "autofocus/result"], publish=["sar/measurement"],
-                      wait_for=["template_builder", "solver"])
+        probe = Probe(
+            ep,
+            listen=["twin/template", "autofocus/result"],
+            publish=["sar/measurement"],
+            wait_for=["template_builder", "solver"],
+        )
         with running(builder, solver, probe):
             for m in _measurements(data, tracked):
                 probe.send("sar/measurement", m)
@@ -102,10 +143,15 @@ def test_a_points_twin_carries_its_outline_and_the_solver_runs_the_outline_estim
     assert template.support.dtype == bool and np.array_equal(template.support, reference.support)
     np.testing.assert_array_equal(template.image, reference.template)
     # and what the conditioning chose travels with it into the solver's metrics.json
-    assert (template.surface, template.curved) == (reference.info["surface"], reference.info["curved"]) == ("plane", False)
+    assert (
+        (template.surface, template.curved) == (reference.info["surface"], reference.info["curved"]) == ("plane", False)
+    )
     metrics = json.loads((tmp_path / "out" / "s1" / "metrics.json").read_text())
-    assert metrics["digital_twin"] == {"surface": "plane", "curved": False,
-                                       "curvature_m": pytest.approx(reference.info["curvature_m"])}
+    assert metrics["digital_twin"] == {
+        "surface": "plane",
+        "curved": False,
+        "curvature_m": pytest.approx(reference.info["curvature_m"]),
+    }
     assert not any("curved" in w for w in metrics["confidence"]["warnings"])
     # the solver ran the outline estimator (averaged outlines), and says so
     assert res.estimator == "outline" and res.method == "twin"
@@ -139,8 +185,9 @@ def test_without_an_outline_the_solver_keeps_the_projections(scene, reference, t
     data, tracked, _ = scene
     with local_broker() as ep:
         solver = _solver(ep, tmp_path)
-        probe = Probe(ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"],
-                      wait_for=["solver"])
+        probe = Probe(
+            ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"]
+        )
         with running(solver, probe):
             probe.send("twin/template", _twin_template(reference, None))  # a template file's, or an old log's
             for m in _measurements(data, tracked):
@@ -155,27 +202,33 @@ def test_without_an_outline_the_solver_keeps_the_projections(scene, reference, t
 
 def test_the_outline_is_resampled_with_the_template_and_an_empty_one_is_dropped(reference, capfd):
     from nodes.solver import Solver
-    from twinfocus.templates import resample_support
+    from twinfocus.twins.templates import resample_support
 
     msg = _twin_template(reference, reference.support)
     with local_broker() as ep:
-        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 17,
-                                           "warm_up": False})
+        solver = Solver(
+            broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 17, "warm_up": False}
+        )
         solver.on_template(msg)  # another grid than the builder's: resampled, still a mask
         want = resample_support(reference.support, msg.x_m, msg.y_m, ImageGrid.from_roi(REF_ROI, 17))
-        assert solver.support.dtype == bool and np.array_equal(solver.support, want) and solver.template.shape == (17, 17)
+        assert (
+            solver.support.dtype == bool and np.array_equal(solver.support, want) and solver.template.shape == (17, 17)
+        )
         assert 0.7 < want.sum() / (reference.support.sum() * (17 / SIZE) ** 2) < 1.3  # about the same area
         assert solver._config(CHIRP).init == "outline" and solver._plan().estimator == "outline"
         solver.on_template(_twin_template(reference, np.zeros_like(reference.support)))
         assert solver.support is None and solver.template.shape == (17, 17)  # the template alone is kept
         assert solver._config(CHIRP).init == "projection"
     err = capfd.readouterr().err
-    assert ("ignored the outline of the digital template from F.npy: the outline covers 0% of the reference "
-            "region on its grid (needs some but not all)") in err
+    assert (
+        "ignored the outline of the digital template from F.npy: the outline covers 0% of the reference "
+        "region on its grid (needs some but not all)"
+    ) in err
 
 
 def test_a_template_whose_outline_does_not_fit_is_dropped_and_the_waiting_scan_takes_the_next(
-        scene, reference, tmp_path, capfd):
+    scene, reference, tmp_path, capfd
+):
     """A malformed twin/template (an outline of another shape than the image) is dropped with a
     line naming the field and both shapes; the scan waiting for a template is kept, and focused
     with the outline estimator when a good template comes."""
@@ -187,8 +240,9 @@ def test_a_template_whose_outline_does_not_fit_is_dropped_and_the_waiting_scan_t
     bad = [msgpack.packb(env, use_bin_type=True), *frames[1:]]
     with local_broker() as ep:
         solver = _solver(ep, tmp_path)
-        probe = Probe(ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"],
-                      wait_for=["solver"])
+        probe = Probe(
+            ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"]
+        )
         with running(solver, probe):
             for m in _measurements(data, tracked):
                 probe.send("sar/measurement", m)
@@ -204,10 +258,12 @@ def test_a_template_whose_outline_does_not_fit_is_dropped_and_the_waiting_scan_t
             assert solver.template is None and len(solver.waiting) == 1  # not taken, the scan still waits
             probe.send("twin/template", good)
             (res,) = probe.wait_for("autofocus/result", 1, timeout_s=60)
-    assert "dropped a malformed message: twin/template" in err and "field 'support' must be bool array of shape (H, W)" in err
+    assert (
+        "dropped a malformed message: twin/template" in err
+        and "field 'support' must be bool array of shape (H, W)" in err
+    )
     assert f"got shape ({SIZE // 2}, {SIZE * 2}) (already bound: H={SIZE}, W={SIZE})" in err
     assert res.scan_id == "s1" and res.estimator == "outline"
-
 
 
 def test_a_curved_reference_is_reported_and_not_trusted(scene, reference):
@@ -216,11 +272,11 @@ def test_a_curved_reference_is_reported_and_not_trusted(scene, reference):
     the twin/template's fields, says the outline estimator is not at its ceiling there and does not
     trust the result; the flat reference's report carries no such warning."""
     from nodes.solver import Solver
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.backprojection import subimage_basis
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Bases, Reference
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.pipeline import Bases, Reference
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.imaging.backprojection.numba_backend import subimage_basis
 
     data, tracked, _ = scene
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, SIZE), ImageGrid.from_roi(TGT_ROI, SIZE)
@@ -234,16 +290,19 @@ def test_a_curved_reference_is_reported_and_not_trusted(scene, reference):
             Reference(template=reference.template, support=reference.support, info=info),
         )
         assert out.metrics["digital_twin"] == info
-        reports[name] = ([w for w in out.metrics["confidence"]["warnings"] if "is curved" in w],
-                         out.metrics["confidence"]["trusted"])
+        reports[name] = (
+            [w for w in out.metrics["confidence"]["warnings"] if "is curved" in w],
+            out.metrics["confidence"]["trusted"],
+        )
     assert reports["flat"][0] == [] and len(reports["bent"][0]) == 1 and not reports["bent"][1]
     assert "departs 6.3 mm from a plane" in reports["bent"][0][0]
     # the solver takes the same from the message's fields (an older log's template has none)
     msg = _twin_template(reference, reference.support)
     msg.surface, msg.curved, msg.curvature_m = "smooth", True, 6.3e-3
     with local_broker() as ep:
-        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": SIZE,
-                                           "warm_up": False})
+        solver = Solver(
+            broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": SIZE, "warm_up": False}
+        )
         solver.on_template(msg)
         assert solver.twin_info == {"surface": "smooth", "curved": True, "curvature_m": 6.3e-3}
         solver.on_template(_twin_template(reference, reference.support))

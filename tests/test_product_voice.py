@@ -37,9 +37,26 @@ PHRASES: list[tuple[str, str]] = [
 _PATTERN = re.compile("|".join(f"(?P<p{i}>{p})" for i, (_, p) in enumerate(PHRASES)), re.I)
 #: a word every phrase above holds: a line without one is not matched against the patterns (the
 #: search reads megabytes of result files; the substring test is many times quicker than the regex)
-_KEYWORDS = ("issue", "brief", "session", "round", "agent", "engineer", "helper", "coordinator", "reviewer",
-             "requester", "filed by", "user's report", "stop", "lesson", "done when", "deliverable", "gpu",
-             "larger machine")
+_KEYWORDS = (
+    "issue",
+    "brief",
+    "session",
+    "round",
+    "agent",
+    "engineer",
+    "helper",
+    "coordinator",
+    "reviewer",
+    "requester",
+    "filed by",
+    "user's report",
+    "stop",
+    "lesson",
+    "done when",
+    "deliverable",
+    "gpu",
+    "larger machine",
+)
 
 
 def _files() -> list[Path]:
@@ -128,8 +145,11 @@ EVIDENCE = ("docs/notes.md", "docs/notes/", "docs/results.md", "docs/results/", 
 
 #: (name, pattern): what a user page leaves to the evidence pages, case-insensitive.
 USER_PAGE_PHRASES: list[tuple[str, str]] = [
-    ("a date", r"\b20\d\d-[01]\d-[0-3]\d\b|\b(january|february|march|april|may|june|july|august|september|"
-     r"october|november|december) 20\d\d\b"),
+    (
+        "a date",
+        r"\b20\d\d-[01]\d-[0-3]\d\b|\b(january|february|march|april|may|june|july|august|september|"
+        r"october|november|december) 20\d\d\b",
+    ),
     ("a machine's name", r"\b\d+-core VMs?\b"),
     ("a version's history", r"\bcommit [0-9a-f]{7,40}\b"),
     ("the draws a method was built on", r"\bbench draws\b|\bheld-out draws\b"),
@@ -184,6 +204,9 @@ def test_a_link_to_a_dated_note_is_not_a_date() -> None:
 
 
 def test_no_page_is_over_30_kb() -> None:
-    big = [f"{p.relative_to(ROOT)}: {p.stat().st_size / 1000:.1f} kB" for p in [ROOT / "README.md", *(ROOT / "docs").rglob("*.md")]
-           if p.stat().st_size > 30_000]
+    big = [
+        f"{p.relative_to(ROOT)}: {p.stat().st_size / 1000:.1f} kB"
+        for p in [ROOT / "README.md", *(ROOT / "docs").rglob("*.md")]
+        if p.stat().st_size > 30_000
+    ]
     assert not big, "pages over 30 kB (split them; a user reads a page in minutes):\n" + "\n".join(big)

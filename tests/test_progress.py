@@ -1,7 +1,8 @@
 """Progress lines: every 10 % off a terminal, with the time left at the pace so far."""
+
 import io
 
-from twinfocus.progress import Progress, remaining_text
+from twinfocus.jobs.progress import Progress, remaining_text
 
 
 class Clock:
@@ -14,7 +15,7 @@ class Clock:
 
 def test_progress_lines_estimate_what_remains(monkeypatch):
     clock = Clock()
-    monkeypatch.setattr("twinfocus.progress.time.perf_counter", clock)
+    monkeypatch.setattr("twinfocus.jobs.progress.time.perf_counter", clock)
     out = io.StringIO()
     p = Progress("batch", stream=out)
     for done in range(1, 11):

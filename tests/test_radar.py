@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import (
+from twinfocus.radar.fmcw import (
     C_M_PER_S,
     Chirp,
     mmwcas_rx_positions_m,

@@ -10,7 +10,7 @@ import pytest
 
 from benchmarks.demo_figure import FIGURES, PICTURE, demo_figures
 from twinfocus.cli import main as twinfocus
-from twinfocus.scenario import PAPER_IMAGE_SIZE, PAPER_REFERENCE_ROI, PAPER_TARGET_ROI
+from twinfocus.simulation.scenario import PAPER_IMAGE_SIZE, PAPER_REFERENCE_ROI, PAPER_TARGET_ROI
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"

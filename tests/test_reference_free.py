@@ -3,17 +3,17 @@
 import numpy as np
 import pytest
 
-from twinfocus.backprojection import backproject, subimage_basis
-from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.metrics import entropy, image_ssim, oracle_phase
-from twinfocus.motion import apply_position_errors, drift_errors
-from twinfocus.phase_ramp import fit_linear_phase
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.reference_free import minimum_entropy_phase, phase_gradient_phase
-from twinfocus.simulate import add_thermal_noise, simulate_if
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.focus.phase_ramp import fit_linear_phase
+from twinfocus.focus.reference_free import minimum_entropy_phase, phase_gradient_phase
+from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+from twinfocus.imaging.basis import form_image
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import entropy, image_ssim, oracle_phase
+from twinfocus.motion.tracking_errors import apply_position_errors, drift_errors
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if
 
 Z = 0.4
 # 14 cm at 0.4 m: about 8 resolution cells per radar position, so the image constrains the phases

@@ -1,23 +1,24 @@
 """The reference region found from what is known: a cloud with stray points, a template file's
 grid, the one object of a physical twin's scan; and ``focus`` given only the twin and the
 target's x/y box."""
+
 import json
 
 import numpy as np
 import pytest
 
-from twinfocus.boxes import REGION_MARGIN_M as SCAN_MARGIN_M
 from twinfocus.cli import main
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.reference_search import (
+from twinfocus.focus.boxes import REGION_MARGIN_M as SCAN_MARGIN_M
+from twinfocus.focus.reference_search import (
     REGION_MARGIN_M,
     candidate_score,
     region_from_cloud,
     region_from_scan,
     region_from_template_file,
 )
-from twinfocus.simulate import simulate_if
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+from twinfocus.simulation.if_simulator import simulate_if
 
 
 def test_region_of_a_cloud_ignores_stray_points_and_holes():
@@ -69,8 +70,23 @@ def test_region_of_the_one_object_of_a_scan():
 def test_method_without_reference_region_is_refused(tmp_path, capsys):
     scan = tmp_path / "scan.npz"
     np.savez(scan, data=np.zeros((2, 2, 4), np.complex64))
-    rc = main(["focus", str(scan), "--target-roi", "0", "0.1", "0", "0.1", "0.6", "--method", "none",
-               "--out", str(tmp_path / "o"), "--quiet"])
+    rc = main(
+        [
+            "focus",
+            str(scan),
+            "--target-roi",
+            "0",
+            "0.1",
+            "0",
+            "0.1",
+            "0.6",
+            "--method",
+            "none",
+            "--out",
+            str(tmp_path / "o"),
+            "--quiet",
+        ]
+    )
     assert rc == 2
     assert "--reference-roi" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
@@ -79,13 +95,61 @@ def test_method_without_reference_region_is_refused(tmp_path, capsys):
 @pytest.mark.slow
 def test_focus_from_the_twin_and_an_xy_box_alone_matches_typed_regions(tmp_path):
     d = tmp_path
-    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"), "--columns", "3",
-                 "--rows", "40", "--quiet", "--seed", "3", "--target-depth-offset", "0.08"]) == 0
-    common = ["--size", "48", "--iterations", "150", "--space-variant", "off", "--template-scan", str(d / "tpl.npz"),
-              "--quiet", "--no-cache"]
+    assert (
+        main(
+            [
+                "simulate",
+                "--out",
+                str(d / "scan.npz"),
+                "--template-out",
+                str(d / "tpl.npz"),
+                "--columns",
+                "3",
+                "--rows",
+                "40",
+                "--quiet",
+                "--seed",
+                "3",
+                "--target-depth-offset",
+                "0.08",
+            ]
+        )
+        == 0
+    )
+    common = [
+        "--size",
+        "48",
+        "--iterations",
+        "150",
+        "--space-variant",
+        "off",
+        "--template-scan",
+        str(d / "tpl.npz"),
+        "--quiet",
+        "--no-cache",
+    ]
     box = ["0.016", "0.103", "-0.0785", "0.0785"]
-    assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
-                 "--target-roi", *box, "0.68", "--out", str(d / "typed"), *common]) == 0
+    assert (
+        main(
+            [
+                "focus",
+                str(d / "scan.npz"),
+                "--reference-roi",
+                "-0.15",
+                "0.0",
+                "-0.11",
+                "0.12",
+                "0.6",
+                "--target-roi",
+                *box,
+                "0.68",
+                "--out",
+                str(d / "typed"),
+                *common,
+            ]
+        )
+        == 0
+    )
     assert main(["focus", str(d / "scan.npz"), "--target-roi", *box, "--out", str(d / "found"), *common]) == 0
     typed = json.loads((d / "typed" / "metrics.json").read_text())
     found = json.loads((d / "found" / "metrics.json").read_text())
@@ -117,12 +181,44 @@ def test_of_two_template_scans_the_one_of_the_reference_is_chosen(tmp_path):
     sim = ["--columns", "3", "--rows", "40", "--quiet", "--seed", "3"]
     assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "a.npz"), *sim]) == 0
     # a motion-stage scan of another letter where the reference stands: the wrong twin
-    assert main(["simulate", "--out", str(d / "other.npz"), "--template-out", str(d / "b.npz"), "--reference", "B",
-                 *sim]) == 0
-    assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
-                 "--target-roi", "0.02", "0.13", "-0.11", "0.12", "0.6", "--size", "48", "--iterations", "150",
-                 "--space-variant", "off", "--template-scan", str(d / "b.npz"), str(d / "a.npz"), "--quiet",
-                 "--no-cache", "--out", str(d / "out")]) == 0
+    assert (
+        main(["simulate", "--out", str(d / "other.npz"), "--template-out", str(d / "b.npz"), "--reference", "B", *sim])
+        == 0
+    )
+    assert (
+        main(
+            [
+                "focus",
+                str(d / "scan.npz"),
+                "--reference-roi",
+                "-0.15",
+                "0.0",
+                "-0.11",
+                "0.12",
+                "0.6",
+                "--target-roi",
+                "0.02",
+                "0.13",
+                "-0.11",
+                "0.12",
+                "0.6",
+                "--size",
+                "48",
+                "--iterations",
+                "150",
+                "--space-variant",
+                "off",
+                "--template-scan",
+                str(d / "b.npz"),
+                str(d / "a.npz"),
+                "--quiet",
+                "--no-cache",
+                "--out",
+                str(d / "out"),
+            ]
+        )
+        == 0
+    )
     m = json.loads((d / "out" / "metrics.json").read_text())
     cands = m["reference_candidates"]
     assert [c["path"] for c in cands["candidates"]] == [str(d / "b.npz"), str(d / "a.npz")]
@@ -135,12 +231,59 @@ def test_of_two_template_scans_the_one_of_the_reference_is_chosen(tmp_path):
 @pytest.mark.slow
 def test_focus_with_the_reference_region_from_its_cloud_matches_the_typed_region(tmp_path):
     d = tmp_path
-    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"), "--columns", "3",
-                 "--rows", "40", "--quiet", "--seed", "3", "--reference-cloud-out", str(d / "cloud.npy")]) == 0
-    common = ["--target-roi", "0.02", "0.13", "-0.11", "0.12", "0.6", "--size", "48", "--digital-twin",
-              str(d / "cloud.npy"), "--quiet", "--no-cache"]
-    assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
-                 "--out", str(d / "typed"), *common]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--out",
+                str(d / "scan.npz"),
+                "--template-out",
+                str(d / "tpl.npz"),
+                "--columns",
+                "3",
+                "--rows",
+                "40",
+                "--quiet",
+                "--seed",
+                "3",
+                "--reference-cloud-out",
+                str(d / "cloud.npy"),
+            ]
+        )
+        == 0
+    )
+    common = [
+        "--target-roi",
+        "0.02",
+        "0.13",
+        "-0.11",
+        "0.12",
+        "0.6",
+        "--size",
+        "48",
+        "--digital-twin",
+        str(d / "cloud.npy"),
+        "--quiet",
+        "--no-cache",
+    ]
+    assert (
+        main(
+            [
+                "focus",
+                str(d / "scan.npz"),
+                "--reference-roi",
+                "-0.15",
+                "0.0",
+                "-0.11",
+                "0.12",
+                "0.6",
+                "--out",
+                str(d / "typed"),
+                *common,
+            ]
+        )
+        == 0
+    )
     assert main(["focus", str(d / "scan.npz"), "--out", str(d / "found"), *common]) == 0
     typed = json.loads((d / "typed" / "metrics.json").read_text())
     found = json.loads((d / "found" / "metrics.json").read_text())

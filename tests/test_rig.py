@@ -1,4 +1,4 @@
-"""The calibrated rig (twinfocus.digital_twin.rig, ``twinfocus rig``): a camera offset injected
+"""The calibrated rig (twinfocus.twins.digital_twin.rig, ``twinfocus rig``): a camera offset injected
 into a simulated camera cloud is recovered from the motion-stage scan; objects too small or of
 another shape are refused; a rig of another board is refused; applying the rig puts the digital
 twin's template back where the radar sees the reference."""
@@ -19,8 +19,8 @@ OFFSET = np.array([2.0e-3, -2.5e-3, 0.0])
 def stage(tmp_path_factory):
     """The paper's reference (A) alone on a motion stage (accurate positions, 33 rows), its
     exact surface and a camera cloud of it OFFSET off (0.5 mm noise, 10 % holes)."""
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
 
     d = tmp_path_factory.mktemp("rig")
     sc = Scenario(reference="A", target="F", n_rows=33, seed=5, snr_db=15, template_offset_m=(0.0, 0.0, 0.0))
@@ -65,7 +65,7 @@ def test_rig_recovers_injected_offset_and_cli_writes_it(stage):
 
 @pytest.mark.slow
 def test_rig_refuses_small_object_and_other_shape(stage, tmp_path):
-    from twinfocus.digital_twin.rig import measure_rig
+    from twinfocus.twins.digital_twin.rig import measure_rig
 
     cloud = stage["cloud"]
     small = cloud[np.hypot(*(cloud[:, :2] - cloud[0, :2]).T) < 5e-3]  # a spot 1 cm across on the letter
@@ -80,9 +80,9 @@ def test_rig_refuses_small_object_and_other_shape(stage, tmp_path):
 
 
 def test_rig_of_another_board_or_camera_is_refused(tmp_path):
-    from twinfocus.digital_twin.rig import Rig, load_rig_for
-    from twinfocus.radar import Chirp
-    from twinfocus.scan import Scan
+    from twinfocus.radar.fmcw import Chirp
+    from twinfocus.radar.scan import Scan
+    from twinfocus.twins.digital_twin.rig import Rig, load_rig_for
 
     chirp = Chirp()
     scan = Scan(np.ones((2, 1, chirp.n_samples), np.complex64), np.zeros((2, 1, 3)), chirp)
@@ -105,10 +105,10 @@ def test_rig_of_another_board_or_camera_is_refused(tmp_path):
 def test_applying_the_rig_puts_the_template_back_in_place(stage):
     """SSIM of the digital twin's template against the exact surface's, at zero shift and best
     over sub-pixel shifts: with the rig the two agree (it sits in place), without they do not."""
-    from twinfocus.digital_twin.condition import digital_twin_reference
-    from twinfocus.digital_twin.rig import measure_rig, measuring_grid
-    from twinfocus.metrics import ssim
-    from twinfocus.subpixel import shift_image
+    from twinfocus.imaging.metrics import ssim
+    from twinfocus.imaging.subpixel import shift_image
+    from twinfocus.twins.digital_twin.condition import digital_twin_reference
+    from twinfocus.twins.digital_twin.rig import measure_rig, measuring_grid
 
     scan, grid = stage["scan"], measuring_grid(stage["grid"])
     rig = measure_rig(scan, stage["cloud"], stage["grid"], board="b", camera=None, bootstrap=4).rig
@@ -131,7 +131,7 @@ def test_applying_the_rig_puts_the_template_back_in_place(stage):
 def test_focus_with_rig_records_it(stage, capsys):
     import hashlib
 
-    from twinfocus.digital_twin.rig import Rig
+    from twinfocus.twins.digital_twin.rig import Rig
 
     d = stage["dir"]
     Rig(-OFFSET, [1e-4] * 3, "MMWCAS-RF-EVM", None).save(d / "known.json")
@@ -165,8 +165,8 @@ def test_focus_with_rig_records_it(stage, capsys):
 
 
 def test_rig_needs_a_digital_twin(tmp_path, capsys):
-    from twinfocus.radar import Chirp
-    from twinfocus.scan import Scan
+    from twinfocus.radar.fmcw import Chirp
+    from twinfocus.radar.scan import Scan
 
     chirp = Chirp()
     Scan(np.ones((2, 1, chirp.n_samples), np.complex64), np.zeros((2, 1, 3)), chirp).save(tmp_path / "s.npz")
@@ -198,9 +198,9 @@ def test_rig_needs_a_digital_twin(tmp_path, capsys):
 
 
 def test_template_builder_takes_a_rig_and_refuses_another_boards(tmp_path):
+    from nodes.runtime.testing import local_broker
     from nodes.template_builder import TemplateBuilder
-    from nodes.testing import local_broker
-    from twinfocus.digital_twin.rig import Rig
+    from twinfocus.twins.digital_twin.rig import Rig
 
     np.save(tmp_path / "cloud.npy", np.random.default_rng(0).normal(0, 0.01, (50, 3)) + [-0.02, 0.0, 0.3])
     Rig([1e-3, 0, 0], [1e-4] * 3, "MMWCAS-RF-EVM", None).save(tmp_path / "rig.json")
@@ -223,11 +223,11 @@ def test_place_on_rig_finds_an_injected_ramp_and_carries_the_target(stage):
     across y and 1 mm across x is put into the phase; the placement on the exact surface's outline
     finds it to a fraction of the 3.3 mm pixel, takes it out, and the target, formed with the
     placed phase, is back on its image on the true positions."""
-    from twinfocus.backprojection import subimage_basis
-    from twinfocus.basis import form_image
-    from twinfocus.digital_twin.condition import support_on_grid
-    from twinfocus.digital_twin.rig import place_on_rig
-    from twinfocus.metrics import image_ssim
+    from twinfocus.focus.rig_placement import place_on_rig
+    from twinfocus.imaging.backprojection.numba_backend import subimage_basis
+    from twinfocus.imaging.basis import form_image
+    from twinfocus.imaging.metrics import image_ssim
+    from twinfocus.twins.digital_twin.condition import support_on_grid
 
     scan, grid, tg = stage["scan"], stage["grid"], stage["target_grid"]
     rb = subimage_basis(scan.data, scan.positions, scan.chirp, grid)
@@ -250,7 +250,7 @@ def test_place_on_rig_finds_an_injected_ramp_and_carries_the_target(stage):
 def test_rig_placement_only_on_a_rig_and_trust_lifts_only_the_wrapped_warning():
     from types import SimpleNamespace
 
-    from twinfocus.digital_twin.rig import WRAPPED_WARNING, rig_placed, rig_trust
+    from twinfocus.focus.rig_placement import WRAPPED_WARNING, rig_placed, rig_trust
 
     model = SimpleNamespace(drift_m=None)
     problem = SimpleNamespace(support=np.ones((2, 2), bool))

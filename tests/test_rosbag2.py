@@ -14,8 +14,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from twinfocus.cli import main
 from twinfocus.errors import TwinFocusError
+from twinfocus.motion.trajectory import quat_to_matrix
 from twinfocus.sensors.rosbag2_files import read_any_trajectory, read_bag_cloud, read_bag_poses, read_bag_stereo
-from twinfocus.trajectory import quat_to_matrix
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
 T = TS.types
@@ -260,10 +260,10 @@ def test_convert_and_focus_from_a_zed_bag(tmp_path, capsys):
     """A capture whose trajectory travels in a bag as the ZED writes it (ROS axes): convert from
     the bag equals convert from the TUM file; focus with the bag's cloud equals focus with the same
     points as .npy."""
-    from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M
-    from twinfocus.scan import Scan
+    from twinfocus.radar.scan import Scan
     from twinfocus.scene import paper_scene
     from twinfocus.sensors.trajectory_files import read_tum
+    from twinfocus.twins.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M
 
     cap = tmp_path / "cap"
     subprocess.run(
@@ -286,7 +286,7 @@ def test_convert_and_focus_from_a_zed_bag(tmp_path, capsys):
     tum = read_tum(cap / "trajectory.txt")
     # the ZED's pose is its body frame's: the TUM (optical) rotation times the optical -> body rotation
     r_body = tum.rotation_matrices() @ R_BODY_OPT.T
-    from twinfocus.trajectory import matrix_to_quat
+    from twinfocus.motion.trajectory import matrix_to_quat
 
     q_body = np.array([matrix_to_quat(r) for r in r_body])
     ref = paper_scene().object("reference").surface_points(2e-3)
@@ -353,8 +353,8 @@ def test_convert_and_focus_from_a_zed_bag(tmp_path, capsys):
 
 
 def test_focus_refuses_a_wrong_cloud_topic_in_one_line(bag, tmp_path, capsys):
-    from twinfocus.radar import Chirp
-    from twinfocus.scan import Scan
+    from twinfocus.radar.fmcw import Chirp
+    from twinfocus.radar.scan import Scan
 
     path = bag[0]
     pos = np.zeros((3, 2, 3))
@@ -376,9 +376,9 @@ def test_focus_refuses_a_wrong_cloud_topic_in_one_line(bag, tmp_path, capsys):
 def test_twin_takes_the_stereo_pair_and_camera_info_from_a_bag(tmp_path):
     """`twin BAG:LEFT BAG:RIGHT` (CameraInfo from the bag, default ZED pose) gives the cloud that
     `twin left.png right.png --camera camera.json` gives for the same rendered pair."""
-    from twinfocus.digital_twin.camera import StereoCamera
-    from twinfocus.digital_twin.render import render_scene
     from twinfocus.scene import paper_scene
+    from twinfocus.twins.digital_twin.camera import StereoCamera
+    from twinfocus.twins.digital_twin.render import render_scene
 
     cam = StereoCamera.zed2i(640, 360)
     r = render_scene(paper_scene(), cam, seed=3)
@@ -391,7 +391,7 @@ def test_twin_takes_the_stereo_pair_and_camera_info_from_a_bag(tmp_path):
     )
     roi = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
     # the bag's CameraInfo puts the principal point at w/2 (as info_msg writes it): the same in camera.json
-    from twinfocus.digital_twin.camera import Intrinsics
+    from twinfocus.twins.digital_twin.camera import Intrinsics
 
     eye = Intrinsics(f, f, w / 2, h / 2, w, h)
     StereoCamera(eye, eye, np.eye(3), np.array([-cam.baseline_m, 0, 0]), cam.scene_from_left).save(

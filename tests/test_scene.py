@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.motion.trajectory import quat_from_rotvec, quat_to_matrix
 from twinfocus.scene import (
     DEFAULT_SPACING_M,
     MATERIALS,
@@ -18,7 +19,6 @@ from twinfocus.scene import (
     paper_scene,
     scatterer_spacing_m,
 )
-from twinfocus.trajectory import quat_from_rotvec, quat_to_matrix
 
 
 def test_materials_table():

@@ -1,5 +1,6 @@
-"""The hardware driver backends (nodes/sensor_backends.py) against the sensors area's emulators
+"""The hardware driver backends (nodes/runtime/sensor_backends.py) against the sensors area's emulators
 and fixtures: every registered name resolves, and each adapter streams what the device gave."""
+
 from __future__ import annotations
 
 import socket
@@ -10,9 +11,9 @@ import numpy as np
 import pytest
 import yaml
 
-from nodes.backends import RADAR_BACKENDS, VIO_BACKENDS, PoseSample, RadarSample, load_backend
+from nodes.runtime.backends import RADAR_BACKENDS, VIO_BACKENDS, PoseSample, RadarSample, load_backend
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp, mmwcas_virtual_array
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 from twinfocus.sensors.frames import frame_to_virtual_channels
 
 REPO = Path(__file__).resolve().parent.parent
@@ -68,9 +69,9 @@ def _free_udp_port() -> int:
 def test_dca1000_backend_and_emulated_vio_stream_the_emulated_rig(tmp_path):
     """CLI start -> DCA1000 stream -> 86 virtual channels; the emulated VIO follows the same
     trajectory from the rig's sync file."""
+    from twinfocus.motion.trajectory import paper_raster, phase_centres
     from twinfocus.sensors.emulators.radar_scene import monostatic_if
     from twinfocus.sensors.emulators.rig import EMULATED_CFG, EmulatedRadar
-    from twinfocus.trajectory import paper_raster, phase_centres
 
     cfg = tmp_path / "radar.cfg"
     cfg.write_text(EMULATED_CFG.replace(" 256 8000 ", " 32 8000 "))
@@ -79,19 +80,35 @@ def test_dca1000_backend_and_emulated_vio_stream_the_emulated_rig(tmp_path):
     target = np.array([[0.01, -0.005, 0.6]])
     port = _free_udp_port()
     with EmulatedRadar(traj, target, chirp, host_data_addr=("127.0.0.1", port), sync_file=tmp_path / "sync") as rig:
-        radar = load_backend(RADAR_BACKENDS, "dca1000", "radar")({
-            "cfg": str(cfg), "cli_port": rig.cli_port, "board": f"{rig.config_addr[0]}:{rig.config_addr[1]}",
-            "host_ip": "127.0.0.1", "config_port": 0, "data_port": port, "z0_m": 0.6, "frames_per_scan": 4,
-            "idle_timeout_s": 1.0,
-        })
+        radar = load_backend(RADAR_BACKENDS, "dca1000", "radar")(
+            {
+                "cfg": str(cfg),
+                "cli_port": rig.cli_port,
+                "board": f"{rig.config_addr[0]}:{rig.config_addr[1]}",
+                "host_ip": "127.0.0.1",
+                "config_port": 0,
+                "data_port": port,
+                "z0_m": 0.6,
+                "frames_per_scan": 4,
+                "idle_timeout_s": 1.0,
+            }
+        )
         try:
             got = list(radar.samples())
         finally:
             radar.close()
-        vio = load_backend(VIO_BACKENDS, "emulated", "VIO")({
-            "columns": 2, "rows": 4, "column_pitch_m": 0.04, "row_pitch_m": 0.004, "period_s": 0.02,
-            "sync_file": str(tmp_path / "sync"), "rate_hz": 100, "start_timeout_s": 5,
-        })
+        vio = load_backend(VIO_BACKENDS, "emulated", "VIO")(
+            {
+                "columns": 2,
+                "rows": 4,
+                "column_pitch_m": 0.04,
+                "row_pitch_m": 0.004,
+                "period_s": 0.02,
+                "sync_file": str(tmp_path / "sync"),
+                "rate_hz": 100,
+                "start_timeout_s": 5,
+            }
+        )
         poses = list(vio.samples())
         vio.close()
     assert radar.chirp == chirp and radar.live and vio.child_frame_id == "radar"
@@ -111,7 +128,9 @@ def test_dca1000_backend_and_emulated_vio_stream_the_emulated_rig(tmp_path):
     stamps = np.array([p.stamp_ns for p in poses])
     assert stamps[0] < got[0].stamp_ns and stamps[-1] > got[-1].stamp_ns - 50_000_000
     at = traj.interpolate(traj.timestamps_ns[0] + (stamps - stamps[0]) - 100_000_000)
-    inside = (stamps - stamps[0] >= 100_000_000) & (stamps - stamps[0] - 100_000_000 <= traj.timestamps_ns[-1] - traj.timestamps_ns[0])
+    inside = (stamps - stamps[0] >= 100_000_000) & (
+        stamps - stamps[0] - 100_000_000 <= traj.timestamps_ns[-1] - traj.timestamps_ns[0]
+    )
     np.testing.assert_allclose(np.array([p.position_m for p in poses])[inside], at.position_m[inside], atol=1e-12)
 
 

@@ -1,13 +1,14 @@
 """Gaps of an MMWCAS capture named: frames missing from all four devices (index time stamps that
 jump by two or more frame periods) and frames the card wrote as zeros are counted, warned about,
 recorded in ``<scan>.capture.json`` and carried by the live backend to the solver's metrics."""
+
 from __future__ import annotations
 
 import json
 
 import numpy as np
 
-from twinfocus.radar import Chirp
+from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
 from twinfocus.sensors.frames import FrameFlag
 from twinfocus.sensors.ti_mmwcas import MmwcasCapture, MmwcasConfig
@@ -23,8 +24,9 @@ def _capture(folder, periods, zero=(), slice_index=0, bad_first_frame=True, seed
     periods = np.asarray(periods)
     iq = np.random.default_rng(seed).integers(1, 2000, size=(periods.size, 12, 16, N, 2), dtype=np.int16)
     iq[list(zero)] = 0
-    write_mmwcas_capture(folder, iq, 10**9 + periods * PERIOD_NS, CFG, slice_index=slice_index,
-                         bad_first_frame=bad_first_frame)
+    write_mmwcas_capture(
+        folder, iq, 10**9 + periods * PERIOD_NS, CFG, slice_index=slice_index, bad_first_frame=bad_first_frame
+    )
     return iq
 
 
@@ -62,7 +64,9 @@ def test_dropping_each_slices_first_frame_is_not_a_gap(tmp_path):
 def test_all_zero_frames_are_flagged(tmp_path):
     _capture(tmp_path, range(6), zero=[2])
     with MmwcasCapture(tmp_path, CFG) as cap:
-        assert [FrameFlag(int(f)) for f in cap.flags] == [FrameFlag.OK] * 2 + [FrameFlag.ZERO_FILLED] + [FrameFlag.OK] * 3
+        assert [FrameFlag(int(f)) for f in cap.flags] == [FrameFlag.OK] * 2 + [FrameFlag.ZERO_FILLED] + [
+            FrameFlag.OK
+        ] * 3
         assert any("1 frame(s) hold only zeros on some device (frame 2)" in w for w in cap.warnings)
     # One device's share of a frame all zero is enough (the other three hold data).
     iq = np.random.default_rng(4).integers(1, 2000, size=(3, 12, 16, N, 2), dtype=np.int16)
@@ -74,16 +78,28 @@ def test_all_zero_frames_are_flagged(tmp_path):
 
 def test_convert_records_and_warns_the_gaps(tmp_path, capsys):
     from twinfocus.cli import main
-    from twinfocus.scan import Scan
+    from twinfocus.motion.trajectory import Poses
+    from twinfocus.radar.scan import Scan
     from twinfocus.sensors.trajectory_files import write_tum
-    from twinfocus.trajectory import Poses
 
     _capture(tmp_path / "cap", [0, 1, 2, 4, 5, 6, 7], zero=[5])  # period 3 missing; frame 5 (period 6) zeros
     t = 10**18 + np.arange(9) * PERIOD_NS
-    write_tum(tmp_path / "traj.txt", Poses(t, np.stack([np.arange(9) * 1e-3, np.zeros(9), np.zeros(9)], 1),
-                                          np.tile([0.0, 0, 0, 1], (9, 1))))
-    rc = main(["convert", str(tmp_path / "cap"), "--trajectory", str(tmp_path / "traj.txt"), "--out",
-               str(tmp_path / "s.npz"), "--n-samples", str(N)])
+    write_tum(
+        tmp_path / "traj.txt",
+        Poses(t, np.stack([np.arange(9) * 1e-3, np.zeros(9), np.zeros(9)], 1), np.tile([0.0, 0, 0, 1], (9, 1))),
+    )
+    rc = main(
+        [
+            "convert",
+            str(tmp_path / "cap"),
+            "--trajectory",
+            str(tmp_path / "traj.txt"),
+            "--out",
+            str(tmp_path / "s.npz"),
+            "--n-samples",
+            str(N),
+        ]
+    )
     out, err = capsys.readouterr()
     assert rc == 0
     assert "1 frame(s) missing from every device" in err and "hold only zeros on some device (frame 5)" in err
@@ -99,7 +115,7 @@ def test_convert_records_and_warns_the_gaps(tmp_path, capsys):
 def test_live_backend_carries_the_gaps(tmp_path):
     """The mmwcas radar backend gives each frame the capture's gaps so far, which the radar driver
     puts on radar/frame and the solver turns into each scan's metrics (tests/test_sensors_gaps.py)."""
-    from nodes.backends import RADAR_BACKENDS, load_backend
+    from nodes.runtime.backends import RADAR_BACKENDS, load_backend
 
     _capture(tmp_path / "cap", [0, 1, 2, 4, 5, 6, 7], zero=[5])
     b = load_backend(RADAR_BACKENDS, "mmwcas", "radar")({"capture": str(tmp_path / "cap"), "n_samples": N})

@@ -1,6 +1,7 @@
 """Cascade chirp layouts other than TI's default, read from the capture's mmWave Studio JSON or
 given as options; device skew at any frame period; time-stamp units checked against the period;
 the first frame of each capture slice."""
+
 from __future__ import annotations
 
 import json
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp
+from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
 from twinfocus.sensors.frames import FrameFlag, frame_to_virtual_channels
 from twinfocus.sensors.ti_mmwcas import MmwcasCapture, MmwcasConfig, read_studio_json, resolve_config
@@ -26,13 +27,26 @@ def studio_json(path, tx_numbers, n_loops=1, period_ms=33.333, n_samples=N):
         chirps = []
         for c, n in enumerate(tx_numbers):
             mask = 1 << ((n - 1) % 3) if (n - 1) // 3 == d else 0
-            chirps.append({"rlChirpCfg_t": {"chirpStartIdx": c, "chirpEndIdx": c, "profileId": 0, "txEnable": f"0x{mask:X}"}})
-        devices.append({"mmWaveDeviceId": d, "rfConfig": {
-            "rlProfiles": [{"rlProfileCfg_t": {"profileId": 0, "numAdcSamples": n_samples}}],
-            "rlChirps": chirps,
-            "rlFrameCfg_t": {"chirpStartIdx": 0, "chirpEndIdx": len(tx_numbers) - 1, "numLoops": n_loops,
-                             "numFrames": 0, "framePeriodicity_msec": period_ms},
-        }, "rawDataCaptureConfig": {"rlDevDataFmtCfg_t": {"iqSwapSel": 0, "chInterleave": 0}}})
+            chirps.append(
+                {"rlChirpCfg_t": {"chirpStartIdx": c, "chirpEndIdx": c, "profileId": 0, "txEnable": f"0x{mask:X}"}}
+            )
+        devices.append(
+            {
+                "mmWaveDeviceId": d,
+                "rfConfig": {
+                    "rlProfiles": [{"rlProfileCfg_t": {"profileId": 0, "numAdcSamples": n_samples}}],
+                    "rlChirps": chirps,
+                    "rlFrameCfg_t": {
+                        "chirpStartIdx": 0,
+                        "chirpEndIdx": len(tx_numbers) - 1,
+                        "numLoops": n_loops,
+                        "numFrames": 0,
+                        "framePeriodicity_msec": period_ms,
+                    },
+                },
+                "rawDataCaptureConfig": {"rlDevDataFmtCfg_t": {"iqSwapSel": 0, "chInterleave": 0}},
+            }
+        )
     path.write_text(json.dumps({"mmWaveDevices": devices}))
 
 
@@ -58,16 +72,27 @@ def test_studio_json_gives_the_nine_tx_layout(tmp_path):
 
 def test_nine_tx_capture_converts_with_its_layout_from_the_json(tmp_path, capsys):
     from twinfocus.cli import main
-    from twinfocus.scan import Scan
+    from twinfocus.motion.trajectory import Poses
+    from twinfocus.radar.scan import Scan
     from twinfocus.sensors.trajectory_files import write_tum
-    from twinfocus.trajectory import Poses
 
     iq = _nine_tx_capture(tmp_path / "cap")
     t = 10**18 + np.arange(9) * 20_000_000
-    write_tum(tmp_path / "traj.txt", Poses(t, np.stack([np.arange(9) * 1e-3, np.zeros(9), np.zeros(9)], 1),
-                                          np.tile([0.0, 0, 0, 1], (9, 1))))
-    args = ["convert", str(tmp_path / "cap"), "--trajectory", str(tmp_path / "traj.txt"), "--out", str(tmp_path / "s.npz"),
-            "--n-samples", str(N), "--quiet"]
+    write_tum(
+        tmp_path / "traj.txt",
+        Poses(t, np.stack([np.arange(9) * 1e-3, np.zeros(9), np.zeros(9)], 1), np.tile([0.0, 0, 0, 1], (9, 1))),
+    )
+    args = [
+        "convert",
+        str(tmp_path / "cap"),
+        "--trajectory",
+        str(tmp_path / "traj.txt"),
+        "--out",
+        str(tmp_path / "s.npz"),
+        "--n-samples",
+        str(N),
+        "--quiet",
+    ]
     # Without the configuration the default 12-TX layout does not fit the frames.
     assert main(args) == 2 and "check n_samples, n_chirps and n_loops" in capsys.readouterr().err
     studio_json(tmp_path / "cap" / "cap.mmwave.json", TX9)
@@ -122,15 +147,27 @@ def test_first_frame_of_each_slice(tmp_path):
 def cascade_lua(path, tx_numbers, loops=1, period_ms=33.333, n_samples=N):
     """A setup script in the form of TI's cascade Lua: Configure_Chirps(i) with one if-block per
     device, a comment table that must be ignored, and the frame variables."""
-    lines = ["--[[ chirp | TX1 TX2 ... (TI's table)", "|  0 | 1 | 0 |", "--]]",
-             f"nchirp_loops = {loops}", f"Inter_Frame_Interval = {period_ms} -- ms", "start_chirp_tx = 0",
-             f"end_chirp_tx = {len(tx_numbers) - 1}", f"adc_samples = {n_samples}", "function Configure_Chirps(i)"]
+    lines = [
+        "--[[ chirp | TX1 TX2 ... (TI's table)",
+        "|  0 | 1 | 0 |",
+        "--]]",
+        f"nchirp_loops = {loops}",
+        f"Inter_Frame_Interval = {period_ms} -- ms",
+        "start_chirp_tx = 0",
+        f"end_chirp_tx = {len(tx_numbers) - 1}",
+        f"adc_samples = {n_samples}",
+        "function Configure_Chirps(i)",
+    ]
     for d in range(4):
         lines.append(f"    {'if' if d == 0 else 'elseif'} (i == {d + 1}) then")
         for c, n in enumerate(tx_numbers):
             en = ["1" if (n - 1) // 3 == d and (n - 1) % 3 == b else "0" for b in range(3)]
-            lines.append(f"        if (0 == ar1.ChirpConfig_mult(dev_list[i], {c}, {c}, 0, 0, 0, 0, 0, {', '.join(en)})) then")
-            lines.append(f'            WriteToLog("Device "..i.." : Chirp {c} Configuration successful\\n", "green") end')
+            lines.append(
+                f"        if (0 == ar1.ChirpConfig_mult(dev_list[i], {c}, {c}, 0, 0, 0, 0, 0, {', '.join(en)})) then"
+            )
+            lines.append(
+                f'            WriteToLog("Device "..i.." : Chirp {c} Configuration successful\\n", "green") end'
+            )
     lines += ["    end", "end"]
     path.write_text("\n".join(lines) + "\n")
 

@@ -1,6 +1,7 @@
 """The capture's own chirp: TI's chirp profile (mmWave Studio JSON, Lua scripts, SDK .cfg) becomes
 the scan's chirp, options override it with a note, and a capture taken with a non-default profile
 images as the same scene simulated with that profile."""
+
 from __future__ import annotations
 
 import json
@@ -9,15 +10,21 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp, range_compress
+from twinfocus.radar.fmcw import Chirp, range_compress
 from twinfocus.sensors.chirp_profile import profile_fields_from_lua, resolve_chirp
 from twinfocus.sensors.ti_mmwcas import read_cascade_lua, read_studio_json, resolve_config
 
 # A non-default profile in TI's units: 77 GHz start, 60 MHz/us, 6 us ADC start, 128 samples at
 # 5 Msps (1.536 GHz sampled), idle 7 us, ramp end 35 us (the sampling ends at 31.6 us).
-PROFILE = {"startFreqConst_GHz": 77.0, "idleTimeConst_usec": 7.0, "adcStartTimeConst_usec": 6.0,
-           "rampEndTime_usec": 35.0, "freqSlopeConst_MHz_usec": 60.0, "numAdcSamples": 128,
-           "digOutSampleRate": 5000.0}
+PROFILE = {
+    "startFreqConst_GHz": 77.0,
+    "idleTimeConst_usec": 7.0,
+    "adcStartTimeConst_usec": 6.0,
+    "rampEndTime_usec": 35.0,
+    "freqSlopeConst_MHz_usec": 60.0,
+    "numAdcSamples": 128,
+    "digOutSampleRate": 5000.0,
+}
 TRUE_CHIRP = Chirp(f0_hz=77e9 + 60e12 * 6e-6, slope_hz_per_s=60e12, fs_hz=5e6, n_samples=128)
 
 
@@ -29,15 +36,38 @@ def studio_json(path, profile=PROFILE, tx_numbers=tuple(range(12, 0, -1)), perio
         chirps = []
         for c, n in enumerate(tx_numbers):
             mask = 1 << ((n - 1) % 3) if (n - 1) // 3 == d else 0
-            chirps.append({"rlChirpCfg_t": {"chirpStartIdx": c, "chirpEndIdx": c, "profileId": 0, "txEnable": f"0x{mask:X}"}})
-        devices.append({"mmWaveDeviceId": d, "rfConfig": {
-            "rlProfiles": [{"rlProfileCfg_t": {"profileId": 0, "pfVcoSelect": "0x0", "txOutPowerBackoffCode": "0x0",
-                                               "txPhaseShifter": "0x0", "txStartTime_usec": 0.0, "rxGain_dB": "0x30",
-                                               **profile}}],
-            "rlChirps": chirps,
-            "rlFrameCfg_t": {"chirpStartIdx": 0, "chirpEndIdx": len(tx_numbers) - 1, "numLoops": 1, "numFrames": 0,
-                             "framePeriodicity_msec": period_ms},
-        }, "rawDataCaptureConfig": {"rlDevDataFmtCfg_t": {"iqSwapSel": 0, "chInterleave": 0}}})
+            chirps.append(
+                {"rlChirpCfg_t": {"chirpStartIdx": c, "chirpEndIdx": c, "profileId": 0, "txEnable": f"0x{mask:X}"}}
+            )
+        devices.append(
+            {
+                "mmWaveDeviceId": d,
+                "rfConfig": {
+                    "rlProfiles": [
+                        {
+                            "rlProfileCfg_t": {
+                                "profileId": 0,
+                                "pfVcoSelect": "0x0",
+                                "txOutPowerBackoffCode": "0x0",
+                                "txPhaseShifter": "0x0",
+                                "txStartTime_usec": 0.0,
+                                "rxGain_dB": "0x30",
+                                **profile,
+                            }
+                        }
+                    ],
+                    "rlChirps": chirps,
+                    "rlFrameCfg_t": {
+                        "chirpStartIdx": 0,
+                        "chirpEndIdx": len(tx_numbers) - 1,
+                        "numLoops": 1,
+                        "numFrames": 0,
+                        "framePeriodicity_msec": period_ms,
+                    },
+                },
+                "rawDataCaptureConfig": {"rlDevDataFmtCfg_t": {"iqSwapSel": 0, "chInterleave": 0}},
+            }
+        )
     path.write_text(json.dumps({"mmWaveDevices": devices}))
 
 
@@ -83,12 +113,16 @@ def test_lua_profile_both_forms(tmp_path):
     got = read_cascade_lua(tmp_path / "Cascade_Configuration_MIMO.lua")
     assert resolve_chirp(got["profile"], "lua")[0] == TRUE_CHIRP and got["n_samples"] == 128
     # The single-chip form with literal arguments.
-    fields = profile_fields_from_lua("ar1.ProfileConfig(0, 77, 7, 6, 35, 0, 0, 0, 0, 0, 0, 60, 0, 128, 5000, 0, 0, 30)", "s")
+    fields = profile_fields_from_lua(
+        "ar1.ProfileConfig(0, 77, 7, 6, 35, 0, 0, 0, 0, 0, 0, 60, 0, 128, 5000, 0, 0, 30)", "s"
+    )
     assert resolve_chirp(fields, "s")[0] == TRUE_CHIRP
     with pytest.raises(TwinFocusError, match="has 17 profile arguments"):
         profile_fields_from_lua("ar1.ProfileConfig(0, 77, 7, 6, 35, 0, 0, 0, 0, 0, 60, 0, 128, 5000, 0, 0, 30)", "s")
     with pytest.raises(TwinFocusError, match="'slope2' .* neither a number nor a variable"):
-        profile_fields_from_lua("ar1.ProfileConfig(0, 77, 7, 6, 35, 0, 0, 0, 0, 0, 0, slope2, 0, 128, 5000, 0, 0, 30)", "s")
+        profile_fields_from_lua(
+            "ar1.ProfileConfig(0, 77, 7, 6, 35, 0, 0, 0, 0, 0, 0, slope2, 0, 128, 5000, 0, 0, 30)", "s"
+        )
 
 
 def test_profile_sampling_past_the_ramp_is_refused(tmp_path):
@@ -109,11 +143,11 @@ def test_sdk_cfg_profile_and_its_override():
 def _scene_capture(tmp_path, frames=9):
     """A point scatterer seen by the cascade along a 4 cm sweep with TRUE_CHIRP, written as a
     TI capture (bistatic TX-RX paths, int16 I/Q), and its camera trajectory (aperture frame = world)."""
+    from twinfocus.motion.trajectory import Poses
     from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
     from twinfocus.sensors.emulators.radar_scene import quantize_iq, simulate_mimo_frames
     from twinfocus.sensors.ti_mmwcas import MmwcasConfig
     from twinfocus.sensors.trajectory_files import write_tum
-    from twinfocus.trajectory import Poses
 
     target = np.array([[0.006, 0.004, 0.6]])
     y = np.linspace(-0.02, 0.02, frames)
@@ -121,14 +155,16 @@ def _scene_capture(tmp_path, frames=9):
     t = 10**18 + np.arange(frames) * 100_000_000
     poses = Poses(t, np.stack([np.zeros(frames), y, np.zeros(frames)], axis=1), quat)
     iq = quantize_iq(simulate_mimo_frames(TRUE_CHIRP, poses, target))
-    write_mmwcas_capture(tmp_path / "cap", iq, 5 * 10**9 + np.arange(frames) * 100_000_000, MmwcasConfig(chirp=TRUE_CHIRP))
+    write_mmwcas_capture(
+        tmp_path / "cap", iq, 5 * 10**9 + np.arange(frames) * 100_000_000, MmwcasConfig(chirp=TRUE_CHIRP)
+    )
     write_tum(tmp_path / "traj.txt", poses)
     return target
 
 
 def _image(data, positions, chirp, target):
-    from twinfocus.backprojection import backproject
-    from twinfocus.grid import ImageGrid
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.grid import ImageGrid
 
     grid = ImageGrid(-0.03, 0.04, -0.03, 0.04, float(target[0, 2]), 24, 24)
     return backproject(data, positions, chirp, grid)
@@ -140,9 +176,9 @@ def _ncc(a, b) -> float:
 
 def test_capture_with_its_profile_converts_and_images_as_that_profile(tmp_path, capsys):
     from twinfocus.cli import main
-    from twinfocus.scan import Scan
+    from twinfocus.radar.scan import Scan
     from twinfocus.sensors.emulators.radar_scene import monostatic_if
-    from twinfocus.simulate import simulate_if
+    from twinfocus.simulation.if_simulator import simulate_if
 
     target = _scene_capture(tmp_path)
     args = ["convert", str(tmp_path / "cap"), "--trajectory", str(tmp_path / "traj.txt"), "--z0", "0.6", "--quiet"]
@@ -178,6 +214,7 @@ def test_capture_with_its_profile_converts_and_images_as_that_profile(tmp_path, 
     img_default = _image(default.data, default.positions, default.chirp, target)
     assert _ncc(img_own, ref) > 0.99
     assert np.unravel_index(np.abs(img_own).argmax(), ref.shape) == np.unravel_index(np.abs(ref).argmax(), ref.shape)
+
     # Focusing gain (peak over the data's rms, relative to the re-simulated scene's): whole with
     # the capture's own chirp; read with the default chirp, the point is out of focus in range.
     def gain(img, data):
@@ -190,19 +227,29 @@ def test_capture_with_its_profile_converts_and_images_as_that_profile(tmp_path, 
 
 def test_convert_option_overrides_the_capture_profile_with_a_note(tmp_path, capsys):
     from twinfocus.cli import main
-    from twinfocus.scan import Scan
+    from twinfocus.radar.scan import Scan
 
     _scene_capture(tmp_path, frames=3)
     studio_json(tmp_path / "cap" / "capture.mmwave.json")
-    rc = main(["convert", str(tmp_path / "cap"), "--trajectory", str(tmp_path / "traj.txt"), "--out",
-               str(tmp_path / "s.npz"), "--f0-hz", "77e9"])
+    rc = main(
+        [
+            "convert",
+            str(tmp_path / "cap"),
+            "--trajectory",
+            str(tmp_path / "traj.txt"),
+            "--out",
+            str(tmp_path / "s.npz"),
+            "--f0-hz",
+            "77e9",
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 0 and "--f0-hz 7.7e+10 overrides the capture configuration's 7.736e+10" in err
     assert Scan.load(tmp_path / "s.npz").chirp == Chirp(77e9, 60e12, 5e6, 128)
 
 
 def test_live_mmwcas_backend_takes_the_capture_profile(tmp_path, capfd):
-    from nodes.backends import RADAR_BACKENDS, load_backend
+    from nodes.runtime.backends import RADAR_BACKENDS, load_backend
 
     _scene_capture(tmp_path, frames=3)
     studio_json(tmp_path / "cap" / "capture.mmwave.json")

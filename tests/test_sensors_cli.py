@@ -1,5 +1,6 @@
 """The mmWave SDK CLI: .cfg parsing, and configuring an emulated radar on a pseudo-terminal
 that answers, and sometimes refuses, commands; plus the emulated rig end to end."""
+
 from __future__ import annotations
 
 import threading
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp
+from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.emulators.fake_radar_cli import FakeRadarCli
 from twinfocus.sensors.ti_cli import CliCommandError, RadarCliConfig, TiRadarCli, read_cfg
 
@@ -31,7 +32,6 @@ sensorStart
 """
 
 
-
 @pytest.fixture(autouse=True)
 def no_stray_threads():
     """Emulators and clients must stop every thread they start."""
@@ -41,6 +41,7 @@ def no_stray_threads():
     while set(threading.enumerate()) - before and time.monotonic() < deadline:
         time.sleep(0.01)
     assert not set(threading.enumerate()) - before
+
 
 def test_cfg_gives_chirp_and_raw_layout():
     cfg = RadarCliConfig.from_cfg(CFG)
@@ -78,7 +79,10 @@ def test_bad_cfg_is_refused_with_line(edit, message):
 
 def test_configure_over_pty_with_a_transient_refusal():
     started = []
-    with FakeRadarCli(refuse={"profileCfg": 1}, on_start=started.append) as fake, TiRadarCli(fake.port, timeout_s=2) as cli:
+    with (
+        FakeRadarCli(refuse={"profileCfg": 1}, on_start=started.append) as fake,
+        TiRadarCli(fake.port, timeout_s=2) as cli,
+    ):
         cfg = cli.configure(CFG, retries=1)
         assert fake.running and len(started) == 1
         assert started[0].raw_layout() == cfg.raw_layout()
@@ -90,7 +94,9 @@ def test_configure_over_pty_with_a_transient_refusal():
 
 def test_refusals_raise_with_the_reply():
     with FakeRadarCli(refuse={"frameCfg": 5}) as fake, TiRadarCli(fake.port, timeout_s=2) as cli:
-        with pytest.raises(CliCommandError, match=r"line 12: radar refused 'frameCfg 0 1 8 0 50 1 0': Error -1 \(after 2 attempt"):
+        with pytest.raises(
+            CliCommandError, match=r"line 12: radar refused 'frameCfg 0 1 8 0 50 1 0': Error -1 \(after 2 attempt"
+        ):
             cli.configure(CFG, retries=1)
         assert not fake.running
         with pytest.raises(CliCommandError, match="not recognized as a CLI command") as info:
@@ -114,10 +120,10 @@ def test_silent_port_times_out_clearly():
 
 def test_emulated_rig_streams_the_simulated_scene_on_schedule(tmp_path):
     """CLI sensorStart -> board streams MMWCAS frames of the scene; the VIO shares the clock."""
+    from twinfocus.motion.trajectory import paper_raster
     from twinfocus.sensors.dca1000 import Dca1000
     from twinfocus.sensors.emulators.radar_scene import quantize_iq, simulate_mimo_frames
     from twinfocus.sensors.emulators.rig import EMULATED_CFG, EmulatedRadar, EmulatedVio, demo_scatterers
-    from twinfocus.trajectory import paper_raster
 
     chirp = Chirp(n_samples=32)
     traj = paper_raster(1, 4, frame_period_s=0.05)

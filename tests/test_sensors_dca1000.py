@@ -1,5 +1,6 @@
 """DCA1000EVM protocol: byte-exact frames, a loss/reorder-tolerant assembler, and the host
 against an emulated board on 127.0.0.1 with injected faults."""
+
 from __future__ import annotations
 
 import socket
@@ -36,6 +37,7 @@ def no_stray_threads():
         time.sleep(0.01)
     assert not set(threading.enumerate()) - before
 
+
 def test_command_and_packet_bytes_match_the_user_guide():
     # SYSTEM_CONNECT with no body, as on the wire: 5A A5 | 09 00 | 00 00 | AA EE
     assert encode_command(Command.SYSTEM_CONNECT) == bytes.fromhex("5aa509000000aaee")
@@ -45,10 +47,14 @@ def test_command_and_packet_bytes_match_the_user_guide():
     assert decode_command(pkt) == (0x0B, bytes.fromhex("be05350c0000"))
     assert encode_response(Command.RECORD_START, 0) == bytes.fromhex("5aa505000000aaee")
     data = encode_data_packet(7, 0x0102_0304_0506, b"xy")
-    assert data == bytes.fromhex("07000000" "060504030201") + b"xy"
+    assert data == bytes.fromhex("07000000060504030201") + b"xy"
     assert decode_data_header(data) == (7, 0x0102_0304_0506)
-    for bad, msg in [(b"\x5a\xa5\x09\x00", "shorter"), (bytes.fromhex("5aa5090001000000aaee"), "announces"),
-                     (bytes.fromhex("5aa509000000aaef"), "footer"), (bytes.fromhex("00a509000000aaee"), "header")]:
+    for bad, msg in [
+        (b"\x5a\xa5\x09\x00", "shorter"),
+        (bytes.fromhex("5aa5090001000000aaee"), "announces"),
+        (bytes.fromhex("5aa509000000aaef"), "footer"),
+        (bytes.fromhex("00a509000000aaee"), "header"),
+    ]:
         with pytest.raises(TwinFocusError, match=msg):
             decode_command(bad)
 
@@ -110,8 +116,11 @@ def test_assembler_whole_frame_lost_and_resync():
     out = asm.push(1, 0, b"\x01" * 100)
     out += asm.push(2, 300, b"\x02" * 100)  # frames 1 and 2 missing entirely
     assert [(f.index, f.flags) for f in out] == [
-        (0, FrameFlag.OK), (1, FrameFlag.ZERO_FILLED | FrameFlag.LOST), (2, FrameFlag.ZERO_FILLED | FrameFlag.LOST),
-        (3, FrameFlag.OK)]
+        (0, FrameFlag.OK),
+        (1, FrameFlag.ZERO_FILLED | FrameFlag.LOST),
+        (2, FrameFlag.ZERO_FILLED | FrameFlag.LOST),
+        (3, FrameFlag.OK),
+    ]
     out = asm.push(3, 100 * 1000, b"\x03" * 100)  # corrupt / restarted byte count: skip, do not emit 996 frames
     assert [f.index for f in out] == [1000] and asm.stats.frames_skipped == 996
     asm.push(200_000, 100 * 1001, b"\x04" * 50)  # half a frame, then the board restarts from 1
@@ -128,8 +137,17 @@ def test_loopback_stream_with_injected_loss_and_reordering():
     lay = RawFrameLayout(n_samples=64, n_rx=4, tx_of_chirp=(0, 1, 2), n_loops=2)  # 6144-byte frames
     n_frames = 40
     drop = {3, 50, 51, 120}
-    with _host() as host, FakeDca1000(lay, n_frames=n_frames, frame_period_s=0.002, drop_packets=drop,
-                                      swap_packets={10, 77, 150}, duplicate_packets={60}) as board:
+    with (
+        _host() as host,
+        FakeDca1000(
+            lay,
+            n_frames=n_frames,
+            frame_period_s=0.002,
+            drop_packets=drop,
+            swap_packets={10, 77, 150},
+            duplicate_packets={60},
+        ) as board,
+    ):
         host.board_addr = board.config_addr
         board.host_data_addr = host.data_addr
         host.setup(packet_delay_us=25)
@@ -178,8 +196,9 @@ def test_board_refusal_and_silence_are_clear_errors():
     silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     silent.bind(("127.0.0.1", 0))
     try:
-        with Dca1000(board_addr=silent.getsockname(), host_ip="127.0.0.1", config_port=0, data_port=0,
-                     timeout_s=0.2) as host:
+        with Dca1000(
+            board_addr=silent.getsockname(), host_ip="127.0.0.1", config_port=0, data_port=0, timeout_s=0.2
+        ) as host:
             with pytest.raises(TwinFocusError, match="did not answer SYSTEM_CONNECT"):
                 host.connect()
     finally:

@@ -4,6 +4,7 @@ and `twinfocus convert` turns one into the same scan as frames built from the ta
 
 The files are written here by a deliberately plain writer (Python loops over chirps, RX and
 sample pairs, struct for the record headers), not by the reader's module."""
+
 from __future__ import annotations
 
 import json
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp
+from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.dca1000 import RawFrameLayout
 from twinfocus.sensors.dca1000_files import Dca1000FileCapture, capture_files, read_cli_json
 from twinfocus.sensors.frames import FrameFlag
@@ -71,8 +72,17 @@ def test_every_sample_lands_in_place(tmp_path, form):
     settings = None
     if form == "reordered":
         # A CLI JSON that omits reorderEnable: the CLI reorders then (cli_record_main.cpp).
-        (tmp_path / "cf.json").write_text(json.dumps({"DCA1000Config": {"lvdsMode": 2, "dataFormatConfig": {"MSBToggle": 0},
-                                                                         "captureConfig": {"sequenceNumberEnable": 0}}}))
+        (tmp_path / "cf.json").write_text(
+            json.dumps(
+                {
+                    "DCA1000Config": {
+                        "lvdsMode": 2,
+                        "dataFormatConfig": {"MSBToggle": 0},
+                        "captureConfig": {"sequenceNumberEnable": 0},
+                    }
+                }
+            )
+        )
         settings = read_cli_json(tmp_path / "cf.json")
         assert settings.reorder
     cap = Dca1000FileCapture(tmp_path, LAYOUT, 0.05, "auto", settings)
@@ -100,7 +110,10 @@ def test_split_files_and_records_with_lost_and_swapped_packets(tmp_path):
     (tmp_path / "adc_data_Raw_0.bin").write_bytes(data[:cut])
     (tmp_path / "adc_data_Raw_1.bin").write_bytes(data[cut:])
     whole.unlink()
-    assert [p.name for p in capture_files(tmp_path / "adc_data_Raw_1.bin")] == ["adc_data_Raw_0.bin", "adc_data_Raw_1.bin"]
+    assert [p.name for p in capture_files(tmp_path / "adc_data_Raw_1.bin")] == [
+        "adc_data_Raw_0.bin",
+        "adc_data_Raw_1.bin",
+    ]
     cap = Dca1000FileCapture(tmp_path, LAYOUT, 0.05)
     assert cap.format == "records" and len(cap.frames) == 4
     want = bytearray(stream)
@@ -130,8 +143,17 @@ def test_long_record_capture_with_an_early_hole(tmp_path):
 
 
 def test_cli_json_settings_and_refusals(tmp_path):
-    (tmp_path / "a.json").write_text(json.dumps({"DCA1000Config": {"lvdsMode": 1, "dataFormatConfig": {"reorderEnable": 0},
-                                                                    "captureConfig": {"sequenceNumberEnable": 1}}}))
+    (tmp_path / "a.json").write_text(
+        json.dumps(
+            {
+                "DCA1000Config": {
+                    "lvdsMode": 1,
+                    "dataFormatConfig": {"reorderEnable": 0},
+                    "captureConfig": {"sequenceNumberEnable": 1},
+                }
+            }
+        )
+    )
     s = read_cli_json(tmp_path / "a.json")
     assert (s.reorder, s.sequence_numbers, s.lvds_lanes) == (False, True, 4)
     (tmp_path / "adc_data.bin").write_bytes(stream_values(1, "raw"))
@@ -149,7 +171,9 @@ def test_msb_toggle_is_taken_off(tmp_path):
     raw = np.frombuffer(stream_values(1, "reordered"), "<i2")
     toggled = (raw.view("<u2") + np.uint16(0x8000)).astype("<u2")  # the CLI adds 0x8000 (recorddatarecv.cpp)
     (tmp_path / "adc_data.bin").write_bytes(toggled.tobytes())
-    (tmp_path / "cf.json").write_text(json.dumps({"DCA1000Config": {"dataFormatConfig": {"reorderEnable": 1, "MSBToggle": 1}}}))
+    (tmp_path / "cf.json").write_text(
+        json.dumps({"DCA1000Config": {"dataFormatConfig": {"reorderEnable": 1, "MSBToggle": 1}}})
+    )
     cap = Dca1000FileCapture(tmp_path, LAYOUT, 0.05, "auto", read_cli_json(tmp_path / "cf.json"))
     np.testing.assert_array_equal(cap.frames[0].data, expected_mimo(0))
 
@@ -157,11 +181,11 @@ def test_msb_toggle_is_taken_off(tmp_path):
 def test_convert_gives_the_scan_of_the_frames(tmp_path, capsys):
     """convert on a CLI file == scan_from_frames on frames built from the tags (the live path's step)."""
     from twinfocus.cli import main
-    from twinfocus.scan import Scan
+    from twinfocus.motion.trajectory import Poses
+    from twinfocus.radar.scan import Scan
     from twinfocus.sensors.capture_to_scan import read_capture_report, scan_from_frames
     from twinfocus.sensors.frames import RadarFrame
     from twinfocus.sensors.trajectory_files import write_tum
-    from twinfocus.trajectory import Poses
 
     n_frames = 5
     stream = stream_values(n_frames, "raw")
@@ -173,16 +197,35 @@ def test_convert_gives_the_scan_of_the_frames(tmp_path, capsys):
     quat = np.tile([0.0, 0.0, 0.0, 1.0], (11, 1))
     poses = Poses(t, pos, quat)
     write_tum(tmp_path / "traj.txt", poses)
-    rc = main(["convert", str(tmp_path / "adc_data_Raw_0.bin"), "--trajectory", str(tmp_path / "traj.txt"),
-               "--out", str(tmp_path / "scan.npz"), "--n-samples", str(N), "--frame-period-s", "0.05", "--quiet"])
+    rc = main(
+        [
+            "convert",
+            str(tmp_path / "adc_data_Raw_0.bin"),
+            "--trajectory",
+            str(tmp_path / "traj.txt"),
+            "--out",
+            str(tmp_path / "scan.npz"),
+            "--n-samples",
+            str(N),
+            "--frame-period-s",
+            "0.05",
+            "--quiet",
+        ]
+    )
     assert rc == 0
     out = json.loads(capsys.readouterr().out)
     assert out["frames"] == n_frames and out["used"] == n_frames - 1 and out["frames_zero_filled"] == 1
     assert out["bytes_lost"] == 1456
     # The convert's default layout is the emulated rig's (chirp c = TX c): rebuild with that.
     plain = RawFrameLayout(N, RX, tuple(range(12)), 1, 12)
-    frames = [RadarFrame(f * 50_000_000, plain.to_mimo(plain.decode(stream[f * FRAME_BYTES:(f + 1) * FRAME_BYTES])),
-                         FrameFlag.ZERO_FILLED if f == 1 else FrameFlag.OK) for f in range(n_frames)]
+    frames = [
+        RadarFrame(
+            f * 50_000_000,
+            plain.to_mimo(plain.decode(stream[f * FRAME_BYTES : (f + 1) * FRAME_BYTES])),
+            FrameFlag.ZERO_FILLED if f == 1 else FrameFlag.OK,
+        )
+        for f in range(n_frames)
+    ]
     chirp = Chirp(76.6e9, 120e12, 8e6, N)
     want, _, _ = scan_from_frames(frames, chirp, poses, 0.6)
     got = Scan.load(tmp_path / "scan.npz")

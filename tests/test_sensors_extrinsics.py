@@ -1,13 +1,14 @@
 """Camera-radar extrinsics: composition checked with 4 x 4 matrices, the calibration file, and
 the two measuring aids (rigid fit on reflectors, image offset of twin vs measured image)."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.motion.trajectory import Poses, quat_from_rotvec, quat_to_matrix
 from twinfocus.sensors.extrinsics import RadarCameraExtrinsics, fit_rigid_transform, image_offset_m
-from twinfocus.trajectory import Poses, quat_from_rotvec, quat_to_matrix
 
 
 def _hom(r, t):
@@ -28,7 +29,9 @@ def test_radar_poses_compose_like_homogeneous_matrices():
         np.testing.assert_allclose(got, want, atol=1e-12)
     np.testing.assert_array_equal(radar.confidence, cam.confidence)
     back = ext.inverse()
-    np.testing.assert_allclose(_hom(back.rotation, back.translation_m) @ _hom(ext.rotation, ext.translation_m), np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(
+        _hom(back.rotation, back.translation_m) @ _hom(ext.rotation, ext.translation_m), np.eye(4), atol=1e-12
+    )
 
 
 def test_calibration_file_forms_agree_and_round_trip(tmp_path):
@@ -86,7 +89,8 @@ def test_image_offset_finds_a_subpixel_shift():
 
     def blob(cx, cy):
         return np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * 0.006**2)) + 0.5 * np.exp(
-            -((xx - cx - 0.03) ** 2 + (yy - cy) ** 2) / (2 * 0.004**2))
+            -((xx - cx - 0.03) ** 2 + (yy - cy) ** 2) / (2 * 0.004**2)
+        )
 
     dx, dy = image_offset_m(blob(0.0, 0.01), blob(0.0071, 0.0046), x, y)
     assert abs(dx - 0.0071) < 4e-4 and abs(dy + 0.0054) < 4e-4
@@ -96,8 +100,11 @@ def test_translation_fix_from_an_image_shift():
     """An image is formed from assumed radar positions; the shift of an object's image is the
     assumed minus the true position. Feeding that shift back recovers the true lever arm."""
     r_wc = quat_to_matrix(quat_from_rotvec([0.0, 0.0, 0.3]))  # camera rolled about its axis
-    cam = Poses(np.arange(3), np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.02, 0.0, 0.0]]),
-                np.tile(quat_from_rotvec([0.0, 0.0, 0.3]), (3, 1)))
+    cam = Poses(
+        np.arange(3),
+        np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.02, 0.0, 0.0]]),
+        np.tile(quat_from_rotvec([0.0, 0.0, 0.3]), (3, 1)),
+    )
     r_cr = quat_to_matrix(quat_from_rotvec([0.0, 0.1, 0.0]))
     true = RadarCameraExtrinsics(r_cr, [0.01, 0.08, -0.005])
     wrong = RadarCameraExtrinsics(r_cr, [0.013, 0.075, -0.005])

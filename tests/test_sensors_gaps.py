@@ -1,6 +1,7 @@
 """Capture gaps reach the user: the DCA1000 backend counts the frames and bytes an emulated board
 never delivered, the radar frame message carries the counts (and old logs without them still
 decode), and the visualizer's status line shows them."""
+
 from __future__ import annotations
 
 import socket
@@ -9,9 +10,9 @@ import msgpack
 import numpy as np
 
 from msgs import Header, RadarFrame, decode, encode
-from nodes.backends import RADAR_BACKENDS, load_backend
 from nodes.radar_driver import _gap_fields
-from twinfocus.radar import mmwcas_virtual_array
+from nodes.runtime.backends import RADAR_BACKENDS, load_backend
+from twinfocus.radar.fmcw import mmwcas_virtual_array
 from twinfocus.sensors.dca1000 import MAX_PAYLOAD_BYTES, RawFrameLayout
 from twinfocus.sensors.emulators.fake_dca1000 import FakeDca1000
 
@@ -36,11 +37,19 @@ def test_dropped_packets_are_counted_and_carried(tmp_path, capfd):
     in_frame3 = [s for s in range(1, 100) if (s - 1) * MAX_PAYLOAD_BYTES >= 3 * fb and s * MAX_PAYLOAD_BYTES <= 4 * fb]
     drop = {20, *in_frame3}
     port = _free_udp_port()
-    with FakeDca1000(layout, host_data_addr=("127.0.0.1", port), frame_period_s=0.01, n_frames=6, drop_packets=drop) as board:
-        radar = load_backend(RADAR_BACKENDS, "dca1000", "radar")({
-            "cfg": str(cfg), "board": f"{board.config_addr[0]}:{board.config_addr[1]}", "host_ip": "127.0.0.1",
-            "config_port": 0, "data_port": port, "idle_timeout_s": 1.0,
-        })
+    with FakeDca1000(
+        layout, host_data_addr=("127.0.0.1", port), frame_period_s=0.01, n_frames=6, drop_packets=drop
+    ) as board:
+        radar = load_backend(RADAR_BACKENDS, "dca1000", "radar")(
+            {
+                "cfg": str(cfg),
+                "board": f"{board.config_addr[0]}:{board.config_addr[1]}",
+                "host_ip": "127.0.0.1",
+                "config_port": 0,
+                "data_port": port,
+                "idle_timeout_s": 1.0,
+            }
+        )
         try:
             got = list(radar.samples())
         finally:
@@ -54,8 +63,16 @@ def test_dropped_packets_are_counted_and_carried(tmp_path, capfd):
 
 def test_radar_frame_carries_gaps_and_old_logs_still_decode():
     va = mmwcas_virtual_array()
-    msg = RadarFrame(header=Header(5, 0, "radar"), data=np.zeros((86, 4), np.complex64), f0_hz=77e9, slope_hz_per_s=1e14,
-                     fs_hz=8e6, channel_offsets_m=va.offsets_m, scan_id="s", **_gap_fields((1, 2, 3000)))
+    msg = RadarFrame(
+        header=Header(5, 0, "radar"),
+        data=np.zeros((86, 4), np.complex64),
+        f0_hz=77e9,
+        slope_hz_per_s=1e14,
+        fs_hz=8e6,
+        channel_offsets_m=va.offsets_m,
+        scan_id="s",
+        **_gap_fields((1, 2, 3000)),
+    )
     back = decode(encode(msg))
     assert (back.frames_lost, back.frames_zero_filled, back.bytes_lost) == (1, 2, 3000)
     env = msgpack.unpackb(encode(msg), raw=False)
@@ -72,12 +89,22 @@ def test_visualizer_status_shows_gaps(tmp_path):
     import time
     import urllib.request
 
-    from nodes.testing import Probe, local_broker, running
+    from nodes.runtime.testing import Probe, local_broker, running
     from nodes.visualizer import Visualizer
 
     va = mmwcas_virtual_array()
-    frame = RadarFrame(header=Header(5, 0, "radar"), data=np.zeros((86, 4), np.complex64), f0_hz=77e9, slope_hz_per_s=1e14,
-                       fs_hz=8e6, channel_offsets_m=va.offsets_m, scan_id="s", frames_lost=1, frames_zero_filled=2, bytes_lost=3000)
+    frame = RadarFrame(
+        header=Header(5, 0, "radar"),
+        data=np.zeros((86, 4), np.complex64),
+        f0_hz=77e9,
+        slope_hz_per_s=1e14,
+        fs_hz=8e6,
+        channel_offsets_m=va.offsets_m,
+        scan_id="s",
+        frames_lost=1,
+        frames_zero_filled=2,
+        bytes_lost=3000,
+    )
     with local_broker() as ep:
         viz = Visualizer(broker=ep, params={"out_dir": str(tmp_path), "port": 0})
         probe = Probe(ep, publish=["radar/frame"], wait_for=["visualizer"])
@@ -98,18 +125,30 @@ def test_live_scans_carry_their_capture_gaps_to_the_solver_metrics(tmp_path):
     import json
 
     from msgs import Pose
+    from nodes.runtime.testing import Probe, local_broker, running
     from nodes.solver import Solver
     from nodes.synchronizer import Synchronizer
-    from nodes.testing import Probe, local_broker, running
-    from twinfocus.radar import Chirp
-    from twinfocus.simulate import simulate_if
+    from twinfocus.radar.fmcw import Chirp
+    from twinfocus.simulation.if_simulator import simulate_if
 
     chirp = Chirp(n_samples=64)
     offsets = np.stack([np.linspace(-0.028, 0.028, 8), np.zeros(8), np.zeros(8)], axis=1)
     period_ns = 50_000_000
     # (frames lost, zero-filled, bytes lost) since the stream began, on each of the 12 frames
-    counts = [(0, 0, 0), (0, 1, 1000), (0, 1, 1000), (1, 1, 6000), (1, 1, 6000), (1, 1, 6000),  # scan a
-              (2, 1, 11000), (2, 1, 11000), (2, 3, 13000), (2, 3, 13000), (2, 3, 13000), (2, 4, 14000)]  # scan b
+    counts = [
+        (0, 0, 0),
+        (0, 1, 1000),
+        (0, 1, 1000),
+        (1, 1, 6000),
+        (1, 1, 6000),
+        (1, 1, 6000),  # scan a
+        (2, 1, 11000),
+        (2, 1, 11000),
+        (2, 3, 13000),
+        (2, 3, 13000),
+        (2, 3, 13000),
+        (2, 4, 14000),
+    ]  # scan b
     want = {"a": (1, 1, 6000), "b": (1, 3, 8000)}  # b: from a's last counts to its own
     stamps = (np.arange(12) + 1) * period_ns
 
@@ -120,21 +159,49 @@ def test_live_scans_carry_their_capture_gaps_to_the_solver_metrics(tmp_path):
     data = simulate_if(np.array([[0.0, 0.025, 0.3]]), np.ones(1), positions, chirp)  # a point in the region
     frames = []
     for i, (lost, zero_filled, nbytes) in enumerate(counts):
-        frames.append(RadarFrame(
-            header=Header(int(stamps[i]), 0, "radar"), data=data[i], f0_hz=chirp.f0_hz,
-            slope_hz_per_s=chirp.slope_hz_per_s, fs_hz=chirp.fs_hz, channel_offsets_m=offsets,
-            scan_id="a" if i < 6 else "b", index=i % 6, last=i % 6 == 5,
-            frames_lost=lost, frames_zero_filled=zero_filled, bytes_lost=nbytes))
+        frames.append(
+            RadarFrame(
+                header=Header(int(stamps[i]), 0, "radar"),
+                data=data[i],
+                f0_hz=chirp.f0_hz,
+                slope_hz_per_s=chirp.slope_hz_per_s,
+                fs_hz=chirp.fs_hz,
+                channel_offsets_m=offsets,
+                scan_id="a" if i < 6 else "b",
+                index=i % 6,
+                last=i % 6 == 5,
+                frames_lost=lost,
+                frames_zero_filled=zero_filled,
+                bytes_lost=nbytes,
+            )
+        )
     pose_stamps = range(0, 11 * period_ns + period_ns // 2 + 1, period_ns // 2)  # none after the last frame
-    poses = [Pose(header=Header(t, 0, "scene"), position_m=np.array([0.0, y_m(t), 0.0]),
-                  quat_xyzw=np.array([0.0, 0.0, 0.0, 1.0])) for t in pose_stamps]
+    poses = [
+        Pose(
+            header=Header(t, 0, "scene"),
+            position_m=np.array([0.0, y_m(t), 0.0]),
+            quat_xyzw=np.array([0.0, 0.0, 0.0, 1.0]),
+        )
+        for t in pose_stamps
+    ]
     roi = [-0.03, 0.03, -0.005, 0.055, 0.3]
     with local_broker() as ep:
         sync = Synchronizer(broker=ep, params={"max_wait_s": 0.5})
-        solver = Solver(broker=ep, params={"reference_roi": roi, "target_roi": roi, "size": 16, "method": "none",
-                                           "out_dir": str(tmp_path), "pictures": False, "warm_up": False})
-        probe = Probe(ep, listen=["autofocus/result"], publish=["vio/pose", "radar/frame"],
-                      wait_for=["synchronizer", "solver"])
+        solver = Solver(
+            broker=ep,
+            params={
+                "reference_roi": roi,
+                "target_roi": roi,
+                "size": 16,
+                "method": "none",
+                "out_dir": str(tmp_path),
+                "pictures": False,
+                "warm_up": False,
+            },
+        )
+        probe = Probe(
+            ep, listen=["autofocus/result"], publish=["vio/pose", "radar/frame"], wait_for=["synchronizer", "solver"]
+        )
         with running(sync, solver, probe):
             for p in poses:
                 probe.send("vio/pose", p)

@@ -1,16 +1,17 @@
 """The emulated live rig end to end without the node graph: CLI start -> DCA1000 stream of a
 simulated point target + emulated VIO poses -> scan -> the target focuses where it is."""
+
 from __future__ import annotations
 
 import numpy as np
 
-from twinfocus.radar import C_M_PER_S, Chirp
+from twinfocus.motion.trajectory import paper_raster
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp
 from twinfocus.sensors.capture_to_scan import scan_from_frames
 from twinfocus.sensors.dca1000 import Dca1000
 from twinfocus.sensors.emulators.rig import EMULATED_CFG, EmulatedRadar, EmulatedVio
 from twinfocus.sensors.ti_cli import TiRadarCli
 from twinfocus.sensors.zed import poses_from_samples
-from twinfocus.trajectory import paper_raster
 
 
 def _coherence(scan, point):
@@ -25,7 +26,9 @@ def test_live_emulation_focuses_a_point_target(tmp_path):
     traj = paper_raster(2, 20, column_pitch_m=0.04, row_pitch_m=0.004, frame_period_s=0.02)
     target = np.array([0.01, -0.005, 0.6])
     with Dca1000(board_addr=("127.0.0.1", 9), host_ip="127.0.0.1", config_port=0, data_port=0) as host:
-        with EmulatedRadar(traj, target[None], chirp, host_data_addr=host.data_addr, sync_file=tmp_path / "sync") as rig:
+        with EmulatedRadar(
+            traj, target[None], chirp, host_data_addr=host.data_addr, sync_file=tmp_path / "sync"
+        ) as rig:
             host.board_addr = rig.config_addr
             host.setup()
             host.start_record()
@@ -42,5 +45,7 @@ def test_live_emulation_focuses_a_point_target(tmp_path):
     grid = [target + [dx, dy, 0.0] for dx in (-0.004, 0.0, 0.004) for dy in (-0.008, 0.0, 0.008)]
     assert int(np.argmax([_coherence(scan, p) for p in grid])) == 4
     # Control: poses two frames late (a clock error) defocus it.
-    late, _, _ = scan_from_frames(frames, chirp, poses, 0.6, time_offset_ns=40_000_000, align="none", scene_frame="world")
+    late, _, _ = scan_from_frames(
+        frames, chirp, poses, 0.6, time_offset_ns=40_000_000, align="none", scene_frame="world"
+    )
     assert _coherence(late, target) < 0.7 * focus

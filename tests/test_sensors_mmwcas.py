@@ -1,5 +1,6 @@
 """TI MMWCAS cascade captures: TI's file layout read back exactly, bad files refused clearly,
 and the MIMO frame -> virtual channel step checked against the radar model."""
+
 from __future__ import annotations
 
 import json
@@ -9,12 +10,12 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp, mmwcas_virtual_array
+from twinfocus.motion.trajectory import Poses
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
 from twinfocus.sensors.emulators.radar_scene import monostatic_if, simulate_mimo_frames
 from twinfocus.sensors.frames import FrameFlag, frame_to_virtual_channels, mmwcas_antenna_positions_body_m
 from twinfocus.sensors.ti_mmwcas import MmwcasCapture, MmwcasConfig, read_index
-from twinfocus.trajectory import Poses
 
 # TI's TI_Cascade_RX_ID (module_param.m): array RX i (ascending along the board) is data channel
 # RX_ID[i], data channels 1-4 master, 5-8 slave1, 9-12 slave2, 13-16 slave3.
@@ -104,8 +105,9 @@ def test_device_skew_is_flagged(tmp_path):
     cfg = MmwcasConfig(chirp=Chirp(n_samples=4))
     skew = np.zeros((3, 4), np.int64)
     skew[1, 2] = 60_000_000  # slave2 late by more than half of the 100 ms period
-    write_mmwcas_capture(tmp_path, np.ones((3, 12, 16, 4, 2), np.int16), np.arange(3) * 100_000_000, cfg,
-                         device_skew_ns=skew)
+    write_mmwcas_capture(
+        tmp_path, np.ones((3, 12, 16, 4, 2), np.int16), np.arange(3) * 100_000_000, cfg, device_skew_ns=skew
+    )
     with MmwcasCapture(tmp_path, cfg) as cap:
         assert [f.flags for f in cap.frames()] == [FrameFlag.OK, FrameFlag.DEVICE_SKEW, FrameFlag.OK]
         assert not FrameFlag.DEVICE_SKEW.usable
@@ -116,9 +118,17 @@ def test_device_skew_is_flagged(tmp_path):
     [
         (lambda p: (p / "master_0000_idx.bin").write_bytes(b"\x00" * 10), "shorter than its 24-byte header"),
         (lambda p: (p / "master_0000_idx.bin").write_bytes(_idx_bytes([], tag=0x12345678)), "not a TI capture index"),
-        (lambda p: (p / "slave3_0000_idx.bin").write_bytes(_idx_bytes([{"size": 1, "ts": 0, "offset": 0, "tag": 7}])), "first index entry has tag"),
+        (
+            lambda p: (p / "slave3_0000_idx.bin").write_bytes(
+                _idx_bytes([{"size": 1, "ts": 0, "offset": 0, "tag": 7}])
+            ),
+            "first index entry has tag",
+        ),
         (lambda p: (p / "slave1_0000_data.bin").unlink(), "slave1_0000_data.bin: missing"),
-        (lambda p: (p / "master_0000_idx.bin").write_bytes(_idx_bytes([{"size": 999, "ts": 0, "offset": 0}])), "configuration expects"),
+        (
+            lambda p: (p / "master_0000_idx.bin").write_bytes(_idx_bytes([{"size": 999, "ts": 0, "offset": 0}])),
+            "configuration expects",
+        ),
     ],
 )
 def test_malformed_captures_are_refused_clearly(tmp_path, damage, message):
@@ -176,9 +186,9 @@ def _small_capture(tmp_path, n=16, frames=6):
 def test_convert_cli_writes_scan_and_mcap(tmp_path, capsys):
     from msgs.mcap_log import LogReader
     from twinfocus.cli import main
-    from twinfocus.scan import Scan
+    from twinfocus.motion.trajectory import quat_to_matrix
+    from twinfocus.radar.scan import Scan
     from twinfocus.sensors.trajectory_files import write_tum
-    from twinfocus.trajectory import quat_to_matrix
 
     chirp, iq = _small_capture(tmp_path)
     # Camera trajectory on another clock, 2 poses per frame, moving in x and turning slightly.
@@ -188,9 +198,25 @@ def test_convert_cli_writes_scan_and_mcap(tmp_path, capsys):
     quat = np.stack([np.zeros(13), np.sin(ang / 2), np.zeros(13), np.cos(ang / 2)], axis=1)
     write_tum(tmp_path / "traj.txt", Poses(t, pos, quat, np.linspace(0.5, 1.0, 13)))
     (tmp_path / "ext.yaml").write_text("translation_m: [0.0, 0.05, -0.01]\nrotation_xyzw: [0, 0, 0, 1]\n")
-    rc = main(["convert", str(tmp_path / "cap"), "--trajectory", str(tmp_path / "traj.txt"), "--extrinsics",
-               str(tmp_path / "ext.yaml"), "--out", str(tmp_path / "scan.npz"), "--mcap", str(tmp_path / "log.mcap"),
-               "--n-samples", "16", "--frame", "world", "--quiet"])
+    rc = main(
+        [
+            "convert",
+            str(tmp_path / "cap"),
+            "--trajectory",
+            str(tmp_path / "traj.txt"),
+            "--extrinsics",
+            str(tmp_path / "ext.yaml"),
+            "--out",
+            str(tmp_path / "scan.npz"),
+            "--mcap",
+            str(tmp_path / "log.mcap"),
+            "--n-samples",
+            "16",
+            "--frame",
+            "world",
+            "--quiet",
+        ]
+    )
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["frames"] == 6 and summary["used"] == 6
@@ -212,11 +238,32 @@ def test_convert_cli_errors_are_one_line(tmp_path, capsys):
     from twinfocus.cli import main
 
     _small_capture(tmp_path)
-    rc = main(["convert", str(tmp_path / "cap"), "--trajectory", str(tmp_path / "missing.txt"), "--out",
-               str(tmp_path / "s.npz"), "--n-samples", "16"])
+    rc = main(
+        [
+            "convert",
+            str(tmp_path / "cap"),
+            "--trajectory",
+            str(tmp_path / "missing.txt"),
+            "--out",
+            str(tmp_path / "s.npz"),
+            "--n-samples",
+            "16",
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 2 and "missing.txt: no such trajectory file" in err and "Traceback" not in err
     (tmp_path / "t.txt").write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")
-    rc = main(["convert", str(tmp_path / "cap"), "--trajectory", str(tmp_path / "t.txt"), "--out",
-               str(tmp_path / "s.npz"), "--n-samples", "32", "--quiet"])
+    rc = main(
+        [
+            "convert",
+            str(tmp_path / "cap"),
+            "--trajectory",
+            str(tmp_path / "t.txt"),
+            "--out",
+            str(tmp_path / "s.npz"),
+            "--n-samples",
+            "32",
+            "--quiet",
+        ]
+    )
     assert rc == 2 and "configuration expects" in capsys.readouterr().err

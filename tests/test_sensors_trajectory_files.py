@@ -1,13 +1,14 @@
 """TUM and EuRoC trajectory files: the published layouts read correctly, round trips bit-exact,
 confidence carried, bad files refused with the line."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.motion.trajectory import Poses
 from twinfocus.sensors.trajectory_files import read_euroc, read_trajectory, read_tum, write_euroc, write_tum
-from twinfocus.trajectory import Poses
 
 # Lines in the layout of TUM RGB-D groundtruth.txt (timestamp tx ty tz qx qy qz qw); values illustrative.
 TUM_SAMPLE = """# ground truth trajectory

@@ -1,5 +1,6 @@
 """USB discovery through pyusb, against a fake libusb backend that behaves like the real one
 (descriptors, string descriptors over control transfers, EACCES on open)."""
+
 from __future__ import annotations
 
 import errno
@@ -27,10 +28,25 @@ class FakeBackend(usb.backend.IBackend):
     def get_device_descriptor(self, dev):
         vid, pid, serial, product, _ = self.devices[dev]
         return SimpleNamespace(
-            bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0, bDeviceSubClass=0, bDeviceProtocol=0,
-            bMaxPacketSize0=64, idVendor=vid, idProduct=pid, bcdDevice=0x0100, iManufacturer=0,
-            iProduct=2 if product else 0, iSerialNumber=3 if serial else 0, bNumConfigurations=1,
-            address=10 + dev, bus=1, port_number=dev + 1, port_numbers=(dev + 1,), speed=3,
+            bLength=18,
+            bDescriptorType=1,
+            bcdUSB=0x0200,
+            bDeviceClass=0,
+            bDeviceSubClass=0,
+            bDeviceProtocol=0,
+            bMaxPacketSize0=64,
+            idVendor=vid,
+            idProduct=pid,
+            bcdDevice=0x0100,
+            iManufacturer=0,
+            iProduct=2 if product else 0,
+            iSerialNumber=3 if serial else 0,
+            bNumConfigurations=1,
+            address=10 + dev,
+            bus=1,
+            port_number=dev + 1,
+            port_numbers=(dev + 1,),
+            speed=3,
         )
 
     def open_device(self, dev):

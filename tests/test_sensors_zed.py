@@ -1,5 +1,6 @@
 """ZED 2i: the factory calibration file, stereo rectification checked against projected 3-D
 points, the UVC side-by-side stream, and the optional ZED SDK backend."""
+
 from __future__ import annotations
 
 import sys
@@ -32,8 +33,19 @@ def _write_conf(path, res="HD"):
             lines.append(f"[{side}_CAM_{r}]")
             lines += [f"{n}={v * scale if n in ('fx', 'fy', 'cx', 'cy') else v}" for n, v in k.items()]
             lines.append("")
-    lines += ["[STEREO]", f"Baseline={-T_MM[0]}", f"TY_{res}={T_MM[1]}", f"TZ_{res}={T_MM[2]}",
-              f"CV_{res}={ROTVEC[1]}", f"RX_{res}={ROTVEC[0]}", f"RZ_{res}={ROTVEC[2]}", "", "[MISC]", "Sensor_ID=1", ""]
+    lines += [
+        "[STEREO]",
+        f"Baseline={-T_MM[0]}",
+        f"TY_{res}={T_MM[1]}",
+        f"TZ_{res}={T_MM[2]}",
+        f"CV_{res}={ROTVEC[1]}",
+        f"RX_{res}={ROTVEC[0]}",
+        f"RZ_{res}={ROTVEC[2]}",
+        "",
+        "[MISC]",
+        "Sensor_ID=1",
+        "",
+    ]
     path.write_text("\n".join(lines))
     return path
 

@@ -1,5 +1,6 @@
-"""twinfocus.settings: one table of the focus settings makes the ``focus`` options, the solver's
+"""twinfocus.focus.settings: one table of the focus settings makes the ``focus`` options, the solver's
 parameters and AutofocusConfig's defaults; one function decides the device."""
+
 from __future__ import annotations
 
 import argparse
@@ -8,22 +9,31 @@ import dataclasses
 import numpy as np
 import pytest
 
-from nodes import launch
-from nodes.params import resolve
+from nodes.runtime import launch
+from nodes.runtime.params import resolve
+from nodes.runtime.testing import local_broker
 from nodes.solver import Solver
-from nodes.testing import local_broker
-from twinfocus import settings
-from twinfocus.autofocus import AutofocusConfig
 from twinfocus.cli import focus
 from twinfocus.errors import TwinFocusError
+from twinfocus.focus.autofocus import AutofocusConfig
+from twinfocus.focus.settings import FOCUS_SETTINGS, default_settings
+from twinfocus.imaging.device import resolve_device
 from twinfocus.option_types import CHECKS, finite_float
-from twinfocus.radar import Chirp
-from twinfocus.settings import FOCUS_SETTINGS, default_settings, resolve_device
+from twinfocus.radar.fmcw import Chirp
 
 REF_ROI = [-0.15, 0.0, -0.11, 0.12, 0.6]
 TGT_ROI = [0.02, 0.13, -0.11, 0.12, 0.6]
-REQUIRED_FOCUS = ["scan.npz", "--reference-roi", *map(str, REF_ROI), "--target-roi", *map(str, TGT_ROI),
-                  "--template", "t.npz", "--out", "out"]
+REQUIRED_FOCUS = [
+    "scan.npz",
+    "--reference-roi",
+    *map(str, REF_ROI),
+    "--target-roi",
+    *map(str, TGT_ROI),
+    "--template",
+    "t.npz",
+    "--out",
+    "out",
+]
 
 
 def _focus_parser() -> argparse.ArgumentParser:
@@ -36,15 +46,35 @@ def test_every_setting_is_a_focus_option_and_a_solver_parameter_with_the_same_de
     actions = {a.dest: a for a in _focus_parser()._actions}
     for s in FOCUS_SETTINGS:
         a = actions[s.name]
-        assert a.option_strings == [s.option] and a.default == s.default and a.type in (s.type, CHECKS.get(s.check or ""), finite_float), s.name
+        assert (
+            a.option_strings == [s.option]
+            and a.default == s.default
+            and a.type in (s.type, CHECKS.get(s.check or ""), finite_float)
+        ), s.name
         assert a.choices == s.choices and a.help, s.name
         p = Solver.PARAMS[s.name]
         assert p.default == s.default and p.choices == s.choices and p.kind == s.type.__name__ and p.help, s.name
     # the options users and docs already spell keep their spelling
-    for option in ("--size", "--iterations", "--lr", "--lr-min", "--threshold-centre", "--threshold-steepness",
-                   "--loss-steepness", "--precision", "--basis-dtype", "--device", "--oversample", "--estimator",
-                   "--projection-iterations", "--projection-restarts", "--coarse-iterations", "--phase-ramp",
-                   "--space-variant", "--tracking-error-mm"):
+    for option in (
+        "--size",
+        "--iterations",
+        "--lr",
+        "--lr-min",
+        "--threshold-centre",
+        "--threshold-steepness",
+        "--loss-steepness",
+        "--precision",
+        "--basis-dtype",
+        "--device",
+        "--oversample",
+        "--estimator",
+        "--projection-iterations",
+        "--projection-restarts",
+        "--coarse-iterations",
+        "--phase-ramp",
+        "--space-variant",
+        "--tracking-error-mm",
+    ):
         assert any(option in a.option_strings for a in actions.values()), option
 
 
@@ -110,8 +140,13 @@ def test_solver_settings_from_a_launch_file_reach_its_config(tmp_path):
     with local_broker() as ep:
         solver = Solver(broker=ep, params=spec.parameters)
     cfg = solver.cfg
-    assert (cfg.lr, cfg.projection_iterations, cfg.projection_restarts, cfg.coarse_iterations, cfg.basis_dtype) == \
-        (0.01, 12, 1, 5, "float16")
+    assert (cfg.lr, cfg.projection_iterations, cfg.projection_restarts, cfg.coarse_iterations, cfg.basis_dtype) == (
+        0.01,
+        12,
+        1,
+        5,
+        "float16",
+    )
     assert (solver.params["space_variant"], solver.params["phase_ramp"]) == ("off", "keep")
     assert solver.ref_grid.shape == (8, 8)
     # 2 mm of tracking error is past lambda/4 at 77 GHz: auto takes projection-refined, and the
@@ -152,18 +187,18 @@ def test_device_resolver(monkeypatch):
         AutofocusConfig.from_settings({**default_settings(), "device": "cuda"})
     with local_broker() as ep, pytest.raises(TwinFocusError, match="no CUDA device"):
         Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "device": "cuda", "warm_up": False})
-    from twinfocus.backprojection_torch import backproject_points_torch
+    from twinfocus.imaging.backprojection.torch_backend import backproject_points_torch
 
     with pytest.raises(TwinFocusError, match="no CUDA device"):
-        backproject_points_torch(np.zeros((1, 1, 8), np.complex64), np.zeros((1, 1, 3)), Chirp(n_samples=8),
-                                 np.zeros((1, 3)), device="cuda")
+        backproject_points_torch(
+            np.zeros((1, 1, 8), np.complex64), np.zeros((1, 1, 3)), Chirp(n_samples=8), np.zeros((1, 3)), device="cuda"
+        )
 
 
 def test_unset_device_takes_cuda_only_when_present(monkeypatch):
     torch = pytest.importorskip("torch")
-    monkeypatch.setattr(settings, "_accelerator_present", lambda: True)
+    monkeypatch.setattr("twinfocus.imaging.device._accelerator_present", lambda: True)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert resolve_device(None) == "cuda"
-    monkeypatch.setattr(settings, "_accelerator_present", lambda: False)
+    monkeypatch.setattr("twinfocus.imaging.device._accelerator_present", lambda: False)
     assert resolve_device(None) == "cpu"  # no GPU device node: cpu without asking torch
-

@@ -1,13 +1,13 @@
 """The simulated tracker's hand model: the tracked pose carries the hand's drift and the array's
-turn, so the synchronizer's phase centres are the hand-held scan's (twinfocus.scenario)."""
+turn, so the synchronizer's phase centres are the hand-held scan's (twinfocus.simulation.scenario)."""
 
 import numpy as np
 import pytest
 
-from nodes.sim_backends import SIM_T0_NS, SimVio
-from twinfocus.radar import mmwcas_virtual_array
-from twinfocus.scenario import Scenario, scenario_positions
-from twinfocus.trajectory import phase_centres
+from nodes.runtime.sim_backends import SIM_T0_NS, SimVio
+from twinfocus.motion.trajectory import phase_centres
+from twinfocus.radar.fmcw import mmwcas_virtual_array
+from twinfocus.simulation.scenario import Scenario, scenario_positions
 
 
 def _vio_centres(sc: Scenario, **options):

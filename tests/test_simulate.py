@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import C_M_PER_S, Chirp, mmwcas_virtual_array, range_compress
-from twinfocus.simulate import add_thermal_noise, simulate_if, simulate_if_exact
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array, range_compress
+from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if, simulate_if_exact
 
 
 def _rel_err(a, b):
@@ -16,7 +16,9 @@ def small_case():
     """3 raster positions x 86 MMWCAS channels, 300 speckled points around 0.6 m."""
     rng = np.random.default_rng(0)
     pos = phase_centres(paper_raster(), mmwcas_virtual_array())[[0, 400, 779]]
-    pts = np.column_stack([rng.uniform(-0.1, 0.1, 300), rng.uniform(-0.07, 0.07, 300), 0.6 + rng.uniform(-0.02, 0.02, 300)])
+    pts = np.column_stack(
+        [rng.uniform(-0.1, 0.1, 300), rng.uniform(-0.07, 0.07, 300), 0.6 + rng.uniform(-0.02, 0.02, 300)]
+    )
     amp = np.exp(2j * np.pi * rng.random(300)) * rng.uniform(0.2, 1.0, 300)
     return pts, amp, pos, simulate_if_exact(pts, amp, pos, Chirp())
 

@@ -1,18 +1,19 @@
-"""Space-variant correction (twinfocus.space_variant) against the exact per-point phase
+"""Space-variant correction (twinfocus.focus.space_variant) against the exact per-point phase
 (metrics.oracle_phase) and brute-force sums."""
+
 import os
 
 import numpy as np
 import pytest
 
-from twinfocus.basis import form_image, form_image_space_variant
 from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.metrics import oracle_phase
-from twinfocus.motion import apply_position_errors, gaussian_errors
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.space_variant import fit_position_errors, lines_of_sight, pixel_phases
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.focus.space_variant import fit_position_errors, lines_of_sight, pixel_phases
+from twinfocus.imaging.basis import form_image, form_image_space_variant
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import oracle_phase
+from twinfocus.motion.tracking_errors import apply_position_errors, gaussian_errors
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 
 Z = 0.6
 
@@ -94,14 +95,15 @@ def _drifting_scan(fast_mm: float = 0.0) -> dict:
     """A rough extended reference and a target beside it, scanned with a smooth x/y drift (plus,
     with ``fast_mm``, a wander of that amplitude over 12 positions: faster than knots every 10
     can follow)."""
-    from twinfocus.backprojection import backproject, subimage_basis
-    from twinfocus.radar import VirtualArray
-    from twinfocus.simulate import simulate_if_exact
+    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.radar.fmcw import VirtualArray
+    from twinfocus.simulation.if_simulator import simulate_if_exact
 
     ch = Chirp()
     k = 12
-    array = VirtualArray(np.c_[np.linspace(0, 0.04, k), np.zeros(k), np.zeros(k)], np.zeros(k, int), np.zeros(k, int),
-                         np.zeros((k, 2)))
+    array = VirtualArray(
+        np.c_[np.linspace(0, 0.04, k), np.zeros(k), np.zeros(k)], np.zeros(k, int), np.zeros(k, int), np.zeros((k, 2))
+    )
     tracked = phase_centres(paper_raster(n_columns=4, n_rows=60, row_pitch_m=0.003), array)
     t = np.arange(tracked.shape[0])
     drift = np.c_[0.8e-3 * np.sin(2 * np.pi * t / 80 + 0.3), 0.6e-3 * np.cos(2 * np.pi * t / 110), np.zeros_like(t)]
@@ -117,10 +119,21 @@ def _drifting_scan(fast_mm: float = 0.0) -> dict:
     rg = ImageGrid(-0.15, -0.01, -0.07, 0.07, Z, 32, 32)
     tg = ImageGrid(0.03, 0.13, -0.07, 0.07, Z, 24, 24)
     template = backproject(data, true, ch, rg)  # what a motion-stage scan of the reference gives
-    return dict(chirp=ch, tracked=tracked, true=true, drift=drift, rg=rg, tg=tg, template=template,
-                ref_basis=subimage_basis(data, tracked, ch, rg), tgt_basis=subimage_basis(data, tracked, ch, tg),
-                ref_basis_true=subimage_basis(data, true, ch, rg), tgt_basis_true=subimage_basis(data, true, ch, tg),
-                truth_target=backproject(data, true, ch, tg), truth_reference=backproject(data, true, ch, rg))
+    return dict(
+        chirp=ch,
+        tracked=tracked,
+        true=true,
+        drift=drift,
+        rg=rg,
+        tg=tg,
+        template=template,
+        ref_basis=subimage_basis(data, tracked, ch, rg),
+        tgt_basis=subimage_basis(data, tracked, ch, tg),
+        ref_basis_true=subimage_basis(data, true, ch, rg),
+        tgt_basis_true=subimage_basis(data, true, ch, tg),
+        truth_target=backproject(data, true, ch, tg),
+        truth_reference=backproject(data, true, ch, rg),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -129,14 +142,16 @@ def drifting_scan():
 
 
 def test_smooth_drift_fit_recovers_an_injected_drift_and_the_targets_phase(drifting_scan):
-    from twinfocus.metrics import phase_error_rms
-    from twinfocus.space_variant import fit_smooth_drift
-    from twinfocus.template_match import correlation_phase
+    from twinfocus.focus.space_variant import fit_smooth_drift
+    from twinfocus.focus.template_match import correlation_phase
+    from twinfocus.imaging.metrics import phase_error_rms
 
     s = drifting_scan
     centres = s["tracked"].mean(axis=1)
     phi0 = correlation_phase(s["ref_basis"], s["template"])
-    phase, dp, _, info = fit_smooth_drift(s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m)
+    phase, dp, _, info = fit_smooth_drift(
+        s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m
+    )
     assert info["match_after"] > info["match_before"]
     # the drift across the line of sight, in the correction's sense (true - tracked)
     for axis in (0, 1):
@@ -151,10 +166,10 @@ def test_smooth_drift_fit_recovers_an_injected_drift_and_the_targets_phase(drift
 
 
 def test_focus_uses_the_space_variant_fit_only_when_the_data_ask_for_it(drifting_scan):
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Bases, Reference, Truth
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.pipeline import Bases, Reference, Truth
+    from twinfocus.focus.plan import FocusPlan
 
     s = drifting_scan
     cfg = AutofocusConfig(**estimator_settings("correlation", True))
@@ -179,16 +194,19 @@ def test_focus_uses_the_space_variant_fit_only_when_the_data_ask_for_it(drifting
     # costs the target nothing
     exact = focus(s["true"], s["ref_basis_true"], s["tgt_basis_true"], "auto")
     if exact.drift_m is not None:
-        assert np.sqrt((exact.drift_m ** 2).mean()) < 0.1e-3
+        assert np.sqrt((exact.drift_m**2).mean()) < 0.1e-3
     assert exact.metrics["target_ssim_corrected"] > 0.99
-    assert exact.metrics["confidence"]["trusted"], (exact.metrics["confidence"]["warnings"], exact.metrics["space_variant"])
+    assert exact.metrics["confidence"]["trusted"], (
+        exact.metrics["confidence"]["warnings"],
+        exact.metrics["space_variant"],
+    )
 
 
 def test_space_variant_bad_requests_are_named(drifting_scan):
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.estimators import estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Bases, Reference
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.pipeline import Bases, Reference
+    from twinfocus.focus.plan import FocusPlan
 
     s = drifting_scan
     args = (s["ref_basis"], s["tgt_basis"], s["tracked"], s["chirp"], s["rg"], s["tg"])
@@ -210,13 +228,20 @@ def test_space_variant_bad_requests_are_named(drifting_scan):
             Reference(template=np.abs(s["template"])),
         )
     # a half-array basis that is not the reference's shape
-    from twinfocus.space_variant import fit_smooth_drift
+    from twinfocus.focus.space_variant import fit_smooth_drift
 
     centres = s["tracked"].mean(axis=1)
     with pytest.raises(TwinFocusError, match="half basis"):
-        fit_smooth_drift(s["ref_basis"], s["template"], np.zeros(len(centres)), centres, s["rg"],
-                         s["chirp"].wavelength_m, half_basis=s["ref_basis"][:, :5])
-    from twinfocus.space_variant import DriftFitSettings
+        fit_smooth_drift(
+            s["ref_basis"],
+            s["template"],
+            np.zeros(len(centres)),
+            centres,
+            s["rg"],
+            s["chirp"].wavelength_m,
+            half_basis=s["ref_basis"][:, :5],
+        )
+    from twinfocus.focus.space_variant import DriftFitSettings
 
     with pytest.raises(TwinFocusError, match="knot_energy_fraction"):
         DriftFitSettings(knot_energy_fraction=0.0)
@@ -225,8 +250,8 @@ def test_space_variant_bad_requests_are_named(drifting_scan):
 
 
 def test_per_position_refinement_follows_a_drift_faster_than_the_knots():
-    from twinfocus.space_variant import DriftFitSettings, fit_smooth_drift
-    from twinfocus.template_match import correlation_phase
+    from twinfocus.focus.space_variant import DriftFitSettings, fit_smooth_drift
+    from twinfocus.focus.template_match import correlation_phase
 
     s = _drifting_scan(fast_mm=0.4)
     centres = s["tracked"].mean(axis=1)
@@ -258,12 +283,12 @@ def test_the_fit_follows_the_arrays_tilt_with_the_half_array_basis():
     """A drift with the array tilting about its cross axis: each channel moves along the line of
     sight by tilt x its offset along the array. With the half-array basis the fit finds the halves'
     differential phase and the target comes out sharper than without it."""
-    from twinfocus.backprojection import backproject, subimage_basis
-    from twinfocus.metrics import image_ssim
-    from twinfocus.radar import VirtualArray
-    from twinfocus.simulate import simulate_if_exact
-    from twinfocus.space_variant import array_half, fit_smooth_drift, tilted_basis
-    from twinfocus.template_match import correlation_phase
+    from twinfocus.focus.space_variant import array_half, fit_smooth_drift, tilted_basis
+    from twinfocus.focus.template_match import correlation_phase
+    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.imaging.metrics import image_ssim
+    from twinfocus.radar.fmcw import VirtualArray
+    from twinfocus.simulation.if_simulator import simulate_if_exact
 
     ch = Chirp()
     k = 16
@@ -310,7 +335,7 @@ def test_the_fit_follows_the_arrays_tilt_with_the_half_array_basis():
 
 
 def test_tilted_basis_is_the_halves_phased_apart():
-    from twinfocus.space_variant import array_half, tilted_basis
+    from twinfocus.focus.space_variant import array_half, tilted_basis
 
     rng = np.random.default_rng(2)
     b = (rng.normal(size=(5, 3, 4)) + 1j * rng.normal(size=(5, 3, 4))).astype(np.complex64)
@@ -335,7 +360,7 @@ def test_the_drift_fits_gradients_are_those_of_the_per_pixel_model(kernel, tilte
     of the gradients' algebra)."""
     import torch
 
-    from twinfocus import space_variant as sv
+    from twinfocus.focus import space_variant as sv
 
     monkeypatch.setattr(sv, "LINE_OF_SIGHT_DEGREE", 4)
 
@@ -378,8 +403,8 @@ def test_the_fit_recovers_the_drift_on_the_bright_pixels_as_on_every_pixel(drift
     """Against the injected drift (0.8 / 0.6 mm amplitude): the fit with every pixel in both
     stages comes within 0.05 mm rms of it on this scene; with the knots' stage on the template's
     bright pixels (the default) it stays within 10 % of that."""
-    from twinfocus.space_variant import DriftFitSettings, fit_smooth_drift
-    from twinfocus.template_match import correlation_phase
+    from twinfocus.focus.space_variant import DriftFitSettings, fit_smooth_drift
+    from twinfocus.focus.template_match import correlation_phase
 
     s = drifting_scan
     centres = s["tracked"].mean(axis=1)
@@ -402,8 +427,8 @@ def test_the_cpu_kernel_and_the_torch_code_fit_the_same_drift(drifting_scan, mon
     """The whole fit (200 Adam steps) with the CPU's fused numba pass and with the torch code that
     other devices run: float32 round-off apart, and both within 0.06 mm rms of the injected drift
     (0.8 / 0.6 mm amplitude)."""
-    from twinfocus import space_variant as sv
-    from twinfocus.template_match import correlation_phase
+    from twinfocus.focus import space_variant as sv
+    from twinfocus.focus.template_match import correlation_phase
 
     s = drifting_scan
     centres = s["tracked"].mean(axis=1)
@@ -434,8 +459,8 @@ def test_a_busy_cpu_fits_on_one_thread_and_finds_the_same_drift(drifting_scan, m
     import numba
     from threadpoolctl import threadpool_info
 
-    from twinfocus import space_variant as sv
-    from twinfocus.template_match import correlation_phase
+    from twinfocus.focus import space_variant as sv
+    from twinfocus.focus.template_match import correlation_phase
 
     s = drifting_scan
     centres = s["tracked"].mean(axis=1)
@@ -452,7 +477,9 @@ def test_a_busy_cpu_fits_on_one_thread_and_finds_the_same_drift(drifting_scan, m
     def fit(load):
         monkeypatch.setattr(sv.os, "getloadavg", lambda: (load, 0.0, 0.0))
         seen = []
-        _, dp, _, info = sv.fit_smooth_drift(*args, progress=lambda *_: seen.append((blas_threads(), numba.get_num_threads())))
+        _, dp, _, info = sv.fit_smooth_drift(
+            *args, progress=lambda *_: seen.append((blas_threads(), numba.get_num_threads()))
+        )
         assert (blas_threads(), numba.get_num_threads()) == (blas, threads)
         return dp, info, set(seen)
 
@@ -462,19 +489,21 @@ def test_a_busy_cpu_fits_on_one_thread_and_finds_the_same_drift(drifting_scan, m
     assert seen_busy == {(1, 1)} and i_busy["threads"] == 1
     assert abs(i_busy["match_after"] - i_idle["match_after"]) < 1e-4
     assert np.sqrt(((d_busy - d_idle) ** 2).mean()) < 0.01e-3
-    code = ("import sys, numpy as np; from twinfocus.grid import ImageGrid; from twinfocus.space_variant import "
-            "fit_smooth_drift; g = ImageGrid(-0.01, 0.01, -0.01, 0.01, 0.3, 4, 4); rng = np.random.default_rng(0); "
-            "b = (rng.normal(size=(20, 4, 4)) + 1j).astype(np.complex64); c = np.c_[np.linspace(0, 0.1, 20), "
-            "np.zeros((20, 2))]; fit_smooth_drift(b, b.sum(0), np.zeros(20), c, g, 0.004, half_basis=b); "
-            "sys.exit('torch' in sys.modules)")
+    code = (
+        "import sys, numpy as np; from twinfocus.imaging.grid import ImageGrid; from twinfocus.focus.space_variant import "
+        "fit_smooth_drift; g = ImageGrid(-0.01, 0.01, -0.01, 0.01, 0.3, 4, 4); rng = np.random.default_rng(0); "
+        "b = (rng.normal(size=(20, 4, 4)) + 1j).astype(np.complex64); c = np.c_[np.linspace(0, 0.1, 20), "
+        "np.zeros((20, 2))]; fit_smooth_drift(b, b.sum(0), np.zeros(20), c, g, 0.004, half_basis=b); "
+        "sys.exit('torch' in sys.modules)"
+    )
     assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0
 
 
 @pytest.mark.gpu
 def test_the_drift_fit_on_cuda_matches_the_cpu(drifting_scan):
     """The same code on both devices: float32 round-off apart, through 200 Adam steps."""
-    from twinfocus.space_variant import fit_smooth_drift
-    from twinfocus.template_match import correlation_phase
+    from twinfocus.focus.space_variant import fit_smooth_drift
+    from twinfocus.focus.template_match import correlation_phase
 
     s = drifting_scan
     centres = s["tracked"].mean(axis=1)
@@ -491,7 +520,7 @@ def test_the_drift_fit_on_cuda_matches_the_cpu(drifting_scan):
 def test_drift_image_is_the_brute_force_sum_over_positions_and_pixels():
     """drift_image against the sum written out: every position's exact line of sight to every
     pixel, its phase, the tilted basis, added up in complex128 (with and without the tilt)."""
-    from twinfocus.space_variant import drift_image
+    from twinfocus.focus.space_variant import drift_image
 
     rng = np.random.default_rng(5)
     m, grid, lam = 7, ImageGrid(-0.05, 0.03, -0.04, 0.02, Z, 5, 6), Chirp().wavelength_m
@@ -525,7 +554,7 @@ def test_the_fits_adam_steps_as_torchs_adam():
     parameters after every step, for two groups at their own steps."""
     import torch
 
-    from twinfocus.space_variant import _Adam
+    from twinfocus.focus.space_variant import _Adam
 
     rng = np.random.default_rng(6)
     a0, b0 = rng.normal(size=(4, 2)), rng.normal(size=5)
@@ -547,8 +576,8 @@ def test_the_fits_adam_steps_as_torchs_adam():
 def test_a_fit_on_some_pixels_is_the_fit_with_the_others_zeroed(drifting_scan):
     """``pixels`` (the held-out fits') against zeroing the other pixels in the basis and the
     template: the same knots' pixels, drift, phase and match, float32 round-off apart."""
-    from twinfocus.space_variant import DriftFitSettings, fit_smooth_drift
-    from twinfocus.template_match import correlation_phase
+    from twinfocus.focus.space_variant import DriftFitSettings, fit_smooth_drift
+    from twinfocus.focus.template_match import correlation_phase
 
     s = drifting_scan
     centres, lam = s["tracked"].mean(axis=1), s["chirp"].wavelength_m
@@ -564,5 +593,6 @@ def test_a_fit_on_some_pixels_is_the_fit_with_the_others_zeroed(drifting_scan):
     np.testing.assert_allclose(masked[0], zeroed[0], atol=1e-4)
     assert abs(masked[3]["match_after"] - zeroed[3]["match_after"]) < 1e-5
     with pytest.raises(TwinFocusError, match="pixels must be"):
-        fit_smooth_drift(s["ref_basis"], s["template"], phi0, centres, s["rg"], lam, pixels=np.zeros(s["rg"].shape, bool))
-
+        fit_smooth_drift(
+            s["ref_basis"], s["template"], phi0, centres, s["rg"], lam, pixels=np.zeros(s["rg"].shape, bool)
+        )

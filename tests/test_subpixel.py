@@ -1,10 +1,11 @@
-"""twinfocus.subpixel against closed forms: a quadratic's vertex, whole-pixel shifts as rolls."""
+"""twinfocus.imaging.subpixel against closed forms: a quadratic's vertex, whole-pixel shifts as rolls."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from twinfocus.subpixel import parabola_vertex, shift_image
+from twinfocus.imaging.subpixel import parabola_vertex, shift_image
 
 
 @pytest.mark.parametrize("x0", [-0.4, -0.1, 0.0, 0.25, 0.49])

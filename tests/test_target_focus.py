@@ -1,4 +1,4 @@
-"""The target's own focus check (twinfocus.target_focus) against an injected quadratic phase, and
+"""The target's own focus check (twinfocus.focus.target_focus) against an injected quadratic phase, and
 the confidence report's warning from it."""
 
 from __future__ import annotations
@@ -8,14 +8,14 @@ import functools
 import numpy as np
 import pytest
 
-from twinfocus.backprojection import subimage_basis
 from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.phase_ramp import aperture_polynomial
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.simulate import simulate_if
-from twinfocus.target_focus import defocus_gain_nats
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.focus.phase_ramp import aperture_polynomial
+from twinfocus.focus.target_focus import defocus_gain_nats
+from twinfocus.imaging.backprojection.numba_backend import subimage_basis
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+from twinfocus.simulation.if_simulator import simulate_if
 
 
 @functools.cache
@@ -58,7 +58,7 @@ def test_the_check_refuses_a_phase_that_does_not_match_the_basis():
 
 
 def test_the_report_warns_when_the_target_is_not_at_its_focus():
-    from twinfocus.pipeline import MAX_TARGET_DEFOCUS_GAIN_NATS, confidence_report
+    from twinfocus.focus.pipeline import MAX_TARGET_DEFOCUS_GAIN_NATS, confidence_report
 
     pos = phase_centres(paper_raster(6, 10), mmwcas_virtual_array())
     ref = ImageGrid.from_roi([-0.15, 0.0, -0.11, 0.12, 0.6], 20)

@@ -1,5 +1,6 @@
 """The template-builder node's live digital twin: camera/stereo -> cloud ->
 conditioned template for the scan's aperture, over the node runtime."""
+
 import time
 
 import cv2
@@ -7,14 +8,14 @@ import numpy as np
 import pytest
 
 from msgs import Header, SarMeasurement, StereoFrame
-from nodes.testing import Probe, local_broker, running
-from twinfocus.digital_twin.render import render_scene
-from twinfocus.digital_twin.template import digital_twin_template
-from twinfocus.grid import ImageGrid
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.scenario import PAPER_REFERENCE_ROI
+from nodes.runtime.testing import Probe, local_broker, running
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 from twinfocus.scene import paper_scene
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.simulation.scenario import PAPER_REFERENCE_ROI
+from twinfocus.twins.digital_twin.render import render_scene
+from twinfocus.twins.digital_twin.template import digital_twin_template
 
 CHIRP = Chirp()
 
@@ -23,15 +24,27 @@ def _frame(r) -> StereoFrame:
     e = r.camera.left
     k = np.array([[e.fx, 0.0, e.cx], [0.0, e.fy, e.cy], [0.0, 0.0, 1.0]])
     rgb = lambda x: cv2.cvtColor(x, cv2.COLOR_BGR2RGB)
-    return StereoFrame(header=Header(stamp_ns=1), left=rgb(r.left), right=rgb(r.right), camera_matrix=k,
-                       baseline_m=r.camera.baseline_m)
+    return StereoFrame(
+        header=Header(stamp_ns=1), left=rgb(r.left), right=rgb(r.right), camera_matrix=k, baseline_m=r.camera.baseline_m
+    )
 
 
 def _measurements(positions, scan_id):
     zeros = np.zeros((positions.shape[1], 8), np.complex64)  # the builder reads positions only
-    return [SarMeasurement(header=Header(stamp_ns=m + 1), data=zeros, positions_m=positions[m], f0_hz=CHIRP.f0_hz,
-                           slope_hz_per_s=CHIRP.slope_hz_per_s, fs_hz=CHIRP.fs_hz, scan_id=scan_id, index=m,
-                           last=m == positions.shape[0] - 1) for m in range(positions.shape[0])]
+    return [
+        SarMeasurement(
+            header=Header(stamp_ns=m + 1),
+            data=zeros,
+            positions_m=positions[m],
+            f0_hz=CHIRP.f0_hz,
+            slope_hz_per_s=CHIRP.slope_hz_per_s,
+            fs_hz=CHIRP.fs_hz,
+            scan_id=scan_id,
+            index=m,
+            last=m == positions.shape[0] - 1,
+        )
+        for m in range(positions.shape[0])
+    ]
 
 
 @pytest.mark.slow  # 4 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
@@ -44,10 +57,19 @@ def test_template_builder_builds_the_digital_twin_from_the_stereo_topic(tmp_path
     positions = phase_centres(paper_raster(3, 40, row_pitch_m=0.004), mmwcas_virtual_array())
     grid = ImageGrid.from_roi(PAPER_REFERENCE_ROI, 40)
     with local_broker() as ep:
-        probe = Probe(ep, listen=["twin/template"], publish=["camera/stereo", "sar/measurement"],
-                      wait_for=["template_builder"])
-        tb = TemplateBuilder(broker=ep, params={"source": "stereo", "path": str(tmp_path / "camera.json"),
-                                                "reference_roi": list(PAPER_REFERENCE_ROI), "size": 40, "oversample": 4})
+        probe = Probe(
+            ep, listen=["twin/template"], publish=["camera/stereo", "sar/measurement"], wait_for=["template_builder"]
+        )
+        tb = TemplateBuilder(
+            broker=ep,
+            params={
+                "source": "stereo",
+                "path": str(tmp_path / "camera.json"),
+                "reference_roi": list(PAPER_REFERENCE_ROI),
+                "size": 40,
+                "oversample": 4,
+            },
+        )
         with running(tb, probe):
             # A scan that ends before any camera frame: no template, and the log says why.
             for m in _measurements(positions[:3], "early"):

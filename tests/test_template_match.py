@@ -1,20 +1,14 @@
-"""Complex-template registration and the closed-form phase (twinfocus.template_match), against
+"""Complex-template registration and the closed-form phase (twinfocus.focus.template_match), against
 brute-force sums and injected shifts / phase errors past lambda/4."""
+
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from twinfocus.autofocus import AutofocusConfig, fit_linear_phase, template_loss, twin_autofocus
-from twinfocus.backprojection import backproject, subimage_basis
-from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.metrics import oracle_phase, phase_error_rms
-from twinfocus.motion import apply_position_errors, gaussian_errors
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.simulate import simulate_if
-from twinfocus.template_match import (
+from twinfocus.focus.autofocus import AutofocusConfig, fit_linear_phase, template_loss, twin_autofocus
+from twinfocus.focus.template_match import (
     MatchScores,
     correlation_phase,
     match_scores,
@@ -22,8 +16,15 @@ from twinfocus.template_match import (
     register_template,
     shift_image,
 )
-from twinfocus.templates import load_template, save_template
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+from twinfocus.imaging.basis import form_image
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import oracle_phase, phase_error_rms
+from twinfocus.motion.tracking_errors import apply_position_errors, gaussian_errors
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+from twinfocus.simulation.if_simulator import simulate_if
+from twinfocus.twins.templates import load_template, save_template
 
 Z = 0.4
 GRID = ImageGrid(-0.03, 0.03, -0.03, 0.03, Z, 32, 32)
@@ -38,7 +39,9 @@ def test_match_scores_equal_brute_force_sums():
     flat = basis.reshape(7, -1)
     for dy, dx in [(0, 0), (2, -3), (-3, 1), (1, 3)]:
         moved = np.zeros_like(tpl)
-        moved[max(dy, 0):20 + min(dy, 0), max(dx, 0):24 + min(dx, 0)] = tpl[max(-dy, 0):20 - max(dy, 0), max(-dx, 0):24 - max(dx, 0)]
+        moved[max(dy, 0) : 20 + min(dy, 0), max(dx, 0) : 24 + min(dx, 0)] = tpl[
+            max(-dy, 0) : 20 - max(dy, 0), max(-dx, 0) : 24 - max(dx, 0)
+        ]
         want = np.abs(flat.conj() @ moved.reshape(-1)).sum() / np.linalg.norm(moved)
         assert scores[3 + dy, 3 + dx] == pytest.approx(want, rel=1e-4)
         # shift_image moves content the same way for whole pixels
@@ -100,7 +103,9 @@ def test_closed_form_phase_recovers_wrapped_errors_once_registered(misplaced):
     # unregistered, the misplacement's phase ramp stays in the estimate
     assert err_misplaced > 2 * err_registered
     # through twin_autofocus with no iterations: the same closed form
-    res = twin_autofocus(basis, template, AutofocusConfig(iterations=0, init="correlation", template_registration="correlation"))
+    res = twin_autofocus(
+        basis, template, AutofocusConfig(iterations=0, init="correlation", template_registration="correlation")
+    )
     assert phase_error_rms(res.phase_rad, oracle) == pytest.approx(err_registered, abs=1e-6)
     assert res.extra["registration"]["shift_px"][1] < 0
 
@@ -155,7 +160,9 @@ def test_projection_phase_recovers_wrapped_errors_from_the_amplitude_alone(place
     amplitude = np.abs(template)
     assert phase_error_rms(np.zeros(basis.shape[0]), oracle) > 1.5  # every phase wrapped
     # F(phi) = sum A |I(phi)| never decreases from one projection step to the next
-    f = [float((amplitude * np.abs(form_image(basis, projection_phase(basis, amplitude, k)))).sum()) for k in range(1, 9)]
+    f = [
+        float((amplitude * np.abs(form_image(basis, projection_phase(basis, amplitude, k)))).sum()) for k in range(1, 9)
+    ]
     assert all(b >= a * (1 - 1e-5) for a, b in zip(f, f[1:]))
     assert f[-1] > 1.2 * f[0]
     phi = projection_phase(basis, amplitude, 30)
@@ -167,7 +174,9 @@ def test_projection_phase_recovers_wrapped_errors_from_the_amplitude_alone(place
     ap = tracked.mean(axis=1)[:, :2]
     refined = twin_autofocus(basis, amplitude, AutofocusConfig(init="projection", loss_steepness=5.0))
     from_zero = twin_autofocus(basis, amplitude, AutofocusConfig(loss_steepness=5.0))
-    err = lambda p: phase_error_rms(np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p))
+    err = lambda p: phase_error_rms(
+        np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p)
+    )
     assert err(refined.phase_rad) < 0.2
     assert err(from_zero.phase_rad) > 2 * err(refined.phase_rad)
     # restarts: every start is projected, the one with the lowest optimiser loss is kept
@@ -242,12 +251,14 @@ def _outline(grid, radius_m=2.5e-3):
 
 
 def test_outline_phase_recovers_wrapped_errors_from_the_outline_alone(placed):
-    from twinfocus.template_match import outline_phase
+    from twinfocus.focus.template_match import outline_phase
 
     ch, true, tracked, basis, _ = placed
     oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
     ap = tracked.mean(axis=1)[:, :2]
-    err = lambda p: phase_error_rms(np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p))
+    err = lambda p: phase_error_rms(
+        np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p)
+    )
     assert err(np.zeros(basis.shape[0])) > 1.5  # every phase wrapped; the scatterers' own phases are random
     support = _outline(GRID)
     phi, info = outline_phase(basis, support)
@@ -259,18 +270,20 @@ def test_outline_phase_recovers_wrapped_errors_from_the_outline_alone(placed):
     # an outline placed 2 pixels off (a camera cloud's offset) is moved back by the data, where
     # the image resolves it: across the two columns (x) but not along them (y: a 7 mm beam width
     # here, 3.6 pixels, over which the energy inside hardly changes)
-    from twinfocus.template_match import _shift_mask
+    from twinfocus.focus.template_match import _shift_mask
 
     phi, info = outline_phase(basis, _shift_mask(support, 0, -2))
     assert info["support_shift_px"] == [0, 2]
     assert err(phi) < 0.3
     # through twin_autofocus, as --estimator outline runs it
-    res = twin_autofocus(basis, np.abs(basis.sum(axis=0)), AutofocusConfig(init="outline", iterations=0), support=support)
+    res = twin_autofocus(
+        basis, np.abs(basis.sum(axis=0)), AutofocusConfig(init="outline", iterations=0), support=support
+    )
     assert err(res.phase_rad) < 0.3 and "energy_inside" in res.extra["outline"]
 
 
 def test_outline_phase_refuses_bad_input(placed):
-    from twinfocus.template_match import outline_phase
+    from twinfocus.focus.template_match import outline_phase
 
     basis = placed[3]
     with pytest.raises(TwinFocusError, match="outline"):
@@ -284,7 +297,7 @@ def test_outline_phase_refuses_bad_input(placed):
 def test_outlines_run_together_give_each_outline_its_own_run(placed):
     """outline_phases shares the matrix products between outlines; each outline's estimate must be
     what it gets alone, shifts and all."""
-    from twinfocus.template_match import _shift_mask, outline_phase, outline_phases
+    from twinfocus.focus.template_match import _shift_mask, outline_phase, outline_phases
 
     basis = placed[3]
     a = _outline(GRID)
@@ -303,7 +316,7 @@ def test_outlines_run_together_give_each_outline_its_own_run(placed):
 
 
 def test_grown_outlines_fill_a_hole_where_the_image_is_bright_and_nowhere_else():
-    from twinfocus.template_match import _shift_mask, grown_outlines
+    from twinfocus.focus.template_match import _shift_mask, grown_outlines
 
     # the reference: a bar 4 px wide, 24 tall; the image bright on it, dim elsewhere, and bright on a
     # blob 15 px away (another object: too far to be the reference's)
@@ -333,20 +346,22 @@ def test_grown_outlines_fill_a_hole_where_the_image_is_bright_and_nowhere_else()
 
 
 def test_averaged_outlines_beat_one_outline_with_a_hole(placed):
-    from twinfocus.template_match import averaged_outline_phase, outline_phase
+    from twinfocus.focus.template_match import averaged_outline_phase, outline_phase
 
     ch, true, tracked, basis, _ = placed
     oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
     ap = tracked.mean(axis=1)[:, :2]
-    err = lambda p: phase_error_rms(np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p))
+    err = lambda p: phase_error_rms(
+        np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p)
+    )
     # the 'F' with 8 mm of its stem missing (a camera cloud's hole)
     yy, xx = np.meshgrid(GRID.y_m, GRID.x_m, indexing="ij")
     support = _outline(GRID) & ~((np.abs(yy - 0.004) < 0.004) & (xx < -0.012))
     one, _ = outline_phase(basis, support)
     # as `twinfocus focus` runs the outline estimator with outline_ensemble (the aperture from the
     # tracked positions), the reference region standing in for the target too
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Bases, Reference
+    from twinfocus.focus.pipeline import Bases, Reference
+    from twinfocus.focus.plan import FocusPlan
 
     cfg = AutofocusConfig(init="outline", iterations=0, outline_ensemble=True)
     out = FocusPlan.make(config=cfg).focus_bases(
@@ -385,7 +400,7 @@ def test_averaged_outlines_beat_one_outline_with_a_hole(placed):
 
 
 def test_growing_the_outline_fills_a_hole_at_the_edge_and_never_drops_a_pixel(placed):
-    from twinfocus.template_match import OUTLINE_GROWTH_ROUNDS, grown_outline, grown_outlines, outline_phase
+    from twinfocus.focus.template_match import OUTLINE_GROWTH_ROUNDS, grown_outline, grown_outlines, outline_phase
 
     ch, true, tracked, basis, _ = placed
     yy, xx = np.meshgrid(GRID.y_m, GRID.x_m, indexing="ij")
@@ -420,7 +435,7 @@ def test_auto_runs_the_optimiser_only_where_the_projections_phases_have_wrapped(
     """auto with an amplitude template decides from the projections' own phases, not from a
     stated tracking error: checked against the truth (the oracle phase's coherence) on a scene
     whose errors wrap and on one whose errors hold together."""
-    from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
+    from twinfocus.focus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
 
     for (ch, true, tracked, basis, template), wraps in ((placed, True), (coherent, False)):
         oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
@@ -447,9 +462,9 @@ def test_auto_runs_the_optimiser_only_where_the_projections_phases_have_wrapped(
 def test_the_report_warns_that_an_outline_cannot_be_placed_once_the_phases_wrap(placed, coherent):
     """With the phases wrapped, nothing in the scan checks where the outline put the reference, and
     the confidence report says so; while they hold together it does not."""
-    from twinfocus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import Bases, Reference
+    from twinfocus.focus.estimators import AUTO_REFINE_BELOW_COHERENCE, estimator_settings
+    from twinfocus.focus.pipeline import Bases, Reference
+    from twinfocus.focus.plan import FocusPlan
 
     for (ch, true, tracked, basis, template), wraps in ((placed, True), (coherent, False)):
         oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
@@ -465,7 +480,7 @@ def test_the_report_warns_that_an_outline_cannot_be_placed_once_the_phases_wrap(
 
 
 def test_auto_takes_the_outline_for_a_cloud_twin_and_only_then():
-    from twinfocus.estimators import estimator_settings
+    from twinfocus.focus.estimators import estimator_settings
 
     assert estimator_settings("auto", False, has_support=True)["init"] == "outline"
     # averaged over the grown outlines (measured on camera clouds, docs/digital_twin.md)
@@ -478,7 +493,7 @@ def test_auto_takes_the_outline_for_a_cloud_twin_and_only_then():
 
 
 def test_speckle_contrast_equals_its_sums():
-    from twinfocus.template_match import speckle_contrast
+    from twinfocus.focus.template_match import speckle_contrast
 
     rng = np.random.default_rng(5)
     e = rng.exponential(1.0, (3, 400))
@@ -495,7 +510,7 @@ def test_speckle_contrast_equals_its_sums():
 def _assert_chosen_by_the_rule(info):
     """The end :func:`outline_phase` chose by ``choose="auto"``: the most energy inside unless that
     end's contrast is above PILED_CONTRAST, then the least contrast."""
-    from twinfocus.template_match import PILED_CONTRAST
+    from twinfocus.focus.template_match import PILED_CONTRAST
 
     # (the info's figures are rounded: ends tied there are told apart by the unrounded ones)
     most = [i for i, f in enumerate(info["energy_inside"]) if f == max(info["energy_inside"])]
@@ -510,13 +525,21 @@ def _rough_field_reference(z_sigma_m, roughness_deg=90.0):
     +-``roughness_deg``; None: a smooth one), 390 positions, 64 x 64 pixels, its outline from a camera cloud with 1 mm noise,
     25 % holes, 2 % outliers and a 2.5 mm offset. Returns (basis, outline, oracle phase, aperture
     (M, 2), target basis, target on the true positions)."""
-    from twinfocus.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.digital_twin.condition import digital_twin_reference
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+    from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
+    from twinfocus.twins.digital_twin.condition import digital_twin_reference
 
-    sc = Scenario(reference="F", target="B", separation_deg=9.7, reference_roughness_deg=roughness_deg,
-                  reference_amplitude_spread=0.3, n_rows=65, seed=1001, snr_db=15,
-                  error_sigma_m=(0.2e-3, 0.2e-3, z_sigma_m))
+    sc = Scenario(
+        reference="F",
+        target="B",
+        separation_deg=9.7,
+        reference_roughness_deg=roughness_deg,
+        reference_amplitude_spread=0.3,
+        n_rows=65,
+        seed=1001,
+        snr_db=15,
+        error_sigma_m=(0.2e-3, 0.2e-3, z_sigma_m),
+    )
     scan, _ = simulate_scenario(sc)
     rg, tg = scenario_grids(sc, 64)
     surface = sc.scene().object("reference").surface_points(1e-3)
@@ -535,11 +558,13 @@ def test_the_speckle_choice_finds_the_phase_the_energy_choice_misses(z_sigma_m):
     """On a rough reference whose outline comes from a camera cloud, the start of least speckle
     contrast lies nearer the true phase than the start of most energy inside the outline, also
     when every phase has wrapped (1.6 mm)."""
-    from twinfocus.metrics import image_ssim
-    from twinfocus.template_match import outline_phase
+    from twinfocus.focus.template_match import outline_phase
+    from twinfocus.imaging.metrics import image_ssim
 
     basis, support, oracle, ap, tb, truth = _rough_field_reference(z_sigma_m)
-    err = lambda p: phase_error_rms(np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p))
+    err = lambda p: phase_error_rms(
+        np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p)
+    )
     if z_sigma_m > 1e-3:
         assert err(np.zeros_like(oracle)) > 1.5  # every phase wrapped
     by_energy, info_e = outline_phase(basis, support, choose="energy")
@@ -561,8 +586,8 @@ def test_on_a_smooth_reference_the_rule_keeps_the_most_energy():
     """On a smooth reference no end piles its energy (every end's contrast is near the others'),
     and the least contrast is the most smeared end: the default rule keeps the end of most energy,
     which forms the target nearer the target on the true positions than the least contrast's."""
-    from twinfocus.metrics import image_ssim
-    from twinfocus.template_match import outline_phase
+    from twinfocus.focus.template_match import outline_phase
+    from twinfocus.imaging.metrics import image_ssim
 
     basis, support, oracle, ap, tb, truth = _rough_field_reference(0.5e-3, roughness_deg=None)
     phi, info = outline_phase(basis, support)

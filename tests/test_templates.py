@@ -1,14 +1,17 @@
-"""twinfocus.templates: the pure resamplers against a closed form, and the file reader's errors."""
+"""twinfocus.twins.templates: the pure resamplers against a closed form, and the file reader's errors."""
+
 import numpy as np
 import pytest
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.templates import load_template, resample_support, resample_template, save_template
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.twins.templates import load_template, resample_support, resample_template, save_template
 
 
 def _plane(x, y):
-    return 5.0 + 30.0 * x[None, :] - 12.0 * y[:, None]  # positive (an amplitude); bilinear resampling is exact on a plane
+    return (
+        5.0 + 30.0 * x[None, :] - 12.0 * y[:, None]
+    )  # positive (an amplitude); bilinear resampling is exact on a plane
 
 
 def test_resample_is_exact_on_a_plane_and_keeps_the_phase():
@@ -57,23 +60,30 @@ def test_a_digital_twins_outline_and_conditioning_travel_with_its_template_file(
     with pytest.raises(TwinFocusError, match=r"empty.npz: the outline covers 0% of the reference region"):
         load_template(tmp_path / "empty.npz", grid, with_outline=True)
     arrays = {"image": image, "x_m": grid.x_m, "y_m": grid.y_m, "z_m": grid.z}
-    for text, message in (("{surface", "conditioning_json is not JSON"), ("[1, 2]", "conditioning_json must be a JSON object, got list")):
+    for text, message in (
+        ("{surface", "conditioning_json is not JSON"),
+        ("[1, 2]", "conditioning_json must be a JSON object, got list"),
+    ):
         np.savez(tmp_path / "info.npz", conditioning_json=np.asarray(text), **arrays)
         with pytest.raises(TwinFocusError, match=f"info.npz: {message}"):
             load_template(tmp_path / "info.npz", grid, with_outline=True)
 
 
-@pytest.mark.parametrize("change, message", [
-    (dict(z_m=0.7), "plane z = 0.700"),
-    (dict(image=np.full((5, 6), np.nan)), "NaN"),
-    (dict(image=np.ones((4, 6))), "does not match"),
-    (dict(x_m=np.linspace(0.0, 0.1, 6)), "does not contain the reference region"),
-    (dict(phase_rad=np.ones((2, 2))), "phase_rad"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(z_m=0.7), "plane z = 0.700"),
+        (dict(image=np.full((5, 6), np.nan)), "NaN"),
+        (dict(image=np.ones((4, 6))), "does not match"),
+        (dict(x_m=np.linspace(0.0, 0.1, 6)), "does not contain the reference region"),
+        (dict(phase_rad=np.ones((2, 2))), "phase_rad"),
+    ],
+)
 def test_what_does_not_fit_is_named(tmp_path, change, message):
     grid = ImageGrid(-0.04, 0.04, -0.02, 0.02, 0.5, 8, 4)
-    args = dict(image=np.ones((5, 6)), x_m=np.linspace(-0.05, 0.05, 6), y_m=np.linspace(-0.03, 0.03, 5), z_m=0.5,
-                phase_rad=None)
+    args = dict(
+        image=np.ones((5, 6)), x_m=np.linspace(-0.05, 0.05, 6), y_m=np.linspace(-0.03, 0.03, 5), z_m=0.5, phase_rad=None
+    )
     args.update(change)
     with pytest.raises(TwinFocusError, match=message):
         resample_template(grid=grid, **args)
@@ -102,11 +112,14 @@ def test_an_outline_resampled_stays_a_mask_of_the_same_shape():
     assert np.array_equal(resample_support(disc(x, y), x, y, same), disc(x, y))
 
 
-@pytest.mark.parametrize("change, message", [
-    (dict(support=np.ones((4, 6), bool)), r"support \(4, 6\) does not match y_m \(5\) x x_m \(6\)"),
-    (dict(support=np.ones((5, 6), np.uint8)), "support must be a bool mask, got uint8"),
-    (dict(x_m=np.linspace(0.0, 0.1, 6)), "does not contain the reference region"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(support=np.ones((4, 6), bool)), r"support \(4, 6\) does not match y_m \(5\) x x_m \(6\)"),
+        (dict(support=np.ones((5, 6), np.uint8)), "support must be a bool mask, got uint8"),
+        (dict(x_m=np.linspace(0.0, 0.1, 6)), "does not contain the reference region"),
+    ],
+)
 def test_what_does_not_fit_an_outline_is_named(change, message):
     grid = ImageGrid(-0.04, 0.04, -0.02, 0.02, 0.5, 8, 4)
     args = dict(support=np.ones((5, 6), bool), x_m=np.linspace(-0.05, 0.05, 6), y_m=np.linspace(-0.03, 0.03, 5))

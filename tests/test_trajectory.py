@@ -1,10 +1,8 @@
 import numpy as np
 import pytest
 
-from twinfocus.board import default_board
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import mmwcas_virtual_array
-from twinfocus.trajectory import (
+from twinfocus.motion.trajectory import (
     Poses,
     handheld_zigzag,
     matrix_to_quat,
@@ -15,6 +13,8 @@ from twinfocus.trajectory import (
     quat_to_matrix,
     slerp,
 )
+from twinfocus.radar.board import default_board
+from twinfocus.radar.fmcw import mmwcas_virtual_array
 
 
 def _axis_angle_quat(axis, angle):

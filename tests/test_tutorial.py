@@ -81,7 +81,7 @@ def test_the_tutorial_runs_as_written(tmp_path: Path) -> None:
 
 
 def test_the_thresholds_the_tutorial_quotes_are_the_reports() -> None:
-    from twinfocus.pipeline import MIN_REFERENCE_MATCH, MIN_REFERENCE_MATCH_PHYSICAL
+    from twinfocus.focus.pipeline import MIN_REFERENCE_MATCH, MIN_REFERENCE_MATCH_PHYSICAL
 
     text = " ".join(TUTORIAL.read_text(encoding="utf-8").split())
     assert f"warns below {MIN_REFERENCE_MATCH_PHYSICAL} for a physical twin's template" in text

@@ -1,20 +1,20 @@
 """Corrected volumes: the phase applied to the samples equals the phase applied to the basis,
 points land in the voxels where they are, the PLY reads back, and ``focus --volume`` writes
 what it promises after checking what it will cost."""
+
 import json
 
 import numpy as np
 import pytest
 
-from twinfocus.backprojection import subimage_basis
-from twinfocus.basis import form_image
 from twinfocus.cli import main
 from twinfocus.cli.focus import volume_plan
 from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.line_backprojection import TABLE_BYTES
-from twinfocus.radar import C_M_PER_S, Chirp, mmwcas_virtual_array
-from twinfocus.volume import (
+from twinfocus.imaging.backprojection.numba_backend import subimage_basis
+from twinfocus.imaging.basis import form_image
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.line_backprojection import TABLE_BYTES
+from twinfocus.imaging.volume import (
     bright_voxels,
     corrected_data,
     corrected_image,
@@ -24,12 +24,17 @@ from twinfocus.volume import (
     volume_cost,
     volume_grid,
 )
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array
 
 
 def _aperture(n_rows=16, pitch=0.004, columns=(-0.02, 0.0, 0.02)):
     va = mmwcas_virtual_array()
     return np.array(
-        [va.offsets_m + np.array([cx, y, 0.0]) for cx in columns for y in (np.arange(n_rows) - (n_rows - 1) / 2) * pitch]
+        [
+            va.offsets_m + np.array([cx, y, 0.0])
+            for cx in columns
+            for y in (np.arange(n_rows) - (n_rows - 1) / 2) * pitch
+        ]
     )
 
 
@@ -97,8 +102,12 @@ def test_two_points_at_two_depths_land_in_their_voxels(tmp_path):
 def _args(**kw):
     import argparse
 
-    base = dict(volume=[0.5, 0.7, 0.005], target_roi=["0.0", "0.1", "-0.1", "0.1"],
-                reference_roi=[-0.15, 0.0, -0.11, 0.12, 0.6], size=100)
+    base = dict(
+        volume=[0.5, 0.7, 0.005],
+        target_roi=["0.0", "0.1", "-0.1", "0.1"],
+        reference_roi=[-0.15, 0.0, -0.11, 0.12, 0.6],
+        size=100,
+    )
     return argparse.Namespace(**{**base, **kw})
 
 
@@ -107,9 +116,9 @@ def test_volume_plan_covers_both_regions_and_refuses_what_cannot_fit(monkeypatch
     assert grid.shape == (41, 100, 100)
     assert (grid.plane.x0, grid.plane.x1, grid.plane.y0, grid.plane.y1) == (-0.15, 0.1, -0.11, 0.12)
     assert cost["memory_bytes"] == 64 * 41 * 100 * 100 + TABLE_BYTES
-    import twinfocus.machine
+    import twinfocus.jobs.machine
 
-    monkeypatch.setattr(twinfocus.machine, "available_memory_bytes", lambda: 100 * 2**20)
+    monkeypatch.setattr(twinfocus.jobs.machine, "available_memory_bytes", lambda: 100 * 2**20)
     with pytest.raises(TwinFocusError, match="--volume"):
         volume_plan(_args(size=200), n_positions=780, n_channels=86)
     assert volume_plan(_args(volume=None), 780, 86) is None
@@ -118,13 +127,65 @@ def test_volume_plan_covers_both_regions_and_refuses_what_cannot_fit(monkeypatch
 @pytest.mark.slow
 def test_focus_writes_the_volume(tmp_path):
     d = tmp_path
-    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "tpl.npz"), "--columns", "3",
-                 "--rows", "40", "--quiet", "--seed", "3", "--target-depth-offset", "0.08"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--out",
+                str(d / "scan.npz"),
+                "--template-out",
+                str(d / "tpl.npz"),
+                "--columns",
+                "3",
+                "--rows",
+                "40",
+                "--quiet",
+                "--seed",
+                "3",
+                "--target-depth-offset",
+                "0.08",
+            ]
+        )
+        == 0
+    )
     out = d / "out"
-    assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
-                 "--target-roi", "0.016", "0.103", "-0.0785", "0.0785", "0.68", "--size", "40", "--iterations", "150",
-                 "--space-variant", "off", "--template-scan", str(d / "tpl.npz"), "--out", str(out), "--quiet",
-                 "--no-cache", "--volume", "0.55", "0.73", "0.01"]) == 0
+    assert (
+        main(
+            [
+                "focus",
+                str(d / "scan.npz"),
+                "--reference-roi",
+                "-0.15",
+                "0.0",
+                "-0.11",
+                "0.12",
+                "0.6",
+                "--target-roi",
+                "0.016",
+                "0.103",
+                "-0.0785",
+                "0.0785",
+                "0.68",
+                "--size",
+                "40",
+                "--iterations",
+                "150",
+                "--space-variant",
+                "off",
+                "--template-scan",
+                str(d / "tpl.npz"),
+                "--out",
+                str(out),
+                "--quiet",
+                "--no-cache",
+                "--volume",
+                "0.55",
+                "0.73",
+                "0.01",
+            ]
+        )
+        == 0
+    )
     vol = np.load(out / "volume.npy")
     m = json.loads((out / "metrics.json").read_text())["volume"]
     assert vol.shape == tuple(m["shape"]) == (19, 40, 40) and vol.dtype == np.complex64
@@ -149,7 +210,33 @@ def test_focus_writes_the_volume(tmp_path):
     cloud, _ = read_ply_points(out / "volume.ply")
     assert len(cloud) > 0 and cloud[:, 2].min() >= 0.55 - 1e-6
     # a run without --volume into the same folder (--overwrite) leaves no volume of the earlier result
-    assert main(["focus", str(d / "scan.npz"), "--reference-roi", "-0.15", "0.0", "-0.11", "0.12", "0.6",
-                 "--target-roi", "0.016", "0.103", "-0.0785", "0.0785", "0.68", "--size", "16", "--method", "none",
-                 "--out", str(out), "--quiet", "--overwrite"]) == 0
+    assert (
+        main(
+            [
+                "focus",
+                str(d / "scan.npz"),
+                "--reference-roi",
+                "-0.15",
+                "0.0",
+                "-0.11",
+                "0.12",
+                "0.6",
+                "--target-roi",
+                "0.016",
+                "0.103",
+                "-0.0785",
+                "0.0785",
+                "0.68",
+                "--size",
+                "16",
+                "--method",
+                "none",
+                "--out",
+                str(out),
+                "--quiet",
+                "--overwrite",
+            ]
+        )
+        == 0
+    )
     assert not [p.name for p in out.glob("volume*")]

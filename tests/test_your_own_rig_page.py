@@ -55,7 +55,7 @@ def _same_picture(a: Path, b: Path) -> float:
 
 @pytest.mark.slow
 def test_the_page_runs_as_written(tmp_path: Path) -> None:
-    from twinfocus.scan import Scan
+    from twinfocus.radar.scan import Scan
 
     text = PAGE.read_text(encoding="utf-8")
     env = page_env(tmp_path / "cache")

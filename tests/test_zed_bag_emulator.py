@@ -6,12 +6,12 @@ places a bag's cloud, off by the offset given; one-line refusals."""
 import numpy as np
 import pytest
 
-from twinfocus.digital_twin.template import load_points
+from twinfocus.motion.trajectory import Poses
 from twinfocus.sensors.emulators.zed_bag import CLOUD_TOPIC, PAD_POSES, POSE_TOPIC, ball_points, main
 from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
 from twinfocus.sensors.rosbag2_files import read_bag_poses
 from twinfocus.sensors.trajectory_files import write_tum
-from twinfocus.trajectory import Poses
+from twinfocus.twins.digital_twin.template import load_points
 
 
 def test_the_bag_puts_the_radar_back_on_its_track_and_the_cloud_where_it_was(tmp_path):
@@ -41,8 +41,8 @@ def test_the_bag_puts_the_radar_back_on_its_track_and_the_cloud_where_it_was(tmp
 
 
 def test_the_bags_cloud_camera_is_where_focus_places_it():
-    from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M
     from twinfocus.sensors.emulators.zed_bag import BAG_CLOUD_CAMERA_M
+    from twinfocus.twins.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M
 
     assert BAG_CLOUD_CAMERA_M == DEFAULT_LEFT_CAMERA_POSITION_M
 

@@ -68,7 +68,7 @@ def bounded_int(low: int, high: int) -> Callable[[str], float]:
     return _checked(int, f"a whole number from {low} to {high}", lambda v: low <= v <= high)
 
 
-#: Setting.check name -> its type function (twinfocus.settings)
+#: Setting.check name -> its type function (twinfocus.focus.settings)
 CHECKS: dict[str, Callable[[str], float]] = {
     "finite": finite_float,
     "positive": positive_float,

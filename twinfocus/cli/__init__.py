@@ -105,7 +105,7 @@ def _run(command: str, module, args: argparse.Namespace) -> int:
         return 2
     except OSError as exc:
         # a full disk (any writer) is the user's to fix: one line naming the file
-        from twinfocus.atomic import disk_error_message
+        from twinfocus.io.atomic import disk_error_message
 
         line = disk_error_message(exc)
         if line is None:
@@ -118,7 +118,7 @@ def _run(command: str, module, args: argparse.Namespace) -> int:
     finally:
         # a background import still running would tear down mid-import at exit (a traceback
         # after the refusal's line): let it finish first
-        settings = sys.modules.get("twinfocus.settings")  # only a command that imported it preloads
+        settings = sys.modules.get("twinfocus.focus.settings")  # only a command that imported it preloads
         if settings is not None:
             settings.wait_for_preload()
 

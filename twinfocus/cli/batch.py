@@ -40,7 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from twinfocus.cli.batch_jobs import BatchInterrupted, run_batch
-    from twinfocus.progress import Progress
+    from twinfocus.jobs.progress import Progress
 
     log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     try:

@@ -2,7 +2,7 @@
 
 ``twinfocus batch MANIFEST --out DIR`` focuses every row of a manifest exactly as ``twinfocus
 focus`` would (the same parser and the same :func:`twinfocus.cli.focus.run`, so an item's files
-equal those of a separate ``focus`` run with the same options). :func:`twinfocus.cluster.run_tasks` is the one place
+equal those of a separate ``focus`` run with the same options). :func:`twinfocus.jobs.cluster.run_tasks` is the one place
 that talks to Dask; ``twinfocus bench --scheduler/--workers`` spreads its experiments through it.
 
 Manifest: CSV (a header row) or YAML (a list of mappings, or ``{defaults: {...}, items: [...]}``).
@@ -28,10 +28,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from twinfocus.atomic import atomic_writer, write_text_atomic
-from twinfocus.cluster import dask_client, limit_threads, run_tasks
 from twinfocus.errors import TwinFocusError
-from twinfocus.safe_paths import child_path
+from twinfocus.io.atomic import atomic_writer, write_text_atomic
+from twinfocus.io.safe_paths import child_path
+from twinfocus.jobs.cluster import dask_client, limit_threads, run_tasks
 
 #: focus options that name input files (resolved against the manifest's folder, checked on the worker).
 PATH_OPTIONS = ("scan", "template", "template_scan", "digital_twin", "rig")
@@ -332,7 +332,7 @@ def write_summary_figure(path: Path, rows: list[dict]) -> None:
     marked in red."""
     import numpy as np
 
-    from twinfocus.plotting import pyplot
+    from twinfocus.io.png import pyplot
 
     plt = pyplot()
     n = len(rows)

@@ -21,8 +21,8 @@ from twinfocus.evaluation.beyond import run_beyond, write_beyond_report
 from twinfocus.evaluation.experiments import EXPERIMENT_NAMES
 from twinfocus.evaluation.report import write_report
 from twinfocus.evaluation.where import run_where, write_where_report
+from twinfocus.imaging.device import resolve_device
 from twinfocus.option_types import positive_int
-from twinfocus.settings import resolve_device
 
 SUITES = ("paper", "beyond", "where")
 

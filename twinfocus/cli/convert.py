@@ -25,16 +25,16 @@ import numpy as np
 from msgs import Header, Pose, RadarFrame
 from msgs.mcap_log import LogWriter
 from nodes.recorder import radar_metadata
-from twinfocus.atomic import output_files
-from twinfocus.board import load_board
-from twinfocus.calibration import apply_calibration, calibration_for
-from twinfocus.clock_offset import range_history_offset
 from twinfocus.errors import TwinFocusError
+from twinfocus.io.atomic import output_files
+from twinfocus.jobs.progress import Progress
 from twinfocus.option_types import finite_float, non_negative_int, positive_float, positive_int
-from twinfocus.progress import Progress
-from twinfocus.radar import mmwcas_virtual_array
+from twinfocus.radar.board import load_board
+from twinfocus.radar.calibration import apply_calibration, calibration_for
+from twinfocus.radar.fmcw import mmwcas_virtual_array
 from twinfocus.sensors.capture_to_scan import capture_report_path, scan_from_frames, stream_gaps
 from twinfocus.sensors.chirp_profile import chirp_record, resolve_chirp
+from twinfocus.sensors.clock_offset import range_history_offset
 from twinfocus.sensors.dca1000 import RawFrameLayout
 from twinfocus.sensors.dca1000_files import Dca1000FileCapture, find_cli_json, read_cli_json
 from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
@@ -51,7 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--board",
         help="board file (YAML) of the radar's antenna layout (default: TI's MMWCAS-RF-EVM, "
-        "twinfocus/boards/mmwcas_rf_evm.yaml; docs/real_array.md)",
+        "twinfocus/radar/boards/mmwcas_rf_evm.yaml; docs/real_array.md)",
     )
     p.add_argument("--quiet", action="store_true")
 

@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from nodes.foxglove_convert import export_log
-from twinfocus.progress import Progress
+from twinfocus.jobs.progress import Progress
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -11,17 +11,18 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from twinfocus.atomic import output_folder, refuse_existing
-from twinfocus.depth_search import DEFAULT_HALF_RANGE_M, range_to_search
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import REFERENCE_FREE_RUNGS
-from twinfocus.grid import ImageGrid
-from twinfocus.machine import require_memory
+from twinfocus.focus.estimators import REFERENCE_FREE_RUNGS
+from twinfocus.focus.settings import add_focus_options, preload_torch
+from twinfocus.imaging.depth_search import DEFAULT_HALF_RANGE_M, range_to_search
+from twinfocus.imaging.device import resolve_device
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.io.atomic import output_folder, refuse_existing
+from twinfocus.jobs.machine import require_memory
 from twinfocus.option_types import finite_float, positive_float
-from twinfocus.settings import add_focus_options, preload_torch, resolve_device
 
 if TYPE_CHECKING:
-    from twinfocus.focus_plan import FocusPlan
+    from twinfocus.focus.plan import FocusPlan
 
 #: bytes per radar position and pixel that a run holds at its peak: the two sub-image bases
 #: (complex64, 8 B each) and the optimiser's copies of the reference basis (float32 [Re | Im]
@@ -48,7 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="target region (metres): with Z, focused there; with a range Z0:Z1, or without a depth (the "
         f"reference's +- {DEFAULT_HALF_RANGE_M} m), the depth where its corrected image is sharpest is searched "
         "for (metrics.json target_depth, depth_search.png); left out, the brightest object of the look at the "
-        "scan apart from the reference (metrics.json boxes, look.png; twinfocus/boxes.py)",
+        "scan apart from the reference (metrics.json boxes, look.png; twinfocus/focus/boxes.py)",
     )
     p.add_argument(
         "--refine-depth",
@@ -90,7 +91,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="replace an existing --out (the files an earlier run wrote there; the folder's other files stay) "
         "and --save-template",
     )
-    add_focus_options(p)  # the settings shared with the solver node: twinfocus/settings.py
+    add_focus_options(p)  # the settings shared with the solver node: twinfocus/focus/settings.py
     p.add_argument(
         "--pictures",
         choices=("summary", "all", "none"),
@@ -182,8 +183,8 @@ def check_memory(n_positions: int, size: int, available: int | None = None) -> i
 
 def target_region(values: list[str] | None) -> tuple[tuple[float, ...] | None, float | tuple[float, float] | None]:
     """``--target-roi``'s words -> (X0, X1, Y0, Y1) and the depth: Z, (Z0, Z1) or None; (None,
-    None) when it was left out (the box is then found: twinfocus.boxes)."""
-    from twinfocus.depth_search import parse_depth
+    None) when it was left out (the box is then found: twinfocus.focus.boxes)."""
+    from twinfocus.imaging.depth_search import parse_depth
 
     if values is None:
         return None, None
@@ -205,7 +206,7 @@ def volume_plan(args: argparse.Namespace, n_positions: int, n_channels: int, ref
     the memory available), or None without ``--volume``. reference_roi : the reference region
     when it was found rather than typed (before it is, the target's box stands in: the cost
     depends only on the pixel and plane counts)."""
-    from twinfocus.volume import volume_cost, volume_grid
+    from twinfocus.imaging.volume import volume_cost, volume_grid
 
     if args.volume is None:
         return None
@@ -228,7 +229,7 @@ def volume_plan(args: argparse.Namespace, n_positions: int, n_channels: int, ref
 def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
     """Everything that can be checked before loading or computing anything; returns the scan's
     array shapes (from the file's headers)."""
-    from twinfocus.scan import peek_npz_shapes
+    from twinfocus.radar.scan import peek_npz_shapes
 
     if args.size < 2:
         raise TwinFocusError(f"--size must be at least 2, got {args.size}")
@@ -273,9 +274,9 @@ def _template(args, scan, ref_grid, bp, progress, cache, rig=None) -> tuple:
     cache status "hit" / "miss" / "off", or None when there is nothing to cache, the reference's
     outline bool (H, W) for a digital twin, else None, and for a digital twin what its cloud's
     conditioning chose and why (``DigitalTwinReference.info``), else None)."""
-    from twinfocus.cache import digital_twin_key, template_scan_key
-    from twinfocus.scan import Scan
-    from twinfocus.templates import load_template, template_from_scan
+    from twinfocus.radar.scan import Scan
+    from twinfocus.twins.cache import digital_twin_key, template_scan_key
+    from twinfocus.twins.templates import load_template, template_from_scan
 
     if args.template:
         # a digital twin's file (twinfocus twin --out, --save-template) carries its outline and conditioning
@@ -299,8 +300,8 @@ def _template(args, scan, ref_grid, bp, progress, cache, rig=None) -> tuple:
         )
 
         def compute():
-            from twinfocus.digital_twin.condition import digital_twin_reference_from_file
-            from twinfocus.digital_twin.rig import rig_reference_from_file
+            from twinfocus.twins.digital_twin.condition import digital_twin_reference_from_file
+            from twinfocus.twins.digital_twin.rig import rig_reference_from_file
 
             if rig is not None:
                 ref = rig_reference_from_file(args.digital_twin, scan, ref_grid, rig[0], **bp)
@@ -328,32 +329,32 @@ def _rig(args: argparse.Namespace, scan):
     """``--rig``: (the Rig, its metrics.json record) checked against the scan and cloud, or None."""
     if not getattr(args, "rig", None):
         return None
-    from twinfocus.digital_twin.rig import load_rig_for
+    from twinfocus.twins.digital_twin.rig import load_rig_for
 
     return load_rig_for(args.rig, scan, args.digital_twin)
 
 
 def _reference_region(args: argparse.Namespace, bp: dict, progress, rig=None) -> tuple[tuple, dict]:
-    """The reference region: typed, or found from the twin (:mod:`twinfocus.reference_search`)."""
-    from twinfocus import reference_search
+    """The reference region: typed, or found from the twin (:mod:`twinfocus.focus.reference_search`)."""
+    from twinfocus.focus import reference_search
 
     if args.reference_roi is not None:
         return tuple(args.reference_roi), {"source": "typed"}
     if args.digital_twin:
-        from twinfocus.digital_twin.template import load_points
+        from twinfocus.twins.digital_twin.template import load_points
 
         cloud = load_points(args.digital_twin, allow_non_finite=True)
         if rig is not None:
             cloud = cloud + rig[0].offset_m  # where the calibrated camera saw it
         return reference_search.region_from_cloud(cloud)
     if args.template:
-        from twinfocus.scan import load_npz
+        from twinfocus.radar.scan import load_npz
 
         z = load_npz(args.template)
         if not all(k in z for k in ("x_m", "y_m", "z_m")):
             raise TwinFocusError(f"--template {args.template}: not a template file (no x_m, y_m, z_m)")
         return reference_search.region_from_template_file(z["x_m"], z["y_m"], float(z["z_m"]))
-    from twinfocus.scan import Scan
+    from twinfocus.radar.scan import Scan
 
     twin = Scan.load(args.template_scan)
     return reference_search.region_from_scan(
@@ -381,29 +382,29 @@ VOLUME_THRESHOLD_DB = -12.0
 
 def _write_where(out_dir, search, typed_depth, volume, grid, cloud, pictures: str) -> None:
     """Beside write_outputs' files: depth_search.png for a depth search, and for a volume
-    :data:`VOLUME_FILES` (``cloud``: :func:`twinfocus.volume.bright_voxels`' points and values, as
+    :data:`VOLUME_FILES` (``cloud``: :func:`twinfocus.imaging.volume.bright_voxels`' points and values, as
     PLY and as a Foxglove point cloud on ``/volume/points``) and its two pictures (the data
     written atomically, into the fresh folder that becomes --out)."""
     import numpy as np
 
-    from twinfocus.atomic import atomic_writer, write_bytes_atomic
+    from twinfocus.io.atomic import atomic_writer, write_bytes_atomic
 
     if search is not None and pictures != "none":
-        from twinfocus.depth_pictures import depth_search_picture
+        from twinfocus.outputs.depth_pictures import depth_search_picture
 
         with atomic_writer(Path(out_dir) / "depth_search.png") as f:
             depth_search_picture(f, search, typed_depth if isinstance(typed_depth, float) else None)
     if volume is None:
         return
     from nodes.foxglove_convert import write_point_cloud_log
-    from twinfocus.volume import ply_bytes, projections
+    from twinfocus.imaging.volume import ply_bytes, projections
 
     with atomic_writer(Path(out_dir) / VOLUME_FILES["volume"]) as f:
         np.save(f, volume.astype(np.complex64))
     write_bytes_atomic(Path(out_dir) / VOLUME_FILES["points"], ply_bytes(*cloud))
     write_point_cloud_log(Path(out_dir) / VOLUME_FILES["foxglove"], *cloud)
     if pictures != "none":
-        from twinfocus.depth_pictures import volume_pictures
+        from twinfocus.outputs.depth_pictures import volume_pictures
 
         volume_pictures(out_dir, *projections(volume, grid), grid)
 
@@ -411,7 +412,7 @@ def _write_where(out_dir, search, typed_depth, volume, grid, cloud, pictures: st
 def _found_region(args: argparse.Namespace, box, bp: dict, progress, rig, timings: dict) -> tuple[tuple, dict]:
     """The reference region (typed, or found from the twin and cut away from a typed target's box)
     and how it was found; the search's time into ``timings``."""
-    from twinfocus.boxes import cut_away
+    from twinfocus.focus.boxes import cut_away
 
     t = time.perf_counter()
     reference_roi, reference_found = _reference_region(args, bp, progress, rig)
@@ -431,14 +432,14 @@ def _found_region(args: argparse.Namespace, box, bp: dict, progress, rig, timing
 
 def _focus_with(args: argparse.Namespace, scan, box, typed_depth, plan: FocusPlan, progress) -> dict:
     """Everything ``focus`` does with one reference (``args`` names one template source) under
-    ``plan`` (:class:`~twinfocus.focus_plan.FocusPlan`, made from the settings): its region (typed
+    ``plan`` (:class:`~twinfocus.focus.plan.FocusPlan`, made from the settings): its region (typed
     or found), its template, the target's depth when it is searched, the focused outputs. Returns
     a dict of them (``outputs``, ``search``, ``template``, ``support``, ``twin_info``,
     ``ref_grid``, ``method``, ``boxes``, ``typed_depth``)."""
-    from twinfocus import boxes
-    from twinfocus.cache import TemplateCache
-    from twinfocus.focus_plan import Target
-    from twinfocus.pipeline import Reference
+    from twinfocus.focus import boxes
+    from twinfocus.focus.pipeline import Reference
+    from twinfocus.focus.plan import Target
+    from twinfocus.twins.cache import TemplateCache
 
     timings: dict[str, float] = {}
     bp = dict(plan.bp_options)
@@ -505,8 +506,8 @@ def _clock_template(args: argparse.Namespace):
     grid, else None (the image's sharpness)."""
     if not args.template_scan or args.reference_roi is None:
         return None
-    from twinfocus.scan import Scan
-    from twinfocus.templates import template_from_scan
+    from twinfocus.radar.scan import Scan
+    from twinfocus.twins.templates import template_from_scan
 
     stage = Scan.load(args.template_scan[0])
     return lambda n: template_from_scan(stage, ImageGrid.from_roi(args.reference_roi, n))
@@ -531,17 +532,17 @@ def _saved_template_path(args: argparse.Namespace, out_dir: Path) -> Path:
 def _form_volume(
     args: argparse.Namespace, shapes: dict, scan, outputs, ref_grid: ImageGrid, bp: dict, progress, timings: dict
 ):
-    """``--volume``: the corrected volume (:func:`twinfocus.volume.corrected_image` with the
+    """``--volume``: the corrected volume (:func:`twinfocus.imaging.volume.corrected_image` with the
     outputs' phase), its bright voxels and its grid, its figures into ``outputs.metrics["volume"]``
     and its time into ``timings``; (None, None, None) without ``--volume``."""
-    from twinfocus.volume import bright_voxels, corrected_image
+    from twinfocus.imaging.volume import bright_voxels, corrected_image
 
     volume, cloud = None, None
     plan = volume_plan(args, shapes["data"][0], shapes["data"][1], ref_grid.roi, outputs.target_grid.roi[:4])
     sub_arrays = None
     if plan is not None and bp.get("device", "cpu") == "cpu" and args.precision == "float32":
-        from twinfocus.line_backprojection import plan as line_plan
-        from twinfocus.volume import volume_cost
+        from twinfocus.imaging.line_backprojection import plan as line_plan
+        from twinfocus.imaging.volume import volume_cost
 
         # the scan's positions decide whether the volume is formed by sub-arrays, and so its time
         sub_arrays = line_plan(scan.positions, scan.chirp, plan[0])
@@ -562,7 +563,7 @@ def _form_volume(
             **_volume_metrics(plan[0], plan[1], timings["volume"]),
             # on a busy machine the steadier figure: about the wall time x the threads when idle
             "cpu_seconds": time.process_time() - cpu,
-            # sub-arrays per radar position (twinfocus.line_backprojection); null: back-projected directly
+            # sub-arrays per radar position (twinfocus.imaging.line_backprojection); null: back-projected directly
             "sub_arrays": sub_arrays.groups if sub_arrays is not None else None,
         }
         cloud = bright_voxels(volume, plan[0], VOLUME_THRESHOLD_DB)
@@ -574,9 +575,9 @@ def _form_volume(
 
 def _best_candidate(args: argparse.Namespace, candidates: list, scan, box, typed_depth, plan: FocusPlan, progress):
     """Each reference candidate (:func:`_candidates`) focused (:func:`_focus_with`), the best by
-    the confidence report (:func:`twinfocus.reference_search.candidate_score`): (its result, its
+    the confidence report (:func:`twinfocus.focus.reference_search.candidate_score`): (its result, its
     index, every candidate's record for metrics.json ``reference_candidates``)."""
-    from twinfocus.reference_search import candidate_score
+    from twinfocus.focus.reference_search import candidate_score
 
     results, listed = [], []
     for path, cand_args in candidates:
@@ -604,10 +605,10 @@ def _best_candidate(args: argparse.Namespace, candidates: list, scan, box, typed
 def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) -> int:
     # the numerics load here, once a focus runs: `focus --help` and the refusals before any work
     # take 1.0 s instead of 4.0 s with them in the module's header (load 25, 2 cores)
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.pipeline import write_outputs
-    from twinfocus.progress import Progress
-    from twinfocus.scan import Scan
+    from twinfocus.focus.pipeline import write_outputs
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.jobs.progress import Progress
+    from twinfocus.radar.scan import Scan
 
     pictures = "none" if args.no_pictures else args.pictures
     device = resolve_device(args.device)
@@ -623,13 +624,13 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
     t = time.perf_counter()
     scan = Scan.load(args.scan)
     if args.digital_twin:
-        from twinfocus.digital_twin.template import pin_bag_clouds
+        from twinfocus.twins.digital_twin.template import pin_bag_clouds
 
         args.digital_twin = pin_bag_clouds(args.digital_twin, scan.timestamps_ns, quiet=args.quiet)
     load_s = time.perf_counter() - t
     clock = None
     if args.clock_search:
-        from twinfocus.clock_offset import clock_search_line, search_scan_clock
+        from twinfocus.sensors.clock_offset import clock_search_line, search_scan_clock
 
         scan, clock = search_scan_clock(
             scan, args.reference_roi, 32, bp, template=_clock_template(args), fine_size=args.size
@@ -655,7 +656,7 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
     if gaps:
         outputs.metrics["capture"] = gaps
     if args.save_template and template is not None:
-        from twinfocus.templates import save_template
+        from twinfocus.twins.templates import save_template
 
         save_template(_saved_template_path(args, out_dir), template, ref_grid, support=support, info=twin_info)
     volume, cloud, volume_grid = _form_volume(args, shapes, scan, outputs, ref_grid, bp, progress, timings)
@@ -663,8 +664,8 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
     write_outputs(out_dir, outputs, pictures=pictures)
     _write_where(out_dir, search, chosen["typed_depth"], volume, volume_grid, cloud, pictures)
     if chosen["boxes"] is not None and pictures != "none":
-        from twinfocus.atomic import atomic_writer
-        from twinfocus.boxes import look_picture
+        from twinfocus.focus.boxes import look_picture
+        from twinfocus.io.atomic import atomic_writer
 
         with atomic_writer(Path(out_dir) / "look.png") as f:
             look_picture(f, chosen["boxes"][1], chosen["boxes"][0])

@@ -1,13 +1,13 @@
 """``twinfocus launch FILE [name:=value ...]``: start the broker and a graph of nodes.
 
-See :mod:`nodes.launch` for the launch-file format and the shutdown rules.
+See :mod:`nodes.runtime.launch` for the launch-file format and the shutdown rules.
 """
 
 from __future__ import annotations
 
 import argparse
 
-from nodes import launch
+from nodes.runtime import launch
 from twinfocus.option_types import positive_float
 
 

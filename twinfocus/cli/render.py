@@ -11,11 +11,11 @@ import sys
 import numpy as np
 
 from twinfocus.cli.simulate import add_layout_arguments, layout_kwargs
-from twinfocus.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M, StereoCamera, pose_matrix
-from twinfocus.digital_twin.render import render_memory_bytes, render_scene
 from twinfocus.errors import TwinFocusError
-from twinfocus.machine import require_memory
+from twinfocus.jobs.machine import require_memory
 from twinfocus.option_types import finite_float, non_negative_float, non_negative_int, positive_int
+from twinfocus.twins.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M, StereoCamera, pose_matrix
+from twinfocus.twins.digital_twin.render import render_memory_bytes, render_scene
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -48,7 +48,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
 
-    from twinfocus.scenario import Scenario
+    from twinfocus.simulation.scenario import Scenario
 
     if args.noise_dn < 0:
         raise TwinFocusError(f"--noise-dn must be >= 0, got {args.noise_dn}")

@@ -1,7 +1,7 @@
 """``twinfocus rig --scan CALIB.npz --digital-twin CLOUD.npy --reference-roi X0 X1 Y0 Y1 Z --out
 rig.json``: measure the camera's offset from the radar once, from one scan on accurate positions
 (a motion-stage scan) of a scene holding an object the camera's cloud shows
-(:mod:`twinfocus.digital_twin.rig`). ``focus``/``twin``/``batch`` take the file as ``--rig``.
+(:mod:`twinfocus.twins.digital_twin.rig`). ``focus``/``twin``/``batch`` take the file as ``--rig``.
 
 Everything is measured before anything is written; the rig file and the picture are written
 atomically.
@@ -14,13 +14,13 @@ import json
 import sys
 from pathlib import Path
 
-from twinfocus.board import load_board
-from twinfocus.digital_twin.render import write_image_atomic
-from twinfocus.digital_twin.rig import camera_identity, measure_rig, overlay_picture, scan_board
-from twinfocus.digital_twin.template import load_points
 from twinfocus.errors import TwinFocusError
-from twinfocus.grid import ImageGrid
-from twinfocus.scan import Scan
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.radar.board import load_board
+from twinfocus.radar.scan import Scan
+from twinfocus.twins.digital_twin.render import write_image_atomic
+from twinfocus.twins.digital_twin.rig import camera_identity, measure_rig, overlay_picture, scan_board
+from twinfocus.twins.digital_twin.template import load_points
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -10,13 +10,11 @@ import time
 
 import numpy as np
 
-from twinfocus.array_errors import NONE, array_error_levels, array_errors_stream, draw_array_errors
-from twinfocus.atomic import output_files
-from twinfocus.board import load_board
-from twinfocus.digital_twin.template import save_points
 from twinfocus.errors import TwinFocusError
-from twinfocus.machine import available_memory_bytes, require_memory
-from twinfocus.motion import ERROR_MODELS
+from twinfocus.io.atomic import output_files
+from twinfocus.jobs.machine import available_memory_bytes, require_memory
+from twinfocus.jobs.progress import Progress
+from twinfocus.motion.tracking_errors import ERROR_MODELS
 from twinfocus.option_types import (
     bounded_float,
     finite_float,
@@ -26,8 +24,10 @@ from twinfocus.option_types import (
     positive_float,
     positive_int,
 )
-from twinfocus.progress import Progress
-from twinfocus.radar import Chirp, mmwcas_virtual_array
+from twinfocus.radar.array_errors import NONE, array_error_levels, array_errors_stream, draw_array_errors
+from twinfocus.radar.board import load_board
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+from twinfocus.twins.digital_twin.template import save_points
 
 
 def add_layout_arguments(p: argparse.ArgumentParser) -> None:
@@ -60,7 +60,7 @@ def add_layout_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def layout_kwargs(args: argparse.Namespace) -> dict:
-    """:class:`twinfocus.scenario.Scenario` keywords from :func:`add_layout_arguments`' options."""
+    """:class:`twinfocus.simulation.scenario.Scenario` keywords from :func:`add_layout_arguments`' options."""
     return dict(
         reference=args.reference,
         target=args.target,
@@ -228,7 +228,7 @@ def _add_array_arguments(p: argparse.ArgumentParser) -> None:
         "--array-errors",
         choices=["none", "typical"],
         default="none",
-        help="'none' (default): the perfect array; 'typical': published magnitudes (twinfocus.array_errors)",
+        help="'none' (default): the perfect array; 'typical': published magnitudes (twinfocus.radar.array_errors)",
     )
     a.add_argument("--array-seed", type=non_negative_int, help="draw of the array's errors (default: from --seed)")
     a.add_argument("--channel-phase-deg", type=finite_float, help="per-TX/RX phase spread (180: uniform; typical 180)")
@@ -254,7 +254,7 @@ _ARRAY_KNOBS = (
 
 
 def array_errors_from_args(args: argparse.Namespace):
-    """The :class:`~twinfocus.array_errors.ArrayErrors` draw the options ask for (None: the perfect array)."""
+    """The :class:`~twinfocus.radar.array_errors.ArrayErrors` draw the options ask for (None: the perfect array)."""
 
     levels = array_error_levels(args.array_errors, **{k: getattr(args, k) for k in _ARRAY_KNOBS})
     if levels == NONE:
@@ -284,7 +284,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _simulate(args: argparse.Namespace) -> int:
 
-    from twinfocus.scenario import Scenario, simulate_scenario
+    from twinfocus.simulation.scenario import Scenario, simulate_scenario
 
     snr = None if np.isinf(args.snr_db) else args.snr_db
     sc = Scenario(
@@ -314,7 +314,7 @@ def _simulate(args: argparse.Namespace) -> int:
     cloud = None
     if args.reference_cloud_out is not None:
         # Made before the (long) simulation so a bad impairment option fails at once.
-        from twinfocus.digital_twin.camera_cloud import camera_cloud
+        from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
 
         mm = lambda v: v[0] * 1e-3 if len(v) == 1 else np.asarray(v) * 1e-3
         surface = sc.scene().object("reference").surface_points(args.cloud_spacing_mm * 1e-3)
@@ -355,7 +355,7 @@ def _check_cost(sc, args) -> None:
     """Refuse, before any work, a simulation that cannot fit in memory (``--rows
     100000`` would run for minutes and die); say how long a large one will take."""
     from twinfocus.scene import scatterer_spacing_m
-    from twinfocus.simulate import BYTES_PER_SCATTERER_CELL, scatterer_cells, simulation_cost
+    from twinfocus.simulation.if_simulator import BYTES_PER_SCATTERER_CELL, scatterer_cells, simulation_cost
 
     if args.columns < 1 or args.rows < 2:
         raise TwinFocusError(f"--columns must be >= 1 and --rows >= 2, got {args.columns} and {args.rows}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from nodes.introspect import TopicEcho, TopicHz, TopicList
+from nodes.runtime.introspect import TopicEcho, TopicHz, TopicList
 from twinfocus.option_types import non_negative_float, non_negative_int, positive_float
 
 

@@ -2,11 +2,11 @@
 perfect array, an imperfect one, and the imperfect one after a corner calibration.
 
 The scene scan and the physical twin's motion-stage scan are simulated through the perfect array
-and through an imperfect one (:func:`twinfocus.scenario.simulate_scenario`, the same scene,
-tracking errors and noise; :mod:`twinfocus.array_errors`, ``twinfocus simulate --array-errors``);
+and through an imperfect one (:func:`twinfocus.simulation.scenario.simulate_scenario`, the same scene,
+tracking errors and noise; :mod:`twinfocus.radar.array_errors`, ``twinfocus simulate --array-errors``);
 a still capture of a
 corner reflector on the array's axis through the same array gives the calibration
-(:func:`twinfocus.calibration.make_calibration`, the path of ``twinfocus calibrate SCAN.npz``).
+(:func:`twinfocus.radar.calibration.make_calibration`, the path of ``twinfocus calibrate SCAN.npz``).
 Every target image is scored against the perfect array's image on the true positions.
 """
 
@@ -14,24 +14,24 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinfocus.array_errors import (
+from twinfocus.errors import TwinFocusError
+from twinfocus.focus.pipeline import Reference
+from twinfocus.focus.plan import FocusPlan
+from twinfocus.imaging.backprojection.numba_backend import backproject
+from twinfocus.imaging.metrics import image_ssim
+from twinfocus.radar.array_errors import (
     TYPICAL,
     ArrayErrorLevels,
     apply_array_errors_to_channels,
     array_errors_stream,
     draw_array_errors,
 )
-from twinfocus.backprojection import backproject
-from twinfocus.calibration import apply_calibration, find_corner, make_calibration
-from twinfocus.errors import TwinFocusError
-from twinfocus.focus_plan import FocusPlan
-from twinfocus.metrics import image_ssim
-from twinfocus.pipeline import Reference
-from twinfocus.radar import mmwcas_virtual_array
-from twinfocus.scan import Scan
-from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario
-from twinfocus.simulate import add_thermal_noise, simulate_if_exact
-from twinfocus.templates import template_from_scan
+from twinfocus.radar.calibration import apply_calibration, find_corner, make_calibration
+from twinfocus.radar.fmcw import mmwcas_virtual_array
+from twinfocus.radar.scan import Scan
+from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if_exact
+from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
+from twinfocus.twins.templates import template_from_scan
 
 #: Frames of the corner capture and their per-sample SNR, dB.
 CORNER_FRAMES = 4

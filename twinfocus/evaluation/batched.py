@@ -1,6 +1,6 @@
 """The paper's optimiser on several templates of one reference basis at once.
 
-The evaluation runs the paper's twin optimiser (:func:`twinfocus.autofocus.twin_autofocus` with
+The evaluation runs the paper's twin optimiser (:func:`twinfocus.focus.autofocus.twin_autofocus` with
 its defaults: phases from zero, one stage, 300 Adam steps) more than once on the same reference
 basis of a draw: the physical and the digital twin, and a template from each room. Each step's
 cost is two products with the basis (forward and gradient, docs/performance.md). Torch's CPU
@@ -9,7 +9,7 @@ into float32 one cache-sized block at a time and every estimate's rows go throug
 together, so R estimates read the basis once per step instead of R times.
 
 The arithmetic is the single run's: phases and gradients are rounded to float16 as
-:class:`twinfocus.autofocus._BasisOperator`'s product rounds them, products accumulate in float32
+:class:`twinfocus.focus.autofocus._BasisOperator`'s product rounds them, products accumulate in float32
 and are rounded to float16, each estimate's gradient is scaled by its own peak. Adam acts on
 every element alone and the summed loss gives each row its own gradient, so each estimate is the
 single run's up to float32 summation order (tests/test_evaluation_batched.py).
@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from twinfocus.autofocus import AutofocusConfig, _loss_steepness, _prepare_template, _torch_dtype
 from twinfocus.errors import TwinFocusError
-from twinfocus.metrics import ssim_torch
+from twinfocus.focus.autofocus import AutofocusConfig, _loss_steepness, _prepare_template, _torch_dtype
+from twinfocus.imaging.metrics import ssim_torch
 
 if TYPE_CHECKING:
     import torch

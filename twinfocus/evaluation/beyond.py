@@ -22,15 +22,15 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus import metrics
-from twinfocus.atomic import write_json_atomic, write_text_atomic
-from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.evaluation.experiments import Condition, Experiment, sigma3
-from twinfocus.grid import ImageGrid
-from twinfocus.motion import apply_position_errors, gaussian_errors
-from twinfocus.radar import Chirp, mmwcas_virtual_array
-from twinfocus.trajectory import paper_raster, phase_centres
+from twinfocus.imaging import metrics
+from twinfocus.imaging.basis import form_image
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.io.atomic import write_json_atomic, write_text_atomic
+from twinfocus.motion.tracking_errors import apply_position_errors, gaussian_errors
+from twinfocus.motion.trajectory import paper_raster, phase_centres
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 
 METHODS = (
     "none",
@@ -382,8 +382,8 @@ SV_ROWS = {
 def _physical_twin(scene, name: str, positions: np.ndarray, chirp, grid, spacing: float, seed: int, bp: dict):
     """The motion-stage image (complex (H, W) on ``grid``) of object ``name`` alone, placed 1 mm
     off in x, 10 dB noise: a physical twin captured with a placement error."""
-    from twinfocus.backprojection import backproject
-    from twinfocus.simulate import add_thermal_noise, simulate_if
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if
 
     sub = scene.select(name)
     o = sub.objects[0]
@@ -411,12 +411,12 @@ def space_variant_draws(
 
     Returns one record per draw and row (:data:`SV_ROWS`): {"row", "ssim", "time_s", "draw"}.
     """
-    from twinfocus.backprojection import backproject, subimage_basis
     from twinfocus.evaluation.cases import EvalSettings
+    from twinfocus.focus.space_variant import drift_image, fit_position_errors
+    from twinfocus.focus.template_match import register_template
+    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
     from twinfocus.scene import Scene, letter, scatterer_spacing_m
-    from twinfocus.simulate import add_thermal_noise, simulate_if
-    from twinfocus.space_variant import drift_image, fit_position_errors
-    from twinfocus.template_match import register_template
+    from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if
 
     st = settings or EvalSettings()
     bp = st.bp_options()
@@ -502,7 +502,7 @@ def _space_variant_section(doc: dict) -> list[str]:
         "References K and M and the target seen at the angles of each column from boresight, 60 cm away; both "
         "physical twins captured 1 mm off; x/y/z white tracking error; "
         f"{doc['definition']['draws']} draw(s) per condition. The scalar phase of one reference leaves the "
-        "target k (u_tgt - u_ref) . dp; the space-variant fit (`twinfocus.space_variant`) estimates dp across "
+        "target k (u_tgt - u_ref) . dp; the space-variant fit (`twinfocus.focus.space_variant`) estimates dp across "
         "the lines of sight from the two references' closed-form phases and gives every target pixel its own "
         "phase. The mean of the two references' phasors is right only half-way between them; the fit is right "
         "anywhere between. Time: estimator only (registration, closed form, fit, per-pixel phases), seconds.",

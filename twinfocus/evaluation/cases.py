@@ -24,35 +24,35 @@ from typing import Any
 
 import numpy as np
 
-from twinfocus import metrics
-from twinfocus.autofocus import AutofocusConfig, sharpness_autofocus, twin_autofocus
-from twinfocus.autofocus import transfer_phase as autofocus_transfer_phase
-from twinfocus.backprojection import backproject, subimage_basis
-from twinfocus.basis import form_image
-from twinfocus.digital_twin.align import refine_template_shift_by_loss
-from twinfocus.digital_twin.camera import StereoCamera
-from twinfocus.digital_twin.render import render_scene
-from twinfocus.digital_twin.segment import box_from_scene_roi
-from twinfocus.digital_twin.template import digital_twin_template
 from twinfocus.errors import TwinFocusError
-from twinfocus.estimators import estimator_settings
 from twinfocus.evaluation.batched import batchable, paper_estimates
 from twinfocus.evaluation.features import hog_similarity
-from twinfocus.grid import ImageGrid
-from twinfocus.motion import apply_pose_errors, draw_errors
-from twinfocus.radar import Chirp
-from twinfocus.scan import Scan
-from twinfocus.scenario import Scenario, planar_object, simulate_scenario
-from twinfocus.scenario import template_scan as scenario_template_scan
+from twinfocus.focus.autofocus import AutofocusConfig, sharpness_autofocus, twin_autofocus
+from twinfocus.focus.autofocus import transfer_phase as autofocus_transfer_phase
+from twinfocus.focus.estimators import estimator_settings
+from twinfocus.imaging import metrics
+from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+from twinfocus.imaging.basis import form_image
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.motion.tracking_errors import apply_pose_errors, draw_errors
+from twinfocus.radar.fmcw import Chirp
+from twinfocus.radar.scan import Scan
 from twinfocus.scene import Clutter, paper_scene
-from twinfocus.templates import template_from_scan
+from twinfocus.simulation.scenario import Scenario, planar_object, simulate_scenario
+from twinfocus.simulation.scenario import template_scan as scenario_template_scan
+from twinfocus.twins.digital_twin.align import refine_template_shift_by_loss
+from twinfocus.twins.digital_twin.camera import StereoCamera
+from twinfocus.twins.digital_twin.render import render_scene
+from twinfocus.twins.digital_twin.segment import box_from_scene_roi
+from twinfocus.twins.digital_twin.template import digital_twin_template
+from twinfocus.twins.templates import template_from_scan
 
 METHODS = ("none", "sharpness", "physical", "digital")
 
 #: Twin methods beyond the paper (docs/evaluation.md, "Beyond the paper"): method -> (template,
 #: AutofocusConfig overrides, register an amplitude template by the autofocus loss first).
 #: "physical" and "digital" are the paper's optimiser (phase ramp removed per EvalSettings); the
-#: others are ``twinfocus focus --estimator`` choices (:func:`twinfocus.estimators.estimator_settings`)
+#: others are ``twinfocus focus --estimator`` choices (:func:`twinfocus.focus.estimators.estimator_settings`)
 #: or those plus one knob.
 TWIN_VARIANTS = {
     "physical": ("physical", {}, False),
@@ -96,7 +96,7 @@ OBJECT_ROI_MARGIN_M = 0.04
 
 @dataclass
 class EvalScenario(Scenario):
-    """:class:`~twinfocus.scenario.Scenario` plus the reference's own distance (the paper's NLoS
+    """:class:`~twinfocus.simulation.scenario.Scenario` plus the reference's own distance (the paper's NLoS
     set-up puts the reference at 76 cm and the target at 60 cm) and a denser room.
 
     clutter_near_m : with ``clutter``, the room's clutter fills a box from this far in front of
@@ -224,11 +224,11 @@ def case_grids(sc: Scenario, size: int, roi: str, margin_m: float = OBJECT_ROI_M
 def digital_twin_points(sc: Scenario, ref_roi, seed: int) -> tuple[np.ndarray, dict]:
     """The digital twin's view of the reference: render the scene for the ZED 2i-like camera
     co-located with the radar, segment the reference inside its region of interest projected into
-    the picture, and extract its point cloud (:mod:`twinfocus.digital_twin`).
+    the picture, and extract its point cloud (:mod:`twinfocus.twins.digital_twin`).
 
     Returns (float64 (N, 3) scene-frame points, {stage: seconds}).
     """
-    from twinfocus.digital_twin.pipeline import reference_from_stereo
+    from twinfocus.twins.digital_twin.pipeline import reference_from_stereo
 
     cam = StereoCamera.zed2i()
     t = time.perf_counter()
@@ -251,7 +251,7 @@ def digital_twin_for(
     **bp,
 ) -> tuple[np.ndarray, dict]:
     """The digital twin's template on ``ref_grid``: :func:`digital_twin_points`, then its SAR
-    amplitude simulated (:func:`twinfocus.digital_twin.template.digital_twin_template`).
+    amplitude simulated (:func:`twinfocus.twins.digital_twin.template.digital_twin_template`).
 
     Returns (float32 (H, W) template, {stage: seconds, "points": N}).
     """
@@ -345,7 +345,7 @@ def prepare_scene(
 
 def draw_position_errors(sc: Scenario, timestamps_ns: np.ndarray, seed) -> tuple[np.ndarray, np.ndarray]:
     """One tracking-error realisation for the scenario's error model and sigma: (translation (M, 3)
-    metres, rotation (M, 3) radians), :func:`twinfocus.motion.draw_errors`.
+    metres, rotation (M, 3) radians), :func:`twinfocus.motion.tracking_errors.draw_errors`.
 
     The same ``seed`` gives the same underlying normal draws whatever the sigma, so a sweep over
     sigma compares like with like (common random numbers).
@@ -373,7 +373,7 @@ def phase_transfer_terms(
     true_m, tracked_m : (M, K, 3) phase centres. Per position m (channels averaged): dp_m the
     position error, u the unit line of sight to each point. Returns ``first_order``
     = rms (4 pi / lambda) (u_ref - u_tgt) . dp and ``bound`` = rms (4 pi / lambda) |u_ref - u_tgt| |dp|
-    (:func:`twinfocus.metrics.transfer_bound_rad` per unit error, times each position's |dp|).
+    (:func:`twinfocus.imaging.metrics.transfer_bound_rad` per unit error, times each position's |dp|).
     """
     p = np.asarray(true_m, float).mean(axis=1)
     dp = np.asarray(tracked_m, float).mean(axis=1) - p
@@ -390,7 +390,7 @@ def transfer_phase(
     phase_rad: np.ndarray, tracked_m: np.ndarray, mode: str = "auto", registered: bool = False, range_m: float = 0.6
 ) -> np.ndarray:
     """The phase applied to the target, as ``twinfocus focus`` applies it
-    (:func:`twinfocus.autofocus.transfer_phase` on the tracked aperture, the reference ``range_m``
+    (:func:`twinfocus.focus.autofocus.transfer_phase` on the tracked aperture, the reference ``range_m``
     away; the chirp's wavelength)."""
     aperture = np.asarray(tracked_m, float).mean(axis=1)
     return autofocus_transfer_phase(

@@ -5,7 +5,7 @@ reference-target pairs it is run on; every pair is one simulated scene and gets 
 tracking-error draws. Conditions that differ only in their tracking error (``errors``) or in the
 template's room (``template_env``) share the scene and its draws' sub-image bases.
 
-Every scene carries the impairments of :class:`~twinfocus.scenario.Scenario`'s defaults:
+Every scene carries the impairments of :class:`~twinfocus.simulation.scenario.Scenario`'s defaults:
 speckle (random scatterer phases), 10 dB per-sample thermal noise, x/y/z tracking error, a
 physical twin captured separately with a 1 mm placement error; the digital twin comes from the
 rendered stereo pair. Sweeps beyond the paper's range (for the limits) are marked

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.metrics import display_image
+from twinfocus.imaging.metrics import display_image
 
 HOG_ORIENTATIONS = 9
 HOG_CELL_PX = 8
@@ -73,7 +73,7 @@ def hog_descriptor(
 
 def hog_similarity(image: np.ndarray, truth: np.ndarray, centre: float = 0.4, steepness: float = 1.0) -> float:
     """Cosine similarity in [0, 1] of the HOG descriptors of two images' display versions
-    (max-normalised, soft-thresholded amplitude: :func:`twinfocus.metrics.display_image`), the
+    (max-normalised, soft-thresholded amplitude: :func:`twinfocus.imaging.metrics.display_image`), the
     same images SSIM is taken on. 1 means the same local edge structure everywhere."""
     a = hog_descriptor(display_image(image, centre, steepness))
     b = hog_descriptor(display_image(truth, centre, steepness))

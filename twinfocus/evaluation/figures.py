@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus.atomic import atomic_writer
 from twinfocus.evaluation.aggregate import (
     HELP_THRESHOLD,
     METHOD_NAMES,
@@ -21,7 +20,8 @@ from twinfocus.evaluation.aggregate import (
     pareto_front,
 )
 from twinfocus.evaluation.paper import PAPER
-from twinfocus.plotting import pyplot
+from twinfocus.io.atomic import atomic_writer
+from twinfocus.io.png import pyplot
 
 METHOD_COLOURS = {"none": "#777777", "sharpness": "#d08c2e", "digital": "#3b7dd8", "physical": "#c23b3b"}
 DPI = 60

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus.atomic import write_json_atomic, write_text_atomic
 from twinfocus.evaluation.aggregate import (
     HELP_THRESHOLD,
     METHOD_NAMES,
@@ -42,6 +41,7 @@ from twinfocus.evaluation.figures import (
     sweep_figure,
 )
 from twinfocus.evaluation.paper import PAPER, PAPER_TABLE1
+from twinfocus.io.atomic import write_json_atomic, write_text_atomic
 
 SECTION_ORDER = (
     "baseline",

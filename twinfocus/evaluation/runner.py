@@ -18,9 +18,6 @@ from typing import Any
 
 import numpy as np
 
-from twinfocus import metrics
-from twinfocus.atomic import atomic_writer, write_json_atomic
-from twinfocus.atomic import json_default as _json_default
 from twinfocus.evaluation.cases import (
     EvalScenario,
     EvalSettings,
@@ -36,8 +33,11 @@ from twinfocus.evaluation.cases import (
     tracked_positions,
 )
 from twinfocus.evaluation.experiments import Experiment
-from twinfocus.machine import machine_info
-from twinfocus.progress import remaining_text
+from twinfocus.imaging import metrics
+from twinfocus.io.atomic import atomic_writer, write_json_atomic
+from twinfocus.io.atomic import json_default as _json_default
+from twinfocus.jobs.machine import machine_info
+from twinfocus.jobs.progress import remaining_text
 
 
 def quick_settings() -> EvalSettings:
@@ -262,7 +262,7 @@ _WORKER_TEMPLATES: dict = {}
 
 def _experiment_task(part: tuple[Experiment, int], threads, settings: EvalSettings) -> dict:
     """One scene of an experiment on a Dask worker (threads limited to its share of the machine)."""
-    from twinfocus.cluster import limit_threads
+    from twinfocus.jobs.cluster import limit_threads
 
     limit_threads(threads)
     exp, unit = part
@@ -315,7 +315,7 @@ def run_experiments(
             log(f"[{exp.name}] {exp.n_draws()} draws ...")
             keep(exp, run_experiment(exp, settings, cache, log))
         return failed
-    from twinfocus.cluster import dask_client, run_tasks
+    from twinfocus.jobs.cluster import dask_client, run_tasks
 
     n_scenes = {exp.name: len(_scene_units(exp)) for exp in pending}
     parts = [(exp, u) for exp in pending for u in range(n_scenes[exp.name])]

@@ -31,10 +31,6 @@ from typing import Any
 
 import numpy as np
 
-from twinfocus import metrics
-from twinfocus.autofocus import twin_autofocus
-from twinfocus.backprojection import backproject, subimage_basis
-from twinfocus.basis import form_image
 from twinfocus.errors import TwinFocusError
 from twinfocus.evaluation.cases import (
     EvalScenario,
@@ -46,10 +42,14 @@ from twinfocus.evaluation.cases import (
     transfer_phase,
 )
 from twinfocus.evaluation.features import hog_similarity
-from twinfocus.grid import ImageGrid
-from twinfocus.scan import Scan
-from twinfocus.scenario import simulate_scenario
-from twinfocus.templates import template_from_scan
+from twinfocus.focus.autofocus import twin_autofocus
+from twinfocus.imaging import metrics
+from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+from twinfocus.imaging.basis import form_image
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.radar.scan import Scan
+from twinfocus.simulation.scenario import simulate_scenario
+from twinfocus.twins.templates import template_from_scan
 
 TRADE_PAIRS = (("A", "F"), ("R", "X"))
 PRESET_TOLERANCE = {"accurate": 0.003, "fast": 0.02}
@@ -241,7 +241,7 @@ def _positions_row(scene: _Scene, n: int) -> dict:
 
 
 def _digital_rows(scene: _Scene, values) -> list[dict]:
-    from twinfocus.digital_twin.template import digital_twin_template
+    from twinfocus.twins.digital_twin.template import digital_twin_template
 
     settings = scene.settings
     try:

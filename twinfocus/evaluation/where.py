@@ -2,20 +2,20 @@
 as a row against both regions typed.
 
 ``twinfocus bench where`` simulates scenes of the baseline letters with the realistic
-impairments of the paper evaluation (:class:`twinfocus.scenario.Scenario`'s defaults: speckle,
+impairments of the paper evaluation (:class:`twinfocus.simulation.scenario.Scenario`'s defaults: speckle,
 10 dB noise, 0.5 mm x/y/z tracking error, a physical twin captured 1 mm off), and focuses each
-with the physical twin (:meth:`twinfocus.focus_plan.FocusPlan.focus_scan`, one phase per position):
+with the physical twin (:meth:`twinfocus.focus.plan.FocusPlan.focus_scan`, one phase per position):
 
 * ``typed``: both regions typed (the baseline of every other row);
 * ``reference found``: the reference's region from a coarse search of the twin's own scan
-  (:func:`twinfocus.reference_search.region_from_scan`);
+  (:func:`twinfocus.focus.reference_search.region_from_scan`);
 * ``depth found``: the target's x/y box alone, its depth searched over the reference's +- 25 cm
-  (:func:`twinfocus.depth_search.find_target_depth`);
+  (:func:`twinfocus.imaging.depth_search.find_target_depth`);
 * ``depth 5 cm off``: the target's depth typed 5 cm too far and searched within +- 10 cm;
 * ``both found``: only the target's x/y box typed: the reference's region as in ``reference
   found``, the target's depth as in ``depth found`` (around the found reference's depth);
 * ``best of two twins``: the reference's twin and another letter's twin as candidates, the
-  better scored (:func:`twinfocus.reference_search.candidate_score`) used.
+  better scored (:func:`twinfocus.focus.reference_search.candidate_score`) used.
 
 Each row records the target SSIM against the truth image (as metrics.json's
 ``target_ssim_corrected``), the depth error for the depth rows and whether the right twin was
@@ -53,14 +53,14 @@ def where_case(
 ) -> list[dict]:
     """Every row of :data:`ROWS` on one simulated scene: one record each with ``row``,
     ``ssim``, ``seconds`` and, per row, ``depth_error_m``, ``reference_roi``, ``right_twin``."""
-    from twinfocus.autofocus import AutofocusConfig
-    from twinfocus.depth_search import default_range, find_target_depth, range_to_search
-    from twinfocus.focus_plan import FocusPlan
-    from twinfocus.grid import ImageGrid
-    from twinfocus.pipeline import Reference
-    from twinfocus.reference_search import candidate_score, region_from_scan
-    from twinfocus.scenario import Scenario, scenario_grids, simulate_scenario, template_scan
-    from twinfocus.templates import template_from_scan
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.pipeline import Reference
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.focus.reference_search import candidate_score, region_from_scan
+    from twinfocus.imaging.depth_search import default_range, find_target_depth, range_to_search
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario, template_scan
+    from twinfocus.twins.templates import template_from_scan
 
     sc = Scenario(reference=reference, target=target, seed=seed, n_columns=columns, n_rows=rows)
     scan, twin = simulate_scenario(sc)
@@ -170,8 +170,8 @@ def run_where(
     """Run :func:`where_case` on the pairs (the first only with ``quick``) x ``draws`` seeds;
     write ``OUT/raw/where.json`` and the report (``OUT/report.md`` unless ``markdown``); return
     the report."""
-    from twinfocus.atomic import write_json_atomic
-    from twinfocus.machine import machine_info
+    from twinfocus.io.atomic import write_json_atomic
+    from twinfocus.jobs.machine import machine_info
 
     say = log or (lambda msg: None)
     pairs = PAIRS[:1] if quick else PAIRS
@@ -197,7 +197,7 @@ def run_where(
 
 def write_where_report(out_dir: str, markdown: str | None = None) -> str:
     """The report from ``OUT/raw/where.json``, written to ``markdown`` (default ``OUT/report.md``)."""
-    from twinfocus.atomic import write_text_atomic
+    from twinfocus.io.atomic import write_text_atomic
 
     doc = json.loads((Path(out_dir) / "raw" / "where.json").read_text())
     md = where_markdown(doc)

@@ -11,7 +11,7 @@ The steps of ``twinfocus convert``:
    frame*: axes of the first radar pose (x along the array, y across, z boresight), origin at
    the mean radar position — the scene frame (docs/architecture.md section 4) for a radar swept facing the scene.
 3. per frame, the 86 virtual channels (:func:`~twinfocus.sensors.frames.frame_to_virtual_channels`)
-   and their phase centres (:func:`~twinfocus.trajectory.phase_centres`).
+   and their phase centres (:func:`~twinfocus.motion.trajectory.phase_centres`).
 """
 
 from __future__ import annotations
@@ -23,11 +23,11 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp, VirtualArray, mmwcas_virtual_array
-from twinfocus.scan import Scan
+from twinfocus.motion.trajectory import Poses, matrix_to_quat, phase_centres
+from twinfocus.radar.fmcw import Chirp, VirtualArray, mmwcas_virtual_array
+from twinfocus.radar.scan import Scan
 from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
 from twinfocus.sensors.frames import FrameFlag, RadarFrame, frame_to_virtual_channels
-from twinfocus.trajectory import Poses, matrix_to_quat, phase_centres
 
 
 @dataclass
@@ -141,7 +141,7 @@ def scan_from_frames(
     progress: Callable[[int, int], None] | None = None,
     frames_missing: int = 0,
 ) -> tuple[Scan, Poses, ConversionReport]:
-    """Build a :class:`~twinfocus.scan.Scan` from radar frames and camera poses.
+    """Build a :class:`~twinfocus.radar.scan.Scan` from radar frames and camera poses.
 
     frames : a sequence or iterable of :class:`RadarFrame`; an :class:`~twinfocus.sensors.ti_mmwcas.MmwcasCapture`
         is read lazily (one frame in memory at a time).

@@ -31,7 +31,7 @@ import re
 from dataclasses import dataclass
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp
+from twinfocus.radar.fmcw import Chirp
 
 
 @dataclass(frozen=True)

@@ -29,10 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus.atomic import write_text_atomic
 from twinfocus.errors import TwinFocusError
-from twinfocus.subpixel import parabola_vertex
-from twinfocus.trajectory import Poses, matrix_to_quat, quat_to_matrix
+from twinfocus.imaging.subpixel import parabola_vertex
+from twinfocus.io.atomic import write_text_atomic
+from twinfocus.motion.trajectory import Poses, matrix_to_quat, quat_to_matrix
 
 #: A lever arm longer than this is taken for a unit mistake (millimetres instead of metres).
 MAX_TRANSLATION_M = 1.0

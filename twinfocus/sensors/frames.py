@@ -4,7 +4,7 @@ A MIMO frame holds, for one radar position, the IF samples of every TX-RX pair:
 complex64 (n_tx, n_rx, N). In TDM-MIMO each TX fires its own chirp, so pair (t, r) sees the
 bistatic path R_tx + R_rx; the monostatic-equivalent phase centre of the pair is the midpoint of
 its two antennas (docs/architecture.md section 2). :func:`frame_to_virtual_channels` picks the pairs of a
-:class:`~twinfocus.radar.VirtualArray` and applies the multistatic-to-monostatic correction, giving
+:class:`~twinfocus.radar.fmcw.VirtualArray` and applies the multistatic-to-monostatic correction, giving
 the (K, N) rows of a scan file's ``data``.
 """
 
@@ -15,9 +15,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from twinfocus.board import Board
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import (
+from twinfocus.radar.board import Board
+from twinfocus.radar.fmcw import (
     Chirp,
     VirtualArray,
     mmwcas_rx_positions_m,
@@ -54,7 +54,7 @@ class RadarFrame(NamedTuple):
     stamp_ns : int, capture time, nanoseconds (the clock is the source's: the capture card's for
         MMWCAS files, the host's receive time for DCA1000 streams).
     data : complex64 (n_tx, n_rx, N), IF samples of every TX-RX pair, TX and RX in the array
-        order of :mod:`twinfocus.radar` (MMWCAS: 12 x 16, ascending along the board).
+        order of :mod:`twinfocus.radar.fmcw` (MMWCAS: 12 x 16, ascending along the board).
     flags : :class:`FrameFlag`.
     """
 
@@ -67,9 +67,9 @@ def mmwcas_antenna_positions_body_m(
     array: VirtualArray | None = None, board: Board | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """TX and RX antenna positions of the MMWCAS board (``board``: a board file's, default TI's)
-    in the radar body frame; ``array`` default the board's :func:`~twinfocus.radar.mmwcas_virtual_array`.
+    in the radar body frame; ``array`` default the board's :func:`~twinfocus.radar.fmcw.mmwcas_virtual_array`.
 
-    The body frame is the one of :func:`twinfocus.radar.mmwcas_virtual_array`: x along the array,
+    The body frame is the one of :func:`twinfocus.radar.fmcw.mmwcas_virtual_array`: x along the array,
     y across it, z along boresight, origin at the middle of the virtual line (so the midpoint of
     TX t and RX r of a channel equals its ``offsets_m``).
 
@@ -106,7 +106,7 @@ def frame_to_virtual_channels(
     -------
     complex64 (..., K, N): channel k is pair (array.tx_index[k], array.rx_index[k]) times
     exp(-j k_n (dx^2 + dy^2) / (4 z0)), so that a point scatterer at range ~z0 appears as seen
-    from the pair's midpoint by a co-located TX/RX (the model of :mod:`twinfocus.radar`).
+    from the pair's midpoint by a co-located TX/RX (the model of :mod:`twinfocus.radar.fmcw`).
     """
     array = mmwcas_virtual_array() if array is None else array
     frame = np.asarray(frame)

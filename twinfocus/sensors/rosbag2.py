@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.trajectory import matrix_to_quat
+from twinfocus.motion.trajectory import matrix_to_quat
 
 POSE_TYPES = (
     "geometry_msgs/msg/PoseStamped",
@@ -103,10 +103,10 @@ def pose_records(msgtype: str, msg: Any, child_frame: str | None = None) -> list
 
 
 def poses_from_records(records: list[PoseRecord], optical: bool):
-    """:class:`~twinfocus.trajectory.Poses` from pose records in time order (stably sorted by
+    """:class:`~twinfocus.motion.trajectory.Poses` from pose records in time order (stably sorted by
     header stamp, as a bag stores messages by receive time). ``optical``: append
     :data:`Q_BODY_OPTICAL` so each pose is that of the child's optical axes."""
-    from twinfocus.trajectory import Poses, quat_multiply
+    from twinfocus.motion.trajectory import Poses, quat_multiply
 
     if not records:
         raise TwinFocusError("no poses")

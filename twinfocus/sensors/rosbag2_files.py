@@ -5,7 +5,7 @@ Messages are deserialised with the definitions the bag carries (MCAP) or, where 
 (SQLite), with ``rosbags``' ROS 2 Humble types. The messages are taken apart by
 :mod:`twinfocus.sensors.rosbag2`; see there for the frames.
 
-- :func:`read_bag_poses`: a pose topic -> :class:`~twinfocus.trajectory.Poses` (``convert
+- :func:`read_bag_poses`: a pose topic -> :class:`~twinfocus.motion.trajectory.Poses` (``convert
   --trajectory run.bag --pose-topic /zed/zed_node/pose``).
 - :func:`read_bag_cloud`: a ``PointCloud2`` topic -> float64 (N, 3) in the camera's optical
   axes (``focus --digital-twin bag.mcap:/zed/zed_node/point_cloud/cloud_registered``).
@@ -28,8 +28,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.motion.trajectory import Poses
 from twinfocus.sensors import rosbag2 as msgs
-from twinfocus.trajectory import Poses
 
 BAG_SUFFIXES = (".mcap", ".db3")
 SVO_SUFFIXES = (".svo", ".svo2")

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp
+from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.chirp_profile import Profile, profile_chirp
 from twinfocus.sensors.dca1000 import RawFrameLayout
 

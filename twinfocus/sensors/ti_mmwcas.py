@@ -19,8 +19,8 @@ Data file: frames back to back; one device frame is int16 pairs (I then Q) with 
 The 16 receive channels are master RX1-4, slave1 RX1-4, slave2 RX1-4, slave3 RX1-4 (data
 channels 1..16); the antennas in ascending position along the board are data channels
 13-16, 1-4, 9-12, 5-8 (TI's ``TI_Cascade_RX_ID``), which is the RX order of
-:mod:`twinfocus.radar`. With TI's default chirp order (``TxToEnable = [12 11 ... 1]``) chirp c
-fires the TX that :mod:`twinfocus.radar` numbers c; other orders are given as ``tx_of_chirp``.
+:mod:`twinfocus.radar.fmcw`. With TI's default chirp order (``TxToEnable = [12 11 ... 1]``) chirp c
+fires the TX that :mod:`twinfocus.radar.fmcw` numbers c; other orders are given as ``tx_of_chirp``.
 
 The capture card's first frame is known to be bad (TI's scripts skip it "due to TDA2"): it is
 dropped unless ``skip_first_frame=False``. Truncated files (a capture cut short) keep their
@@ -37,9 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus.board import RX_ARRAY_ORDER as BOARD_RX_ARRAY_ORDER
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp
+from twinfocus.radar.board import RX_ARRAY_ORDER as BOARD_RX_ARRAY_ORDER
+from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.chirp_profile import (
     Profile,
     describe_chirp,
@@ -55,7 +55,7 @@ RX_PER_DEVICE = 4
 N_TX = 12
 N_RX = 16
 
-#: Array RX a (0-based, ascending along the board, the order of twinfocus.radar) is data channel
+#: Array RX a (0-based, ascending along the board, the order of twinfocus.radar.fmcw) is data channel
 #: RX_ARRAY_ORDER[a] (0-based; data channel = 4 * device + device RX). TI: TI_Cascade_RX_ID - 1.
 RX_ARRAY_ORDER = BOARD_RX_ARRAY_ORDER
 
@@ -91,7 +91,7 @@ class MmwcasConfig:
     chirp : the chirp (defaults: the paper's 76 GHz, 5 us ADC start, 120 MHz/us, 8 Msps, 256).
     n_chirps : chirps per loop (one per TX used).
     n_loops : loops per frame.
-    tx_of_chirp : TX index (order of :mod:`twinfocus.radar`) fired by each chirp of a loop;
+    tx_of_chirp : TX index (order of :mod:`twinfocus.radar.fmcw`) fired by each chirp of a loop;
         default chirp c -> TX c, TI's default ``TxToEnable = [12 11 ... 1]``.
     timestamp_unit_ns : nanoseconds per tick of the index files' time stamps (default 1000:
         microseconds, the TDA2 Vision SDK's buffer time stamps).
@@ -291,7 +291,7 @@ def check_timestamp_unit(master_ticks: np.ndarray, unit_ns: int, frame_period_s:
 
 def tx_order_to_tx_of_chirp(tx_numbers) -> tuple[int, ...]:
     """TI's ``TxToEnable`` (TX numbers 1..12 in chirp order) -> ``tx_of_chirp`` (0-based, order of
-    :mod:`twinfocus.radar`). The default ``[12 11 ... 1]`` maps chirp c to TX c, so TI TX n is
+    :mod:`twinfocus.radar.fmcw`). The default ``[12 11 ... 1]`` maps chirp c to TX c, so TI TX n is
     index 12 - n."""
     nums = [int(n) for n in tx_numbers]
     bad = [n for n in nums if not 1 <= n <= N_TX]

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus.atomic import write_text_atomic
 from twinfocus.errors import TwinFocusError
-from twinfocus.trajectory import Poses
+from twinfocus.io.atomic import write_text_atomic
+from twinfocus.motion.trajectory import Poses
 
 EUROC_HEADER = "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"
 EUROC_CONFIDENCE = "confidence []"

@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.trajectory import Poses
+from twinfocus.motion.trajectory import Poses
 
 #: Per-eye image size of each ZED resolution (width, height), pixels.
 RESOLUTIONS: dict[str, tuple[int, int]] = {
@@ -65,7 +65,7 @@ class StereoPair(NamedTuple):
 
 
 def poses_from_samples(samples) -> Poses:
-    """Collect :class:`PoseSample` into :class:`~twinfocus.trajectory.Poses` (confidence kept)."""
+    """Collect :class:`PoseSample` into :class:`~twinfocus.motion.trajectory.Poses` (confidence kept)."""
     samples = list(samples)
     if not samples:
         raise TwinFocusError("no poses were tracked")

@@ -15,8 +15,8 @@ from twinfocus.errors import TwinFocusError
 
 
 def _radar(args) -> int:
+    from twinfocus.motion.trajectory import paper_raster
     from twinfocus.sensors.emulators.rig import EmulatedRadar
-    from twinfocus.trajectory import paper_raster
 
     traj = paper_raster(args.columns, args.rows, args.column_pitch, args.row_pitch, frame_period_s=args.period)
     host, port = args.host_data.rsplit(":", 1)
@@ -50,14 +50,14 @@ def _radar(args) -> int:
 
 
 def _capture(args) -> int:
-    from twinfocus.array_errors import array_error_levels, draw_array_errors
-    from twinfocus.radar import Chirp
+    from twinfocus.motion.trajectory import Poses, paper_raster
+    from twinfocus.radar.array_errors import array_error_levels, draw_array_errors
+    from twinfocus.radar.fmcw import Chirp
     from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
     from twinfocus.sensors.emulators.radar_scene import imperfect_mimo_frames, quantize_iq, simulate_mimo_frames
     from twinfocus.sensors.emulators.rig import N_REFERENCE_SCATTERERS, demo_scatterers
     from twinfocus.sensors.ti_mmwcas import MmwcasConfig
     from twinfocus.sensors.trajectory_files import write_tum
-    from twinfocus.trajectory import Poses, paper_raster
 
     chirp = Chirp(n_samples=args.n_samples)
     cfg = MmwcasConfig(chirp=chirp, frame_period_s=args.period)

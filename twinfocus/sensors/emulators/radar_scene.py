@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import C_M_PER_S, Chirp
+from twinfocus.motion.trajectory import Poses
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp
 from twinfocus.sensors.frames import mmwcas_antenna_positions_body_m
-from twinfocus.trajectory import Poses
 
 
 def simulate_mimo_frames(
@@ -33,7 +33,7 @@ def simulate_mimo_frames(
     scatterers_m : float (J, 3) scene-frame points; amplitudes : complex (J,), default 1;
     tx_body_m, rx_body_m : antenna positions in the body frame (default the MMWCAS board);
     pattern_exponent : q of each antenna's power pattern cos(theta)^q, theta off the body's z
-        axis (0, the default: isotropic antennas; see :mod:`twinfocus.array_errors`).
+        axis (0, the default: isotropic antennas; see :mod:`twinfocus.radar.array_errors`).
     Returns complex64 (M, n_tx, n_rx, N).
     """
     pts = np.asarray(scatterers_m, dtype=np.float64)
@@ -119,12 +119,12 @@ def imperfect_mimo_frames(
 ) -> np.ndarray:
     """:func:`simulate_mimo_frames` through the MMWCAS board as hardware is.
 
-    errors : a :class:`twinfocus.array_errors.ArrayErrors` (its beam pattern, channel errors,
+    errors : a :class:`twinfocus.radar.array_errors.ArrayErrors` (its beam pattern, channel errors,
     leakage, DC offset and I/Q imbalance; leakage and DC refer to the scene's mean return);
     snr_db : per-sample SNR of thermal noise added before the receivers' imperfections (None:
     none). Returns complex64 (M, 12, 16, N).
     """
-    from twinfocus.array_errors import apply_array_errors
+    from twinfocus.radar.array_errors import apply_array_errors
 
     tx, rx = mmwcas_antenna_positions_body_m()
     clean = simulate_mimo_frames(

@@ -22,16 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
-from twinfocus.atomic import write_text_atomic
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar import Chirp
+from twinfocus.io.atomic import write_text_atomic
+from twinfocus.motion.trajectory import Poses, matrix_to_quat, paper_raster
+from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.dca1000 import RawFrameLayout
 from twinfocus.sensors.emulators.fake_dca1000 import FakeDca1000
 from twinfocus.sensors.emulators.fake_radar_cli import FakeRadarCli
 from twinfocus.sensors.emulators.radar_scene import quantize_iq, simulate_mimo_frames
 from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
 from twinfocus.sensors.zed import PoseSample
-from twinfocus.trajectory import Poses, matrix_to_quat, paper_raster
 
 #: What the emulated board streams: MMWCAS-shaped frames, chirp c = TX c, 16 RX, 256 samples.
 MMWCAS_STREAM_LAYOUT = RawFrameLayout(256, 16, tuple(range(12)), 1, 12)

@@ -8,7 +8,7 @@ scene) and writes the bag a ZED 2i bolted beside the radar would have recorded (
 written by ``rosbags``). The camera rides ``--lever-arm-mm`` from the radar (the radar's origin
 in the left camera's axes, ``translation_m`` of an extrinsics file; default 60 80 0: the camera
 6 cm left of and 8 cm above the radar, where ``focus`` places a bag's cloud,
-:data:`twinfocus.digital_twin.camera.DEFAULT_LEFT_CAMERA_POSITION_M`), so ``convert`` needs that
+:data:`twinfocus.twins.digital_twin.camera.DEFAULT_LEFT_CAMERA_POSITION_M`), so ``convert`` needs that
 extrinsics file to put the radar back on its path.
 
 - ``/zed/zed_node/pose`` (``geometry_msgs/PoseStamped``, frame ``map``, ROS axes: x forward,
@@ -39,7 +39,7 @@ from twinfocus.errors import TwinFocusError
 POSE_TOPIC = "/zed/zed_node/pose"
 CLOUD_TOPIC = "/zed/zed_node/point_cloud/cloud_registered"
 #: where ``focus`` places a bag's cloud's camera in the scene frame, metres: the digital twin's
-#: default left camera, twinfocus.digital_twin.camera.DEFAULT_LEFT_CAMERA_POSITION_M (not imported:
+#: default left camera, twinfocus.twins.digital_twin.camera.DEFAULT_LEFT_CAMERA_POSITION_M (not imported:
 #: the sensors sit below the digital twin; tests/test_zed_bag_emulator.py checks they agree)
 BAG_CLOUD_CAMERA_M = (-0.06, -0.08, 0.0)
 #: poses the camera records before the radar's first frame and after its last
@@ -88,8 +88,8 @@ def write_zed_bag(
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
+    from twinfocus.motion.trajectory import matrix_to_quat, quat_to_matrix
     from twinfocus.sensors.rosbag2 import R_BODY_OPTICAL
-    from twinfocus.trajectory import matrix_to_quat, quat_to_matrix
 
     ts_store = get_typestore(Stores.ROS2_HUMBLE)
     T = ts_store.types

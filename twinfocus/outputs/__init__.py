@@ -1,0 +1,1 @@
+"""Pictures: PNGs of images, focusing results and depth maps, no display needed."""

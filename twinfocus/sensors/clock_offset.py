@@ -1,0 +1,539 @@
+"""The radar-camera clock offset, found from the scan itself (``convert --align scan``,
+``focus --clock-search``).
+
+A hand moving at v puts every position ``v * dt`` off along its direction of motion when the
+radar's time stamps are ``dt`` off the camera's; on a zig-zag the error flips sign with each leg,
+which no per-position phase of the ladder fits well. Two estimates, both plain functions on arrays:
+
+- **range history** (:func:`range_history_offset`): the range of the brightest static scatterer in
+  each frame (peak of the range-compressed data, summed over channels) against the radar's distance
+  to that scatterer along the camera's trajectory re-sampled at ``t + dt``; the scatterer's place
+  and a range bias are fitted for each ``dt``, a coarse grid then a fine one around the best, the
+  uncertainty from the curvature of the residual. With ``fit_rate`` the two halves of the sweep
+  are fitted apart and their difference gives a clock rate (drift, s per s).
+- **focus** (:func:`focus_offset`): each position re-sampled at ``t + dt`` along the scan's own
+  track (its time stamps, else the order of its positions), ``dt`` chosen by the sharpness of the
+  back-projected reference region.
+
+Convention: ``dt`` is what is *added to the radar's time stamps* to put them on the camera's clock
+(a radar clock running 15 ms behind the camera's gives ``dt = +0.015``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from twinfocus.errors import TwinFocusError
+from twinfocus.radar.fmcw import Chirp, range_compress
+
+#: least peak-to-median ratio of the summed range profile for a scatterer to count as one
+MIN_PEAK_TO_MEDIAN = 8.0
+#: least change of the radar's distance to the scatterer over the sweep, in range resolutions
+MIN_RANGE_SWING_CELLS = 0.02
+#: ranges below this are not searched for the scatterer (DC, leakage), m
+MIN_RANGE_M = 0.15
+#: the fit's r.m.s. residual may be at most this share of the distance's swing over the sweep
+MAX_RESIDUAL_SHARE = 0.25
+#: fewest frames the range history needs
+MIN_FRAMES = 20
+
+
+@dataclass
+class ClockEstimate:
+    """A clock offset found from the data.
+
+    offset_s : added to the radar's stamps, seconds. sigma_s : its 1-sigma uncertainty, seconds.
+    rate : clock rate (s per s, radar - camera) when fitted, else None; sigma_rate likewise.
+    method : ``"range_history"`` or ``"focus"``. residual_m : r.m.s. range residual (range history).
+    """
+
+    offset_s: float
+    sigma_s: float
+    method: str
+    rate: float | None = None
+    sigma_rate: float | None = None
+    residual_m: float | None = None
+    scatterer_m: list[float] | None = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def line(self) -> str:
+        """One line for the user."""
+        s = f"clock offset {self.offset_s * 1e3:+.2f} +- {self.sigma_s * 1e3:.2f} ms ({self.method.replace('_', ' ')})"
+        if self.rate is not None and self.sigma_rate is not None:
+            s += f", rate {self.rate * 1e6:+.0f} +- {self.sigma_rate * 1e6:.0f} ppm"
+        return s
+
+
+def peak_range_m(data: np.ndarray, chirp: Chirp, oversample: int = 8) -> tuple[np.ndarray, float]:
+    """Range of the brightest scatterer in each frame, from range compression.
+
+    data : complex (M, K, N) IF samples (channels summed incoherently).
+    Returns (float64 (M,) metres, the peak-to-median ratio of the mean profile). The brightest bin
+    of the mean profile over all frames picks the scatterer; each frame's peak is sought within
+    two range resolutions of it and interpolated (parabola on the log magnitude).
+    """
+    data = np.asarray(data)
+    if data.ndim != 3:
+        raise TwinFocusError(f"data must be (M, K, N), got shape {data.shape}")
+    n_fft = int(oversample) * chirp.n_samples
+    prof = np.abs(range_compress(data, chirp, n_fft=n_fft, window="hann")).sum(axis=1)  # (M, n_fft)
+    # DC and the antennas' leakage sit within a few centimetres of zero range
+    prof[:, : max(oversample, int(np.ceil(MIN_RANGE_M / (chirp.max_range_m / n_fft))))] = 0.0
+    mean = prof.mean(axis=0)
+    b0 = int(np.argmax(mean))
+    ratio = float(mean[b0] / max(np.median(mean), 1e-30))
+    half = 2 * oversample
+    lo, hi = max(b0 - half, 1), min(b0 + half + 1, n_fft - 1)
+    b = lo + np.argmax(prof[:, lo:hi], axis=1)
+    b = np.clip(b, 1, n_fft - 2)
+    rows = np.arange(prof.shape[0])
+    ym, y0, yp = (np.log(prof[rows, b + d] + 1e-30) for d in (-1, 0, 1))
+    den = ym - 2 * y0 + yp
+    frac = np.where(den < 0, 0.5 * (ym - yp) / np.where(den < 0, den, -1.0), 0.0)
+    return (b + np.clip(frac, -0.5, 0.5)) * chirp.max_range_m / n_fft, ratio
+
+
+def resample_track(times_s: np.ndarray, points_m: np.ndarray, at_s: np.ndarray) -> np.ndarray:
+    """Points along a track at other times: linear between samples, clamped at the ends.
+
+    times_s : (T,) non-decreasing; points_m : (T, ...) ; at_s : (Q,). Returns (Q, ...).
+    """
+    t = np.asarray(times_s, np.float64)
+    p = np.asarray(points_m, np.float64)
+    at = np.clip(np.asarray(at_s, np.float64), t[0], t[-1])
+    i1 = np.clip(np.searchsorted(t, at, side="right"), 1, len(t) - 1)
+    i0 = i1 - 1
+    span = t[i1] - t[i0]
+    frac = np.where(span > 0, (at - t[i0]) / np.where(span > 0, span, 1.0), 0.0)
+    frac = frac.reshape(frac.shape + (1,) * (p.ndim - 1))
+    return p[i0] + frac * (p[i1] - p[i0])
+
+
+def _fit_scatterer(centres_m: np.ndarray, ranges_m: np.ndarray, start: np.ndarray, iters: int = 12):
+    """Least squares |c_i - s| + b = r_i over s (3,) and b: (s, b, sum of squares)."""
+    s, b = start.copy(), 0.0
+    for _ in range(iters):
+        d = centres_m - s
+        dist = np.linalg.norm(d, axis=1)
+        res = dist + b - ranges_m
+        jac = np.concatenate([-d / np.maximum(dist, 1e-9)[:, None], np.ones((len(res), 1))], axis=1)
+        step, *_ = np.linalg.lstsq(jac, -res, rcond=None)
+        s, b = s + step[:3], b + step[3]
+        if np.abs(step).max() < 1e-9:
+            break
+    res = np.linalg.norm(centres_m - s, axis=1) + b - ranges_m
+    return s, b, float(res @ res)
+
+
+def _profile(
+    frame_s: np.ndarray, ranges_m: np.ndarray, track_s: np.ndarray, track_m: np.ndarray, offsets_s: np.ndarray, start
+) -> tuple[np.ndarray, list]:
+    ssr, fits = np.empty(len(offsets_s)), []
+    for i, dt in enumerate(offsets_s):
+        c = resample_track(track_s, track_m, frame_s + dt)
+        fit = _fit_scatterer(c, ranges_m, start)
+        ssr[i] = fit[2]
+        fits.append(fit)
+    return ssr, fits
+
+
+def _parabola_min(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Vertex and curvature (y'') of the parabola through the 5 points around the least y."""
+    i = int(np.clip(np.argmin(y), 2, len(y) - 3))
+    a, b_, _ = np.polyfit(x[i - 2 : i + 3] - x[i], y[i - 2 : i + 3], 2)
+    if a <= 0:
+        return float(x[int(np.argmin(y))]), 0.0
+    return float(x[i] - b_ / (2 * a)), float(2 * a)
+
+
+def range_history_offset(
+    data: np.ndarray,
+    chirp: Chirp,
+    frame_s: np.ndarray,
+    track_s: np.ndarray,
+    track_m: np.ndarray,
+    max_offset_s: float = 0.5,
+    fit_rate: bool = False,
+) -> ClockEstimate:
+    """The clock offset from the brightest static scatterer's range history.
+
+    data : complex (M, K, N) IF samples, one frame per radar position.
+    frame_s : float64 (M,) the frames' stamps on the camera's clock as first aligned, seconds.
+    track_s, track_m : the radar's trajectory (camera poses through the extrinsics), (T,) seconds
+        and (T, 3) metres, on the camera's clock.
+    max_offset_s : the offsets searched, +- this around the first alignment.
+    Returns a :class:`ClockEstimate`; raises TwinFocusError (one line) when the data cannot tell.
+    """
+    frame_s = np.asarray(frame_s, np.float64)
+    track_s, track_m = np.asarray(track_s, np.float64), np.asarray(track_m, np.float64)
+    if len(frame_s) < MIN_FRAMES:
+        raise TwinFocusError(
+            f"clock offset: {len(frame_s)} frames are too few to find the clock from the data (need {MIN_FRAMES}); "
+            "use --align start or --time-offset-s"
+        )
+    ranges, ratio = peak_range_m(data, chirp)
+    if ratio < MIN_PEAK_TO_MEDIAN:
+        raise TwinFocusError(
+            f"clock offset: no static scatterer stands out of the range profiles (peak {ratio:.1f} x the median, "
+            f"need {MIN_PEAK_TO_MEDIAN:g}); use --align start or --time-offset-s"
+        )
+    centres = resample_track(track_s, track_m, frame_s)
+    start = centres.mean(axis=0) + np.array([0.0, 0.0, float(np.median(ranges))])
+    s0, _, _ = _fit_scatterer(centres, ranges, start)
+    dist = np.linalg.norm(centres - s0, axis=1)
+    if np.ptp(dist) < MIN_RANGE_SWING_CELLS * chirp.range_resolution_m or np.ptp(frame_s) < 10 * max_offset_s / 30:
+        raise TwinFocusError(
+            f"clock offset: the sweep is too short (the distance to the scatterer changes by {np.ptp(dist) * 1e3:.1f} mm) "
+            "to find the clock from the data; use --align start or --time-offset-s"
+        )
+    est = _offset_of(frame_s, ranges, track_s, track_m, max_offset_s, s0)
+    if est.residual_m is not None and est.residual_m > MAX_RESIDUAL_SHARE * np.ptp(dist):
+        raise TwinFocusError(
+            f"clock offset: the brightest scatterer's range does not follow the trajectory (r.m.s. residual "
+            f"{est.residual_m * 1e3:.1f} mm of a {np.ptp(dist) * 1e3:.1f} mm swing); use --align start or --time-offset-s"
+        )
+    est.scatterer_m = [float(v) for v in est.scatterer_m or []]
+    if fit_rate:
+        half = len(frame_s) // 2
+        a = _offset_of(frame_s[:half], ranges[:half], track_s, track_m, max_offset_s, s0, around=est.offset_s)
+        b = _offset_of(frame_s[half:], ranges[half:], track_s, track_m, max_offset_s, s0, around=est.offset_s)
+        lever = float(frame_s[half:].mean() - frame_s[:half].mean())
+        est.rate = (b.offset_s - a.offset_s) / lever
+        est.sigma_rate = float(np.hypot(a.sigma_s, b.sigma_s) / lever)
+    return est
+
+
+def _offset_of(frame_s, ranges, track_s, track_m, max_offset_s, start, around: float = 0.0) -> ClockEstimate:
+    coarse = around + np.arange(-max_offset_s, max_offset_s + 1e-12, 0.005)
+    ssr, _ = _profile(frame_s, ranges, track_s, track_m, coarse, start)
+    best = float(coarse[int(np.argmin(ssr))])
+    fine = best + np.arange(-0.008, 0.008 + 1e-12, 0.0005)
+    ssr, fits = _profile(frame_s, ranges, track_s, track_m, fine, start)
+    dt, curv = _parabola_min(fine, ssr)
+    n = len(ranges)
+    s, _, smin = fits[int(np.argmin(ssr))]
+    var = smin / max(n - 5, 1)
+    sigma = float(np.sqrt(2 * var / curv)) if curv > 0 else float("inf")
+    return ClockEstimate(dt, sigma, "range_history", residual_m=float(np.sqrt(smin / n)), scatterer_m=list(s))
+
+
+def position_times_s(timestamps_ns: np.ndarray | None, n_positions: int, period_s: float | None = None) -> np.ndarray:
+    """Each scan position's time, seconds from the first: its stamp, else its order (a scan stores
+    its positions in the order taken) times ``period_s`` (default 1: offsets then count positions)."""
+    if timestamps_ns is not None:
+        t = np.asarray(timestamps_ns, np.int64)
+        return (t - t[0]).astype(np.float64) * 1e-9
+    return np.arange(n_positions, dtype=np.float64) * (1.0 if period_s is None else float(period_s))
+
+
+#: a step between consecutive positions longer than this many times the median step ends a leg
+#: (a turn between columns where no frame was kept, a pause, a run of lost frames)
+LEG_BREAK = 3.0
+#: least number of a leg's positions the velocity at its end is fitted over
+END_FIT_POSITIONS = 9
+
+
+def leg_starts(times_s: np.ndarray, positions_m: np.ndarray | None = None) -> np.ndarray:
+    """Indices (L,) int64 where each leg of uninterrupted motion starts (the first is 0).
+
+    times_s : (M,) seconds (:func:`position_times_s`); positions_m : (M, ...) metres. A leg ends
+    where the step in time exceeds :data:`LEG_BREAK` x the median step (stamps), or, on positions
+    counted by order (a uniform ``times_s``), where the step in place does: a scan keeps no frame
+    from the turn between a zig-zag's columns, and its track has no pose there to re-sample.
+    """
+    t = np.asarray(times_s, np.float64)
+    if len(t) < 3:
+        return np.zeros(1, np.int64)
+    step = np.diff(t)
+    if positions_m is not None and np.ptp(step) <= 1e-9 * max(float(np.abs(step).max()), 1e-300):
+        p = np.asarray(positions_m, np.float64).reshape(len(t), -1, 3).mean(axis=1)
+        step = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    med = float(np.median(step))
+    breaks = np.flatnonzero(step > LEG_BREAK * med) + 1 if med > 0 else np.zeros(0, np.int64)
+    return np.concatenate([[0], breaks]).astype(np.int64)
+
+
+def _end_velocity(t: np.ndarray, p: np.ndarray, span_s: float, last: bool) -> np.ndarray:
+    """Least-squares velocity (...) over a leg's end: its last (or first) positions within
+    ``span_s``, at least :data:`END_FIT_POSITIONS` of them (all, on a shorter leg)."""
+    n = len(t)
+    if n < 2:
+        return np.zeros(p.shape[1:])
+    within = int(np.count_nonzero((t[-1] - t <= span_s) if last else (t - t[0] <= span_s)))
+    k = min(n, max(END_FIT_POSITIONS, within))
+    sl = slice(n - k, n) if last else slice(0, k)
+    tt = t[sl] - t[sl].mean()
+    den = float(tt @ tt)
+    if den <= 0:
+        return np.zeros(p.shape[1:])
+    return np.tensordot(tt, p[sl] - p[sl].mean(axis=0), axes=(0, 0)) / den
+
+
+def shift_positions(
+    positions_m: np.ndarray, times_s: np.ndarray, offset_s: float, starts: np.ndarray | None = None
+) -> np.ndarray:
+    """Positions (M, ...) moved along each one's direction of motion to ``times_s + offset_s``.
+
+    Inside a leg (:func:`leg_starts`; ``starts`` to pass them found once) the leg's own track is
+    re-sampled (linear between positions); past either end of it the position goes on along the
+    leg's velocity at that end (a line fitted over the end's last ``|offset_s|``, at least
+    :data:`END_FIT_POSITIONS` positions), not across the turn to the next leg nor held still.
+    Returns float64 (M, ...) metres.
+    """
+    t = np.asarray(times_s, np.float64)
+    p = np.asarray(positions_m, np.float64)
+    if starts is None:
+        starts = leg_starts(t, p)
+    bounds = [*(int(v) for v in starts), len(t)]
+    out = p.copy()
+    for a, b in zip(bounds[:-1], bounds[1:], strict=False):
+        if b - a < 2:
+            continue
+        tl, pl = t[a:b], p[a:b]
+        at = tl + offset_s
+        moved = resample_track(tl, pl, at)
+        span = abs(float(offset_s))
+        for last, past in ((False, at < tl[0]), (True, at > tl[-1])):
+            if past.any():
+                v = _end_velocity(tl, pl, span, last)
+                end, t_end = (pl[-1], tl[-1]) if last else (pl[0], tl[0])
+                dt = (at[past] - t_end).reshape((-1,) + (1,) * (p.ndim - 1))
+                moved[past] = end + dt * v
+        out[a:b] = moved
+    return out
+
+
+def sharpness(image: np.ndarray) -> float:
+    """Normalised intensity sharpness sum(|I|^4) / sum(|I|^2)^2 (larger = more focused)."""
+    p = np.abs(np.asarray(image)) ** 2
+    return float((p * p).sum() / max(p.sum() ** 2, 1e-300))
+
+
+#: the fine search's offsets: this many each side of its centre
+FINE_HALF_STEPS = 6
+
+
+def focus_offset(
+    form_image: Callable[[np.ndarray], np.ndarray],
+    positions_m: np.ndarray,
+    times_s: np.ndarray,
+    max_offset_s: float,
+    coarse_steps: int = 13,
+    score: Callable[[np.ndarray], float] = sharpness,
+    centre_s: float = 0.0,
+    refine: bool = True,
+) -> tuple[ClockEstimate, list[tuple[float, float]]]:
+    """The offset whose shifted positions (:func:`shift_positions`) focus the reference best.
+
+    form_image : positions (M, K, 3) -> the reference region's image (any shape).
+    times_s : (M,) each position's time (:func:`position_times_s`).
+    A grid of ``coarse_steps`` offsets over ``centre_s`` +- ``max_offset_s``; its best, refined
+    (``refine``) by :func:`refine_offset` at a fifth of the grid's step. Returns (estimate, the
+    (offset, score) pairs tried); without ``refine`` the estimate is the grid's best, sigma_s the
+    step over sqrt(12).
+    """
+    starts = leg_starts(times_s, positions_m)
+    tried: dict[float, float] = {}
+    coarse = centre_s + np.linspace(-max_offset_s, max_offset_s, int(coarse_steps))
+    step = float(coarse[1] - coarse[0]) if len(coarse) > 1 else float(max_offset_s)
+    for v in coarse:
+        _score_at(form_image, positions_m, times_s, starts, score, v, tried)
+    best = max(tried, key=tried.__getitem__)
+    if not refine:
+        return ClockEstimate(best, step / np.sqrt(12), "focus"), sorted(tried.items())
+    return refine_offset(form_image, positions_m, times_s, best, step / 5, score)
+
+
+def _score_at(form_image, positions_m, times_s, starts, score, dt: float, tried: dict) -> float:
+    dt = round(float(dt), 9)
+    if dt not in tried:
+        tried[dt] = float(score(form_image(shift_positions(positions_m, times_s, dt, starts))))
+    return tried[dt]
+
+
+def _peak_span(ys: np.ndarray, least: int = 5) -> tuple[int, int]:
+    """The run of samples around the best that stand in the upper half of the scores' range,
+    widened to ``least`` samples: (lo, hi) slice bounds."""
+    k = int(np.argmax(ys))
+    cut = ys.min() + 0.5 * (ys.max() - ys.min())
+    lo, hi = k, k + 1
+    while lo > 0 and ys[lo - 1] >= cut:
+        lo -= 1
+    while hi < len(ys) and ys[hi] >= cut:
+        hi += 1
+    while hi - lo < min(least, len(ys)):
+        if lo > 0 and (hi >= len(ys) or ys[lo - 1] >= ys[hi]):
+            lo -= 1
+        else:
+            hi += 1
+    return lo, hi
+
+
+def refine_offset(
+    form_image: Callable[[np.ndarray], np.ndarray],
+    positions_m: np.ndarray,
+    times_s: np.ndarray,
+    centre_s: float,
+    step_s: float,
+    score: Callable[[np.ndarray], float] = sharpness,
+) -> tuple[ClockEstimate, list[tuple[float, float]]]:
+    """The vertex of the least-squares parabola through the scores of 2 x
+    :data:`FINE_HALF_STEPS` + 1 offsets ``step_s`` apart around ``centre_s``, the window moved onto
+    the vertex (twice at most) when it lies more than two steps off its centre.
+
+    One parabola over the peak's upper half (at least 5 samples), not the best sample: near focus the score is bumpy on the
+    scale of a frame (a tracker's jitter re-sampled at a fraction of a frame averages neighbouring
+    errors, sharpening the image a little off the true offset), while the peak's breadth, the time
+    a hand takes to cross a resolution cell, is what places it. sigma_s from the fit's covariance
+    (at least the step over sqrt(12)). Returns (estimate, the (offset, score) pairs tried).
+    """
+    starts = leg_starts(times_s, positions_m)
+    tried: dict[float, float] = {}
+    centre, step = float(centre_s), float(step_s)
+    best, sigma = centre, float("inf")
+    for _ in range(3):
+        xs = centre + step * np.arange(-FINE_HALF_STEPS, FINE_HALF_STEPS + 1)
+        ys = np.array([_score_at(form_image, positions_m, times_s, starts, score, v, tried) for v in xs])
+        lo, hi = _peak_span(ys)
+        (qa, qb, _), cov = np.polyfit((xs[lo:hi] - centre) / step, ys[lo:hi], 2, cov=True)
+        if not qa < 0:  # no peak inside: the best sample
+            best, sigma = float(xs[int(np.argmax(ys))]), float("inf")
+            break
+        u = -qb / (2 * qa)
+        jac = np.array([qb / (2 * qa * qa), -1 / (2 * qa), 0.0])
+        best = centre + step * float(np.clip(u, -FINE_HALF_STEPS, FINE_HALF_STEPS))
+        sigma = step * float(np.sqrt(max(float(jac @ cov @ jac), 0.0)))
+        if abs(u) <= 2:
+            break
+        centre = centre + step * float(np.round(np.clip(u, -FINE_HALF_STEPS, FINE_HALF_STEPS)))
+    sigma = max(sigma, step / np.sqrt(12))
+    return ClockEstimate(float(best), float(sigma), "focus"), sorted(tried.items())
+
+
+#: the template match's best over the image's shifts within this many pixels each way: it
+#: scores the reference's focus, not its place (a clock offset on unequal legs moves the image as a
+#: whole, the ladder's phase ramp puts it back; a match held in place picks the offset of best place)
+MATCH_SHIFT_PX = 2
+
+
+def template_match(template: np.ndarray, max_shift_px: int = MATCH_SHIFT_PX) -> Callable[[np.ndarray], float]:
+    """A score: the best correlation, over whole-pixel shifts within ``max_shift_px`` each way, of an
+    image's amplitude with ``template``'s (same (H, W) shape) on their overlap, in [-1, 1]."""
+    b = np.abs(np.asarray(template, np.complex128))
+    h, w = b.shape
+    s = int(max_shift_px)
+    shifts = [(dy, dx) for dy in range(-s, s + 1) for dx in range(-s, s + 1)]
+
+    def corr(x: np.ndarray, y: np.ndarray) -> float:
+        x, y = x - x.mean(), y - y.mean()
+        return float((x * y).sum() / max(float(np.sqrt((x * x).sum() * (y * y).sum())), 1e-300))
+
+    def score(image: np.ndarray) -> float:
+        a = np.abs(np.asarray(image)).astype(np.float64)
+        best = -1.0
+        for dy, dx in shifts:
+            ia = slice(max(dy, 0), h + min(dy, 0)), slice(max(dx, 0), w + min(dx, 0))
+            ib = slice(max(-dy, 0), h + min(-dy, 0)), slice(max(-dx, 0), w + min(-dx, 0))
+            best = max(best, corr(a[ia], b[ib]))
+        return best
+
+    return score
+
+
+def search_scan_clock(
+    scan,
+    reference_roi,
+    size: int,
+    bp_options: dict | None = None,
+    max_offset_s: float = 0.15,
+    template=None,
+    step_s: float = 0.005,
+    fine_size: int | None = None,
+):
+    """``focus --clock-search``: a converted scan's positions re-sampled along its own track at the
+    offset that focuses the reference region best.
+
+    scan : :class:`~twinfocus.radar.scan.Scan`; reference_roi : (X0, X1, Y0, Y1, Z) metres; size : pixels
+    per side of the coarse search's reference image; fine_size : of the fine search's (+- 1.2
+    coarse steps around the coarse best; default ``size``). Without time stamps the offset counts
+    positions (``max_offset_s`` / 0.1 s of them, the MMWCAS frame period). template : ``n ->`` the
+    reference's image on the n x n grid (a twin's), matched by amplitude; None: the image's
+    sharpness (weaker on a speckled object). step_s : the coarse grid's step (the match peaks
+    within about the time a hand takes to cross a resolution cell, ~10 ms: keep it below that).
+    Returns (the scan with the positions moved, a record for metrics.json: the offset, its sigma,
+    the score, the images formed and the search's seconds).
+    """
+    import time
+    from dataclasses import replace
+
+    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.grid import ImageGrid
+
+    t_start = time.perf_counter()
+    if reference_roi is None:
+        raise TwinFocusError("--clock-search needs --reference-roi (the offset is chosen by the reference's focus)")
+    stamped = scan.timestamps_ns is not None
+    times = position_times_s(scan.timestamps_ns, scan.n_positions)
+    limit = max_offset_s if stamped else max_offset_s / 0.1
+    step = step_s if stamped else step_s / 0.1
+    bp = dict(bp_options or {})
+
+    def stage(n: int):
+        grid = ImageGrid.from_roi(reference_roi, n)
+        tpl = None if template is None else template(n)
+        score = sharpness if tpl is None else template_match(tpl)
+
+        def image(positions_m: np.ndarray) -> np.ndarray:
+            return backproject(scan.data, positions_m, scan.chirp, grid, **bp)
+
+        return image, score
+
+    image, score = stage(size)
+    steps = 2 * int(np.ceil(limit / step)) + 1
+    coarse, _ = focus_offset(image, scan.positions, times, limit, coarse_steps=steps, score=score, refine=False)
+    fine_n = int(fine_size or size)
+    image, score = stage(fine_n)
+    # a fifth of the coarse step, over +- 1.2 coarse steps
+    fine, tried = refine_offset(image, scan.positions, times, coarse.offset_s, step / 5, score)
+    offset = fine.offset_s
+    record = {
+        **fine.to_dict(),
+        "offset_s": offset,
+        "unit": "s" if stamped else "positions",
+        "searched": [-limit, limit],
+        "score": "sharpness" if template is None else "template_match",
+        "score_at_zero": score(image(scan.positions)),
+        "score_at_offset": score(image(shift_positions(scan.positions, times, offset))),
+        "images_formed": steps + len(tried) + 2,
+        "seconds": time.perf_counter() - t_start,
+        "image_size": [int(size), fine_n],
+    }
+    return replace(scan, positions=shift_positions(scan.positions, times, offset)), record
+
+
+#: above this offset (s) the search's line advises converting again with it: past a leg's ends the
+#: search can only go on straight, while the camera's trajectory has its poses through the turns
+#: (docs/sensors.md: a digital twin's target lost up to 0.04 SSIM at 50 ms on the held-out draws,
+#: 0.01 at 15 ms; set after them, as convert's least applied offset is)
+RECONVERT_ABOVE_S = 0.025
+
+
+def clock_search_line(record: dict) -> str:
+    """One line for the user from :func:`search_scan_clock`'s record."""
+    scale, unit = (1e3, "ms") if record["unit"] == "s" else (1.0, "positions")
+    line = (
+        f"[clock] offset {record['offset_s'] * scale:+.2f} +- {record['sigma_s'] * scale:.2f} {unit} by the "
+        f"reference's focus ({record['images_formed']} images, {record['seconds']:.1f} s)"
+    )
+    if record["unit"] == "s" and abs(record["offset_s"]) > RECONVERT_ABOVE_S:
+        line += (
+            f"; so large an offset is better applied where the camera's poses through the turns are: convert "
+            f"again with --align none --time-offset-s the shift it applied (<scan>.capture.json clock "
+            f"applied_shift_s) {record['offset_s']:+.3f}"
+        )
+    return line
