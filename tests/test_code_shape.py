@@ -12,24 +12,6 @@ MAX_PARAMETERS = 12
 MAX_LINES = 100
 NUMBA_DECORATORS = {"njit", "jit", "vectorize", "guvectorize", "stencil"}
 
-# Files whose functions are being reshaped by work in progress elsewhere (the focus plan, the
-# drift fit's speed-up, the digital twin's placement, the batch command). THIS LIST MUST EMPTY as
-# that work lands: remove a file when its work is merged and fix what the test then names.
-IN_PROGRESS = {
-    "twinfocus/focus/estimators.py",
-    "twinfocus/focus/ladder.py",
-    "twinfocus/focus/pipeline.py",
-    "twinfocus/focus/settings.py",
-    "twinfocus/cli/focus.py",
-    "twinfocus/cli/batch.py",
-    "twinfocus/cli/batch_jobs.py",
-    "nodes/solver.py",
-    "twinfocus/focus/space_variant.py",
-    "twinfocus/sensors/clock_offset.py",
-    "twinfocus/focus/boxes.py",
-}
-IN_PROGRESS_FOLDERS = ("twinfocus/twins/digital_twin/",)
-
 # Functions over the limits not yet reshaped, "file:function": public keyword signatures whose many
 # callers (tests among them) would change with a settings object, and the evaluation's long
 # drivers. THIS LIST MUST EMPTY too; nothing may be added to it.
@@ -78,17 +60,12 @@ def shape_offences(source: str, where: str) -> list[str]:
     return out
 
 
-def _in_progress(rel: str) -> bool:
-    return rel in IN_PROGRESS or rel.startswith(IN_PROGRESS_FOLDERS)
-
-
 def test_no_function_over_the_limits():
     offences = []
     for package in PACKAGES:
         for path in sorted((ROOT / package).rglob("*.py")):
             rel = path.relative_to(ROOT).as_posix()
-            if not _in_progress(rel):
-                offences += shape_offences(path.read_text(encoding="utf-8"), rel)
+            offences += shape_offences(path.read_text(encoding="utf-8"), rel)
     offences = [o for o in offences if _key(o) not in NOT_YET_RESHAPED]
     assert not offences, "functions over the limits:\n" + "\n".join(offences)
 
@@ -119,10 +96,3 @@ def test_the_checker_finds_long_and_wide_functions_and_spares_kernels_and_self()
     )
     got = shape_offences(source, "m.py")
     assert got == ["m.py:1 wide: 13 parameters (at most 12)", "m.py:4 long: 101 lines (at most 100)"]
-
-
-def test_the_in_progress_files_exist():
-    """An entry for a file that was moved or removed would silently spare its successor."""
-    missing = [rel for rel in sorted(IN_PROGRESS) if not (ROOT / rel).is_file()]
-    missing += [rel for rel in IN_PROGRESS_FOLDERS if not (ROOT / rel).is_dir()]
-    assert not missing, missing

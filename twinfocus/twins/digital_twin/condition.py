@@ -259,47 +259,9 @@ def condition_cloud(
     p = p.astype(np.float64, copy=False)
     info: dict = {"input_points": int(p.shape[0])}
     warn: list = []
-
-    finite = np.isfinite(p).all(axis=1)
-    info["non_finite_rows"] = int((~finite).sum())
-    if info["non_finite_rows"]:
-        p = p[finite]
-        _warn(
-            warn,
-            f"reference point cloud: dropped {info['non_finite_rows']} of {info['input_points']} rows holding NaN or inf",
-        )
-    if p.shape[0] < MIN_POINTS:
-        raise TwinFocusError(
-            f"reference point cloud has only {p.shape[0]} finite points (at least {MIN_POINTS} needed)"
-        )
-
+    p = _finite_rows(p, info, warn)
     if grid is not None:
-        m = cfg.region_margin_m
-        inside = (
-            (p[:, 0] >= grid.x0 - m) & (p[:, 0] <= grid.x1 + m) & (p[:, 1] >= grid.y0 - m) & (p[:, 1] <= grid.y1 + m)
-        )
-        info["outside_region"] = int((~inside).sum())
-        if not inside.any():
-            lo, hi = p.min(axis=0), p.max(axis=0)
-            raise TwinFocusError(
-                f"reference point cloud lies entirely outside the reference region: cloud x [{lo[0]:.3f}, {hi[0]:.3f}] "
-                f"y [{lo[1]:.3f}, {hi[1]:.3f}] m, region x [{grid.x0:.3f}, {grid.x1:.3f}] y [{grid.y0:.3f}, {grid.y1:.3f}] m "
-                "(wrong frame or units? clouds are metres in the radar's scene frame)"
-            )
-        if info["outside_region"]:
-            p = p[inside]
-            if info["outside_region"] > 0.5 * (info["outside_region"] + p.shape[0]):
-                _warn(
-                    warn,
-                    f"reference point cloud: {info['outside_region']} of {info['outside_region'] + p.shape[0]} "
-                    "points lie outside the reference region and were dropped (is the region right?)",
-                )
-        if p.shape[0] < MIN_POINTS:
-            raise TwinFocusError(
-                f"reference point cloud has only {p.shape[0]} points inside the reference region "
-                f"(at least {MIN_POINTS} needed)"
-            )
-
+        p = _in_region(p, grid, cfg.region_margin_m, info, warn)
     check_not_degenerate(p)
     if p.shape[0] > cfg.max_points:
         # A uniform random subset, not voxel averaging: averaging over 3-D voxels keeps one point
@@ -322,12 +284,82 @@ def condition_cloud(
     # Cells twice the sampling: a camera cloud ~1 mm apart leaves no empty cells at 2 mm.
     cell = 2.0 * cfg.voxel_m
     sigma_cells = max(1.0, cfg.smooth_window_m / (2.0 * cell))
+    field = _height_field_without_outliers(uv, w, cell, sigma_cells, cfg.surface_outlier_sigma, info)
+    lo, h, wt, cnt, n_points, noise = field
+    support, occ = _outline(cnt, cell, cfg)
+    info["holes_filled_fraction"] = round(float(1.0 - (occ & support).sum() / max(support.sum(), 1)), 4)
+    surface, curved = _surface_model(h, wt, occ, support, n_points, noise, sigma_cells, float(wavelength_m), cfg, info)
+
+    # Model points on a voxel_m lattice over the outline, heights interpolated from the field.
+    f = round(cell / cfg.voxel_m)
+    fine = np.kron(support, np.ones((f, f), bool))
+    ii, jj = np.nonzero(fine)
+    uvs = lo + (np.stack([ii, jj], axis=1) + 0.5) * cfg.voxel_m
+    if surface == "plane" or (surface == "outline" and not curved):
+        ws = np.zeros(ii.size)
+    else:
+        ws = ndimage.map_coordinates(h, [(ii + 0.5) / f - 0.5, (jj + 0.5) / f - 0.5], order=1, mode="nearest")
+    pts = c0 + uvs[:, :1] * eu + uvs[:, 1:] * ev + ws[:, None] * n
+    info["points"] = int(pts.shape[0])
+    info["seconds"] = round(time.perf_counter() - t0, 4)
+    return ConditionedCloud(pts, surface, (n, float(n @ c0)), info, warn)
+
+
+def _finite_rows(p: np.ndarray, info: dict, warn: list) -> np.ndarray:
+    """The cloud's finite rows (float (N, 3) metres), the others counted in ``info`` and warned of."""
+    finite = np.isfinite(p).all(axis=1)
+    info["non_finite_rows"] = int((~finite).sum())
+    if info["non_finite_rows"]:
+        p = p[finite]
+        _warn(
+            warn,
+            f"reference point cloud: dropped {info['non_finite_rows']} of {info['input_points']} rows holding NaN or inf",
+        )
+    if p.shape[0] < MIN_POINTS:
+        raise TwinFocusError(
+            f"reference point cloud has only {p.shape[0]} finite points (at least {MIN_POINTS} needed)"
+        )
+    return p
+
+
+def _in_region(p: np.ndarray, grid: ImageGrid, margin_m: float, info: dict, warn: list) -> np.ndarray:
+    """The points (float (N, 3) metres) within ``margin_m`` of the region's x, y; refuses a cloud
+    wholly outside it (a wrong frame or unit) and warns when most of it lies outside."""
+    m = margin_m
+    inside = (p[:, 0] >= grid.x0 - m) & (p[:, 0] <= grid.x1 + m) & (p[:, 1] >= grid.y0 - m) & (p[:, 1] <= grid.y1 + m)
+    info["outside_region"] = int((~inside).sum())
+    if not inside.any():
+        lo, hi = p.min(axis=0), p.max(axis=0)
+        raise TwinFocusError(
+            f"reference point cloud lies entirely outside the reference region: cloud x [{lo[0]:.3f}, {hi[0]:.3f}] "
+            f"y [{lo[1]:.3f}, {hi[1]:.3f}] m, region x [{grid.x0:.3f}, {grid.x1:.3f}] y [{grid.y0:.3f}, {grid.y1:.3f}] m "
+            "(wrong frame or units? clouds are metres in the radar's scene frame)"
+        )
+    if info["outside_region"]:
+        p = p[inside]
+        if info["outside_region"] > 0.5 * (info["outside_region"] + p.shape[0]):
+            _warn(
+                warn,
+                f"reference point cloud: {info['outside_region']} of {info['outside_region'] + p.shape[0]} "
+                "points lie outside the reference region and were dropped (is the region right?)",
+            )
+    if p.shape[0] < MIN_POINTS:
+        raise TwinFocusError(
+            f"reference point cloud has only {p.shape[0]} points inside the reference region "
+            f"(at least {MIN_POINTS} needed)"
+        )
+    return p
+
+
+def _height_field_without_outliers(uv, w, cell: float, sigma_cells: float, outlier_sigma: float, info: dict):
+    """The smoothed height field over the plane's (u, v) cells (``_height_field``), fitted, the points
+    far from the fit dropped, fitted again: (lo, h, wt, cnt, points kept, noise sd in metres)."""
     for _ in range(2):  # fit, drop what lies far from the fit, fit again
         lo, _, h, wt, cnt = _height_field(uv, w, cell, sigma_cells)
         ij = np.floor((uv - lo) / cell).astype(np.int64)
         r = w - h[ij[:, 0], ij[:, 1]]
         noise = float(1.4826 * np.median(np.abs(r - np.median(r))))
-        far = np.abs(r) > max(cfg.surface_outlier_sigma * noise, 2.0 * cell)
+        far = np.abs(r) > max(outlier_sigma * noise, 2.0 * cell)
         if not far.any():
             break
         uv, w = uv[~far], w[~far]
@@ -336,8 +368,12 @@ def condition_cloud(
             raise TwinFocusError("reference point cloud: too few points agree on a surface (all look like outliers)")
     info.setdefault("surface_outliers", 0)
     info["noise_sd_m"] = noise
+    return lo, h, wt, cnt, int(uv.shape[0]), noise
 
-    # Outline: occupied cells, closed over close_radius_m, enclosed holes filled, specks dropped.
+
+def _outline(cnt: np.ndarray, cell: float, cfg: ConditionConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(outline, occupied cells), bool (U, V): occupied cells, closed over close_radius_m, enclosed
+    holes filled, specks dropped."""
     occ = cnt > 0
     support = ndimage.binary_closing(occ, _disc(cfg.close_radius_m / cell), border_value=0) | occ
     holes, nh = ndimage.label(ndimage.binary_fill_holes(support) & ~support)
@@ -348,13 +384,18 @@ def condition_cloud(
     if nlab > 1:
         sizes = ndimage.sum(support, lab, index=np.arange(1, nlab + 1))
         support = np.isin(lab, 1 + np.flatnonzero(sizes >= 0.01 * sizes.max()))
-    info["holes_filled_fraction"] = round(float(1.0 - (occ & support).sum() / max(support.sum(), 1)), 4)
+    return support, occ
 
+
+def _surface_model(h, wt, occ, support, n_points: int, noise: float, sigma_cells: float, wavelength_m: float,
+                   cfg: ConditionConfig, info: dict) -> tuple[str, bool]:  # fmt: skip
+    """The surface model ("plane", "smooth" or "outline") the cloud supports, with its reason in
+    ``info``, and whether the surface is curved."""
     # Model uncertainty: noise / sqrt(points in the smoothing window). Density over the outline's
     # area, not per occupied cell (which is >= 1 however sparse the cloud).
-    density = uv.shape[0] / max(int(support.sum()), 1)
+    density = n_points / max(int(support.sum()), 1)
     model_sd = noise / (2.0 * np.sqrt(np.pi) * sigma_cells * np.sqrt(density))
-    k2 = 4.0 * np.pi / float(wavelength_m)
+    k2 = 4.0 * np.pi / wavelength_m
     # Curvature over well-supported cells only: at edges and holes the field rests on few points.
     solid = support & (wt >= 0.5 * np.median(wt[occ]))
     h_sup = h[solid] if solid.any() else h[support]
@@ -390,20 +431,7 @@ def condition_cloud(
     info["surface_reason"] = reason
     # the shape, whatever the model: an outline-only model of a bent plate is still bent
     info["curved"] = bool(curved)
-
-    # Model points on a voxel_m lattice over the outline, heights interpolated from the field.
-    f = round(cell / cfg.voxel_m)
-    fine = np.kron(support, np.ones((f, f), bool))
-    ii, jj = np.nonzero(fine)
-    uvs = lo + (np.stack([ii, jj], axis=1) + 0.5) * cfg.voxel_m
-    if surface == "plane" or (surface == "outline" and not curved):
-        ws = np.zeros(ii.size)
-    else:
-        ws = ndimage.map_coordinates(h, [(ii + 0.5) / f - 0.5, (jj + 0.5) / f - 0.5], order=1, mode="nearest")
-    pts = c0 + uvs[:, :1] * eu + uvs[:, 1:] * ev + ws[:, None] * n
-    info["points"] = int(pts.shape[0])
-    info["seconds"] = round(time.perf_counter() - t0, 4)
-    return ConditionedCloud(pts, surface, (n, float(n @ c0)), info, warn)
+    return surface, bool(curved)
 
 
 def support_on_grid(points_m: np.ndarray, grid: ImageGrid) -> np.ndarray:
