@@ -274,6 +274,7 @@ def test_an_object_smeared_over_its_whole_region_is_kept_by_its_incoherent_image
         check_has_signal(few.sum(axis=0), "the reference region", basis=few)
 
 
+@pytest.mark.slow  # 2.4 s idle: out of make test-fast
 def test_float32_and_float64_agree():
     a, b = scene(), scene(precision="float64")
     assert b["ref_basis"].dtype == np.complex128 or b["ref_basis"].dtype == np.complex64

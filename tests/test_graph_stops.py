@@ -103,6 +103,9 @@ def test_a_stopped_solver_fails_the_run_keeps_the_earlier_log_and_counts_the_sca
 
 
 @pytest.mark.timeout(300)
+# 10 s idle: out of make test-fast (a whole graph replays a log); the reading of a cut log is
+# tests/test_mcap.py::test_every_cut_of_a_file_reads_as_a_prefix, quick
+@pytest.mark.slow
 def test_a_replay_of_a_log_cut_in_half_exits_non_zero_and_says_what_it_lacked(tmp_path):
     full = tmp_path / "full.mcap"
     small_log(full)

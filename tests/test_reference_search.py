@@ -45,6 +45,7 @@ def test_region_of_a_template_file_is_its_grid():
     assert roi == pytest.approx((-0.1, 0.0, -0.05, 0.05, 0.55)) and info["source"] == "template file"
 
 
+@pytest.mark.slow  # 2.5 s idle: out of make test-fast
 def test_region_of_the_one_object_of_a_scan():
     ch = Chirp()
     va = mmwcas_virtual_array()
