@@ -309,9 +309,16 @@ def shift_positions(
 
 
 def sharpness(image: np.ndarray) -> float:
-    """Normalised intensity sharpness sum(|I|^4) / sum(|I|^2)^2 (larger = more focused)."""
-    p = np.abs(np.asarray(image)) ** 2
-    return float((p * p).sum() / max(p.sum() ** 2, 1e-300))
+    """Normalised intensity sharpness sum(|I|^4) / sum(|I|^2)^2 (larger = more focused), of a
+    complex image of any shape. Independent of the image's scale: computed in float64 on the
+    intensity over its peak, since a capture's ADC counts put |I|^4 past float32's range (every
+    offset then scored 0 and the search's peak was wherever it stopped)."""
+    p = np.abs(np.asarray(image, dtype=np.complex128)) ** 2
+    peak = float(p.max()) if p.size else 0.0
+    if not np.isfinite(peak) or peak <= 0.0:
+        return 0.0
+    p /= peak
+    return float((p * p).sum() / max(float(p.sum()) ** 2, 1e-300))
 
 
 #: the fine search's offsets: this many each side of its centre
