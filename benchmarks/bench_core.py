@@ -319,7 +319,7 @@ def bench_end_to_end(scan, template_scan, sc, quick) -> dict:
     runs it, in fresh processes: import time, the first run (template computed and cached), the
     second (template from the cache), wall time against the sum of the stages in metrics.json, and
     each process's peak memory; then the solver node's numerical work (bases built in batches of
-    20 positions as measurements arrive, then :func:`twinfocus.focus.pipeline.focus_bases`) in a fresh
+    20 positions as measurements arrive, then :meth:`twinfocus.focus.plan.FocusPlan.focus_bases`) in a fresh
     process, for its peak memory."""
     with tempfile.TemporaryDirectory() as d:
         d = Path(d)

@@ -369,7 +369,7 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
     the image shift (mm) that part stands for. The bench's draws (seeds 1 to ``draws``) and the
     held-out ones (``benchmarks.heldout_field_twin``'s seeds, 6 on, ``heldout`` of them).
 
-    And what the product's own placement (:func:`twinfocus.focus.pipeline.place_estimate`: the plain
+    And what the product's own placement (:func:`twinfocus.focus.plan.place_estimate`: the plain
     ramp fit, then the band's halves) makes of an exact estimate: the true phase as it stands, and
     moved by the ramp of that draw's camera offset (the x, y part of ``ALL``'s 2.5 mm in the
     direction the camera cloud draws), as an outline the camera put there would move it; and that

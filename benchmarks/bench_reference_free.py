@@ -1,6 +1,6 @@
 """Reference-free autofocus against the twins on the default scene: target SSIM and time of no
 correction, sharpness, minimum entropy, phase-gradient autofocus and the physical twin, per draw,
-each as ``twinfocus focus`` runs it (:func:`twinfocus.focus.pipeline.focus_bases`, default settings).
+each as ``twinfocus focus`` runs it (:meth:`twinfocus.focus.plan.FocusPlan.focus_bases`, default settings).
 
     python -m benchmarks.run --only reference_free   (or: python -m benchmarks.bench_reference_free --draws 3)
 

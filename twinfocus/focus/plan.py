@@ -539,7 +539,7 @@ def place_estimate(
 ) -> tuple[np.ndarray, dict, float | None]:
     """The ladder's placement and range-errors rungs climbed on one estimate
     (:class:`~twinfocus.focus.rungs.Placement`, :class:`~twinfocus.focus.rungs.RangeErrors`): the phase
-    :func:`~twinfocus.focus.pipeline.focus_bases` transfers to the target, its constant + linear ramp handled by
+    :meth:`~twinfocus.focus.plan.FocusPlan.focus_bases` transfers to the target, its constant + linear ramp handled by
     :func:`~twinfocus.focus.autofocus.transfer_phase` (``phase_ramp``).
 
     The plain ramp fit cannot place the reference when the estimate's phases have wrapped (its
