@@ -37,6 +37,61 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def offline_simulate_and_focus(
+    tmp_path: Path, scene: list[str], sc, size: str, iterations: str, focus_timeout_s: float
+) -> Path:
+    """``twinfocus simulate SCENE`` and ``twinfocus focus --template-scan`` of that scan on the
+    scenario ``sc``'s regions, each in its own process as a user runs them: the offline side of a
+    live-versus-offline test. Returns the focus folder (``tmp_path / "offline"``)."""
+    roi = [str(v) for v in sc.reference_roi()], [str(v) for v in sc.target_roi()]
+    scan, ref, out = tmp_path / "scan.npz", tmp_path / "ref.npz", tmp_path / "offline"
+    sim = subprocess.run(
+        [*CLI, "simulate", *scene, "--out", str(scan), "--template-out", str(ref), "--quiet"],
+        cwd=REPO,
+        capture_output=True,
+        timeout=300,
+    )
+    assert sim.returncode == 0, sim.stderr.decode()
+    focus = subprocess.run(
+        [
+            *CLI,
+            "focus",
+            str(scan),
+            "--template-scan",
+            str(ref),
+            "--reference-roi",
+            *roi[0],
+            "--target-roi",
+            *roi[1],
+            "--size",
+            size,
+            "--iterations",
+            iterations,
+            "--out",
+            str(out),
+            "--no-pictures",
+            "--quiet",
+        ],  # fmt: skip
+        cwd=REPO,
+        capture_output=True,
+        timeout=focus_timeout_s,
+    )
+    assert focus.returncode == 0, focus.stderr.decode()
+    return out
+
+
+def sim_graph(tmp_path: Path, sc, size: str, iterations: str, *args: str) -> "Launched":
+    """``twinfocus launch launch/sim.yaml`` of one scan (``exit_after:=1``, as fast as it is made:
+    ``rate:=0``) on the scenario ``sc``'s regions, writing under ``tmp_path / "graph"``; ``args``:
+    the scene's own launch arguments (columns, rows, seed, ...)."""
+    yaml_list = lambda r: "[" + ",".join(str(v) for v in r) + "]"  # noqa: E731
+    return Launched(
+        "launch/sim.yaml", f"port:={free_port()}", "web_port:=0", f"out:={tmp_path / 'graph'}", *args,
+        f"size:={size}", f"iterations:={iterations}", "rate:=0", "exit_after:=1",
+        f"reference_roi:={yaml_list(sc.reference_roi())}", f"target_roi:={yaml_list(sc.target_roi())}",
+    )  # fmt: skip
+
+
 class Launched:
     """``twinfocus launch ...`` in a subprocess, its output collected by a thread."""
 
@@ -289,7 +344,7 @@ def test_replayed_log_gives_the_phase_of_twinfocus_focus_on_the_equivalent_scan(
     assert json.loads((tmp_path / "graph" / "focus" / "run" / "metrics.json").read_text())["basis_batches"] > 5
     # Both build the same sub-image basis rows (the back-projection's range window starts on the
     # global lattice dr * integer, so a batch's profiles are samples of the whole scan's) and run
-    # the same pipeline.focus_bases; what differs is float64 rounding (each batch's window starts
+    # the same FocusPlan.focus_bases; what differs is float64 rounding (each batch's window starts
     # at another lattice node), which 40 Adam steps carry to the phase. Measured: 5.7e-7 rad
     # (float64, this case); the tolerance is ~10x that. (Before the lattice, each batch sampled
     # its profiles on its own grid and this test needed 1e-2 rad.)

@@ -9,12 +9,11 @@ images must be the same image, within 0.005 SSIM.
 """
 
 import json
-import subprocess
 
 import numpy as np
 import pytest
 
-from tests.test_graph import CLI, REPO, Launched, free_port
+from tests.test_graph import offline_simulate_and_focus, sim_graph
 from twinfocus.imaging.metrics import image_ssim
 from twinfocus.simulation.scenario import Scenario
 
@@ -25,68 +24,12 @@ def test_live_hand_sweep_equals_offline_focus(tmp_path):
     seed, cols, rows = "2", "2", "30"
     sc = Scenario(n_columns=2, n_rows=30, seed=2, trajectory="zigzag", error_model="hand")
     size, iterations = "32", "30"
-    roi = lambda r: [str(v) for v in r]  # noqa: E731
-    yaml_list = lambda r: "[" + ",".join(roi(r)) + "]"  # noqa: E731
     scene = ["--columns", cols, "--rows", rows, "--seed", seed, "--trajectory", "zigzag", "--error-model", "hand"]
-    sim = subprocess.run(
-        [
-            *CLI,
-            "simulate",
-            *scene,
-            "--out",
-            str(tmp_path / "scan.npz"),
-            "--template-out",
-            str(tmp_path / "ref.npz"),
-            "--quiet",
-        ],
-        cwd=REPO,
-        capture_output=True,
-        timeout=300,
-    )
-    assert sim.returncode == 0, sim.stderr.decode()
-    focus = subprocess.run(
-        [
-            *CLI,
-            "focus",
-            str(tmp_path / "scan.npz"),
-            "--template-scan",
-            str(tmp_path / "ref.npz"),
-            "--reference-roi",
-            *roi(sc.reference_roi()),
-            "--target-roi",
-            *roi(sc.target_roi()),
-            "--size",
-            size,
-            "--iterations",
-            iterations,
-            "--out",
-            str(tmp_path / "offline"),
-            "--no-pictures",
-            "--quiet",
-        ],
-        cwd=REPO,
-        capture_output=True,
-        timeout=600,
-    )
-    assert focus.returncode == 0, focus.stderr.decode()
-
-    g = Launched(
-        "launch/sim.yaml",
-        f"port:={free_port()}",
-        "web_port:=0",
-        f"out:={tmp_path / 'graph'}",
-        f"columns:={cols}",
-        f"rows:={rows}",
-        f"seed:={seed}",
-        "trajectory:=zigzag",
-        "error_model:=hand",
-        f"size:={size}",
-        f"iterations:={iterations}",
-        "rate:=0",
-        "exit_after:=1",
-        f"reference_roi:={yaml_list(sc.reference_roi())}",
-        f"target_roi:={yaml_list(sc.target_roi())}",
-    )
+    offline_simulate_and_focus(tmp_path, scene, sc, size, iterations, focus_timeout_s=600)
+    g = sim_graph(
+        tmp_path, sc, size, iterations,
+        f"columns:={cols}", f"rows:={rows}", f"seed:={seed}", "trajectory:=zigzag", "error_model:=hand",
+    )  # fmt: skip
     try:
         code = g.wait(600)
     finally:

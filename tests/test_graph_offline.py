@@ -5,16 +5,15 @@ streamed basis in the solver) and ``twinfocus simulate`` + ``twinfocus focus --t
 (the offline path, its own processes) must draw the same scan and give the same phase and image:
 the sim backends build the scenario through :mod:`twinfocus.simulation.scenario` with one random stream per
 purpose, the sim tracker reports a pose at every radar stamp, and the solver feeds
-:func:`twinfocus.focus.pipeline.focus_bases` what :func:`twinfocus.focus.pipeline.focus_scan` feeds it.
+:meth:`twinfocus.focus.plan.FocusPlan.focus_bases` what :meth:`twinfocus.focus.plan.FocusPlan.focus_scan` feeds it.
 """
 
 import json
-import subprocess
 
 import numpy as np
 import pytest
 
-from tests.test_graph import CLI, REPO, Launched, free_port
+from tests.test_graph import offline_simulate_and_focus, sim_graph
 from twinfocus.simulation.scenario import Scenario
 
 
@@ -23,74 +22,9 @@ from twinfocus.simulation.scenario import Scenario
 def test_live_sim_graph_equals_offline_simulate_and_focus(tmp_path):
     sc = Scenario(n_columns=2, n_rows=20, seed=5, error_model="vio")
     size, iterations = "24", "30"
-    roi = lambda r: [str(v) for v in r]  # noqa: E731
-    yaml_list = lambda r: "[" + ",".join(roi(r)) + "]"  # noqa: E731
-
-    sim = subprocess.run(
-        [
-            *CLI,
-            "simulate",
-            "--columns",
-            "2",
-            "--rows",
-            "20",
-            "--seed",
-            "5",
-            "--error-model",
-            "vio",
-            "--out",
-            str(tmp_path / "scan.npz"),
-            "--template-out",
-            str(tmp_path / "ref.npz"),
-            "--quiet",
-        ],
-        cwd=REPO,
-        capture_output=True,
-        timeout=300,
-    )
-    assert sim.returncode == 0, sim.stderr.decode()
-    focus = subprocess.run(
-        [
-            *CLI,
-            "focus",
-            str(tmp_path / "scan.npz"),
-            "--template-scan",
-            str(tmp_path / "ref.npz"),
-            "--reference-roi",
-            *roi(sc.reference_roi()),
-            "--target-roi",
-            *roi(sc.target_roi()),
-            "--size",
-            size,
-            "--iterations",
-            iterations,
-            "--out",
-            str(tmp_path / "offline"),
-            "--no-pictures",
-            "--quiet",
-        ],
-        cwd=REPO,
-        capture_output=True,
-        timeout=300,
-    )
-    assert focus.returncode == 0, focus.stderr.decode()
-
-    g = Launched(
-        "launch/sim.yaml",
-        f"port:={free_port()}",
-        "web_port:=0",
-        f"out:={tmp_path / 'graph'}",
-        "columns:=2",
-        "rows:=20",
-        "seed:=5",
-        "error_model:=vio",
-        f"size:={size}",
-        f"iterations:={iterations}",
-        "rate:=0",
-        "exit_after:=1",
-        f"reference_roi:={yaml_list(sc.reference_roi())}",
-        f"target_roi:={yaml_list(sc.target_roi())}",
-    )
+    scene = ["--columns", "2", "--rows", "20", "--seed", "5", "--error-model", "vio"]
+    offline_simulate_and_focus(tmp_path, scene, sc, size, iterations, focus_timeout_s=300)
+    g = sim_graph(tmp_path, sc, size, iterations, "columns:=2", "rows:=20", "seed:=5", "error_model:=vio")
     try:
         code = g.wait(400)
     finally:
