@@ -9,6 +9,7 @@ import pytest
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.backprojection.numba_backend import backproject
 from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import image_sharpness
 from twinfocus.motion.trajectory import handheld_zigzag
 from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.clock_offset import (
@@ -16,7 +17,6 @@ from twinfocus.sensors.clock_offset import (
     leg_starts,
     range_history_offset,
     refine_offset,
-    sharpness,
     shift_positions,
     template_match,
 )
@@ -141,7 +141,7 @@ def test_focus_search_undoes_an_offset_of_the_tracked_positions(offset_s):
 
 
 @pytest.mark.parametrize("scale", [1e-20, 1.0, 1e12, 1e30])
-def test_sharpness_is_the_same_at_any_scale_and_ranks_a_point_above_a_blur(scale):
+def test_the_searchs_sharpness_is_the_same_at_any_scale_and_ranks_a_point_above_a_blur(scale):
     # a capture's ADC counts put |I|^4 past float32's range: then every offset scored 0
     point = np.zeros((16, 16), np.complex64)
     point[8, 8] = 1.0
@@ -149,9 +149,9 @@ def test_sharpness_is_the_same_at_any_scale_and_ranks_a_point_above_a_blur(scale
     blur = np.full((16, 16), 0.3 + 0.1j, np.complex64)
     blur[8, 8] = 1.0
     exact = (1.0 + 0.25**2) / (1.0 + 0.25) ** 2  # sum |I|^4 / (sum |I|^2)^2, by hand
-    assert sharpness((point * np.float32(scale)).astype(np.complex64)) == pytest.approx(exact, rel=1e-6)
-    assert sharpness(blur * np.float32(scale)) < sharpness(point * np.float32(scale))
-    assert sharpness(np.zeros((4, 4), np.complex64)) == 0.0
+    assert image_sharpness((point * np.float32(scale)).astype(np.complex64)) == pytest.approx(exact, rel=1e-6)
+    assert image_sharpness(blur * np.float32(scale)) < image_sharpness(point * np.float32(scale))
+    assert image_sharpness(np.zeros((4, 4), np.complex64)) == 0.0
 
 
 def _cli(*argv: str) -> int:

@@ -296,14 +296,6 @@ def heldout_verdict(folds: list[dict]) -> dict:
     return out
 
 
-def sharpness(image: np.ndarray) -> float:
-    """sum(I^2) / sum(I)^2 of I = |image|^2 (complex (H, W)): 1 / the number of pixels the energy
-    spreads over, higher when sharper; scale-free (at unit peak in float64 first)."""
-    a = np.abs(np.asarray(image)).astype(np.float64)
-    inten = (a / max(a.max(), 1e-300)) ** 2
-    return float((inten**2).sum() / max(inten.sum() ** 2, 1e-300))
-
-
 def reference_evidence(problem: Problem, model: Model) -> dict:
     """How well ``model`` matches the reference to its template: for a template with phase the
     unmatched share 1 - complex correlation (lower is better), for an amplitude template the SSIM
@@ -312,7 +304,7 @@ def reference_evidence(problem: Problem, model: Model) -> dict:
     cfg = problem.config
     template = model.template if model.template is not None else problem.template
     if template is None:
-        return {"target_sharpness": sharpness(model.apply(problem, "target"))}
+        return {"target_sharpness": metrics.image_sharpness(model.apply(problem, "target"))}
     ref = model.apply(problem, "reference")
     if np.iscomplexobj(template):
         return {"reference_unmatched": 1.0 - complex_match(ref, template)}

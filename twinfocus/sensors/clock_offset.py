@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.imaging.metrics import image_sharpness
 from twinfocus.radar.fmcw import Chirp, range_compress
 
 #: least peak-to-median ratio of the summed range profile for a scatterer to count as one
@@ -308,19 +309,6 @@ def shift_positions(
     return out
 
 
-def sharpness(image: np.ndarray) -> float:
-    """Normalised intensity sharpness sum(|I|^4) / sum(|I|^2)^2 (larger = more focused), of a
-    complex image of any shape. Independent of the image's scale: computed in float64 on the
-    intensity over its peak, since a capture's ADC counts put |I|^4 past float32's range (every
-    offset then scored 0 and the search's peak was wherever it stopped)."""
-    p = np.abs(np.asarray(image, dtype=np.complex128)) ** 2
-    peak = float(p.max()) if p.size else 0.0
-    if not np.isfinite(peak) or peak <= 0.0:
-        return 0.0
-    p /= peak
-    return float((p * p).sum() / max(float(p.sum()) ** 2, 1e-300))
-
-
 #: the fine search's offsets: this many each side of its centre
 FINE_HALF_STEPS = 6
 
@@ -331,7 +319,7 @@ def focus_offset(
     times_s: np.ndarray,
     max_offset_s: float,
     coarse_steps: int = 13,
-    score: Callable[[np.ndarray], float] = sharpness,
+    score: Callable[[np.ndarray], float] = image_sharpness,
     centre_s: float = 0.0,
     refine: bool = True,
 ) -> tuple[ClockEstimate, list[tuple[float, float]]]:
@@ -387,7 +375,7 @@ def refine_offset(
     times_s: np.ndarray,
     centre_s: float,
     step_s: float,
-    score: Callable[[np.ndarray], float] = sharpness,
+    score: Callable[[np.ndarray], float] = image_sharpness,
 ) -> tuple[ClockEstimate, list[tuple[float, float]]]:
     """The vertex of the least-squares parabola through the scores of 2 x
     :data:`FINE_HALF_STEPS` + 1 offsets ``step_s`` apart around ``centre_s``, the window moved onto
@@ -493,7 +481,7 @@ def search_scan_clock(
     def stage(n: int):
         grid = ImageGrid.from_roi(reference_roi, n)
         tpl = None if template is None else template(n)
-        score = sharpness if tpl is None else template_match(tpl)
+        score = image_sharpness if tpl is None else template_match(tpl)
 
         def image(positions_m: np.ndarray) -> np.ndarray:
             return backproject(scan.data, positions_m, scan.chirp, grid, **bp)
