@@ -14,8 +14,33 @@ from msgs.schema import BusMessage, Header, array, flag, integer, mapping, messa
 from twinfocus.radar.fmcw import Chirp
 
 
+class ChirpSamples(BusMessage):
+    """What the messages that carry IF samples (:class:`RadarFrame`, :class:`SarMeasurement`) share:
+    the check of their chirp fields and the :class:`~twinfocus.radar.fmcw.Chirp` they make. It
+    holds no fields (it is no dataclass): each message declares ``data`` complex64 (K, N),
+    ``f0_hz``, ``slope_hz_per_s`` and ``fs_hz`` itself, in its own order."""
+
+    data: np.ndarray
+    f0_hz: float
+    slope_hz_per_s: float
+    fs_hz: float
+
+    def check(self) -> str | None:
+        for name in ("f0_hz", "slope_hz_per_s", "fs_hz"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                return f"field '{name}' must be a positive finite number, got {v!r}"
+        if self.data.shape[1] < 2:
+            return f"field 'data' needs at least 2 fast-time samples, got shape {self.data.shape}"
+        return None
+
+    def chirp(self) -> Chirp:
+        """The :class:`~twinfocus.radar.fmcw.Chirp` these samples were taken with."""
+        return Chirp(self.f0_hz, self.slope_hz_per_s, self.fs_hz, int(self.data.shape[1]))
+
+
 @message(topic="radar/frame")
-class RadarFrame(BusMessage):
+class RadarFrame(ChirpSamples):
     """One radar position: the monostatic-equivalent IF samples of every virtual channel.
 
     data : complex64 (K, N), the model of docs/architecture.md section 2 (one row of a scan's ``data``).
@@ -46,13 +71,6 @@ class RadarFrame(BusMessage):
         0, doc="capture frames with missing bytes (zeros stand in), since the stream began"
     )
     bytes_lost: int = integer(0, doc="capture bytes that never arrived, since the stream began")
-
-    def check(self) -> str | None:
-        return _check_chirp(self)
-
-    def chirp(self) -> Chirp:
-        """The :class:`~twinfocus.radar.fmcw.Chirp` these samples were taken with."""
-        return Chirp(self.f0_hz, self.slope_hz_per_s, self.fs_hz, int(self.data.shape[1]))
 
 
 @message(topic="vio/pose")
@@ -106,7 +124,7 @@ class StereoFrame(BusMessage):
 
 
 @message(topic="sar/measurement")
-class SarMeasurement(BusMessage):
+class SarMeasurement(ChirpSamples):
     """A radar frame paired with its phase-centre positions: one row of a scan file.
 
     data : complex64 (K, N) as in :class:`RadarFrame`; positions_m : float64 (K, 3) tracked
@@ -133,13 +151,6 @@ class SarMeasurement(BusMessage):
         0, doc="capture frames with missing bytes (zeros stand in), since the stream began"
     )
     bytes_lost: int = integer(0, doc="capture bytes that never arrived, since the stream began")
-
-    def check(self) -> str | None:
-        return _check_chirp(self)
-
-    def chirp(self) -> Chirp:
-        """The :class:`~twinfocus.radar.fmcw.Chirp` these samples were taken with."""
-        return Chirp(self.f0_hz, self.slope_hz_per_s, self.fs_hz, int(self.data.shape[1]))
 
 
 @message(topic="twin/template")
@@ -246,16 +257,6 @@ class NodeStatus(BusMessage):
     published: dict = mapping("int")
     lost: dict = mapping("int")
     message: str = text()
-
-
-def _check_chirp(msg) -> str | None:
-    for name in ("f0_hz", "slope_hz_per_s", "fs_hz"):
-        v = getattr(msg, name)
-        if not (np.isfinite(v) and v > 0):
-            return f"field '{name}' must be a positive finite number, got {v!r}"
-    if msg.data.shape[1] < 2:
-        return f"field 'data' needs at least 2 fast-time samples, got shape {msg.data.shape}"
-    return None
 
 
 #: topic -> the message type that travels on it

@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
+from numba import njit, prange
 
 from twinfocus.imaging.backprojection.numba_backend import (
     _accumulate_channel,
@@ -32,12 +34,6 @@ from twinfocus.imaging.backprojection.numba_backend import (
 from twinfocus.imaging.grid import VolumeGrid
 from twinfocus.imaging.range_geometry import DEFAULT_OVERSAMPLE, local_frame, turns_per_m
 from twinfocus.radar.fmcw import C_M_PER_S, Chirp
-
-try:  # numba is a hard dependency; the guard only keeps import errors readable
-    import numba
-    from numba import njit, prange
-except ImportError as exc:  # pragma: no cover
-    raise ImportError("twinfocus.imaging.line_backprojection needs numba (pip install numba)") from exc
 
 #: bound on the bilinear interpolation error of the table, relative to each term's amplitude
 TABLE_ERROR = 1e-2
