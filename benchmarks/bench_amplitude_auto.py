@@ -27,7 +27,7 @@ def one_scene(z_m: float, rough: bool, seed: int) -> dict:
     from twinfocus.focus.estimators import estimator_settings
     from twinfocus.focus.pipeline import Bases, Reference, Truth
     from twinfocus.focus.plan import FocusPlan
-    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.imaging.backprojection.numba_backend import subimage_basis
     from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.twins.digital_twin.condition import digital_twin_reference
 
@@ -43,11 +43,7 @@ def one_scene(z_m: float, rough: bool, seed: int) -> dict:
     twin = digital_twin_reference(sc.scene().object("reference").surface_points(1e-3), scan.positions, scan.chirp, rg)
     rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
     tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
-    truth = dict(
-        truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
-        truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
-        positions_true=scan.positions_true,
-    )
+    truth = Truth.of_scan(scan, rg, tg)
     stated = float(np.linalg.norm(sc.error_sigma_m))  # what a user who knew the error would state
     old_auto = "projection" if stated <= scan.chirp.wavelength_m / 4 else "projection-refined"
     rec: dict = {"z_mm": z_m * 1e3, "rough": rough, "seed": seed, "old auto chose": old_auto}
@@ -55,7 +51,7 @@ def one_scene(z_m: float, rough: bool, seed: int) -> dict:
         out = FocusPlan.make(config=AutofocusConfig(**estimator_settings(est, False))).focus_bases(
             Bases(rb, tb, scan.positions, scan.chirp, rg, tg),
             Reference(template=twin.template),
-            Truth(truth["truth_target"], truth["truth_reference"], truth["positions_true"]),
+            truth,
         )
         rec[name] = out.metrics["target_ssim_corrected"]
         rec[f"{name} time_s"] = out.timings_s["autofocus"]

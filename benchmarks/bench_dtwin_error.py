@@ -102,7 +102,7 @@ def self_template_drift(d: dict, dt) -> tuple[float, float]:
     halves = half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg)()
     phase, drift, tilt, fit = fit_smooth_drift(d["rb"], dt.reference, dt.phase_rad, c, rg, wl, half_basis=halves[0])
     image = drift_image(d["tb"], phase, drift, rg.centre_m, c, tg, wl, half_basis=halves[1], tilt_rad=tilt)
-    return image_ssim(image, d["truth"]["truth_target"]), float(fit["match_after"])
+    return image_ssim(image, d["truth"].target), float(fit["match_after"])
 
 
 def intensity_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
@@ -131,7 +131,7 @@ def one_draw(
 
     d = draw_inputs(condition, seed, shapes, rows, size)
     scan, rb, tb = d["scan"], d["rb"], d["tb"]
-    truth = d["truth"]["truth_target"]
+    truth = d["truth"].target
     centres = scan.positions.mean(axis=1)
     runs = sweeps(centres)
     true_phase = oracle_phase(scan.positions_true, scan.positions, d["rg"].centre_m, scan.chirp)

@@ -112,11 +112,11 @@ def surface_of(kw: dict) -> str:
 def draw_inputs(condition: str, seed: int, shapes: tuple, rows: int, size: int, surface: str | None = None) -> dict:
     """One draw's scan and what the digital twin is given: ``kw`` (its Scenario keywords),
     ``scan``, ``template_scan`` (the motion-stage scan), grids ``rg``/``tg``, ``twin`` (from the
-    camera cloud as it comes), bases ``rb``/``tb``, ``truth`` (focus_bases' truth keywords) and
+    camera cloud as it comes), bases ``rb``/``tb``, ``truth`` (the :class:`~twinfocus.focus.pipeline.Truth` focus_bases is given) and
     ``upper_band`` (the reference's upper-band basis) and ``reference_points`` (its exact surface,
     float (N, 3) metres, what the camera cloud was made from)."""
-    from twinfocus.focus.pipeline import upper_band_basis
-    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.focus.pipeline import Truth, upper_band_basis
+    from twinfocus.imaging.backprojection.numba_backend import subimage_basis
     from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
     from twinfocus.twins.digital_twin.condition import digital_twin_reference
@@ -128,11 +128,7 @@ def draw_inputs(condition: str, seed: int, shapes: tuple, rows: int, size: int, 
     rng = np.random.default_rng([seed, 14])
     surface = sc.scene().object("reference").surface_points(1e-3)
     cloud = camera_cloud(surface, *CLOUD, float(rng.uniform(*OFFSET_RANGE_M)), rng=rng)
-    truth = dict(
-        truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
-        truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
-        positions_true=scan.positions_true,
-    )
+    truth = Truth.of_scan(scan, rg, tg)
     return dict(
         kw=kw,
         scan=scan,
@@ -153,7 +149,7 @@ def digital_twin_focus(d: dict, **config):
     ``config``: AutofocusConfig fields over the defaults."""
     from twinfocus.focus.autofocus import AutofocusConfig
     from twinfocus.focus.estimators import estimator_settings
-    from twinfocus.focus.pipeline import Bases, Reference, Truth
+    from twinfocus.focus.pipeline import Bases, Reference
     from twinfocus.focus.plan import FocusPlan
 
     twin, scan = d["twin"], d["scan"]
@@ -161,7 +157,7 @@ def digital_twin_focus(d: dict, **config):
     return FocusPlan.make(config=cfg).focus_bases(
         Bases(d["rb"], d["tb"], scan.positions, scan.chirp, d["rg"], d["tg"], upper_band=d["upper_band"]),
         Reference(template=twin.template, support=twin.support, info=twin.info),
-        Truth(d["truth"]["truth_target"], d["truth"]["truth_reference"], d["truth"]["positions_true"]),
+        d["truth"],
     )
 
 
@@ -170,7 +166,7 @@ def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> 
     from twinfocus.focus.drift_check import step_coherence
     from twinfocus.focus.estimators import estimator_settings
     from twinfocus.focus.outline_fill import outline_fill
-    from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases
+    from twinfocus.focus.pipeline import Bases, Reference
     from twinfocus.focus.plan import FocusPlan
     from twinfocus.imaging.basis import form_image
     from twinfocus.imaging.metrics import image_ssim, oracle_phase
@@ -190,17 +186,9 @@ def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> 
     dt = digital_twin_focus(d)
     # what `twinfocus focus --template-scan` runs
     pt = FocusPlan.make(config=AutofocusConfig(**estimator_settings("auto", True))).focus_bases(
-        Bases(
-            rb,
-            tb,
-            scan.positions,
-            scan.chirp,
-            rg,
-            tg,
-            half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg),
-        ),
+        Bases.of_scan(scan, rb, tb, rg, tg),
         Reference(template=template_from_scan(tpl_scan, rg, keep_phase=True)),
-        Truth(truth["truth_target"], truth["truth_reference"], truth["positions_true"]),
+        truth,
     )
     for name, out in (("digital", dt), ("physical", pt)):
         m, conf = out.metrics, out.metrics["confidence"]
@@ -215,11 +203,11 @@ def one_draw(condition: str, seed: int, shapes: tuple, rows: int, size: int) -> 
     rec["digital outline"] = dt.metrics["reference_outline"]
     rec["digital placement"] = placement(d, dt)
     rec["physical outline"] = outline_fill(pt.reference, twin.support)
-    rec["truth outline"] = outline_fill(truth["truth_reference"], twin.support)
+    rec["truth outline"] = outline_fill(truth.reference, twin.support)
     rec["uncorrected"] = dt.metrics["target_ssim_uncorrected"]
     rec["oracle"] = dt.metrics["target_ssim_oracle_phase"]
     reference_true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
-    rec["reference true phase"] = image_ssim(form_image(tb, reference_true), truth["truth_target"])
+    rec["reference true phase"] = image_ssim(form_image(tb, reference_true), truth.target)
     rec.update(baselines(d))
     return rec
 
@@ -240,7 +228,7 @@ def placement(d: dict, out) -> dict:
     from twinfocus.imaging.metrics import image_ssim, oracle_phase
     from twinfocus.imaging.subpixel import shift_image
 
-    scan, rg, truth = d["scan"], d["rg"], d["truth"]["truth_target"]
+    scan, rg, truth = d["scan"], d["rg"], d["truth"].target
     centres = scan.positions.mean(axis=1)
     true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
     _, coeffs = fit_linear_phase(
@@ -308,7 +296,7 @@ def cloud_parts(d: dict) -> dict:
 def baselines(d: dict) -> dict:
     """The reference-free methods on :func:`draw_inputs`' draw ``d``: each one's target SSIM
     (``sharpness``, ...), whether the confidence report trusts it and its warnings."""
-    from twinfocus.focus.pipeline import Bases, Reference, Truth
+    from twinfocus.focus.pipeline import Bases, Reference
     from twinfocus.focus.plan import FocusPlan
 
     out: dict = {}
@@ -317,7 +305,7 @@ def baselines(d: dict) -> dict:
         f = FocusPlan.make(method=method).focus_bases(
             Bases(d["rb"], d["tb"], scan.positions, scan.chirp, d["rg"], d["tg"]),
             Reference(),
-            Truth(d["truth"]["truth_target"], d["truth"]["truth_reference"], d["truth"]["positions_true"]),
+            d["truth"],
         )
         out[method] = f.metrics["target_ssim_corrected"]
         out[f"{method} trusted"] = f.metrics["confidence"]["trusted"]

@@ -74,7 +74,6 @@ def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
     from twinfocus.focus.phase_ramp import fit_linear_phase
     from twinfocus.focus.pipeline import Bases, Reference, Truth, upper_band_basis
     from twinfocus.focus.plan import FocusPlan
-    from twinfocus.imaging.backprojection.numba_backend import backproject
     from twinfocus.imaging.basis import form_image
     from twinfocus.imaging.metrics import image_ssim, oracle_phase
     from twinfocus.twins.digital_twin.condition import digital_twin_reference
@@ -83,11 +82,7 @@ def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
     d = field_draw(SCENES[scene], seed, impairments)
     sc, scan, tpl_scan, rg, tg, twin, rb, tb = d.sc, d.scan, d.tpl_scan, d.rg, d.tg, d.twin, d.rb, d.tb
     exact = digital_twin_reference(d.surface, scan.positions, scan.chirp, rg)
-    truth = dict(
-        truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
-        truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
-        positions_true=scan.positions_true,
-    )
+    truth = Truth.of_scan(scan, rg, tg)
     wl = scan.chirp.wavelength_m
     # the earlier auto for an amplitude template: chosen from the tracking error the user states
     old_auto = estimator_settings(
@@ -128,7 +123,7 @@ def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
         out = FocusPlan.make(config=AutofocusConfig(**settings)).focus_bases(
             Bases(rb, tb, scan.positions, scan.chirp, rg, tg, upper_band=upper),
             Reference(template=template, support=support, info=info),
-            Truth(truth["truth_target"], truth["truth_reference"], truth["positions_true"]),
+            truth,
         )
         rec[name] = out.metrics["target_ssim_corrected"]
         rec[f"{name} time_s"] = out.timings_s["autofocus"]
@@ -141,13 +136,13 @@ def one_draw(scene: str, impairments: tuple, full: bool, seed: int) -> dict:
     rec["uncorrected"] = out.metrics["target_ssim_uncorrected"]
     rec["oracle phase"] = out.metrics["target_ssim_oracle_phase"]
     reference_true = oracle_phase(scan.positions_true, scan.positions, rg.centre_m, scan.chirp)
-    rec["reference true phase"] = image_ssim(form_image(tb, reference_true), truth["truth_target"])
+    rec["reference true phase"] = image_ssim(form_image(tb, reference_true), truth.target)
     # Diagnostic, from the truth: the default with its image moved to where the reference really
     # is (the constant + linear-in-aperture part of its difference from the reference's true phase
     # taken out). What is left between this and the default is the reference's position alone.
     aperture = scan.positions.mean(axis=1)[:, :2]
     ramp, coeffs = fit_linear_phase(np.angle(np.exp(1j * (default_phase - reference_true))), aperture)
-    rec["default, position from the truth"] = image_ssim(form_image(tb, default_phase - ramp), truth["truth_target"])
+    rec["default, position from the truth"] = image_ssim(form_image(tb, default_phase - ramp), truth.target)
     rec["default position error_mm"] = (
         coeffs[1:] * float(rg.z - scan.positions[..., 2].mean()) * wl / (4 * np.pi) * 1e3
     ).tolist()

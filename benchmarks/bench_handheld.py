@@ -21,7 +21,7 @@ import numpy as np
 
 from twinfocus.focus.autofocus import AutofocusConfig
 from twinfocus.focus.estimators import estimator_settings
-from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases
+from twinfocus.focus.pipeline import Bases, Reference, Truth
 from twinfocus.focus.plan import FocusPlan
 from twinfocus.imaging import metrics
 from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
@@ -80,6 +80,7 @@ def draw_bases(kw: dict, seed: int):
 def one_draw(kw: dict, seed: int) -> dict:
     scan, rg, tg, tpl, rb, tb, truth_t, truth_r = draw_bases(kw, seed)
     rec: dict = {"seed": seed}
+    bases, truth = Bases.of_scan(scan, rb, tb, rg, tg), Truth(truth_t, truth_r, scan.positions_true)
     runs = (
         ("closed_form_remove", tpl, "correlation", "remove", "off"),
         ("closed_form_auto", tpl, "correlation", "auto", "off"),
@@ -93,19 +94,7 @@ def one_draw(kw: dict, seed: int) -> dict:
             config=AutofocusConfig(**estimator_settings(est, np.iscomplexobj(template))),
             phase_ramp=ramp,
             space_variant=sv,
-        ).focus_bases(
-            Bases(
-                rb,
-                tb,
-                scan.positions,
-                scan.chirp,
-                rg,
-                tg,
-                half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg),
-            ),
-            Reference(template=template),
-            Truth(truth_t, truth_r, scan.positions_true),
-        )
+        ).focus_bases(bases, Reference(template=template), truth)
         rec[name] = out.metrics["target_ssim_corrected"]
         if name == "default":
             rec["default_time_s"] = time.perf_counter() - t0

@@ -58,7 +58,7 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
     from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases, upper_band_basis
     from twinfocus.focus.plan import FocusPlan
     from twinfocus.focus.settings import default_settings
-    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+    from twinfocus.imaging.backprojection.numba_backend import subimage_basis
     from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.twins.templates import template_from_scan
 
@@ -82,11 +82,7 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
             template = np.abs(template)
     rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
     tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
-    truth = dict(
-        truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
-        truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
-        positions_true=scan.positions_true,
-    )
+    truth = Truth.of_scan(scan, rg, tg)
     settings = {**default_settings(), "iterations": ITERATIONS, "device": "cpu"}
     rec: dict = {"scene": scene, "seed": seed, "rungs": {}}
     for model in TWIN_RUNGS + MODELS:
@@ -114,7 +110,7 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
             out = plan.focus_bases(
                 bases,
                 reference,
-                Truth(truth["truth_target"], truth["truth_reference"][::ky, ::kx], truth["positions_true"]),
+                Truth(truth.target, truth.reference[::ky, ::kx], truth.positions),
             )
         except TwinFocusError as exc:  # the rung cannot run on this scene
             rec.setdefault("cannot run", {})[model] = str(exc)

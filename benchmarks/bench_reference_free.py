@@ -23,9 +23,9 @@ import numpy as np
 
 from twinfocus.focus.autofocus import AutofocusConfig
 from twinfocus.focus.estimators import estimator_settings
-from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases
+from twinfocus.focus.pipeline import Bases, Reference, Truth
 from twinfocus.focus.plan import FocusPlan
-from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
+from twinfocus.imaging.backprojection.numba_backend import subimage_basis
 from twinfocus.simulation.scenario import PAPER_IMAGE_SIZE, Scenario, scenario_grids, simulate_scenario
 from twinfocus.twins.templates import template_from_scan
 
@@ -38,11 +38,7 @@ def one_draw(seed: int, size: int) -> dict:
     rg, tg = scenario_grids(sc, size)
     rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
     tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
-    truth = {
-        "truth_target": backproject(scan.data, scan.positions_true, scan.chirp, tg),
-        "truth_reference": backproject(scan.data, scan.positions_true, scan.chirp, rg),
-        "positions_true": scan.positions_true,
-    }
+    bases, truth = Bases.of_scan(scan, rb, tb, rg, tg), Truth.of_scan(scan, rg, tg)
     rec: dict = {"seed": seed}
     for method in METHODS:
         template, cfg = None, AutofocusConfig()
@@ -51,17 +47,7 @@ def one_draw(seed: int, size: int) -> dict:
             cfg = AutofocusConfig(**estimator_settings("auto", True))
         t0 = time.perf_counter()
         out = FocusPlan.make(method="twin" if template is not None else method, config=cfg).focus_bases(
-            Bases(
-                rb,
-                tb,
-                scan.positions,
-                scan.chirp,
-                rg,
-                tg,
-                half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, tg),
-            ),
-            Reference(template=template),
-            Truth(truth["truth_target"], truth["truth_reference"], truth["positions_true"]),
+            bases, Reference(template=template), truth
         )
         rec[method] = {"target_ssim": out.metrics["target_ssim_corrected"], "time_s": time.perf_counter() - t0}
     rec["oracle phase"] = {"target_ssim": out.metrics["target_ssim_oracle_phase"], "time_s": 0.0}

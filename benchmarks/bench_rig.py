@@ -82,7 +82,7 @@ def focus_set(condition: str, seed: int, offset: np.ndarray, rig_offset: np.ndar
     ceiling each, and the physical twin."""
     from twinfocus.focus.autofocus import AutofocusConfig
     from twinfocus.focus.estimators import estimator_settings
-    from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases
+    from twinfocus.focus.pipeline import Bases, Reference
     from twinfocus.focus.plan import FocusPlan
     from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
     from twinfocus.twins.digital_twin.condition import digital_twin_reference
@@ -116,17 +116,9 @@ def focus_set(condition: str, seed: int, offset: np.ndarray, rig_offset: np.ndar
         if "rig_placement" in conf:
             rec["rig placement"] = conf["rig_placement"]
     pt = FocusPlan.make(config=AutofocusConfig(**estimator_settings("auto", True))).focus_bases(
-        Bases(
-            d["rb"],
-            d["tb"],
-            scan.positions,
-            scan.chirp,
-            rg,
-            d["tg"],
-            half_bases=half_array_bases(scan.data, scan.positions, scan.chirp, rg, d["tg"]),
-        ),
+        Bases.of_scan(scan, d["rb"], d["tb"], rg, d["tg"]),
         Reference(template=template_from_scan(d["template_scan"], rg, keep_phase=True)),
-        Truth(d["truth"]["truth_target"], d["truth"]["truth_reference"], d["truth"]["positions_true"]),
+        d["truth"],
     )
     rec["physical"] = round(pt.metrics["target_ssim_corrected"], 4)
     return rec

@@ -44,18 +44,13 @@ def one_draw(kw: dict, seed: int) -> dict:
     from twinfocus.focus.phase_ramp import fit_linear_phase
     from twinfocus.focus.pipeline import Bases, Reference, Truth, upper_band_basis
     from twinfocus.focus.plan import FocusPlan
-    from twinfocus.imaging.backprojection.numba_backend import backproject
     from twinfocus.imaging.basis import form_image
     from twinfocus.imaging.metrics import image_ssim, oracle_phase
     from twinfocus.twins.templates import template_from_scan
 
     d = field_draw(kw, seed)
     scan, tpl_scan, rg, tg, twin, rb, tb = d.scan, d.tpl_scan, d.rg, d.tg, d.twin, d.rb, d.tb
-    truth = dict(
-        truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
-        truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
-        positions_true=scan.positions_true,
-    )
+    truth = Truth.of_scan(scan, rg, tg)
     upper = upper_band_basis(scan.data, scan.positions, scan.chirp, rg)
     settings = estimator_settings("auto", False, has_support=True)
     rec: dict = {"seed": seed}
@@ -63,7 +58,7 @@ def one_draw(kw: dict, seed: int) -> dict:
         out = FocusPlan.make(config=AutofocusConfig(**settings, **growth)).focus_bases(
             Bases(rb, tb, scan.positions, scan.chirp, rg, tg, upper_band=upper),
             Reference(template=twin.template, support=twin.support, info=twin.info),
-            Truth(truth["truth_target"], truth["truth_reference"], truth["positions_true"]),
+            truth,
         )
         rec[name] = out.metrics["target_ssim_corrected"]
         rec[f"{name} trusted"] = out.metrics["confidence"]["trusted"]
@@ -80,14 +75,14 @@ def one_draw(kw: dict, seed: int) -> dict:
     ramp, _ = fit_linear_phase(
         np.angle(np.exp(1j * (out.phase_rad - reference_true))), scan.positions.mean(axis=1)[:, :2]
     )
-    rec["truth-placed"] = image_ssim(form_image(tb, out.phase_rad - ramp), truth["truth_target"])
+    rec["truth-placed"] = image_ssim(form_image(tb, out.phase_rad - ramp), truth.target)
     phys = FocusPlan.make(
         config=AutofocusConfig(**estimator_settings("correlation", True)),
         space_variant="off",
     ).focus_bases(
         Bases(rb, tb, scan.positions, scan.chirp, rg, tg),
         Reference(template=template_from_scan(tpl_scan, rg, keep_phase=True)),
-        Truth(truth["truth_target"], truth["truth_reference"], truth["positions_true"]),
+        truth,
     )
     rec["physical"] = phys.metrics["target_ssim_corrected"]
     return rec

@@ -38,11 +38,12 @@ from twinfocus.focus.outline_fill import outline_fill
 from twinfocus.focus.phase_ramp import ramp_free_coherence
 from twinfocus.focus.rig_placement import rig_trust
 from twinfocus.imaging import metrics
-from twinfocus.imaging.backprojection.numba_backend import subimage_basis, subimage_basis_points
+from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis, subimage_basis_points
 from twinfocus.imaging.basis import form_image
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.io.atomic import record_written, remove_earlier
 from twinfocus.radar.fmcw import Chirp
+from twinfocus.radar.scan import Scan
 
 METHODS = ("twin",) + REFERENCE_FREE_RUNGS + ("none",)
 
@@ -188,6 +189,16 @@ class Bases:
     half_bases: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
     upper_band: Callable[[np.ndarray], np.ndarray] | None = None
 
+    @classmethod
+    def of_scan(
+        cls, scan: Scan, ref: np.ndarray, tgt: np.ndarray, reference_grid: ImageGrid, target_grid: ImageGrid
+    ) -> Bases:
+        """The bases of ``scan`` from its regions' sub-image bases ``ref``, ``tgt`` (complex (M, H, W)
+        on ``reference_grid`` / ``target_grid``), with the half-array bases for the tilt rung
+        (back-projected only when it calls them); no upper band's basis."""
+        half = half_array_bases(scan.data, scan.positions, scan.chirp, reference_grid, target_grid)
+        return cls(ref, tgt, scan.positions, scan.chirp, reference_grid, target_grid, half_bases=half)
+
 
 @dataclass
 class Truth:
@@ -197,6 +208,19 @@ class Truth:
     target: np.ndarray
     reference: np.ndarray
     positions: np.ndarray
+
+    @classmethod
+    def of_scan(cls, scan: Scan, reference_grid: ImageGrid, target_grid: ImageGrid) -> Truth:
+        """The truth of a simulated ``scan`` (one with ``positions_true``): its target's and its
+        reference's images back-projected on the true positions, on ``target_grid`` / ``reference_grid``."""
+        true = scan.positions_true
+        if true is None:
+            raise TwinFocusError("only a simulated scan knows its true positions (positions_true)")
+        return cls(
+            backproject(scan.data, true, scan.chirp, target_grid),
+            backproject(scan.data, true, scan.chirp, reference_grid),
+            true,
+        )
 
 
 def add_template_metrics(

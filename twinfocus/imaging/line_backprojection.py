@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 from numba import njit, prange
 
@@ -29,6 +28,7 @@ from twinfocus.imaging.backprojection.numba_backend import (
     _accumulate_channel,
     _interpolation_table,
     _kernel_constants,
+    pixel_block,
     prepare_profiles,
 )
 from twinfocus.imaging.grid import VolumeGrid
@@ -323,10 +323,7 @@ def backproject_volume(
     px, py, pz = pts[:, 0].copy(), pts[:, 1].copy(), pts[:, 2].copy()
     out_re = np.zeros(pts.shape[0], dtype)
     out_im = np.zeros(pts.shape[0], dtype)
-    threads = numba.get_num_threads()
-    n_blocks = max(1, -(-pts.shape[0] // 4096))
-    n_blocks = -(-n_blocks // threads) * threads
-    block = max(1, -(-pts.shape[0] // n_blocks))
+    block = pixel_block(pts.shape[0])
     n_pos = data.shape[0]
     chunk = max(
         1, min(int(4e6 // max(1, data.shape[1] * chirp.n_samples)), TABLE_BYTES // line_plan.table_bytes_per_position)

@@ -292,16 +292,20 @@ def backproject_points(
     )
 
 
+def pixel_block(n_pixels: int) -> int:
+    """Pixels per block of a kernel parallel over pixel blocks: at most 4096 (cache-resident), in
+    blocks whose count is a multiple of numba's thread count, so that no thread idles at the end."""
+    threads = numba.get_num_threads()
+    n_blocks = max(1, -(-n_pixels // 4096))
+    n_blocks = -(-n_blocks // threads) * threads
+    return max(1, -(-n_pixels // n_blocks))
+
+
 def _image_numba(data, pos, pts, dtype, chirp: Chirp, oversample: int, progress: ProgressFn | None) -> np.ndarray:
     """The numba path of :func:`backproject_points` (inputs checked, in the local frame)."""
     out_re = np.zeros(pts.shape[0], dtype)
     out_im = np.zeros(pts.shape[0], dtype)
-    # Pixel blocks of at most 4096 (cache-resident), in a multiple of the thread count so no
-    # thread idles at the end.
-    threads = numba.get_num_threads()
-    n_blocks = max(1, -(-pts.shape[0] // 4096))
-    n_blocks = -(-n_blocks // threads) * threads
-    block = max(1, -(-pts.shape[0] // n_blocks))
+    block = pixel_block(pts.shape[0])
     # Chunks over positions bound the profile memory and give progress ticks.
     chunk = max(1, int(4e6 // max(1, data.shape[1] * chirp.n_samples)))
     for lo in range(0, data.shape[0], chunk):
