@@ -28,43 +28,42 @@ from twinfocus.jobs.machine import machine_info
 from twinfocus.simulation.scenario import Scenario, planar_object
 
 SIZE = 100
+#: Scenario field -> the ``twinfocus simulate`` option that sets it (the fields SCENES set)
+SIMULATE_OPTIONS = {
+    "reference": "--reference",
+    "target": "--target",
+    "distance_m": "--distance",
+    "separation_deg": "--separation-deg",
+    "seed": "--seed",
+    "target_depth_offset_m": "--target-depth-offset",
+}
+
+
+def _scene(label: str, **kw) -> tuple[str, list[str], Scenario]:
+    """(what it is, simulate's options, the Scenario they make) from the Scenario keywords ``kw``
+    alone, so that the options and the Scenario cannot tell different scenes."""
+    return label, [w for k, v in kw.items() for w in (SIMULATE_OPTIONS[k], str(v))], Scenario(**kw)
+
+
 #: key -> (what it is, simulate's options, the Scenario they make); the demo first. Keys without
 #: spaces or dots: docs quote the file's figures by key (tests/test_docs_figures.py)
 SCENES = {
-    "demo": ("demo (A, F at 0.6 m, 10 deg)", [], Scenario()),
-    "c_x_near": (
-        "C, X at 0.5 m, 14 deg, seed 1",
-        ["--reference", "C", "--target", "X", "--distance", "0.5", "--separation-deg", "14", "--seed", "1"],
-        Scenario(reference="C", target="X", distance_m=0.5, separation_deg=14.0, seed=1),
-    ),
-    "r_z_far_deeper": (
-        "R, Z at 0.7 m, 12 deg, target 8 cm deeper, seed 2",
-        ["--reference", "R", "--target", "Z", "--distance", "0.7", "--separation-deg", "12", "--seed", "2",
-         "--target-depth-offset", "0.08"],
-        Scenario(reference="R", target="Z", distance_m=0.7, separation_deg=12.0, seed=2, target_depth_offset_m=0.08),
-    ),
-    "k_t_near": (
-        "K, T at 0.55 m, 12 deg, seed 11",
-        ["--reference", "K", "--target", "T", "--distance", "0.55", "--separation-deg", "12", "--seed", "11"],
-        Scenario(reference="K", target="T", distance_m=0.55, separation_deg=12.0, seed=11),
-    ),
-    "e_h_far": (
-        "E, H at 0.65 m, 11 deg, seed 12",
-        ["--reference", "E", "--target", "H", "--distance", "0.65", "--separation-deg", "11", "--seed", "12"],
-        Scenario(reference="E", target="H", distance_m=0.65, separation_deg=11.0, seed=12),
-    ),
+    "demo": _scene("demo (A, F at 0.6 m, 10 deg)"),
+    "c_x_near": _scene("C, X at 0.5 m, 14 deg, seed 1",
+                       reference="C", target="X", distance_m=0.5, separation_deg=14.0, seed=1),
+    "r_z_far_deeper": _scene("R, Z at 0.7 m, 12 deg, target 8 cm deeper, seed 2",
+                             reference="R", target="Z", distance_m=0.7, separation_deg=12.0, seed=2,
+                             target_depth_offset_m=0.08),
+    "k_t_near": _scene("K, T at 0.55 m, 12 deg, seed 11",
+                       reference="K", target="T", distance_m=0.55, separation_deg=12.0, seed=11),
+    "e_h_far": _scene("E, H at 0.65 m, 11 deg, seed 12",
+                      reference="E", target="H", distance_m=0.65, separation_deg=11.0, seed=12),
     # held out: never looked at while the edge rule (twinfocus.focus.boxes.EDGE_DB) was chosen
-    "heldout_p_l": (
-        "P, L at 0.6 m, 13 deg, seed 21 (held out)",
-        ["--reference", "P", "--target", "L", "--distance", "0.6", "--separation-deg", "13", "--seed", "21"],
-        Scenario(reference="P", target="L", distance_m=0.6, separation_deg=13.0, seed=21),
-    ),
-    "heldout_b_n_deeper": (
-        "B, N at 0.55 m, 10 deg, target 5 cm deeper, seed 22 (held out)",
-        ["--reference", "B", "--target", "N", "--distance", "0.55", "--separation-deg", "10", "--seed", "22",
-         "--target-depth-offset", "0.05"],
-        Scenario(reference="B", target="N", distance_m=0.55, separation_deg=10.0, seed=22, target_depth_offset_m=0.05),
-    ),
+    "heldout_p_l": _scene("P, L at 0.6 m, 13 deg, seed 21 (held out)",
+                          reference="P", target="L", distance_m=0.6, separation_deg=13.0, seed=21),
+    "heldout_b_n_deeper": _scene("B, N at 0.55 m, 10 deg, target 5 cm deeper, seed 22 (held out)",
+                                 reference="B", target="N", distance_m=0.55, separation_deg=10.0, seed=22,
+                                 target_depth_offset_m=0.05),
 }  # fmt: skip
 #: the scenes not used while the edge rule was chosen
 HELD_OUT = ("heldout_p_l", "heldout_b_n_deeper")
