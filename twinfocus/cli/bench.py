@@ -15,6 +15,7 @@ import argparse
 import shlex
 import sys
 from pathlib import Path
+from typing import Any
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.evaluation.beyond import run_beyond, write_beyond_report
@@ -107,38 +108,17 @@ def run(args: argparse.Namespace) -> int:
     command = (
         "twinfocus bench " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["bench"] else None
     )
-    log = (lambda msg: None) if args.quiet else None
-    kw = {} if log is None else {"log": log}
     if args.suite == "where":
         print(run_where(args.out, draws=args.draws or 1, quick=args.quick, markdown=args.markdown, command=command))
         return 0
+    # what the beyond and the paper suites are both given: these options as they are, the command,
+    # the cluster, and with --quiet a log that prints nothing
+    common: dict[str, Any] = {k: getattr(args, k) for k in ("quick", "resume", "markdown", "device")}
+    common.update(command=command, cluster=cluster)
+    if args.quiet:
+        common["log"] = lambda msg: None
     if args.suite == "beyond":
-        print(
-            run_beyond(
-                args.out,
-                draws=args.draws or 1,
-                quick=args.quick,
-                resume=args.resume,
-                markdown=args.markdown,
-                device=args.device,
-                command=command,
-                cluster=cluster,
-                **kw,
-            )
-        )
+        print(run_beyond(args.out, draws=args.draws or 1, **common))
         return 0
-    md = run_paper(
-        args.out,
-        quick=args.quick,
-        draws=args.draws,
-        only=only,
-        resume=args.resume,
-        markdown=args.markdown,
-        device=args.device,
-        trade_scenes=args.trade_scenes,
-        command=command,
-        cluster=cluster,
-        **kw,
-    )
-    print(md)
+    print(run_paper(args.out, draws=args.draws, only=only, trade_scenes=args.trade_scenes, **common))
     return 0

@@ -113,6 +113,13 @@ def _show(ax, image: np.ndarray, grid: ImageGrid, title: str) -> None:
     ax.tick_params(labelsize=7)
 
 
+def _save(fig, path: str | Path, dpi: int = 110) -> None:
+    """Lay out a matplotlib figure, write it to ``path`` (PNG at ``dpi``) and close it."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)
+
+
 def save_image_png(path: str | Path, image: np.ndarray, grid: ImageGrid, title: str) -> None:
     """One amplitude image (max-normalised) with axes in millimetres (matplotlib)."""
     plt = pyplot()
@@ -123,9 +130,7 @@ def save_image_png(path: str | Path, image: np.ndarray, grid: ImageGrid, title: 
         )
     )
     _show(ax, image, grid, title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def write_focus_pictures(out_dir: Path, o, which: str = "summary") -> None:
@@ -175,9 +180,7 @@ def write_detail_pictures(out_dir: Path, o) -> None:
         ax.set_ylabel("loss")
         ax.set_yscale("log")
         ax.grid(alpha=0.3)
-        fig.tight_layout()
-        fig.savefig(out_dir / "loss.png", dpi=110)
-        plt.close(fig)
+        _save(fig, out_dir / "loss.png")
 
     fig, ax = plt.subplots(figsize=(6, 3))
     ax.plot(np.angle(np.exp(1j * o.phase_rad)), ".", ms=2, label="estimated")
@@ -188,9 +191,7 @@ def write_detail_pictures(out_dir: Path, o) -> None:
     ax.set_xlabel("radar position")
     ax.set_ylabel("phase (rad)")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out_dir / "phase.png", dpi=110)
-    plt.close(fig)
+    _save(fig, out_dir / "phase.png")
 
 
 def save_rungs_png(path: Path, o) -> None:
@@ -206,9 +207,7 @@ def save_rungs_png(path: Path, o) -> None:
         kept = "kept" if entries.get(name, {}).get("kept") else "not kept"
         score = "" if o.target_truth is None else f", SSIM {image_ssim(o.rung_targets[name], o.target_truth):.3f}"
         _show(ax, o.rung_targets[name], o.target_grid, f"{name} ({kept}{score})")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    _save(fig, path, dpi=100)
 
 
 def _ssim_tag(value) -> str:
