@@ -160,15 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.looks_only:
         return _looks_only(args)
-    rows = {}
-    for key, (label, sim, sc) in SCENES.items():
-        if args.scenes and key not in args.scenes:
-            continue
-        with tempfile.TemporaryDirectory() as tmp:
-            rows[key] = {"scene": label, "held_out": key in HELD_OUT, **run_scene(Path(tmp), sim, sc)}
-        print(
-            label, json.dumps({k: rows[key][k] for k in ("target_ssim_typed", "target_ssim_found", "regions_overlap")})
-        )
+    shown = ("target_ssim_typed", "target_ssim_found", "regions_overlap")
+    rows = _each_scene(args, run_scene, lambda row: {k: row[k] for k in shown})
     worst = max(abs(r["target_ssim_found_less_typed"]) for r in rows.values())
     roles = ("reference", "target")
     doc = {
@@ -205,6 +198,24 @@ def main(argv: list[str] | None = None) -> int:
         },
         "machine": machine_info(),
     }
+    return _write(args, doc)
+
+
+def _each_scene(args, run, show) -> dict:
+    """key -> {"scene", "held_out", **run(folder, simulate's options, Scenario)} of each scene
+    --scenes asks for (all by default), each run in a folder of its own; prints ``show(row)`` of
+    each row as it goes."""
+    rows = {}
+    for key, (label, sim, sc) in SCENES.items():
+        if args.scenes and key not in args.scenes:
+            continue
+        with tempfile.TemporaryDirectory() as tmp:
+            rows[key] = {"scene": label, "held_out": key in HELD_OUT, **run(Path(tmp), sim, sc)}
+        print(label, json.dumps(show(rows[key])), flush=True)
+    return rows
+
+
+def _write(args, doc: dict) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / args.name, json.dumps(doc, indent=2, default=float) + "\n")
@@ -213,13 +224,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _looks_only(args) -> int:
-    rows = {}
-    for key, (label, sim, sc) in SCENES.items():
-        if args.scenes and key not in args.scenes:
-            continue
-        with tempfile.TemporaryDirectory() as tmp:
-            rows[key] = {"scene": label, "held_out": key in HELD_OUT, **look_scene(Path(tmp), sim, sc)}
-        print(label, json.dumps({k: rows[key][k]["region_edge_out_m"] for k in ("reference", "target")}), flush=True)
+    rows = _each_scene(args, look_scene, lambda row: {k: row[k]["region_edge_out_m"] for k in ("reference", "target")})
     edges = lambda keys: [
         abs(v) for k in keys for role in ("reference", "target") for v in rows[k][role]["region_edge_out_m"]
     ]  # noqa: E731
@@ -237,11 +242,7 @@ def _looks_only(args) -> int:
         },
         "machine": machine_info(),
     }
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out / args.name, json.dumps(doc, indent=2, default=float) + "\n")
-    print(f"wrote {out / args.name}")
-    return 0
+    return _write(args, doc)
 
 
 if __name__ == "__main__":
