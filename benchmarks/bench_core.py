@@ -527,6 +527,12 @@ def main(out_dir, quick: bool = False, sections: tuple[str, ...] | None = None) 
     return res
 
 
+def _table(title: str, columns: tuple[str, ...]) -> list[str]:
+    """A markdown section's first lines: a blank line, ``## title``, a blank line, the table's
+    header of ``columns`` and its rule (the rows follow)."""
+    return ["", f"## {title}", "", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+
+
 def _markdown(res: dict) -> str:
     lines = [
         "# Core benchmark",
@@ -555,70 +561,51 @@ def _markdown(res: dict) -> str:
             f"{r['image_pairs_per_s']:.3g} | {r['basis_s']:.2f} | {r['basis_pairs_per_s']:.3g} |"
         )
     if "oversample" in res:
-        lines += [
-            "",
-            "## Range-profile oversampling (interpolation error vs brute force)",
-            "",
-            "| oversample | max error / peak | image s |",
-            "|---|---|---|",
-        ]
+        lines += _table(
+            "Range-profile oversampling (interpolation error vs brute force)",
+            ("oversample", "max error / peak", "image s"),
+        )
         lines += [
             f"| {r['oversample']} | {r['max_error_rel_peak']:.2e} | {r['image_s']:.2f} |" for r in res["oversample"]
         ]
     if "autofocus_paper" in res:
-        lines += [
-            "",
-            "## Autofocus, paper configuration (780 x 100 x 100, 300 iterations)",
-            "",
-            "| basis storage | seconds |",
-            "|---|---|",
-        ]
+        lines += _table(
+            "Autofocus, paper configuration (780 x 100 x 100, 300 iterations)", ("basis storage", "seconds")
+        )
         lines += [f"| {r['basis_dtype']} | {r['seconds']:.2f} |" for r in res["autofocus_paper"]]
     if "trade_estimator" in res:
-        lines += [
-            "",
-            "## Trade: estimator (float16 basis; seconds = registration + estimate)",
-            "",
-            "| size | estimator | template | seconds | target SSIM |",
-            "|---|---|---|---|---|",
-        ]
+        lines += _table(
+            "Trade: estimator (float16 basis; seconds = registration + estimate)",
+            ("size", "estimator", "template", "seconds", "target SSIM"),
+        )
         lines += [
             f"| {r['size']} | {r['estimator']} | {r.get('template', 'complex')} | {r['seconds']:.2f} | {r['ssim']:.3f} |"
             for r in res["trade_estimator"]
         ]
     if "trade_projection_iterations" in res:
-        lines += [
-            "",
-            "## Trade: projection steps (`--estimator projection --projection-iterations N`, 100 x 100)",
-            "",
-            "| steps | seconds | target SSIM |",
-            "|---|---|---|",
-        ]
+        lines += _table(
+            "Trade: projection steps (`--estimator projection --projection-iterations N`, 100 x 100)",
+            ("steps", "seconds", "target SSIM"),
+        )
         lines += [
             f"| {r['projection_iterations']} | {r['seconds']:.2f} | {r['ssim']:.3f} |"
             for r in res["trade_projection_iterations"]
         ]
     if "trade_estimator_precision" in res:
-        lines += [
-            "",
-            "## Trade: estimator x precision x size (seconds: both bases; the estimate; target SSIM)",
-            "",
-            "| size | precision | estimator | bases s | estimate s | target SSIM |",
-            "|---|---|---|---|---|---|",
-        ]
+        lines += _table(
+            "Trade: estimator x precision x size (seconds: both bases; the estimate; target SSIM)",
+            ("size", "precision", "estimator", "bases s", "estimate s", "target SSIM"),
+        )
         lines += [
             f"| {r['size']} | {r['precision']} | {r['estimator']} | {r['bases_s']:.2f} | {r['estimate_s']:.2f} | {r['ssim']:.3f} |"
             for r in res["trade_estimator_precision"]
         ]
     if "scaling" in res:
         sc_ = res["scaling"]
-        lines += [
-            "",
-            "## Scaling (seconds; default scene subsampled)",
-            "",
-            "| axis | n | basis s | correlation s | optimiser s per iteration |",
-            "|---|---|---|---|---|",
-        ]
+        lines += _table(
+            "Scaling (seconds; default scene subsampled)",
+            ("axis", "n", "basis s", "correlation s", "optimiser s per iteration"),
+        )
         for axis in ("positions", "channels", "pixels"):
             lines += [
                 f"| {axis} | {r['n']} | {r['basis_s']:.2f} | {r['correlation_s']:.3f} | {r['optimiser_per_iteration_s']:.3f} |"
@@ -657,13 +644,10 @@ def _markdown(res: dict) -> str:
     ):
         if key not in res or not res[key]:
             continue
-        lines += [
-            "",
-            f"## Trade: {label}",
-            "",
-            f"| {label} | basis s | autofocus s | target SSIM uncorrected | target SSIM corrected |",
-            "|---|---|---|---|---|",
-        ]
+        lines += _table(
+            f"Trade: {label}",
+            (label, "basis s", "autofocus s", "target SSIM uncorrected", "target SSIM corrected"),
+        )
         for r in res[key]:
             name = r[label] if label != "precision" else f"{r['precision']} / basis {r['basis_dtype']}"
             lines.append(
