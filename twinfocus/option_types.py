@@ -68,6 +68,10 @@ def bounded_int(low: int, high: int) -> Callable[[str], float]:
     return _checked(int, f"a whole number from {low} to {high}", lambda v: low <= v <= high)
 
 
+#: add_argument keywords of a region option (``--reference-roi``, ``--seed-roi``): x and y extent
+#: and depth, metres, five finite numbers
+REGION: dict = {"nargs": 5, "type": finite_float, "metavar": ("X0", "X1", "Y0", "Y1", "Z")}
+
 #: Setting.check name -> its type function (twinfocus.focus.settings)
 CHECKS: dict[str, Callable[[str], float]] = {
     "finite": finite_float,

@@ -19,7 +19,7 @@ from twinfocus.imaging.device import resolve_device
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.io.atomic import output_folder, refuse_existing
 from twinfocus.jobs.machine import require_memory
-from twinfocus.option_types import finite_float, positive_float
+from twinfocus.option_types import REGION, finite_float, positive_float
 
 if TYPE_CHECKING:
     from twinfocus.focus.plan import FocusPlan
@@ -34,10 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scan", help="scan file (.npz) to focus")
     p.add_argument(
         "--reference-roi",
-        nargs=5,
-        type=finite_float,
+        **REGION,
         default=None,
-        metavar=("X0", "X1", "Y0", "Y1", "Z"),
         help="reference region (metres); without it, found from --digital-twin's cloud, --template's grid or "
         "--template-scan's look (metrics.json reference_search); needed with --method",
     )

@@ -24,7 +24,7 @@ import numpy as np
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.io.atomic import write_bytes_atomic, write_text_atomic
-from twinfocus.option_types import finite_float, positive_float, positive_int
+from twinfocus.option_types import REGION, finite_float, positive_float, positive_int
 from twinfocus.radar.scan import Scan
 from twinfocus.sensors.rosbag2_files import read_bag_stereo, split_bag_source
 from twinfocus.twins.digital_twin.align import RadarCameraCalibration, calibrate_offset
@@ -57,11 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="pixel box around the reference",
     )
     seed.add_argument(
-        "--seed-roi",
-        nargs=5,
-        type=finite_float,
-        metavar=("X0", "X1", "Y0", "Y1", "Z"),
-        help="radar region (metres) holding the reference, projected into the picture",
+        "--seed-roi", **REGION, help="radar region (metres) holding the reference, projected into the picture"
     )
     seed.add_argument("--seed-nearest", action="store_true", help="the nearest sizeable object (beware occluders)")
     p.add_argument(
@@ -79,13 +75,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--points-out", required=True, help="reference point cloud to write (.npy, (N, 3) metres)")
     p.add_argument("--mask-out", help="also write the reference mask (PNG)")
     p.add_argument("--scan", help="scan file whose aperture the template is simulated for")
-    p.add_argument(
-        "--reference-roi",
-        nargs=5,
-        type=finite_float,
-        metavar=("X0", "X1", "Y0", "Y1", "Z"),
-        help="reference region (metres) of the template",
-    )
+    p.add_argument("--reference-roi", **REGION, help="reference region (metres) of the template")
     p.add_argument("--size", type=positive_int, default=100, help="template size in pixels per side (default 100)")
     p.add_argument(
         "--out", help="template file to write (.npz: image, x_m, y_m, z_m, the outline and the conditioning)"
