@@ -106,43 +106,39 @@ _TIME_SCHEMA = {
     "required": ["sec", "nsec"],
 }
 
+
+def _record_schema(**properties: dict) -> dict:
+    """The JSON schema of a record of ``timestamp`` and ``properties`` (name -> schema), all required."""
+    return {
+        "type": "object",
+        "properties": {"timestamp": _TIME_SCHEMA, **properties},
+        "required": ["timestamp", *properties],
+    }
+
+
+_TEXT = {"type": "string"}
+_NUMBERS = {"type": "object", "additionalProperties": {"type": "number"}}
+
 #: JSON schemas of the plottable-number channels (Foxglove draws them in its Plot panel)
 JSON_SCHEMAS: dict[str, dict] = {
-    "twinfocus.AutofocusResult": {
-        "type": "object",
-        "properties": {
-            "timestamp": _TIME_SCHEMA,
-            "scan_id": {"type": "string"},
-            "method": {"type": "string"},
-            "phase_rad": {
-                "type": "array",
-                "items": {"type": "number"},
-                "description": "estimated phase per radar position, rad",
-            },
-            "loss_history": {"type": "array", "items": {"type": "number"}, "description": "loss per iteration"},
-            "metrics": {"type": "object", "additionalProperties": {"type": "number"}},
-            "timing_s": {"type": "object", "additionalProperties": {"type": "number"}},
+    "twinfocus.AutofocusResult": _record_schema(
+        scan_id=_TEXT,
+        method=_TEXT,
+        phase_rad={
+            "type": "array",
+            "items": {"type": "number"},
+            "description": "estimated phase per radar position, rad",
         },
-        "required": ["timestamp", "scan_id", "method", "phase_rad", "loss_history", "metrics", "timing_s"],
-    },
-    "twinfocus.PoseConfidence": {
-        "type": "object",
-        "properties": {"timestamp": _TIME_SCHEMA, "confidence": {"type": "number", "minimum": 0, "maximum": 1}},
-        "required": ["timestamp", "confidence"],
-    },
-    "twinfocus.MeasurementQuality": {
-        "type": "object",
-        "properties": {
-            "timestamp": _TIME_SCHEMA,
-            "scan_id": {"type": "string"},
-            "index": {"type": "integer"},
-            "pose_gap_ms": {
-                "type": "number",
-                "description": "width of the pose interval the position was interpolated over",
-            },
-        },
-        "required": ["timestamp", "scan_id", "index", "pose_gap_ms"],
-    },
+        loss_history={"type": "array", "items": {"type": "number"}, "description": "loss per iteration"},
+        metrics=_NUMBERS,
+        timing_s=_NUMBERS,
+    ),
+    "twinfocus.PoseConfidence": _record_schema(confidence={"type": "number", "minimum": 0, "maximum": 1}),
+    "twinfocus.MeasurementQuality": _record_schema(
+        scan_id=_TEXT,
+        index={"type": "integer"},
+        pose_gap_ms={"type": "number", "description": "width of the pose interval the position was interpolated over"},
+    ),
 }
 
 
