@@ -32,7 +32,7 @@ def test_placement_reads_an_injected_ramp_as_its_shift_and_finds_an_injected_ima
     d = {
         "scan": SimpleNamespace(positions=tracked, positions_true=true, chirp=chirp),
         "rg": grid,
-        "truth": {"truth_target": truth},
+        "truth": SimpleNamespace(target=truth),
     }
     out = SimpleNamespace(
         phase_rad=phase, target=shift_image(truth, 1.0, -0.5), metrics={"estimator": {"phase_coherence_sqrt_m": 3.2}}
