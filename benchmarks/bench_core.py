@@ -21,6 +21,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
@@ -527,6 +528,43 @@ def main(out_dir, quick: bool = False, sections: tuple[str, ...] | None = None) 
     return res
 
 
+#: the sections that are one table each, in the report's order: result key -> (title, column
+#: headers, one record's row)
+_TABLES: dict[str, tuple[str, tuple[str, ...], Callable[[dict], str]]] = {
+    "oversample": (
+        "Range-profile oversampling (interpolation error vs brute force)",
+        ("oversample", "max error / peak", "image s"),
+        lambda r: f"| {r['oversample']} | {r['max_error_rel_peak']:.2e} | {r['image_s']:.2f} |",
+    ),
+    "autofocus_paper": (
+        "Autofocus, paper configuration (780 x 100 x 100, 300 iterations)",
+        ("basis storage", "seconds"),
+        lambda r: f"| {r['basis_dtype']} | {r['seconds']:.2f} |",
+    ),
+    "trade_estimator": (
+        "Trade: estimator (float16 basis; seconds = registration + estimate)",
+        ("size", "estimator", "template", "seconds", "target SSIM"),
+        lambda r: (
+            f"| {r['size']} | {r['estimator']} | {r.get('template', 'complex')} | {r['seconds']:.2f} | "
+            f"{r['ssim']:.3f} |"
+        ),
+    ),
+    "trade_projection_iterations": (
+        "Trade: projection steps (`--estimator projection --projection-iterations N`, 100 x 100)",
+        ("steps", "seconds", "target SSIM"),
+        lambda r: f"| {r['projection_iterations']} | {r['seconds']:.2f} | {r['ssim']:.3f} |",
+    ),
+    "trade_estimator_precision": (
+        "Trade: estimator x precision x size (seconds: both bases; the estimate; target SSIM)",
+        ("size", "precision", "estimator", "bases s", "estimate s", "target SSIM"),
+        lambda r: (
+            f"| {r['size']} | {r['precision']} | {r['estimator']} | {r['bases_s']:.2f} | "
+            f"{r['estimate_s']:.2f} | {r['ssim']:.3f} |"
+        ),
+    ),
+}
+
+
 def _table(title: str, columns: tuple[str, ...]) -> list[str]:
     """A markdown section's first lines: a blank line, ``## title``, a blank line, the table's
     header of ``columns`` and its rule (the rows follow)."""
@@ -560,46 +598,9 @@ def _markdown(res: dict) -> str:
             f"| {r['backend']} | {r['precision']} | {r['device']} | {r['image_s']:.2f} | "
             f"{r['image_pairs_per_s']:.3g} | {r['basis_s']:.2f} | {r['basis_pairs_per_s']:.3g} |"
         )
-    if "oversample" in res:
-        lines += _table(
-            "Range-profile oversampling (interpolation error vs brute force)",
-            ("oversample", "max error / peak", "image s"),
-        )
-        lines += [
-            f"| {r['oversample']} | {r['max_error_rel_peak']:.2e} | {r['image_s']:.2f} |" for r in res["oversample"]
-        ]
-    if "autofocus_paper" in res:
-        lines += _table(
-            "Autofocus, paper configuration (780 x 100 x 100, 300 iterations)", ("basis storage", "seconds")
-        )
-        lines += [f"| {r['basis_dtype']} | {r['seconds']:.2f} |" for r in res["autofocus_paper"]]
-    if "trade_estimator" in res:
-        lines += _table(
-            "Trade: estimator (float16 basis; seconds = registration + estimate)",
-            ("size", "estimator", "template", "seconds", "target SSIM"),
-        )
-        lines += [
-            f"| {r['size']} | {r['estimator']} | {r.get('template', 'complex')} | {r['seconds']:.2f} | {r['ssim']:.3f} |"
-            for r in res["trade_estimator"]
-        ]
-    if "trade_projection_iterations" in res:
-        lines += _table(
-            "Trade: projection steps (`--estimator projection --projection-iterations N`, 100 x 100)",
-            ("steps", "seconds", "target SSIM"),
-        )
-        lines += [
-            f"| {r['projection_iterations']} | {r['seconds']:.2f} | {r['ssim']:.3f} |"
-            for r in res["trade_projection_iterations"]
-        ]
-    if "trade_estimator_precision" in res:
-        lines += _table(
-            "Trade: estimator x precision x size (seconds: both bases; the estimate; target SSIM)",
-            ("size", "precision", "estimator", "bases s", "estimate s", "target SSIM"),
-        )
-        lines += [
-            f"| {r['size']} | {r['precision']} | {r['estimator']} | {r['bases_s']:.2f} | {r['estimate_s']:.2f} | {r['ssim']:.3f} |"
-            for r in res["trade_estimator_precision"]
-        ]
+    for key, (title, columns, row) in _TABLES.items():
+        if key in res:
+            lines += _table(title, columns) + [row(r) for r in res[key]]
     if "scaling" in res:
         sc_ = res["scaling"]
         lines += _table(
