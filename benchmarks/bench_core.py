@@ -475,15 +475,23 @@ def main(out_dir, quick: bool = False, sections: tuple[str, ...] | None = None) 
             print(f"  basis {bd}: {t:.2f} s")
         del rb
 
-    if "trade_estimator" in want:
-        print("trade: estimator (template registration, closed-form phase; docs/beyond.md)")
-        res["trade_estimator"] = bench_estimators(scan, template_scan, sc, quick)
-    if "trade_projection_iterations" in want:
-        print("trade: projection steps (amplitude template, no optimiser)")
-        res["trade_projection_iterations"] = bench_projection_iterations(scan, template_scan, sc, quick)
-    if "trade_estimator_precision" in want:
-        print("trade: estimator x precision x size")
-        res["trade_estimator_precision"] = bench_estimator_precision(scan, template_scan, sc, quick)
+    def section(key: str, what: str, bench: Callable) -> None:
+        """The section ``key`` when asked for: says ``what`` and runs ``bench`` on the scene."""
+        if key in want:
+            print(what)
+            res[key] = bench(scan, template_scan, sc, quick)
+
+    section(
+        "trade_estimator",
+        "trade: estimator (template registration, closed-form phase; docs/beyond.md)",
+        bench_estimators,
+    )
+    section(
+        "trade_projection_iterations",
+        "trade: projection steps (amplitude template, no optimiser)",
+        bench_projection_iterations,
+    )
+    section("trade_estimator_precision", "trade: estimator x precision x size", bench_estimator_precision)
 
     if "trade_image_size" in want:
         print("trade: image size")
@@ -515,12 +523,8 @@ def main(out_dir, quick: bool = False, sections: tuple[str, ...] | None = None) 
             }
             res["trade_precision"].append(row)
             print(f"  {prec}/{bd}: {row}")
-    if "scaling" in want:
-        print("scaling: cost against positions, channels, pixels, iterations")
-        res["scaling"] = bench_scaling(scan, template_scan, sc, quick)
-    if "end_to_end" in want:
-        print("end to end: twinfocus focus in fresh processes")
-        res["end_to_end"] = bench_end_to_end(scan, template_scan, sc, quick)
+    section("scaling", "scaling: cost against positions, channels, pixels, iterations", bench_scaling)
+    section("end_to_end", "end to end: twinfocus focus in fresh processes", bench_end_to_end)
     # the machine is shared: say how loaded it was while each section ran (1-minute average)
     res.setdefault("load_average", {}).update({x: round(os.getloadavg()[0], 1) for x in want if x in res})
     (out_dir / "core.json").write_text(json.dumps(res, indent=2, default=float))
