@@ -3,6 +3,8 @@
 A page quotes a measured figure as ``0.987<!-- figure: benchmarks/results/core.json#trade_estimator[size=100,estimator=correlation].ssim -->``:
 the number, then a comment naming the file (from the repository's root) and where in it the value
 lies: dotted keys, and ``[k=v,...]`` to pick the one row of a list whose fields have those values.
+A key or value holding a space, dot, bracket, comma or ``=`` is percent-encoded as in a URL
+(``summary.depth%205%20cm%20off.mean_ssim`` reads the key ``"depth 5 cm off"``).
 The number must be the value rounded to the decimals shown. The scripts that write the files are
 named on each page beside its figures.
 """
@@ -13,6 +15,7 @@ import json
 import re
 from pathlib import Path
 from typing import Any
+from urllib.parse import unquote
 
 import pytest
 
@@ -23,11 +26,13 @@ _STEP = re.compile(r"([^.\[\]]+)((?:\[[^\]]*\])?)")
 
 
 def lookup(data: Any, where: str) -> Any:
-    """The value at ``where`` (``a.b[k=v,j=w].c``) in parsed JSON ``data``."""
+    """The value at ``where`` (``a.b[k=v,j=w].c``, each key and value percent-encoded) in parsed
+    JSON ``data``."""
     for key, selector in _STEP.findall(where):
-        data = data[key] if not isinstance(data, list) else data[int(key)]
+        data = data[unquote(key)] if not isinstance(data, list) else data[int(key)]
         if selector:
-            wanted = dict(pair.split("=", 1) for pair in selector[1:-1].split(","))
+            pairs = (pair.split("=", 1) for pair in selector[1:-1].split(","))
+            wanted = {unquote(k): unquote(v) for k, v in pairs}
             rows = [r for r in data if all(str(r.get(k)) == v for k, v in wanted.items())]
             if len(rows) != 1:
                 raise KeyError(f"{selector} picks {len(rows)} rows, not one")
@@ -49,6 +54,14 @@ def test_the_lookup_reads_rows_and_keys() -> None:
     assert lookup(data, "t[size=100].v.s") == 2.5
     with pytest.raises(KeyError):
         lookup(data, "t[size=75].v.s")
+
+
+def test_the_lookup_reads_percent_encoded_keys_and_values() -> None:
+    data = {"rows": {"depth 5 cm off": {"a.b": 0.25}}, "t": [{"row": "both found", "v": 1}, {"row": "both", "v": 2}]}
+    assert lookup(data, "rows.depth%205%20cm%20off.a%2Eb") == 0.25
+    assert lookup(data, "t[row=both%20found].v") == 1
+    marker = _MARKED.search("0.25<!-- figure: f.json#rows.depth%205%20cm%20off.a%2Eb -->")
+    assert marker is not None and lookup(data, marker.group(3)) == 0.25
 
 
 def test_pages_mark_their_figures() -> None:

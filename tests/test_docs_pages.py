@@ -29,6 +29,7 @@ RUNS = [
     ["docs/howto/digital_twin.md"],
     ["docs/howto/replay_log.md", "docs/howto/foxglove.md"],
     ["docs/howto/focus_handheld.md"],
+    ["docs/howto/find_depth_and_volume.md"],
 ]
 #: pages whose blocks a test of their own runs in order (it checks more than this runner does)
 RUN_BY_OWN_TEST = {"docs/howto/your_own_rig.md": "tests/test_your_own_rig_page.py"}
