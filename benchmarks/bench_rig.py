@@ -86,8 +86,8 @@ def calibrate(seed: int, offset: np.ndarray, rows: int, size: int, study: bool =
 def calibration_record(m, offset: np.ndarray, about: dict) -> dict:
     """One calibration of the study: the measurement ``m`` (a RigMeasurement) of the camera offset
     ``offset`` (float (3,) metres): its error and each spread (x, y, mm), the error over the
-    stated sd, and whether ``twinfocus rig`` refuses it (its rule on the measured spreads, and the
-    same rule on the positions' bootstrap alone, the sd it stated before)."""
+    stated sd, the measured spreads in pixels (the refusal rule's unit: :func:`refusals`) and
+    whether ``twinfocus rig`` refuses it."""
     from twinfocus.imaging.grid import ImageGrid
     from twinfocus.twins.digital_twin.rig import MAX_SD_PX
 
@@ -109,8 +109,10 @@ def calibration_record(m, offset: np.ndarray, about: dict) -> dict:
         "sd_parts_mm": parts,
         "ratio": [round(float(v), 3) for v in np.abs(error) / np.maximum(sd, 1e-9)],
         "ratio_positions_only": [round(float(v), 3) for v in np.abs(error) / np.maximum(parts["positions"], 1e-9)],
+        "pixel_mm": [round(sx * 1e3, 4), round(sy * 1e3, 4)],
+        "measured_px": [round(float(v), 4) for v in src["sd"]["measured_px"]],
+        "positions_px": [round(float(v), 4) for v in src["sd"]["positions_px"]],
         "refused": bool(np.any(np.asarray(src["sd"]["measured_px"]) > MAX_SD_PX)),
-        "refused_positions_only": bool(np.any(np.asarray(src["sd"]["positions_px"]) > MAX_SD_PX)),
     }
 
 
@@ -133,9 +135,40 @@ def calibration_summary(records: list) -> dict:
     err = np.abs([c["error_mm"] for c in records])
     out["error_mm_rms"] = [round(float(v), 3) for v in np.sqrt((err**2).mean(axis=0))]
     out["sd_mm_median"] = [round(float(v), 3) for v in np.median([c["sd_mm"] for c in records], axis=0)]
-    out["refused"] = round(float(np.mean([c["refused"] for c in records])), 4)
-    out["refused_positions_only"] = round(float(np.mean([c["refused_positions_only"] for c in records])), 4)
+    out.update(refusals(records))
     return out
+
+
+def _pixels(c: dict) -> tuple[np.ndarray, np.ndarray]:
+    """A study record's measured spread and positions' bootstrap, float (2,) pixels (dy, dx); for a
+    record written before they were kept, from its mm and its measuring grid's pixel (remade from
+    its seed: the grid is the scenario's, no simulation needed)."""
+    if "measured_px" in c:
+        return np.asarray(c["measured_px"]), np.asarray(c["positions_px"])
+    from benchmarks.bench_dtwin_family import family_scenario
+    from twinfocus.simulation.scenario import Scenario, scenario_grids
+    from twinfocus.twins.digital_twin.rig import measuring_grid
+
+    rg, _ = scenario_grids(Scenario(**family_scenario("paper", c["seed"], HELDOUT_SHAPES, 65)), 48)
+    sy, sx = np.asarray(measuring_grid(rg).spacing_m) * 1e3
+    p = c["sd_parts_mm"]
+    measured = np.sqrt(sum(np.square(p[k]) for k in ("positions", "cells", "cloud")))  # (x, y) mm
+    return measured[::-1] / [sy, sx], np.asarray(p["positions"])[::-1] / [sy, sx]
+
+
+def refusals(records: list) -> dict:
+    """The share of the study's calibrations ``twinfocus rig`` refuses: by its rule (the measured
+    spread above ``MAX_SD_PX`` pixels), by the same spread above half a pixel (the rule's bound
+    while the sd was the positions' bootstrap alone) and by that old rule on that old sd."""
+    from twinfocus.twins.digital_twin.rig import MAX_SD_PX
+
+    px = [_pixels(c) for c in records]
+    return {
+        "refused": round(float(np.mean([np.any(m > MAX_SD_PX) for m, _ in px])), 4),
+        "refused_half_pixel": round(float(np.mean([np.any(m > 0.5) for m, _ in px])), 4),
+        "refused_before": round(float(np.mean([np.any(b > 0.5) for _, b in px])), 4),
+        "max_sd_px": MAX_SD_PX,
+    }
 
 
 def calibration_study(out: str, n: int, rows: int, size: int, heldout: bool = False) -> dict:
@@ -381,6 +414,11 @@ if __name__ == "__main__":
         sys.exit(0)
     if a.summarise:
         res = json.loads(Path(a.summarise).read_text())
+        if "calibrations" in res:  # a --calibrations study
+            res["summary"] = calibration_summary(res["calibrations"])
+            Path(a.summarise).write_text(json.dumps(res, indent=1, default=float))
+            print(json.dumps(res["summary"], indent=1))
+            sys.exit(0)
         res["summary"] = summarise(res)
         Path(a.summarise).write_text(json.dumps(res, indent=1, default=float))
         print(table(res))

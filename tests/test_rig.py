@@ -57,8 +57,10 @@ def test_rig_recovers_injected_offset_and_cli_writes_it(stage):
     # the rig moves the cloud back onto the object: minus the injected offset, in x and y to a
     # fraction of the 2 mm measuring pixel
     np.testing.assert_allclose(rig["offset_m"][:2], -OFFSET[:2], atol=0.8e-3)
-    assert all(0 < s < 2e-3 for s in rig["sd_m"][:2])
-    assert "jackknife" in rig["source"]["sd"]["method"]  # how the sd was made
+    # the stated sd covers that error, and how it was made is in the file
+    error = np.abs(np.asarray(rig["offset_m"][:2]) + OFFSET[:2])
+    assert np.all(error <= 2 * np.asarray(rig["sd_m"][:2])), (error, rig["sd_m"], rig["source"]["sd"])
+    assert "jackknife" in rig["source"]["sd"]["method"]
     assert rig["offset_m"][2] == 0.0 and "depth_offset_m" in rig["source"]  # z: recorded, not applied
     assert rig["board"] == "MMWCAS-RF-EVM" and rig["rotation"] == "not measured"
     assert (d / "rig.png").is_file()
