@@ -85,7 +85,8 @@ CLOUD_DROP = 0.2
 MODEL_CELLS = 0.1
 #: how the rig file's sd was made (``source.sd.method``; the draws and blocks filled in)
 SD_METHOD = (
-    "root sum of squares of three spreads: positions, a bootstrap over the scan's positions ({positions} draws); "
+    "the root sum of squares of four parts (each *_px: pixels, dy then dx): positions, a bootstrap over the scan's "
+    "positions ({positions} draws); "
     "cells, a leave-one-block-out jackknife over the radar image in blocks of {cells:g} x {cells:g} resolution "
     "cells ({blocks} blocks of {block_px[0]} x {block_px[1]} pixels); cloud, the spread of the offset over the "
     "camera's cloud with another {drop:.0%} of its points removed in patches and conditioned again ({cloud} draws); "
