@@ -8,6 +8,8 @@ digital twin's placement ceiling (its target's best SSIM over sub-pixel shifts).
     python -m benchmarks.bench_rig --draws 3 --rows 33 --size 48      (~15 min on 2 cores)
     python -m benchmarks.bench_rig --draws 3 --heldout                 (the held-out sets)
     python -m benchmarks.bench_rig --summarise benchmarks/results/rig.json   (the summary again)
+    python -m benchmarks.bench_rig --calibrations 24 [--heldout]        (calibrations alone: each
+        error against its stated sd, rig_calibration[_heldout].json)
 
 With the rig, the focus places the reference on the calibrated cloud's outline
 (:func:`twinfocus.focus.rig_placement.rig_placed`); each record keeps what that placement found
@@ -52,21 +54,26 @@ def draw_rig(seed: int) -> np.ndarray:
     return float(rng.uniform(*OFFSET_RANGE_M)) * d / np.linalg.norm(d)
 
 
-def calibrate(seed: int, offset: np.ndarray, rows: int, size: int) -> dict:
+def calibrate(seed: int, offset: np.ndarray, rows: int, size: int, study: bool = False) -> dict:
     """The rig measured on the paper-protocol draw ``seed``'s scan (``rows`` rows) on its true
-    positions, as a motion stage takes it."""
+    positions, as a motion stage takes it. ``study``: the calibration study's record instead
+    (:func:`calibration_record`: every spread, none refused, no depth search)."""
     from benchmarks.bench_dtwin_family import family_scenario
     from twinfocus.radar.scan import Scan
     from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
     from twinfocus.twins.digital_twin.rig import measure_rig
 
-    sc = Scenario(**family_scenario("paper", seed, HELDOUT_SHAPES, rows))
+    kw = family_scenario("paper", seed, HELDOUT_SHAPES, rows)
+    sc = Scenario(**kw)
     scan, _ = simulate_scenario(sc)
     stage = Scan(scan.data, scan.positions_true, scan.chirp)
     rg, _ = scenario_grids(sc, size)
     surface = sc.scene().object("reference").surface_points(1e-3)
     cloud = camera_cloud(surface, *CLOUD, offset, rng=np.random.default_rng([seed, 15]))
+    if study:
+        m = measure_rig(stage, cloud, rg, board="bench", camera=None, max_sd_px=np.inf, depth=False)
+        return calibration_record(m, offset, {"seed": seed, "reference": kw["reference"], "surface": surface_of(kw)})
     m = measure_rig(stage, cloud, rg, board="bench", camera=None)
     return {
         "offset_m": m.rig.offset_m.tolist(),
@@ -74,6 +81,115 @@ def calibrate(seed: int, offset: np.ndarray, rows: int, size: int) -> dict:
         "match": m.match,
         "error_mm": [round(float(v) * 1e3, 3) for v in (m.rig.offset_m + offset)],
     }
+
+
+def calibration_record(m, offset: np.ndarray, about: dict) -> dict:
+    """One calibration of the study: the measurement ``m`` (a RigMeasurement) of the camera offset
+    ``offset`` (float (3,) metres): its error and each spread (x, y, mm), the error over the
+    stated sd, the measured spreads in pixels (the refusal rule's unit: :func:`refusals`) and
+    whether ``twinfocus rig`` refuses it."""
+    from twinfocus.imaging.grid import ImageGrid
+    from twinfocus.twins.digital_twin.rig import MAX_SD_PX
+
+    src = m.rig.source
+    sy, sx = ImageGrid.from_roi(src["grid_roi"], tuple(src["grid_shape"])).spacing_m
+
+    def mm(px: list) -> list:  # (dy, dx) pixels -> (x, y) mm
+        return [round(px[1] * sx * 1e3, 3), round(px[0] * sy * 1e3, 3)]
+
+    error = (m.rig.offset_m + offset)[:2] * 1e3
+    parts = {k: mm(src["sd"][f"{k}_px"]) for k in ("positions", "cells", "cloud", "model")}
+    sd = np.asarray(mm(src["sd"]["sd_px"]))
+    return {
+        **about,
+        "camera_offset_m": offset.tolist(),
+        "match": round(m.match, 4),
+        "error_mm": [round(float(v), 3) for v in error],
+        "sd_mm": sd.tolist(),
+        "sd_parts_mm": parts,
+        "ratio": [round(float(v), 3) for v in np.abs(error) / np.maximum(sd, 1e-9)],
+        "ratio_positions_only": [round(float(v), 3) for v in np.abs(error) / np.maximum(parts["positions"], 1e-9)],
+        "pixel_mm": [round(sx * 1e3, 4), round(sy * 1e3, 4)],
+        "measured_px": [round(float(v), 4) for v in src["sd"]["measured_px"]],
+        "positions_px": [round(float(v), 4) for v in src["sd"]["positions_px"]],
+        "refused": bool(np.any(np.asarray(src["sd"]["measured_px"]) > MAX_SD_PX)),
+    }
+
+
+def calibration_summary(records: list) -> dict:
+    """The study's summary per axis (x, y): the share of calibrations whose error is within 2 of
+    the stated sd, the ratio's median, 90th percentile and largest, with the sd made now and with
+    the positions' bootstrap alone; and the share ``twinfocus rig`` refuses under each."""
+    out: dict = {"calibrations": len(records)}
+    for key, name in (("ratio", "sd"), ("ratio_positions_only", "positions_only")):
+        r = np.array([c[key] for c in records], float)
+        out[name] = {
+            axis: {
+                "within_2sd": round(float(np.mean(r[:, i] <= 2.0)), 4),
+                "ratio_median": round(float(np.median(r[:, i])), 3),
+                "ratio_p90": round(float(np.quantile(r[:, i], 0.9)), 3),
+                "ratio_max": round(float(r[:, i].max()), 3),
+            }
+            for i, axis in enumerate("xy")
+        }
+    err = np.abs([c["error_mm"] for c in records])
+    out["error_mm_rms"] = [round(float(v), 3) for v in np.sqrt((err**2).mean(axis=0))]
+    out["sd_mm_median"] = [round(float(v), 3) for v in np.median([c["sd_mm"] for c in records], axis=0)]
+    out.update(refusals(records))
+    return out
+
+
+def _pixels(c: dict) -> tuple[np.ndarray, np.ndarray]:
+    """A study record's measured spread and positions' bootstrap, float (2,) pixels (dy, dx); for a
+    record written before they were kept, from its mm and its measuring grid's pixel (remade from
+    its seed: the grid is the scenario's, no simulation needed)."""
+    if "measured_px" in c:
+        return np.asarray(c["measured_px"]), np.asarray(c["positions_px"])
+    from benchmarks.bench_dtwin_family import family_scenario
+    from twinfocus.simulation.scenario import Scenario, scenario_grids
+    from twinfocus.twins.digital_twin.rig import measuring_grid
+
+    rg, _ = scenario_grids(Scenario(**family_scenario("paper", c["seed"], HELDOUT_SHAPES, 65)), 48)
+    sy, sx = np.asarray(measuring_grid(rg).spacing_m) * 1e3
+    p = c["sd_parts_mm"]
+    measured = np.sqrt(sum(np.square(p[k]) for k in ("positions", "cells", "cloud")))  # (x, y) mm
+    return measured[::-1] / [sy, sx], np.asarray(p["positions"])[::-1] / [sy, sx]
+
+
+def refusals(records: list) -> dict:
+    """The share of the study's calibrations ``twinfocus rig`` refuses: by its rule (the measured
+    spread above ``MAX_SD_PX`` pixels), by the same spread above half a pixel (the rule's bound
+    while the sd was the positions' bootstrap alone) and by that old rule on that old sd."""
+    from twinfocus.twins.digital_twin.rig import MAX_SD_PX
+
+    px = [_pixels(c) for c in records]
+    return {
+        "refused": round(float(np.mean([np.any(m > MAX_SD_PX) for m, _ in px])), 4),
+        "refused_half_pixel": round(float(np.mean([np.any(m > 0.5) for m, _ in px])), 4),
+        "refused_before": round(float(np.mean([np.any(b > 0.5) for _, b in px])), 4),
+        "max_sd_px": MAX_SD_PX,
+    }
+
+
+def calibration_study(out: str, n: int, rows: int, size: int, heldout: bool = False) -> dict:
+    """``--calibrations N``: N calibrations alone (no focusing), one per set's seed, each of its own
+    camera offset, written to ``rig_calibration[_heldout].json`` with :func:`calibration_summary`."""
+    first = HELDOUT_RIG_SEED if heldout else RIG_SEED
+    if not heldout and first + 10 * n + 200 >= HELDOUT_RIG_SEED:
+        raise ValueError(f"--calibrations {n}: the build seeds would reach the held-out ones ({HELDOUT_RIG_SEED})")
+    path = Path(out) / ("rig_calibration" + ("_heldout" if heldout else "") + ".json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    res: dict = {"scan": {"calibration_positions": rows * 6, "pixels": size}, "calibrations": []}
+    for k in range(n):
+        seed = first + 10 * k
+        c = calibrate(seed, draw_rig(seed), rows, size, study=True)
+        res["calibrations"].append(c)
+        print(f"[rig calibration] {seed} {c['reference']} {c['surface']}: error {c['error_mm']} mm, sd {c['sd_mm']} "
+              f"(ratio {c['ratio']}, positions only {c['ratio_positions_only']})", file=sys.stderr, flush=True)  # fmt: skip
+        res["summary"] = calibration_summary(res["calibrations"])  # after each: a stopped run keeps one
+        path.write_text(json.dumps(res, indent=1, default=float))
+    print(json.dumps(res["summary"], indent=1))
+    return res
 
 
 def focus_set(condition: str, seed: int, offset: np.ndarray, rig_offset: np.ndarray, rows: int, size: int) -> dict:
@@ -278,9 +394,23 @@ if __name__ == "__main__":
         "--heldout", action="store_true", help="the held-out sets (rig_heldout.json), never looked at while building"
     )
     ap.add_argument("--summarise", metavar="FILE", help="only (re)write FILE's summary from its records")
+    ap.add_argument(
+        "--calibrations",
+        type=int,
+        metavar="N",
+        help="only calibrate: N rigs, each its error against its stated sd (rig_calibration[_heldout].json)",
+    )
     a = ap.parse_args()
+    if a.calibrations:
+        calibration_study(a.out, a.calibrations, a.calibration_rows, a.size, a.heldout)
+        sys.exit(0)
     if a.summarise:
         res = json.loads(Path(a.summarise).read_text())
+        if "calibrations" in res:  # a --calibrations study
+            res["summary"] = calibration_summary(res["calibrations"])
+            Path(a.summarise).write_text(json.dumps(res, indent=1, default=float))
+            print(json.dumps(res["summary"], indent=1))
+            sys.exit(0)
         res["summary"] = summarise(res)
         Path(a.summarise).write_text(json.dumps(res, indent=1, default=float))
         print(table(res))
