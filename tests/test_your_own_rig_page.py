@@ -87,7 +87,7 @@ def test_the_page_runs_as_written(tmp_path: Path) -> None:
     assert err(found) < err(start) / 2, (err(found), err(start))
 
     # the rig: the emulated camera's cloud lies 2 -3 0 mm off (zed_bag's default); the offset that
-    # puts it back is the opposite, within the 1 mm rig refuses beyond
+    # puts it back is the opposite, to within 1 mm
     rig = json.loads((work / "rig.json").read_text())
     assert np.allclose(rig["offset_m"][:2], [-0.002, 0.003], atol=1e-3), rig["offset_m"]
 
