@@ -288,3 +288,60 @@ def test_the_search_line_says_to_convert_again_only_past_a_large_offset():
     assert "--time-offset-s" in large and f"{-(RECONVERT_ABOVE_S + 0.04):+.3f}" in large
     counted = clock_search_line({**rec, "unit": "positions", "offset_s": -10.0})
     assert "positions" in counted and "convert" not in counted
+
+
+@pytest.mark.slow  # 120 s on 2 cores under a load of 20 (four conversions of a 256-sample capture)
+def test_convert_holds_an_emulated_zigzags_true_clock_offset_within_two_sigma(tmp_path):
+    """The emulated capture's camera started ``lead`` before the radar (its clock, the truth):
+    ``--align start`` puts the first frame that much early, the range history's offset on top of it
+    must lie within 2 sigma of ``lead``, and on a 6 s sweep no rate is fitted."""
+    import json
+
+    from twinfocus.motion.trajectory import Poses
+    from twinfocus.sensors.emulators.__main__ import main as emulate
+    from twinfocus.sensors.emulators.zed_bag import camera_track
+    from twinfocus.sensors.trajectory_files import read_tum, write_tum
+
+    cap = tmp_path / "cap"
+    sweep = ["--columns", "3", "--column-pitch", "0.1", "--rows", "40", "--row-pitch", "0.003"]
+    board = ["--array-errors", "typical", "--array-seed", "3", "--tracking-error-mm", "0.5", "--seed", "1"]
+    assert emulate(["capture", str(cap), *sweep, *board]) == 0  # 256 samples: the range resolution convert sees
+    track = read_tum(cap / "trajectory.txt")
+    for lead_ms in (0, 15, 50, 100):
+        ts, pos, quat = camera_track(track.timestamps_ns, track.position_m, track.quat_xyzw, lead_ms * 1_000_000)
+        write_tum(tmp_path / f"camera{lead_ms}.txt", Poses(ts, pos, quat))
+        out = tmp_path / f"scan{lead_ms}.npz"
+        rc = _cli("convert", str(cap), "--trajectory", str(tmp_path / f"camera{lead_ms}.txt"), "--out", str(out),
+                  "--align", "scan", "--frame", "world", "--quiet")  # fmt: skip
+        assert rc == 0
+        clock = json.loads(out.with_name(out.stem + ".capture.json").read_text())["clock"]
+        assert abs(clock["offset_s"] - lead_ms * 1e-3) < 2 * clock["sigma_s"], (lead_ms, clock)
+        assert clock["sigma_s"] < 0.05  # honest, and still a measurement
+        assert (
+            clock["rate"] == 0.0 and clock["sigma_rate"] is None and "not measurable: sweep 6.0 s" in clock["rate_note"]
+        )
+
+
+def test_a_clock_rate_is_fitted_only_over_a_sweep_long_enough_to_show_one(monkeypatch):
+    import twinfocus.sensors.clock_offset as clock
+
+    # one point, 6 legs of 60 frames 50 ms apart (19.5 s); the radar's clock runs 3000 ppm slow:
+    # its stamps t - offset - rate (t - t0), so the offset added grows by rate per second
+    rate, offset = 3e-3, 0.02
+    poses = handheld_zigzag(6, 60, frame_period_s=0.05, column_change_s=0.3, rng=1)
+    t, track = poses.timestamps_ns * 1e-9, poses.position_m
+    centres = track[:, None, :] + np.array([[-0.01, 0, 0], [0.01, 0, 0]])[None]
+    data = monostatic_if(CHIRP, centres, POINT).astype(np.complex64)
+    stamps = t - offset - rate * (t - t[0])
+    # two free-running clocks drift by 100 ppm at most: 19.5 s cannot show that, the rate is held at 0
+    held = range_history_offset(data, CHIRP, stamps, t, track, fit_rate=True)
+    needs = clock.rate_needs_s(held.sigma_s)
+    assert held.rate == 0.0 and held.sigma_rate is None and needs > np.ptp(stamps)
+    assert held.rate_note == f"not measurable: sweep {np.ptp(stamps):.1f} s, needs > {needs:.0f} s"
+    assert "rate not measurable" in held.line()
+    assert needs * clock.MAX_CLOCK_RATE == pytest.approx(8 * held.sigma_s)
+    # clocks that could drift by 2 %: the same sweep shows the rate, and the two halves find it
+    monkeypatch.setattr(clock, "MAX_CLOCK_RATE", 0.02)
+    est = range_history_offset(data, CHIRP, stamps, t, track, fit_rate=True)
+    assert est.rate_note is None and est.sigma_rate is not None and est.sigma_rate < rate / 3
+    assert abs(est.rate - rate) < 2 * est.sigma_rate, est
