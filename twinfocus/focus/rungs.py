@@ -7,12 +7,14 @@ arguments and never change; :meth:`Rung.fit` returns a :class:`Fitted` result (t
 Nothing is written on the rung, so one rung object serves any number of scans in any order
 (:class:`twinfocus.focus.plan.FocusPlan` builds the rungs once and climbs them for every focus).
 
-A new rung is one class here and one line in :data:`RUNGS` (docs/architecture.md, "Adding a
+A new rung is one class here and one line in the registry,
+:data:`twinfocus.focus.estimators.RUNG_REGISTRY`, which :data:`RUNGS` resolves (docs/architecture.md, "Adding a
 rung"); :func:`twinfocus.focus.plan.ladder_modes` says where it stands in a ladder.
 """
 
 from __future__ import annotations
 
+import importlib
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -23,6 +25,7 @@ import numpy as np
 from twinfocus.errors import TwinFocusError
 from twinfocus.focus.autofocus import refine_check, sharpness_autofocus, transfer_phase, twin_autofocus
 from twinfocus.focus.band_delay import bright_pixels, position_range_errors_m
+from twinfocus.focus.estimators import RUNG_REGISTRY
 from twinfocus.focus.ladder import (
     FAST_FIT,
     HELDOUT_FIT,
@@ -642,19 +645,15 @@ class Tilt(SmoothDrift):
     tilt = True
 
 
-#: every rung by name: a ladder is a sequence of these names (:func:`twinfocus.focus.plan.ladder_modes`)
-RUNGS: dict[str, type[Rung]] = {
-    "none": NoCorrection,
-    "phase": PhasePerPosition,
-    "refine": Refine,
-    "placement": Placement,
-    "range_errors": RangeErrors,
-    "drift": SmoothDrift,
-    "tilt": Tilt,
-    "sharpness": Sharpness,
-    "entropy": Entropy,
-    "pga": Pga,
-}
+def _rung_class(where: str) -> type[Rung]:
+    """The class a registry entry names ("module:Class")."""
+    module, name = where.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+#: every rung by name, its class (the registry :data:`twinfocus.focus.estimators.RUNG_REGISTRY`
+#: resolved): a ladder is a sequence of these names (:func:`twinfocus.focus.plan.ladder_modes`)
+RUNGS: dict[str, type[Rung]] = {name: _rung_class(where) for name, (where, _) in RUNG_REGISTRY.items()}
 
 
 def reference_free_rungs() -> tuple[str, ...]:
