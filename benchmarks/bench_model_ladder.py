@@ -52,12 +52,11 @@ CLOUD = (1e-3, 0.25, 0.02, 2.5e-3)
 MODELS = ("auto", "fast", "full")
 
 
-def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) -> dict:
-    from twinfocus.errors import TwinFocusError
-    from twinfocus.focus.estimators import TWIN_RUNGS
-    from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases, upper_band_basis
-    from twinfocus.focus.plan import FocusPlan
-    from twinfocus.focus.settings import default_settings
+def draw_inputs(scene: str, seed: int) -> dict:
+    """One draw of ``scene`` (:data:`SCENES`) at the bench's size: ``sc`` (the Scenario), ``scan``,
+    ``template`` (complex, or its amplitude, or a digital twin's) and ``support`` (the twin's
+    outline or None) on ``rg``, the target grid ``tg``, the sub-image bases ``rb`` / ``tb``
+    (complex (M, H, W)) and ``truth`` (the images on the true positions, the true positions)."""
     from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
     from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.twins.templates import template_from_scan
@@ -80,12 +79,34 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
         template = template_from_scan(tpl_scan, rg, keep_phase=True)
         if kind == "amplitude":
             template = np.abs(template)
-    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
-    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
     truth = dict(
         truth_target=backproject(scan.data, scan.positions_true, scan.chirp, tg),
         truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
         positions_true=scan.positions_true,
+    )
+    return dict(
+        sc=sc,
+        scan=scan,
+        template=template,
+        support=support,
+        rg=rg,
+        tg=tg,
+        rb=subimage_basis(scan.data, scan.positions, scan.chirp, rg),
+        tb=subimage_basis(scan.data, scan.positions, scan.chirp, tg),
+        truth=truth,
+    )
+
+
+def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) -> dict:
+    from twinfocus.errors import TwinFocusError
+    from twinfocus.focus.estimators import TWIN_RUNGS
+    from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases, upper_band_basis
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.focus.settings import default_settings
+
+    d = draw_inputs(scene, seed)
+    scan, template, support, rg, tg, rb, tb, truth = (
+        d[k] for k in ("scan", "template", "support", "rg", "tg", "rb", "tb", "truth")
     )
     settings = {**default_settings(), "iterations": ITERATIONS, "device": "cpu"}
     rec: dict = {"scene": scene, "seed": seed, "rungs": {}}
