@@ -84,17 +84,9 @@ def draw_inputs(scene: str, seed: int) -> dict:
         truth_reference=backproject(scan.data, scan.positions_true, scan.chirp, rg),
         positions_true=scan.positions_true,
     )
-    return dict(
-        sc=sc,
-        scan=scan,
-        template=template,
-        support=support,
-        rg=rg,
-        tg=tg,
-        rb=subimage_basis(scan.data, scan.positions, scan.chirp, rg),
-        tb=subimage_basis(scan.data, scan.positions, scan.chirp, tg),
-        truth=truth,
-    )
+    rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
+    tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
+    return dict(sc=sc, scan=scan, template=template, support=support, rg=rg, tg=tg, rb=rb, tb=tb, truth=truth)
 
 
 def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) -> dict:
