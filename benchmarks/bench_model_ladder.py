@@ -52,12 +52,12 @@ CLOUD = (1e-3, 0.25, 0.02, 2.5e-3)
 MODELS = ("auto", "fast", "full")
 
 
-def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) -> dict:
-    from twinfocus.errors import TwinFocusError
-    from twinfocus.focus.estimators import TWIN_RUNGS
-    from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases, upper_band_basis
-    from twinfocus.focus.plan import FocusPlan
-    from twinfocus.focus.settings import default_settings
+def draw_inputs(scene: str, seed: int) -> dict:
+    """One draw of ``scene`` (:data:`SCENES`) at the bench's size: ``sc`` (the Scenario), ``scan``,
+    ``template`` (complex, or its amplitude, or a digital twin's) and ``support`` (the twin's
+    outline or None) on ``rg``, the target grid ``tg``, the sub-image bases ``rb`` / ``tb``
+    (complex (M, H, W)) and ``truth`` (the images on the true positions, the true positions)."""
+    from twinfocus.focus.pipeline import Truth
     from twinfocus.imaging.backprojection.numba_backend import subimage_basis
     from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario
     from twinfocus.twins.templates import template_from_scan
@@ -83,6 +83,20 @@ def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) 
     rb = subimage_basis(scan.data, scan.positions, scan.chirp, rg)
     tb = subimage_basis(scan.data, scan.positions, scan.chirp, tg)
     truth = Truth.of_scan(scan, rg, tg)
+    return dict(sc=sc, scan=scan, template=template, support=support, rg=rg, tg=tg, rb=rb, tb=tb, truth=truth)
+
+
+def one_draw(scene: str, seed: int, only_models: tuple[str, ...] | None = None) -> dict:
+    from twinfocus.errors import TwinFocusError
+    from twinfocus.focus.estimators import TWIN_RUNGS
+    from twinfocus.focus.pipeline import Bases, Reference, Truth, half_array_bases, upper_band_basis
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.focus.settings import default_settings
+
+    d = draw_inputs(scene, seed)
+    scan, template, support, rg, tg, rb, tb, truth = (
+        d[k] for k in ("scan", "template", "support", "rg", "tg", "rb", "tb", "truth")
+    )
     settings = {**default_settings(), "iterations": ITERATIONS, "device": "cpu"}
     rec: dict = {"scene": scene, "seed": seed, "rungs": {}}
     for model in TWIN_RUNGS + MODELS:

@@ -15,10 +15,7 @@ NUMBA_DECORATORS = {"njit", "jit", "vectorize", "guvectorize", "stencil"}
 # Functions over the limits not yet reshaped, "file:function": public keyword signatures whose many
 # callers (tests among them) would change with a settings object, and the evaluation's long
 # drivers. THIS LIST MUST EMPTY too; nothing may be added to it.
-NOT_YET_RESHAPED = {
-    "twinfocus/motion/trajectory.py:handheld_zigzag",
-    "twinfocus/sensors/emulators/fake_dca1000.py:__init__",
-}
+NOT_YET_RESHAPED: set[str] = set()
 
 
 def _is_numba_kernel(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:

@@ -66,3 +66,17 @@ def test_bad_settings_are_refused_before_any_work():
         FocusPlan.from_settings({"device": "cpu", "model": "drift"}, "sharpness")
     with pytest.raises(TwinFocusError, match="model must be one of"):
         plan(model="everything")
+
+
+def test_the_rung_registry_names_each_rung_once_and_its_ladder():
+    """The command's choices (read without the numerics) and the ladder's classes come from one
+    registry: each entry's class carries the entry's name, and is a reference-free rung exactly
+    when the registry puts it in no ladder but its own."""
+    from twinfocus.focus.estimators import REFERENCE_FREE_RUNGS, RUNG_REGISTRY, TWIN_RUNGS
+    from twinfocus.focus.rungs import RUNGS, ReferenceFree, reference_free_rungs
+
+    assert list(RUNGS) == list(RUNG_REGISTRY) == [*TWIN_RUNGS, *REFERENCE_FREE_RUNGS]
+    assert all(cls.name == name for name, cls in RUNGS.items())
+    assert reference_free_rungs() == REFERENCE_FREE_RUNGS
+    assert {n for n, c in RUNGS.items() if issubclass(c, ReferenceFree)} == set(REFERENCE_FREE_RUNGS)
+    assert list(ladder_modes("auto")) == list(TWIN_RUNGS)

@@ -23,7 +23,7 @@ from twinfocus.sensors.dca1000 import (
     encode_data_packet,
     encode_response,
 )
-from twinfocus.sensors.emulators.fake_dca1000 import FakeDca1000, pattern_frame
+from twinfocus.sensors.emulators.fake_dca1000 import FakeDca1000, LinkFaults, pattern_frame
 from twinfocus.sensors.frames import FrameFlag
 
 
@@ -143,9 +143,7 @@ def test_loopback_stream_with_injected_loss_and_reordering():
             lay,
             n_frames=n_frames,
             frame_period_s=0.002,
-            drop_packets=drop,
-            swap_packets={10, 77, 150},
-            duplicate_packets={60},
+            faults=LinkFaults(drop_packets=drop, swap_packets={10, 77, 150}, duplicate_packets={60}),
         ) as board,
     ):
         host.board_addr = board.config_addr
@@ -175,7 +173,10 @@ def test_loopback_stream_with_injected_loss_and_reordering():
 
 def test_stream_that_stops_mid_frame_does_not_stall():
     lay = RawFrameLayout(n_samples=64, n_rx=4, tx_of_chirp=(0,))
-    with _host() as host, FakeDca1000(lay, n_frames=3, frame_period_s=None, drop_packets={3}) as board:
+    with (
+        _host() as host,
+        FakeDca1000(lay, n_frames=3, frame_period_s=None, faults=LinkFaults(drop_packets={3})) as board,
+    ):
         board.host_data_addr = host.data_addr
         board.start_streaming()
         t0 = time.monotonic()

@@ -14,7 +14,7 @@ from nodes.radar_driver import _gap_fields
 from nodes.runtime.backends import RADAR_BACKENDS, load_backend
 from twinfocus.radar.fmcw import mmwcas_virtual_array
 from twinfocus.sensors.dca1000 import MAX_PAYLOAD_BYTES, RawFrameLayout
-from twinfocus.sensors.emulators.fake_dca1000 import FakeDca1000
+from twinfocus.sensors.emulators.fake_dca1000 import FakeDca1000, LinkFaults
 
 
 def _free_udp_port() -> int:
@@ -38,7 +38,11 @@ def test_dropped_packets_are_counted_and_carried(tmp_path, capfd):
     drop = {20, *in_frame3}
     port = _free_udp_port()
     with FakeDca1000(
-        layout, host_data_addr=("127.0.0.1", port), frame_period_s=0.01, n_frames=6, drop_packets=drop
+        layout,
+        host_data_addr=("127.0.0.1", port),
+        frame_period_s=0.01,
+        n_frames=6,
+        faults=LinkFaults(drop_packets=drop),
     ) as board:
         radar = load_backend(RADAR_BACKENDS, "dca1000", "radar")(
             {

@@ -3,6 +3,7 @@ import pytest
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.motion.trajectory import (
+    HandMotion,
     Poses,
     handheld_zigzag,
     matrix_to_quat,
@@ -167,7 +168,7 @@ def test_handheld_zigzag_coverage_and_seed():
     assert dy.mean() == pytest.approx(0.258 / 129)
     np.testing.assert_allclose(np.linalg.norm(a.quat_xyzw, axis=1), 1.0, atol=1e-12)
     assert np.all(np.diff(a.timestamps_ns) > 0)
-    flat = handheld_zigzag(rng=3, tilt_deg=0.0, lateral_wander_m=0.0, depth_wander_m=0.0)
+    flat = handheld_zigzag(rng=3, motion=HandMotion(tilt_deg=0.0, lateral_wander_m=0.0, depth_wander_m=0.0))
     np.testing.assert_allclose(flat.quat_xyzw[:, :3], 0.0, atol=0)
 
 

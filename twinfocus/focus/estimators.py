@@ -115,14 +115,30 @@ def estimator_settings(estimator: str, has_phase: bool, has_support: bool = Fals
     return out
 
 
+#: every rung by name (the one registry; :data:`twinfocus.focus.rungs.RUNGS` resolves it into the
+#: classes when a ladder is built): where its class is, "module:Class", and its ladder: "twin",
 #: the twin's ladder of correction models, simplest first (:mod:`twinfocus.focus.ladder`,
 #: docs/model_ladder.md): no correction; one phase per position (the estimator's closed form,
 #: projections or outline); the paper's optimiser refining it; the template's placement (the
 #: estimate's ramp); the range errors read from the band's halves; a smooth drift per pixel; the
-#: array's tilt with it
-TWIN_RUNGS = ("none", "phase", "refine", "placement", "range_errors", "drift", "tilt")
-#: autofocus without a reference in view, each a ladder of its own above "none" (``--method``)
-REFERENCE_FREE_RUNGS = ("sharpness", "entropy", "pga")
+#: array's tilt with it; or "reference-free", autofocus without a reference in view, each a
+#: ladder of its own above "none" (``--method``). Names and places only, so that the command's and
+#: the node's choices are listed without importing the numerics
+RUNG_REGISTRY: dict[str, tuple[str, str]] = {
+    "none": ("twinfocus.focus.rungs:NoCorrection", "twin"),
+    "phase": ("twinfocus.focus.rungs:PhasePerPosition", "twin"),
+    "refine": ("twinfocus.focus.rungs:Refine", "twin"),
+    "placement": ("twinfocus.focus.rungs:Placement", "twin"),
+    "range_errors": ("twinfocus.focus.rungs:RangeErrors", "twin"),
+    "drift": ("twinfocus.focus.rungs:SmoothDrift", "twin"),
+    "tilt": ("twinfocus.focus.rungs:Tilt", "twin"),
+    "sharpness": ("twinfocus.focus.rungs:Sharpness", "reference-free"),
+    "entropy": ("twinfocus.focus.rungs:Entropy", "reference-free"),
+    "pga": ("twinfocus.focus.rungs:Pga", "reference-free"),
+}
+#: the twin's ladder, simplest first, and the reference-free rungs: the registry's names
+TWIN_RUNGS = tuple(name for name, (_, ladder) in RUNG_REGISTRY.items() if ladder == "twin")
+REFERENCE_FREE_RUNGS = tuple(name for name, (_, ladder) in RUNG_REGISTRY.items() if ladder == "reference-free")
 #: ``twinfocus focus --model``: climb as the evidence says, stop at the cheapest trusted rung,
 #: try every rung, or exactly one rung (those beneath it by their rules, none above it)
 MODEL_CHOICES = ("auto", "fast", "full") + TWIN_RUNGS + REFERENCE_FREE_RUNGS

@@ -7,12 +7,14 @@ arguments and never change; :meth:`Rung.fit` returns a :class:`Fitted` result (t
 Nothing is written on the rung, so one rung object serves any number of scans in any order
 (:class:`twinfocus.focus.plan.FocusPlan` builds the rungs once and climbs them for every focus).
 
-A new rung is one class here and one line in :data:`RUNGS` (docs/architecture.md, "Adding a
+A new rung is one class here and one line in the registry,
+:data:`twinfocus.focus.estimators.RUNG_REGISTRY`, which :data:`RUNGS` resolves (docs/architecture.md, "Adding a
 rung"); :func:`twinfocus.focus.plan.ladder_modes` says where it stands in a ladder.
 """
 
 from __future__ import annotations
 
+import importlib
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -23,6 +25,7 @@ import numpy as np
 from twinfocus.errors import TwinFocusError
 from twinfocus.focus.autofocus import refine_check, sharpness_autofocus, transfer_phase, twin_autofocus
 from twinfocus.focus.band_delay import bright_pixels, position_range_errors_m
+from twinfocus.focus.estimators import RUNG_REGISTRY
 from twinfocus.focus.ladder import (
     FAST_FIT,
     HELDOUT_FIT,
@@ -77,10 +80,28 @@ class Verdict:
     heldout: dict | None = None
 
 
+def measured_keep(why: str, judged: str, kept: int, draws: int, gain_mean: float, gain_min: float) -> str:
+    """A ``keeps_because``: ``why`` the rung keeps its fit whatever it gives, and what a held-out
+    rule (:func:`~twinfocus.focus.ladder.heldout_verdict`) said of that fit on the simulated draws
+    of benchmarks/bench_rung_keeps.py: on how many of ``draws`` it would have kept it, and the
+    gain's mean and least; ``judged``: on what, against what (benchmarks/results/rung_keeps.json,
+    which tests/test_rung_keeps.py checks these figures against)."""
+    return (
+        f"{why}; fitted on one half of {judged}, a held-out rule would have kept it on {kept} of "
+        f"{draws} simulated draws (gain {gain_mean:.3f} on average, {gain_min:.3f} at least; "
+        "benchmarks/results/rung_keeps.json)"
+    )
+
+
+#: how the reference-free rungs are judged (the target's sharpness: nothing else is there to judge)
+_FREE_JUDGED = "the target's blocks and judged on the other by its sharpness against no correction"
+
+
 class Rung:
     """One correction model. Subclasses set ``name``, ``adds`` (one line), ``cheap`` (closed form:
-    ``--model fast`` climbs it whatever the trust line says) and ``keeps_because`` (the measured
-    reason a rung without a held-out rule always keeps its fit), and define :meth:`fit`;
+    ``--model fast`` climbs it whatever the trust line says) and ``keeps_because`` (why a rung without a
+    held-out rule always keeps its fit, with what a held-out rule measured of it: :func:`measured_keep`),
+    and define :meth:`fit`;
     :meth:`cannot`, :meth:`skip` and :meth:`keep` default to "can", "fit" and "keep".
 
     mode : "off", "auto", "try" or "on" (``twinfocus.focus.ladder.MODES``); until_trusted : climbed only
@@ -168,6 +189,11 @@ class PhasePerPosition(Rung):
     every rung above refines, and its match is the ``evidence`` the rungs above are judged against."""
 
     name, adds = "phase", "one phase per position, the estimator's closed form"
+    keeps_because = measured_keep(
+        "always kept: the estimate every rung above starts from",
+        "the reference's blocks and judged on the other against no correction",
+        14, 15, 0.4230, 0.0366,
+    )  # fmt: skip
 
     @classmethod
     def made_for(cls, mode: str, ladder: LadderSettings) -> Rung:
@@ -236,6 +262,39 @@ class PhasePerPosition(Rung):
         )
         return Fitted(fitted, info)
 
+    def heldout(self, problem: Problem, fitted: Model) -> dict | None:
+        """The held-out evidence of the correlation's closed form, a sum over the template's
+        pixels and so cheap (:func:`~twinfocus.focus.ladder.heldout_verdict`): on each half of
+        :func:`~twinfocus.focus.ladder.heldout_split`, the phases of the registered template zeroed
+        outside it, judged on the other half against no correction; None for the other estimators
+        (a fit on each half as costly as the fit itself: benchmarks/bench_rung_keeps.py measures
+        them)."""
+        template = fitted.template
+        if problem.config.init != "correlation" or template is None or not np.iscomplexobj(template):
+            return None
+        first = heldout_split(problem)
+        basis = problem.ref_basis
+        uncorrected = form_image(basis, np.zeros(basis.shape[0]))
+        folds = [
+            heldout_gain(uncorrected, form_image(basis, correlation_phase(basis, template * half)), template, ~half)
+            for half in (first, ~first)
+        ]
+        return heldout_verdict(folds)
+
+    def keep(self, problem: Problem, before: Model, fitted: Fitted, measured: dict) -> Verdict:
+        # always kept (its mode is "on" whenever it is climbed; ``keeps_because`` says why, measured);
+        # the held-out evidence, where it is cheap, is recorded beside it and decides nothing
+        verdict = Verdict(True, self.keeps_because, fitted.model)
+        evidence = self.heldout(problem, fitted.model)
+        if evidence is not None:
+            verdict.why += (
+                f"; on this reference, fitted on one half of its blocks and judged on the other, it leaves "
+                f"{evidence['unmatched_after']:.4f} unmatched against {evidence['unmatched_before']:.4f} "
+                f"uncorrected (gain {evidence['gain']:.4f}, noise {evidence['noise']:.4f})"
+            )
+            verdict.heldout = evidence
+        return verdict
+
 
 class Refine(Rung):
     """The paper's optimiser (Adam on 1 - SSIM against the template) from the closed form's
@@ -244,6 +303,11 @@ class Refine(Rung):
     whose measured ``why`` is then the keep's)."""
 
     name, adds, cheap = "refine", "the same phases refined by the paper's optimiser", False
+    keeps_because = measured_keep(
+        "kept as the estimator asks (the optimiser's target SSIM measured in docs/digital_twin.md)",
+        "the reference's blocks and judged on the other against the closed form fitted on the same half",
+        1, 3, 0.0195, -0.0273,
+    )  # fmt: skip
 
     def cannot(self, problem: Problem, model: Model) -> str | None:
         return None if problem.template is not None else "needs a template"
@@ -284,8 +348,8 @@ class Refine(Rung):
     def keep(self, problem: Problem, before: Model, fitted: Fitted, measured: dict) -> Verdict:
         check = measured.get("refine_check")
         if self.mode == "auto" and check is not None:
-            return Verdict(True, check["why"], fitted.model)
-        why = "the estimator refines its phases with the optimiser" if self.mode == "auto" else "on request"
+            return Verdict(True, f"{check['why']}; {self.keeps_because}", fitted.model)
+        why = self.keeps_because if self.mode != "on" else "on request"
         return Verdict(True, why, fitted.model)
 
 
@@ -305,6 +369,10 @@ class ReferenceFree(Rung):
         """(phase float (M,) radians, what it recorded, loss history float (n,)) from the target."""
         raise NotImplementedError
 
+    def keep(self, problem: Problem, before: Model, fitted: Fitted, measured: dict) -> Verdict:
+        # always kept (its mode is "on" whenever it is climbed): ``keeps_because`` says why, measured
+        return Verdict(True, self.keeps_because, fitted.model)
+
     def fit(self, problem: Problem, model: Model) -> Fitted:
         phase, info, losses = self.estimate(problem)
         return Fitted(model.evolve(phase_rad=phase, estimate_rad=phase, loss_history=losses, estimated=True), info)
@@ -321,6 +389,9 @@ class Sharpness(ReferenceFree):
     position and a warning when they are too few, as the other reference-free rungs' do."""
 
     name, adds = "sharpness", "one phase per position maximising the target's sharpness (no reference)"
+    keeps_because = measured_keep(
+        "always kept: nothing but the target to judge it by", _FREE_JUDGED, 6, 12, 0.736, 0.111
+    )
 
     def estimate(self, problem: Problem) -> tuple[np.ndarray, dict, np.ndarray]:
         basis = problem.tgt_basis
@@ -338,10 +409,16 @@ class _FreeMethod(ReferenceFree):
 
 class Entropy(_FreeMethod):
     name, adds = "entropy", "one phase per position minimising the target's entropy (no reference)"
+    keeps_because = measured_keep(
+        "always kept: nothing but the target to judge it by", _FREE_JUDGED, 9, 12, 1.207, 0.716
+    )
 
 
 class Pga(_FreeMethod):
     name, adds = "pga", "one phase per position from the target's brightest scatterers (no reference)"
+    keeps_because = measured_keep(
+        "always kept: nothing but the target to judge it by", _FREE_JUDGED, 7, 12, 1.034, -0.006
+    )
 
 
 def _transfer(problem: Problem, model: Model, mode: str, range_errors_m: np.ndarray | None = None):
@@ -642,19 +719,15 @@ class Tilt(SmoothDrift):
     tilt = True
 
 
-#: every rung by name: a ladder is a sequence of these names (:func:`twinfocus.focus.plan.ladder_modes`)
-RUNGS: dict[str, type[Rung]] = {
-    "none": NoCorrection,
-    "phase": PhasePerPosition,
-    "refine": Refine,
-    "placement": Placement,
-    "range_errors": RangeErrors,
-    "drift": SmoothDrift,
-    "tilt": Tilt,
-    "sharpness": Sharpness,
-    "entropy": Entropy,
-    "pga": Pga,
-}
+def _rung_class(where: str) -> type[Rung]:
+    """The class a registry entry names ("module:Class")."""
+    module, name = where.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+#: every rung by name, its class (the registry :data:`twinfocus.focus.estimators.RUNG_REGISTRY`
+#: resolved): a ladder is a sequence of these names (:func:`twinfocus.focus.plan.ladder_modes`)
+RUNGS: dict[str, type[Rung]] = {name: _rung_class(where) for name, (where, _) in RUNG_REGISTRY.items()}
 
 
 def reference_free_rungs() -> tuple[str, ...]:

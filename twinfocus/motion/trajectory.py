@@ -307,6 +307,22 @@ def paper_raster(
     return Poses(ts, pos.reshape(m, 3), quat)
 
 
+@dataclass(frozen=True)
+class HandMotion:
+    """How a simulated hand moves about its sweep (:func:`handheld_zigzag`): each a smooth
+    first-order Gauss-Markov process with correlation time ``wander_time_s`` (seconds).
+
+    speed_variation : relative standard deviation of the speed along a column; lateral_wander_m,
+    depth_wander_m : r.m.s. wander across (x) and in depth (z), metres; tilt_deg : r.m.s. tilt per
+    axis, degrees."""
+
+    speed_variation: float = 0.3
+    lateral_wander_m: float = 2e-3
+    depth_wander_m: float = 3e-3
+    tilt_deg: float = 1.0
+    wander_time_s: float = 1.5
+
+
 def handheld_zigzag(
     n_columns: int = 6,
     n_rows: int = 130,
@@ -315,22 +331,16 @@ def handheld_zigzag(
     z_m: float = 0.0,
     frame_period_s: float = 0.1,
     column_change_s: float = 1.0,
-    speed_variation: float = 0.3,
-    lateral_wander_m: float = 2e-3,
-    depth_wander_m: float = 3e-3,
-    tilt_deg: float = 1.0,
-    wander_time_s: float = 1.5,
     rng: np.random.Generator | int | None = None,
     t0_ns: int = 0,
+    motion: HandMotion = HandMotion(),
 ) -> Poses:
     """A simulated hand sweep with the paper raster's coverage: zig-zag columns, uneven speed.
 
     The hand moves up the first column, across, down the next, ... with ``n_rows`` frames per
     column (so M = n_columns * n_rows, like :func:`paper_raster`) spread over ``height_m``. Along a
-    column the speed varies smoothly (relative standard deviation ``speed_variation``); the hand
-    wanders across (x, ``lateral_wander_m``) and in depth (z, ``depth_wander_m``) and tilts by
-    about ``tilt_deg`` (r.m.s. per axis), all as smooth first-order Gauss-Markov processes with
-    correlation time ``wander_time_s``. ``column_change_s`` of frames are skipped between columns.
+    column the speed varies smoothly, the hand wanders across and in depth and tilts, as
+    ``motion`` says (:class:`HandMotion`). ``column_change_s`` of frames are skipped between columns.
 
     This is the *true* trajectory; tracking errors are added separately (:mod:`twinfocus.motion.tracking_errors`).
     Returns :class:`Poses` with M = n_columns * n_rows.
@@ -344,13 +354,14 @@ def handheld_zigzag(
             raise TwinFocusError(f"{name} must be a positive number, got {v!r}")
     for name, v in (
         ("column_change_s", column_change_s),
-        ("speed_variation", speed_variation),
-        ("lateral_wander_m", lateral_wander_m),
-        ("depth_wander_m", depth_wander_m),
-        ("tilt_deg", tilt_deg),
+        ("speed_variation", motion.speed_variation),
+        ("lateral_wander_m", motion.lateral_wander_m),
+        ("depth_wander_m", motion.depth_wander_m),
+        ("tilt_deg", motion.tilt_deg),
     ):
         if not (np.isfinite(v) and v >= 0):
             raise TwinFocusError(f"{name} must be a non-negative number, got {v!r}")
+    wander_time_s = motion.wander_time_s
     if not (np.isfinite(wander_time_s) and wander_time_s > 0):
         raise TwinFocusError(f"wander_time_s must be positive, got {wander_time_s!r}")
     m = n_columns * n_rows
@@ -361,7 +372,7 @@ def handheld_zigzag(
 
     # Speed along the column: positive, smooth, mean 1; y is its normalised running integral so
     # every column spans exactly [-height/2, +height/2].
-    speed = 1.0 + drift_errors(ts, speed_variation, wander_time_s, gen)[:, 0]
+    speed = 1.0 + drift_errors(ts, motion.speed_variation, wander_time_s, gen)[:, 0]
     speed = np.clip(speed, 0.2, None)
     pos = np.empty((m, 3))
     xs = (np.arange(n_columns) - (n_columns - 1) / 2.0) * column_pitch_m
@@ -372,10 +383,10 @@ def handheld_zigzag(
         y = (travel / travel[-1] - 0.5) * height_m
         pos[sl, 1] = y if c % 2 == 0 else y[::-1]
         pos[sl, 0] = xs[c]
-    wander = drift_errors(ts, (lateral_wander_m, 0.0, depth_wander_m), wander_time_s, gen)
+    wander = drift_errors(ts, (motion.lateral_wander_m, 0.0, motion.depth_wander_m), wander_time_s, gen)
     pos[:, 0] += wander[:, 0]
     pos[:, 2] = z_m + wander[:, 2]
-    tilt = drift_errors(ts, np.deg2rad(tilt_deg), wander_time_s, gen)
+    tilt = drift_errors(ts, np.deg2rad(motion.tilt_deg), wander_time_s, gen)
     quat = quat_from_rotvec(tilt)
     return Poses(ts, pos, quat)
 

@@ -5,8 +5,9 @@ with bodies checked for the documented sizes; RECORD_START begins streaming to t
 address once the (emulated) radar is running, RECORD_STOP ends it. The stream is the frames'
 bytes back to back, cut into packets of ``u32 sequence | 48-bit byte count | <= 1456 bytes``.
 
-Faults to inject: ``drop_packets`` (sequence numbers never sent), ``swap_packets`` (packet s goes
-out after s + 1), ``duplicate_packets``, and random ``loss`` / ``reorder`` probabilities.
+Faults to inject (:class:`LinkFaults`): ``drop_packets`` (sequence numbers never sent),
+``swap_packets`` (packet s goes out after s + 1), ``duplicate_packets``, and random ``loss`` /
+``reorder`` probabilities.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -40,6 +42,23 @@ def pattern_frame(index: int, layout: RawFrameLayout) -> bytes:
     return (v - 32768).astype("<i2").tobytes()
 
 
+@dataclass(frozen=True)
+class LinkFaults:
+    """The faults the emulated board injects into its data stream.
+
+    drop_packets : sequence numbers never sent; swap_packets : sequence numbers that go out after
+    the next packet; duplicate_packets : sequence numbers sent twice; loss, reorder : the
+    probability that any other packet is dropped / held back one packet; seed : the random
+    stream's seed (``numpy.random.default_rng``) for ``loss`` and ``reorder``."""
+
+    drop_packets: Collection[int] = ()
+    swap_packets: Collection[int] = ()
+    duplicate_packets: Collection[int] = ()
+    loss: float = 0.0
+    reorder: float = 0.0
+    seed: int | None = 0
+
+
 class FakeDca1000:
     """The emulated board.
 
@@ -51,6 +70,7 @@ class FakeDca1000:
     frame_period_s : pause between frames (None or 0: as fast as possible, or at ``rate``).
     rate_bytes_per_s : pace the stream at this byte rate instead of per frame.
     n_frames : stop after this many frames (None: until RECORD_STOP / close).
+    faults : the faults injected into the stream (:class:`LinkFaults`; default none).
     sensor_running : whether the radar is emitting (an emulated CLI toggles it).
     on_stream_start : called with the wall-clock time (ns) at which frame 0 leaves.
     """
@@ -63,12 +83,7 @@ class FakeDca1000:
         frame_period_s: float | None = 0.1,
         rate_bytes_per_s: float | None = None,
         n_frames: int | None = None,
-        drop_packets=(),
-        swap_packets=(),
-        duplicate_packets=(),
-        loss: float = 0.0,
-        reorder: float = 0.0,
-        rng: int | None = 0,
+        faults: LinkFaults = LinkFaults(),
         payload_bytes: int = MAX_PAYLOAD_BYTES,
         sensor_running: bool = True,
         bind_ip: str = "127.0.0.1",
@@ -81,12 +96,12 @@ class FakeDca1000:
         self.frame_period_s = frame_period_s
         self.rate = rate_bytes_per_s
         self.n_frames = n_frames
-        self.drop = set(int(s) for s in drop_packets)
-        self.swap = set(int(s) for s in swap_packets)
-        self.dup = set(int(s) for s in duplicate_packets)
-        self.loss = float(loss)
-        self.reorder = float(reorder)
-        self._rng = np.random.default_rng(rng)
+        self.drop = set(int(s) for s in faults.drop_packets)
+        self.swap = set(int(s) for s in faults.swap_packets)
+        self.dup = set(int(s) for s in faults.duplicate_packets)
+        self.loss = float(faults.loss)
+        self.reorder = float(faults.reorder)
+        self._rng = np.random.default_rng(faults.seed)
         self.payload_bytes = int(payload_bytes)
         self.sensor_running = bool(sensor_running)
         self.commands: list[int] = []

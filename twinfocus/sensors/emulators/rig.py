@@ -27,7 +27,7 @@ from twinfocus.io.atomic import write_text_atomic
 from twinfocus.motion.trajectory import Poses, matrix_to_quat, paper_raster
 from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.dca1000 import RawFrameLayout
-from twinfocus.sensors.emulators.fake_dca1000 import FakeDca1000
+from twinfocus.sensors.emulators.fake_dca1000 import FakeDca1000, LinkFaults
 from twinfocus.sensors.emulators.fake_radar_cli import FakeRadarCli
 from twinfocus.sensors.emulators.radar_scene import quantize_iq, simulate_mimo_frames
 from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
@@ -114,8 +114,7 @@ class EmulatedRadar:
             host_data_addr=host_data_addr,
             frame_period_s=period,
             n_frames=len(self.trajectory),
-            loss=loss,
-            reorder=reorder,
+            faults=LinkFaults(loss=loss, reorder=reorder),
             sensor_running=False,
             config_port=config_port,
             on_stream_start=self._started,
