@@ -21,7 +21,7 @@ Outputs per scan: :class:`msgs.AutofocusResult` (phase, loss curve, metrics, tim
 estimator that ran) and
 :class:`msgs.Image` on ``image/focused`` named ``target``, ``target_uncorrected``,
 ``reference``, ``reference_uncorrected``; with ``out_dir`` also ``twinfocus focus``'s files in
-``out_dir/<scan_id>/`` (:func:`twinfocus.focus.pipeline.write_outputs`); a scan that ended without its
+``out_dir/<scan_id>/`` (:func:`twinfocus.focus.output_files.write_outputs`); a scan that ended without its
 last measurement (its source went quiet, the graph was stopped) goes to
 ``out_dir/<scan_id>.incomplete/`` with ``complete: false`` and ``incomplete_reason`` in its metrics,
 so it never replaces a whole scan's result. Metrics against the truth
@@ -634,7 +634,7 @@ class Solver(Node):
             self._publish_result(s, out, timing, latency, False)
             self._log_focused(s, out, timing)
         if self.params["out_dir"]:
-            from twinfocus.focus.pipeline import write_outputs
+            from twinfocus.focus.output_files import write_outputs
 
             out.metrics["timings_s"] = timing
             # a scan that did not end never replaces the result of one that did

@@ -229,7 +229,7 @@ def volume_plan(args: argparse.Namespace, n_positions: int, n_channels: int, ref
 def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
     """Everything that can be checked before loading or computing anything; returns the scan's
     array shapes (from the file's headers)."""
-    from twinfocus.radar.scan import peek_npz_shapes
+    from twinfocus.io.arrays import peek_npz_shapes
 
     if args.size < 2:
         raise TwinFocusError(f"--size must be at least 2, got {args.size}")
@@ -348,7 +348,7 @@ def _reference_region(args: argparse.Namespace, bp: dict, progress, rig=None) ->
             cloud = cloud + rig[0].offset_m  # where the calibrated camera saw it
         return reference_search.region_from_cloud(cloud)
     if args.template:
-        from twinfocus.radar.scan import load_npz
+        from twinfocus.io.arrays import load_npz
 
         z = load_npz(args.template)
         if not all(k in z for k in ("x_m", "y_m", "z_m")):
@@ -397,7 +397,8 @@ def _write_where(out_dir, search, typed_depth, volume, grid, cloud, pictures: st
     if volume is None:
         return
     from nodes.foxglove_convert import write_point_cloud_log
-    from twinfocus.imaging.volume import ply_bytes, projections
+    from twinfocus.imaging.volume import projections
+    from twinfocus.io.arrays import ply_bytes
 
     with atomic_writer(Path(out_dir) / VOLUME_FILES["volume"]) as f:
         np.save(f, volume.astype(np.complex64))
@@ -605,7 +606,7 @@ def _best_candidate(args: argparse.Namespace, candidates: list, scan, box, typed
 def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) -> int:
     # the numerics load here, once a focus runs: `focus --help` and the refusals before any work
     # take 1.0 s instead of 4.0 s with them in the module's header (load 25, 2 cores)
-    from twinfocus.focus.pipeline import write_outputs
+    from twinfocus.focus.output_files import write_outputs
     from twinfocus.focus.plan import FocusPlan
     from twinfocus.jobs.progress import Progress
     from twinfocus.radar.scan import Scan

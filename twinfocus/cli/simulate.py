@@ -11,6 +11,7 @@ import time
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.io.arrays import save_npy_atomic
 from twinfocus.io.atomic import output_files
 from twinfocus.jobs.machine import available_memory_bytes, require_memory
 from twinfocus.jobs.progress import Progress
@@ -27,7 +28,6 @@ from twinfocus.option_types import (
 from twinfocus.radar.array_errors import NONE, array_error_levels, array_errors_stream, draw_array_errors
 from twinfocus.radar.board import load_board
 from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
-from twinfocus.twins.digital_twin.template import save_points
 
 
 def add_layout_arguments(p: argparse.ArgumentParser) -> None:
@@ -334,7 +334,7 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.template_out:
         template_scan.save(args.template_out)
     if cloud is not None:
-        save_points(args.reference_cloud_out, cloud)
+        save_npy_atomic(args.reference_cloud_out, np.asarray(cloud, dtype=np.float64))
     info = {
         "scan": str(args.out),
         "template_scan": args.template_out,

@@ -24,12 +24,12 @@ import numpy as np
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.io.atomic import write_bytes_atomic, write_text_atomic
+from twinfocus.io.images import read_image, write_image_atomic
 from twinfocus.option_types import finite_float, positive_float, positive_int
 from twinfocus.radar.scan import Scan
 from twinfocus.sensors.rosbag2_files import read_bag_stereo, split_bag_source
 from twinfocus.twins.digital_twin.align import RadarCameraCalibration, calibrate_offset
 from twinfocus.twins.digital_twin.camera import Intrinsics, StereoCamera
-from twinfocus.twins.digital_twin.render import read_image, write_image_atomic
 from twinfocus.twins.digital_twin.rig import Rig, scan_board
 from twinfocus.twins.digital_twin.segment import Seed, box_from_scene_roi, load_segmenter
 from twinfocus.twins.digital_twin.template import digital_twin_template

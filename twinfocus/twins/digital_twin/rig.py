@@ -38,6 +38,7 @@ import numpy as np
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.grid import ImageGrid
+from twinfocus.io.documents import read_json, write_json_document
 
 #: the reference's outline must cover at least this many pixels of the region to be registered
 MIN_SUPPORT_PIXELS = 30
@@ -77,7 +78,7 @@ def camera_identity(cloud_path: str | os.PathLike) -> str | None:
     if not side.is_file():
         return None
     try:
-        v = json.loads(side.read_text()).get("camera")
+        v = read_json(side).get("camera")
     except (OSError, ValueError, AttributeError):
         return None
     return None if v is None else str(v)
@@ -115,9 +116,7 @@ class Rig:
         }
 
     def save(self, path: str | os.PathLike) -> Path:
-        from twinfocus.io.atomic import write_text_atomic
-
-        return write_text_atomic(path, json.dumps(self.to_dict(), indent=2, default=float) + "\n")
+        return write_json_document(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Rig:
@@ -125,7 +124,7 @@ class Rig:
         if not p.is_file():
             raise TwinFocusError(f"--rig {p}: no such rig file (make one with twinfocus rig)")
         try:
-            d = json.loads(p.read_text())
+            d = read_json(p)
             if d.get("kind") != RIG_KIND:
                 raise ValueError(f"kind is {d.get('kind')!r}, not {RIG_KIND!r}")
             return cls(d["offset_m"], d["sd_m"], str(d["board"]), d.get("camera"), int(d.get("created_ns", 0)),

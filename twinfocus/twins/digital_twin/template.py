@@ -34,6 +34,7 @@ import numpy as np
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.grid import ImageGrid
+from twinfocus.io.arrays import load_npy
 from twinfocus.radar.fmcw import C_M_PER_S, Chirp
 
 # Largest depth spread (metres) one PSF serves: a point dz off its slab's depth is defocused by
@@ -332,7 +333,7 @@ def load_points(path: str | os.PathLike, allow_non_finite: bool = False) -> np.n
     if not path.is_file():
         raise TwinFocusError(f"{path}: no such point-cloud file")
     try:
-        p = np.load(path, allow_pickle=False)
+        p = load_npy(path)
     except (OSError, ValueError) as exc:
         raise TwinFocusError(f"{path}: not a readable .npy point cloud ({exc})") from None
     if p.ndim != 2 or p.shape[1] != 3 or not np.issubdtype(p.dtype, np.number):
@@ -389,14 +390,3 @@ def pin_bag_clouds(clouds: list[str], timestamps_ns: np.ndarray | None, quiet: b
             )
         out.append(f"{source.path}:{source.topic}@{cloud.log_ns}")
     return out
-
-
-def save_points(path: str | os.PathLike, points_m) -> None:
-    """Write a point cloud float64 (N, 3) metres as ``.npy`` atomically (the reader is :func:`load_points`)."""
-    import io
-
-    from twinfocus.io.atomic import write_bytes_atomic
-
-    buf = io.BytesIO()
-    np.save(buf, np.asarray(points_m, dtype=np.float64))
-    write_bytes_atomic(path, buf.getvalue())
