@@ -15,6 +15,7 @@ import numpy as np
 from twinfocus.errors import TwinFocusError
 from twinfocus.focus.pipeline import FocusOutputs
 from twinfocus.io.atomic import record_written, remove_earlier
+from twinfocus.outputs.plotting import write_focus_pictures
 
 
 def write_outputs(out_dir: str | os.PathLike, outputs: FocusOutputs, pictures: str | bool = "summary") -> Path:
@@ -53,8 +54,6 @@ def write_outputs(out_dir: str | os.PathLike, outputs: FocusOutputs, pictures: s
         }
         (tmp / "metrics.json").write_text(json.dumps(doc, indent=2, default=float))
         if which != "none":
-            from twinfocus.outputs.plotting import write_focus_pictures
-
             write_focus_pictures(tmp, outputs, which)
         out_dir.mkdir(parents=True, exist_ok=True)
         written = {f.name for f in tmp.iterdir()}

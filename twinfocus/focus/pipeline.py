@@ -91,7 +91,7 @@ def half_array_bases(
     in batches); positions : float64 (M, K, 3). Returns None for an array with one channel or no
     extent (no tilt to see).
     """
-    from twinfocus.focus.space_variant import array_half
+    from twinfocus.focus.space_variant import array_half  # lazy: scipy.sparse (+0.5 s at import)
 
     try:
         half = array_half(positions)

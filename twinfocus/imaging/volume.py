@@ -12,8 +12,10 @@ from __future__ import annotations
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.imaging import line_backprojection
 from twinfocus.imaging.backprojection.numba_backend import backproject
 from twinfocus.imaging.grid import ImageGrid, VolumeGrid
+from twinfocus.imaging.line_backprojection import TABLE_BYTES
 from twinfocus.radar.fmcw import Chirp
 
 #: bytes per voxel that :func:`corrected_image` holds at its peak on a volume: the voxel positions
@@ -61,8 +63,6 @@ def corrected_image(
         and bp_options.get("backend", "numba") == "numba"
         and bp_options.get("precision", "float32") == "float32"
     ):
-        from twinfocus.imaging import line_backprojection
-
         line_plan = line_backprojection.plan(positions_m, chirp, grid)
         if line_plan is not None:
             opts = {k: v for k, v in bp_options.items() if k in ("oversample", "progress")}
@@ -85,8 +85,6 @@ def volume_cost(grid: VolumeGrid, n_positions: int, n_channels: int, line_plan=N
     :data:`SECONDS_PER_VOXEL_CHANNEL` per channel evaluation: ``line_plan``'s
     (:func:`twinfocus.imaging.line_backprojection.plan`) when the volume is formed by sub-arrays, one per
     voxel, position and channel otherwise)."""
-    from twinfocus.imaging.line_backprojection import TABLE_BYTES
-
     voxels = int(np.prod(grid.shape))
     evaluations = line_plan.cost if line_plan is not None else voxels * n_positions * n_channels
     return {

@@ -34,6 +34,7 @@ import numpy as np
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.io.arrays import load_npz, save_npz_atomic
+from twinfocus.io.checksums import file_sha256
 from twinfocus.radar.fmcw import C_M_PER_S, Chirp, VirtualArray, range_compress, range_profiles_at
 
 #: Kind tag of a calibration file.
@@ -445,8 +446,6 @@ def calibration_for(
     """Read a calibration file for data of ``chirp`` and ``array`` (refused, one line, when it
     was made for others). Returns (correction complex64 (K, N), record): the record names the
     file and its SHA-256 and carries its quality figures, for a scan's and a focus's metrics."""
-    from twinfocus.io.checksums import file_sha256
-
     cal = ChannelCalibration.load(path)
     cal.check_fits(chirp, array, board, source=str(path))
     record = {
