@@ -21,7 +21,7 @@ Outputs per scan: :class:`msgs.AutofocusResult` (phase, loss curve, metrics, tim
 estimator that ran) and
 :class:`msgs.Image` on ``image/focused`` named ``target``, ``target_uncorrected``,
 ``reference``, ``reference_uncorrected``; with ``out_dir`` also ``twinfocus focus``'s files in
-``out_dir/<scan_id>/`` (:func:`twinfocus.focus.pipeline.write_outputs`); a scan that ended without its
+``out_dir/<scan_id>/`` (:func:`twinfocus.focus.output_files.write_outputs`); a scan that ended without its
 last measurement (its source went quiet, the graph was stopped) goes to
 ``out_dir/<scan_id>.incomplete/`` with ``complete: false`` and ``incomplete_reason`` in its metrics,
 so it never replaces a whole scan's result. Metrics against the truth
@@ -42,15 +42,22 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from msgs import AutofocusResult, Header, Image, SarMeasurement, TwinTemplate, now_ns
+from nodes.runtime.bus import query_graph
 from nodes.runtime.node import Node, Shutdown, run_node
 from nodes.runtime.params import REQUIRED, Param, param_of
 from twinfocus.errors import TwinFocusError
 from twinfocus.focus.estimators import REFERENCE_FREE_RUNGS
+from twinfocus.focus.reference_search import region_from_template_file
 from twinfocus.focus.settings import FOCUS_SETTINGS
 from twinfocus.imaging.basis import BasisRows
 from twinfocus.imaging.depth_search import DEFAULT_HALF_RANGE_M, parse_depth, range_to_search
+from twinfocus.imaging.grid import ImageGrid
 from twinfocus.io.safe_paths import child_path
+from twinfocus.jobs.machine import require_memory
+from twinfocus.jobs.progress import remaining_text
 from twinfocus.radar.fmcw import Chirp
+from twinfocus.radar.scan import Scan
+from twinfocus.sensors.capture_to_scan import stream_gaps
 
 if TYPE_CHECKING:  # imported where used: the node starts without the numerics (numba, scipy: 1.0 s
     # against 3.5-4.7 s for `import nodes.solver` at load 25), which a launch's checks import
@@ -157,8 +164,7 @@ class Solver(Node):
 
     def __init__(self, **kw):
         super().__init__(**kw)
-        from twinfocus.focus.autofocus import AutofocusConfig
-        from twinfocus.imaging.grid import ImageGrid
+        from twinfocus.focus.autofocus import AutofocusConfig  # lazy: scipy.fft (+0.8 s at import)
 
         p = self.params
         if len(p["reference_roi"]) not in (0, 5):
@@ -200,7 +206,7 @@ class Solver(Node):
         self.bp = {"oversample": p["oversample"], "precision": p["precision"]}
         if device != "cpu":
             self.bp.update(backend="torch", device=device)
-        from twinfocus.focus.plan import FocusPlan
+        from twinfocus.focus.plan import FocusPlan  # lazy: numba, scipy.fft (+2.1 s at import)
 
         # the focusing policy, made once from the parameters (twinfocus/focus/plan.py)
         self.plan = FocusPlan.from_settings(
@@ -244,8 +250,7 @@ class Solver(Node):
     def _volume_grid(self, ref_grid):
         """The volume's grid over both regions' x/y box (``twinfocus focus --volume``'s), or None
         without ``volume``; ``ref_grid`` None: the target's box stands in for the reference's."""
-        from twinfocus.imaging.grid import ImageGrid
-        from twinfocus.imaging.volume import volume_grid
+        from twinfocus.imaging.volume import volume_grid  # lazy: numba (+2.1 s at import)
 
         if not self.params["volume"]:
             return None
@@ -257,8 +262,7 @@ class Solver(Node):
 
     def _check_volume_memory(self) -> None:
         """A volume that cannot fit is refused when the node starts, not after a scan."""
-        from twinfocus.imaging.volume import volume_cost
-        from twinfocus.jobs.machine import require_memory
+        from twinfocus.imaging.volume import volume_cost  # lazy: numba (+2.1 s at import)
 
         grid = self._volume_grid(self.ref_grid)
         if grid is not None:
@@ -279,9 +283,8 @@ class Solver(Node):
         return self._plan().config
 
     def _warm_up(self) -> None:
-        from twinfocus.focus.autofocus import AutofocusConfig, twin_autofocus
-        from twinfocus.imaging.backprojection.numba_backend import subimage_basis
-        from twinfocus.imaging.grid import ImageGrid
+        from twinfocus.focus.autofocus import AutofocusConfig, twin_autofocus  # lazy: scipy.fft (+0.8 s at import)
+        from twinfocus.imaging.backprojection.numba_backend import subimage_basis  # lazy: numba (+2.1 s at import)
 
         rng = np.random.default_rng(0)
         chirp = Chirp(n_samples=8)
@@ -298,13 +301,16 @@ class Solver(Node):
         """The drift + tilt fit once on the toy problem of :meth:`_warm_up`, when the ladder may
         climb to it: a hand-held scan's first fit then does not pay loading the fit's numba kernels
         after its last frame. basis : complex (2, 4, 4) on ``grid``; pos : (2, K, 3) metres."""
-        from twinfocus.focus.plan import climbs_to
+        from twinfocus.focus.plan import climbs_to  # lazy: numba, scipy.fft (+2.1 s at import)
 
         if self.params["method"] != "twin" or not climbs_to(
             "drift", self.params["model"], self.params["space_variant"]
         ):
             return
-        from twinfocus.focus.space_variant import DriftFitSettings, fit_smooth_drift
+        from twinfocus.focus.space_variant import (  # lazy: numba, scipy.sparse (+2.1 s at import)
+            DriftFitSettings,
+            fit_smooth_drift,
+        )
 
         template = np.asarray(basis.sum(axis=0))
         fit_smooth_drift(
@@ -321,14 +327,11 @@ class Solver(Node):
 
     # -- template -----------------------------------------------------------------------------
     def on_template(self, msg: TwinTemplate) -> None:
-        from twinfocus.twins.templates import resample_support, resample_template
+        from twinfocus.twins.templates import resample_support, resample_template  # lazy: numba (+2.1 s at import)
 
         if self._same_template(msg):  # the same template again (sent for a node that started later)
             return
         if not self.params["reference_roi"]:
-            from twinfocus.focus.reference_search import region_from_template_file
-            from twinfocus.imaging.grid import ImageGrid
-
             roi, _ = region_from_template_file(msg.x_m, msg.y_m, msg.z_m)
             self.ref_grid = ImageGrid.from_roi(roi, self.params["size"])
         assert self.ref_grid is not None
@@ -421,7 +424,7 @@ class Solver(Node):
             self.call_later(0, self._flush)
 
     def _flush(self) -> None:
-        from twinfocus.imaging.backprojection.numba_backend import subimage_basis
+        from twinfocus.imaging.backprojection.numba_backend import subimage_basis  # lazy: numba (+2.1 s at import)
 
         self._flush_scheduled = False
         s = self.scan
@@ -461,7 +464,7 @@ class Solver(Node):
         --model that climbs to the tilt). Their back-projection is then paid while the scan
         arrives, not after its last frame (1.3 s at 780 positions x 100 x 100 on the 2-core
         machine); a scan whose drift is not fitted paid it for nothing."""
-        from twinfocus.focus.space_variant import array_half
+        from twinfocus.focus.space_variant import array_half  # lazy: numba, scipy.sparse (+2.1 s at import)
 
         if s.batches == 0 and s.half is None:
             tilt_possible = (
@@ -481,8 +484,8 @@ class Solver(Node):
         """``focus_bases``'s ``half_bases``: the streamed rows when they cover the scan and its
         channels split as the first batch's did (the whole scan's :func:`array_half`, as
         ``twinfocus focus`` takes it); else back-projected from the samples when the fit asks."""
-        from twinfocus.focus.pipeline import half_array_bases
-        from twinfocus.focus.space_variant import array_half
+        from twinfocus.focus.pipeline import half_array_bases  # lazy: numba, scipy.fft (+2.1 s at import)
+        from twinfocus.focus.space_variant import array_half  # lazy: numba, scipy.sparse (+2.1 s at import)
 
         assert self.ref_grid is not None and self.tgt_grid is not None, "the streamed path has both regions"
 
@@ -514,7 +517,7 @@ class Solver(Node):
         after the last measurement. Rows are scored _REGISTRATION_ROWS at a time at least until
         the end: one FFT call per radar frame cost 2.5x as much per row (0.57 ms against 0.23).
         A new template starts the scores again from the rows kept."""
-        from twinfocus.focus.template_match import MatchScores
+        from twinfocus.focus.template_match import MatchScores  # lazy: scipy.fft (+0.8 s at import)
 
         t = time.perf_counter()
         if s.scores is None or s.scores_template is not self.template:
@@ -579,8 +582,6 @@ class Solver(Node):
 
     # -- focusing -----------------------------------------------------------------------------
     def _finish(self, s: _Scan) -> None:
-        from twinfocus.radar.scan import Scan
-
         t_start = self._said_at = time.monotonic()
         positions = np.concatenate(s.positions)
         truth = np.concatenate(s.truth) if s.truth else None
@@ -610,8 +611,6 @@ class Solver(Node):
             )
         gaps = _scan_gaps(s.gaps_before, s.gaps)
         if any(gaps):
-            from twinfocus.sensors.capture_to_scan import stream_gaps
-
             out.metrics["capture"] = stream_gaps(*gaps)
         timing = {k: float(v) for k, v in out.timings_s.items()}
         if not self.whole_scan:
@@ -634,7 +633,7 @@ class Solver(Node):
             self._publish_result(s, out, timing, latency, False)
             self._log_focused(s, out, timing)
         if self.params["out_dir"]:
-            from twinfocus.focus.pipeline import write_outputs
+            from twinfocus.focus.output_files import write_outputs  # lazy: numba, scipy.fft (+2.1 s at import)
 
             out.metrics["timings_s"] = timing
             # a scan that did not end never replaces the result of one that did
@@ -656,8 +655,8 @@ class Solver(Node):
     def _focus_whole(self, scan):
         """The plan's focus of the assembled scan (:meth:`twinfocus.focus.plan.FocusPlan.focus_target`),
         as ``twinfocus focus`` runs it: the target's depth searched first when it is not typed."""
-        from twinfocus.focus.pipeline import Reference
-        from twinfocus.focus.plan import Target
+        from twinfocus.focus.pipeline import Reference  # lazy: numba, scipy.fft (+2.1 s at import)
+        from twinfocus.focus.plan import Target  # lazy: numba, scipy.fft (+2.1 s at import)
 
         if self.ref_grid is None:
             raise TwinFocusError("no reference region: none typed and no template yet")
@@ -676,7 +675,7 @@ class Solver(Node):
     def _volume(self, s: _Scan, positions: np.ndarray, out):
         """The corrected volume (:func:`twinfocus.imaging.volume.corrected_image` with the scan's phase) and
         its grid; its figures in ``out.metrics["volume"]``."""
-        from twinfocus.imaging.volume import corrected_image
+        from twinfocus.imaging.volume import corrected_image  # lazy: numba (+2.1 s at import)
 
         grid = self._volume_grid(self.ref_grid)  # the region typed or found, as twinfocus focus takes it
         t = time.perf_counter()
@@ -697,8 +696,6 @@ class Solver(Node):
         """The focusing steps' progress: heartbeats, and a line when focusing has gone on for a
         while without one (no silent stretch of more than a few seconds), with what is left of the
         current step at its pace so far."""
-        from twinfocus.jobs.progress import remaining_text
-
         self.heartbeat_if_due()
         now = time.monotonic()
         if done <= 1:
@@ -715,7 +712,11 @@ class Solver(Node):
         outputs and the target basis (the oracle-phase image needs it)."""
         from threadpoolctl import threadpool_limits
 
-        from twinfocus.focus.pipeline import Bases, Reference, upper_band_basis
+        from twinfocus.focus.pipeline import (  # lazy: numba, scipy.fft (+2.1 s at import)
+            Bases,
+            Reference,
+            upper_band_basis,
+        )
 
         assert self.ref_grid is not None and self.tgt_grid is not None, "the streamed path has both regions"
         plan = self._plan()
@@ -763,8 +764,8 @@ class Solver(Node):
         """:func:`twinfocus.focus.pipeline.add_truth_metrics` (what ``focus_bases`` adds when handed the
         truth), on images formed from the kept samples at the true positions, as
         :meth:`twinfocus.focus.plan.FocusPlan.focus_scan` forms them."""
-        from twinfocus.focus.pipeline import add_truth_metrics
-        from twinfocus.imaging.backprojection.numba_backend import backproject
+        from twinfocus.focus.pipeline import add_truth_metrics  # lazy: numba, scipy.fft (+2.1 s at import)
+        from twinfocus.imaging.backprojection.numba_backend import backproject  # lazy: numba (+2.1 s at import)
 
         data = np.concatenate(s.data)
         s.data = []
@@ -825,7 +826,7 @@ class Solver(Node):
             ("reference", out.reference, out.reference_grid),
         ]
         if volume is not None:
-            from twinfocus.imaging.volume import projections
+            from twinfocus.imaging.volume import projections  # lazy: numba (+2.1 s at import)
 
             vol, vgrid = volume
             mip, _ = projections(vol, vgrid)
@@ -900,8 +901,6 @@ class Solver(Node):
         stops around the solver, and a publisher that ends later paired more); where a publisher
         sent no final heartbeat (killed, hung) its count may be short, and the radar frames
         published for the scan count too."""
-        from nodes.runtime.bus import query_graph
-
         deadline = time.monotonic() + wait_s
         while True:
             graph = query_graph(self.broker, self.ctx)

@@ -7,7 +7,8 @@ import pytest
 
 from twinfocus.cli import main
 from twinfocus.errors import TwinFocusError
-from twinfocus.radar.scan import Scan, save_npz_atomic
+from twinfocus.io.arrays import save_npz_atomic
+from twinfocus.radar.scan import Scan
 
 REF = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
 TGT = ["0.02", "0.13", "-0.11", "0.12", "0.6"]

@@ -18,12 +18,11 @@ from twinfocus.imaging.volume import (
     bright_voxels,
     corrected_data,
     corrected_image,
-    ply_bytes,
     projections,
-    read_ply_points,
     volume_cost,
     volume_grid,
 )
+from twinfocus.io.arrays import ply_bytes, read_ply_points
 from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array
 
 

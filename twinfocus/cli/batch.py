@@ -39,8 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from twinfocus.cli.batch_jobs import BatchInterrupted, run_batch
-    from twinfocus.jobs.progress import Progress
+    from twinfocus.cli.batch_jobs import BatchInterrupted, run_batch  # lazy: numpy (+1.31 s on twinfocus batch --help)
+    from twinfocus.jobs.progress import Progress  # lazy: twinfocus.jobs (+0.02 s on twinfocus batch --help)
 
     log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     try:

@@ -28,8 +28,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from twinfocus.cli import focus
 from twinfocus.errors import TwinFocusError
 from twinfocus.io.atomic import atomic_writer, write_text_atomic
+from twinfocus.io.png import pyplot
 from twinfocus.io.safe_paths import child_path
 from twinfocus.jobs.cluster import dask_client, limit_threads, run_tasks
 
@@ -59,8 +61,6 @@ class _Parser(argparse.ArgumentParser):
 
 
 def focus_parser() -> argparse.ArgumentParser:
-    from twinfocus.cli import focus
-
     p = _Parser(prog="twinfocus focus", add_help=False)
     focus.add_arguments(p)
     return p
@@ -203,8 +203,6 @@ def _worker_name() -> str:
 def focus_item(item: BatchItem, threads=None) -> dict:
     """Focus one item exactly as ``twinfocus focus ARGV`` would; returns its summary row. A failure
     is returned as a row with status 'failed' and the one-line error, so the batch goes on."""
-    from twinfocus.cli import focus
-
     t0 = time.perf_counter()
     row: dict = {"name": item.name, "status": "ok", "error": "", "worker": _worker_name(), "out": item.out}
     try:
@@ -331,8 +329,6 @@ def write_summary_figure(path: Path, rows: list[dict]) -> None:
     """Target SSIM per item, uncorrected and corrected (with the oracle-phase ceiling); failed items
     marked in red."""
     import numpy as np
-
-    from twinfocus.io.png import pyplot
 
     plt = pyplot()
     n = len(rows)

@@ -81,7 +81,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
 
-    from twinfocus.evaluation.runner import run_paper
+    from twinfocus.evaluation.runner import run_paper  # lazy: numba, scipy.fft, cv2 (+2.1 s at import)
 
     args.out = args.out or f"bench_{args.suite}"
     if args.suite != "paper" and (args.only or args.trade_scenes is not None):

@@ -22,8 +22,9 @@ from twinfocus.cli import convert
 from twinfocus.errors import TwinFocusError
 from twinfocus.io.atomic import output_files
 from twinfocus.option_types import non_negative_int, positive_float, positive_int
+from twinfocus.outputs.calibration_pictures import save_calibration_png
 from twinfocus.radar.board import load_board
-from twinfocus.radar.calibration import find_corner, make_calibration, pair_array, save_calibration_png
+from twinfocus.radar.calibration import find_corner, make_calibration, pair_array
 from twinfocus.radar.fmcw import mmwcas_virtual_array
 from twinfocus.radar.scan import Scan
 from twinfocus.sensors.frames import frame_to_virtual_channels, mmwcas_antenna_positions_body_m

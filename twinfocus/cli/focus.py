@@ -12,13 +12,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.focus import reference_search
 from twinfocus.focus.estimators import REFERENCE_FREE_RUNGS
+from twinfocus.focus.reference_search import candidate_score
 from twinfocus.focus.settings import add_focus_options, preload_torch
-from twinfocus.imaging.depth_search import DEFAULT_HALF_RANGE_M, range_to_search
+from twinfocus.imaging.depth_search import DEFAULT_HALF_RANGE_M, parse_depth, range_to_search
 from twinfocus.imaging.device import resolve_device
 from twinfocus.imaging.grid import ImageGrid
-from twinfocus.io.atomic import output_folder, refuse_existing
+from twinfocus.io.atomic import atomic_writer, output_folder, refuse_existing, write_bytes_atomic
 from twinfocus.jobs.machine import require_memory
+from twinfocus.jobs.progress import Progress
 from twinfocus.option_types import REGION, finite_float, positive_float
 
 if TYPE_CHECKING:
@@ -182,8 +185,6 @@ def check_memory(n_positions: int, size: int, available: int | None = None) -> i
 def target_region(values: list[str] | None) -> tuple[tuple[float, ...] | None, float | tuple[float, float] | None]:
     """``--target-roi``'s words -> (X0, X1, Y0, Y1) and the depth: Z, (Z0, Z1) or None; (None,
     None) when it was left out (the box is then found: twinfocus.focus.boxes)."""
-    from twinfocus.imaging.depth_search import parse_depth
-
     if values is None:
         return None, None
     if len(values) not in (4, 5):
@@ -204,7 +205,7 @@ def volume_plan(args: argparse.Namespace, n_positions: int, n_channels: int, ref
     the memory available), or None without ``--volume``. reference_roi : the reference region
     when it was found rather than typed (before it is, the target's box stands in: the cost
     depends only on the pixel and plane counts)."""
-    from twinfocus.imaging.volume import volume_cost, volume_grid
+    from twinfocus.imaging.volume import volume_cost, volume_grid  # lazy: numba (+2.1 s at import)
 
     if args.volume is None:
         return None
@@ -227,7 +228,7 @@ def volume_plan(args: argparse.Namespace, n_positions: int, n_channels: int, ref
 def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
     """Everything that can be checked before loading or computing anything; returns the scan's
     array shapes (from the file's headers)."""
-    from twinfocus.radar.scan import peek_npz_shapes
+    from twinfocus.io.arrays import peek_npz_shapes  # lazy: twinfocus.io.arrays (+0.04 s on twinfocus focus --help)
 
     if args.size < 2:
         raise TwinFocusError(f"--size must be at least 2, got {args.size}")
@@ -242,7 +243,9 @@ def _check_before_work(args: argparse.Namespace) -> dict[str, tuple[int, ...]]:
     for path in (args.template_scan or []) + (args.template or []):
         peek_npz_shapes(path)
     for path in args.digital_twin or []:
-        from twinfocus.sensors.rosbag2_files import split_bag_source
+        from twinfocus.sensors.rosbag2_files import (
+            split_bag_source,  # lazy: twinfocus.motion (+0.16 s on twinfocus focus --help)
+        )
 
         if split_bag_source(path) is not None:
             continue  # a rosbag2's PointCloud2 topic: read (and checked) once the scan's time is known
@@ -272,9 +275,12 @@ def _template(args, scan, ref_grid, bp, progress, cache, rig=None) -> tuple:
     cache status "hit" / "miss" / "off", or None when there is nothing to cache, the reference's
     outline bool (H, W) for a digital twin, else None, and for a digital twin what its cloud's
     conditioning chose and why (``DigitalTwinReference.info``), else None)."""
-    from twinfocus.radar.scan import Scan
-    from twinfocus.twins.cache import digital_twin_key, template_scan_key
-    from twinfocus.twins.templates import load_template, template_from_scan
+    from twinfocus.radar.scan import Scan  # lazy: twinfocus.io.arrays (+0.04 s on twinfocus focus --help)
+    from twinfocus.twins.cache import (  # lazy: twinfocus.io.checksums (+0.03 s on twinfocus focus --help)
+        digital_twin_key,
+        template_scan_key,
+    )
+    from twinfocus.twins.templates import load_template, template_from_scan  # lazy: numba (+2.1 s at import)
 
     if args.template:
         # a digital twin's file (twinfocus twin --out, --save-template) carries its outline and conditioning
@@ -298,8 +304,12 @@ def _template(args, scan, ref_grid, bp, progress, cache, rig=None) -> tuple:
         )
 
         def compute():
-            from twinfocus.twins.digital_twin.condition import digital_twin_reference_from_file
-            from twinfocus.twins.digital_twin.rig import rig_reference_from_file
+            from twinfocus.twins.digital_twin.condition import (
+                digital_twin_reference_from_file,  # lazy: open3d, scipy.ndimage (+4.3 s at import)
+            )
+            from twinfocus.twins.digital_twin.rig import (
+                rig_reference_from_file,  # lazy: twinfocus.twins (+0.08 s on twinfocus focus --help)
+            )
 
             if rig is not None:
                 ref = rig_reference_from_file(args.digital_twin, scan, ref_grid, rig[0], **bp)
@@ -327,32 +337,34 @@ def _rig(args: argparse.Namespace, scan):
     """``--rig``: (the Rig, its metrics.json record) checked against the scan and cloud, or None."""
     if not getattr(args, "rig", None):
         return None
-    from twinfocus.twins.digital_twin.rig import load_rig_for
+    from twinfocus.twins.digital_twin.rig import (
+        load_rig_for,  # lazy: twinfocus.twins (+0.08 s on twinfocus focus --help)
+    )
 
     return load_rig_for(args.rig, scan, args.digital_twin)
 
 
 def _reference_region(args: argparse.Namespace, bp: dict, progress, rig=None) -> tuple[tuple, dict]:
     """The reference region: typed, or found from the twin (:mod:`twinfocus.focus.reference_search`)."""
-    from twinfocus.focus import reference_search
-
     if args.reference_roi is not None:
         return tuple(args.reference_roi), {"source": "typed"}
     if args.digital_twin:
-        from twinfocus.twins.digital_twin.template import load_points
+        from twinfocus.twins.digital_twin.template import (
+            load_points,  # lazy: twinfocus.io.arrays (+0.07 s on twinfocus focus --help)
+        )
 
         cloud = load_points(args.digital_twin, allow_non_finite=True)
         if rig is not None:
             cloud = cloud + rig[0].offset_m  # where the calibrated camera saw it
         return reference_search.region_from_cloud(cloud)
     if args.template:
-        from twinfocus.radar.scan import load_npz
+        from twinfocus.io.arrays import load_npz  # lazy: twinfocus.io.arrays (+0.04 s on twinfocus focus --help)
 
         z = load_npz(args.template)
         if not all(k in z for k in ("x_m", "y_m", "z_m")):
             raise TwinFocusError(f"--template {args.template}: not a template file (no x_m, y_m, z_m)")
         return reference_search.region_from_template_file(z["x_m"], z["y_m"], float(z["z_m"]))
-    from twinfocus.radar.scan import Scan
+    from twinfocus.radar.scan import Scan  # lazy: twinfocus.io.arrays (+0.04 s on twinfocus focus --help)
 
     twin = Scan.load(args.template_scan)
     return reference_search.region_from_scan(
@@ -385,24 +397,27 @@ def _write_where(out_dir, search, typed_depth, volume, grid, cloud, pictures: st
     written atomically, into the fresh folder that becomes --out)."""
     import numpy as np
 
-    from twinfocus.io.atomic import atomic_writer, write_bytes_atomic
-
     if search is not None and pictures != "none":
-        from twinfocus.outputs.depth_pictures import depth_search_picture
+        from twinfocus.outputs.depth_pictures import (
+            depth_search_picture,  # lazy: twinfocus.io.png (+0.02 s on twinfocus focus --help)
+        )
 
         with atomic_writer(Path(out_dir) / "depth_search.png") as f:
             depth_search_picture(f, search, typed_depth if isinstance(typed_depth, float) else None)
     if volume is None:
         return
-    from nodes.foxglove_convert import write_point_cloud_log
-    from twinfocus.imaging.volume import ply_bytes, projections
+    from nodes.foxglove_convert import write_point_cloud_log  # lazy: foxglove, mcap (+1.00 s on twinfocus focus --help)
+    from twinfocus.imaging.volume import projections  # lazy: numba (+2.1 s at import)
+    from twinfocus.io.arrays import ply_bytes  # lazy: twinfocus.io.arrays (+0.04 s on twinfocus focus --help)
 
     with atomic_writer(Path(out_dir) / VOLUME_FILES["volume"]) as f:
         np.save(f, volume.astype(np.complex64))
     write_bytes_atomic(Path(out_dir) / VOLUME_FILES["points"], ply_bytes(*cloud))
     write_point_cloud_log(Path(out_dir) / VOLUME_FILES["foxglove"], *cloud)
     if pictures != "none":
-        from twinfocus.outputs.depth_pictures import volume_pictures
+        from twinfocus.outputs.depth_pictures import (
+            volume_pictures,  # lazy: twinfocus.io.png (+0.02 s on twinfocus focus --help)
+        )
 
         volume_pictures(out_dir, *projections(volume, grid), grid)
 
@@ -410,7 +425,7 @@ def _write_where(out_dir, search, typed_depth, volume, grid, cloud, pictures: st
 def _found_region(args: argparse.Namespace, box, bp: dict, progress, rig, timings: dict) -> tuple[tuple, dict]:
     """The reference region (typed, or found from the twin and cut away from a typed target's box)
     and how it was found; the search's time into ``timings``."""
-    from twinfocus.focus.boxes import cut_away
+    from twinfocus.focus.boxes import cut_away  # lazy: twinfocus.focus.boxes (+0.14 s on twinfocus focus --help)
 
     t = time.perf_counter()
     reference_roi, reference_found = _reference_region(args, bp, progress, rig)
@@ -434,10 +449,10 @@ def _focus_with(args: argparse.Namespace, scan, box, typed_depth, plan: FocusPla
     or found), its template, the target's depth when it is searched, the focused outputs. Returns
     a dict of them (``outputs``, ``search``, ``template``, ``support``, ``twin_info``,
     ``ref_grid``, ``method``, ``boxes``, ``typed_depth``)."""
-    from twinfocus.focus import boxes
-    from twinfocus.focus.pipeline import Reference
-    from twinfocus.focus.plan import Target
-    from twinfocus.twins.cache import TemplateCache
+    from twinfocus.focus import boxes  # lazy: twinfocus.focus.boxes (+0.14 s on twinfocus focus --help)
+    from twinfocus.focus.pipeline import Reference  # lazy: numba, scipy.fft (+2.1 s at import)
+    from twinfocus.focus.plan import Target  # lazy: numba, scipy.fft (+2.1 s at import)
+    from twinfocus.twins.cache import TemplateCache  # lazy: twinfocus.io.checksums (+0.03 s on twinfocus focus --help)
 
     timings: dict[str, float] = {}
     bp = dict(plan.bp_options)
@@ -504,8 +519,8 @@ def _clock_template(args: argparse.Namespace):
     grid, else None (the image's sharpness)."""
     if not args.template_scan or args.reference_roi is None:
         return None
-    from twinfocus.radar.scan import Scan
-    from twinfocus.twins.templates import template_from_scan
+    from twinfocus.radar.scan import Scan  # lazy: twinfocus.io.arrays (+0.04 s on twinfocus focus --help)
+    from twinfocus.twins.templates import template_from_scan  # lazy: numba (+2.1 s at import)
 
     stage = Scan.load(args.template_scan[0])
     return lambda n: template_from_scan(stage, ImageGrid.from_roi(args.reference_roi, n))
@@ -533,14 +548,14 @@ def _form_volume(
     """``--volume``: the corrected volume (:func:`twinfocus.imaging.volume.corrected_image` with the
     outputs' phase), its bright voxels and its grid, its figures into ``outputs.metrics["volume"]``
     and its time into ``timings``; (None, None, None) without ``--volume``."""
-    from twinfocus.imaging.volume import bright_voxels, corrected_image
+    from twinfocus.imaging.volume import bright_voxels, corrected_image  # lazy: numba (+2.1 s at import)
 
     volume, cloud = None, None
     plan = volume_plan(args, shapes["data"][0], shapes["data"][1], ref_grid.roi, outputs.target_grid.roi[:4])
     sub_arrays = None
     if plan is not None and bp.get("device", "cpu") == "cpu" and args.precision == "float32":
-        from twinfocus.imaging.line_backprojection import plan as line_plan
-        from twinfocus.imaging.volume import volume_cost
+        from twinfocus.imaging.line_backprojection import plan as line_plan  # lazy: numba (+2.1 s at import)
+        from twinfocus.imaging.volume import volume_cost  # lazy: numba (+2.1 s at import)
 
         # the scan's positions decide whether the volume is formed by sub-arrays, and so its time
         sub_arrays = line_plan(scan.positions, scan.chirp, plan[0])
@@ -575,8 +590,6 @@ def _best_candidate(args: argparse.Namespace, candidates: list, scan, box, typed
     """Each reference candidate (:func:`_candidates`) focused (:func:`_focus_with`), the best by
     the confidence report (:func:`twinfocus.focus.reference_search.candidate_score`): (its result, its
     index, every candidate's record for metrics.json ``reference_candidates``)."""
-    from twinfocus.focus.reference_search import candidate_score
-
     results, listed = [], []
     for path, cand_args in candidates:
         if len(candidates) > 1 and not args.quiet:
@@ -603,10 +616,9 @@ def _best_candidate(args: argparse.Namespace, candidates: list, scan, box, typed
 def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) -> int:
     # the numerics load here, once a focus runs: `focus --help` and the refusals before any work
     # take 1.0 s instead of 4.0 s with them in the module's header (load 25, 2 cores)
-    from twinfocus.focus.pipeline import write_outputs
-    from twinfocus.focus.plan import FocusPlan
-    from twinfocus.jobs.progress import Progress
-    from twinfocus.radar.scan import Scan
+    from twinfocus.focus.output_files import write_outputs  # lazy: numba, scipy.fft (+2.1 s at import)
+    from twinfocus.focus.plan import FocusPlan  # lazy: numba, scipy.fft (+2.1 s at import)
+    from twinfocus.radar.scan import Scan  # lazy: twinfocus.io.arrays (+0.04 s on twinfocus focus --help)
 
     pictures = "none" if args.no_pictures else args.pictures
     device = resolve_device(args.device)
@@ -622,13 +634,18 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
     t = time.perf_counter()
     scan = Scan.load(args.scan)
     if args.digital_twin:
-        from twinfocus.twins.digital_twin.template import pin_bag_clouds
+        from twinfocus.twins.digital_twin.template import (
+            pin_bag_clouds,  # lazy: twinfocus.io.arrays (+0.07 s on twinfocus focus --help)
+        )
 
         args.digital_twin = pin_bag_clouds(args.digital_twin, scan.timestamps_ns, quiet=args.quiet)
     load_s = time.perf_counter() - t
     clock = None
     if args.clock_search:
-        from twinfocus.sensors.clock_offset import clock_search_line, search_scan_clock
+        from twinfocus.sensors.clock_offset import (  # lazy: twinfocus.imaging.metrics (+0.08 s on twinfocus focus --help)
+            clock_search_line,
+            search_scan_clock,
+        )
 
         scan, clock = search_scan_clock(
             scan, args.reference_roi, 32, bp, template=_clock_template(args), fine_size=args.size
@@ -646,7 +663,9 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
     timings = {"load_scan": load_s, **outputs.timings_s}
     outputs.timings_s = timings
     outputs.metrics["timings_s"] = timings
-    from twinfocus.sensors.capture_to_scan import read_capture_report
+    from twinfocus.sensors.capture_to_scan import (
+        read_capture_report,  # lazy: twinfocus.imaging.subpixel (+0.20 s on twinfocus focus --help)
+    )
 
     if clock is not None:
         outputs.metrics["clock_search"] = clock
@@ -654,7 +673,7 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
     if gaps:
         outputs.metrics["capture"] = gaps
     if args.save_template and template is not None:
-        from twinfocus.twins.templates import save_template
+        from twinfocus.twins.templates import save_template  # lazy: numba (+2.1 s at import)
 
         save_template(_saved_template_path(args, out_dir), template, ref_grid, support=support, info=twin_info)
     volume, cloud, volume_grid = _form_volume(args, shapes, scan, outputs, ref_grid, bp, progress, timings)
@@ -662,8 +681,9 @@ def _run(args: argparse.Namespace, shapes: dict, out_dir: Path, t_run: float) ->
     write_outputs(out_dir, outputs, pictures=pictures)
     _write_where(out_dir, search, chosen["typed_depth"], volume, volume_grid, cloud, pictures)
     if chosen["boxes"] is not None and pictures != "none":
-        from twinfocus.focus.boxes import look_picture
-        from twinfocus.io.atomic import atomic_writer
+        from twinfocus.focus.boxes import (
+            look_picture,  # lazy: twinfocus.focus.boxes (+0.14 s on twinfocus focus --help)
+        )
 
         with atomic_writer(Path(out_dir) / "look.png") as f:
             look_picture(f, chosen["boxes"][1], chosen["boxes"][0])

@@ -48,7 +48,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
 
-    from twinfocus.simulation.scenario import Scenario
+    from twinfocus.simulation.scenario import Scenario  # lazy: numba, cv2 (+2.1 s at import)
 
     if args.noise_dn < 0:
         raise TwinFocusError(f"--noise-dn must be >= 0, got {args.noise_dn}")

@@ -16,9 +16,9 @@ from pathlib import Path
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.grid import ImageGrid
+from twinfocus.io.images import write_image_atomic
 from twinfocus.radar.board import load_board
 from twinfocus.radar.scan import Scan
-from twinfocus.twins.digital_twin.render import write_image_atomic
 from twinfocus.twins.digital_twin.rig import camera_identity, measure_rig, overlay_picture, scan_board
 from twinfocus.twins.digital_twin.template import load_points
 

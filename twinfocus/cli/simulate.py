@@ -11,6 +11,7 @@ import time
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.io.arrays import save_npy_atomic
 from twinfocus.io.atomic import output_files
 from twinfocus.jobs.machine import available_memory_bytes, require_memory
 from twinfocus.jobs.progress import Progress
@@ -27,7 +28,6 @@ from twinfocus.option_types import (
 from twinfocus.radar.array_errors import NONE, array_error_levels, array_errors_stream, draw_array_errors
 from twinfocus.radar.board import load_board
 from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
-from twinfocus.twins.digital_twin.template import save_points
 
 
 def add_layout_arguments(p: argparse.ArgumentParser) -> None:
@@ -284,7 +284,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _simulate(args: argparse.Namespace) -> int:
 
-    from twinfocus.simulation.scenario import Scenario, simulate_scenario
+    from twinfocus.simulation.scenario import Scenario, simulate_scenario  # lazy: numba, cv2 (+2.1 s at import)
 
     snr = None if np.isinf(args.snr_db) else args.snr_db
     sc = Scenario(
@@ -314,7 +314,7 @@ def _simulate(args: argparse.Namespace) -> int:
     cloud = None
     if args.reference_cloud_out is not None:
         # Made before the (long) simulation so a bad impairment option fails at once.
-        from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
+        from twinfocus.twins.digital_twin.camera_cloud import camera_cloud  # lazy: scipy.spatial (+1.0 s at import)
 
         mm = lambda v: v[0] * 1e-3 if len(v) == 1 else np.asarray(v) * 1e-3
         surface = sc.scene().object("reference").surface_points(args.cloud_spacing_mm * 1e-3)
@@ -334,7 +334,7 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.template_out:
         template_scan.save(args.template_out)
     if cloud is not None:
-        save_points(args.reference_cloud_out, cloud)
+        save_npy_atomic(args.reference_cloud_out, np.asarray(cloud, dtype=np.float64))
     info = {
         "scan": str(args.out),
         "template_scan": args.template_out,
@@ -354,8 +354,12 @@ def _simulate(args: argparse.Namespace) -> int:
 def _check_cost(sc, args) -> None:
     """Refuse, before any work, a simulation that cannot fit in memory (``--rows
     100000`` would run for minutes and die); say how long a large one will take."""
-    from twinfocus.scene import scatterer_spacing_m
-    from twinfocus.simulation.if_simulator import BYTES_PER_SCATTERER_CELL, scatterer_cells, simulation_cost
+    from twinfocus.scene import scatterer_spacing_m  # lazy: cv2 (+0.4 s at import)
+    from twinfocus.simulation.if_simulator import (  # lazy: numba (+2.1 s at import)
+        BYTES_PER_SCATTERER_CELL,
+        scatterer_cells,
+        simulation_cost,
+    )
 
     if args.columns < 1 or args.rows < 2:
         raise TwinFocusError(f"--columns must be >= 1 and --rows >= 2, got {args.columns} and {args.rows}")

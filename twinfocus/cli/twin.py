@@ -24,12 +24,12 @@ import numpy as np
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.io.atomic import write_bytes_atomic, write_text_atomic
+from twinfocus.io.images import read_image, write_image_atomic
 from twinfocus.option_types import REGION, finite_float, positive_float, positive_int
 from twinfocus.radar.scan import Scan
 from twinfocus.sensors.rosbag2_files import read_bag_stereo, split_bag_source
 from twinfocus.twins.digital_twin.align import RadarCameraCalibration, calibrate_offset
 from twinfocus.twins.digital_twin.camera import Intrinsics, StereoCamera
-from twinfocus.twins.digital_twin.render import read_image, write_image_atomic
 from twinfocus.twins.digital_twin.rig import Rig, scan_board
 from twinfocus.twins.digital_twin.segment import Seed, box_from_scene_roi, load_segmenter
 from twinfocus.twins.digital_twin.template import digital_twin_template
@@ -133,8 +133,8 @@ def _pair_from_bag(args):
 
 
 def run(args: argparse.Namespace) -> int:
-    from twinfocus.twins.digital_twin.pipeline import reference_from_stereo
-    from twinfocus.twins.digital_twin.pointcloud import PointCloudConfig
+    from twinfocus.twins.digital_twin.pipeline import reference_from_stereo  # lazy: open3d (+4.3 s at import)
+    from twinfocus.twins.digital_twin.pointcloud import PointCloudConfig  # lazy: open3d (+4.3 s at import)
 
     _check_args(args)
     say = (lambda *a: None) if args.quiet else (lambda *a: print("twinfocus twin:", *a, file=sys.stderr))
@@ -239,7 +239,7 @@ def _seed(args: argparse.Namespace, camera) -> Seed:
 
 def _voxel_m(args: argparse.Namespace, scan: Scan | None, grid: ImageGrid | None) -> float:
     """The cloud's voxel, metres: --voxel-mm, else the radar's point spacing on the grid, else 1 mm."""
-    from twinfocus.twins.digital_twin.pointcloud import radar_point_spacing
+    from twinfocus.twins.digital_twin.pointcloud import radar_point_spacing  # lazy: open3d (+4.3 s at import)
 
     if args.voxel_mm is not None:
         return args.voxel_mm * 1e-3
@@ -251,7 +251,7 @@ def _voxel_m(args: argparse.Namespace, scan: Scan | None, grid: ImageGrid | None
 def _calibrate(args: argparse.Namespace, points: np.ndarray, grid: ImageGrid | None, say, timings: dict):
     """The radar-camera offset fitted on --calibrate-scan (accurate positions): the cloud's
     simulated image against the measured one. Adds its seconds to ``timings``."""
-    from twinfocus.imaging.backprojection.numba_backend import backproject
+    from twinfocus.imaging.backprojection.numba_backend import backproject  # lazy: numba (+2.1 s at import)
 
     assert grid is not None  # _check_args: --calibrate-scan needs --reference-roi
     cal_scan = Scan.load(args.calibrate_scan)
@@ -273,7 +273,10 @@ def _reference(
 ):
     """The conditioned digital-twin reference (template, outline, info) of the radar-frame cloud
     over the scan's phase centres. Adds its seconds to ``timings``."""
-    from twinfocus.twins.digital_twin.condition import ConditionConfig, digital_twin_reference
+    from twinfocus.twins.digital_twin.condition import (  # lazy: open3d, scipy.ndimage (+4.3 s at import)
+        ConditionConfig,
+        digital_twin_reference,
+    )
 
     assert scan is not None and grid is not None  # _check_args: --out needs --scan and --reference-roi
     say(
@@ -305,7 +308,7 @@ def _write_outputs(args: argparse.Namespace, points_radar: np.ndarray, twin, cal
     if calibration is not None:
         calibration.save(args.calibration_out)
     if ref is not None:
-        from twinfocus.twins.templates import save_template
+        from twinfocus.twins.templates import save_template  # lazy: numba (+2.1 s at import)
 
         assert grid is not None  # a template is made only on a grid
         # the outline and the conditioning travel with it: focus --template runs the outline estimator

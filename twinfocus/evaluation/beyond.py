@@ -319,8 +319,13 @@ def run_beyond(
 ) -> Path:
     """Run the experiments into ``out_dir/raw`` and write the report; returns its path. ``cluster``:
     as :func:`twinfocus.evaluation.runner.run_paper`'s (the space-variant draws run here after)."""
-    from twinfocus.evaluation.cases import EvalSettings
-    from twinfocus.evaluation.runner import _log, machine_info, quick_settings, run_experiments
+    from twinfocus.evaluation.cases import EvalSettings  # lazy: numba, scipy.fft, cv2 (+2.1 s at import)
+    from twinfocus.evaluation.runner import (  # lazy: numba, scipy.fft, cv2 (+2.1 s at import)
+        _log,
+        machine_info,
+        quick_settings,
+        run_experiments,
+    )
 
     log = log or _log
     if int(draws) < 1:
@@ -382,8 +387,8 @@ SV_ROWS = {
 def _physical_twin(scene, name: str, positions: np.ndarray, chirp, grid, spacing: float, seed: int, bp: dict):
     """The motion-stage image (complex (H, W) on ``grid``) of object ``name`` alone, placed 1 mm
     off in x, 10 dB noise: a physical twin captured with a placement error."""
-    from twinfocus.imaging.backprojection.numba_backend import backproject
-    from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if
+    from twinfocus.imaging.backprojection.numba_backend import backproject  # lazy: numba (+2.1 s at import)
+    from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if  # lazy: numba (+2.1 s at import)
 
     sub = scene.select(name)
     o = sub.objects[0]
@@ -411,12 +416,18 @@ def space_variant_draws(
 
     Returns one record per draw and row (:data:`SV_ROWS`): {"row", "ssim", "time_s", "draw"}.
     """
-    from twinfocus.evaluation.cases import EvalSettings
-    from twinfocus.focus.space_variant import drift_image, fit_position_errors
-    from twinfocus.focus.template_match import register_template
-    from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
-    from twinfocus.scene import Scene, letter, scatterer_spacing_m
-    from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if
+    from twinfocus.evaluation.cases import EvalSettings  # lazy: numba, scipy.fft, cv2 (+2.1 s at import)
+    from twinfocus.focus.space_variant import (  # lazy: numba, scipy.sparse (+2.1 s at import)
+        drift_image,
+        fit_position_errors,
+    )
+    from twinfocus.focus.template_match import register_template  # lazy: scipy.fft (+0.8 s at import)
+    from twinfocus.imaging.backprojection.numba_backend import (  # lazy: numba (+2.1 s at import)
+        backproject,
+        subimage_basis,
+    )
+    from twinfocus.scene import Scene, letter, scatterer_spacing_m  # lazy: cv2 (+0.4 s at import)
+    from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if  # lazy: numba (+2.1 s at import)
 
     st = settings or EvalSettings()
     bp = st.bp_options()

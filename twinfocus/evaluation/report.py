@@ -41,6 +41,7 @@ from twinfocus.evaluation.figures import (
     sweep_figure,
 )
 from twinfocus.evaluation.paper import PAPER, PAPER_TABLE1
+from twinfocus.io.arrays import load_npz
 from twinfocus.io.atomic import write_json_atomic, write_text_atomic
 
 SECTION_ORDER = (
@@ -176,7 +177,7 @@ def _section_sweep(name: str, doc: dict, out: Path, md: Path, lines: list[str]) 
         lines += [f"Digital twin failed on {len(fails)} scene(s): {fails[0]}", ""]
     ex = out / "raw" / f"{name}_examples.npz"
     if ex.exists() and name != "baseline":
-        z = dict(np.load(ex, allow_pickle=False))
+        z = load_npz(ex)
         meta = json.loads(str(z.pop("meta")))
         p = out / f"{name}_examples.png"
         examples_figure(z, p, f"{meta['pair']}, {meta['condition']}")
@@ -295,7 +296,7 @@ def _baseline_examples(out: Path, md: Path, lines: list[str]) -> None:
     """The baseline's example images of one draw, when the run saved them."""
     ex = out / "raw" / "baseline_examples.npz"
     if ex.exists():
-        z = dict(np.load(ex, allow_pickle=False))
+        z = load_npz(ex)
         meta = json.loads(str(z.pop("meta")))
         p = out / "baseline_examples.png"
         examples_figure(z, p, f"Target {meta['pair'].split('>')[1]} (reference {meta['pair'].split('>')[0]}), one draw")

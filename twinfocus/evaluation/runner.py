@@ -32,10 +32,13 @@ from twinfocus.evaluation.cases import (
     template_key,
     tracked_positions,
 )
-from twinfocus.evaluation.experiments import Experiment
+from twinfocus.evaluation.experiments import Experiment, paper_experiments
+from twinfocus.evaluation.report import write_report
+from twinfocus.evaluation.trade import run_trade
 from twinfocus.imaging import metrics
 from twinfocus.io.atomic import atomic_writer, write_json_atomic
 from twinfocus.io.atomic import json_default as _json_default
+from twinfocus.jobs.cluster import dask_client, limit_threads, run_tasks
 from twinfocus.jobs.machine import machine_info
 from twinfocus.jobs.progress import remaining_text
 
@@ -262,8 +265,6 @@ _WORKER_TEMPLATES: dict = {}
 
 def _experiment_task(part: tuple[Experiment, int], threads, settings: EvalSettings) -> dict:
     """One scene of an experiment on a Dask worker (threads limited to its share of the machine)."""
-    from twinfocus.jobs.cluster import limit_threads
-
     limit_threads(threads)
     exp, unit = part
     return run_experiment(exp, settings, _WORKER_TEMPLATES, log=lambda msg: None, units=[unit])
@@ -315,7 +316,6 @@ def run_experiments(
             log(f"[{exp.name}] {exp.n_draws()} draws ...")
             keep(exp, run_experiment(exp, settings, cache, log))
         return failed
-    from twinfocus.jobs.cluster import dask_client, run_tasks
 
     n_scenes = {exp.name: len(_scene_units(exp)) for exp in pending}
     parts = [(exp, u) for exp in pending for u in range(n_scenes[exp.name])]
@@ -378,10 +378,6 @@ def run_paper(
     cluster : None (one after the other, here) or ``{"scheduler": "tcp://HOST:PORT"}`` /
         ``{"workers": N}``: the experiments run as Dask tasks (:func:`run_experiments`).
     """
-    from twinfocus.evaluation.experiments import paper_experiments
-    from twinfocus.evaluation.report import write_report
-    from twinfocus.evaluation.trade import run_trade
-
     settings = quick_settings() if quick else EvalSettings()
     settings.device = device
     exps = paper_experiments(quick=quick, draws=draws, only=only)  # checks the names before any work

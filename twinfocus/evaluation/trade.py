@@ -49,6 +49,7 @@ from twinfocus.imaging.basis import form_image
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.radar.scan import Scan
 from twinfocus.simulation.scenario import simulate_scenario
+from twinfocus.twins.digital_twin.template import digital_twin_template
 from twinfocus.twins.templates import template_from_scan
 
 TRADE_PAIRS = (("A", "F"), ("R", "X"))
@@ -241,8 +242,6 @@ def _positions_row(scene: _Scene, n: int) -> dict:
 
 
 def _digital_rows(scene: _Scene, values) -> list[dict]:
-    from twinfocus.twins.digital_twin.template import digital_twin_template
-
     settings = scene.settings
     try:
         points, info = digital_twin_points(scene.sc, scene.ref_grid.roi, seed=0)

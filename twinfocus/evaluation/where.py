@@ -32,6 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus.evaluation.experiments import BASELINE_LETTERS
+from twinfocus.imaging.grid import ImageGrid
+from twinfocus.io.atomic import write_json_atomic, write_text_atomic
 
 ROWS = ("typed", "reference found", "depth found", "depth 5 cm off", "both found", "best of two twins")
 ROW_TEXT = {
@@ -53,14 +55,25 @@ def where_case(
 ) -> list[dict]:
     """Every row of :data:`ROWS` on one simulated scene: one record each with ``row``,
     ``ssim``, ``seconds`` and, per row, ``depth_error_m``, ``reference_roi``, ``right_twin``."""
-    from twinfocus.focus.autofocus import AutofocusConfig
-    from twinfocus.focus.pipeline import Reference
-    from twinfocus.focus.plan import FocusPlan
-    from twinfocus.focus.reference_search import candidate_score, region_from_scan
-    from twinfocus.imaging.depth_search import default_range, find_target_depth, range_to_search
-    from twinfocus.imaging.grid import ImageGrid
-    from twinfocus.simulation.scenario import Scenario, scenario_grids, simulate_scenario, template_scan
-    from twinfocus.twins.templates import template_from_scan
+    from twinfocus.focus.autofocus import AutofocusConfig  # lazy: scipy.fft (+0.8 s at import)
+    from twinfocus.focus.pipeline import Reference  # lazy: numba, scipy.fft (+2.1 s at import)
+    from twinfocus.focus.plan import FocusPlan  # lazy: numba, scipy.fft (+2.1 s at import)
+    from twinfocus.focus.reference_search import (  # lazy: twinfocus.focus (+0.03 s on twinfocus bench --help)
+        candidate_score,
+        region_from_scan,
+    )
+    from twinfocus.imaging.depth_search import (  # lazy: twinfocus.imaging.depth_search (+0.03 s on twinfocus bench --help)
+        default_range,
+        find_target_depth,
+        range_to_search,
+    )
+    from twinfocus.simulation.scenario import (  # lazy: numba, cv2 (+2.1 s at import)
+        Scenario,
+        scenario_grids,
+        simulate_scenario,
+        template_scan,
+    )
+    from twinfocus.twins.templates import template_from_scan  # lazy: numba (+2.1 s at import)
 
     sc = Scenario(reference=reference, target=target, seed=seed, n_columns=columns, n_rows=rows)
     scan, twin = simulate_scenario(sc)
@@ -170,8 +183,7 @@ def run_where(
     """Run :func:`where_case` on the pairs (the first only with ``quick``) x ``draws`` seeds;
     write ``OUT/raw/where.json`` and the report (``OUT/report.md`` unless ``markdown``); return
     the report."""
-    from twinfocus.io.atomic import write_json_atomic
-    from twinfocus.jobs.machine import machine_info
+    from twinfocus.jobs.machine import machine_info  # lazy: twinfocus.jobs (+0.05 s on twinfocus bench --help)
 
     say = log or (lambda msg: None)
     pairs = PAIRS[:1] if quick else PAIRS
@@ -197,8 +209,6 @@ def run_where(
 
 def write_where_report(out_dir: str, markdown: str | None = None) -> str:
     """The report from ``OUT/raw/where.json``, written to ``markdown`` (default ``OUT/report.md``)."""
-    from twinfocus.io.atomic import write_text_atomic
-
     doc = json.loads((Path(out_dir) / "raw" / "where.json").read_text())
     md = where_markdown(doc)
     write_text_atomic(markdown or Path(out_dir) / "report.md", md)

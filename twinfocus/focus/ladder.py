@@ -216,7 +216,7 @@ class Model:
             if self.drift_m is None:
                 self._images[region] = form_image(basis, self.phase_rad)
             else:
-                from twinfocus.focus.space_variant import drift_image
+                from twinfocus.focus.space_variant import drift_image  # lazy: scipy.sparse (+0.5 s at import)
 
                 # formed from the tilted bases; the truth metrics keep the scan's own
                 tilted = self.halves is not None and self.tilt_rad is not None
@@ -238,7 +238,7 @@ class Model:
         the per-pixel phase at the target's centre)."""
         if self.drift_m is None:
             return self.phase_rad
-        from twinfocus.focus.space_variant import lines_of_sight
+        from twinfocus.focus.space_variant import lines_of_sight  # lazy: scipy.sparse (+0.5 s at import)
 
         k = 4.0 * np.pi / problem.chirp.wavelength_m
         c = problem.centres

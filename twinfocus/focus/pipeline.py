@@ -3,7 +3,7 @@
 The focus plan runs them (:class:`twinfocus.focus.plan.FocusPlan`: ``focus_scan`` does steps 1-4
 on a scan, ``focus_bases`` steps 3-4 on bases built elsewhere, as the solver node builds them
 batch by batch); here are its inputs (:class:`Bases`, :class:`Reference`, :class:`Truth`), its
-outputs (:class:`FocusOutputs`, :func:`write_outputs`), the bases it may ask for
+outputs (:class:`FocusOutputs`; :func:`twinfocus.focus.output_files.write_outputs` writes them), the bases it may ask for
 (:func:`half_array_bases`, :func:`upper_band_basis`), the metrics and the confidence report.
 
 1. sub-image bases of the reference and target regions (one back-projection each);
@@ -16,13 +16,8 @@ outputs (:class:`FocusOutputs`, :func:`write_outputs`), the bases it may ask for
 
 from __future__ import annotations
 
-import json
-import os
-import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -41,7 +36,6 @@ from twinfocus.imaging import metrics
 from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis, subimage_basis_points
 from twinfocus.imaging.basis import form_image
 from twinfocus.imaging.grid import ImageGrid
-from twinfocus.io.atomic import record_written, remove_earlier
 from twinfocus.radar.fmcw import Chirp
 from twinfocus.radar.scan import Scan
 
@@ -98,7 +92,7 @@ def half_array_bases(
     in batches); positions : float64 (M, K, 3). Returns None for an array with one channel or no
     extent (no tilt to see).
     """
-    from twinfocus.focus.space_variant import array_half
+    from twinfocus.focus.space_variant import array_half  # lazy: scipy.sparse (+0.5 s at import)
 
     try:
         half = array_half(positions)
@@ -662,55 +656,3 @@ def reference_trust(problem: Problem, model: Model) -> str | None:
         if coherence < AUTO_REFINE_BELOW_COHERENCE:
             return f"the estimate's phases have wrapped (coherence x sqrt(M) {coherence:.1f} < {AUTO_REFINE_BELOW_COHERENCE})"
     return None
-
-
-def write_outputs(out_dir: str | os.PathLike, outputs: FocusOutputs, pictures: str | bool = "summary") -> Path:
-    """Write the output files of docs/architecture.md section 4 into ``out_dir``.
-
-    pictures : "summary" (summary.png, the default), "all" (every picture), "none"; True/False
-        mean "summary"/"none". Files of an earlier run (listed in its
-        :data:`twinfocus.io.atomic.WRITTEN`) that this one does not write are removed, so the folder
-        never shows images of another result; a file that no run wrote is never removed.
-
-    Everything is first written to a temporary folder beside ``out_dir`` and moved in at the end,
-    so a failure never leaves a mix of old and new results.
-    """
-    which = ("summary" if pictures else "none") if isinstance(pictures, bool) else pictures
-    if which not in ("summary", "all", "none"):
-        raise TwinFocusError(f"pictures must be 'summary', 'all' or 'none', got {pictures!r}")
-    out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
-        np.save(tmp / "target.npy", outputs.target.astype(np.complex64))
-        np.save(tmp / "target_uncorrected.npy", outputs.target_uncorrected.astype(np.complex64))
-        np.save(tmp / "reference.npy", outputs.reference.astype(np.complex64))
-        np.save(tmp / "reference_uncorrected.npy", outputs.reference_uncorrected.astype(np.complex64))
-        np.save(tmp / "phase.npy", outputs.phase_rad.astype(np.float64))
-        if outputs.drift_m is not None:
-            np.save(tmp / "drift.npy", outputs.drift_m.astype(np.float64))
-        if outputs.loss_history.size:
-            np.save(tmp / "loss.npy", outputs.loss_history)
-        doc = {
-            **outputs.metrics,
-            "reference_roi": list(outputs.reference_grid.roi),
-            "target_roi": list(outputs.target_grid.roi),
-            "size": list(outputs.reference_grid.shape),
-            "config": outputs.config,
-        }
-        (tmp / "metrics.json").write_text(json.dumps(doc, indent=2, default=float))
-        if which != "none":
-            from twinfocus.outputs.plotting import write_focus_pictures
-
-            write_focus_pictures(tmp, outputs, which)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        written = {f.name for f in tmp.iterdir()}
-        for f in tmp.iterdir():
-            os.replace(f, out_dir / f.name)
-        # an earlier run's files that this one did not write go (so the folder never shows
-        # pictures of another result); a file no run of ours listed stays
-        remove_earlier(out_dir, written)
-        record_written(out_dir, written)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return out_dir

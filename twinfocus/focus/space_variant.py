@@ -50,6 +50,8 @@ import scipy.sparse.linalg as spl
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.focus.band_delay import bright_pixels
+from twinfocus.focus.reference_free import resolution_cell_m
+from twinfocus.imaging.device import resolve_device
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.imaging.range_geometry import _COS_C, _SIN_C
 
@@ -332,7 +334,6 @@ def _row_stride(centres_m: np.ndarray, grid: ImageGrid, wavelength_m: float, sha
     of the phase centres (M, 3), metres) apart; 1 for ``share`` <= 0 or a grid of one row."""
     if share <= 0 or grid.height < 2:
         return 1
-    from twinfocus.focus.reference_free import resolution_cell_m
 
     cell_y, _ = resolution_cell_m(np.asarray(centres_m, float)[:, None, :], grid, wavelength_m)
     return max(1, int(share * cell_y / ((grid.y1 - grid.y0) / (grid.height - 1))))
@@ -654,8 +655,6 @@ def _line_of_sight_polynomial(centres_m, grid: ImageGrid, wavelength_m: float):
 def _drift_match(basis, half_basis, template, centres_m, grid, wavelength_m, device):
     """The correlation of :func:`fit_smooth_drift` on ``device``: :class:`_CpuDriftMatch` on the
     CPU, :class:`_TorchDriftMatch` elsewhere (one implementation per device)."""
-    from twinfocus.imaging.device import resolve_device
-
     dev = resolve_device(device)
     q, u = _line_of_sight_polynomial(centres_m, grid, wavelength_m)
     cls = _CpuDriftMatch if dev == "cpu" else _TorchDriftMatch

@@ -9,13 +9,13 @@ of any grid, a plane at another depth or a volume, costs one back-projection and
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.imaging import line_backprojection
 from twinfocus.imaging.backprojection.numba_backend import backproject
 from twinfocus.imaging.grid import ImageGrid, VolumeGrid
+from twinfocus.imaging.line_backprojection import TABLE_BYTES
 from twinfocus.radar.fmcw import Chirp
 
 #: bytes per voxel that :func:`corrected_image` holds at its peak on a volume: the voxel positions
@@ -63,8 +63,6 @@ def corrected_image(
         and bp_options.get("backend", "numba") == "numba"
         and bp_options.get("precision", "float32") == "float32"
     ):
-        from twinfocus.imaging import line_backprojection
-
         line_plan = line_backprojection.plan(positions_m, chirp, grid)
         if line_plan is not None:
             opts = {k: v for k, v in bp_options.items() if k in ("oversample", "progress")}
@@ -87,8 +85,6 @@ def volume_cost(grid: VolumeGrid, n_positions: int, n_channels: int, line_plan=N
     :data:`SECONDS_PER_VOXEL_CHANNEL` per channel evaluation: ``line_plan``'s
     (:func:`twinfocus.imaging.line_backprojection.plan`) when the volume is formed by sub-arrays, one per
     voxel, position and channel otherwise)."""
-    from twinfocus.imaging.line_backprojection import TABLE_BYTES
-
     voxels = int(np.prod(grid.shape))
     evaluations = line_plan.cost if line_plan is not None else voxels * n_positions * n_channels
     return {
@@ -127,41 +123,3 @@ def bright_voxels(volume: np.ndarray, grid: VolumeGrid, threshold_db: float = -1
     i, j = np.divmod(rest, grid.plane.width)
     pts = np.stack([grid.plane.x_m[j], grid.plane.y_m[i], grid.z_m[d]], axis=1).astype(np.float32)
     return pts, (mag[keep] / peak).astype(np.float32)
-
-
-def ply_bytes(points_m: np.ndarray, values: np.ndarray) -> bytes:
-    """A binary little-endian PLY point cloud (what MeshLab, CloudCompare and Open3D open): float
-    x y z (metres) and an ``intensity`` per point, with grey-level red/green/blue from it.
-
-    points_m : float (P, 3); values : float (P,) in [0, 1]."""
-    pts = np.asarray(points_m, np.float32).reshape(-1, 3)
-    vals = np.asarray(values, np.float32).reshape(-1)
-    if vals.shape[0] != pts.shape[0]:
-        raise TwinFocusError(f"{pts.shape[0]} points but {vals.shape[0]} values")
-    grey = np.clip(np.round(255 * vals), 0, 255).astype(np.uint8)
-    rec = np.empty(
-        pts.shape[0],
-        dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")],
-    )
-    rec["x"], rec["y"], rec["z"], rec["intensity"] = pts[:, 0], pts[:, 1], pts[:, 2], vals
-    rec["r"] = rec["g"] = rec["b"] = grey
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {pts.shape[0]}\n"
-        "property float x\nproperty float y\nproperty float z\nproperty float intensity\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
-    )
-    return header.encode("ascii") + rec.tobytes()
-
-
-def read_ply_points(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read back what :func:`ply_bytes` writes: (points float32 (P, 3), intensity float32 (P,))."""
-    raw = Path(path).read_bytes()
-    end = raw.index(b"end_header\n") + len(b"end_header\n")
-    n = int(next(ln for ln in raw[:end].decode("ascii").splitlines() if ln.startswith("element vertex")).split()[2])
-    rec = np.frombuffer(
-        raw[end:],
-        dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")],
-        count=n,
-    )
-    return np.stack([rec["x"], rec["y"], rec["z"]], axis=1), rec["intensity"].copy()

@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 import platform
 
+from twinfocus.errors import TwinFocusError
+
 
 def machine_info() -> dict:
     """Platform, Python, CPU (count, model, load average), numpy/torch versions and threads, CUDA."""
@@ -50,8 +52,6 @@ def require_memory(need: int, what: str, advice: str, available: int | None = No
     """Refuse, in one line, work that needs ``need`` bytes when less is available (``available``
     None: ask the OS, :func:`available_memory_bytes`); returns ``need``. ``what`` names the work,
     ``advice`` what to change."""
-    from twinfocus.errors import TwinFocusError
-
     available = available_memory_bytes() if available is None else available
     if available is not None and need > available:
         raise TwinFocusError(

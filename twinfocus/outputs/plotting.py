@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import image_ssim
 from twinfocus.io.png import pyplot
 
 #: which pictures ``twinfocus focus --pictures`` writes
@@ -197,8 +198,6 @@ def write_detail_pictures(out_dir: Path, o) -> None:
 def save_rungs_png(path: Path, o) -> None:
     """The target as each tried rung of the ladder left it, side by side, simplest first: the
     rung, kept or not, and its target SSIM against the truth when the scan carries it."""
-    from twinfocus.imaging.metrics import image_ssim
-
     plt = pyplot()
     entries = {e["rung"]: e for e in o.metrics.get("model", {}).get("rungs", [])}
     names = list(o.rung_targets)

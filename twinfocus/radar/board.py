@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.io.documents import read_yaml
 
 C_M_PER_S = 299_792_458.0
 
@@ -119,7 +120,7 @@ def _load(path: str) -> Board:
 
     p = Path(path)
     try:
-        doc = yaml.safe_load(p.read_text())
+        doc = read_yaml(p)
     except OSError as exc:
         raise TwinFocusError(f"{p}: cannot read the board file ({exc.strerror})") from None
     except yaml.YAMLError as exc:

@@ -33,8 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.io.arrays import load_npz, save_npz_atomic
+from twinfocus.io.checksums import file_sha256
 from twinfocus.radar.fmcw import C_M_PER_S, Chirp, VirtualArray, range_compress, range_profiles_at
-from twinfocus.radar.scan import load_npz, save_npz_atomic
 
 #: Kind tag of a calibration file.
 FILE_KIND = "twinfocus-channel-calibration"
@@ -445,8 +446,6 @@ def calibration_for(
     """Read a calibration file for data of ``chirp`` and ``array`` (refused, one line, when it
     was made for others). Returns (correction complex64 (K, N), record): the record names the
     file and its SHA-256 and carries its quality figures, for a scan's and a focus's metrics."""
-    from twinfocus.io.checksums import file_sha256
-
     cal = ChannelCalibration.load(path)
     cal.check_fits(chirp, array, board, source=str(path))
     record = {
@@ -589,49 +588,3 @@ def make_calibration(
 
 def _frames(centres_m, x: np.ndarray) -> np.ndarray:
     return np.broadcast_to(np.asarray(centres_m, np.float64), x.shape[:2] + (3,))
-
-
-def save_calibration_png(path: str | os.PathLike, cal: ChannelCalibration, report: CalibrationReport) -> Path:
-    """The calibration's picture: per channel, the corner's phase and amplitude before and after,
-    the delays, and the corner's range profile (matplotlib, ~1 s)."""
-    from twinfocus.io.atomic import atomic_writer
-    from twinfocus.io.png import pyplot
-
-    plt = pyplot()
-    k = np.arange(cal.n_channels)
-    q = cal.quality
-    fig, ax = plt.subplots(2, 2, figsize=(10, 6.5))
-    b = report.before * np.exp(-1j * np.angle(np.nansum(report.before)))
-    a = report.after * np.exp(-1j * np.angle(np.nansum(report.after)))
-    ax[0, 0].plot(
-        k, np.degrees(np.angle(b)), ".", color="0.6", label=f"before ({q['phase_spread_before_deg']:.0f} deg rms)"
-    )
-    ax[0, 0].plot(
-        k, np.degrees(np.angle(a)), ".", color="C3", label=f"after ({q['residual_phase_deg_rms']:.1f} deg rms)"
-    )
-    ax[0, 0].set(xlabel="virtual channel", ylabel="corner's phase, deg", ylim=(-185, 185), title="phase per channel")
-    ax[0, 0].legend(fontsize=8, loc="lower right")
-    norm = lambda v: 20 * np.log10(np.abs(v) / np.sqrt(np.nanmean(np.abs(v) ** 2)))
-    ax[0, 1].plot(k, norm(report.before), ".", color="0.6", label="before")
-    ax[0, 1].plot(k, norm(report.after), ".", color="C3", label="after")
-    ax[0, 1].set(xlabel="virtual channel", ylabel="dB re rms", title="amplitude per channel")
-    ax[0, 1].legend(fontsize=8)
-    ax[1, 0].plot(k, cal.delay_m * 1e3, ".", color="C0")
-    ax[1, 0].set(xlabel="virtual channel", ylabel="mm", title="range offset per channel (corrected)")
-    p = report.peak
-    ax[1, 1].plot(p.profile_ranges_m, p.profile_db, color="C0", lw=0.8)
-    ax[1, 1].axvline(
-        p.range_m, color="C3", ls=":", label=f"corner {q['corner_range_m']:.3f} m, {q['peak_snr_db']:.0f} dB"
-    )
-    ax[1, 1].set(xlabel="range, m", ylabel="dB re peak", ylim=(-70, 3), title="range profile (all channels)")
-    ax[1, 1].legend(fontsize=8)
-    fig.suptitle(
-        f"channel calibration: residual {q['residual_phase_deg_rms']:.1f} deg rms, peak sharpness "
-        f"{q['peak_sharpness_before']:.2f} -> {q['peak_sharpness']:.2f}",
-        fontsize=10,
-    )
-    fig.tight_layout()
-    with atomic_writer(path) as f:
-        fig.savefig(f, format="png", dpi=80)
-    plt.close(fig)
-    return Path(path)

@@ -12,15 +12,13 @@ Keys of the scan file:
 from __future__ import annotations
 
 import os
-import zipfile
-import zlib
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.io.atomic import atomic_writer
+from twinfocus.io.arrays import load_npz, save_npz_atomic
 from twinfocus.radar.fmcw import Chirp
 
 
@@ -141,50 +139,3 @@ def _check_positions(name: str, p: np.ndarray, mk: tuple[int, int]) -> None:
     if not np.isfinite(p).all():
         bad = np.argwhere(~np.isfinite(p))[0]
         raise TwinFocusError(f"{name} holds NaN or inf (first at position {bad[0]}, channel {bad[1]})")
-
-
-def load_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Load every array of an ``.npz`` file into a dict, with a clear error for a bad file."""
-    path = Path(path)
-    if not path.is_file():
-        raise TwinFocusError(f"{path}: no such file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    # A truncated or damaged archive fails inside zipfile/zlib, not with an OSError.
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        raise TwinFocusError(f"{path}: not a readable .npz file, truncated or damaged? ({exc})") from None
-
-
-def peek_npz_shapes(path: str | os.PathLike) -> dict[str, tuple[int, ...]]:
-    """Shapes of the arrays of an ``.npz`` file from their headers alone (milliseconds, whatever
-    the file's size): lets a command check sizes and memory before loading anything. A truncated
-    file (its zip directory sits at the end) fails here with one line."""
-    path = Path(path)
-    if not path.is_file():
-        raise TwinFocusError(f"{path}: no such file")
-    try:
-        shapes = {}
-        with zipfile.ZipFile(path) as zf:
-            for name in zf.namelist():
-                if not name.endswith(".npy"):
-                    continue
-                with zf.open(name) as f:
-                    version = np.lib.format.read_magic(f)
-                    read = (
-                        np.lib.format.read_array_header_1_0
-                        if version == (1, 0)
-                        else np.lib.format.read_array_header_2_0
-                    )
-                    shape, _, _ = read(f)
-                shapes[name[:-4]] = tuple(shape)
-        return shapes
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        raise TwinFocusError(f"{path}: not a readable .npz file, truncated or damaged? ({exc})") from None
-
-
-def save_npz_atomic(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> Path:
-    """Write ``arrays`` to ``path`` through a temporary file and a rename."""
-    with atomic_writer(path) as f:
-        np.savez(f, **arrays)  # type: ignore[arg-type]  # numpy stubs type **kwds as the flag
-    return Path(path)

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.io.documents import read_json
 from twinfocus.motion.trajectory import Poses, matrix_to_quat, phase_centres
 from twinfocus.radar.fmcw import Chirp, VirtualArray, mmwcas_virtual_array
 from twinfocus.radar.scan import Scan
@@ -77,13 +78,11 @@ def capture_report_path(scan_path) -> Path:
 def read_capture_report(scan_path) -> dict | None:
     """The capture gaps recorded beside a converted scan (None when the scan has none), for the
     metrics of a focus: frames, frames_used, frames_lost, frames_zero_filled, bytes_lost, ..."""
-    import json
-
     p = capture_report_path(scan_path)
     if not p.is_file():
         return None
     try:
-        return json.loads(p.read_text())
+        return read_json(p)
     except ValueError:
         raise TwinFocusError(f"{p}: damaged capture report (not JSON)") from None
 

@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.motion.trajectory import matrix_to_quat
+from twinfocus.motion.trajectory import Poses, matrix_to_quat, quat_multiply
 
 POSE_TYPES = (
     "geometry_msgs/msg/PoseStamped",
@@ -106,8 +106,6 @@ def poses_from_records(records: list[PoseRecord], optical: bool):
     """:class:`~twinfocus.motion.trajectory.Poses` from pose records in time order (stably sorted by
     header stamp, as a bag stores messages by receive time). ``optical``: append
     :data:`Q_BODY_OPTICAL` so each pose is that of the child's optical axes."""
-    from twinfocus.motion.trajectory import Poses, quat_multiply
-
     if not records:
         raise TwinFocusError("no poses")
     order = np.argsort(np.array([r.stamp_ns for r in records], np.int64), kind="stable")

@@ -22,8 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
+from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.grid import ImageGrid
+from twinfocus.io.arrays import load_npz, save_npz_atomic
+from twinfocus.io.atomic import write_text_atomic
 from twinfocus.io.checksums import file_sha256
+from twinfocus.io.documents import read_text
+from twinfocus.sensors.rosbag2_files import bag_source_sha256, split_bag_source
 
 #: environment variable that relocates the cache
 ENV_DIR = "TWINFOCUS_CACHE_DIR"
@@ -52,13 +57,11 @@ def remembered_sha256(path: str | os.PathLike, root: str | os.PathLike | None = 
     Fails soft: a memo that cannot be read or written means hashing the file."""
     import time
 
-    from twinfocus.io.atomic import atomic_writer
-
     try:
         st = os.stat(path)
         ident = f"{os.path.realpath(path)}|{st.st_dev}|{st.st_ino}|{st.st_size}|{st.st_mtime_ns}|{st.st_ctime_ns}"
         memo = Path(root if root is not None else cache_dir()) / "digests" / hashlib.sha256(ident.encode()).hexdigest()
-        known = memo.read_text().strip() if memo.is_file() else ""
+        known = read_text(memo).strip() if memo.is_file() else ""
     except OSError:
         return file_sha256(path)
     if len(known) == 64:
@@ -67,8 +70,7 @@ def remembered_sha256(path: str | os.PathLike, root: str | os.PathLike | None = 
     if time.time() - max(st.st_mtime, st.st_ctime) < RACY_S:
         return digest
     try:
-        with atomic_writer(memo, "w") as f:
-            f.write(digest)
+        write_text_atomic(memo, digest)
     except OSError:
         pass
     return digest
@@ -133,8 +135,6 @@ def digital_twin_key(
 
 def _cloud_sha256(cloud: str | os.PathLike, root) -> str:
     """A cloud file's digest, or for a rosbag2 source ``BAG:TOPIC@STAMP`` that of the message's points."""
-    from twinfocus.sensors.rosbag2_files import bag_source_sha256, split_bag_source
-
     source = split_bag_source(str(cloud))
     return remembered_sha256(cloud, root) if source is None else bag_source_sha256(source)
 
@@ -160,8 +160,6 @@ class TemplateCache:
         """(image, info or None when stored without), or None for a miss."""
         if not self.enabled:
             return None
-        from twinfocus.errors import TwinFocusError
-        from twinfocus.radar.scan import load_npz
 
         path = self.path(key)
         if not path.is_file():
@@ -197,7 +195,6 @@ class TemplateCache:
         it could not be written (``warning`` says why)."""
         if not self.enabled:
             return None
-        from twinfocus.radar.scan import save_npz_atomic
 
         arrays = {"image": np.asarray(image), "roi": np.asarray(grid.roi, float), "shape": np.asarray(grid.shape)}
         if info is not None:

@@ -20,7 +20,8 @@ import numpy as np
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.backprojection.numba_backend import backproject
 from twinfocus.imaging.grid import ImageGrid
-from twinfocus.radar.scan import Scan, load_npz, save_npz_atomic
+from twinfocus.io.arrays import load_npz, save_npz_atomic
+from twinfocus.radar.scan import Scan
 
 
 def save_template(

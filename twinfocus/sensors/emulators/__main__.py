@@ -12,12 +12,17 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.motion.trajectory import Poses, paper_raster
+from twinfocus.radar.array_errors import array_error_levels, draw_array_errors
+from twinfocus.radar.fmcw import Chirp
+from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
+from twinfocus.sensors.emulators.radar_scene import imperfect_mimo_frames, quantize_iq, simulate_mimo_frames
+from twinfocus.sensors.emulators.rig import N_REFERENCE_SCATTERERS, EmulatedRadar, demo_scatterers
+from twinfocus.sensors.ti_mmwcas import MmwcasConfig
+from twinfocus.sensors.trajectory_files import write_tum
 
 
 def _radar(args) -> int:
-    from twinfocus.motion.trajectory import paper_raster
-    from twinfocus.sensors.emulators.rig import EmulatedRadar
-
     traj = paper_raster(args.columns, args.rows, args.column_pitch, args.row_pitch, frame_period_s=args.period)
     host, port = args.host_data.rsplit(":", 1)
     stop = threading.Event()
@@ -50,15 +55,6 @@ def _radar(args) -> int:
 
 
 def _capture(args) -> int:
-    from twinfocus.motion.trajectory import Poses, paper_raster
-    from twinfocus.radar.array_errors import array_error_levels, draw_array_errors
-    from twinfocus.radar.fmcw import Chirp
-    from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
-    from twinfocus.sensors.emulators.radar_scene import imperfect_mimo_frames, quantize_iq, simulate_mimo_frames
-    from twinfocus.sensors.emulators.rig import N_REFERENCE_SCATTERERS, demo_scatterers
-    from twinfocus.sensors.ti_mmwcas import MmwcasConfig
-    from twinfocus.sensors.trajectory_files import write_tum
-
     chirp = Chirp(n_samples=args.n_samples)
     cfg = MmwcasConfig(chirp=chirp, frame_period_s=args.period)
     # Capture card clock (since DSP boot, microseconds) and camera clock (epoch) differ, as in real life.

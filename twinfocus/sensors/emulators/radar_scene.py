@@ -13,6 +13,7 @@ import numpy as np
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.motion.trajectory import Poses
+from twinfocus.radar.array_errors import apply_array_errors
 from twinfocus.radar.fmcw import C_M_PER_S, Chirp
 from twinfocus.sensors.frames import mmwcas_antenna_positions_body_m
 
@@ -124,8 +125,6 @@ def imperfect_mimo_frames(
     snr_db : per-sample SNR of thermal noise added before the receivers' imperfections (None:
     none). Returns complex64 (M, 12, 16, N).
     """
-    from twinfocus.radar.array_errors import apply_array_errors
-
     tx, rx = mmwcas_antenna_positions_body_m()
     clean = simulate_mimo_frames(
         chirp, poses, scatterers_m, amplitudes, tx, rx, pattern_exponent=errors.pattern_exponent

@@ -35,6 +35,10 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.motion.trajectory import matrix_to_quat, quat_to_matrix
+from twinfocus.sensors.emulators.rig import N_REFERENCE_SCATTERERS
+from twinfocus.sensors.rosbag2 import R_BODY_OPTICAL
+from twinfocus.sensors.trajectory_files import read_tum
 
 POSE_TOPIC = "/zed/zed_node/pose"
 CLOUD_TOPIC = "/zed/zed_node/point_cloud/cloud_registered"
@@ -88,9 +92,6 @@ def write_zed_bag(
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from twinfocus.motion.trajectory import matrix_to_quat, quat_to_matrix
-    from twinfocus.sensors.rosbag2 import R_BODY_OPTICAL
-
     ts_store = get_typestore(Stores.ROS2_HUMBLE)
     T = ts_store.types
     g = "geometry_msgs/msg/"
@@ -141,9 +142,6 @@ def write_zed_bag(
 
 
 def main(argv: list[str] | None = None) -> int:
-    from twinfocus.sensors.emulators.rig import N_REFERENCE_SCATTERERS
-    from twinfocus.sensors.trajectory_files import read_tum
-
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("capture", type=Path, help="an emulated capture folder (trajectory.txt, scatterers.npy)")
     p.add_argument("--out", type=Path, required=True, help="the bag to write (a folder; refused if it exists)")

@@ -18,7 +18,6 @@ images with a sub-pixel parabolic peak.
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from dataclasses import dataclass, field
@@ -29,6 +28,7 @@ import numpy as np
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.imaging.subpixel import parabola_vertex, shift_image
+from twinfocus.io.documents import read_json, write_json_document
 
 
 def register_translation(moving: np.ndarray, fixed: np.ndarray) -> tuple[float, float, float]:
@@ -94,9 +94,7 @@ class RadarCameraCalibration:
         }
 
     def save(self, path: str | os.PathLike) -> Path:
-        from twinfocus.io.atomic import write_text_atomic
-
-        return write_text_atomic(path, json.dumps(self.to_dict(), indent=2) + "\n")
+        return write_json_document(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> RadarCameraCalibration:
@@ -106,7 +104,7 @@ class RadarCameraCalibration:
                 f"{path}: no such radar-camera calibration file (make one with twinfocus twin --calibrate-scan)"
             )
         try:
-            d = json.loads(path.read_text())
+            d = read_json(path)
             return cls(
                 np.asarray(d["offset_m"], dtype=np.float64), int(d.get("created_ns", 0)), dict(d.get("source", {}))
             )
@@ -179,7 +177,7 @@ def refine_template_shift_by_loss(
     """
     from dataclasses import replace
 
-    from twinfocus.focus.autofocus import AutofocusConfig, twin_autofocus
+    from twinfocus.focus.autofocus import AutofocusConfig, twin_autofocus  # lazy: scipy.fft (+0.8 s at import)
 
     cfg = replace(config or AutofocusConfig(), iterations=int(iterations))
     tpl = np.asarray(template, np.float32)

@@ -20,7 +20,6 @@ principal point at the image centre, no distortion (the SDK delivers rectified i
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.io.atomic import write_text_atomic
+from twinfocus.io.documents import read_json, write_json_document
 
 ZED2I_BASELINE_M = 0.120
 ZED2I_HD720 = (1280, 720)
@@ -325,7 +324,7 @@ class StereoCamera:
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write the calibration as JSON atomically."""
-        return write_text_atomic(path, json.dumps(self.to_dict(), indent=2) + "\n")
+        return write_json_document(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> StereoCamera:
@@ -333,7 +332,7 @@ class StereoCamera:
         if not path.is_file():
             raise TwinFocusError(f"{path}: no such camera calibration file")
         try:
-            d = json.loads(path.read_text())
+            d = read_json(path)
         except (OSError, ValueError) as exc:
             raise TwinFocusError(f"{path}: not a readable JSON camera calibration ({exc})") from None
         try:

@@ -53,7 +53,9 @@ from scipy import ndimage
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.grid import ImageGrid
+from twinfocus.twins.digital_twin.align import RadarCameraCalibration
 from twinfocus.twins.digital_twin.pointcloud import MIN_POINTS, check_not_degenerate
+from twinfocus.twins.digital_twin.template import digital_twin_template, load_points
 
 SURFACES = ("auto", "plane", "smooth", "outline")
 
@@ -471,8 +473,6 @@ def digital_twin_reference(
     conditioned cloud, info for metrics.json). An outline-only model gives the incoherent
     (expected rough-surface) template.
     """
-    from twinfocus.twins.digital_twin.template import digital_twin_template
-
     p = np.asarray(points_m)
     if offset_m is not None:
         off = np.asarray(offset_m, dtype=np.float64).reshape(-1)
@@ -516,13 +516,9 @@ def digital_twin_reference_from_file(
     --calibrate``) whose offset is added to the points. config : optional
     :class:`~twinfocus.twins.digital_twin.condition.ConditionConfig`.
     """
-    from twinfocus.twins.digital_twin.template import load_points
-
     points = load_points(path, allow_non_finite=True)
     offset = None
     if calibration is not None:
-        from twinfocus.twins.digital_twin.align import RadarCameraCalibration
-
         offset = RadarCameraCalibration.load(calibration).offset_m
     try:
         return digital_twin_reference(

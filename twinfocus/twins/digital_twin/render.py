@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.io.atomic import write_bytes_atomic
+from twinfocus.io.arrays import save_npz_atomic
+from twinfocus.io.images import write_image_atomic
 from twinfocus.twins.digital_twin.camera import Intrinsics, StereoCamera
 
 BACKGROUND_LABEL = -1
@@ -83,8 +84,6 @@ class StereoRendering:
 
     def save(self, out_dir: str | os.PathLike) -> dict[str, Path]:
         """Write left.png, right.png, camera.json and truth.npz (depth, labels, names) to a folder."""
-        from twinfocus.radar.scan import save_npz_atomic
-
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         paths = {
@@ -101,30 +100,6 @@ class StereoRendering:
             ),
         }
         return paths
-
-
-def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Encode an image (format from the suffix) and write it through a temp file and a rename."""
-    import cv2
-
-    path = Path(path)
-    ok, buf = cv2.imencode(path.suffix or ".png", np.asarray(image))
-    if not ok:
-        raise TwinFocusError(f"{path}: could not encode the image")
-    return write_bytes_atomic(path, buf.tobytes())
-
-
-def read_image(path: str | os.PathLike) -> np.ndarray:
-    """Read a colour picture as uint8 BGR (H, W, 3), with an error naming the file."""
-    import cv2
-
-    path = Path(path)
-    if not path.is_file():
-        raise TwinFocusError(f"{path}: no such image file")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise TwinFocusError(f"{path}: not a readable image")
-    return img
 
 
 # --- textures ----------------------------------------------------------------------------------

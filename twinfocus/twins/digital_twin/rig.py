@@ -56,6 +56,10 @@ import numpy as np
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.subpixel import shift_image
+from twinfocus.io.documents import read_json, write_json_document
+from twinfocus.radar.board import default_board
+from twinfocus.twins.digital_twin.template import load_points
 
 #: the reference's outline must cover at least this many pixels of the region to be registered
 MIN_SUPPORT_PIXELS = 30
@@ -122,7 +126,7 @@ def camera_identity(cloud_path: str | os.PathLike) -> str | None:
     if not side.is_file():
         return None
     try:
-        v = json.loads(side.read_text()).get("camera")
+        v = read_json(side).get("camera")
     except (OSError, ValueError, AttributeError):
         return None
     return None if v is None else str(v)
@@ -160,9 +164,7 @@ class Rig:
         }
 
     def save(self, path: str | os.PathLike) -> Path:
-        from twinfocus.io.atomic import write_text_atomic
-
-        return write_text_atomic(path, json.dumps(self.to_dict(), indent=2, default=float) + "\n")
+        return write_json_document(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Rig:
@@ -170,7 +172,7 @@ class Rig:
         if not p.is_file():
             raise TwinFocusError(f"--rig {p}: no such rig file (make one with twinfocus rig)")
         try:
-            d = json.loads(p.read_text())
+            d = read_json(p)
             if d.get("kind") != RIG_KIND:
                 raise ValueError(f"kind is {d.get('kind')!r}, not {RIG_KIND!r}")
             return cls(d["offset_m"], d["sd_m"], str(d["board"]), d.get("camera"), int(d.get("created_ns", 0)),
@@ -192,8 +194,6 @@ class Rig:
 def scan_board(scan) -> str:
     """The radar board a scan comes from: the board named in its channel calibration's record
     (``twinfocus convert``), else the default board's name."""
-    from twinfocus.radar.board import default_board
-
     if scan.calibration:
         try:
             b = json.loads(scan.calibration).get("board")
@@ -209,7 +209,7 @@ def scan_board(scan) -> str:
 def load_rig_for(path: str | os.PathLike, scan, cloud_path: str | os.PathLike | None) -> tuple[Rig, dict]:
     """``--rig PATH`` for a scan and its cloud: the rig, checked against the scan's board and the
     cloud's camera, and what metrics.json records of it (path, SHA-256, offset, sd)."""
-    from twinfocus.io.checksums import file_sha256
+    from twinfocus.io.checksums import file_sha256  # lazy: twinfocus.io.checksums (+0.03 s on twinfocus rig --help)
 
     rig = Rig.load(path)
     rig.check(scan_board(scan), camera_identity(cloud_path) if cloud_path else None, path)
@@ -351,10 +351,13 @@ def measure_rig(
     see every spread); depth : search the radar's depth (recorded, never applied; the study skips it).
     Returns :class:`RigMeasurement`; raises :class:`TwinFocusError` when the offset cannot be
     measured (module docstring)."""
-    from twinfocus.imaging.backprojection.numba_backend import subimage_basis
-    from twinfocus.imaging.subpixel import shift_image
-    from twinfocus.twins.digital_twin.align import register_translation
-    from twinfocus.twins.digital_twin.condition import digital_twin_reference
+    from twinfocus.imaging.backprojection.numba_backend import subimage_basis  # lazy: numba (+2.1 s at import)
+    from twinfocus.twins.digital_twin.align import (
+        register_translation,  # lazy: twinfocus.twins.digital_twin.align (+0.03 s on twinfocus rig --help)
+    )
+    from twinfocus.twins.digital_twin.condition import (
+        digital_twin_reference,  # lazy: open3d, scipy.ndimage (+4.3 s at import)
+    )
 
     points = np.asarray(points_m, dtype=np.float64)
     grid = measuring_grid(grid)
@@ -458,7 +461,9 @@ def rig_reference(points_m: np.ndarray, scan, grid: ImageGrid, rig: Rig, **bp_op
     (:func:`twinfocus.twins.digital_twin.condition.digital_twin_reference`); its info's ``rig`` records
     the offset applied and its sd (metres), and tells the focus to place the reference on the
     calibrated outline (:func:`rig_placed`)."""
-    from twinfocus.twins.digital_twin.condition import digital_twin_reference
+    from twinfocus.twins.digital_twin.condition import (
+        digital_twin_reference,  # lazy: open3d, scipy.ndimage (+4.3 s at import)
+    )
 
     ref = digital_twin_reference(points_m, scan.positions, scan.chirp, grid, offset_m=rig.offset_m, **bp_options)
     ref.info["rig"] = {"reference_moved_m": rig.offset_m.tolist(), "sd_m": rig.sd_m.tolist()}
@@ -467,8 +472,6 @@ def rig_reference(points_m: np.ndarray, scan, grid: ImageGrid, rig: Rig, **bp_op
 
 def rig_reference_from_file(cloud_path: str | os.PathLike, scan, grid: ImageGrid, rig: Rig, **bp_options):
     """``focus --digital-twin CLOUD --rig RIG``: :func:`rig_reference` of the cloud in the file."""
-    from twinfocus.twins.digital_twin.template import load_points
-
     points = load_points(cloud_path, allow_non_finite=True)
     try:
         return rig_reference(points, scan, grid, rig, **bp_options)

@@ -36,6 +36,7 @@ from typing import Protocol
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.twins.digital_twin.camera import transform_points
 
 # --- seeds -----------------------------------------------------------------------------------------
 
@@ -96,8 +97,6 @@ def box_from_scene_roi(roi, camera, depth_margin_m: float = 0.0, margin_px: int 
     The rectangle's corners at depth Z (and Z +- ``depth_margin_m``) are projected with the
     camera's pose; the box bounds them, widened by ``margin_px``.
     """
-    from twinfocus.twins.digital_twin.camera import transform_points
-
     x0, x1, y0, y1, z = (float(v) for v in roi)
     corners = np.array(
         [[x, y, z + dz] for x in (x0, x1) for y in (y0, y1) for dz in (-depth_margin_m, 0.0, depth_margin_m)]

@@ -34,6 +34,7 @@ import numpy as np
 
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.grid import ImageGrid
+from twinfocus.io.arrays import load_npy
 from twinfocus.radar.fmcw import C_M_PER_S, Chirp
 
 # Largest depth spread (metres) one PSF serves: a point dz off its slab's depth is defocused by
@@ -44,7 +45,7 @@ DEFAULT_ELEMENT_STEP = (2, 2)
 
 
 def _check_points(points_m) -> np.ndarray:
-    from twinfocus.twins.digital_twin.pointcloud import check_not_degenerate
+    from twinfocus.twins.digital_twin.pointcloud import check_not_degenerate  # lazy: open3d (+4.3 s at import)
 
     p = np.asarray(points_m)
     if p.ndim != 2 or p.shape[1] != 3:
@@ -78,8 +79,8 @@ def _amplitudes(amplitudes, n: int) -> np.ndarray:
 def exact_template(points_m, positions_m, chirp: Chirp, grid: ImageGrid, amplitudes=None, **bp_options) -> np.ndarray:
     """Point-scatterer simulation over every phase centre + back-projection: float32 (H, W)
     amplitude on ``grid``. ``bp_options`` go to :func:`twinfocus.imaging.backprojection.numba_backend.backproject`."""
-    from twinfocus.imaging.backprojection.numba_backend import backproject
-    from twinfocus.simulation.if_simulator import simulate_if
+    from twinfocus.imaging.backprojection.numba_backend import backproject  # lazy: numba (+2.1 s at import)
+    from twinfocus.simulation.if_simulator import simulate_if  # lazy: numba (+2.1 s at import)
 
     p = _check_points(points_m)
     e = _check_positions(positions_m)
@@ -107,8 +108,8 @@ def point_spread_function(
     ``element_step`` (positions, channels) thins the aperture for speed (grating lobes move to
     lambda R / (2 pitch); keep them outside the window).
     """
-    from twinfocus.imaging.backprojection.numba_backend import backproject_points
-    from twinfocus.simulation.if_simulator import simulate_if
+    from twinfocus.imaging.backprojection.numba_backend import backproject_points  # lazy: numba (+2.1 s at import)
+    from twinfocus.simulation.if_simulator import simulate_if  # lazy: numba (+2.1 s at import)
 
     e = _check_positions(positions_m)[:: int(element_step[0]), :: int(element_step[1])]
     c = np.asarray(centre_m, dtype=np.float64).reshape(3)
@@ -324,7 +325,9 @@ def load_points(path: str | os.PathLike, allow_non_finite: bool = False) -> np.n
     """
     from pathlib import Path
 
-    from twinfocus.sensors.rosbag2_files import split_bag_source
+    from twinfocus.sensors.rosbag2_files import (
+        split_bag_source,  # lazy: twinfocus.motion (+0.16 s on twinfocus rig --help)
+    )
 
     if (source := split_bag_source(str(path))) is not None:
         return _bag_points(source, allow_non_finite)
@@ -332,7 +335,7 @@ def load_points(path: str | os.PathLike, allow_non_finite: bool = False) -> np.n
     if not path.is_file():
         raise TwinFocusError(f"{path}: no such point-cloud file")
     try:
-        p = np.load(path, allow_pickle=False)
+        p = load_npy(path)
     except (OSError, ValueError) as exc:
         raise TwinFocusError(f"{path}: not a readable .npy point cloud ({exc})") from None
     if p.ndim != 2 or p.shape[1] != 3 or not np.issubdtype(p.dtype, np.number):
@@ -349,8 +352,12 @@ def _bag_points(source, allow_non_finite: bool) -> np.ndarray:
     """A rosbag2's PointCloud2 (:func:`twinfocus.sensors.rosbag2_files.read_bag_cloud`) placed as
     ``twin`` places a stereo cloud: the camera's optical axes, the left camera at the default
     ZED pose in the scene frame (:data:`~twinfocus.twins.digital_twin.camera.DEFAULT_LEFT_CAMERA_POSITION_M`)."""
-    from twinfocus.sensors.rosbag2_files import read_bag_cloud
-    from twinfocus.twins.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M
+    from twinfocus.sensors.rosbag2_files import (
+        read_bag_cloud,  # lazy: twinfocus.motion (+0.16 s on twinfocus rig --help)
+    )
+    from twinfocus.twins.digital_twin.camera import (
+        DEFAULT_LEFT_CAMERA_POSITION_M,  # lazy: twinfocus.twins.digital_twin.camera (+0.07 s on twinfocus rig --help)
+    )
 
     cloud = read_bag_cloud(source.path, source.topic, source.at_ns)
     p = cloud.points + np.asarray(DEFAULT_LEFT_CAMERA_POSITION_M, np.float64)
@@ -366,7 +373,10 @@ def pin_bag_clouds(clouds: list[str], timestamps_ns: np.ndarray | None, quiet: b
     the scan has none (or a time was typed with ``@``). Other entries pass unchanged."""
     import sys
 
-    from twinfocus.sensors.rosbag2_files import read_bag_cloud, split_bag_source
+    from twinfocus.sensors.rosbag2_files import (  # lazy: twinfocus.motion (+0.16 s on twinfocus rig --help)
+        read_bag_cloud,
+        split_bag_source,
+    )
 
     out = []
     for entry in clouds:
@@ -389,14 +399,3 @@ def pin_bag_clouds(clouds: list[str], timestamps_ns: np.ndarray | None, quiet: b
             )
         out.append(f"{source.path}:{source.topic}@{cloud.log_ns}")
     return out
-
-
-def save_points(path: str | os.PathLike, points_m) -> None:
-    """Write a point cloud float64 (N, 3) metres as ``.npy`` atomically (the reader is :func:`load_points`)."""
-    import io
-
-    from twinfocus.io.atomic import write_bytes_atomic
-
-    buf = io.BytesIO()
-    np.save(buf, np.asarray(points_m, dtype=np.float64))
-    write_bytes_atomic(path, buf.getvalue())
