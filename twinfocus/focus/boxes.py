@@ -29,7 +29,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
+from twinfocus.imaging.depth_search import search_depth
 from twinfocus.imaging.grid import ImageGrid, VolumeGrid
+from twinfocus.outputs.plotting import _font, inferno
 from twinfocus.radar.fmcw import Chirp
 
 #: the coarse look uses this many radar positions, those nearest the aperture's centre
@@ -266,8 +268,7 @@ def look(
     :func:`twinfocus.imaging.backprojection.numba_backend.backproject_points`."""
     import time
 
-    from twinfocus.imaging.depth_search import search_depth
-    from twinfocus.imaging.volume import corrected_image, projections
+    from twinfocus.imaging.volume import corrected_image, projections  # lazy: numba, scipy (+1.5 s at import)
 
     t = time.perf_counter()
     prog = progress_factory or (lambda label: None)
@@ -455,8 +456,6 @@ def look_picture(path, seen: Look, boxes: Boxes) -> None:
     """``look.png``: the wide look's projection and its fine planes, the reference's region drawn
     in cyan and the target's in lime (Pillow, beside summary.png)."""
     from PIL import Image, ImageDraw
-
-    from twinfocus.outputs.plotting import _font, inferno
 
     panels = [(seen.mip, seen.plane, "look, wide (projection over depth)")]
     panels += [(img, g, f"look, z {g.z * 1e3:.0f} mm") for img, g in seen.fine]

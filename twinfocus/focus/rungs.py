@@ -614,7 +614,7 @@ class SmoothDrift(Rung):
 
     def _fit(self, problem: Problem, model: Model, halves, fitted: np.ndarray | None = None, **settings):
         """fit_smooth_drift on the reference, or on its ``fitted`` pixels alone (bool (H, W))."""
-        from twinfocus.focus.space_variant import DriftFitSettings, fit_smooth_drift  # scipy: only on this path
+        from twinfocus.focus.space_variant import DriftFitSettings, fit_smooth_drift  # lazy: numba, scipy (+1.4 s at import; only this rung fits the drift)
 
         assert model.template is not None
         return fit_smooth_drift(

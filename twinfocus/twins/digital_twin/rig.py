@@ -254,7 +254,9 @@ def _cells_jackknife(shifted: np.ndarray, image: np.ndarray, block_px: tuple[int
     ``shifted`` (the template where the registration put it, float (H, W)) onto ``image`` (H, W),
     over blocks of ``block_px`` pixels: each block in turn is set to the image's mean (it then adds
     nothing to the mean-removed correlation), and the number of blocks."""
-    from twinfocus.twins.digital_twin.align import register_translation
+    from twinfocus.twins.digital_twin.align import (
+        register_translation,  # lazy: twinfocus.twins.digital_twin.align (+0.03 s on twinfocus rig --help)
+    )
 
     by, bx = block_px
     fill = float(image.mean())
@@ -275,10 +277,15 @@ def _cloud_spread(points: np.ndarray, scan, grid: ImageGrid, image: np.ndarray, 
     ``points`` (float (N, 3), metres) with another :data:`CLOUD_DROP` of its points removed in
     patches (:func:`twinfocus.twins.digital_twin.camera_cloud.camera_cloud`'s holes) and
     conditioned again, each registered from ``shift`` (dy, dx) onto ``image`` (H, W)."""
-    from twinfocus.imaging.subpixel import shift_image
-    from twinfocus.twins.digital_twin.align import register_translation
-    from twinfocus.twins.digital_twin.camera_cloud import camera_cloud
-    from twinfocus.twins.digital_twin.condition import digital_twin_reference
+    from twinfocus.twins.digital_twin.align import (
+        register_translation,  # lazy: twinfocus.twins.digital_twin.align (+0.03 s on twinfocus rig --help)
+    )
+    from twinfocus.twins.digital_twin.camera_cloud import (
+        camera_cloud,  # lazy: scipy.spatial (the calibration study's cloud draws only)
+    )
+    from twinfocus.twins.digital_twin.condition import (
+        digital_twin_reference,  # lazy: open3d, scipy.ndimage (+4.3 s at import)
+    )
 
     gen = np.random.default_rng([rng, 1])
     out = []
@@ -301,8 +308,9 @@ def rig_spread(scan, points: np.ndarray, grid: ImageGrid, basis: np.ndarray, tem
     pixels (dy, dx) each: ``positions_px``, ``cells_px``, ``cloud_px``, their root sum of squares
     ``measured_px``, ``model_px`` (:data:`MODEL_CELLS` of ``cell_px``, the resolution cell) and
     ``sd_px`` (all four), and ``method`` (:data:`SD_METHOD`, the draws and blocks filled in)."""
-    from twinfocus.imaging.subpixel import shift_image
-    from twinfocus.twins.digital_twin.align import register_translation
+    from twinfocus.twins.digital_twin.align import (
+        register_translation,  # lazy: twinfocus.twins.digital_twin.align (+0.03 s on twinfocus rig --help)
+    )
 
     dy, dx = shift
     image = np.abs(basis.sum(axis=0))
@@ -422,7 +430,9 @@ def _depth_record(scan, grid: ImageGrid, ref, bp_options: dict) -> dict:
     """The radar's depth of the reference (where its image is sharpest,
     :func:`twinfocus.imaging.depth_search.search_depth`) against the cloud's median depth: the rig
     file's ``source`` keys for z, which is recorded but not applied."""
-    from twinfocus.imaging.depth_search import search_depth
+    from twinfocus.imaging.depth_search import (
+        search_depth,  # lazy: twinfocus.imaging.depth_search (+0.03 s on twinfocus twin --help)
+    )
 
     z0 = grid.z
     search = search_depth(scan.data, scan.positions, scan.chirp, tuple(grid.roi[:4]),
