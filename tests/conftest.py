@@ -5,6 +5,8 @@ import pytest
 # Tests share the machine's two cores; numba/torch each default to all cores.
 os.environ.setdefault("NUMBA_NUM_THREADS", str(os.cpu_count() or 1))
 
+from tests.helpers import SMALL_SCENE, simulate  # noqa: E402 (imports numba: after its thread count)
+
 
 @pytest.fixture(autouse=True, scope="session")
 def _template_cache_in_tmp(tmp_path_factory):
@@ -17,6 +19,21 @@ def _template_cache_in_tmp(tmp_path_factory):
         os.environ.pop("TWINFOCUS_CACHE_DIR", None)
     else:
         os.environ["TWINFOCUS_CACHE_DIR"] = old
+
+
+@pytest.fixture(scope="session")
+def small_scene(tmp_path_factory):
+    """The folder of ``simulate`` on :data:`~tests.helpers.SMALL_SCENE`: ``scan.npz`` and its
+    template scan ``tpl.npz``, made once for every file that focuses it (read only: runs write
+    into their own ``tmp_path``)."""
+    return simulate(tmp_path_factory.mktemp("small-scene"), *SMALL_SCENE)
+
+
+@pytest.fixture(scope="session")
+def deep_scene(tmp_path_factory):
+    """As :func:`small_scene` with the target 8 cm behind the reference (0.68 m), for the
+    depth search and the volume."""
+    return simulate(tmp_path_factory.mktemp("deep-scene"), *SMALL_SCENE, "--target-depth-offset", "0.08")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -1,0 +1,67 @@
+"""What several test files run or build the same way: command lines for ``twinfocus``, the small
+simulated scenes the offline commands are tested on (conftest.py's session fixtures), and the
+brute-force echo of point scatterers the imaging tests take as their truth."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twinfocus.cli import main
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp
+
+# The simulated scene's two letters (twinfocus.simulation.scenario.Scenario): x0 x1 y0 y1 z in m.
+REF_ROI = ("-0.15", "0.0", "-0.11", "0.12", "0.6")
+TGT_ROI = ("0.02", "0.13", "-0.11", "0.12", "0.6")
+ROIS = ("--reference-roi", *REF_ROI, "--target-roi", *TGT_ROI)
+# 3 columns of 40 rows: a quarter of the paper's aperture, enough to image both letters.
+SMALL_SCENE = ("--columns", "3", "--rows", "40", "--seed", "3")
+
+
+def argv(*parts: object) -> list[str]:
+    """The words of a command line: a ``str`` is split at white space (``"--size 48"``), anything
+    else (a path, a number) is one word."""
+    words: list[str] = []
+    for part in parts:
+        words += part.split() if isinstance(part, str) else [str(part)]
+    return words
+
+
+def cli(*parts: object) -> int:
+    """``twinfocus`` run in this process on :func:`argv`'s words; returns its exit code."""
+    return main(argv(*parts))
+
+
+def simulate(folder: Path, *options: object) -> Path:
+    """``simulate --quiet`` into ``folder/scan.npz`` and its template scan ``folder/tpl.npz``;
+    returns ``folder``."""
+    assert cli("simulate --quiet --out", folder / "scan.npz", "--template-out", folder / "tpl.npz", *options) == 0
+    return folder
+
+
+def metrics(out: Path) -> dict[str, Any]:
+    """The ``metrics.json`` a run wrote into the folder ``out``."""
+    return json.loads((Path(out) / "metrics.json").read_text())
+
+
+def convert_capture(folder: Path, *options: object) -> int:
+    """``convert`` of the capture ``folder/cap`` with its trajectory ``folder/traj.txt`` into
+    ``folder/s.npz``; returns the exit code."""
+    return cli("convert", folder / "cap", "--trajectory", folder / "traj.txt", "--out", folder / "s.npz", *options)
+
+
+def points_scan(chirp: Chirp, positions: np.ndarray, points: list[np.ndarray], amplitudes: list[float]) -> np.ndarray:
+    """The ideal echo of point scatterers, summed by brute force (the truth the back-projections
+    are checked against, independent of the simulator).
+
+    positions: (M, C, 3) m, one phase centre per position and channel; points: (3,) m each;
+    returns (M, C, chirp.n_samples) complex64.
+    """
+    data = np.zeros((*positions.shape[:2], chirp.n_samples), np.complex128)
+    for p, a in zip(points, amplitudes):
+        r = np.linalg.norm(positions - p, axis=-1)
+        data += a * np.exp(1j * 2 * np.pi * chirp.frequencies_hz * 2 * r[..., None] / C_M_PER_S)
+    return data.astype(np.complex64)
