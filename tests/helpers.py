@@ -65,3 +65,32 @@ def points_scan(chirp: Chirp, positions: np.ndarray, points: list[np.ndarray], a
         r = np.linalg.norm(positions - p, axis=-1)
         data += a * np.exp(1j * 2 * np.pi * chirp.frequencies_hz * 2 * r[..., None] / C_M_PER_S)
     return data.astype(np.complex64)
+
+
+def studio_json(path: Path, profile: dict[str, Any], tx_numbers: list[int], n_loops: int, period_ms: float) -> None:
+    """An mmWave Studio JSON written field by field (TI's rlProfileCfg_t / rlChirpCfg_t /
+    rlFrameCfg_t names): every device with profile 0 (``profile``, its fields past profileId), one
+    chirp per entry of ``tx_numbers`` (TI numbering 1..12, device d's TX b as 3 d + b + 1)."""
+    devices = []
+    for d in range(4):
+        chirps = []
+        for c, n in enumerate(tx_numbers):
+            mask = 1 << ((n - 1) % 3) if (n - 1) // 3 == d else 0
+            chirps.append(
+                {"rlChirpCfg_t": {"chirpStartIdx": c, "chirpEndIdx": c, "profileId": 0, "txEnable": f"0x{mask:X}"}}
+            )
+        frame = {
+            "chirpStartIdx": 0,
+            "chirpEndIdx": len(tx_numbers) - 1,
+            "numLoops": n_loops,
+            "numFrames": 0,
+            "framePeriodicity_msec": period_ms,
+        }
+        rf = {
+            "rlProfiles": [{"rlProfileCfg_t": {"profileId": 0, **profile}}],
+            "rlChirps": chirps,
+            "rlFrameCfg_t": frame,
+        }
+        data_format = {"rlDevDataFmtCfg_t": {"iqSwapSel": 0, "chInterleave": 0}}
+        devices.append({"mmWaveDeviceId": d, "rfConfig": rf, "rawDataCaptureConfig": data_format})
+    path.write_text(json.dumps({"mmWaveDevices": devices}))

@@ -13,6 +13,7 @@ import struct
 import numpy as np
 import pytest
 
+from tests.helpers import cli
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.dca1000 import RawFrameLayout
@@ -180,7 +181,6 @@ def test_msb_toggle_is_taken_off(tmp_path):
 
 def test_convert_gives_the_scan_of_the_frames(tmp_path, capsys):
     """convert on a CLI file == scan_from_frames on frames built from the tags (the live path's step)."""
-    from twinfocus.cli import main
     from twinfocus.motion.trajectory import Poses
     from twinfocus.radar.scan import Scan
     from twinfocus.sensors.capture_to_scan import read_capture_report, scan_from_frames
@@ -197,21 +197,9 @@ def test_convert_gives_the_scan_of_the_frames(tmp_path, capsys):
     quat = np.tile([0.0, 0.0, 0.0, 1.0], (11, 1))
     poses = Poses(t, pos, quat)
     write_tum(tmp_path / "traj.txt", poses)
-    rc = main(
-        [
-            "convert",
-            str(tmp_path / "adc_data_Raw_0.bin"),
-            "--trajectory",
-            str(tmp_path / "traj.txt"),
-            "--out",
-            str(tmp_path / "scan.npz"),
-            "--n-samples",
-            str(N),
-            "--frame-period-s",
-            "0.05",
-            "--quiet",
-        ]
-    )
+    raw = tmp_path / "adc_data_Raw_0.bin"
+    options = ("--n-samples", N, "--frame-period-s 0.05 --quiet")
+    rc = cli("convert", raw, "--trajectory", tmp_path / "traj.txt", "--out", tmp_path / "scan.npz", *options)
     assert rc == 0
     out = json.loads(capsys.readouterr().out)
     assert out["frames"] == n_frames and out["used"] == n_frames - 1 and out["frames_zero_filled"] == 1
