@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from twinfocus.cli import main
-from twinfocus.radar.fmcw import C_M_PER_S, Chirp
+from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array
 
 # The simulated scene's two letters (twinfocus.simulation.scenario.Scenario): x0 x1 y0 y1 z in m.
 REF_ROI = ("-0.15", "0.0", "-0.11", "0.12", "0.6")
@@ -51,6 +51,14 @@ def convert_capture(folder: Path, *options: object) -> int:
     """``convert`` of the capture ``folder/cap`` with its trajectory ``folder/traj.txt`` into
     ``folder/s.npz``; returns the exit code."""
     return cli("convert", folder / "cap", "--trajectory", folder / "traj.txt", "--out", folder / "s.npz", *options)
+
+
+def aperture(n_rows: int, pitch_m: float = 0.004, columns_m: tuple[float, ...] = (-0.02, 0.0, 0.02)) -> np.ndarray:
+    """The cascade's virtual array (mmwcas_virtual_array) at ``n_rows`` rows ``pitch_m`` apart,
+    centred on y = 0, in each column x of ``columns_m``, at z = 0: (columns * n_rows, 86, 3) m."""
+    va = mmwcas_virtual_array()
+    rows = (np.arange(n_rows) - (n_rows - 1) / 2) * pitch_m
+    return np.array([va.offsets_m + np.array([cx, y, 0.0]) for cx in columns_m for y in rows])
 
 
 def points_scan(chirp: Chirp, positions: np.ndarray, points: list[np.ndarray], amplitudes: list[float]) -> np.ndarray:

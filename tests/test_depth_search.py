@@ -5,22 +5,11 @@ lies 8 cm behind the reference."""
 import numpy as np
 import pytest
 
-from tests.helpers import REF_ROI, cli, metrics, points_scan
+from tests.helpers import REF_ROI, aperture, cli, metrics, points_scan
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.depth_search import default_range, parse_depth, search_depth, sharpness_score
-from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
+from twinfocus.radar.fmcw import Chirp
 from twinfocus.simulation.scenario import Scenario, planar_object
-
-
-def _aperture(n_rows=20, pitch=0.004, columns=(-0.02, 0.0, 0.02)):
-    va = mmwcas_virtual_array()
-    return np.array(
-        [
-            va.offsets_m + np.array([cx, y, 0.0])
-            for cx in columns
-            for y in (np.arange(n_rows) - (n_rows - 1) / 2) * pitch
-        ]
-    )
 
 
 def test_sharpness_prefers_the_concentrated_image_of_equal_energy():
@@ -35,7 +24,7 @@ def test_sharpness_prefers_the_concentrated_image_of_equal_energy():
 @pytest.mark.parametrize("depth", [0.57, 0.634])
 def test_depth_of_a_flat_group_of_points_under_phase_errors(depth):
     ch = Chirp()
-    pos = _aperture()
+    pos = aperture(n_rows=20)
     pts = np.array([[0.01, 0.0, depth], [0.03, 0.02, depth], [0.02, -0.015, depth]])
     rng = np.random.default_rng(1)
     err = rng.uniform(-np.pi, np.pi, pos.shape[0])  # a phase error per position: the image is lost

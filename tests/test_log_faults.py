@@ -428,32 +428,33 @@ def test_a_full_disk_while_recording_is_one_line_and_leaves_no_partial(tmp_path,
     assert "Traceback" not in err, err
 
 
-def test_a_full_disk_while_exporting_is_one_line_and_keeps_the_old_export(tmp_path, monkeypatch, capsys):
+def _export_refused(log, out, capsys, *needles):
+    """``export`` of ``log`` to Foxglove over the earlier export ``out`` is refused (exit 2) in one
+    line holding every one of ``needles``, and ``out`` keeps its bytes."""
     from twinfocus.cli import main
 
+    assert main(["export", str(log), "--to", "foxglove", str(out), "--overwrite", "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and all(n in err[0] for n in needles), err
+    assert out.read_bytes() == b"an earlier export"
+
+
+def test_a_full_disk_while_exporting_is_one_line_and_keeps_the_old_export(tmp_path, monkeypatch, capsys):
     log = frames_log(tmp_path / "run.mcap", n=200)
     out = tmp_path / "fox.mcap"
     out.write_bytes(b"an earlier export")
     _small_disk(monkeypatch, room=2_000)
-    assert main(["export", str(log), "--to", "foxglove", str(out), "--overwrite", "-q"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "No space left on device" in err[0] and "deleted its partial file" in err[0], err
-    assert out.read_bytes() == b"an earlier export"
+    _export_refused(log, out, capsys, "No space left on device", "deleted its partial file")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fox.mcap", "run.mcap"]
 
 
 def test_an_export_of_a_log_with_no_messages_refuses_and_keeps_the_old_export(tmp_path, capsys):
-    from twinfocus.cli import main
-
     empty = tmp_path / "empty.mcap"
     with LogWriter(empty) as w:
         w.add_metadata("calibration", {"note": "no messages"})
     out = tmp_path / "fox.mcap"
     out.write_bytes(b"an earlier export")
-    assert main(["export", str(empty), "--to", "foxglove", str(out), "--overwrite", "-q"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "holds no messages" in err[0] and "left as it was" in err[0], err
-    assert out.read_bytes() == b"an earlier export"
+    _export_refused(empty, out, capsys, "holds no messages", "left as it was")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.mcap", "fox.mcap"]
 
 

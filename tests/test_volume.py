@@ -5,7 +5,7 @@ what it promises after checking what it will cost."""
 import numpy as np
 import pytest
 
-from tests.helpers import REF_ROI, cli, metrics, points_scan
+from tests.helpers import REF_ROI, aperture, cli, metrics, points_scan
 from twinfocus.cli.focus import volume_plan
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.backprojection.numba_backend import subimage_basis
@@ -22,23 +22,12 @@ from twinfocus.imaging.volume import (
     volume_cost,
     volume_grid,
 )
-from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
-
-
-def _aperture(n_rows=16, pitch=0.004, columns=(-0.02, 0.0, 0.02)):
-    va = mmwcas_virtual_array()
-    return np.array(
-        [
-            va.offsets_m + np.array([cx, y, 0.0])
-            for cx in columns
-            for y in (np.arange(n_rows) - (n_rows - 1) / 2) * pitch
-        ]
-    )
+from twinfocus.radar.fmcw import Chirp
 
 
 def test_phase_on_the_samples_equals_phase_on_the_basis():
     ch = Chirp()
-    pos = _aperture(n_rows=8)
+    pos = aperture(n_rows=8)
     data = points_scan(ch, pos, [np.array([0.01, 0.0, 0.5])], [1.0])
     phase = np.random.default_rng(0).uniform(-np.pi, np.pi, pos.shape[0])
     grid = ImageGrid(-0.02, 0.04, -0.03, 0.03, 0.5, 9, 7)
@@ -64,7 +53,7 @@ def test_volume_grid_planes():
 
 def test_two_points_at_two_depths_land_in_their_voxels(tmp_path):
     ch = Chirp()
-    pos = _aperture()
+    pos = aperture(n_rows=16)
     pts = [np.array([-0.03, 0.01, 0.55]), np.array([0.03, -0.01, 0.65])]
     data = points_scan(ch, pos, pts, [1.0, 1.0])
     plane = ImageGrid(-0.06, 0.06, -0.04, 0.04, 1.0, 25, 17)  # 5 mm pixels
