@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from msgs import Header, SarMeasurement
 from twinfocus.cli import main
 from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array
 
@@ -102,3 +103,23 @@ def studio_json(path: Path, profile: dict[str, Any], tx_numbers: list[int], n_lo
         data_format = {"rlDevDataFmtCfg_t": {"iqSwapSel": 0, "chInterleave": 0}}
         devices.append({"mmWaveDeviceId": d, "rfConfig": rf, "rawDataCaptureConfig": data_format})
     path.write_text(json.dumps({"mmWaveDevices": devices}))
+
+
+def sar_measurements(data, positions, chirp: Chirp, scan_id: str, stamps_ns=None, positions_true=None) -> list:
+    """A scan as the synchronizer publishes it: one SarMeasurement per position, the last one
+    marked. data: complex64 (M, K, N); positions (and positions_true): (M, K, 3) m; stamps_ns:
+    int (M,), default 1, 2, ... ns."""
+    n = data.shape[0]
+    stamps = np.arange(1, n + 1) if stamps_ns is None else stamps_ns
+    chirp_fields = {"f0_hz": chirp.f0_hz, "slope_hz_per_s": chirp.slope_hz_per_s, "fs_hz": chirp.fs_hz}
+    return [
+        SarMeasurement(
+            header=Header(stamp_ns=int(stamps[i])),
+            data=data[i],
+            positions_m=positions[i],
+            positions_true_m=None if positions_true is None else positions_true[i],
+            **chirp_fields,
+            **{"scan_id": scan_id, "index": i, "last": i == n - 1},
+        )
+        for i in range(n)
+    ]

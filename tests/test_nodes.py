@@ -19,11 +19,12 @@ import pytest
 import zmq
 from scipy.spatial.transform import Rotation, Slerp
 
-from msgs import AutofocusResult, Header, Image, Pose, RadarFrame, SarMeasurement, TwinTemplate
+from msgs import AutofocusResult, Header, Image, Pose, RadarFrame, TwinTemplate
 from nodes.runtime.bus import Broker
 from nodes.runtime.node import Node
 from nodes.runtime.params import REQUIRED, Param, parse_assignment, resolve
 from nodes.runtime.testing import Probe, local_broker, patience, running
+from tests.helpers import sar_measurements
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar.fmcw import Chirp
 
@@ -591,21 +592,8 @@ def test_template_builder_computes_a_template_scan_once_then_takes_it_from_the_c
 
 
 def measurements(scan, scan_id="p"):
-    return [
-        SarMeasurement(
-            header=Header(stamp_ns=int(scan.timestamps_ns[m])),
-            data=scan.data[m],
-            positions_m=scan.positions[m],
-            f0_hz=CHIRP.f0_hz,
-            slope_hz_per_s=CHIRP.slope_hz_per_s,
-            fs_hz=CHIRP.fs_hz,
-            scan_id=scan_id,
-            index=m,
-            last=m == scan.n_positions - 1,
-            positions_true_m=scan.positions_true[m],
-        )
-        for m in range(scan.n_positions)
-    ]
+    """The scan's measurements as the synchronizer publishes them, with their true positions."""
+    return sar_measurements(scan.data, scan.positions, CHIRP, scan_id, scan.timestamps_ns, scan.positions_true)
 
 
 def solver_and_probe(ep, listen=("autofocus/result",), **params):

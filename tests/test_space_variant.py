@@ -119,21 +119,15 @@ def _drifting_scan(fast_mm: float = 0.0) -> dict:
     rg = ImageGrid(-0.15, -0.01, -0.07, 0.07, Z, 32, 32)
     tg = ImageGrid(0.03, 0.13, -0.07, 0.07, Z, 24, 24)
     template = backproject(data, true, ch, rg)  # what a motion-stage scan of the reference gives
-    return dict(
-        chirp=ch,
-        tracked=tracked,
-        true=true,
-        drift=drift,
-        rg=rg,
-        tg=tg,
-        template=template,
-        ref_basis=subimage_basis(data, tracked, ch, rg),
-        tgt_basis=subimage_basis(data, tracked, ch, tg),
-        ref_basis_true=subimage_basis(data, true, ch, rg),
-        tgt_basis_true=subimage_basis(data, true, ch, tg),
-        truth_target=backproject(data, true, ch, tg),
-        truth_reference=backproject(data, true, ch, rg),
-    )
+    scene = {"chirp": ch, "tracked": tracked, "true": true, "drift": drift, "rg": rg, "tg": tg, "template": template}
+    bases = {
+        "ref_basis": subimage_basis(data, tracked, ch, rg),
+        "tgt_basis": subimage_basis(data, tracked, ch, tg),
+        "ref_basis_true": subimage_basis(data, true, ch, rg),
+        "tgt_basis_true": subimage_basis(data, true, ch, tg),
+    }
+    truth = {"truth_target": backproject(data, true, ch, tg), "truth_reference": backproject(data, true, ch, rg)}
+    return {**scene, **bases, **truth}
 
 
 def _fit_args(s):
