@@ -1,6 +1,7 @@
-"""What several test files run or build the same way: command lines for ``twinfocus``, the small
-simulated scenes the offline commands are tested on (conftest.py's session fixtures), and the
-brute-force echo of point scatterers the imaging tests take as their truth."""
+"""What several test files run or build the same way: command lines for ``twinfocus`` (``cli``),
+the small simulated scenes the offline commands are tested on (conftest.py's session fixtures),
+the brute-force echo of point scatterers the imaging tests take as their truth, an mmWave Studio
+JSON, and a scan as the synchronizer's measurements."""
 
 from __future__ import annotations
 
@@ -119,7 +120,9 @@ def sar_measurements(data, positions, chirp: Chirp, scan_id: str, stamps_ns=None
             positions_m=positions[i],
             positions_true_m=None if positions_true is None else positions_true[i],
             **chirp_fields,
-            **{"scan_id": scan_id, "index": i, "last": i == n - 1},
+            scan_id=scan_id,
+            index=i,
+            last=i == n - 1,
         )
         for i in range(n)
     ]
