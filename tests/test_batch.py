@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.helpers import cli
 from twinfocus.cli import main
 from twinfocus.errors import TwinFocusError
 
@@ -28,25 +29,8 @@ BIN = Path(sys.executable).parent
 def scans(tmp_path_factory):
     d = tmp_path_factory.mktemp("sim")
     for seed in (3, 4):
-        assert (
-            main(
-                [
-                    "simulate",
-                    "--out",
-                    str(d / f"scan{seed}.npz"),
-                    "--template-out",
-                    str(d / f"tpl{seed}.npz"),
-                    "--columns",
-                    "3",
-                    "--rows",
-                    "30",
-                    "--quiet",
-                    "--seed",
-                    str(seed),
-                ]
-            )
-            == 0
-        )
+        scene = ("--columns 3 --rows 30 --quiet --seed", seed)
+        assert cli("simulate --out", d / f"scan{seed}.npz", "--template-out", d / f"tpl{seed}.npz", *scene) == 0
     return d
 
 
@@ -57,6 +41,11 @@ def _write_csv(path, rows):
         w.writeheader()
         w.writerows(rows)
     return path
+
+
+def _rows(names, **fields):
+    """Manifest rows, one per name: the scene's regions, no pictures, and ``fields``."""
+    return [{"name": name, "reference_roi": REF, "target_roi": TGT, "no_pictures": "true", **fields} for name in names]
 
 
 def _summary(out):
@@ -193,18 +182,7 @@ def test_summary_lists_pending_items_from_the_start_and_the_local_cluster_opens_
             urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=30)
         assert e.value.code == 404
     assert port != 8787
-    items = [
-        {
-            "name": f"n{i}",
-            "scan": "scan3.npz",
-            "method": "none",
-            "reference_roi": REF,
-            "target_roi": TGT,
-            "size": "16",
-            "no_pictures": "true",
-        }
-        for i in range(2)
-    ]
+    items = _rows([f"n{i}" for i in range(2)], scan="scan3.npz", method="none", size="16")
     manifest = _write_csv(scans / "pending.csv", items)
     out = tmp_path / "b"
     seen = {}
@@ -221,18 +199,7 @@ def test_summary_lists_pending_items_from_the_start_and_the_local_cluster_opens_
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_ctrl_c_stops_a_batch_with_one_line(scans, tmp_path):
-    items = [
-        {
-            "name": f"i{i}",
-            "scan": "scan3.npz",
-            "template_scan": "tpl3.npz",
-            "reference_roi": REF,
-            "target_roi": TGT,
-            "size": "24",
-            "no_pictures": "true",
-        }
-        for i in range(8)
-    ]
+    items = _rows([f"i{i}" for i in range(8)], scan="scan3.npz", template_scan="tpl3.npz", size="24")
     manifest = _write_csv(scans / "many.csv", items)
     out = tmp_path / "b"
     # its own process group, as a terminal's foreground job: Ctrl-C reaches every process in it

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
+from tests.helpers import convert_capture
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar.board import DEFAULT_BOARD_FILE, default_board, load_board
 from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_rx_positions_m, mmwcas_tx_positions_m, mmwcas_virtual_array
@@ -78,18 +79,7 @@ def test_convert_and_simulate_refuse_a_bad_board_and_write_nothing(tmp_path, cap
     (tmp_path / "traj.txt").write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")
     (tmp_path / "cap").mkdir()
     (tmp_path / "cap" / "master_0000_idx.bin").write_bytes(b"")
-    rc = main(
-        [
-            "convert",
-            str(tmp_path / "cap"),
-            "--trajectory",
-            str(tmp_path / "traj.txt"),
-            "--out",
-            str(tmp_path / "s.npz"),
-            "--board",
-            str(tmp_path / "bad.yaml"),
-        ]
-    )
+    rc = convert_capture(tmp_path, "--board", tmp_path / "bad.yaml")
     err = capsys.readouterr().err
     assert rc == 2 and "bad.yaml: not a YAML board file" in err and len(err.strip().splitlines()) == 1
     rc = main(["simulate", "--out", str(tmp_path / "sim.npz"), "--board", str(tmp_path / "missing.yaml")])

@@ -1,12 +1,10 @@
 """The template cache: a reference is paid for once, its cached image equals the recomputed one,
 and any change of input, grid or back-projection option misses it."""
 
-import json
-
 import numpy as np
 import pytest
 
-from twinfocus.cli import main
+from tests.helpers import REF_ROI, ROIS, cli, metrics, simulate
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.io.checksums import file_sha256
 from twinfocus.radar.scan import Scan
@@ -14,63 +12,22 @@ from twinfocus.twins import cache as cache_module
 from twinfocus.twins.cache import TemplateCache, cache_dir, remembered_sha256, template_key
 from twinfocus.twins.templates import load_template, template_from_scan
 
-REF = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
-TGT = ["0.02", "0.13", "-0.11", "0.12", "0.6"]
-
 
 @pytest.fixture(scope="module")
 def scans(tmp_path_factory):
-    d = tmp_path_factory.mktemp("sim")
-    assert (
-        main(
-            [
-                "simulate",
-                "--out",
-                str(d / "scan.npz"),
-                "--template-out",
-                str(d / "tpl.npz"),
-                "--columns",
-                "2",
-                "--rows",
-                "30",
-                "--quiet",
-                "--seed",
-                "5",
-            ]
-        )
-        == 0
-    )
-    return d
+    return simulate(tmp_path_factory.mktemp("sim"), "--columns 2 --rows 30 --seed 5")
 
 
-def _focus(scans, out, *extra):
-    rc = main(
-        [
-            "focus",
-            str(scans / "scan.npz"),
-            "--reference-roi",
-            *REF,
-            "--target-roi",
-            *TGT,
-            "--size",
-            "40",
-            "--out",
-            str(out),
-            "--quiet",
-            "--pictures",
-            "none",
-            *extra,
-        ]
-    )
-    assert rc == 0
-    return json.loads((out / "metrics.json").read_text())
+def _focus(scan, out, *extra, size=40):
+    assert cli("focus", scan, *ROIS, "--size", size, "--out", out, "--quiet --pictures none", *extra) == 0
+    return metrics(out)
 
 
 @pytest.mark.slow  # 12 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
 def test_second_focus_reads_the_template_from_the_cache(scans, tmp_path, monkeypatch):
     monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
     tpl = ["--template-scan", str(scans / "tpl.npz")]
-    first = _focus(scans, tmp_path / "a", *tpl)
+    first = _focus(scans / "scan.npz", tmp_path / "a", *tpl)
 
     # a hit costs a file hash and a small read, not a back-projection
     def no_back_projection(*args, **kwargs):
@@ -78,18 +35,18 @@ def test_second_focus_reads_the_template_from_the_cache(scans, tmp_path, monkeyp
 
     with monkeypatch.context() as m:
         m.setattr("twinfocus.twins.templates.template_from_scan", no_back_projection)
-        second = _focus(scans, tmp_path / "b", *tpl)
+        second = _focus(scans / "scan.npz", tmp_path / "b", *tpl)
     assert (first["template_cache"], second["template_cache"]) == ("miss", "hit")
     # the same result bit for bit, and the cached image is the recomputed one exactly
     for name in ("phase.npy", "target.npy"):
         assert np.array_equal(np.load(tmp_path / "a" / name), np.load(tmp_path / "b" / name)), name
-    grid = ImageGrid.from_roi([float(v) for v in REF], 40)
+    grid = ImageGrid.from_roi([float(v) for v in REF_ROI], 40)
     fresh = template_from_scan(Scan.load(scans / "tpl.npz"), grid, keep_phase=True, oversample=16, precision="float32")
     (entry,) = (tmp_path / "cache" / "templates").glob("*.npz")
     cached = np.load(entry)["image"]
     assert cached.dtype == fresh.dtype and np.array_equal(cached, fresh)
     # --no-cache neither reads nor writes
-    off = _focus(scans, tmp_path / "c", *tpl, "--no-cache")
+    off = _focus(scans / "scan.npz", tmp_path / "c", *tpl, "--no-cache")
     assert off["template_cache"] == "off"
     assert len(list((tmp_path / "cache" / "templates").glob("*.npz"))) == 1
 
@@ -98,36 +55,21 @@ def test_second_focus_reads_the_template_from_the_cache(scans, tmp_path, monkeyp
 def test_changed_inputs_miss_the_cache(scans, tmp_path, monkeypatch):
     monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
     tpl = ["--template-scan", str(scans / "tpl.npz")]
-    assert _focus(scans, tmp_path / "a", *tpl)["template_cache"] == "miss"
+    assert _focus(scans / "scan.npz", tmp_path / "a", *tpl)["template_cache"] == "miss"
     # the same reference scan with one sample changed: another file hash
     s = Scan.load(scans / "tpl.npz")
     data = s.data.copy()
     data[0, 0, 0] += 1.0
     s.with_data(data).save(tmp_path / "tpl2.npz")
-    assert _focus(scans, tmp_path / "b", "--template-scan", str(tmp_path / "tpl2.npz"))["template_cache"] == "miss"
-    # another back-projection option, then another grid
-    assert _focus(scans, tmp_path / "c", *tpl, "--oversample", "8")["template_cache"] == "miss"
-    rc = main(
-        [
-            "focus",
-            str(scans / "scan.npz"),
-            "--reference-roi",
-            *REF,
-            "--target-roi",
-            *TGT,
-            "--size",
-            "41",
-            "--out",
-            str(tmp_path / "d"),
-            "--quiet",
-            "--pictures",
-            "none",
-            *tpl,
-        ]
+    assert (
+        _focus(scans / "scan.npz", tmp_path / "b", "--template-scan", str(tmp_path / "tpl2.npz"))["template_cache"]
+        == "miss"
     )
-    assert rc == 0 and json.loads((tmp_path / "d" / "metrics.json").read_text())["template_cache"] == "miss"
+    # another back-projection option, then another grid
+    assert _focus(scans / "scan.npz", tmp_path / "c", *tpl, "--oversample", "8")["template_cache"] == "miss"
+    assert _focus(scans / "scan.npz", tmp_path / "d", *tpl, size=41)["template_cache"] == "miss"
     assert len(list((tmp_path / "cache" / "templates").glob("*.npz"))) == 4
-    assert _focus(scans, tmp_path / "e", *tpl)["template_cache"] == "hit"
+    assert _focus(scans / "scan.npz", tmp_path / "e", *tpl)["template_cache"] == "hit"
 
 
 @pytest.mark.slow  # 4 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
@@ -135,10 +77,10 @@ def test_save_template_is_what_template_takes(scans, tmp_path):
     """``--save-template`` writes the template file that ``--template`` reads back: the same
     phase to the file format's float32 amplitude/phase round-off."""
     tpl = ["--template-scan", str(scans / "tpl.npz")]
-    a = _focus(scans, tmp_path / "a", *tpl, "--save-template", str(tmp_path / "ref_template.npz"))
-    b = _focus(scans, tmp_path / "b", "--template", str(tmp_path / "ref_template.npz"))
+    a = _focus(scans / "scan.npz", tmp_path / "a", *tpl, "--save-template", str(tmp_path / "ref_template.npz"))
+    b = _focus(scans / "scan.npz", tmp_path / "b", "--template", str(tmp_path / "ref_template.npz"))
     assert a["estimator"] == b["estimator"]
-    grid = ImageGrid.from_roi([float(v) for v in REF], 40)
+    grid = ImageGrid.from_roi([float(v) for v in REF_ROI], 40)
     fresh = template_from_scan(Scan.load(scans / "tpl.npz"), grid, keep_phase=True)
     saved = load_template(tmp_path / "ref_template.npz", grid)
     assert np.abs(saved - fresh).max() < 1e-5 * np.abs(fresh).max()
@@ -205,7 +147,7 @@ def test_digital_twin_template_is_cached_per_cloud_and_aperture(scans, tmp_path,
     pts, _ = Scenario().scene().scatterers(2e-3, 1, speckle=False)
     np.save(tmp_path / "cloud.npy", pts[pts[:, 0] < 0.0])
     twin = ["--digital-twin", str(tmp_path / "cloud.npy")]
-    first, second = _focus(scans, tmp_path / "a", *twin), _focus(scans, tmp_path / "b", *twin)
+    first, second = _focus(scans / "scan.npz", tmp_path / "a", *twin), _focus(scans / "scan.npz", tmp_path / "b", *twin)
     assert (first["template_cache"], second["template_cache"]) == ("miss", "hit")
     # what the conditioning chose and why, in metrics.json, from the cache too
     assert first["digital_twin"] == second["digital_twin"] and first["digital_twin"]["surface_reason"]
@@ -213,25 +155,7 @@ def test_digital_twin_template_is_cached_per_cloud_and_aperture(scans, tmp_path,
     s = Scan.load(scans / "scan.npz")
     moved = Scan(s.data, s.positions + 1e-4, s.chirp, positions_true=s.positions_true)
     moved.save(tmp_path / "moved.npz")
-    rc = main(
-        [
-            "focus",
-            str(tmp_path / "moved.npz"),
-            "--reference-roi",
-            *REF,
-            "--target-roi",
-            *TGT,
-            "--size",
-            "40",
-            "--out",
-            str(tmp_path / "c"),
-            "--quiet",
-            "--pictures",
-            "none",
-            *twin,
-        ]
-    )
-    assert rc == 0 and json.loads((tmp_path / "c" / "metrics.json").read_text())["template_cache"] == "miss"
+    assert _focus(tmp_path / "moved.npz", tmp_path / "c", *twin)["template_cache"] == "miss"
 
 
 def test_a_files_digest_is_remembered_until_the_file_changes(tmp_path, monkeypatch):

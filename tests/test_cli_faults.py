@@ -8,13 +8,11 @@ import json
 import numpy as np
 import pytest
 
+from tests.helpers import REF_ROI, ROIS, TGT_ROI, cli
 from twinfocus.cli import main
 from twinfocus.errors import TwinFocusError
 from twinfocus.io.atomic import WRITTEN, output_folder, output_lock
 from twinfocus.io.safe_paths import child_path
-
-REF = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
-TGT = ["0.02", "0.13", "-0.11", "0.12", "0.6"]
 
 
 def _sha(path):
@@ -29,26 +27,7 @@ def scan(tmp_path_factory):
 
 
 def _focus(scan, out, *extra):
-    return main(
-        [
-            "focus",
-            str(scan),
-            "--reference-roi",
-            *REF,
-            "--target-roi",
-            *TGT,
-            "--size",
-            "12",
-            "--method",
-            "none",
-            "--pictures",
-            "none",
-            "--out",
-            str(out),
-            "--quiet",
-            *extra,
-        ]
-    )
+    return cli("focus", scan, *ROIS, "--size 12 --method none --pictures none --out", out, "--quiet", *extra)
 
 
 def _one_line(capsys, *words):
@@ -159,7 +138,7 @@ def test_batch_save_template_stays_inside_out(tmp_path, scan):
 
     m = tmp_path / "m.yaml"
     m.write_text(
-        f"- scan: {scan}\n  method: none\n  reference_roi: {' '.join(REF)}\n  target_roi: {' '.join(TGT)}\n"
+        f"- scan: {scan}\n  method: none\n  reference_roi: {' '.join(REF_ROI)}\n  target_roi: {' '.join(TGT_ROI)}\n"
         "  save_template: ../../t.npz\n"
     )
     with pytest.raises(TwinFocusError, match="save_template"):
@@ -173,20 +152,7 @@ def test_a_cloud_with_nan_points_is_dropped_in_one_line_and_counted(tmp_path, ca
     monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
     d = tmp_path / "sim"
     assert (
-        main(
-            [
-                "simulate",
-                "--out",
-                str(d / "scan.npz"),
-                "--reference-cloud-out",
-                str(d / "cloud.npy"),
-                "--columns",
-                "2",
-                "--rows",
-                "12",
-                "--quiet",
-            ]
-        )
+        cli("simulate --out", d / "scan.npz", "--reference-cloud-out", d / "cloud.npy", "--columns 2 --rows 12 --quiet")
         == 0
     )
     cloud = np.load(d / "cloud.npy")
@@ -194,28 +160,8 @@ def test_a_cloud_with_nan_points_is_dropped_in_one_line_and_counted(tmp_path, ca
     np.save(d / "cloud_nan.npy", cloud)
     capsys.readouterr()
     out = tmp_path / "out"
-    assert (
-        main(
-            [
-                "focus",
-                str(d / "scan.npz"),
-                "--digital-twin",
-                str(d / "cloud_nan.npy"),
-                "--reference-roi",
-                *REF,
-                "--target-roi",
-                *TGT,
-                "--size",
-                "12",
-                "--pictures",
-                "none",
-                "--out",
-                str(out),
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    twin = ("--digital-twin", d / "cloud_nan.npy")
+    assert cli("focus", d / "scan.npz", *twin, *ROIS, "--size 12 --pictures none --out", out, "--quiet") == 0
     warned = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln and "NaN" in ln]
     dropped = len(cloud[::10])
     assert warned == [

@@ -5,74 +5,31 @@ import json
 import numpy as np
 import pytest
 
+from tests.helpers import REF_ROI, ROIS, TGT_ROI, cli, metrics
 from twinfocus.cli import main
 from twinfocus.errors import TwinFocusError
 from twinfocus.io.arrays import save_npz_atomic
 from twinfocus.radar.scan import Scan
 
-REF = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
-TGT = ["0.02", "0.13", "-0.11", "0.12", "0.6"]
-
-
-@pytest.fixture(scope="module")
-def small_scans(tmp_path_factory):
-    d = tmp_path_factory.mktemp("sim")
-    # 3 columns of 40 rows: a quarter of the paper's aperture, enough to image both letters
-    rc = main(
-        [
-            "simulate",
-            "--out",
-            str(d / "scan.npz"),
-            "--template-out",
-            str(d / "tpl.npz"),
-            "--columns",
-            "3",
-            "--rows",
-            "40",
-            "--quiet",
-            "--seed",
-            "3",
-        ]
-    )
-    assert rc == 0
-    return d
-
 
 def _focus(scan, out, *extra):
-    return main(
-        [
-            "focus",
-            str(scan),
-            "--reference-roi",
-            *REF,
-            "--target-roi",
-            *TGT,
-            "--size",
-            "48",
-            "--iterations",
-            "150",
-            "--out",
-            str(out),
-            "--quiet",
-            *extra,
-        ]
-    )
+    return cli("focus", scan, *ROIS, "--size 48 --iterations 150 --out", out, "--quiet", *extra)
 
 
 @pytest.mark.slow
-def test_simulate_then_focus_with_template_scan(small_scans, tmp_path):
+def test_simulate_then_focus_with_template_scan(small_scene, tmp_path):
     out = tmp_path / "focus"
-    assert _focus(small_scans / "scan.npz", out, "--template-scan", str(small_scans / "tpl.npz")) == 0
+    assert _focus(small_scene / "scan.npz", out, "--template-scan", str(small_scene / "tpl.npz")) == 0
     for name in ("target.npy", "target_uncorrected.npy", "reference.npy", "phase.npy", "metrics.json", "summary.png"):
         assert (out / name).is_file(), name
     # by default only the summary picture (the others cost matplotlib's second or two)
     assert sorted(p.name for p in out.glob("*.png")) == ["summary.png"]
     assert (
         _focus(
-            small_scans / "scan.npz",
+            small_scene / "scan.npz",
             tmp_path / "all",
             "--template-scan",
-            str(small_scans / "tpl.npz"),
+            str(small_scene / "tpl.npz"),
             "--pictures",
             "all",
         )
@@ -83,37 +40,37 @@ def test_simulate_then_focus_with_template_scan(small_scans, tmp_path):
     target = np.load(out / "target.npy")
     assert target.dtype == np.complex64 and target.shape == (48, 48)
     assert np.load(out / "phase.npy").shape == (120,)
-    m = json.loads((out / "metrics.json").read_text())
+    m = metrics(out)
     assert m["target_ssim_corrected"] > m["target_ssim_uncorrected"] + 0.03
     assert m["reference_ssim_vs_template_corrected"] > m["reference_ssim_vs_template_uncorrected"]
 
 
 @pytest.mark.slow
-def test_estimators_from_a_template_scan(small_scans, tmp_path, capsys):
+def test_estimators_from_a_template_scan(small_scene, tmp_path, capsys):
     """auto = registration + closed form with a physical twin (its phase is known); every
     estimator improves the target; one that needs a phase refuses an amplitude template."""
     from twinfocus.imaging.grid import ImageGrid
     from twinfocus.twins.templates import save_template, template_from_scan
 
-    tpl = ["--template-scan", str(small_scans / "tpl.npz")]
+    tpl = ["--template-scan", str(small_scene / "tpl.npz")]
     ssim = {}
     for est in ("auto", "paper", "correlation-refined"):
-        assert _focus(small_scans / "scan.npz", tmp_path / est, *tpl, "--estimator", est) == 0
-        m = json.loads((tmp_path / est / "metrics.json").read_text())
+        assert _focus(small_scene / "scan.npz", tmp_path / est, *tpl, "--estimator", est) == 0
+        m = metrics(tmp_path / est)
         ssim[est] = m["target_ssim_corrected"]
         assert ssim[est] > m["target_ssim_uncorrected"] + 0.03, est
-    auto = json.loads((tmp_path / "auto" / "metrics.json").read_text())
+    auto = metrics(tmp_path / "auto")
     assert auto["estimator"] == {"init": "correlation", "template_registration": "correlation", "iterations": 0}
     # the simulated template scan places the reference 1 mm off in x (Scenario.template_offset_m)
     dx_px = auto["template_registration"]["shift_px"][1]
     pixel_m = 0.15 / 47
     assert dx_px * pixel_m == pytest.approx(-1e-3, abs=0.35 * pixel_m)
-    grid = ImageGrid.from_roi([float(v) for v in REF], 48)
-    save_template(tmp_path / "amp.npz", template_from_scan(Scan.load(small_scans / "tpl.npz"), grid), grid)
+    grid = ImageGrid.from_roi([float(v) for v in REF_ROI], 48)
+    save_template(tmp_path / "amp.npz", template_from_scan(Scan.load(small_scene / "tpl.npz"), grid), grid)
     capsys.readouterr()
     assert (
         _focus(
-            small_scans / "scan.npz",
+            small_scene / "scan.npz",
             tmp_path / "x",
             "--template",
             str(tmp_path / "amp.npz"),
@@ -135,8 +92,8 @@ def test_estimators_from_a_template_scan(small_scans, tmp_path, capsys):
     }
     chosen = []
     for err_mm in ("0.5", "1.6"):
-        assert _focus(small_scans / "scan.npz", tmp_path / f"auto{err_mm}", *amp, "--tracking-error-mm", err_mm) == 0
-        m = json.loads((tmp_path / f"auto{err_mm}" / "metrics.json").read_text())
+        assert _focus(small_scene / "scan.npz", tmp_path / f"auto{err_mm}", *amp, "--tracking-error-mm", err_mm) == 0
+        m = metrics(tmp_path / f"auto{err_mm}")
         check = m["estimator"].pop("refine_check")
         assert check["refined"] == (check["coherence_sqrt_m"] < check["refine_below"])
         assert m["estimator"] == {**expect, "iterations": 150 if check["refined"] else 0}, err_mm
@@ -145,8 +102,8 @@ def test_estimators_from_a_template_scan(small_scans, tmp_path, capsys):
         chosen.append((check, m["estimator"]))
     assert chosen[0] == chosen[1]
     refined = [*amp, "--estimator", "projection-refined", "--coarse-iterations", "50", "--projection-restarts", "2"]
-    assert _focus(small_scans / "scan.npz", tmp_path / "proj", *refined) == 0
-    m = json.loads((tmp_path / "proj" / "metrics.json").read_text())
+    assert _focus(small_scene / "scan.npz", tmp_path / "proj", *refined) == 0
+    m = metrics(tmp_path / "proj")
     assert m["estimator"] == {
         **expect,
         "init": "projection",
@@ -159,7 +116,7 @@ def test_estimators_from_a_template_scan(small_scans, tmp_path, capsys):
     capsys.readouterr()
     assert (
         _focus(
-            small_scans / "scan.npz", tmp_path / "y", *amp, "--estimator", "projection", "--projection-iterations", "0"
+            small_scene / "scan.npz", tmp_path / "y", *amp, "--estimator", "projection", "--projection-iterations", "0"
         )
         == 2
     )
@@ -167,29 +124,29 @@ def test_estimators_from_a_template_scan(small_scans, tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_confidence_report_warns_when_transfer_cannot_be_trusted(small_scans, tmp_path, capsys):
-    assert _focus(small_scans / "scan.npz", tmp_path / "ok", "--method", "none") == 0
-    ok = json.loads((tmp_path / "ok" / "metrics.json").read_text())["confidence"]
+def test_confidence_report_warns_when_transfer_cannot_be_trusted(small_scene, tmp_path, capsys):
+    assert _focus(small_scene / "scan.npz", tmp_path / "ok", "--method", "none") == 0
+    ok = metrics(tmp_path / "ok")["confidence"]
     # the regions' centres (x = -0.075 and 0.075 m at 0.6 m) seen from the aperture centre
     assert ok["trusted"] and ok["separation_deg"] == pytest.approx(2 * np.degrees(np.arctan(0.075 / 0.6)), abs=0.2)
     capsys.readouterr()
     # 3 mm of tracking error at 10 degrees: the first-order bound passes pi/4
-    assert _focus(small_scans / "scan.npz", tmp_path / "bad", "--method", "none", "--tracking-error-mm", "3") == 0
+    assert _focus(small_scene / "scan.npz", tmp_path / "bad", "--method", "none", "--tracking-error-mm", "3") == 0
     assert "not to be trusted" in capsys.readouterr().err
-    bad = json.loads((tmp_path / "bad" / "metrics.json").read_text())["confidence"]
+    bad = metrics(tmp_path / "bad")["confidence"]
     assert not bad["trusted"] and bad["transfer_bound_rad_max"] > np.pi / 4
 
 
 @pytest.mark.slow
-def test_template_file_path_and_baselines(small_scans, tmp_path):
+def test_template_file_path_and_baselines(small_scene, tmp_path):
     from twinfocus.imaging.grid import ImageGrid
     from twinfocus.twins.templates import save_template, template_from_scan
 
-    grid = ImageGrid.from_roi([float(v) for v in REF], 60)  # another grid: resampled on load
-    save_template(tmp_path / "t.npz", template_from_scan(Scan.load(small_scans / "tpl.npz"), grid), grid)
-    assert _focus(small_scans / "scan.npz", tmp_path / "a", "--template", str(tmp_path / "t.npz")) == 0
-    assert _focus(small_scans / "scan.npz", tmp_path / "b", "--method", "none") == 0
-    assert _focus(small_scans / "scan.npz", tmp_path / "c", "--method", "sharpness") == 0
+    grid = ImageGrid.from_roi([float(v) for v in REF_ROI], 60)  # another grid: resampled on load
+    save_template(tmp_path / "t.npz", template_from_scan(Scan.load(small_scene / "tpl.npz"), grid), grid)
+    assert _focus(small_scene / "scan.npz", tmp_path / "a", "--template", str(tmp_path / "t.npz")) == 0
+    assert _focus(small_scene / "scan.npz", tmp_path / "b", "--method", "none") == 0
+    assert _focus(small_scene / "scan.npz", tmp_path / "c", "--method", "sharpness") == 0
     np.testing.assert_array_equal(np.load(tmp_path / "b" / "phase.npy"), 0)
 
 
@@ -201,9 +158,9 @@ def _corrupt(src, dst, **changes):
 
 
 @pytest.mark.slow  # 3 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
-def test_bad_inputs_give_clear_errors_and_keep_old_results(small_scans, tmp_path, capsys):
-    scan = small_scans / "scan.npz"
-    tpl = ["--template-scan", str(small_scans / "tpl.npz")]
+def test_bad_inputs_give_clear_errors_and_keep_old_results(small_scene, tmp_path, capsys):
+    scan = small_scene / "scan.npz"
+    tpl = ["--template-scan", str(small_scene / "tpl.npz")]
     out = tmp_path / "out"
     out.mkdir()
     (out / "target.npy").write_bytes(b"earlier result")
@@ -228,29 +185,24 @@ def test_bad_inputs_give_clear_errors_and_keep_old_results(small_scans, tmp_path
         assert message in err and "Traceback" not in err
     # a region of interest with nothing in it
     empty = ["-0.5", "-0.4", "0.3", "0.4", "0.6"]
-    rc = main(
-        [
-            "focus",
-            str(scan),
-            "--reference-roi",
-            *empty,
-            "--target-roi",
-            *TGT,
-            "--size",
-            "32",
-            "--out",
-            str(out),
-            "--quiet",
-            "--overwrite",
-            *tpl,
-        ]
+    rc = cli(
+        "focus",
+        scan,
+        "--reference-roi",
+        *empty,
+        "--target-roi",
+        *TGT_ROI,
+        "--size 32 --out",
+        out,
+        "--quiet --overwrite",
+        *tpl,
     )
     assert rc == 2 and "no object" in capsys.readouterr().err
     # a template file that is constant
     from twinfocus.imaging.grid import ImageGrid
     from twinfocus.twins.templates import save_template
 
-    grid = ImageGrid.from_roi([float(v) for v in REF], 48)
+    grid = ImageGrid.from_roi([float(v) for v in REF_ROI], 48)
     save_template(tmp_path / "flat.npz", np.ones(grid.shape), grid)
     assert _focus(scan, out, "--template", str(tmp_path / "flat.npz"), "--overwrite") == 2
     assert "constant" in capsys.readouterr().err
@@ -276,7 +228,7 @@ def test_confidence_asks_more_of_a_registered_physical_twin_than_of_an_amplitude
     from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 
     pos = phase_centres(paper_raster(6, 10), mmwcas_virtual_array())
-    ref, tgt = ImageGrid.from_roi([float(v) for v in REF], 20), ImageGrid.from_roi([float(v) for v in TGT], 20)
+    ref, tgt = ImageGrid.from_roi([float(v) for v in REF_ROI], 20), ImageGrid.from_roi([float(v) for v in TGT_ROI], 20)
     between = (MIN_REFERENCE_MATCH + MIN_REFERENCE_MATCH_PHYSICAL) / 2
     registered = {
         "reference_ssim_vs_template_corrected": between,
@@ -296,12 +248,12 @@ def _one_line_error(capsys, *needles):
     return err
 
 
-def test_inputs_are_checked_before_any_work(small_scans, tmp_path, capsys):
+def test_inputs_are_checked_before_any_work(small_scene, tmp_path, capsys):
     """Each bad input is one line, exit 2, before any back-projection (each
     answer comes in well under the time one back-projection would take)."""
     import time
 
-    scan, tpl_path = small_scans / "scan.npz", small_scans / "tpl.npz"
+    scan, tpl_path = small_scene / "scan.npz", small_scene / "tpl.npz"
     tpl = ["--template-scan", str(tpl_path)]
     raw = scan.read_bytes()
     (tmp_path / "trunc.npz").write_bytes(raw[: len(raw) // 2])
@@ -334,22 +286,7 @@ def test_inputs_are_checked_before_any_work(small_scans, tmp_path, capsys):
     _one_line_error(capsys, "--out", "cannot write")
     # --size 100000: the memory estimate is refused with its figure, at once
     t = time.perf_counter()
-    rc = main(
-        [
-            "focus",
-            str(scan),
-            "--reference-roi",
-            *REF,
-            "--target-roi",
-            *TGT,
-            "--size",
-            "100000",
-            "--out",
-            str(tmp_path / "o6"),
-            "--quiet",
-            *tpl,
-        ]
-    )
+    rc = cli("focus", scan, *ROIS, "--size 100000 --out", tmp_path / "o6", "--quiet", *tpl)
     assert rc == 2 and time.perf_counter() - t < 5
     err = _one_line_error(capsys, "--size 100000", "GiB")
     import re
@@ -371,17 +308,17 @@ def test_memory_estimate_against_the_bases_it_counts():
 
 
 @pytest.mark.slow  # 4 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
-def test_pictures_of_an_earlier_run_do_not_stay_beside_new_results(small_scans, tmp_path):
+def test_pictures_of_an_earlier_run_do_not_stay_beside_new_results(small_scene, tmp_path):
     out = tmp_path / "o"
-    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--pictures", "all") == 0
+    assert _focus(small_scene / "scan.npz", out, "--method", "none", "--pictures", "all") == 0
     assert len(list(out.glob("*.png"))) > 1
-    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--pictures", "summary", "--overwrite") == 0
+    assert _focus(small_scene / "scan.npz", out, "--method", "none", "--pictures", "summary", "--overwrite") == 0
     assert sorted(p.name for p in out.glob("*.png")) == ["summary.png"]
-    assert _focus(small_scans / "scan.npz", out, "--method", "none", "--no-pictures", "--overwrite") == 0
+    assert _focus(small_scene / "scan.npz", out, "--method", "none", "--no-pictures", "--overwrite") == 0
     assert not list(out.glob("*.png")) and (out / "metrics.json").is_file()
 
 
-def test_capture_gaps_of_a_converted_scan_reach_metrics(small_scans, tmp_path):
+def test_capture_gaps_of_a_converted_scan_reach_metrics(small_scene, tmp_path):
     """The gaps `convert` records beside a scan (<scan>.capture.json) are in the
     metrics.json of a focus of that scan; a scan without the record has no `capture` entry."""
     import shutil
@@ -389,7 +326,7 @@ def test_capture_gaps_of_a_converted_scan_reach_metrics(small_scans, tmp_path):
     from twinfocus.sensors.capture_to_scan import capture_report_path
 
     scan = tmp_path / "converted.npz"
-    shutil.copy(small_scans / "scan.npz", scan)
+    shutil.copy(small_scene / "scan.npz", scan)
     gaps = {
         "capture": "/data/adc_data_Raw_0.bin",
         "frames": 122,
@@ -402,6 +339,6 @@ def test_capture_gaps_of_a_converted_scan_reach_metrics(small_scans, tmp_path):
     }
     capture_report_path(scan).write_text(json.dumps(gaps))
     assert _focus(scan, tmp_path / "f", "--method", "none", "--no-pictures") == 0
-    assert json.loads((tmp_path / "f" / "metrics.json").read_text())["capture"] == gaps
-    assert _focus(small_scans / "scan.npz", tmp_path / "g", "--method", "none", "--no-pictures") == 0
-    assert "capture" not in json.loads((tmp_path / "g" / "metrics.json").read_text())
+    assert metrics(tmp_path / "f")["capture"] == gaps
+    assert _focus(small_scene / "scan.npz", tmp_path / "g", "--method", "none", "--no-pictures") == 0
+    assert "capture" not in metrics(tmp_path / "g")

@@ -2,36 +2,14 @@
 errors, and ``twinfocus focus`` without the target's depth on a simulated scene whose target
 lies 8 cm behind the reference."""
 
-import json
-
 import numpy as np
 import pytest
 
-from twinfocus.cli import main
+from tests.helpers import REF_ROI, aperture, cli, metrics, points_scan
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.depth_search import default_range, parse_depth, search_depth, sharpness_score
-from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array
+from twinfocus.radar.fmcw import Chirp
 from twinfocus.simulation.scenario import Scenario, planar_object
-
-
-def _aperture(n_rows=20, pitch=0.004, columns=(-0.02, 0.0, 0.02)):
-    va = mmwcas_virtual_array()
-    return np.array(
-        [
-            va.offsets_m + np.array([cx, y, 0.0])
-            for cx in columns
-            for y in (np.arange(n_rows) - (n_rows - 1) / 2) * pitch
-        ]
-    )
-
-
-def _points_scan(chirp, positions, points):
-    """Data of point scatterers under the project's IF model, summed (written out independently)."""
-    data = np.zeros((*positions.shape[:2], chirp.n_samples), np.complex128)
-    for p in points:
-        r = np.linalg.norm(positions - p, axis=-1)
-        data += np.exp(1j * 2 * np.pi * chirp.frequencies_hz * 2 * r[..., None] / C_M_PER_S)
-    return data.astype(np.complex64)
 
 
 def test_sharpness_prefers_the_concentrated_image_of_equal_energy():
@@ -46,11 +24,11 @@ def test_sharpness_prefers_the_concentrated_image_of_equal_energy():
 @pytest.mark.parametrize("depth", [0.57, 0.634])
 def test_depth_of_a_flat_group_of_points_under_phase_errors(depth):
     ch = Chirp()
-    pos = _aperture()
+    pos = aperture(n_rows=20)
     pts = np.array([[0.01, 0.0, depth], [0.03, 0.02, depth], [0.02, -0.015, depth]])
     rng = np.random.default_rng(1)
     err = rng.uniform(-np.pi, np.pi, pos.shape[0])  # a phase error per position: the image is lost
-    data = _points_scan(ch, pos, pts) * np.exp(1j * err)[:, None, None].astype(np.complex64)
+    data = points_scan(ch, pos, pts, [1.0] * len(pts)) * np.exp(1j * err)[:, None, None].astype(np.complex64)
     box = (-0.01, 0.05, -0.03, 0.04)
     found = search_depth(data, pos, ch, box, (0.45, 0.8), -err, size=24)
     # to within a tenth of the range resolution (3.9 mm)
@@ -72,69 +50,26 @@ def test_depth_words_and_default_range():
 
 
 @pytest.fixture(scope="module")
-def deep_scene(tmp_path_factory):
-    d = tmp_path_factory.mktemp("deep")
-    rc = main(
-        [
-            "simulate",
-            "--out",
-            str(d / "scan.npz"),
-            "--template-out",
-            str(d / "tpl.npz"),
-            "--columns",
-            "3",
-            "--rows",
-            "40",
-            "--quiet",
-            "--seed",
-            "3",
-            "--target-depth-offset",
-            "0.08",
-        ]
-    )
-    assert rc == 0
+def deep(deep_scene):
+    """conftest.py's scene with the target 8 cm deeper; the target's x/y box and its true depth."""
     sc = Scenario(target_depth_offset_m=0.08)
-    return d, sc.target_roi(), float(planar_object(sc.scene(), "target").centre_m[2])
+    return deep_scene, sc.target_roi(), float(planar_object(sc.scene(), "target").centre_m[2])
 
 
 def _focus(d, out, target, *extra):
-    return main(
-        [
-            "focus",
-            str(d / "scan.npz"),
-            "--reference-roi",
-            "-0.15",
-            "0.0",
-            "-0.11",
-            "0.12",
-            "0.6",
-            "--target-roi",
-            *target,
-            "--size",
-            "48",
-            "--iterations",
-            "150",
-            "--space-variant",
-            "off",
-            "--template-scan",
-            str(d / "tpl.npz"),
-            "--out",
-            str(out),
-            "--quiet",
-            "--no-cache",
-            *extra,
-        ]
-    )
+    rois = ("--reference-roi", *REF_ROI, "--target-roi", *target)
+    options = "--size 48 --iterations 150 --space-variant off --quiet --no-cache"
+    return cli("focus", d / "scan.npz", *rois, options, "--template-scan", d / "tpl.npz", "--out", out, *extra)
 
 
 @pytest.mark.slow
-def test_focus_finds_the_target_depth_and_matches_the_typed_result(deep_scene, tmp_path):
-    d, roi, truth_z = deep_scene
+def test_focus_finds_the_target_depth_and_matches_the_typed_result(deep, tmp_path):
+    d, roi, truth_z = deep
     box = [f"{v:.4f}" for v in roi[:4]]
     assert _focus(d, tmp_path / "typed", box + [f"{truth_z}"]) == 0
     assert _focus(d, tmp_path / "found", box) == 0
-    typed = json.loads((tmp_path / "typed" / "metrics.json").read_text())
-    found = json.loads((tmp_path / "found" / "metrics.json").read_text())
+    typed = metrics(tmp_path / "typed")
+    found = metrics(tmp_path / "found")
     assert "target_depth" not in typed
     z = found["target_depth"]["depth_m"]
     assert abs(z - truth_z) < 0.1 * 0.039
@@ -144,7 +79,7 @@ def test_focus_finds_the_target_depth_and_matches_the_typed_result(deep_scene, t
     assert (tmp_path / "found" / "depth_search.png").is_file()
     # a typed depth 5 cm off, refined
     assert _focus(d, tmp_path / "refined", box + [f"{truth_z - 0.05}"], "--refine-depth") == 0
-    refined = json.loads((tmp_path / "refined" / "metrics.json").read_text())
+    refined = metrics(tmp_path / "refined")
     assert abs(refined["target_depth"]["depth_m"] - truth_z) < 0.1 * 0.039
     assert abs(refined["target_ssim_corrected"] - typed["target_ssim_corrected"]) < 0.01
 
@@ -159,8 +94,8 @@ def test_focus_finds_the_target_depth_and_matches_the_typed_result(deep_scene, t
         (["0.0", "0.1", "-0.1", "0.1", "0.6"], ["--volume", "0.7", "0.5", "0.01"], "volume needs 0 < Z0 <= Z1"),
     ],
 )
-def test_bad_target_regions_are_refused_before_any_work(deep_scene, tmp_path, capsys, target, extra, needle):
-    d, _, _ = deep_scene
+def test_bad_target_regions_are_refused_before_any_work(deep, tmp_path, capsys, target, extra, needle):
+    d, _, _ = deep
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("earlier result")

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from tests.helpers import REF_ROI, ROIS, cli, metrics
 from twinfocus.cli import main
 from twinfocus.motion.tracking_errors import apply_position_errors, gaussian_errors
 from twinfocus.motion.trajectory import paper_raster, phase_centres
@@ -16,8 +17,9 @@ from twinfocus.scene import paper_scene
 from twinfocus.simulation.if_simulator import add_thermal_noise, simulate_if
 from twinfocus.twins.digital_twin.render import render_scene
 
-REF_ROI = ["-0.15", "0.0", "-0.11", "0.12", "0.6"]
-TGT_ROI = ["0.02", "0.13", "-0.11", "0.12", "0.6"]
+
+def _focus(scan, out, size, *extra):
+    return cli("focus", scan, *ROIS, "--size", size, "--out", out, "--no-pictures --quiet --device cpu", *extra)
 
 
 @pytest.fixture(scope="module")
@@ -47,32 +49,10 @@ def capture(tmp_path_factory):
 def test_twin_then_focus_raises_target_ssim(capture):
     d = capture
     st = d / "stereo"
-    rc = main(
-        [
-            "twin",
-            str(st / "left.png"),
-            str(st / "right.png"),
-            "--camera",
-            str(st / "camera.json"),
-            "--seed-roi",
-            *REF_ROI,
-            "--points-out",
-            str(d / "points.npy"),
-            "--scan",
-            str(d / "scan.npz"),
-            "--reference-roi",
-            *REF_ROI,
-            "--size",
-            "48",
-            "--out",
-            str(d / "template.npz"),
-            "--support-out",
-            str(d / "support.png"),
-            "--report",
-            str(d / "twin.json"),
-            "--quiet",
-        ]
-    )
+    stereo = (st / "left.png", st / "right.png", "--camera", st / "camera.json", "--seed-roi", *REF_ROI)
+    outputs = ("--points-out", d / "points.npy", "--out", d / "template.npz", "--support-out", d / "support.png")
+    scan = ("--scan", d / "scan.npz", "--reference-roi", *REF_ROI, "--size 48")
+    rc = cli("twin", *stereo, *outputs, *scan, "--report", d / "twin.json", "--quiet")
     assert rc == 0
     pts = np.load(d / "points.npy")
     assert pts.ndim == 2 and pts.shape[1] == 3 and pts.shape[0] > 500
@@ -94,56 +74,18 @@ def test_twin_then_focus_raises_target_ssim(capture):
     truth = support_on_grid(ref.surface_points(1e-3), ImageGrid.from_roi(REF_ROI, 48))
     assert (support & truth).sum() / (support | truth).sum() > 0.7
 
-    rc = main(
-        [
-            "focus",
-            str(d / "scan.npz"),
-            "--reference-roi",
-            *REF_ROI,
-            "--target-roi",
-            *TGT_ROI,
-            "--size",
-            "48",
-            "--digital-twin",
-            str(d / "points.npy"),
-            "--out",
-            str(d / "focus"),
-            "--no-pictures",
-            "--quiet",
-            "--device",
-            "cpu",
-        ]
-    )
+    rc = _focus(d / "scan.npz", d / "focus", 48, "--digital-twin", d / "points.npy")
     assert rc == 0
-    m = json.loads((d / "focus" / "metrics.json").read_text())
+    m = metrics(d / "focus")
     # Measured 0.70 -> 0.83 (seed 0); the physical twin gets about the same on this capture.
     assert m["target_ssim_corrected"] > m["target_ssim_uncorrected"] + 0.05
 
     # The two-step way: twin's template file carries the outline and the conditioning, so focus
     # --template runs what --digital-twin runs (the outline estimator, not the projections of an
     # amplitude template) and writes the same conditioning.
-    rc = main(
-        [
-            "focus",
-            str(d / "scan.npz"),
-            "--reference-roi",
-            *REF_ROI,
-            "--target-roi",
-            *TGT_ROI,
-            "--size",
-            "48",
-            "--template",
-            str(d / "template.npz"),
-            "--out",
-            str(d / "focus_file"),
-            "--no-pictures",
-            "--quiet",
-            "--device",
-            "cpu",
-        ]
-    )
+    rc = _focus(d / "scan.npz", d / "focus_file", 48, "--template", d / "template.npz")
     assert rc == 0
-    f = json.loads((d / "focus_file" / "metrics.json").read_text())
+    f = metrics(d / "focus_file")
     assert m["estimator"]["init"] == f["estimator"]["init"] == "outline"
 
     def chosen(info):  # what the conditioning chose, not how long it took
@@ -228,54 +170,14 @@ def test_focus_digital_twin_extreme_clouds_one_line(capture, tmp_path, capsys):
     }
     for name, (pts, message) in clouds.items():
         np.save(tmp_path / name, pts)
-        rc = main(
-            [
-                "focus",
-                str(d / "scan.npz"),
-                "--reference-roi",
-                *REF_ROI,
-                "--target-roi",
-                *TGT_ROI,
-                "--size",
-                "24",
-                "--digital-twin",
-                str(tmp_path / name),
-                "--out",
-                str(tmp_path / "out"),
-                "--no-pictures",
-                "--quiet",
-                "--device",
-                "cpu",
-            ]
-        )
+        rc = _focus(d / "scan.npz", tmp_path / "out", 24, "--digital-twin", tmp_path / name)
         err = capsys.readouterr().err
         assert rc == 2 and message in err and name in err and "Traceback" not in err, err
         assert not (tmp_path / "out").exists()
     nan = exact.copy()
     nan[::40] = np.nan
     np.save(tmp_path / "nan.npy", nan)
-    rc = main(
-        [
-            "focus",
-            str(d / "scan.npz"),
-            "--reference-roi",
-            *REF_ROI,
-            "--target-roi",
-            *TGT_ROI,
-            "--size",
-            "24",
-            "--digital-twin",
-            str(tmp_path / "nan.npy"),
-            "--out",
-            str(tmp_path / "out"),
-            "--no-pictures",
-            "--quiet",
-            "--device",
-            "cpu",
-            "--estimator",
-            "projection",
-        ]
-    )
+    rc = _focus(d / "scan.npz", tmp_path / "out", 24, "--digital-twin", tmp_path / "nan.npy", "--estimator projection")
     # the library's warning reaches the user as one printed line
     assert "warning: reference point cloud: dropped" in capsys.readouterr().err
     assert rc == 0 and (tmp_path / "out" / "metrics.json").exists()

@@ -31,6 +31,14 @@ REPO = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-c", "import sys; from twinfocus.cli import main; sys.exit(main())"]
 
 
+def run_cli(*args: str) -> tuple[int, str]:
+    """``twinfocus ARGS`` in a process of its own, run from the repository with it on PYTHONPATH
+    (at most 120 s): the exit code and stdout then stderr as one text."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    out = subprocess.run([*CLI, *args], cwd=REPO, capture_output=True, timeout=120, env=env)
+    return out.returncode, (out.stdout + out.stderr).decode()
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -123,6 +131,16 @@ class Launched:
             return self.proc.wait(patience(timeout))  # an outer bound: stretched on a busy machine
         finally:
             self.thread.join(5)
+
+    def exit_code(self, timeout, first=None):
+        """The launcher's exit code, waited for up to ``timeout`` s (:meth:`wait`) after
+        ``first(self)`` if given; the graph is killed (:meth:`kill`) whatever happens."""
+        try:
+            if first is not None:
+                first(self)
+            return self.wait(timeout)
+        finally:
+            self.kill()
 
     def kill(self):
         if self.proc.poll() is None:
@@ -241,10 +259,7 @@ def test_a_crashing_node_stops_the_graph_with_a_clear_message(tmp_path):
         f"  - {{name: player, node: player, parameters: {{log: {tmp_path / 'missing.mcap'}}}}}\n"
     )
     g = Launched(str(launch), f"port:={free_port()}")
-    try:
-        code = g.wait(120)
-    finally:
-        g.kill()
+    code = g.exit_code(120)
     assert code == 2, g.text  # the player's user error is the launch's
     assert "missing.mcap: no such file" in g.text
     assert "node 'player' exited with status 2; stopping the graph" in g.text
@@ -331,10 +346,7 @@ def test_replayed_log_gives_the_phase_of_twinfocus_focus_on_the_equivalent_scan(
         f"target_roi:={yaml_list(tgt_roi)}",
         "rate:=4",
     )
-    try:
-        code = g.wait(300)
-    finally:
-        g.kill()
+    code = g.exit_code(300)
     assert code == 0, g.text
     assert "paired 40 radar frame(s), could not pair 0" in g.text, g.text
     offline = np.load(tmp_path / "offline" / "phase.npy")

@@ -13,7 +13,6 @@ import re
 import shutil
 import signal
 import socket
-import subprocess
 import time
 from pathlib import Path
 
@@ -23,7 +22,7 @@ import pytest
 from msgs import Header, TwinTemplate
 from msgs.mcap_log import LogReader, LogWriter
 from nodes.runtime.testing import patience
-from tests.test_graph import CLI, REPO, Launched, alive, free_port
+from tests.test_graph import REPO, Launched, alive, free_port, run_cli
 
 SMALL = ["columns:=2", "rows:=30", "size:=16", "iterations:=5", "web_port:=0"]
 
@@ -268,15 +267,8 @@ def test_a_failed_recording_keeps_the_earlier_log_and_leaves_no_file(tmp_path):
     before = earlier.read_bytes()
     dead = f"tcp://127.0.0.1:{free_port()}"  # no broker there
     t = time.monotonic()
-    out = subprocess.run(
-        [*CLI, "record", "-o", str(earlier), "--overwrite", "--broker", dead],
-        cwd=REPO,
-        capture_output=True,
-        timeout=120,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-    )
-    text = (out.stdout + out.stderr).decode()
-    assert out.returncode == 2, text
+    code, text = run_cli("record", "-o", str(earlier), "--overwrite", "--broker", dead)
+    assert code == 2, text
     assert "no broker answered" in text and "--broker" in text and "Traceback" not in text, text
     assert f"waiting for a broker at {dead}" in text, text
     (gave_up,) = [line for line in text.splitlines() if "no broker answered" in line]

@@ -30,10 +30,7 @@ def test_live_hand_sweep_equals_offline_focus(tmp_path):
         tmp_path, sc, size, iterations,
         f"columns:={cols}", f"rows:={rows}", f"seed:={seed}", "trajectory:=zigzag", "error_model:=hand",
     )  # fmt: skip
-    try:
-        code = g.wait(600)
-    finally:
-        g.kill()
+    code = g.exit_code(600)
     assert code == 0, g.text
 
     live_dir, off_dir = tmp_path / "graph" / "focus" / "sim", tmp_path / "offline"

@@ -226,10 +226,7 @@ def test_a_dropped_last_scan_ends_the_graph_non_zero_with_the_reason(tmp_path):
 
     path = _sim_launch_file(tmp_path, no_template)
     g = Launched(str(path), f"port:={free_port()}", f"out:={tmp_path / 'out'}", *SMALL, "rate:=0", "exit_after:=1")
-    try:
-        code = g.wait(300)
-    finally:
-        g.kill()
+    code = g.exit_code(300)
     assert code == 1, g.text
     assert "dropped scan 'sim': no template arrived on twin/template within 2 s" in g.text, g.text
     assert re.search(r"node 'visualizer' exited with status 1: scan 'sim' not focused: no template", g.text), g.text
@@ -250,11 +247,7 @@ def test_a_stopped_node_is_named_and_the_result_is_marked_incomplete(tmp_path):
     out = tmp_path / "out"
     # rate 0.5: the 60 frames take 12 s, so the graph is mid-scan when the node stops
     g = Launched("launch/sim.yaml", f"port:={free_port()}", f"out:={out}", *SMALL, "rate:=0.5", "exit_after:=1")
-    try:
-        _stop_synchronizer_mid_scan(g)
-        code = g.wait(300)
-    finally:
-        g.kill()
+    code = g.exit_code(300, first=_stop_synchronizer_mid_scan)
     assert code == 1, g.text
     assert re.search(
         r"node 'synchronizer' stopped answering \(no heartbeat for [\d.]+ s; its process is stopped", g.text
@@ -278,11 +271,7 @@ def test_a_stopped_node_that_may_respawn_is_replaced_and_the_graph_focuses(tmp_p
 
     path = _sim_launch_file(tmp_path, respawn)
     g = Launched(str(path), f"port:={free_port()}", f"out:={tmp_path / 'out'}", *SMALL, "rate:=0.5", "exit_after:=1")
-    try:
-        _stop_synchronizer_mid_scan(g)
-        code = g.wait(300)
-    finally:
-        g.kill()
+    code = g.exit_code(300, first=_stop_synchronizer_mid_scan)
     assert code == 0, g.text
     assert re.search(r"node 'synchronizer' stopped answering .*; respawning it in 0.2 s \(respawn 1 of 3\)", g.text), (
         g.text

@@ -25,10 +25,7 @@ def test_live_sim_graph_equals_offline_simulate_and_focus(tmp_path):
     scene = ["--columns", "2", "--rows", "20", "--seed", "5", "--error-model", "vio"]
     offline_simulate_and_focus(tmp_path, scene, sc, size, iterations, focus_timeout_s=300)
     g = sim_graph(tmp_path, sc, size, iterations, "columns:=2", "rows:=20", "seed:=5", "error_model:=vio")
-    try:
-        code = g.wait(400)
-    finally:
-        g.kill()
+    code = g.exit_code(400)
     assert code == 0, g.text
     assert "paired 40 radar frame(s), could not pair 0" in g.text, g.text
 

@@ -19,7 +19,6 @@ import json
 import os
 import re
 import signal
-import subprocess
 import time
 from pathlib import Path
 
@@ -27,7 +26,7 @@ import pytest
 
 from msgs.mcap_log import LogReader
 from nodes.runtime.testing import patience
-from tests.test_graph import CLI, REPO, Launched, free_port
+from tests.test_graph import Launched, free_port, run_cli
 from tests.test_graph_faults import SMALL, pids_by_name, replay, small_log
 from tests.test_log_faults import damage_frame, frames_log
 
@@ -114,10 +113,7 @@ def test_a_replay_of_a_log_cut_in_half_exits_non_zero_and_says_what_it_lacked(tm
     arrived = LogReader(cut).counts["radar/frame"]  # what the cut file still holds
     assert 0 < arrived < 30
     g = replay(tmp_path, cut, "scan_timeout:=2")
-    try:
-        code = g.wait(200)
-    finally:
-        g.kill()
+    code = g.exit_code(200)
     assert code == 1, g.text
     m = json.loads((tmp_path / "out" / "focus" / "run.incomplete" / "metrics.json").read_text())
     assert m["complete"] is False and m["n_positions"] == arrived, m
@@ -135,10 +131,7 @@ def test_a_replay_of_a_log_with_a_damaged_frame_exits_non_zero_and_counts_it(tmp
     small_log(log)
     bad, _ = damage_frame(log, 12)  # one frame's bytes: exactly one position lost
     g = replay(tmp_path, bad)
-    try:
-        code = g.wait(200)
-    finally:
-        g.kill()
+    code = g.exit_code(200)
     assert code == 1, g.text
     m = json.loads((tmp_path / "out" / "focus" / "run" / "metrics.json").read_text())
     assert m["n_positions_missing"] == 1 and m["n_positions_expected"] == 30, m
@@ -179,15 +172,8 @@ def test_play_of_a_cut_log_exits_1_and_says_where_it_was_cut(tmp_path, capfd):
 )
 def test_a_bad_launch_argument_is_one_line_and_exit_2_before_any_node_starts(tmp_path, arg, words):
     t = time.monotonic()
-    out = subprocess.run(
-        [*CLI, "launch", "launch/sim.yaml", f"port:={free_port()}", f"out:={tmp_path}", arg],
-        cwd=REPO,
-        capture_output=True,
-        timeout=120,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-    )
-    text = (out.stdout + out.stderr).decode()
-    assert out.returncode == 2, text
+    code, text = run_cli("launch", "launch/sim.yaml", f"port:={free_port()}", f"out:={tmp_path}", arg)
+    assert code == 2, text
     assert len(text.strip().splitlines()) == 1 and words in text, text
     assert "started" not in text and "broker on" not in text and "Traceback" not in text, text
     assert list(tmp_path.iterdir()) == []

@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pytest
 
+from tests.helpers import ROIS, cli, metrics, simulate
 from twinfocus.errors import TwinFocusError
 from twinfocus.focus.autofocus import AutofocusConfig
 from twinfocus.focus.estimators import TWIN_RUNGS, estimator_settings
@@ -291,51 +292,10 @@ def test_rungs_are_plain_estimators_that_climb_any_number_of_times(scene):
 
 @pytest.mark.slow
 def test_focus_model_knob_end_to_end(tmp_path):
-    from twinfocus.cli import main
-
-    d = tmp_path / "sim"
-    assert (
-        main(
-            [
-                "simulate",
-                "--out",
-                str(d / "scan.npz"),
-                "--template-out",
-                str(d / "tpl.npz"),
-                "--columns",
-                "2",
-                "--rows",
-                "24",
-                "--quiet",
-                "--seed",
-                "5",
-            ]
-        )
-        == 0
-    )
-    common = [
-        "focus",
-        str(d / "scan.npz"),
-        "--reference-roi",
-        "-0.15",
-        "0.0",
-        "-0.11",
-        "0.12",
-        "0.6",
-        "--target-roi",
-        "0.02",
-        "0.13",
-        "-0.11",
-        "0.12",
-        "0.6",
-        "--size",
-        "32",
-        "--quiet",
-        "--template-scan",
-        str(d / "tpl.npz"),
-    ]
-    assert main([*common, "--out", str(tmp_path / "fast"), "--model", "fast", "--pictures", "all"]) == 0
-    m = json.loads((tmp_path / "fast" / "metrics.json").read_text())
+    d = simulate(tmp_path / "sim", "--columns 2 --rows 24 --seed 5")
+    common = ("focus", d / "scan.npz", *ROIS, "--size 32 --quiet --template-scan", d / "tpl.npz")
+    assert cli(*common, "--out", tmp_path / "fast", "--model fast --pictures all") == 0
+    m = metrics(tmp_path / "fast")
     assert m["model"]["asked"] == "fast"
     rungs = {e["rung"]: e for e in m["model"]["rungs"]}
     # the costly rungs only below the trust line (here 0.015 of the reference unmatched by one
@@ -345,8 +305,8 @@ def test_focus_model_knob_end_to_end(tmp_path):
     assert rungs["drift"]["tried"] == ("below_trust_line" in rungs["drift"])
     assert not rungs["refine"]["tried"] and rungs["tilt"]["mode"] == "off" and not rungs["tilt"]["tried"]
     assert (tmp_path / "fast" / "model_ladder.png").is_file()
-    assert main([*common, "--out", str(tmp_path / "none"), "--model", "none"]) == 0
-    m = json.loads((tmp_path / "none" / "metrics.json").read_text())
+    assert cli(*common, "--out", tmp_path / "none", "--model none") == 0
+    m = metrics(tmp_path / "none")
     assert m["model"]["kept"] == ["none"]
     assert m["target_ssim_corrected"] == pytest.approx(m["target_ssim_uncorrected"], abs=1e-6)
 

@@ -5,11 +5,12 @@ back to the direct path."""
 import numpy as np
 import pytest
 
+from tests.helpers import points_scan
 from twinfocus.imaging import line_backprojection as lb
 from twinfocus.imaging.backprojection.numba_backend import backproject, matched_filter_bruteforce
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.imaging.volume import corrected_image, volume_grid
-from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array
+from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 
 
 def _aperture(n_rows=12, pitch=0.006, columns=(-0.06, 0.0, 0.06), yaw_rad=0.0):
@@ -25,14 +26,6 @@ def _aperture(n_rows=12, pitch=0.006, columns=(-0.06, 0.0, 0.06), yaw_rad=0.0):
     )
 
 
-def _points_scan(chirp, positions, points, amplitudes):
-    data = np.zeros((*positions.shape[:2], chirp.n_samples), np.complex128)
-    for p, a in zip(points, amplitudes):
-        r = np.linalg.norm(positions - p, axis=-1)
-        data += a * np.exp(1j * 2 * np.pi * chirp.frequencies_hz * 2 * r[..., None] / C_M_PER_S)
-    return data.astype(np.complex64)
-
-
 POINTS = [np.array([-0.03, 0.01, 0.55]), np.array([0.035, -0.012, 0.64]), np.array([0.0, 0.02, 0.6])]
 
 
@@ -40,7 +33,7 @@ POINTS = [np.array([-0.03, 0.01, 0.55]), np.array([0.035, -0.012, 0.64]), np.arr
 def test_every_plane_of_the_volume_equals_the_2d_image_at_its_depth(yaw):
     ch = Chirp()
     pos = _aperture(yaw_rad=yaw)
-    data = _points_scan(ch, pos, POINTS, [1.0, 0.7, 0.5])
+    data = points_scan(ch, pos, POINTS, [1.0, 0.7, 0.5])
     phase = np.random.default_rng(1).uniform(-0.5, 0.5, pos.shape[0])
     grid = volume_grid(ImageGrid(-0.06, 0.06, -0.05, 0.05, 1.0, 48, 40), 0.52, 0.68, 0.01)
     assert lb.plan(pos, ch, grid) is not None  # the sub-array path is the one taken
@@ -56,7 +49,7 @@ def test_every_plane_of_the_volume_equals_the_2d_image_at_its_depth(yaw):
 def test_sub_arrays_match_the_brute_force_matched_filter():
     ch = Chirp(n_samples=64, fs_hz=2e6)
     pos = _aperture(n_rows=3, columns=(-0.03, 0.03), yaw_rad=0.3)
-    data = _points_scan(ch, pos, POINTS[:2], [1.0, 0.8])
+    data = points_scan(ch, pos, POINTS[:2], [1.0, 0.8])
     grid = volume_grid(ImageGrid(-0.04, 0.05, -0.02, 0.02, 1.0, 7, 6), 0.54, 0.66, 0.02)
     frames = lb._line_frames(pos)
     line_plan = lb.LinePlan(ch, grid, frames, lb._box_extent(grid, frames[0], frames[1]), groups=4)
@@ -72,7 +65,7 @@ def test_channels_off_their_line_take_the_direct_path():
     bent = pos.copy()
     bent[5, 40, 1] += 1e-4  # one channel of one position 0.1 mm off the line
     assert lb.plan(bent, ch, grid) is None
-    data = _points_scan(ch, bent, POINTS, [1.0, 0.7, 0.5])
+    data = points_scan(ch, bent, POINTS, [1.0, 0.7, 0.5])
     got = corrected_image(data, bent, ch, grid, np.zeros(len(bent)))
     assert np.array_equal(got, backproject(data, bent, ch, grid))
     # a volume of a few voxels costs more by sub-arrays than directly: the direct path

@@ -191,10 +191,7 @@ def test_a_replay_of_a_damaged_log_focuses_the_scan_without_the_frame_and_counts
     small_log(log)
     bad, _ = damage_frame(log, 12)
     g = replay(tmp_path, bad)
-    try:
-        code = g.wait(240)
-    finally:
-        g.kill()
+    code = g.exit_code(240)
     assert code == 1, g.text  # focused without the damaged frame: not every position arrived
     assert "damaged" in g.text and "radar/frame (1 message)" in g.text, g.text
     assert "NaN" not in g.text, g.text
@@ -240,10 +237,7 @@ def good_log(tmp_path):
     src = frames_log(tmp_path / "src.mcap", n=100)
     out = tmp_path / "out" / "graph.mcap"
     g = Launched(str(_graph(tmp_path, src, out, rate=0)), f"port:={free_port()}")
-    try:
-        assert g.wait(180) == 0, g.text
-    finally:
-        g.kill()
+    assert g.exit_code(180) == 0, g.text
     assert LogReader(out).complete and LogReader(out).counts["radar/frame"] == 100, g.text
     assert _partials(out.parent) == [] and "wrote " in g.text and str(out) in g.text, g.text
     return src, out, out.read_bytes()
@@ -271,18 +265,24 @@ def test_a_killed_launcher_keeps_the_earlier_log_and_the_recording_beside_it(tmp
     assert 10 <= n < 100
 
 
+def _stopped_mid_run(tmp_path, src, out, stop):
+    """A graph replaying ``src`` at half speed and recording into ``out``, ``stop(g)`` called once
+    10 frames are recorded: its exit code (within 120 s) and the launched graph."""
+    g = Launched(str(_graph(tmp_path, src, out, rate=0.5)), f"port:={free_port()}")
+
+    def first(g):
+        _wait_frames_recorded(g, out.parent, 10)
+        stop(g)
+
+    return g.exit_code(120, first=first), g
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(400)
 def test_a_node_stopped_mid_run_keeps_the_earlier_log_and_says_so(tmp_path, good_log):
     src, out, before = good_log
-    g = Launched(str(_graph(tmp_path, src, out, rate=0.5)), f"port:={free_port()}")
-    try:
-        _wait_frames_recorded(g, out.parent, 10)
-        player = int(re.search(r"started player \(\S+, pid (\d+)\)", g.text).group(1))
-        os.kill(player, signal.SIGTERM)
-        code = g.wait(120)
-    finally:
-        g.kill()
+    player = lambda g: int(re.search(r"started player \(\S+, pid (\d+)\)", g.text).group(1))
+    code, g = _stopped_mid_run(tmp_path, src, out, lambda g: os.kill(player(g), signal.SIGTERM))
     assert code != 0, g.text
     assert out.read_bytes() == before
     (partial,) = _partials(out.parent)
@@ -302,10 +302,7 @@ def test_a_run_that_ends_as_planned_replaces_the_earlier_log(tmp_path, good_log)
     src, out, before = good_log
     short = frames_log(tmp_path / "short.mcap", n=7)
     g = Launched(str(_graph(tmp_path, short, out, rate=0)), f"port:={free_port()}")
-    try:
-        assert g.wait(180) == 0, g.text
-    finally:
-        g.kill()
+    assert g.exit_code(180) == 0, g.text
     assert out.read_bytes() != before and LogReader(out).counts["radar/frame"] == 7
     assert _partials(out.parent) == []
 
@@ -315,13 +312,7 @@ def test_a_run_that_ends_as_planned_replaces_the_earlier_log(tmp_path, good_log)
 def test_ctrl_c_ends_a_run_as_planned_and_replaces_the_earlier_log(tmp_path, good_log):
     """Run until Ctrl-C is the plan of `launch sim` without exit_after: the log is the recording."""
     src, out, before = good_log
-    g = Launched(str(_graph(tmp_path, src, out, rate=0.5)), f"port:={free_port()}")
-    try:
-        _wait_frames_recorded(g, out.parent, 10)
-        g.proc.send_signal(signal.SIGINT)
-        code = g.wait(120)
-    finally:
-        g.kill()
+    code, g = _stopped_mid_run(tmp_path, src, out, lambda g: g.proc.send_signal(signal.SIGINT))
     assert code == 0, g.text
     assert _partials(out.parent) == [], g.text
     assert out.read_bytes() != before and 10 <= LogReader(out).counts["radar/frame"] < 100, g.text
@@ -428,32 +419,33 @@ def test_a_full_disk_while_recording_is_one_line_and_leaves_no_partial(tmp_path,
     assert "Traceback" not in err, err
 
 
-def test_a_full_disk_while_exporting_is_one_line_and_keeps_the_old_export(tmp_path, monkeypatch, capsys):
+def _export_refused(log, out, capsys, *needles):
+    """``export`` of ``log`` to Foxglove over the earlier export ``out`` is refused (exit 2) in one
+    line holding every one of ``needles``, and ``out`` keeps its bytes."""
     from twinfocus.cli import main
 
+    assert main(["export", str(log), "--to", "foxglove", str(out), "--overwrite", "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and all(n in err[0] for n in needles), err
+    assert out.read_bytes() == b"an earlier export"
+
+
+def test_a_full_disk_while_exporting_is_one_line_and_keeps_the_old_export(tmp_path, monkeypatch, capsys):
     log = frames_log(tmp_path / "run.mcap", n=200)
     out = tmp_path / "fox.mcap"
     out.write_bytes(b"an earlier export")
     _small_disk(monkeypatch, room=2_000)
-    assert main(["export", str(log), "--to", "foxglove", str(out), "--overwrite", "-q"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "No space left on device" in err[0] and "deleted its partial file" in err[0], err
-    assert out.read_bytes() == b"an earlier export"
+    _export_refused(log, out, capsys, "No space left on device", "deleted its partial file")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fox.mcap", "run.mcap"]
 
 
 def test_an_export_of_a_log_with_no_messages_refuses_and_keeps_the_old_export(tmp_path, capsys):
-    from twinfocus.cli import main
-
     empty = tmp_path / "empty.mcap"
     with LogWriter(empty) as w:
         w.add_metadata("calibration", {"note": "no messages"})
     out = tmp_path / "fox.mcap"
     out.write_bytes(b"an earlier export")
-    assert main(["export", str(empty), "--to", "foxglove", str(out), "--overwrite", "-q"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "holds no messages" in err[0] and "left as it was" in err[0], err
-    assert out.read_bytes() == b"an earlier export"
+    _export_refused(empty, out, capsys, "holds no messages", "left as it was")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.mcap", "fox.mcap"]
 
 

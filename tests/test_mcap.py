@@ -16,6 +16,7 @@ from msgs import Header, Pose, RadarFrame, decode
 from msgs.mcap_log import LogReader, LogWriter, read_messages
 from nodes.runtime.node import Node
 from nodes.runtime.testing import local_broker, running
+from tests.helpers import cli
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar.fmcw import Chirp
 
@@ -195,7 +196,6 @@ def test_converted_and_recorded_logs_carry_the_same_metadata(tmp_path, capsys):
     records, and both read back into the capture's chirp, array and extrinsics."""
     from nodes.player import Player
     from nodes.recorder import Recorder
-    from twinfocus.cli import main
     from twinfocus.motion.trajectory import Poses
     from twinfocus.radar.fmcw import mmwcas_virtual_array
     from twinfocus.radar.scan import Scan
@@ -217,28 +217,9 @@ def test_converted_and_recorded_logs_carry_the_same_metadata(tmp_path, capsys):
         f"translation_m: {extrinsics['translation_m']}\nrotation_xyzw: {extrinsics['rotation_xyzw']}\n"
     )
     converted, recorded = tmp_path / "converted.mcap", tmp_path / "recorded.mcap"
-    assert (
-        main(
-            [
-                "convert",
-                str(tmp_path / "cap"),
-                "--trajectory",
-                str(tmp_path / "traj.txt"),
-                "--extrinsics",
-                str(tmp_path / "ext.yaml"),
-                "--out",
-                str(tmp_path / "scan.npz"),
-                "--mcap",
-                str(converted),
-                "--n-samples",
-                "16",
-                "--f0-hz",
-                "77.1e9",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    capture = (tmp_path / "cap", "--trajectory", tmp_path / "traj.txt", "--extrinsics", tmp_path / "ext.yaml")
+    options = "--n-samples 16 --f0-hz 77.1e9 --quiet"
+    assert cli("convert", *capture, "--out", tmp_path / "scan.npz", "--mcap", converted, options) == 0
     capsys.readouterr()
 
     with local_broker() as ep:

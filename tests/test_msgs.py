@@ -28,6 +28,11 @@ from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 RNG = np.random.default_rng(7)
 
 
+def flat_2x2():
+    """A TwinTemplate's fields for a 2 x 2 float32 image at 1 m."""
+    return {"image": np.zeros((2, 2), np.float32), "x_m": np.zeros(2), "y_m": np.zeros(2), "z_m": 1}
+
+
 def cplx(*shape):
     return (RNG.standard_normal(shape) + 1j * RNG.standard_normal(shape)).astype(np.complex64)
 
@@ -211,16 +216,7 @@ def test_non_contiguous_and_castable_inputs_are_normalised():
             "right",
         ),
         (lambda: TwinTemplate(image=np.zeros((2, 2), complex), x_m=np.zeros(2), y_m=np.zeros(2), z_m=1), "image"),
-        (
-            lambda: TwinTemplate(
-                image=np.zeros((2, 2), np.float32),
-                x_m=np.zeros(2),
-                y_m=np.zeros(2),
-                z_m=1,
-                phase_rad=np.zeros((2, 3), np.float32),
-            ),
-            "phase_rad",
-        ),
+        (lambda: TwinTemplate(**flat_2x2(), phase_rad=np.zeros((2, 3), np.float32)), "phase_rad"),
         (
             lambda: TwinTemplate(
                 image=np.zeros((2, 3), np.float32),
@@ -231,16 +227,7 @@ def test_non_contiguous_and_castable_inputs_are_normalised():
             ),
             r"field 'support' must be bool array of shape \(H, W\) or None, got shape \(3, 2\) \(already bound: H=2, W=3\)",
         ),
-        (
-            lambda: TwinTemplate(
-                image=np.zeros((2, 2), np.float32),
-                x_m=np.zeros(2),
-                y_m=np.zeros(2),
-                z_m=1,
-                support=np.ones((2, 2), np.uint8),
-            ),
-            "'support' must be bool.*uint8",
-        ),
+        (lambda: TwinTemplate(**flat_2x2(), support=np.ones((2, 2), np.uint8)), "'support' must be bool.*uint8"),
         (lambda: NodeStatus(received={"a": 1.5}), "received"),
         (lambda: AutofocusResult(phase_rad=np.zeros(3), loss_history=np.zeros(2), metrics={"a": "x"}), "metrics"),
     ],

@@ -19,11 +19,12 @@ import pytest
 import zmq
 from scipy.spatial.transform import Rotation, Slerp
 
-from msgs import AutofocusResult, Header, Image, Pose, RadarFrame, SarMeasurement, TwinTemplate
+from msgs import AutofocusResult, Header, Image, Pose, RadarFrame, TwinTemplate
 from nodes.runtime.bus import Broker
 from nodes.runtime.node import Node
 from nodes.runtime.params import REQUIRED, Param, parse_assignment, resolve
 from nodes.runtime.testing import Probe, local_broker, patience, running
+from tests.helpers import sar_measurements
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar.fmcw import Chirp
 
@@ -330,25 +331,25 @@ def small_scan(m=12, k=6, seed=0):
     return Scan(data, pos, CHIRP, timestamps_ns=np.arange(m, dtype=np.int64) * 100_000_000 + 5)
 
 
+def _driven(driver, topic, count, **params):
+    """The first ``count`` messages a driver node (class ``driver``, its ``params`` with
+    ``wait_for`` the probe) publishes on ``topic``, and when each arrived (``time.monotonic`` s)."""
+    with local_broker() as ep:
+        probe = Probe(ep, listen=[topic])
+        drv = driver(broker=ep, params={**params, "wait_for": ["probe"]})
+        with running(probe):
+            with running(drv):
+                got = probe.wait_for(topic, count)
+                return got, list(probe.arrival[topic])
+
+
 def test_radar_driver_replays_a_scan_file_row_by_row(tmp_path):
     from nodes.radar_driver import RadarDriver
 
     scan = small_scan()
     scan.save(tmp_path / "s.npz")
-    with local_broker() as ep:
-        probe = Probe(ep, listen=["radar/frame"])
-        drv = RadarDriver(
-            broker=ep,
-            params={
-                "backend": "scan_file",
-                "rate": 0,
-                "wait_for": ["probe"],
-                "options": {"path": str(tmp_path / "s.npz"), "array": "scan"},
-            },
-        )
-        with running(probe):
-            with running(drv):
-                got = probe.wait_for("radar/frame", scan.n_positions)
+    options = {"path": str(tmp_path / "s.npz"), "array": "scan"}
+    got, _ = _driven(RadarDriver, "radar/frame", scan.n_positions, backend="scan_file", rate=0, options=options)
     assert [f.index for f in got] == list(range(scan.n_positions))
     assert [f.last for f in got] == [False] * (scan.n_positions - 1) + [True]
     for m, f in enumerate(got):
@@ -366,21 +367,8 @@ def test_vio_driver_replays_a_tum_file_paced_by_its_stamps(tmp_path):
     q = Rotation.from_rotvec(np.outer(np.arange(n), [0, 0, 0.1])).as_quat()
     poses = Poses(np.arange(n, dtype=np.int64) * 150_000_000, np.outer(np.arange(n), [0.01, 0.02, 0.0]), q)
     write_tum(tmp_path / "traj.txt", poses)
-    with local_broker() as ep:
-        probe = Probe(ep, listen=["vio/pose"])
-        drv = VioDriver(
-            broker=ep,
-            params={
-                "backend": "trajectory_file",
-                "rate": 1.0,
-                "wait_for": ["probe"],
-                "options": {"path": str(tmp_path / "traj.txt"), "time_offset_ns": 7},
-            },
-        )
-        with running(probe):
-            with running(drv):
-                got = probe.wait_for("vio/pose", n)
-                arrival = probe.arrival["vio/pose"]
+    options = {"path": str(tmp_path / "traj.txt"), "time_offset_ns": 7}
+    got, arrival = _driven(VioDriver, "vio/pose", n, backend="trajectory_file", rate=1.0, options=options)
     assert [p.header.stamp_ns for p in got] == list(poses.timestamps_ns + 7)
     np.testing.assert_allclose(np.stack([p.position_m for p in got]), poses.position_m)
     np.testing.assert_allclose(np.abs(np.sum(np.stack([p.quat_xyzw for p in got]) * poses.quat_xyzw, axis=1)), 1.0)
@@ -413,13 +401,8 @@ def test_a_driver_paces_from_its_backends_clock_start_so_simulated_sensors_share
     from nodes.runtime.sim_backends import SimRadar, SimVio
     from nodes.vio_driver import VioDriver
 
-    with local_broker() as ep:
-        probe = Probe(ep, listen=["vio/pose"])
-        drv = VioDriver(broker=ep, params={"backend": f"{__name__}:ClockedPoses", "rate": 1.0, "wait_for": ["probe"]})
-        with running(probe):
-            with running(drv):
-                probe.wait_for("vio/pose", 4)
-                t = np.asarray(probe.arrival["vio/pose"]) - probe.arrival["vio/pose"][0]
+    _, arrival = _driven(VioDriver, "vio/pose", 4, backend=f"{__name__}:ClockedPoses", rate=1.0)
+    t = np.asarray(arrival) - arrival[0]
     # the poses stamped before the clock's start go out at once, the last one 0.3 s after it
     # (paced from the first pose's stamp they would come 5 and 5.3 s after the first: the gap
     # leaves seconds for a busy machine's delays either way)
@@ -609,25 +592,37 @@ def test_template_builder_computes_a_template_scan_once_then_takes_it_from_the_c
 
 
 def measurements(scan, scan_id="p"):
-    return [
-        SarMeasurement(
-            header=Header(stamp_ns=int(scan.timestamps_ns[m])),
-            data=scan.data[m],
-            positions_m=scan.positions[m],
-            f0_hz=CHIRP.f0_hz,
-            slope_hz_per_s=CHIRP.slope_hz_per_s,
-            fs_hz=CHIRP.fs_hz,
-            scan_id=scan_id,
-            index=m,
-            last=m == scan.n_positions - 1,
-            positions_true_m=scan.positions_true[m],
-        )
-        for m in range(scan.n_positions)
-    ]
+    """The scan's measurements as the synchronizer publishes them, with their true positions."""
+    return sar_measurements(scan.data, scan.positions, CHIRP, scan_id, scan.timestamps_ns, scan.positions_true)
+
+
+def solver_and_probe(ep, listen=("autofocus/result",), **params):
+    """A solver node on broker ``ep`` (``params``, no warm-up) and a probe that feeds it
+    measurements and templates and listens on ``listen``."""
+    from nodes.solver import Solver
+
+    solver = Solver(broker=ep, params={**params, "warm_up": False})
+    probe = Probe(ep, listen=list(listen), publish=["sar/measurement", "twin/template"], wait_for=["solver"])
+    return solver, probe
+
+
+def twin_template(template, grid, phase=True):
+    """The TwinTemplate of an image on ``grid`` at 0.3 m: a complex one (a physical twin's) as its
+    magnitude with its phase (``phase``) or without, a real one as it is."""
+    if np.iscomplexobj(template):
+        phase_rad = np.angle(template).astype(np.float32) if phase else None
+        return TwinTemplate(image=np.abs(template), phase_rad=phase_rad, x_m=grid.x_m, y_m=grid.y_m, z_m=0.3)
+    return TwinTemplate(image=template, x_m=grid.x_m, y_m=grid.y_m, z_m=0.3)
+
+
+def send_scan(probe, template, scan, scan_id="p"):
+    """The twin's ``template`` (a TwinTemplate), then every measurement of ``scan``."""
+    probe.send("twin/template", template)
+    for m in measurements(scan, scan_id=scan_id):
+        probe.send("sar/measurement", m)
 
 
 def test_solver_streams_the_basis_and_focuses_with_the_template(tmp_path):
-    from nodes.solver import Solver
     from twinfocus.focus.autofocus import AutofocusConfig
     from twinfocus.imaging.backprojection.numba_backend import backproject
     from twinfocus.imaging.grid import ImageGrid
@@ -636,30 +631,12 @@ def test_solver_streams_the_basis_and_focuses_with_the_template(tmp_path):
     scan = point_scene_scan()
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 16), ImageGrid.from_roi(TGT_ROI, 16)
     template = template_from_scan(scan, ref_grid)  # the reference focused on the true positions
+    params = {"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16, "iterations": 40, "estimator": "paper"}
     with local_broker() as ep:
-        solver = Solver(
-            broker=ep,
-            params={
-                "reference_roi": REF_ROI,
-                "target_roi": TGT_ROI,
-                "size": 16,
-                "iterations": 40,
-                "estimator": "paper",
-                "out_dir": str(tmp_path / "out"),
-                "pictures": False,
-                "warm_up": False,
-            },
-        )
-        probe = Probe(
-            ep,
-            listen=["autofocus/result", "image/focused"],
-            publish=["sar/measurement", "twin/template"],
-            wait_for=["solver"],
-        )
+        listen = ("autofocus/result", "image/focused")
+        solver, probe = solver_and_probe(ep, listen, **params, out_dir=str(tmp_path / "out"), pictures=False)
         with running(solver, probe):
-            probe.send("twin/template", TwinTemplate(image=template, x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
-            for m in measurements(scan):
-                probe.send("sar/measurement", m)
+            send_scan(probe, twin_template(template, ref_grid), scan)
             first, res = probe.wait_for("autofocus/result", 2, timeout_s=60)
             images = {i.name: i for i in probe.wait_for("image/focused", 4)}
     # The image and a first result go out before the metrics against the truth; the
@@ -685,7 +662,6 @@ def test_solver_streams_the_half_array_bases_only_when_the_tilt_may_be_fitted():
     back-projects the half-array bases batch by batch as the scan arrives, and hands the fit the
     same bases as the whole scan's (pipeline.half_array_bases, what twinfocus focus forms). With
     an amplitude template (no drift or tilt rung can run) it streams none."""
-    from nodes.solver import Solver
     from twinfocus.focus.pipeline import half_array_bases
     from twinfocus.imaging.backprojection.numba_backend import backproject
     from twinfocus.imaging.grid import ImageGrid
@@ -695,9 +671,7 @@ def test_solver_streams_the_half_array_bases_only_when_the_tilt_may_be_fitted():
     template = backproject(scan.data, scan.positions_true, CHIRP, ref_grid)
     for phase in (True, False):
         with local_broker() as ep:
-            solver = Solver(
-                broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16, "warm_up": False}
-            )
+            solver, probe = solver_and_probe(ep, reference_roi=REF_ROI, target_roi=TGT_ROI, size=16)
             handed: dict = {}
             own = solver._half_bases
 
@@ -707,22 +681,8 @@ def test_solver_streams_the_half_array_bases_only_when_the_tilt_may_be_fitted():
                 return bases
 
             solver._half_bases = spy
-            probe = Probe(
-                ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"]
-            )
             with running(solver, probe):
-                probe.send(
-                    "twin/template",
-                    TwinTemplate(
-                        image=np.abs(template),
-                        phase_rad=np.angle(template).astype(np.float32) if phase else None,
-                        x_m=ref_grid.x_m,
-                        y_m=ref_grid.y_m,
-                        z_m=0.3,
-                    ),
-                )
-                for m in measurements(scan):
-                    probe.send("sar/measurement", m)
+                send_scan(probe, twin_template(template, ref_grid, phase=phase), scan)
                 probe.wait_for("autofocus/result", 1, timeout_s=60, where=lambda r: not r.metrics_pending)
         assert handed["streamed"] == phase
         if phase:
@@ -737,7 +697,6 @@ def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_wh
     solver scores the registration on the rows it already has, then on each batch
     (none of it after the last measurement but the last batch's), and gets the phase that
     focus_bases gives on the whole scan's bases."""
-    from nodes.solver import Solver
     from twinfocus.focus.pipeline import Bases, Reference
     from twinfocus.focus.plan import FocusPlan
     from twinfocus.imaging.backprojection.numba_backend import backproject, subimage_basis
@@ -749,12 +708,7 @@ def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_wh
     msgs = measurements(scan)
     half = len(msgs) // 2
     with local_broker() as ep:
-        solver = Solver(
-            broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16, "warm_up": False}
-        )
-        probe = Probe(
-            ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"]
-        )
+        solver, probe = solver_and_probe(ep, reference_roi=REF_ROI, target_roi=TGT_ROI, size=16)
         with running(solver, probe):
             for m in msgs[:half]:
                 probe.send("sar/measurement", m)
@@ -763,16 +717,7 @@ def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_wh
             while (solver.scan is None or solver.scan.ref_rows.n < half) and time.monotonic() < deadline:
                 time.sleep(0.01)
             assert solver.scan.ref_rows.n == half and solver.scan.scores is None  # rows kept, no template yet
-            probe.send(
-                "twin/template",
-                TwinTemplate(
-                    image=np.abs(template),
-                    phase_rad=np.angle(template).astype(np.float32),
-                    x_m=ref_grid.x_m,
-                    y_m=ref_grid.y_m,
-                    z_m=0.3,
-                ),
-            )
+            probe.send("twin/template", twin_template(template, ref_grid))
             for m in msgs[half:]:
                 probe.send("sar/measurement", m)
             res = probe.wait_for("autofocus/result", 1, timeout_s=60, where=lambda r: not r.metrics_pending)[0]
@@ -804,7 +749,6 @@ def test_solver_with_model_fast_forms_the_reference_as_focus_does():
     the solver streams the whole reference's rows and hands the ladder every other pixel's
     (ladder.fast_reference), and gets the phase that ``focus_scan`` (twinfocus focus) gets from
     the reference back-projected on those pixels alone."""
-    from nodes.solver import Solver
     from twinfocus.focus.pipeline import Reference
     from twinfocus.focus.plan import FocusPlan
     from twinfocus.imaging.backprojection.numba_backend import backproject
@@ -814,26 +758,9 @@ def test_solver_with_model_fast_forms_the_reference_as_focus_does():
     ref_grid, tgt_grid = ImageGrid.from_roi(REF_ROI, 32), ImageGrid.from_roi(TGT_ROI, 32)
     template = backproject(scan.data, scan.positions_true, CHIRP, ref_grid)
     with local_broker() as ep:
-        solver = Solver(
-            broker=ep,
-            params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 32, "model": "fast", "warm_up": False},
-        )
-        probe = Probe(
-            ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"]
-        )
+        solver, probe = solver_and_probe(ep, reference_roi=REF_ROI, target_roi=TGT_ROI, size=32, model="fast")
         with running(solver, probe):
-            probe.send(
-                "twin/template",
-                TwinTemplate(
-                    image=np.abs(template),
-                    phase_rad=np.angle(template).astype(np.float32),
-                    x_m=ref_grid.x_m,
-                    y_m=ref_grid.y_m,
-                    z_m=0.3,
-                ),
-            )
-            for m in measurements(scan):
-                probe.send("sar/measurement", m)
+            send_scan(probe, twin_template(template, ref_grid), scan)
             res = probe.wait_for("autofocus/result", 1, timeout_s=60, where=lambda r: not r.metrics_pending)[0]
             cfg = solver._config(CHIRP)
     p = solver.params
@@ -1097,7 +1024,6 @@ def test_topic_list_echo_and_hz(tmp_path):
 
 @pytest.mark.parametrize("scan_id", ["../../escaped", "/tmp/absolute"])
 def test_a_scan_id_from_the_bus_never_writes_outside_out_dir(tmp_path, scan_id):
-    from nodes.solver import Solver
     from twinfocus.imaging.grid import ImageGrid
     from twinfocus.twins.templates import template_from_scan
 
@@ -1107,27 +1033,11 @@ def test_a_scan_id_from_the_bus_never_writes_outside_out_dir(tmp_path, scan_id):
     out = tmp_path / "run" / "out"
     out.mkdir(parents=True)
     (out / "earlier.png").write_bytes(b"not the solver's")
+    params = {"reference_roi": REF_ROI, "target_roi": TGT_ROI, "size": 16, "iterations": 10, "estimator": "paper"}
     with local_broker() as ep:
-        solver = Solver(
-            broker=ep,
-            params={
-                "reference_roi": REF_ROI,
-                "target_roi": TGT_ROI,
-                "size": 16,
-                "iterations": 10,
-                "estimator": "paper",
-                "out_dir": str(out),
-                "pictures": False,
-                "warm_up": False,
-            },
-        )
-        probe = Probe(
-            ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"]
-        )
+        solver, probe = solver_and_probe(ep, **params, out_dir=str(out), pictures=False)
         with running(solver, probe):
-            probe.send("twin/template", TwinTemplate(image=template, x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
-            for m in measurements(scan, scan_id=scan_id):
-                probe.send("sar/measurement", m)
+            send_scan(probe, twin_template(template, ref_grid), scan, scan_id=scan_id)
             probe.wait_for("autofocus/result", 2, timeout_s=60)  # the result still goes out on the bus
     # nothing was written for it, inside out_dir or where the name points, and nothing deleted
     assert sorted(p.name for p in out.iterdir()) == ["earlier.png"]

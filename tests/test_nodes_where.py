@@ -1,22 +1,18 @@
 """The solver node finds what ``twinfocus focus`` finds: the reference's region from the template,
 the target's depth from the scan, and the corrected volume, with the same answer."""
 
-import json
-
 import numpy as np
 import pytest
 
-from msgs import TwinTemplate
-from nodes.runtime.testing import Probe, local_broker, running
-from tests.test_nodes import CHIRP, REF_ROI, TGT_ROI, measurements, point_scene_scan
+from nodes.runtime.testing import local_broker, running
+from tests.helpers import cli, metrics
+from tests.test_nodes import CHIRP, REF_ROI, TGT_ROI, point_scene_scan, send_scan, solver_and_probe, twin_template
 from twinfocus.errors import TwinFocusError
 
 VOLUME = [0.26, 0.34, 0.01]
 
 
 def test_solver_finds_the_region_the_depth_and_the_volume_as_focus_does(tmp_path):
-    from nodes.solver import Solver
-    from twinfocus.cli import main
     from twinfocus.imaging.grid import ImageGrid
     from twinfocus.imaging.volume import projections, volume_grid
     from twinfocus.twins.templates import save_template, template_from_scan
@@ -27,61 +23,23 @@ def test_solver_finds_the_region_the_depth_and_the_volume_as_focus_does(tmp_path
     scan.save(tmp_path / "scan.npz")
     save_template(tmp_path / "tpl.npz", template, ref_grid)
     box = [str(v) for v in TGT_ROI[:4]]
-    assert (
-        main(
-            [
-                "focus",
-                str(tmp_path / "scan.npz"),
-                "--template",
-                str(tmp_path / "tpl.npz"),
-                "--target-roi",
-                *box,
-                "--size",
-                "16",
-                "--iterations",
-                "40",
-                "--volume",
-                *map(str, VOLUME),
-                "--out",
-                str(tmp_path / "off"),
-                "--quiet",
-                "--no-cache",
-                "--pictures",
-                "none",
-            ]
-        )
-        == 0
-    )
-    off = json.loads((tmp_path / "off" / "metrics.json").read_text())
+    inputs = (tmp_path / "scan.npz", "--template", tmp_path / "tpl.npz", "--target-roi", *box)
+    volume = ("--volume", *VOLUME)
+    options = "--size 16 --iterations 40 --quiet --no-cache --pictures none"
+    assert cli("focus", *inputs, *volume, options, "--out", tmp_path / "off") == 0
+    off = metrics(tmp_path / "off")
 
     with local_broker() as ep:
         # no reference region and no depth: both found, as focus finds them
-        solver = Solver(
-            broker=ep,
-            params={
-                "target_roi": TGT_ROI[:4],
-                "size": 16,
-                "iterations": 40,
-                "volume": VOLUME,
-                "out_dir": str(tmp_path / "live"),
-                "pictures": False,
-                "warm_up": False,
-            },
-        )
-        probe = Probe(
-            ep,
-            listen=["autofocus/result", "image/focused"],
-            publish=["sar/measurement", "twin/template"],
-            wait_for=["solver"],
-        )
+        listen = ("autofocus/result", "image/focused")
+        params = {"target_roi": TGT_ROI[:4], "size": 16, "iterations": 40, "volume": VOLUME, "pictures": False}
+        solver, probe = solver_and_probe(ep, listen, **params, out_dir=str(tmp_path / "live"))
         with running(solver, probe):
-            probe.send("twin/template", TwinTemplate(image=template, x_m=ref_grid.x_m, y_m=ref_grid.y_m, z_m=0.3))
-            for m in measurements(scan):
-                probe.send("sar/measurement", m)
+            send_scan(probe, twin_template(template, ref_grid), scan)
             res = probe.wait_for("autofocus/result", 1, timeout_s=120, where=lambda r: not r.metrics_pending)[0]
             images = {i.name: i for i in probe.wait_for("image/focused", 5)}
     assert not res.dropped, res.dropped
-    live = json.loads((tmp_path / "live" / "p" / "metrics.json").read_text())
+    live = metrics(tmp_path / "live" / "p")
     assert live["reference_search"]["roi"] == off["reference_search"]["roi"] == pytest.approx(REF_ROI)
     # the same depth, near the points' 0.3 m (within a tenth of this chirp's 16 cm range
     # resolution), on the result topic and in the target image's plane

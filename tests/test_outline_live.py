@@ -10,8 +10,9 @@ import msgpack
 import numpy as np
 import pytest
 
-from msgs import Header, SarMeasurement, TwinTemplate, encode_frames
+from msgs import Header, TwinTemplate, encode_frames
 from nodes.runtime.testing import Probe, local_broker, running
+from tests.helpers import sar_measurements
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.motion.trajectory import paper_raster, phase_centres
 from twinfocus.radar.fmcw import Chirp, uniform_virtual_array
@@ -47,24 +48,6 @@ def scene():
         ]
     )
     return data, tracked, _letter(0.001)
-
-
-def _measurements(data, positions, scan_id="s1"):
-    m = data.shape[0]
-    return [
-        SarMeasurement(
-            header=Header(stamp_ns=i + 1),
-            data=data[i],
-            positions_m=positions[i],
-            f0_hz=CHIRP.f0_hz,
-            slope_hz_per_s=CHIRP.slope_hz_per_s,
-            fs_hz=CHIRP.fs_hz,
-            scan_id=scan_id,
-            index=i,
-            last=i == m - 1,
-        )
-        for i in range(m)
-    ]
 
 
 def _solver(ep, tmp_path, **params):
@@ -134,7 +117,7 @@ def test_a_points_twin_carries_its_outline_and_the_solver_runs_the_outline_estim
             wait_for=["template_builder", "solver"],
         )
         with running(builder, solver, probe):
-            for m in _measurements(data, tracked):
+            for m in sar_measurements(data, tracked, CHIRP, "s1"):
                 probe.send("sar/measurement", m)
             (template,) = probe.wait_for("twin/template", 1, timeout_s=60)
             (res,) = probe.wait_for("autofocus/result", 1, timeout_s=60)
@@ -190,7 +173,7 @@ def test_without_an_outline_the_solver_keeps_the_projections(scene, reference, t
         )
         with running(solver, probe):
             probe.send("twin/template", _twin_template(reference, None))  # a template file's, or an old log's
-            for m in _measurements(data, tracked):
+            for m in sar_measurements(data, tracked, CHIRP, "s1"):
                 probe.send("sar/measurement", m)
             (res,) = probe.wait_for("autofocus/result", 1, timeout_s=60)
     est = json.loads((tmp_path / "s1" / "metrics.json").read_text())["estimator"]
@@ -244,7 +227,7 @@ def test_a_template_whose_outline_does_not_fit_is_dropped_and_the_waiting_scan_t
             ep, listen=["autofocus/result"], publish=["sar/measurement", "twin/template"], wait_for=["solver"]
         )
         with running(solver, probe):
-            for m in _measurements(data, tracked):
+            for m in sar_measurements(data, tracked, CHIRP, "s1"):
                 probe.send("sar/measurement", m)
             deadline = time.monotonic() + 60
             while not solver.waiting and time.monotonic() < deadline:

@@ -2,12 +2,10 @@
 grid, the one object of a physical twin's scan; and ``focus`` given only the twin and the
 target's x/y box."""
 
-import json
-
 import numpy as np
 import pytest
 
-from twinfocus.cli import main
+from tests.helpers import REF_ROI, ROIS, SMALL_SCENE, TGT_ROI, cli, metrics, simulate
 from twinfocus.errors import TwinFocusError
 from twinfocus.focus.boxes import REGION_MARGIN_M as SCAN_MARGIN_M
 from twinfocus.focus.reference_search import (
@@ -71,89 +69,22 @@ def test_region_of_the_one_object_of_a_scan():
 def test_method_without_reference_region_is_refused(tmp_path, capsys):
     scan = tmp_path / "scan.npz"
     np.savez(scan, data=np.zeros((2, 2, 4), np.complex64))
-    rc = main(
-        [
-            "focus",
-            str(scan),
-            "--target-roi",
-            "0",
-            "0.1",
-            "0",
-            "0.1",
-            "0.6",
-            "--method",
-            "none",
-            "--out",
-            str(tmp_path / "o"),
-            "--quiet",
-        ]
-    )
+    rc = cli("focus", scan, "--target-roi 0 0.1 0 0.1 0.6 --method none --out", tmp_path / "o", "--quiet")
     assert rc == 2
     assert "--reference-roi" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.slow
-def test_focus_from_the_twin_and_an_xy_box_alone_matches_typed_regions(tmp_path):
-    d = tmp_path
-    assert (
-        main(
-            [
-                "simulate",
-                "--out",
-                str(d / "scan.npz"),
-                "--template-out",
-                str(d / "tpl.npz"),
-                "--columns",
-                "3",
-                "--rows",
-                "40",
-                "--quiet",
-                "--seed",
-                "3",
-                "--target-depth-offset",
-                "0.08",
-            ]
-        )
-        == 0
-    )
-    common = [
-        "--size",
-        "48",
-        "--iterations",
-        "150",
-        "--space-variant",
-        "off",
-        "--template-scan",
-        str(d / "tpl.npz"),
-        "--quiet",
-        "--no-cache",
-    ]
-    box = ["0.016", "0.103", "-0.0785", "0.0785"]
-    assert (
-        main(
-            [
-                "focus",
-                str(d / "scan.npz"),
-                "--reference-roi",
-                "-0.15",
-                "0.0",
-                "-0.11",
-                "0.12",
-                "0.6",
-                "--target-roi",
-                *box,
-                "0.68",
-                "--out",
-                str(d / "typed"),
-                *common,
-            ]
-        )
-        == 0
-    )
-    assert main(["focus", str(d / "scan.npz"), "--target-roi", *box, "--out", str(d / "found"), *common]) == 0
-    typed = json.loads((d / "typed" / "metrics.json").read_text())
-    found = json.loads((d / "found" / "metrics.json").read_text())
+def test_focus_from_the_twin_and_an_xy_box_alone_matches_typed_regions(deep_scene, tmp_path):
+    d, scan = tmp_path, deep_scene / "scan.npz"
+    options = "--size 48 --iterations 150 --space-variant off --quiet --no-cache"
+    common = (options, "--template-scan", deep_scene / "tpl.npz")
+    box = "--target-roi 0.016 0.103 -0.0785 0.0785"
+    assert cli("focus", scan, "--reference-roi", *REF_ROI, box, "0.68 --out", d / "typed", *common) == 0
+    assert cli("focus", scan, box, "--out", d / "found", *common) == 0
+    typed = metrics(d / "typed")
+    found = metrics(d / "found")
     assert typed["reference_search"] == {"source": "typed", "roi": [-0.15, 0.0, -0.11, 0.12, 0.6]}
     where = found["reference_search"]
     assert where["source"] == "physical twin scan" and where["roi"] == found["reference_roi"]
@@ -177,52 +108,19 @@ def test_candidate_score_puts_trusted_references_first():
 
 
 @pytest.mark.slow
-def test_of_two_template_scans_the_one_of_the_reference_is_chosen(tmp_path):
-    d = tmp_path
-    sim = ["--columns", "3", "--rows", "40", "--quiet", "--seed", "3"]
-    assert main(["simulate", "--out", str(d / "scan.npz"), "--template-out", str(d / "a.npz"), *sim]) == 0
+def test_of_two_template_scans_the_one_of_the_reference_is_chosen(small_scene, tmp_path):
+    d, right = tmp_path, small_scene / "tpl.npz"
     # a motion-stage scan of another letter where the reference stands: the wrong twin
     assert (
-        main(["simulate", "--out", str(d / "other.npz"), "--template-out", str(d / "b.npz"), "--reference", "B", *sim])
+        cli("simulate --quiet --out", d / "other.npz", "--template-out", d / "b.npz", "--reference B", *SMALL_SCENE)
         == 0
     )
-    assert (
-        main(
-            [
-                "focus",
-                str(d / "scan.npz"),
-                "--reference-roi",
-                "-0.15",
-                "0.0",
-                "-0.11",
-                "0.12",
-                "0.6",
-                "--target-roi",
-                "0.02",
-                "0.13",
-                "-0.11",
-                "0.12",
-                "0.6",
-                "--size",
-                "48",
-                "--iterations",
-                "150",
-                "--space-variant",
-                "off",
-                "--template-scan",
-                str(d / "b.npz"),
-                str(d / "a.npz"),
-                "--quiet",
-                "--no-cache",
-                "--out",
-                str(d / "out"),
-            ]
-        )
-        == 0
-    )
-    m = json.loads((d / "out" / "metrics.json").read_text())
+    options = "--size 48 --iterations 150 --space-variant off --quiet --no-cache"
+    twins = ("--template-scan", d / "b.npz", right)
+    assert cli("focus", small_scene / "scan.npz", *ROIS, options, *twins, "--out", d / "out") == 0
+    m = metrics(d / "out")
     cands = m["reference_candidates"]
-    assert [c["path"] for c in cands["candidates"]] == [str(d / "b.npz"), str(d / "a.npz")]
+    assert [c["path"] for c in cands["candidates"]] == [str(d / "b.npz"), str(right)]
     assert cands["chosen"] == 1
     a, b = cands["candidates"][1], cands["candidates"][0]
     assert a["score"] > b["score"] and a["target_ssim_corrected"] > b["target_ssim_corrected"]
@@ -231,63 +129,12 @@ def test_of_two_template_scans_the_one_of_the_reference_is_chosen(tmp_path):
 
 @pytest.mark.slow
 def test_focus_with_the_reference_region_from_its_cloud_matches_the_typed_region(tmp_path):
-    d = tmp_path
-    assert (
-        main(
-            [
-                "simulate",
-                "--out",
-                str(d / "scan.npz"),
-                "--template-out",
-                str(d / "tpl.npz"),
-                "--columns",
-                "3",
-                "--rows",
-                "40",
-                "--quiet",
-                "--seed",
-                "3",
-                "--reference-cloud-out",
-                str(d / "cloud.npy"),
-            ]
-        )
-        == 0
-    )
-    common = [
-        "--target-roi",
-        "0.02",
-        "0.13",
-        "-0.11",
-        "0.12",
-        "0.6",
-        "--size",
-        "48",
-        "--digital-twin",
-        str(d / "cloud.npy"),
-        "--quiet",
-        "--no-cache",
-    ]
-    assert (
-        main(
-            [
-                "focus",
-                str(d / "scan.npz"),
-                "--reference-roi",
-                "-0.15",
-                "0.0",
-                "-0.11",
-                "0.12",
-                "0.6",
-                "--out",
-                str(d / "typed"),
-                *common,
-            ]
-        )
-        == 0
-    )
-    assert main(["focus", str(d / "scan.npz"), "--out", str(d / "found"), *common]) == 0
-    typed = json.loads((d / "typed" / "metrics.json").read_text())
-    found = json.loads((d / "found" / "metrics.json").read_text())
+    d = simulate(tmp_path, *SMALL_SCENE, "--reference-cloud-out", tmp_path / "cloud.npy")
+    common = ("--target-roi", *TGT_ROI, "--size 48 --digital-twin", d / "cloud.npy", "--quiet --no-cache")
+    assert cli("focus", d / "scan.npz", "--reference-roi", *REF_ROI, "--out", d / "typed", *common) == 0
+    assert cli("focus", d / "scan.npz", "--out", d / "found", *common) == 0
+    typed = metrics(d / "typed")
+    found = metrics(d / "found")
     where = found["reference_search"]
     assert where["source"] == "digital twin cloud" and where["points_inside"] > 0.95
     assert where["roi"][4] == pytest.approx(0.6, abs=0.005)

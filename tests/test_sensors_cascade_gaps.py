@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 
+from tests.helpers import convert_capture
 from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
 from twinfocus.sensors.frames import FrameFlag
@@ -77,7 +78,6 @@ def test_all_zero_frames_are_flagged(tmp_path):
 
 
 def test_convert_records_and_warns_the_gaps(tmp_path, capsys):
-    from twinfocus.cli import main
     from twinfocus.motion.trajectory import Poses
     from twinfocus.radar.scan import Scan
     from twinfocus.sensors.trajectory_files import write_tum
@@ -88,18 +88,7 @@ def test_convert_records_and_warns_the_gaps(tmp_path, capsys):
         tmp_path / "traj.txt",
         Poses(t, np.stack([np.arange(9) * 1e-3, np.zeros(9), np.zeros(9)], 1), np.tile([0.0, 0, 0, 1], (9, 1))),
     )
-    rc = main(
-        [
-            "convert",
-            str(tmp_path / "cap"),
-            "--trajectory",
-            str(tmp_path / "traj.txt"),
-            "--out",
-            str(tmp_path / "s.npz"),
-            "--n-samples",
-            str(N),
-        ]
-    )
+    rc = convert_capture(tmp_path, "--n-samples", N)
     out, err = capsys.readouterr()
     assert rc == 0
     assert "1 frame(s) missing from every device" in err and "hold only zeros on some device (frame 5)" in err

@@ -4,11 +4,11 @@ the first frame of each capture slice."""
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
+from tests import helpers
+from tests.helpers import argv
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.emulators.mmwcas_capture import write_mmwcas_capture
@@ -21,33 +21,8 @@ N = 8
 
 
 def studio_json(path, tx_numbers, n_loops=1, period_ms=33.333, n_samples=N):
-    """An mmWave Studio JSON written field by field: per device, one rlChirpCfg_t per chirp."""
-    devices = []
-    for d in range(4):
-        chirps = []
-        for c, n in enumerate(tx_numbers):
-            mask = 1 << ((n - 1) % 3) if (n - 1) // 3 == d else 0
-            chirps.append(
-                {"rlChirpCfg_t": {"chirpStartIdx": c, "chirpEndIdx": c, "profileId": 0, "txEnable": f"0x{mask:X}"}}
-            )
-        devices.append(
-            {
-                "mmWaveDeviceId": d,
-                "rfConfig": {
-                    "rlProfiles": [{"rlProfileCfg_t": {"profileId": 0, "numAdcSamples": n_samples}}],
-                    "rlChirps": chirps,
-                    "rlFrameCfg_t": {
-                        "chirpStartIdx": 0,
-                        "chirpEndIdx": len(tx_numbers) - 1,
-                        "numLoops": n_loops,
-                        "numFrames": 0,
-                        "framePeriodicity_msec": period_ms,
-                    },
-                },
-                "rawDataCaptureConfig": {"rlDevDataFmtCfg_t": {"iqSwapSel": 0, "chInterleave": 0}},
-            }
-        )
-    path.write_text(json.dumps({"mmWaveDevices": devices}))
+    """An mmWave Studio JSON: per device, one rlChirpCfg_t per chirp."""
+    helpers.studio_json(path, {"numAdcSamples": n_samples}, tx_numbers, n_loops, period_ms)
 
 
 def _nine_tx_capture(folder, frames=4):
@@ -82,17 +57,8 @@ def test_nine_tx_capture_converts_with_its_layout_from_the_json(tmp_path, capsys
         tmp_path / "traj.txt",
         Poses(t, np.stack([np.arange(9) * 1e-3, np.zeros(9), np.zeros(9)], 1), np.tile([0.0, 0, 0, 1], (9, 1))),
     )
-    args = [
-        "convert",
-        str(tmp_path / "cap"),
-        "--trajectory",
-        str(tmp_path / "traj.txt"),
-        "--out",
-        str(tmp_path / "s.npz"),
-        "--n-samples",
-        str(N),
-        "--quiet",
-    ]
+    args = argv("convert", tmp_path / "cap", "--trajectory", tmp_path / "traj.txt", "--out", tmp_path / "s.npz")
+    args += argv("--n-samples", N, "--quiet")
     # Without the configuration the default 12-TX layout does not fit the frames.
     assert main(args) == 2 and "check n_samples, n_chirps and n_loops" in capsys.readouterr().err
     studio_json(tmp_path / "cap" / "cap.mmwave.json", TX9)

@@ -9,6 +9,8 @@ import json
 import numpy as np
 import pytest
 
+from tests import helpers
+from tests.helpers import convert_capture
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar.fmcw import Chirp, range_compress
 from twinfocus.sensors.chirp_profile import profile_fields_from_lua, resolve_chirp
@@ -29,46 +31,9 @@ TRUE_CHIRP = Chirp(f0_hz=77e9 + 60e12 * 6e-6, slope_hz_per_s=60e12, fs_hz=5e6, n
 
 
 def studio_json(path, profile=PROFILE, tx_numbers=tuple(range(12, 0, -1)), period_ms=100.0):
-    """An mmWave Studio JSON written field by field (TI's rlProfileCfg_t / rlChirpCfg_t /
-    rlFrameCfg_t names), every device with the same profile, one TX per chirp."""
-    devices = []
-    for d in range(4):
-        chirps = []
-        for c, n in enumerate(tx_numbers):
-            mask = 1 << ((n - 1) % 3) if (n - 1) // 3 == d else 0
-            chirps.append(
-                {"rlChirpCfg_t": {"chirpStartIdx": c, "chirpEndIdx": c, "profileId": 0, "txEnable": f"0x{mask:X}"}}
-            )
-        devices.append(
-            {
-                "mmWaveDeviceId": d,
-                "rfConfig": {
-                    "rlProfiles": [
-                        {
-                            "rlProfileCfg_t": {
-                                "profileId": 0,
-                                "pfVcoSelect": "0x0",
-                                "txOutPowerBackoffCode": "0x0",
-                                "txPhaseShifter": "0x0",
-                                "txStartTime_usec": 0.0,
-                                "rxGain_dB": "0x30",
-                                **profile,
-                            }
-                        }
-                    ],
-                    "rlChirps": chirps,
-                    "rlFrameCfg_t": {
-                        "chirpStartIdx": 0,
-                        "chirpEndIdx": len(tx_numbers) - 1,
-                        "numLoops": 1,
-                        "numFrames": 0,
-                        "framePeriodicity_msec": period_ms,
-                    },
-                },
-                "rawDataCaptureConfig": {"rlDevDataFmtCfg_t": {"iqSwapSel": 0, "chInterleave": 0}},
-            }
-        )
-    path.write_text(json.dumps({"mmWaveDevices": devices}))
+    """An mmWave Studio JSON, every device with the same profile, one TX per chirp."""
+    fixed = {"pfVcoSelect": "0x0", "txOutPowerBackoffCode": "0x0", "txPhaseShifter": "0x0", "txStartTime_usec": 0.0}
+    helpers.studio_json(path, {**fixed, "rxGain_dB": "0x30", **profile}, tx_numbers, 1, period_ms)
 
 
 CASCADE_LUA = """
@@ -226,23 +191,11 @@ def test_capture_with_its_profile_converts_and_images_as_that_profile(tmp_path, 
 
 
 def test_convert_option_overrides_the_capture_profile_with_a_note(tmp_path, capsys):
-    from twinfocus.cli import main
     from twinfocus.radar.scan import Scan
 
     _scene_capture(tmp_path, frames=3)
     studio_json(tmp_path / "cap" / "capture.mmwave.json")
-    rc = main(
-        [
-            "convert",
-            str(tmp_path / "cap"),
-            "--trajectory",
-            str(tmp_path / "traj.txt"),
-            "--out",
-            str(tmp_path / "s.npz"),
-            "--f0-hz",
-            "77e9",
-        ]
-    )
+    rc = convert_capture(tmp_path, "--f0-hz 77e9")
     err = capsys.readouterr().err
     assert rc == 0 and "--f0-hz 7.7e+10 overrides the capture configuration's 7.736e+10" in err
     assert Scan.load(tmp_path / "s.npz").chirp == Chirp(77e9, 60e12, 5e6, 128)

@@ -3,9 +3,6 @@ that answers, and sometimes refuses, commands; plus the emulated rig end to end.
 
 from __future__ import annotations
 
-import threading
-import time
-
 import numpy as np
 import pytest
 
@@ -32,15 +29,8 @@ sensorStart
 """
 
 
-@pytest.fixture(autouse=True)
-def no_stray_threads():
-    """Emulators and clients must stop every thread they start."""
-    before = set(threading.enumerate())
-    yield
-    deadline = time.monotonic() + 2.0
-    while set(threading.enumerate()) - before and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert not set(threading.enumerate()) - before
+# Emulators and clients must stop every thread they start (conftest.py).
+pytestmark = pytest.mark.usefixtures("no_stray_threads")
 
 
 def test_cfg_gives_chirp_and_raw_layout():

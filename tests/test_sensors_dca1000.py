@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import socket
 import struct
-import threading
 import time
 
 import numpy as np
@@ -26,16 +25,8 @@ from twinfocus.sensors.dca1000 import (
 from twinfocus.sensors.emulators.fake_dca1000 import FakeDca1000, LinkFaults, pattern_frame
 from twinfocus.sensors.frames import FrameFlag
 
-
-@pytest.fixture(autouse=True)
-def no_stray_threads():
-    """Emulators and clients must stop every thread they start."""
-    before = set(threading.enumerate())
-    yield
-    deadline = time.monotonic() + 2.0
-    while set(threading.enumerate()) - before and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert not set(threading.enumerate()) - before
+# Emulators and clients must stop every thread they start (conftest.py).
+pytestmark = pytest.mark.usefixtures("no_stray_threads")
 
 
 def test_command_and_packet_bytes_match_the_user_guide():

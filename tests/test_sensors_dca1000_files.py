@@ -13,6 +13,7 @@ import struct
 import numpy as np
 import pytest
 
+from tests.helpers import cli
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar.fmcw import Chirp
 from twinfocus.sensors.dca1000 import RawFrameLayout
@@ -66,24 +67,21 @@ def write_records(path, stream: bytes, drop=(), swap=()):
     path.write_bytes(b"".join(p for k, p in enumerate(packets) if k not in drop))
 
 
+def _cli_json(path, lvds_mode, data_format, sequence_numbers):
+    """The DCA1000 CLI's JSON with these fields written to ``path``, read back (read_cli_json)."""
+    capture = {"sequenceNumberEnable": sequence_numbers}
+    config = {"lvdsMode": lvds_mode, "dataFormatConfig": data_format, "captureConfig": capture}
+    path.write_text(json.dumps({"DCA1000Config": config}))
+    return read_cli_json(path)
+
+
 @pytest.mark.parametrize("form", ["raw", "reordered"])
 def test_every_sample_lands_in_place(tmp_path, form):
     (tmp_path / "adc_data.bin").write_bytes(stream_values(3, form))
     settings = None
     if form == "reordered":
         # A CLI JSON that omits reorderEnable: the CLI reorders then (cli_record_main.cpp).
-        (tmp_path / "cf.json").write_text(
-            json.dumps(
-                {
-                    "DCA1000Config": {
-                        "lvdsMode": 2,
-                        "dataFormatConfig": {"MSBToggle": 0},
-                        "captureConfig": {"sequenceNumberEnable": 0},
-                    }
-                }
-            )
-        )
-        settings = read_cli_json(tmp_path / "cf.json")
+        settings = _cli_json(tmp_path / "cf.json", 2, {"MSBToggle": 0}, sequence_numbers=0)
         assert settings.reorder
     cap = Dca1000FileCapture(tmp_path, LAYOUT, 0.05, "auto", settings)
     assert cap.format == form and len(cap.frames) == 3
@@ -143,18 +141,7 @@ def test_long_record_capture_with_an_early_hole(tmp_path):
 
 
 def test_cli_json_settings_and_refusals(tmp_path):
-    (tmp_path / "a.json").write_text(
-        json.dumps(
-            {
-                "DCA1000Config": {
-                    "lvdsMode": 1,
-                    "dataFormatConfig": {"reorderEnable": 0},
-                    "captureConfig": {"sequenceNumberEnable": 1},
-                }
-            }
-        )
-    )
-    s = read_cli_json(tmp_path / "a.json")
+    s = _cli_json(tmp_path / "a.json", 1, {"reorderEnable": 0}, sequence_numbers=1)
     assert (s.reorder, s.sequence_numbers, s.lvds_lanes) == (False, True, 4)
     (tmp_path / "adc_data.bin").write_bytes(stream_values(1, "raw"))
     with pytest.raises(TwinFocusError, match="4 LVDS lanes"):
@@ -180,7 +167,6 @@ def test_msb_toggle_is_taken_off(tmp_path):
 
 def test_convert_gives_the_scan_of_the_frames(tmp_path, capsys):
     """convert on a CLI file == scan_from_frames on frames built from the tags (the live path's step)."""
-    from twinfocus.cli import main
     from twinfocus.motion.trajectory import Poses
     from twinfocus.radar.scan import Scan
     from twinfocus.sensors.capture_to_scan import read_capture_report, scan_from_frames
@@ -197,21 +183,9 @@ def test_convert_gives_the_scan_of_the_frames(tmp_path, capsys):
     quat = np.tile([0.0, 0.0, 0.0, 1.0], (11, 1))
     poses = Poses(t, pos, quat)
     write_tum(tmp_path / "traj.txt", poses)
-    rc = main(
-        [
-            "convert",
-            str(tmp_path / "adc_data_Raw_0.bin"),
-            "--trajectory",
-            str(tmp_path / "traj.txt"),
-            "--out",
-            str(tmp_path / "scan.npz"),
-            "--n-samples",
-            str(N),
-            "--frame-period-s",
-            "0.05",
-            "--quiet",
-        ]
-    )
+    raw = tmp_path / "adc_data_Raw_0.bin"
+    options = ("--n-samples", N, "--frame-period-s 0.05 --quiet")
+    rc = cli("convert", raw, "--trajectory", tmp_path / "traj.txt", "--out", tmp_path / "scan.npz", *options)
     assert rc == 0
     out = json.loads(capsys.readouterr().out)
     assert out["frames"] == n_frames and out["used"] == n_frames - 1 and out["frames_zero_filled"] == 1

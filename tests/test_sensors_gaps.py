@@ -65,18 +65,16 @@ def test_dropped_packets_are_counted_and_carried(tmp_path, capfd):
     assert "flagged frame(s)" in capfd.readouterr().err
 
 
+def _frame(**gaps):
+    """An empty frame of the cascade's 86 virtual channels (4 samples) with the ``gaps`` fields."""
+    offsets = mmwcas_virtual_array().offsets_m
+    data = np.zeros((86, 4), np.complex64)
+    chirp = {"f0_hz": 77e9, "slope_hz_per_s": 1e14, "fs_hz": 8e6}
+    return RadarFrame(header=Header(5, 0, "radar"), data=data, **chirp, channel_offsets_m=offsets, scan_id="s", **gaps)
+
+
 def test_radar_frame_carries_gaps_and_old_logs_still_decode():
-    va = mmwcas_virtual_array()
-    msg = RadarFrame(
-        header=Header(5, 0, "radar"),
-        data=np.zeros((86, 4), np.complex64),
-        f0_hz=77e9,
-        slope_hz_per_s=1e14,
-        fs_hz=8e6,
-        channel_offsets_m=va.offsets_m,
-        scan_id="s",
-        **_gap_fields((1, 2, 3000)),
-    )
+    msg = _frame(**_gap_fields((1, 2, 3000)))
     back = decode(encode(msg))
     assert (back.frames_lost, back.frames_zero_filled, back.bytes_lost) == (1, 2, 3000)
     env = msgpack.unpackb(encode(msg), raw=False)
@@ -96,19 +94,7 @@ def test_visualizer_status_shows_gaps(tmp_path):
     from nodes.runtime.testing import Probe, local_broker, running
     from nodes.visualizer import Visualizer
 
-    va = mmwcas_virtual_array()
-    frame = RadarFrame(
-        header=Header(5, 0, "radar"),
-        data=np.zeros((86, 4), np.complex64),
-        f0_hz=77e9,
-        slope_hz_per_s=1e14,
-        fs_hz=8e6,
-        channel_offsets_m=va.offsets_m,
-        scan_id="s",
-        frames_lost=1,
-        frames_zero_filled=2,
-        bytes_lost=3000,
-    )
+    frame = _frame(frames_lost=1, frames_zero_filled=2, bytes_lost=3000)
     with local_broker() as ep:
         viz = Visualizer(broker=ep, params={"out_dir": str(tmp_path), "port": 0})
         probe = Probe(ep, publish=["radar/frame"], wait_for=["visualizer"])

@@ -9,6 +9,7 @@ import struct
 import numpy as np
 import pytest
 
+from tests.helpers import cli
 from twinfocus.errors import TwinFocusError
 from twinfocus.motion.trajectory import Poses
 from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
@@ -185,7 +186,6 @@ def _small_capture(tmp_path, n=16, frames=6):
 
 def test_convert_cli_writes_scan_and_mcap(tmp_path, capsys):
     from msgs.mcap_log import LogReader
-    from twinfocus.cli import main
     from twinfocus.motion.trajectory import quat_to_matrix
     from twinfocus.radar.scan import Scan
     from twinfocus.sensors.trajectory_files import write_tum
@@ -198,25 +198,9 @@ def test_convert_cli_writes_scan_and_mcap(tmp_path, capsys):
     quat = np.stack([np.zeros(13), np.sin(ang / 2), np.zeros(13), np.cos(ang / 2)], axis=1)
     write_tum(tmp_path / "traj.txt", Poses(t, pos, quat, np.linspace(0.5, 1.0, 13)))
     (tmp_path / "ext.yaml").write_text("translation_m: [0.0, 0.05, -0.01]\nrotation_xyzw: [0, 0, 0, 1]\n")
-    rc = main(
-        [
-            "convert",
-            str(tmp_path / "cap"),
-            "--trajectory",
-            str(tmp_path / "traj.txt"),
-            "--extrinsics",
-            str(tmp_path / "ext.yaml"),
-            "--out",
-            str(tmp_path / "scan.npz"),
-            "--mcap",
-            str(tmp_path / "log.mcap"),
-            "--n-samples",
-            "16",
-            "--frame",
-            "world",
-            "--quiet",
-        ]
-    )
+    capture = (tmp_path / "cap", "--trajectory", tmp_path / "traj.txt", "--extrinsics", tmp_path / "ext.yaml")
+    outputs = ("--out", tmp_path / "scan.npz", "--mcap", tmp_path / "log.mcap")
+    rc = cli("convert", *capture, *outputs, "--n-samples 16 --frame world --quiet")
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["frames"] == 6 and summary["used"] == 6
@@ -235,35 +219,12 @@ def test_convert_cli_writes_scan_and_mcap(tmp_path, capsys):
 
 
 def test_convert_cli_errors_are_one_line(tmp_path, capsys):
-    from twinfocus.cli import main
 
     _small_capture(tmp_path)
-    rc = main(
-        [
-            "convert",
-            str(tmp_path / "cap"),
-            "--trajectory",
-            str(tmp_path / "missing.txt"),
-            "--out",
-            str(tmp_path / "s.npz"),
-            "--n-samples",
-            "16",
-        ]
-    )
+    out = ("--out", tmp_path / "s.npz")
+    rc = cli("convert", tmp_path / "cap", "--trajectory", tmp_path / "missing.txt", *out, "--n-samples 16")
     err = capsys.readouterr().err
     assert rc == 2 and "missing.txt: no such trajectory file" in err and "Traceback" not in err
     (tmp_path / "t.txt").write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")
-    rc = main(
-        [
-            "convert",
-            str(tmp_path / "cap"),
-            "--trajectory",
-            str(tmp_path / "t.txt"),
-            "--out",
-            str(tmp_path / "s.npz"),
-            "--n-samples",
-            "32",
-            "--quiet",
-        ]
-    )
+    rc = cli("convert", tmp_path / "cap", "--trajectory", tmp_path / "t.txt", *out, "--n-samples 32 --quiet")
     assert rc == 2 and "configuration expects" in capsys.readouterr().err

@@ -119,21 +119,31 @@ def _drifting_scan(fast_mm: float = 0.0) -> dict:
     rg = ImageGrid(-0.15, -0.01, -0.07, 0.07, Z, 32, 32)
     tg = ImageGrid(0.03, 0.13, -0.07, 0.07, Z, 24, 24)
     template = backproject(data, true, ch, rg)  # what a motion-stage scan of the reference gives
-    return dict(
-        chirp=ch,
-        tracked=tracked,
-        true=true,
-        drift=drift,
-        rg=rg,
-        tg=tg,
-        template=template,
-        ref_basis=subimage_basis(data, tracked, ch, rg),
-        tgt_basis=subimage_basis(data, tracked, ch, tg),
-        ref_basis_true=subimage_basis(data, true, ch, rg),
-        tgt_basis_true=subimage_basis(data, true, ch, tg),
-        truth_target=backproject(data, true, ch, tg),
-        truth_reference=backproject(data, true, ch, rg),
-    )
+    scene = {"chirp": ch, "tracked": tracked, "true": true, "drift": drift, "rg": rg, "tg": tg, "template": template}
+    bases = {
+        "ref_basis": subimage_basis(data, tracked, ch, rg),
+        "tgt_basis": subimage_basis(data, tracked, ch, tg),
+        "ref_basis_true": subimage_basis(data, true, ch, rg),
+        "tgt_basis_true": subimage_basis(data, true, ch, tg),
+    }
+    truth = {"truth_target": backproject(data, true, ch, tg), "truth_reference": backproject(data, true, ch, rg)}
+    return {**scene, **bases, **truth}
+
+
+def _fit_args(s):
+    """fit_smooth_drift's inputs on ``s`` (a :func:`_drifting_scan`): the reference basis, the
+    template, the closed form's phase (rad, per position), the aperture centres, the grid, the
+    wavelength."""
+    from twinfocus.focus.template_match import correlation_phase
+
+    phi0 = correlation_phase(s["ref_basis"], s["template"])
+    return (s["ref_basis"], s["template"], phi0, s["tracked"].mean(axis=1), s["rg"], s["chirp"].wavelength_m)
+
+
+def _drift_error_m(s, dp):
+    """rms of the fitted x/y drift ``dp`` (M, 3) less the injected one, each less its mean, m."""
+    e = dp[:, :2] - s["drift"][:, :2]
+    return float(np.sqrt(((e - e.mean(axis=0)) ** 2).mean()))
 
 
 @pytest.fixture(scope="module")
@@ -143,15 +153,12 @@ def drifting_scan():
 
 def test_smooth_drift_fit_recovers_an_injected_drift_and_the_targets_phase(drifting_scan):
     from twinfocus.focus.space_variant import fit_smooth_drift
-    from twinfocus.focus.template_match import correlation_phase
     from twinfocus.imaging.metrics import phase_error_rms
 
     s = drifting_scan
-    centres = s["tracked"].mean(axis=1)
-    phi0 = correlation_phase(s["ref_basis"], s["template"])
-    phase, dp, _, info = fit_smooth_drift(
-        s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m
-    )
+    args = _fit_args(s)
+    phi0, centres = args[2], args[3]
+    phase, dp, _, info = fit_smooth_drift(*args)
     assert info["match_after"] > info["match_before"]
     # the drift across the line of sight, in the correction's sense (true - tracked)
     for axis in (0, 1):
@@ -251,16 +258,12 @@ def test_space_variant_bad_requests_are_named(drifting_scan):
 
 def test_per_position_refinement_follows_a_drift_faster_than_the_knots():
     from twinfocus.focus.space_variant import DriftFitSettings, fit_smooth_drift
-    from twinfocus.focus.template_match import correlation_phase
 
     s = _drifting_scan(fast_mm=0.4)
-    centres = s["tracked"].mean(axis=1)
-    phi0 = correlation_phase(s["ref_basis"], s["template"])
-    args = (s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m)
+    args = _fit_args(s)
 
     def drift_error_mm(dp):
-        e = dp[:, :2] - s["drift"][:, :2]
-        return float(np.sqrt(((e - e.mean(axis=0)) ** 2).mean()) * 1e3)
+        return _drift_error_m(s, dp) * 1e3
 
     _, knots_only, _, _ = fit_smooth_drift(*args, DriftFitSettings(refine_iterations=0))
     _, refined, _, info = fit_smooth_drift(*args)
@@ -404,21 +407,14 @@ def test_the_fit_recovers_the_drift_on_the_bright_pixels_as_on_every_pixel(drift
     stages comes within 0.05 mm rms of it on this scene; with the knots' stage on the template's
     bright pixels (the default) it stays within 10 % of that."""
     from twinfocus.focus.space_variant import DriftFitSettings, fit_smooth_drift
-    from twinfocus.focus.template_match import correlation_phase
 
     s = drifting_scan
-    centres = s["tracked"].mean(axis=1)
-    phi0 = correlation_phase(s["ref_basis"], s["template"])
-    args = (s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m)
-
-    def drift_error_m(dp):
-        e = dp[:, :2] - s["drift"][:, :2]
-        return float(np.sqrt(((e - e.mean(axis=0)) ** 2).mean()))
+    args = _fit_args(s)
 
     _, every, _, info_every = fit_smooth_drift(*args, DriftFitSettings(knot_energy_fraction=1.0))
     _, bright, _, info = fit_smooth_drift(*args)
-    assert drift_error_m(every) < 0.05e-3
-    assert drift_error_m(bright) < 1.1 * drift_error_m(every)
+    assert _drift_error_m(s, every) < 0.05e-3
+    assert _drift_error_m(s, bright) < 1.1 * _drift_error_m(s, every)
     assert info["knot_pixels"] < 0.5 * info_every["knot_pixels"] == 0.5 * s["rg"].shape[0] * s["rg"].shape[1]
     assert info["device"] == "cpu" and info["match_after"] > 0.999
 
@@ -428,16 +424,9 @@ def test_the_cpu_kernel_and_the_torch_code_fit_the_same_drift(drifting_scan, mon
     other devices run: float32 round-off apart, and both within 0.06 mm rms of the injected drift
     (0.8 / 0.6 mm amplitude)."""
     from twinfocus.focus import space_variant as sv
-    from twinfocus.focus.template_match import correlation_phase
 
     s = drifting_scan
-    centres = s["tracked"].mean(axis=1)
-    phi0 = correlation_phase(s["ref_basis"], s["template"])
-    args = (s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m)
-
-    def drift_error_m(dp):
-        e = dp[:, :2] - s["drift"][:, :2]
-        return float(np.sqrt(((e - e.mean(axis=0)) ** 2).mean()))
+    args = _fit_args(s)
 
     p_numba, d_numba, _, i_numba = sv.fit_smooth_drift(*args)
     monkeypatch.setattr(sv, "_CpuDriftMatch", sv._TorchDriftMatch)  # torch's code, on the CPU
@@ -445,7 +434,7 @@ def test_the_cpu_kernel_and_the_torch_code_fit_the_same_drift(drifting_scan, mon
     assert abs(i_torch["match_after"] - i_numba["match_after"]) < 1e-4
     assert np.sqrt(((d_torch - d_numba) ** 2).mean()) < 0.01e-3
     assert np.abs(np.angle(np.exp(1j * (p_torch - p_numba)))).max() < 0.05
-    assert drift_error_m(d_numba) < 0.06e-3 and drift_error_m(d_torch) < 0.06e-3
+    assert _drift_error_m(s, d_numba) < 0.06e-3 and _drift_error_m(s, d_torch) < 0.06e-3
 
 
 @pytest.mark.slow  # 3 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)
@@ -460,12 +449,9 @@ def test_a_busy_cpu_fits_on_one_thread_and_finds_the_same_drift(drifting_scan, m
     from threadpoolctl import threadpool_info
 
     from twinfocus.focus import space_variant as sv
-    from twinfocus.focus.template_match import correlation_phase
 
     s = drifting_scan
-    centres = s["tracked"].mean(axis=1)
-    phi0 = correlation_phase(s["ref_basis"], s["template"])
-    args = (s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m)
+    args = _fit_args(s)
     cores = os.cpu_count() or 1
     threads = numba.get_num_threads()
 
@@ -503,12 +489,9 @@ def test_a_busy_cpu_fits_on_one_thread_and_finds_the_same_drift(drifting_scan, m
 def test_the_drift_fit_on_cuda_matches_the_cpu(drifting_scan):
     """The same code on both devices: float32 round-off apart, through 200 Adam steps."""
     from twinfocus.focus.space_variant import fit_smooth_drift
-    from twinfocus.focus.template_match import correlation_phase
 
     s = drifting_scan
-    centres = s["tracked"].mean(axis=1)
-    phi0 = correlation_phase(s["ref_basis"], s["template"])
-    args = (s["ref_basis"], s["template"], phi0, centres, s["rg"], s["chirp"].wavelength_m)
+    args = _fit_args(s)
     p_cpu, d_cpu, _, i_cpu = fit_smooth_drift(*args, device="cpu")
     p_gpu, d_gpu, _, i_gpu = fit_smooth_drift(*args, device="cuda")
     assert i_gpu["device"].startswith("cuda")

@@ -7,8 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from msgs import Header, SarMeasurement, StereoFrame
+from msgs import Header, StereoFrame
 from nodes.runtime.testing import Probe, local_broker, running
+from tests.helpers import sar_measurements
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.motion.trajectory import paper_raster, phase_centres
 from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
@@ -30,21 +31,8 @@ def _frame(r) -> StereoFrame:
 
 
 def _measurements(positions, scan_id):
-    zeros = np.zeros((positions.shape[1], 8), np.complex64)  # the builder reads positions only
-    return [
-        SarMeasurement(
-            header=Header(stamp_ns=m + 1),
-            data=zeros,
-            positions_m=positions[m],
-            f0_hz=CHIRP.f0_hz,
-            slope_hz_per_s=CHIRP.slope_hz_per_s,
-            fs_hz=CHIRP.fs_hz,
-            scan_id=scan_id,
-            index=m,
-            last=m == positions.shape[0] - 1,
-        )
-        for m in range(positions.shape[0])
-    ]
+    zeros = np.zeros((*positions.shape[:2], 8), np.complex64)  # the builder reads positions only
+    return sar_measurements(zeros, positions, CHIRP, scan_id)
 
 
 @pytest.mark.slow  # 4 s (2 cores, load ~6): out of make test-fast (benchmarks/results/test_fast_before.json)

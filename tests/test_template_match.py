@@ -153,6 +153,20 @@ def coherent():
     return _letter_scene((0.0, 0.0, 0.0), z_sigma_m=0.15e-3)
 
 
+def _error_but_a_plane(oracle, ap):
+    """rms (rad) of a phase (M,) against ``oracle`` (M,), wrapped, less the plane across the
+    aperture ``ap`` (M, 2) m fitted to their difference (a shift of the image, not a blur)."""
+    return lambda p: phase_error_rms(
+        np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p)
+    )
+
+
+def _placed_error(scene):
+    """:func:`_error_but_a_plane` against the oracle's phase at the centre of a :func:`_letter_scene`."""
+    ch, true, tracked, _, _ = scene
+    return _error_but_a_plane(oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch), tracked.mean(axis=1)[:, :2])
+
+
 @pytest.mark.slow
 def test_projection_phase_recovers_wrapped_errors_from_the_amplitude_alone(placed):
     ch, true, tracked, basis, template = placed
@@ -171,12 +185,9 @@ def test_projection_phase_recovers_wrapped_errors_from_the_amplitude_alone(place
     # optimiser from there keeps it, while the optimiser from zero stays far from the truth
     res = twin_autofocus(basis, amplitude, AutofocusConfig(init="projection", iterations=0))
     assert np.allclose(res.phase_rad, phi)
-    ap = tracked.mean(axis=1)[:, :2]
     refined = twin_autofocus(basis, amplitude, AutofocusConfig(init="projection", loss_steepness=5.0))
     from_zero = twin_autofocus(basis, amplitude, AutofocusConfig(loss_steepness=5.0))
-    err = lambda p: phase_error_rms(
-        np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p)
-    )
+    err = _placed_error(placed)
     assert err(refined.phase_rad) < 0.2
     assert err(from_zero.phase_rad) > 2 * err(refined.phase_rad)
     # restarts: every start is projected, the one with the lowest optimiser loss is kept
@@ -254,11 +265,7 @@ def test_outline_phase_recovers_wrapped_errors_from_the_outline_alone(placed):
     from twinfocus.focus.template_match import outline_phase
 
     ch, true, tracked, basis, _ = placed
-    oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
-    ap = tracked.mean(axis=1)[:, :2]
-    err = lambda p: phase_error_rms(
-        np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p)
-    )
+    err = _placed_error(placed)
     assert err(np.zeros(basis.shape[0])) > 1.5  # every phase wrapped; the scatterers' own phases are random
     support = _outline(GRID)
     phi, info = outline_phase(basis, support)
@@ -349,11 +356,8 @@ def test_averaged_outlines_beat_one_outline_with_a_hole(placed):
     from twinfocus.focus.template_match import averaged_outline_phase, outline_phase
 
     ch, true, tracked, basis, _ = placed
-    oracle = oracle_phase(true, tracked, np.array([0.0, 0.0, Z]), ch)
     ap = tracked.mean(axis=1)[:, :2]
-    err = lambda p: phase_error_rms(
-        np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p)
-    )
+    err = _placed_error(placed)
     # the 'F' with 8 mm of its stem missing (a camera cloud's hole)
     yy, xx = np.meshgrid(GRID.y_m, GRID.x_m, indexing="ij")
     support = _outline(GRID) & ~((np.abs(yy - 0.004) < 0.004) & (xx < -0.012))
@@ -562,9 +566,7 @@ def test_the_speckle_choice_finds_the_phase_the_energy_choice_misses(z_sigma_m):
     from twinfocus.imaging.metrics import image_ssim
 
     basis, support, oracle, ap, tb, truth = _rough_field_reference(z_sigma_m)
-    err = lambda p: phase_error_rms(
-        np.angle(np.exp(1j * (p - oracle))) - fit_linear_phase(p - oracle, ap)[0], np.zeros_like(p)
-    )
+    err = _error_but_a_plane(oracle, ap)
     if z_sigma_m > 1e-3:
         assert err(np.zeros_like(oracle)) > 1.5  # every phase wrapped
     by_energy, info_e = outline_phase(basis, support, choose="energy")

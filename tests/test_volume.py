@@ -2,12 +2,10 @@
 points land in the voxels where they are, the PLY reads back, and ``focus --volume`` writes
 what it promises after checking what it will cost."""
 
-import json
-
 import numpy as np
 import pytest
 
-from twinfocus.cli import main
+from tests.helpers import REF_ROI, aperture, cli, metrics, points_scan
 from twinfocus.cli.focus import volume_plan
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.backprojection.numba_backend import subimage_basis
@@ -23,32 +21,13 @@ from twinfocus.imaging.volume import (
     volume_grid,
 )
 from twinfocus.io.arrays import ply_bytes, read_ply_points
-from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array
-
-
-def _aperture(n_rows=16, pitch=0.004, columns=(-0.02, 0.0, 0.02)):
-    va = mmwcas_virtual_array()
-    return np.array(
-        [
-            va.offsets_m + np.array([cx, y, 0.0])
-            for cx in columns
-            for y in (np.arange(n_rows) - (n_rows - 1) / 2) * pitch
-        ]
-    )
-
-
-def _points_scan(chirp, positions, points, amplitudes):
-    data = np.zeros((*positions.shape[:2], chirp.n_samples), np.complex128)
-    for p, a in zip(points, amplitudes):
-        r = np.linalg.norm(positions - p, axis=-1)
-        data += a * np.exp(1j * 2 * np.pi * chirp.frequencies_hz * 2 * r[..., None] / C_M_PER_S)
-    return data.astype(np.complex64)
+from twinfocus.radar.fmcw import Chirp
 
 
 def test_phase_on_the_samples_equals_phase_on_the_basis():
     ch = Chirp()
-    pos = _aperture(n_rows=8)
-    data = _points_scan(ch, pos, [np.array([0.01, 0.0, 0.5])], [1.0])
+    pos = aperture(n_rows=8)
+    data = points_scan(ch, pos, [np.array([0.01, 0.0, 0.5])], [1.0])
     phase = np.random.default_rng(0).uniform(-np.pi, np.pi, pos.shape[0])
     grid = ImageGrid(-0.02, 0.04, -0.03, 0.03, 0.5, 9, 7)
     want = form_image(subimage_basis(data, pos, ch, grid), phase)
@@ -73,9 +52,9 @@ def test_volume_grid_planes():
 
 def test_two_points_at_two_depths_land_in_their_voxels(tmp_path):
     ch = Chirp()
-    pos = _aperture()
+    pos = aperture(n_rows=16)
     pts = [np.array([-0.03, 0.01, 0.55]), np.array([0.03, -0.01, 0.65])]
-    data = _points_scan(ch, pos, pts, [1.0, 1.0])
+    data = points_scan(ch, pos, pts, [1.0, 1.0])
     plane = ImageGrid(-0.06, 0.06, -0.04, 0.04, 1.0, 25, 17)  # 5 mm pixels
     grid = volume_grid(plane, 0.5, 0.7, 0.01)
     vol = corrected_image(data, pos, ch, grid, np.zeros(pos.shape[0]))
@@ -124,69 +103,14 @@ def test_volume_plan_covers_both_regions_and_refuses_what_cannot_fit(monkeypatch
 
 
 @pytest.mark.slow
-def test_focus_writes_the_volume(tmp_path):
-    d = tmp_path
-    assert (
-        main(
-            [
-                "simulate",
-                "--out",
-                str(d / "scan.npz"),
-                "--template-out",
-                str(d / "tpl.npz"),
-                "--columns",
-                "3",
-                "--rows",
-                "40",
-                "--quiet",
-                "--seed",
-                "3",
-                "--target-depth-offset",
-                "0.08",
-            ]
-        )
-        == 0
-    )
-    out = d / "out"
-    assert (
-        main(
-            [
-                "focus",
-                str(d / "scan.npz"),
-                "--reference-roi",
-                "-0.15",
-                "0.0",
-                "-0.11",
-                "0.12",
-                "0.6",
-                "--target-roi",
-                "0.016",
-                "0.103",
-                "-0.0785",
-                "0.0785",
-                "0.68",
-                "--size",
-                "40",
-                "--iterations",
-                "150",
-                "--space-variant",
-                "off",
-                "--template-scan",
-                str(d / "tpl.npz"),
-                "--out",
-                str(out),
-                "--quiet",
-                "--no-cache",
-                "--volume",
-                "0.55",
-                "0.73",
-                "0.01",
-            ]
-        )
-        == 0
-    )
+def test_focus_writes_the_volume(deep_scene, tmp_path):
+    d, out = deep_scene, tmp_path / "out"
+    rois = ("--reference-roi", *REF_ROI, "--target-roi 0.016 0.103 -0.0785 0.0785 0.68")
+    options = "--size 40 --iterations 150 --space-variant off --quiet --no-cache"
+    volume = "--volume 0.55 0.73 0.01"
+    assert cli("focus", d / "scan.npz", *rois, options, "--template-scan", d / "tpl.npz", "--out", out, volume) == 0
     vol = np.load(out / "volume.npy")
-    m = json.loads((out / "metrics.json").read_text())["volume"]
+    m = metrics(out)["volume"]
     assert vol.shape == tuple(m["shape"]) == (19, 40, 40) and vol.dtype == np.complex64
     for name in ("volume.ply", "volume_mip.png", "volume_depth.png"):
         assert (out / name).is_file()
@@ -209,33 +133,5 @@ def test_focus_writes_the_volume(tmp_path):
     cloud, _ = read_ply_points(out / "volume.ply")
     assert len(cloud) > 0 and cloud[:, 2].min() >= 0.55 - 1e-6
     # a run without --volume into the same folder (--overwrite) leaves no volume of the earlier result
-    assert (
-        main(
-            [
-                "focus",
-                str(d / "scan.npz"),
-                "--reference-roi",
-                "-0.15",
-                "0.0",
-                "-0.11",
-                "0.12",
-                "0.6",
-                "--target-roi",
-                "0.016",
-                "0.103",
-                "-0.0785",
-                "0.0785",
-                "0.68",
-                "--size",
-                "16",
-                "--method",
-                "none",
-                "--out",
-                str(out),
-                "--quiet",
-                "--overwrite",
-            ]
-        )
-        == 0
-    )
+    assert cli("focus", d / "scan.npz", *rois, "--size 16 --method none --out", out, "--quiet --overwrite") == 0
     assert not [p.name for p in out.glob("volume*")]
