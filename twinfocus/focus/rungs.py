@@ -614,7 +614,10 @@ class SmoothDrift(Rung):
 
     def _fit(self, problem: Problem, model: Model, halves, fitted: np.ndarray | None = None, **settings):
         """fit_smooth_drift on the reference, or on its ``fitted`` pixels alone (bool (H, W))."""
-        from twinfocus.focus.space_variant import DriftFitSettings, fit_smooth_drift  # lazy: numba, scipy (+1.4 s at import; only this rung fits the drift)
+        from twinfocus.focus.space_variant import (  # lazy: numba, scipy (+1.4 s at import; only this rung fits the drift)
+            DriftFitSettings,
+            fit_smooth_drift,
+        )
 
         assert model.template is not None
         return fit_smooth_drift(
