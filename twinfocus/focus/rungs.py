@@ -273,6 +273,10 @@ class PhasePerPosition(Rung):
         if problem.config.init != "correlation" or template is None or not np.iscomplexobj(template):
             return None
         first = heldout_split(problem)
+        if not (np.any(template[first]) and np.any(template[~first])):
+            # a template with nothing on one half (a single bright pixel) gives no held-out evidence;
+            # recording evidence must never refuse a run the fit itself accepted
+            return None
         basis = problem.ref_basis
         uncorrected = form_image(basis, np.zeros(basis.shape[0]))
         folds = [
