@@ -499,7 +499,7 @@ def confidence_report(
         )
     if "model" in m:
         out["model"] = m["model"]["result"]
-    out.update(rig_trust((m.get("digital_twin") or {}).get("rig"), out["warnings"]))
+    out.update(rig_trust((m.get("digital_twin") or {}).get("rig")))
     out["trusted"] = not out["warnings"]
     return out
 
