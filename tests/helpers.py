@@ -1,18 +1,21 @@
 """What several test files run or build the same way: command lines for ``twinfocus`` (``cli``),
 the small simulated scenes the offline commands are tested on (conftest.py's session fixtures),
 the brute-force echo of point scatterers the imaging tests take as their truth, an mmWave Studio
-JSON, and a scan as the synchronizer's measurements."""
+JSON, a scan as the synchronizer's measurements, and the refusal of a malformed file."""
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 from msgs import Header, SarMeasurement
 from twinfocus.cli import main
+from twinfocus.errors import TwinFocusError
 from twinfocus.radar.fmcw import C_M_PER_S, Chirp, mmwcas_virtual_array
 
 # The simulated scene's two letters (twinfocus.simulation.scenario.Scenario): x0 x1 y0 y1 z in m.
@@ -53,6 +56,13 @@ def convert_capture(folder: Path, *options: object) -> int:
     """``convert`` of the capture ``folder/cap`` with its trajectory ``folder/traj.txt`` into
     ``folder/s.npz``; returns the exit code."""
     return cli("convert", folder / "cap", "--trajectory", folder / "traj.txt", "--out", folder / "s.npz", *options)
+
+
+def assert_refuses(load: Callable[[Path], object], path: Path, text: str, message: str) -> None:
+    """``load`` of a file holding ``text`` at ``path`` raises a TwinFocusError matching ``message``."""
+    path.write_text(text)
+    with pytest.raises(TwinFocusError, match=message):
+        load(path)
 
 
 def aperture(n_rows: int, pitch_m: float = 0.004, columns_m: tuple[float, ...] = (-0.02, 0.0, 0.02)) -> np.ndarray:

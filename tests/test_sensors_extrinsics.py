@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.helpers import assert_refuses
 from twinfocus.errors import TwinFocusError
 from twinfocus.motion.trajectory import Poses, quat_from_rotvec, quat_to_matrix
 from twinfocus.sensors.extrinsics import RadarCameraExtrinsics, fit_rigid_transform, image_offset_m
@@ -64,10 +65,7 @@ def test_calibration_file_forms_agree_and_round_trip(tmp_path):
     ],
 )
 def test_bad_calibration_files_are_refused(tmp_path, text, message):
-    p = tmp_path / "e.yaml"
-    p.write_text(text)
-    with pytest.raises(TwinFocusError, match=message):
-        RadarCameraExtrinsics.load(p)
+    assert_refuses(RadarCameraExtrinsics.load, tmp_path / "e.yaml", text, message)
 
 
 def test_rigid_fit_recovers_a_known_transform():

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.helpers import assert_refuses
 from twinfocus.errors import TwinFocusError
 from twinfocus.motion.trajectory import Poses
 from twinfocus.sensors.trajectory_files import read_euroc, read_trajectory, read_tum, write_euroc, write_tum
@@ -86,10 +87,7 @@ def test_round_trip_is_exact_and_keeps_confidence(tmp_path, write, read):
     ],
 )
 def test_bad_tum_files_are_refused(tmp_path, text, message):
-    p = tmp_path / "t.txt"
-    p.write_text(text)
-    with pytest.raises(TwinFocusError, match=message):
-        read_tum(p)
+    assert_refuses(read_tum, tmp_path / "t.txt", text, message)
 
 
 def test_bad_euroc_files_are_refused(tmp_path):
