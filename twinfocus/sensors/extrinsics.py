@@ -32,7 +32,7 @@ import numpy as np
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.subpixel import parabola_vertex
 from twinfocus.io.atomic import write_text_atomic
-from twinfocus.io.documents import read_yaml
+from twinfocus.io.documents import read_file, read_yaml
 from twinfocus.motion.trajectory import Poses, matrix_to_quat, quat_to_matrix
 
 #: A lever arm longer than this is taken for a unit mistake (millimetres instead of metres).
@@ -157,13 +157,7 @@ class RadarCameraExtrinsics:
         """Read a calibration file (YAML, see the module docstring)."""
         import yaml
 
-        path = Path(path)
-        if not path.is_file():
-            raise TwinFocusError(f"{path}: no such extrinsics file")
-        try:
-            d = read_yaml(path)
-        except yaml.YAMLError as exc:
-            raise TwinFocusError(f"{path}: not valid YAML ({exc})") from None
+        d = read_file(path, read_yaml, "extrinsics file", "not valid YAML", (yaml.YAMLError,))
         return cls.from_dict(d, where=str(path))
 
     def save(self, path: str | os.PathLike) -> Path:

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.io.documents import read_json, write_json_document
+from twinfocus.io.documents import read_file, read_json, write_json_document
 
 ZED2I_BASELINE_M = 0.120
 ZED2I_HD720 = (1280, 720)
@@ -329,12 +329,7 @@ class StereoCamera:
     @classmethod
     def load(cls, path: str | os.PathLike) -> StereoCamera:
         path = Path(path)
-        if not path.is_file():
-            raise TwinFocusError(f"{path}: no such camera calibration file")
-        try:
-            d = read_json(path)
-        except (OSError, ValueError) as exc:
-            raise TwinFocusError(f"{path}: not a readable JSON camera calibration ({exc})") from None
+        d = read_file(path, read_json, "camera calibration file", "not a readable JSON camera calibration")
         try:
             return cls.from_dict(d)
         except (TwinFocusError, TypeError, ValueError) as exc:

@@ -35,6 +35,7 @@ import numpy as np
 from twinfocus.errors import TwinFocusError
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.io.arrays import load_npy
+from twinfocus.io.documents import read_file
 from twinfocus.radar.fmcw import C_M_PER_S, Chirp
 
 # Largest depth spread (metres) one PSF serves: a point dz off its slab's depth is defocused by
@@ -332,12 +333,7 @@ def load_points(path: str | os.PathLike, allow_non_finite: bool = False) -> np.n
     if (source := split_bag_source(str(path))) is not None:
         return _bag_points(source, allow_non_finite)
     path = Path(path)
-    if not path.is_file():
-        raise TwinFocusError(f"{path}: no such point-cloud file")
-    try:
-        p = load_npy(path)
-    except (OSError, ValueError) as exc:
-        raise TwinFocusError(f"{path}: not a readable .npy point cloud ({exc})") from None
+    p = read_file(path, load_npy, "point-cloud file", "not a readable .npy point cloud")
     if p.ndim != 2 or p.shape[1] != 3 or not np.issubdtype(p.dtype, np.number):
         raise TwinFocusError(f"{path}: a point cloud must be an (N, 3) array of metres, got {p.dtype} {p.shape}")
     if allow_non_finite:
