@@ -219,7 +219,7 @@ def phase_gradient_phase(
 
     Parameters
     ----------
-    basis : complex (M, H, W) sub-image basis of the region (any scale; complex64 or complex128).
+    basis, tol_rad, init_phase_rad : as :func:`minimum_entropy_phase`.
     iterations : at most this many (>= 1); stops earlier when no phase moved by more than
         ``tol_rad``.
     n_pixels : the most scatterer pixels used (>= 1).
@@ -227,13 +227,10 @@ def phase_gradient_phase(
     floor_db : only maxima within this many dB (intensity) of the brightest count: the dominant
         scatterers, not their sidelobes (-10: on point scenes with 20 dB SNR, the estimate's error
         was 3-6 x smaller than with -20).
-    tol_rad : convergence threshold, radians.
-    init_phase_rad : float (M,) radians to start from (zeros when None).
 
     Returns
     -------
-    phase_rad : float64 (M,) radians in [-pi, pi), known up to a constant and a linear ramp
-        across the aperture.
+    phase_rad : as :func:`minimum_entropy_phase`.
     info : dict with ``iterations`` (run), ``converged`` (bool), ``n_pixels`` (used in the last
         iteration), ``energy_fraction`` (float: the share of the image's energy at those pixels,
         uncorrected then after each iteration), ``time_s``.
