@@ -166,6 +166,27 @@ def test_batch_on_a_two_worker_local_cluster_equals_separate_focus_runs(scans, t
     assert _summary(out)["phys3"]["target_ssim_corrected"] == rows["phys3"]["target_ssim_corrected"]
 
 
+def test_an_item_run_again_is_kept_unless_the_batch_focuses_every_item_anew(scans, tmp_path):
+    """Dask runs a finished task again when the worker holding its row dies before the row is
+    gathered: the item's whole folder is kept, not refused as an existing --out. ``--no-resume``
+    focuses every item again and replaces the batch's own earlier output."""
+    from twinfocus.cli.batch_jobs import focus_item, read_manifest, run_batch
+
+    manifest = _write_csv(scans / "again.csv", _rows(["a0"], scan="scan3.npz", method="none", size="16"))
+    out = tmp_path / "b"
+    (item,) = read_manifest(manifest, out)
+    first = focus_item(item)
+    target = Path(item.out) / "target.npy"
+    before = target.stat().st_mtime_ns
+    rerun = focus_item(item)
+    assert rerun["status"] == first["status"] == "ok" and rerun["error"] == ""
+    assert rerun["target_ssim_corrected"] == first["target_ssim_corrected"]
+    assert target.stat().st_mtime_ns == before
+    (row,) = run_batch(manifest, out, workers=1, resume=False)
+    assert row["status"] == "ok", row["error"]
+    assert target.stat().st_mtime_ns != before
+
+
 @pytest.mark.slow
 def test_summary_lists_pending_items_from_the_start_and_the_local_cluster_opens_no_dashboard(scans, tmp_path):
     import urllib.error

@@ -33,7 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--no-resume",
         action="store_true",
-        help="focus every item again (default: items finished earlier with the same options are kept)",
+        help="focus every item again, replacing its earlier output (default: items finished earlier with the same options are kept)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress output")
 

@@ -200,15 +200,23 @@ def _worker_name() -> str:
         return f"{socket.gethostname()}:{os.getpid()}"
 
 
-def focus_item(item: BatchItem, threads=None) -> dict:
+def focus_item(item: BatchItem, threads=None, again: bool = False) -> dict:
     """Focus one item exactly as ``twinfocus focus ARGV`` would; returns its summary row. A failure
-    is returned as a row with status 'failed' and the one-line error, so the batch goes on."""
+    is returned as a row with status 'failed' and the one-line error, so the batch goes on.
+
+    An item already finished with the same options is returned as it is: Dask runs a finished task
+    again when the worker holding its row dies before the row is gathered, and the item's folder
+    is whole by then. ``again`` (``--no-resume``) focuses it anew, replacing the batch's earlier
+    output of it."""
+    prev = None if again else finished(item)
+    if prev:
+        return {**prev, "status": "ok"}
     t0 = time.perf_counter()
     row: dict = {"name": item.name, "status": "ok", "error": "", "worker": _worker_name(), "out": item.out}
     try:
         limit_threads(threads)
         check_visible(item.paths, item.missing_here)
-        args = focus_parser().parse_args(item.argv)
+        args = focus_parser().parse_args(item.argv + (["--overwrite"] if again else []))
         err = io.StringIO()
         # focus's summary line and warnings; the row carries the metrics and the warnings
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
@@ -286,7 +294,15 @@ def run_batch(
     try:
         if todo:
             with dask_client(scheduler, workers, log) as client:
-                run_tasks(client, focus_item, todo, [f"focus-{it.name}" for it in todo], record, progress=progress)
+                run_tasks(
+                    client,
+                    focus_item,
+                    todo,
+                    [f"focus-{it.name}" for it in todo],
+                    record,
+                    progress=progress,
+                    extra=(not resume,),
+                )
     except KeyboardInterrupt:
         write_summary(out, items, rows)
         n_done = sum(1 for it in todo if it.name in rows)
