@@ -42,8 +42,13 @@ browser-deps:
 	  || echo "[make] could not install chromium: the browser test will be skipped"; \
 	fi
 
+# The whole suite on two pytest-xdist workers, one test file each at a time (a file's fixtures are
+# built once): the tests wait on subprocesses, sockets and sleeps a good part of their time. Measured
+# by benchmarks/bench_test_fast.py --all into benchmarks/results/test_suite.json: W s wall for N tests
+# (S s of summed test durations) at load A -> B on 2 cores. tests/test_makefile.py checks this
+# comment against the file.
 test: $(STAMP) browser-deps
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 # The tests not marked slow: the quick check while working (make test runs them all). Measured by
 # benchmarks/bench_test_fast.py into benchmarks/results/test_fast.json, idle: 115.3 s wall for 1076 tests

@@ -166,6 +166,7 @@ def test_batch_on_a_two_worker_local_cluster_equals_separate_focus_runs(scans, t
     assert _summary(out)["phys3"]["target_ssim_corrected"] == rows["phys3"]["target_ssim_corrected"]
 
 
+@pytest.mark.slow
 def test_an_item_run_again_is_kept_unless_the_batch_focuses_every_item_anew(scans, tmp_path):
     """Dask runs a finished task again when the worker holding its row dies before the row is
     gathered: the item's whole folder is kept, not refused as an existing --out. ``--no-resume``

@@ -6,16 +6,19 @@ import json
 import re
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_the_test_fast_comment_says_what_its_file_says() -> None:
+@pytest.mark.parametrize(("target", "name"), [("test-fast", "test_fast"), ("test", "test_suite")])
+def test_the_test_targets_comments_say_what_their_files_say(target: str, name: str) -> None:
     makefile = (ROOT / "Makefile").read_text(encoding="utf-8")
     comment = " ".join(
-        makefile[: makefile.index("test-fast: $(STAMP)")].rsplit("\n\n", 1)[-1].replace("#", " ").split()
+        makefile[: makefile.index(f"\n{target}: $(STAMP)") + 1].rsplit("\n\n", 1)[-1].replace("#", " ").split()
     )
-    measured = json.loads((ROOT / "benchmarks" / "results" / "test_fast.json").read_text())
-    assert "benchmarks/results/test_fast.json" in comment
+    measured = json.loads((ROOT / "benchmarks" / "results" / f"{name}.json").read_text())
+    assert f"benchmarks/results/{name}.json" in comment
     m = re.search(
         r"([\d.]+) s wall for (\d+) tests \(([\d.]+) s of summed test durations\) at load ([\d.]+) -> ([\d.]+)", comment
     )
@@ -26,4 +29,5 @@ def test_the_test_fast_comment_says_what_its_file_says() -> None:
         measured["load_average_1_5_15_before"][0],
         measured["load_average_1_5_15_after"][0],
     ]
+    assert measured["exit_code"] == 0, measured["summary"]
     assert "two minutes" not in comment and "about" not in comment  # no estimate beside the measurement
