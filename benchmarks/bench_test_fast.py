@@ -87,6 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         "load_average_1_5_15_after": [round(v, 2) for v in load_after],
         "exit_code": rc,
         "summary": summary[-1] if summary else None,
+        "failed": sorted({m.group(1) for m in re.finditer(r"^(?:FAILED|ERROR) (\S+)", out, re.M)}),
         "tests_collected": n,
         "tests_timed": len(rows),
         "wall_s": round(wall, 1),
