@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import focus_argv
+from benchmarks.common import focus_argv, write_result
 from twinfocus.cli import main as cli
 from twinfocus.focus.autofocus import AutofocusConfig
 from twinfocus.imaging.backprojection.numba_backend import backproject
@@ -114,10 +114,7 @@ def main(out_dir: str = "benchmarks/results") -> dict:
             "max": float(np.max(gain)),
         },
     }
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "reference_combine.json").write_text(json.dumps(doc, indent=2))
-    return doc
+    return write_result(out_dir, "reference_combine.json", doc)
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import focus_argv
+from benchmarks.common import focus_argv, write_result
 from twinfocus.cli import main as cli
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.jobs.machine import machine_info
@@ -100,10 +100,7 @@ def main(out_dir: str = "benchmarks/results") -> dict:
             "focus_seconds_found": sum(found["timings_s"].values()),
         },
     }
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "where.json").write_text(json.dumps(doc, indent=2))
-    return doc
+    return write_result(out_dir, "where.json", doc)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,9 @@
 """What several benchmarks do alike: the ``twinfocus focus`` command line they run on a scan and
-its template scan."""
+its template scan, and the result JSON they write."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -33,3 +34,11 @@ def focus_argv(
         str(size),
         *options,
     ]
+
+
+def write_result(out_dir: Path | str, name: str, doc: dict) -> dict:
+    """Write ``doc`` as indented JSON to ``out_dir/name`` (the folder made if missing); returns ``doc``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / name).write_text(json.dumps(doc, indent=2))
+    return doc
