@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.common import focus_argv
 from twinfocus.focus.autofocus import AutofocusConfig, twin_autofocus
 from twinfocus.focus.estimators import ESTIMATORS, PHASE_ESTIMATORS, estimator_settings
 from twinfocus.imaging.backprojection.numba_backend import (
@@ -350,19 +351,7 @@ def bench_end_to_end(scan, template_scan, sc, quick) -> dict:
             capture_output=True,
             text=True,
         ).stdout.strip()
-        args = [
-            "focus",
-            str(d / "scan.npz"),
-            "--template-scan",
-            str(d / "tpl.npz"),
-            "--reference-roi",
-            *map(str, sc.reference_roi()),
-            "--target-roi",
-            *map(str, sc.target_roi()),
-            "--size",
-            "100",
-            "--quiet",
-        ]
+        args = focus_argv(d / "scan.npz", d / "tpl.npz", sc.reference_roi(), sc.target_roi(), 100, "--quiet")
         runs = {}
         for name, extra in (
             ("first (template computed)", []),

@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.bench_handheld import CONDITIONS, draw_bases
+from benchmarks.common import focus_argv
 from twinfocus.focus import space_variant as sv
 from twinfocus.focus.autofocus import AutofocusConfig
 from twinfocus.focus.estimators import estimator_settings
@@ -228,17 +229,12 @@ def focus_profile(
         env = {**os.environ, "TWINFOCUS_CACHE_DIR": str(work / f"cache{seed}")}
 
     def command(model: str, out: Path) -> list[str]:
-        return [
-            "focus",
-            str(scan),
-            "--template-scan",
-            str(stage),
-            "--reference-roi",
-            *map(str, roi[0]),
-            "--target-roi",
-            *map(str, roi[1]),
-            "--size",
-            "100",
+        return focus_argv(
+            scan,
+            stage,
+            roi[0],
+            roi[1],
+            100,
             "--model",
             model,
             "--out",
@@ -246,7 +242,7 @@ def focus_profile(
             "--no-pictures",
             *([] if as_user else ["--no-cache"]),
             "--quiet",
-        ]
+        )
 
     if as_user:  # the cache's first fill is not what a user waits for on later scans
         subprocess.run(exe + command("none", work / f"focus{seed}_warm"), check=True, env=env)

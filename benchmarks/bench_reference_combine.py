@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import focus_argv, write_result
 from twinfocus.cli import main as cli
 from twinfocus.focus.autofocus import AutofocusConfig
 from twinfocus.imaging.backprojection.numba_backend import backproject
@@ -57,10 +58,9 @@ def combined_phase(phases: list[np.ndarray], confidences: list[dict]) -> np.ndar
 
 
 def _focus(d: Path, template: Path, out: Path) -> tuple[np.ndarray, dict]:
-    rc = cli(["focus", str(d / "scan.npz"), "--template-scan", str(template),
-              "--reference-roi", *map(str, PAPER_REFERENCE_ROI), "--target-roi", *map(str, PAPER_TARGET_ROI),
-              "--size", str(SIZE), "--iterations", "150", "--space-variant", "off", "--out", str(out), "--quiet",
-              "--no-cache", "--pictures", "none"])  # fmt: skip
+    rc = cli(focus_argv(d / "scan.npz", template, PAPER_REFERENCE_ROI, PAPER_TARGET_ROI, SIZE,
+                        "--iterations", "150", "--space-variant", "off", "--out", str(out), "--quiet",
+                        "--no-cache", "--pictures", "none"))  # fmt: skip
     assert rc == 0
     return np.load(out / "phase.npy"), json.loads((out / "metrics.json").read_text())
 
@@ -114,10 +114,7 @@ def main(out_dir: str = "benchmarks/results") -> dict:
             "max": float(np.max(gain)),
         },
     }
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "reference_combine.json").write_text(json.dumps(doc, indent=2))
-    return doc
+    return write_result(out_dir, "reference_combine.json", doc)
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import focus_argv, write_result
 from twinfocus.cli import main as cli
 from twinfocus.imaging.grid import ImageGrid
 from twinfocus.jobs.machine import machine_info
@@ -34,19 +35,13 @@ VOLUME = ("0.5", "0.695", "0.005")
 
 
 def _focus(d: Path, out: Path, target: list[str], *extra: str) -> dict:
-    ref = [str(v) for v in PAPER_REFERENCE_ROI]
     rc = cli(
-        [
-            "focus",
-            str(d / "scan.npz"),
-            "--template-scan",
-            str(d / "tpl.npz"),
-            "--reference-roi",
-            *ref,
-            "--target-roi",
-            *target,
-            "--size",
-            "100",
+        focus_argv(
+            d / "scan.npz",
+            d / "tpl.npz",
+            PAPER_REFERENCE_ROI,
+            target,
+            100,
             "--space-variant",
             "off",
             "--out",
@@ -56,7 +51,7 @@ def _focus(d: Path, out: Path, target: list[str], *extra: str) -> dict:
             "--pictures",
             "none",
             *extra,
-        ]
+        )
     )
     assert rc == 0
     return json.loads((out / "metrics.json").read_text())
@@ -105,10 +100,7 @@ def main(out_dir: str = "benchmarks/results") -> dict:
             "focus_seconds_found": sum(found["timings_s"].values()),
         },
     }
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "where.json").write_text(json.dumps(doc, indent=2))
-    return doc
+    return write_result(out_dir, "where.json", doc)
 
 
 if __name__ == "__main__":

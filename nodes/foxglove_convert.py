@@ -80,17 +80,8 @@ from foxglove.messages import (
 )
 from foxglove.messages import Pose as FPose
 
+import msgs
 from msgs.mcap_log import LogReader, LogWriter
-from msgs.messages import (
-    AutofocusResult,
-    Image,
-    NodeStatus,
-    Pose,
-    RadarFrame,
-    SarMeasurement,
-    StereoFrame,
-    TwinTemplate,
-)
 from msgs.schema import MessageError
 from nodes.visualizer import amplitude_png
 from twinfocus.errors import TwinFocusError
@@ -191,7 +182,7 @@ def _json(topic: str, schema_name: str, value: dict, time_ns: int) -> FoxgloveMe
 
 
 #: messages whose header stamp is a sensor's clock (the others are stamped when computed)
-SENSOR_TYPES = (RadarFrame, Pose, StereoFrame, SarMeasurement)
+SENSOR_TYPES = (msgs.RadarFrame, msgs.Pose, msgs.StereoFrame, msgs.SarMeasurement)
 _DAY_NS = 86_400 * 10**9
 
 
@@ -306,7 +297,7 @@ class FoxgloveConverter:
         """The Foxglove records of one graph message (empty for types with no picture), all at
         its time on the one clock (:class:`SensorClock`); call in log order."""
         t = self.clock.time_ns(msg, log_time_ns)
-        if isinstance(msg, Image):
+        if isinstance(msg, msgs.Image):
             return [
                 amplitude_image(
                     f"/image/{msg.name or 'image'}",
@@ -316,11 +307,11 @@ class FoxgloveConverter:
                     t,
                 )
             ]
-        if isinstance(msg, TwinTemplate):
+        if isinstance(msg, msgs.TwinTemplate):
             return self._template(msg, t)
-        if isinstance(msg, Pose):
+        if isinstance(msg, msgs.Pose):
             return self._pose(msg, t)
-        if isinstance(msg, SarMeasurement):
+        if isinstance(msg, msgs.SarMeasurement):
             frame = msg.header.frame_id or self.scene_frame
             return [
                 point_cloud("/sar/phase_centres", msg.positions_m, t, frame, t),
@@ -331,7 +322,7 @@ class FoxgloveConverter:
                     t,
                 ),
             ]
-        if isinstance(msg, AutofocusResult):
+        if isinstance(msg, msgs.AutofocusResult):
             value = {
                 "scan_id": msg.scan_id,
                 "method": msg.method,
@@ -341,13 +332,13 @@ class FoxgloveConverter:
                 "timing_s": {k: float(v) for k, v in msg.timing_s.items()},
             }
             return [_json("/autofocus/result", "twinfocus.AutofocusResult", value, t)]
-        if isinstance(msg, StereoFrame):
+        if isinstance(msg, msgs.StereoFrame):
             return [self._camera(msg, t)]
-        if isinstance(msg, NodeStatus):
+        if isinstance(msg, msgs.NodeStatus):
             return self._status(msg, t)
         return []
 
-    def _template(self, msg: TwinTemplate, t: int) -> list[FoxgloveMessage]:
+    def _template(self, msg: msgs.TwinTemplate, t: int) -> list[FoxgloveMessage]:
         frame = msg.header.frame_id or self.scene_frame
         amp = np.abs(msg.image).astype(np.float64)
         peak = amp.max()
@@ -358,7 +349,7 @@ class FoxgloveConverter:
             out.append(point_cloud("/twin/points", pts, t, frame, t, intensity=amp[i, j] / peak))
         return out
 
-    def _pose(self, msg: Pose, t: int) -> list[FoxgloveMessage]:
+    def _pose(self, msg: msgs.Pose, t: int) -> list[FoxgloveMessage]:
 
         frame = msg.header.frame_id or self.scene_frame
         p, q = msg.position_m, msg.quat_xyzw
@@ -390,7 +381,7 @@ class FoxgloveConverter:
             out.append(_proto("/vio/trajectory", SceneUpdate(entities=[entity]), t))
         return out
 
-    def _camera(self, msg: StereoFrame, t: int) -> FoxgloveMessage:
+    def _camera(self, msg: msgs.StereoFrame, t: int) -> FoxgloveMessage:
 
         img = np.ascontiguousarray(msg.left)
         h, w = img.shape[:2]
@@ -406,7 +397,7 @@ class FoxgloveConverter:
         )
         return _proto("/camera/left", raw, t)
 
-    def _status(self, msg: NodeStatus, t: int) -> list[FoxgloveMessage]:
+    def _status(self, msg: msgs.NodeStatus, t: int) -> list[FoxgloveMessage]:
 
         lost = int(sum(msg.lost.values()))
         prev = self._node_state.get(msg.node)

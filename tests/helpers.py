@@ -1,7 +1,8 @@
 """What several test files run or build the same way: command lines for ``twinfocus`` (``cli``),
 the small simulated scenes the offline commands are tested on (conftest.py's session fixtures),
 the brute-force echo of point scatterers the imaging tests take as their truth, an mmWave Studio
-JSON, a scan as the synchronizer's measurements, and the refusal of a malformed file."""
+JSON, a scan as the synchronizer's measurements, the refusal of a malformed file, and a docs page's
+```sh blocks run as written."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from benchmarks.docs_pages import ROOT, page_env, run_blocks
 from msgs import Header, SarMeasurement
 from twinfocus.cli import main
 from twinfocus.errors import TwinFocusError
@@ -136,3 +138,21 @@ def sar_measurements(data, positions, chirp: Chirp, scan_id: str, stamps_ns=None
         )
         for i in range(n)
     ]
+
+
+def page_folder(tmp_path: Path, name: str = "work") -> tuple[Path, dict[str, str]]:
+    """An empty folder ``tmp_path/name`` to run a docs page's blocks in, and the reader's
+    environment for them (:func:`benchmarks.docs_pages.page_env`, its cache in ``tmp_path/cache``)."""
+    work = tmp_path / name
+    work.mkdir()
+    return work, page_env(tmp_path / "cache")
+
+
+def run_page_blocks(page: Path, work: Path, env: dict[str, str]) -> list[dict]:
+    """Every ```sh block of ``page`` run in ``work`` as a reader would
+    (:func:`benchmarks.docs_pages.run_blocks`'s records); fails the test at the first block that
+    fails, with its text and the end of what it printed."""
+    runs = run_blocks(page, work, env)
+    failed = [r for r in runs if r["returncode"] != 0]
+    assert not failed, f"{page.relative_to(ROOT)}: step failed:\n{failed[0]['block']}\n{failed[0]['printed'][-3000:]}"
+    return runs

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.docs_pages import ROOT, blocks, made, page_env, prerequisites, result_file, run_blocks
+from benchmarks.docs_pages import ROOT, blocks, made, prerequisites, result_file
+from tests.helpers import page_folder, run_page_blocks
 from tests.test_docs_figures import lookup, marked_figures
 
 #: chains of pages run in one folder each, in order: a later page uses what an earlier one made
@@ -85,13 +86,9 @@ def _agrees(where: str, quoted: float, value: float) -> bool:
 @pytest.mark.slow
 @pytest.mark.parametrize("chain", RUNS, ids=[" + ".join(Path(p).stem for p in c) for c in RUNS])
 def test_the_pages_run_as_written_and_make_what_they_quote(chain: list[str], tmp_path: Path) -> None:
-    work = tmp_path / "work"
-    work.mkdir()
-    env = page_env(tmp_path / "cache")
+    work, env = page_folder(tmp_path)
     for page in chain:
-        runs = run_blocks(ROOT / page, work, env)
-        failed = [r for r in runs if r["returncode"] != 0]
-        assert not failed, f"{page}: step failed:\n{failed[0]['block']}\n{failed[0]['printed'][-3000:]}"
+        run_page_blocks(ROOT / page, work, env)
         now = made(work)
         committed = json.loads(result_file(ROOT / page).read_text())
         assert sorted(now["outputs"]) == sorted(committed["outputs"]), page

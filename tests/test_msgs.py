@@ -4,24 +4,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from msgs import (
-    MESSAGE_TYPES,
-    TOPIC_TYPES,
-    AutofocusResult,
-    Header,
-    Image,
-    MessageError,
-    NodeStatus,
-    Pose,
-    RadarFrame,
-    SarMeasurement,
-    StereoFrame,
-    TwinTemplate,
-    decode,
-    decode_frames,
-    encode,
-    encode_frames,
-)
+import msgs
+from msgs import MESSAGE_TYPES, TOPIC_TYPES, Header, MessageError, decode, decode_frames, encode, encode_frames
 from twinfocus.errors import TwinFocusError
 from twinfocus.radar.fmcw import Chirp, mmwcas_virtual_array
 
@@ -43,7 +27,7 @@ def one_of_each():
     offsets = mmwcas_virtual_array().offsets_m
     c = Chirp()
     return [
-        RadarFrame(
+        msgs.RadarFrame(
             header=Header(1_000, 3, "radar"),
             data=cplx(k, n),
             f0_hz=c.f0_hz,
@@ -55,14 +39,14 @@ def one_of_each():
             last=False,
             positions_true_m=RNG.standard_normal((k, 3)),
         ),
-        Pose(
+        msgs.Pose(
             header=Header(2_000, 0, "scene"),
             position_m=np.array([0.1, -0.2, 0.003]),
             quat_xyzw=np.array([0.0, 0.0, np.sin(0.1), np.cos(0.1)]),
             confidence=0.9,
             child_frame_id="camera",
         ),
-        StereoFrame(
+        msgs.StereoFrame(
             header=Header(3, 1, "camera"),
             left=RNG.integers(0, 255, (48, 64, 3), dtype=np.uint8),
             right=RNG.integers(0, 255, (48, 64, 3), dtype=np.uint8),
@@ -70,7 +54,7 @@ def one_of_each():
             baseline_m=0.12,
             depth_m=RNG.random((48, 64)).astype(np.float32),
         ),
-        SarMeasurement(
+        msgs.SarMeasurement(
             header=Header(4, 2, "scene"),
             data=cplx(k, n),
             positions_m=RNG.standard_normal((k, 3)),
@@ -82,7 +66,7 @@ def one_of_each():
             last=True,
             pose_gap_ns=33_333_333,
         ),
-        TwinTemplate(
+        msgs.TwinTemplate(
             header=Header(5, 0, "scene"),
             image=RNG.random((30, 40)).astype(np.float32),
             x_m=np.linspace(-0.15, 0, 40),
@@ -93,7 +77,7 @@ def one_of_each():
             phase_rad=RNG.uniform(-3, 3, (30, 40)).astype(np.float32),
             support=RNG.random((30, 40)) > 0.5,
         ),
-        AutofocusResult(
+        msgs.AutofocusResult(
             header=Header(6, 0, "scene"),
             scan_id="s1",
             method="twin",
@@ -103,7 +87,7 @@ def one_of_each():
             timing_s={"autofocus": 1.5},
             estimator="outline",
         ),
-        Image(
+        msgs.Image(
             header=Header(7, 0, "scene"),
             name="target",
             scan_id="s1",
@@ -112,7 +96,7 @@ def one_of_each():
             y_m=np.linspace(-0.11, 0.12, 100),
             z_m=0.6,
         ),
-        NodeStatus(
+        msgs.NodeStatus(
             header=Header(8, 9, ""),
             node="solver",
             state="running",
@@ -166,7 +150,7 @@ def test_bus_and_blob_round_trips_are_bit_exact(msg):
 
 def test_large_array_round_trip_and_zero_copy_views():
     big = cplx(780, 86, 256).reshape(-1, 256)  # a whole scan's samples, 137 MB
-    m = SarMeasurement(data=big, positions_m=np.zeros((big.shape[0], 3)), f0_hz=1.0, slope_hz_per_s=1.0, fs_hz=1.0)
+    m = msgs.SarMeasurement(data=big, positions_m=np.zeros((big.shape[0], 3)), f0_hz=1.0, slope_hz_per_s=1.0, fs_hz=1.0)
     frames = encode_frames(m)
     # The array travels as its own frame, a view of the array's memory (no copy on send).
     data_frame = frames[1]
@@ -181,7 +165,7 @@ def test_large_array_round_trip_and_zero_copy_views():
 
 def test_non_contiguous_and_castable_inputs_are_normalised():
     data = cplx(10, 8).astype(np.complex128)[:, ::2]  # wrong dtype, non-contiguous
-    m = SarMeasurement(data=data, positions_m=np.zeros((10, 3), np.float32), f0_hz=1, slope_hz_per_s=2, fs_hz=3)
+    m = msgs.SarMeasurement(data=data, positions_m=np.zeros((10, 3), np.float32), f0_hz=1, slope_hz_per_s=2, fs_hz=3)
     assert m.data.dtype == np.complex64 and m.positions_m.dtype == np.float64
     back = decode(encode(m))
     assert np.array_equal(back.data, data.astype(np.complex64))
@@ -191,34 +175,36 @@ def test_non_contiguous_and_castable_inputs_are_normalised():
     "build, expected",
     [
         (
-            lambda: RadarFrame(data=cplx(4, 8), f0_hz=1, slope_hz_per_s=1, fs_hz=1, channel_offsets_m=np.zeros((5, 3))),
+            lambda: msgs.RadarFrame(
+                data=cplx(4, 8), f0_hz=1, slope_hz_per_s=1, fs_hz=1, channel_offsets_m=np.zeros((5, 3))
+            ),
             "channel_offsets_m",
         ),
         (
-            lambda: RadarFrame(
+            lambda: msgs.RadarFrame(
                 data=np.ones((4, 8)), f0_hz=1, slope_hz_per_s=1, fs_hz=1, channel_offsets_m=np.zeros((4, 3))
             ),
             "ok",
         ),  # real -> complex is a safe cast
         (
-            lambda: RadarFrame(
+            lambda: msgs.RadarFrame(
                 data=cplx(4, 8), f0_hz=-1, slope_hz_per_s=1, fs_hz=1, channel_offsets_m=np.zeros((4, 3))
             ),
             "f0_hz",
         ),
-        (lambda: Pose(position_m=np.zeros(3), quat_xyzw=np.array([1.0, 1.0, 0, 0])), "unit quaternion"),
-        (lambda: Pose(position_m=np.zeros(2), quat_xyzw=np.array([0, 0, 0, 1.0])), "position_m"),
-        (lambda: Image(image=np.ones((3, 4), complex), x_m=np.zeros(3), y_m=np.zeros(3)), "x_m"),
+        (lambda: msgs.Pose(position_m=np.zeros(3), quat_xyzw=np.array([1.0, 1.0, 0, 0])), "unit quaternion"),
+        (lambda: msgs.Pose(position_m=np.zeros(2), quat_xyzw=np.array([0, 0, 0, 1.0])), "position_m"),
+        (lambda: msgs.Image(image=np.ones((3, 4), complex), x_m=np.zeros(3), y_m=np.zeros(3)), "x_m"),
         (
-            lambda: StereoFrame(
+            lambda: msgs.StereoFrame(
                 left=np.zeros((4, 4), np.uint8), right=np.zeros((4, 5), np.uint8), camera_matrix=np.eye(3)
             ),
             "right",
         ),
-        (lambda: TwinTemplate(image=np.zeros((2, 2), complex), x_m=np.zeros(2), y_m=np.zeros(2), z_m=1), "image"),
-        (lambda: TwinTemplate(**flat_2x2(), phase_rad=np.zeros((2, 3), np.float32)), "phase_rad"),
+        (lambda: msgs.TwinTemplate(image=np.zeros((2, 2), complex), x_m=np.zeros(2), y_m=np.zeros(2), z_m=1), "image"),
+        (lambda: msgs.TwinTemplate(**flat_2x2(), phase_rad=np.zeros((2, 3), np.float32)), "phase_rad"),
         (
-            lambda: TwinTemplate(
+            lambda: msgs.TwinTemplate(
                 image=np.zeros((2, 3), np.float32),
                 x_m=np.zeros(3),
                 y_m=np.zeros(2),
@@ -227,9 +213,9 @@ def test_non_contiguous_and_castable_inputs_are_normalised():
             ),
             r"field 'support' must be bool array of shape \(H, W\) or None, got shape \(3, 2\) \(already bound: H=2, W=3\)",
         ),
-        (lambda: TwinTemplate(**flat_2x2(), support=np.ones((2, 2), np.uint8)), "'support' must be bool.*uint8"),
-        (lambda: NodeStatus(received={"a": 1.5}), "received"),
-        (lambda: AutofocusResult(phase_rad=np.zeros(3), loss_history=np.zeros(2), metrics={"a": "x"}), "metrics"),
+        (lambda: msgs.TwinTemplate(**flat_2x2(), support=np.ones((2, 2), np.uint8)), "'support' must be bool.*uint8"),
+        (lambda: msgs.NodeStatus(received={"a": 1.5}), "received"),
+        (lambda: msgs.AutofocusResult(phase_rad=np.zeros(3), loss_history=np.zeros(2), metrics={"a": "x"}), "metrics"),
     ],
 )
 def test_construction_validates_with_a_message_naming_the_field(build, expected):
@@ -249,7 +235,7 @@ def _pack(env):
 
 
 def _pose():
-    return Pose(position_m=np.zeros(3), quat_xyzw=np.array([0, 0, 0, 1.0]))
+    return msgs.Pose(position_m=np.zeros(3), quat_xyzw=np.array([0, 0, 0, 1.0]))
 
 
 def test_malformed_messages_are_rejected_with_clear_errors():
@@ -299,7 +285,7 @@ def test_malformed_messages_are_rejected_with_clear_errors():
     with pytest.raises(MessageError, match="unit quaternion"):
         decode(_pack(env))
     with pytest.raises(MessageError, match="expected a RadarFrame message, got Pose"):
-        decode(encode(pose), expect=RadarFrame)
+        decode(encode(pose), expect=msgs.RadarFrame)
     frames = encode_frames(pose)
     with pytest.raises(MessageError, match="refers to buffer 1, the message has 1"):
         decode_frames(frames[:2])
@@ -324,7 +310,7 @@ def test_chirp_of_a_frame_is_the_radar_model_chirp():
 
 def test_a_result_recorded_before_latency_and_metrics_pending_decodes_with_their_defaults():
     """Logs written before the fields existed: latency 0 (unknown) and a final result."""
-    msg = AutofocusResult(
+    msg = msgs.AutofocusResult(
         header=Header(6, 0, "scene"),
         scan_id="old",
         method="twin",
@@ -336,9 +322,9 @@ def test_a_result_recorded_before_latency_and_metrics_pending_decodes_with_their
     env = msgpack.unpackb(encode(msg), raw=False)
     for name in ("latency_s", "metrics_pending", "estimator"):
         del env["fields"][name]
-    old = decode(msgpack.packb(env, use_bin_type=True), AutofocusResult)
+    old = decode(msgpack.packb(env, use_bin_type=True), msgs.AutofocusResult)
     assert old.latency_s == 0.0 and old.metrics_pending is False and old.scan_id == "old" and old.estimator == ""
-    new = decode(encode(msg), AutofocusResult)
+    new = decode(encode(msg), msgs.AutofocusResult)
     assert new.latency_s == 0.7 and new.metrics_pending is True
 
 
@@ -346,14 +332,14 @@ def test_a_template_recorded_before_support_decodes_without_an_outline_and_a_bad
     """TwinTemplate.support: absent from logs written before the field (and physical twins'), so
     those decode with None; one that does not fit the image is refused naming the field."""
     msg = one_of_each()[4]
-    assert isinstance(msg, TwinTemplate) and msg.support is not None
+    assert isinstance(msg, msgs.TwinTemplate) and msg.support is not None
     env = _envelope(msg)
     del env["fields"]["support"]
-    old = decode(_pack(env), TwinTemplate)
+    old = decode(_pack(env), msgs.TwinTemplate)
     assert old.support is None and np.array_equal(old.image, msg.image) and old.source == "stage.npz"
     env = _envelope(msg)
     env["fields"]["support"] = None  # as a physical twin's is sent
-    assert decode(_pack(env), TwinTemplate).support is None
+    assert decode(_pack(env), msgs.TwinTemplate).support is None
     env = _envelope(msg)
     env["fields"]["support"].update(shape=[40, 30])  # same bytes, transposed shape
     with pytest.raises(
@@ -361,8 +347,8 @@ def test_a_template_recorded_before_support_decodes_without_an_outline_and_a_bad
         match=r"TwinTemplate: field 'support' must be bool array of shape \(H, W\).*"
         r"got shape \(40, 30\) \(already bound: H=30, W=40\)",
     ):
-        decode(_pack(env), TwinTemplate)
+        decode(_pack(env), msgs.TwinTemplate)
     env = _envelope(msg)
     env["fields"]["support"]["dtype"] = "|u1"
     with pytest.raises(MessageError, match="'support' must have dtype bool"):
-        decode(_pack(env), TwinTemplate)
+        decode(_pack(env), msgs.TwinTemplate)

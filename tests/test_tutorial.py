@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
 from pathlib import Path
 
 import pytest
 
-from benchmarks.docs_pages import blocks, page_env
+from benchmarks.docs_pages import blocks
+from tests.helpers import page_folder, run_page_blocks
 
 ROOT = Path(__file__).resolve().parents[1]
 TUTORIAL = ROOT / "docs" / "tutorial.md"
@@ -35,18 +35,8 @@ def test_the_parser_finds_the_steps() -> None:
 def test_the_tutorial_runs_as_written(tmp_path: Path) -> None:
     text = TUTORIAL.read_text(encoding="utf-8")
     # `python` and `twinfocus` are the environment's, as after `source .venv/bin/activate`.
-    env = page_env(tmp_path / "cache")
-    work = tmp_path / "tutorial"
-    work.mkdir()
-    printed = ""
-    for lang, body in blocks(text):
-        if lang != "sh":
-            continue
-        run = subprocess.run(
-            ["bash", "-euo", "pipefail", "-c", body], cwd=work, env=env, capture_output=True, text=True
-        )
-        assert run.returncode == 0, f"step failed:\n{body}\n{run.stderr[-3000:]}"
-        printed += run.stdout + run.stderr
+    work, env = page_folder(tmp_path, "tutorial")
+    printed = "".join(r["printed"] for r in run_page_blocks(TUTORIAL, work, env))
 
     missing = [p for p in named_outputs(text) if not (work / p).is_file()]
     assert not missing, f"the tutorial names files its commands did not write: {missing}"

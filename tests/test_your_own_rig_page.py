@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks.docs_pages import ROOT, blocks, output_figures, page_env, result_file, run_blocks
+from benchmarks.docs_pages import ROOT, blocks, output_figures, result_file
+from tests.helpers import page_folder, run_page_blocks
 
 PAGE = ROOT / "docs" / "howto" / "your_own_rig.md"
 #: the pictures the page shows (docs/images/...) and the files of the run they are copies of
@@ -58,12 +59,8 @@ def test_the_page_runs_as_written(tmp_path: Path) -> None:
     from twinfocus.radar.scan import Scan
 
     text = PAGE.read_text(encoding="utf-8")
-    env = page_env(tmp_path / "cache")
-    work = tmp_path / "work"
-    work.mkdir()
-    runs = run_blocks(PAGE, work, env)
-    failed = [r for r in runs if r["returncode"] != 0]
-    assert not failed, f"step failed:\n{failed[0]['block']}\n{failed[0]['printed'][-3000:]}"
+    work, env = page_folder(tmp_path)
+    runs = run_page_blocks(PAGE, work, env)
     assert len(runs) == sum(lang == "sh" for lang, _ in blocks(text))
     printed = "".join(r["printed"] for r in runs)
 
