@@ -601,9 +601,11 @@ def write_report(out_dir, markdown_path=None) -> Path:
     machine = run.get("machine", {})
     lines = ["# TwinFocus evaluation: the paper's experiments in simulation", ""]
     lines += [
-        "Regenerate: `make bench-paper` (= `twinfocus bench paper --draws 5 --workers 2 --out docs/results "
-        "--markdown docs/results.md`: the paper's five error draws on two Dask workers; add `--resume` to keep "
-        "finished experiments). "
+        "This page is generated from the raw results in docs/results/raw/ by `twinfocus bench paper --report-only "
+        "--out docs/results --markdown docs/results.md` (which also draws the figures beside it); an edit by hand is "
+        "overwritten. To rerun the experiments: `make bench-paper` (= `twinfocus bench paper --draws 5 --workers 2 "
+        "--out docs/results --markdown docs/results.md`: the paper's five error draws on two Dask workers; add "
+        "`--resume` to keep finished experiments). "
         f"Last invocation: `{run.get('command') or 'twinfocus bench paper'}`.",
         "",
     ]
