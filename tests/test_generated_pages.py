@@ -4,7 +4,9 @@ docs/results.md (``twinfocus bench paper``) and docs/beyond.md (``twinfocus benc
 written from the raw JSON files beside them; every figure on them is the renderer's reading of
 those files. Each page is re-rendered here from copies of its committed raw files into a scratch
 folder (no experiment runs) and compared with the committed page, so a hand edit, a renderer
-change without a regenerated page, or a raw file changed without one fails.
+change without a regenerated page, or a raw file changed without one fails. The tables other pages
+quote from benchmark result files (``<!-- table: ... -->`` blocks, benchmarks/page_tables.py) are
+rendered anew from those files and compared the same way.
 """
 
 from __future__ import annotations
@@ -14,6 +16,9 @@ import re
 import shutil
 from pathlib import Path
 
+import pytest
+
+from benchmarks import page_tables
 from twinfocus.evaluation.beyond import write_beyond_report
 from twinfocus.evaluation.report import write_report
 
@@ -74,3 +79,44 @@ def test_a_changed_raw_figure_makes_the_page_stale(tmp_path: Path) -> None:
     raw.write_text(json.dumps(doc))
     page = (DOCS / "beyond.md").read_text(encoding="utf-8")
     assert write_beyond_report(out, tmp_path / "beyond.md").read_text(encoding="utf-8") != page
+
+
+# --- tables a page quotes from a result file (benchmarks/page_tables.py) ----------------------------
+
+
+@pytest.mark.parametrize("page", page_tables.pages(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_a_pages_tables_are_their_files(page: Path) -> None:
+    text = page.read_text(encoding="utf-8")
+    assert page_tables.render_page(text) == text, (
+        f"a table of {page.relative_to(ROOT)} is not what its file holds: run python -m benchmarks.page_tables"
+    )
+
+
+def test_pages_have_generated_tables() -> None:
+    assert len(page_tables.pages()) >= 3
+
+
+def test_the_lookup_summarises_records() -> None:
+    rows = [{"s": "a", "v": 1.0, "n": {"x": -3.0}}, {"s": "a", "v": 3.0, "n": {"x": 1.0}}, {"s": "b", "v": 8.0}]
+    data = {"cond 1": rows}
+    assert page_tables.lookup(data, "cond%201.where(s=a).mean(v)") == 2.0
+    assert page_tables.lookup(data, "cond%201.where(s=a).sd(v)") == 1.0  # ddof 0
+    assert page_tables.lookup(data, "cond%201.mean(n.x)") == -1.0  # the record without it left out
+    assert page_tables.lookup(data, "cond%201.absmax(n.x)") == 3.0
+    assert page_tables.lookup(data, "cond%201.n(n.x)") == 2
+    assert page_tables.lookup(data, "cond%201.median(v)") == 3.0
+    with pytest.raises(KeyError):
+        page_tables.lookup(data, "cond%201.where(s=c).mean(v)")
+
+
+def test_a_table_block_fills_its_template_per_row(tmp_path: Path) -> None:
+    (tmp_path / "r.json").write_text(json.dumps({"x": [{"v": 0.5}, {"v": 0.7}], "y": [{"v": 0.25}]}))
+    page = (
+        "text\n<!-- table: r.json\nfirst = #x\nsecond = r.json#y\n| {label} | {v|msd} | {n(v)} | {max(v):.1f} |\n-->\n"
+        "| row | v | n | max |\n|---|---|---|---|\n| stale | 1 | 2 | 3 |\n\n<!-- /table -->\nmore text\n"
+    )
+    out = page_tables.render_page(page, tmp_path)
+    assert "| first | 0.600 ± 0.100 | 2 | 0.7 |\n| second | 0.250 ± 0.000 | 1 | 0.2 |\n" in out
+    assert "| row | v | n | max |\n|---|---|---|---|\n| first" in out and "stale" not in out
+    assert out.startswith("text\n<!-- table: r.json\n") and out.endswith("\n<!-- /table -->\nmore text\n")
+    assert page_tables.render_page(out, tmp_path) == out

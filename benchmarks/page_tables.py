@@ -1,0 +1,205 @@
+"""Write the tables that docs pages quote from result files, and read the figures they mark.
+
+    python -m benchmarks.page_tables                  # rewrite every generated table of docs/ and README.md
+    python -m benchmarks.page_tables --check          # exit 1 when a committed table is stale
+
+A page's figure marker ``0.953<!-- figure: FILE.json#WHERE -->`` and a generated table's cells read
+their values the same way (:func:`lookup`). ``WHERE`` is dotted keys, ``[k=v,...]`` to pick the one
+row of a list whose fields have those values, and over a list of records ``where(k=v,...)`` (the
+rows that match), ``mean(KEY)``, ``sd(KEY)`` (ddof 0), ``min(KEY)``, ``max(KEY)``, ``median(KEY)``,
+``p90(KEY)`` (90th percentile), ``absmax(KEY)``, ``absmedian(KEY)``, ``absp90(KEY)`` and ``n(KEY)``
+(how many records have it): KEY a dotted path inside each record, records without it left out.
+Keys and values holding a space, dot, bracket, comma, parenthesis or ``=`` are percent-encoded as
+in a URL (``summary.depth%205%20cm%20off.mean_ssim`` reads the key ``"depth 5 cm off"``).
+
+A generated table is a block::
+
+    <!-- table: benchmarks/results/handheld.json
+    H/S, hand (10 draws) = #hand%200%2E8%20mm%20%2B%200%2E15%20deg
+    demo scene = #demo%20scene%2C%200%2E5%20mm%20x%2Fy%2Fz%20jitter
+    | {label} | {uncorrected|msd} | **{default|msd}** | {mean(default):.2f} |
+    -->
+    | condition | uncorrected | default | default, 2 decimals |
+    |---|---|---|---|
+    | H/S, hand (10 draws) | 0.522 ± 0.030 | **0.953 ± 0.021** | 0.95 |
+    | demo scene | 0.790 ± 0.018 | **0.992 ± 0.001** | 0.99 |
+
+    <!-- /table -->
+
+The comment's first line names the default file; each ``LABEL = [FILE]#WHERE`` line is one row, the
+records its cells read; the ``|`` line is the row's template. The table's first two lines (its
+header, written by hand) are kept; the rows below them are the template filled in once per row.
+In the template ``{label}`` is the row's label, ``{WHERE}`` the value at WHERE from the row's
+records (3 decimals for a float), ``{WHERE:SPEC}`` the same in a Python format spec, and
+``{KEY|STYLE}`` a summary of KEY over the records: ``msd`` "mean ± sd", ``msdw`` "mean ± sd (worst
+min)", ``mw`` "mean (worst min)", ``mnw`` "mean (n, min)". tests/test_generated_pages.py fails
+when a committed table is not what its file renders to.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+from urllib.parse import unquote
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+#: one step of a WHERE: a key or a function of the list so far, then an optional ``[k=v,...]``
+_STEP = re.compile(r"([^.\[\]()]+)(\([^)]*\))?((?:\[[^\]]*\])?)(?:\.|$)")
+_BLOCK = re.compile(r"^<!-- table: (?P<spec>.*?)-->\n(?P<body>.*?)^<!-- /table -->$", re.S | re.M)
+_CELL = re.compile(r"\{([^{}]+)\}")
+
+
+def _pairs(text: str) -> dict[str, str]:
+    pairs = (pair.split("=", 1) for pair in text.split(","))
+    return {unquote(k.strip()): unquote(v.strip()) for k, v in pairs}
+
+
+def _values(records: list, key: str) -> np.ndarray:
+    """KEY (a WHERE) of every record that has it and where it is not None, as float64."""
+    out = []
+    for r in records:
+        try:
+            v = lookup(r, key)
+        except (KeyError, IndexError, TypeError):
+            continue
+        if v is not None:
+            out.append(float(v))
+    return np.array(out, float)
+
+
+def _need(v: np.ndarray) -> np.ndarray:
+    if not v.size:
+        raise KeyError("no record holds the key")
+    return v
+
+
+#: the functions of a list of records: name -> (records, KEY) -> value
+AGGREGATES: dict[str, Callable[[list, str], Any]] = {
+    "mean": lambda rs, k: float(_need(_values(rs, k)).mean()),
+    "sd": lambda rs, k: float(_need(_values(rs, k)).std()),
+    "min": lambda rs, k: float(_need(_values(rs, k)).min()),
+    "max": lambda rs, k: float(_need(_values(rs, k)).max()),
+    "median": lambda rs, k: float(np.median(_need(_values(rs, k)))),
+    "p90": lambda rs, k: float(np.percentile(_need(_values(rs, k)), 90)),
+    "absmax": lambda rs, k: float(np.abs(_need(_values(rs, k))).max()),
+    "absmedian": lambda rs, k: float(np.median(np.abs(_need(_values(rs, k))))),
+    "absp90": lambda rs, k: float(np.percentile(np.abs(_need(_values(rs, k))), 90)),
+    "n": lambda rs, k: int(_values(rs, k).size),
+}
+
+
+def lookup(data: Any, where: str) -> Any:
+    """The value at ``where`` (see the module's docstring: ``a.b[k=v,j=w].c``, ``a.where(k=v).mean(c)``,
+    each key and value percent-encoded) in parsed JSON ``data``."""
+    for key, args, selector in _STEP.findall(where):
+        if args:
+            inner = args[1:-1]
+            if key == "where":
+                wanted = _pairs(inner)
+                data = [r for r in data if all(str(r.get(k)) == v for k, v in wanted.items())]
+            elif key in AGGREGATES:
+                data = AGGREGATES[key](data, inner)
+            else:
+                raise KeyError(f"no function {key}()")
+        else:
+            data = data[unquote(key)] if not isinstance(data, list) else data[int(key)]
+        if selector:
+            wanted = _pairs(selector[1:-1])
+            rows = [r for r in data if all(str(r.get(k)) == v for k, v in wanted.items())]
+            if len(rows) != 1:
+                raise KeyError(f"{selector} picks {len(rows)} rows, not one")
+            data = rows[0]
+    return data
+
+
+def _style(records: list, key: str, style: str) -> str:
+    v = _need(_values(records, key))
+    mean, sd, worst = f"{v.mean():.3f}", f"{v.std():.3f}", f"{v.min():.3f}"
+    styles = {
+        "msd": f"{mean} ± {sd}",
+        "msdw": f"{mean} ± {sd} (worst {worst})",
+        "mw": f"{mean} (worst {worst})",
+        "mnw": f"{mean} ({v.size}, {worst})",
+    }
+    if style not in styles:
+        raise KeyError(f"no style {style}")
+    return styles[style]
+
+
+def _cell(records: Any, label: str, expr: str) -> str:
+    if expr == "label":
+        return label
+    if "|" in expr:
+        key, style = expr.rsplit("|", 1)
+        return _style(records, key, style)
+    where, _, spec = expr.partition(":")
+    value = lookup(records, where)
+    if spec:
+        return format(value, spec)
+    return f"{value:.3f}" if isinstance(value, float) else str(value)
+
+
+def render_block(spec: str, body: str, root: Path = ROOT) -> str:
+    """The body of one table block: the header lines of ``body`` kept, then the template of
+    ``spec`` filled in for each of its rows."""
+    lines = [s.strip() for s in spec.strip().splitlines() if s.strip()]
+    default_file, template = lines[0], next(s for s in lines if s.startswith("|"))
+    cache: dict[str, Any] = {}
+    out = [s for s in body.splitlines() if s.startswith("|")][:2]
+    for line in lines[1:]:
+        if line.startswith("|"):
+            continue
+        label, _, ref = (s.strip() for s in line.partition(" = "))
+        file, _, where = ref.partition("#")
+        file = file or default_file
+        if file not in cache:
+            cache[file] = json.loads((root / file).read_text(encoding="utf-8"))
+        records = lookup(cache[file], where) if where else cache[file]
+        out.append(_CELL.sub(lambda m, r=records, lab=label: _cell(r, lab, m.group(1)), template))
+    return "\n".join(out) + "\n\n"  # the blank line ends the table before the closing comment
+
+
+def render_page(text: str, root: Path = ROOT) -> str:
+    """``text`` with every table block's body rendered anew from its files."""
+    return _BLOCK.sub(
+        lambda m: (
+            f"<!-- table: {m.group('spec')}-->\n{render_block(m.group('spec'), m.group('body'), root)}<!-- /table -->"
+        ),
+        text,
+    )
+
+
+def pages(root: Path = ROOT) -> list[Path]:
+    """The pages with a table block."""
+    found = sorted([root / "README.md", *(root / "docs").rglob("*.md")])
+    return [p for p in found if "<!-- table: " in p.read_text(encoding="utf-8")]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.page_tables", description=__doc__.split("\n")[0])
+    p.add_argument("--check", action="store_true", help="only compare; exit 1 when a table differs")
+    args = p.parse_args(argv)
+    stale = []
+    for page in pages():
+        text = page.read_text(encoding="utf-8")
+        new = render_page(text)
+        if new != text:
+            stale.append(str(page.relative_to(ROOT)))
+            if not args.check:
+                page.write_text(new, encoding="utf-8")
+    if args.check:
+        print(f"stale: {', '.join(stale)}; run python -m benchmarks.page_tables" if stale else "up to date")
+        return 1 if stale else 0
+    print(f"rewrote {', '.join(stale)}" if stale else "every table up to date")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
