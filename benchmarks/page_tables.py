@@ -5,8 +5,8 @@
 
 A page's figure marker ``0.953<!-- figure: FILE.json#WHERE -->`` and a generated table's cells read
 their values the same way (:func:`lookup`). ``WHERE`` is dotted keys, ``[k=v,...]`` to pick the one
-row of a list whose fields have those values, and over a list of records ``where(k=v,...)`` (the
-rows that match), ``mean(KEY)``, ``sd(KEY)`` (ddof 0), ``min(KEY)``, ``max(KEY)``, ``median(KEY)``,
+row of a list whose fields have those values, and over a list of records ``where(COND,...)`` (the
+rows that meet each ``k=v``, ``k<x``, ``k>=x`` or ``k``: has k), ``mean(KEY)``, ``sd(KEY)`` (ddof 0), ``min(KEY)``, ``max(KEY)``, ``median(KEY)``,
 ``p90(KEY)`` (90th percentile), ``absmax(KEY)``, ``absmedian(KEY)``, ``absp90(KEY)`` and ``n(KEY)``
 (how many records have it): KEY a dotted path inside each record, records without it left out.
 Keys and values holding a space, dot, bracket, comma, parenthesis or ``=`` are percent-encoded as
@@ -27,12 +27,15 @@ A generated table is a block::
     <!-- /table -->
 
 The comment's first line names the default file; each ``LABEL = [FILE]#WHERE`` line is one row, the
-records its cells read; the ``|`` line is the row's template. The table's first two lines (its
+records its cells read (a FILE without a folder is beside the default file), and ``LABEL = [FILE]: KEY;
+KEY; ...`` one row per key, its records FILE's KEY (written as it is), its label LABEL with ``{}`` the key; the ``|`` line is the row's template. The table's first two lines (its
 header, written by hand) are kept; the rows below them are the template filled in once per row.
 In the template ``{label}`` is the row's label, ``{WHERE}`` the value at WHERE from the row's
-records (3 decimals for a float), ``{WHERE:SPEC}`` the same in a Python format spec, and
+records (3 decimals for a float), ``{WHERE:SPEC}`` the same in a Python format spec, ``{FILE>WHERE}`` the same row's WHERE read in
+another file (a file without a folder beside the default one), and
 ``{KEY|STYLE}`` a summary of KEY over the records: ``msd`` "mean ± sd", ``msdw`` "mean ± sd (worst
-min)", ``mw`` "mean (worst min)", ``mnw`` "mean (n, min)". tests/test_generated_pages.py fails
+min)", ``msdl`` "mean ± sd (min)", ``mw`` "mean (worst min)", ``ml`` "mean (min)", ``mnw`` "mean (n,
+min)". A row fills the template line above it (the first one for rows above every template). tests/test_generated_pages.py fails
 when a committed table is not what its file renders to.
 """
 
@@ -45,7 +48,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
-from urllib.parse import unquote
+from urllib.parse import quote, unquote
 
 import numpy as np
 
@@ -59,6 +62,24 @@ _CELL = re.compile(r"\{([^{}]+)\}")
 def _pairs(text: str) -> dict[str, str]:
     pairs = (pair.split("=", 1) for pair in text.split(","))
     return {unquote(k.strip()): unquote(v.strip()) for k, v in pairs}
+
+
+_COND = re.compile(r"([^=<>]+)(?:(=|<|>=)(.*))?")
+
+
+def _holds(record: dict, cond: str) -> bool:
+    """Whether ``record`` meets ``k=v`` (its field as text is v), ``k<x`` or ``k>=x`` (a number), or
+    ``k`` (it has the field, not None)."""
+    m = _COND.fullmatch(cond.strip())
+    if m is None:
+        raise KeyError(f"not a condition: {cond}")
+    key, op, value = unquote(m.group(1)), m.group(2), unquote(m.group(3) or "")
+    if op is None:
+        return record.get(key) is not None
+    if op == "=":
+        return str(record.get(key)) == value
+    v = record.get(key)
+    return v is not None and (float(v) < float(value) if op == "<" else float(v) >= float(value))
 
 
 def _values(records: list, key: str) -> np.ndarray:
@@ -102,8 +123,7 @@ def lookup(data: Any, where: str) -> Any:
         if args:
             inner = args[1:-1]
             if key == "where":
-                wanted = _pairs(inner)
-                data = [r for r in data if all(str(r.get(k)) == v for k, v in wanted.items())]
+                data = [r for r in data if all(_holds(r, cond) for cond in inner.split(","))]
             elif key in AGGREGATES:
                 data = AGGREGATES[key](data, inner)
             else:
@@ -125,7 +145,9 @@ def _style(records: list, key: str, style: str) -> str:
     styles = {
         "msd": f"{mean} ± {sd}",
         "msdw": f"{mean} ± {sd} (worst {worst})",
+        "msdl": f"{mean} ± {sd} ({worst})",
         "mw": f"{mean} (worst {worst})",
+        "ml": f"{mean} ({worst})",
         "mnw": f"{mean} ({v.size}, {worst})",
     }
     if style not in styles:
@@ -133,17 +155,35 @@ def _style(records: list, key: str, style: str) -> str:
     return styles[style]
 
 
-def _cell(records: Any, label: str, expr: str) -> str:
+def _cell(records: Any, label: str, expr: str, beside: Callable[[str], Any]) -> str:
     if expr == "label":
         return label
+    if ">" in expr.split("(", 1)[0]:  # FILE>...: the same row's records in another file
+        file, expr = expr.split(">", 1)
+        records = beside(file)
     if "|" in expr:
-        key, style = expr.rsplit("|", 1)
-        return _style(records, key, style)
+        where, style = expr.rsplit("|", 1)
+        prefix, _, key = where.rpartition(").")  # where(...).KEY: KEY over the records that meet it
+        return _style(lookup(records, prefix + ")") if prefix else records, key or where, style)
     where, _, spec = expr.partition(":")
     value = lookup(records, where)
     if spec:
         return format(value, spec)
     return f"{value:.3f}" if isinstance(value, float) else str(value)
+
+
+def _rows(label: str, ref: str) -> list[tuple[str, str, str]]:
+    """(label, file, WHERE) of each row a row line makes: ``LABEL = [FILE]#WHERE`` one, ``LABEL =
+    [FILE]: KEY; KEY; ...`` one per key (as written, not encoded), its label LABEL with ``{}`` the key."""
+    if "#" in ref:
+        file, _, where = ref.partition("#")
+        return [(label, file, where)]
+    file, _, keys = ref.partition(":")
+    keys_ = [k.strip() for k in keys.split(";") if k.strip()]
+    return [
+        (label.replace("{}", k) if "{}" in label else k, file.strip(), quote(k, safe="").replace(".", "%2E"))
+        for k in keys_
+    ]
 
 
 def render_block(spec: str, body: str, root: Path = ROOT) -> str:
@@ -152,17 +192,27 @@ def render_block(spec: str, body: str, root: Path = ROOT) -> str:
     lines = [s.strip() for s in spec.strip().splitlines() if s.strip()]
     default_file, template = lines[0], next(s for s in lines if s.startswith("|"))
     cache: dict[str, Any] = {}
+
+    def load(file: str) -> Any:
+        # a file without a folder sits beside the default file
+        path = default_file if not file else file if "/" in file else str(Path(default_file).parent / file)
+        if path not in cache:
+            cache[path] = json.loads((root / path).read_text(encoding="utf-8"))
+        return cache[path]
+
     out = [s for s in body.splitlines() if s.startswith("|")][:2]
     for line in lines[1:]:
         if line.startswith("|"):
+            template = line  # the rows below this line fill this template
             continue
         label, _, ref = (s.strip() for s in line.partition(" = "))
-        file, _, where = ref.partition("#")
-        file = file or default_file
-        if file not in cache:
-            cache[file] = json.loads((root / file).read_text(encoding="utf-8"))
-        records = lookup(cache[file], where) if where else cache[file]
-        out.append(_CELL.sub(lambda m, r=records, lab=label: _cell(r, lab, m.group(1)), template))
+        for row_label, file, where in _rows(label, ref):
+            records = lookup(load(file), where) if where else load(file)
+
+            def beside(other: str, where: str = where) -> Any:
+                return lookup(load(other), where) if where else load(other)
+
+            out.append(_CELL.sub(lambda m, r=records, lab=row_label, b=beside: _cell(r, lab, m.group(1), b), template))
     return "\n".join(out) + "\n\n"  # the blank line ends the table before the closing comment
 
 
