@@ -4,11 +4,13 @@
     python -m benchmarks.page_tables --check          # exit 1 when a committed table is stale
 
 A page's figure marker ``0.953<!-- figure: FILE.json#WHERE -->`` and a generated table's cells read
-their values the same way (:func:`lookup`). ``WHERE`` is dotted keys, ``[k=v,...]`` to pick the one
-row of a list whose fields have those values, and over a list of records ``where(COND,...)`` (the
-rows that meet each ``k=v``, ``k<x``, ``k>=x`` or ``k``: has k), ``mean(KEY)``, ``sd(KEY)`` (ddof 0), ``min(KEY)``, ``max(KEY)``, ``median(KEY)``,
-``p90(KEY)`` (90th percentile), ``absmax(KEY)``, ``absmedian(KEY)``, ``absp90(KEY)`` and ``n(KEY)``
-(how many records have it): KEY a dotted path inside each record, records without it left out.
+their values the same way (:func:`lookup`). ``WHERE`` is dotted keys; ``[k=v,...]`` picks the one
+row of a list whose fields have those values; over a list of records ``where(COND,...)`` keeps the
+rows that meet each COND (``k=v``; ``k<x``, ``k<=x``, ``k>x``, ``k>=x`` with x a number or another
+field plus or minus one, ``default>before+0.005``; ``k``: has k), and ``mean(KEY)``, ``sd(KEY)``
+(ddof 0), ``min``, ``max``, ``median``, ``p90`` (90th percentile), ``absmean``, ``absmedian``,
+``absp90``, ``absmax`` and ``n(KEY)`` (how many records have it) summarise KEY, a dotted path inside
+each record, over the records that hold it; over a dict of lists ``all()`` is every list's records.
 Keys and values holding a space, dot, bracket, comma, parenthesis or ``=`` are percent-encoded as
 in a URL (``summary.depth%205%20cm%20off.mean_ssim`` reads the key ``"depth 5 cm off"``).
 
@@ -16,27 +18,29 @@ A generated table is a block::
 
     <!-- table: benchmarks/results/handheld.json
     H/S, hand (10 draws) = #hand%200%2E8%20mm%20%2B%200%2E15%20deg
-    demo scene = #demo%20scene%2C%200%2E5%20mm%20x%2Fy%2Fz%20jitter
+    {} = : 0.5 mm z jitter (paper protocol); demo scene, 0.5 mm x/y/z jitter
     | {label} | {uncorrected|msd} | **{default|msd}** | {mean(default):.2f} |
     -->
     | condition | uncorrected | default | default, 2 decimals |
     |---|---|---|---|
     | H/S, hand (10 draws) | 0.522 ± 0.030 | **0.953 ± 0.021** | 0.95 |
-    | demo scene | 0.790 ± 0.018 | **0.992 ± 0.001** | 0.99 |
+    ...
 
     <!-- /table -->
 
-The comment's first line names the default file; each ``LABEL = [FILE]#WHERE`` line is one row, the
-records its cells read (a FILE without a folder is beside the default file), and ``LABEL = [FILE]: KEY;
-KEY; ...`` one row per key, its records FILE's KEY (written as it is), its label LABEL with ``{}`` the key; the ``|`` line is the row's template. The table's first two lines (its
-header, written by hand) are kept; the rows below them are the template filled in once per row.
-In the template ``{label}`` is the row's label, ``{WHERE}`` the value at WHERE from the row's
-records (3 decimals for a float), ``{WHERE:SPEC}`` the same in a Python format spec, ``{FILE>WHERE}`` the same row's WHERE read in
-another file (a file without a folder beside the default one), and
-``{KEY|STYLE}`` a summary of KEY over the records: ``msd`` "mean ± sd", ``msdw`` "mean ± sd (worst
-min)", ``msdl`` "mean ± sd (min)", ``mw`` "mean (worst min)", ``ml`` "mean (min)", ``mnw`` "mean (n,
-min)". A row fills the template line above it (the first one for rows above every template). tests/test_generated_pages.py fails
-when a committed table is not what its file renders to.
+The comment's first line names the default file. A line ``LABEL = [FILE]#WHERE`` is one row (its
+records: WHERE in FILE); ``LABEL = [FILE]: KEY; KEY; ...`` is one row per KEY (written as it is),
+labelled LABEL with ``{}`` the key; a FILE without a folder is beside the default file, none is the
+default file. A ``|`` line is the template of the rows below it (and of rows above every template).
+The table's first two lines (its header, written by hand) are kept; below them each row fills its
+template: ``{label}`` the row's label, ``{WHERE}`` the value at WHERE in the row's records (3
+decimals for a float), ``{WHERE:SPEC}`` in a Python format spec, ``{KEY|STYLE}`` a summary of KEY
+over the records (``msd`` "mean ± sd", ``msdw`` "mean ± sd (worst min)", ``msdl`` "mean ± sd
+(min)", ``mw`` "mean (worst min)", ``ml`` "mean (min)", ``mnw`` "mean (n, min)"), ``{FILE>...}`` the
+same row's WHERE read in another file, ``{FILE#...}`` another file read from its top (``$`` in a
+template is the row's WHERE: ``{field_twin.json#$%2C%20camera%20cloud.mean(default)}``), and
+``{...?TEXT}`` TEXT where no record holds what it reads.
+tests/test_generated_pages.py fails when a committed table is not what its files render to.
 """
 
 from __future__ import annotations
@@ -57,6 +61,7 @@ ROOT = Path(__file__).resolve().parents[1]
 _STEP = re.compile(r"([^.\[\]()]+)(\([^)]*\))?((?:\[[^\]]*\])?)(?:\.|$)")
 _BLOCK = re.compile(r"^<!-- table: (?P<spec>.*?)-->\n(?P<body>.*?)^<!-- /table -->$", re.S | re.M)
 _CELL = re.compile(r"\{([^{}]+)\}")
+_FILE = re.compile(r"([^#(){}|>]+\.json)#(.*)")
 
 
 def _pairs(text: str) -> dict[str, str]:
@@ -64,12 +69,30 @@ def _pairs(text: str) -> dict[str, str]:
     return {unquote(k.strip()): unquote(v.strip()) for k, v in pairs}
 
 
-_COND = re.compile(r"([^=<>]+)(?:(=|<|>=)(.*))?")
+_COND = re.compile(r"([^=<>]+)(?:(=|<=|>=|<|>)(.*))?")
+_BOUND = re.compile(r"(.*?)([+-]\d+(?:\.\d+)?)?")
+_COMPARE: dict[str, Callable[[float, float], bool]] = {
+    "<": lambda a, b: a < b,
+    "<=": lambda a, b: a <= b,
+    ">": lambda a, b: a > b,
+    ">=": lambda a, b: a >= b,
+}
+
+
+def _bound(record: dict, text: str) -> float | None:
+    """A condition's right side: a number, or another field of the record plus or minus one."""
+    try:
+        return float(text)
+    except ValueError:
+        m = _BOUND.fullmatch(text)
+        assert m is not None  # the pattern matches any text
+        v = record.get(m.group(1))
+        return None if v is None else float(v) + float(m.group(2) or 0)
 
 
 def _holds(record: dict, cond: str) -> bool:
-    """Whether ``record`` meets ``k=v`` (its field as text is v), ``k<x`` or ``k>=x`` (a number), or
-    ``k`` (it has the field, not None)."""
+    """Whether ``record`` meets ``k=v`` (its field as text is v), ``k<x`` (``<=``, ``>``, ``>=``; x a
+    number or another field, ``before+0.005``), or ``k`` (it has the field, not None)."""
     m = _COND.fullmatch(cond.strip())
     if m is None:
         raise KeyError(f"not a condition: {cond}")
@@ -78,8 +101,8 @@ def _holds(record: dict, cond: str) -> bool:
         return record.get(key) is not None
     if op == "=":
         return str(record.get(key)) == value
-    v = record.get(key)
-    return v is not None and (float(v) < float(value) if op == "<" else float(v) >= float(value))
+    v, bound = record.get(key), _bound(record, value)
+    return v is not None and bound is not None and _COMPARE[op](float(v), bound)
 
 
 def _values(records: list, key: str) -> np.ndarray:
@@ -95,23 +118,24 @@ def _values(records: list, key: str) -> np.ndarray:
     return np.array(out, float)
 
 
-def _need(v: np.ndarray) -> np.ndarray:
+def _need(v: np.ndarray, key: str = "the key") -> np.ndarray:
     if not v.size:
-        raise KeyError("no record holds the key")
+        raise KeyError(f"no record holds {key}")
     return v
 
 
 #: the functions of a list of records: name -> (records, KEY) -> value
 AGGREGATES: dict[str, Callable[[list, str], Any]] = {
-    "mean": lambda rs, k: float(_need(_values(rs, k)).mean()),
-    "sd": lambda rs, k: float(_need(_values(rs, k)).std()),
-    "min": lambda rs, k: float(_need(_values(rs, k)).min()),
-    "max": lambda rs, k: float(_need(_values(rs, k)).max()),
-    "median": lambda rs, k: float(np.median(_need(_values(rs, k)))),
-    "p90": lambda rs, k: float(np.percentile(_need(_values(rs, k)), 90)),
-    "absmax": lambda rs, k: float(np.abs(_need(_values(rs, k))).max()),
-    "absmedian": lambda rs, k: float(np.median(np.abs(_need(_values(rs, k))))),
-    "absp90": lambda rs, k: float(np.percentile(np.abs(_need(_values(rs, k))), 90)),
+    "mean": lambda rs, k: float(_need(_values(rs, k), k).mean()),
+    "sd": lambda rs, k: float(_need(_values(rs, k), k).std()),
+    "min": lambda rs, k: float(_need(_values(rs, k), k).min()),
+    "max": lambda rs, k: float(_need(_values(rs, k), k).max()),
+    "median": lambda rs, k: float(np.median(_need(_values(rs, k), k))),
+    "p90": lambda rs, k: float(np.percentile(_need(_values(rs, k), k), 90)),
+    "absmax": lambda rs, k: float(np.abs(_need(_values(rs, k), k)).max()),
+    "absmean": lambda rs, k: float(np.abs(_need(_values(rs, k), k)).mean()),
+    "absmedian": lambda rs, k: float(np.median(np.abs(_need(_values(rs, k), k)))),
+    "absp90": lambda rs, k: float(np.percentile(np.abs(_need(_values(rs, k), k)), 90)),
     "n": lambda rs, k: int(_values(rs, k).size),
 }
 
@@ -122,7 +146,9 @@ def lookup(data: Any, where: str) -> Any:
     for key, args, selector in _STEP.findall(where):
         if args:
             inner = args[1:-1]
-            if key == "where":
+            if key == "all":
+                data = [r for rows in data.values() if isinstance(rows, list) for r in rows]
+            elif key == "where":
                 data = [r for r in data if all(_holds(r, cond) for cond in inner.split(","))]
             elif key in AGGREGATES:
                 data = AGGREGATES[key](data, inner)
@@ -140,7 +166,7 @@ def lookup(data: Any, where: str) -> Any:
 
 
 def _style(records: list, key: str, style: str) -> str:
-    v = _need(_values(records, key))
+    v = _need(_values(records, key), key)
     mean, sd, worst = f"{v.mean():.3f}", f"{v.std():.3f}", f"{v.min():.3f}"
     styles = {
         "msd": f"{mean} ± {sd}",
@@ -155,12 +181,20 @@ def _style(records: list, key: str, style: str) -> str:
     return styles[style]
 
 
-def _cell(records: Any, label: str, expr: str, beside: Callable[[str], Any]) -> str:
+def _cell(records: Any, label: str, expr: str, beside: Callable[[str, bool], Any]) -> str:
     if expr == "label":
         return label
-    if ">" in expr.split("(", 1)[0]:  # FILE>...: the same row's records in another file
+    if "?" in expr:  # EXPR?TEXT: TEXT where no record holds what EXPR reads
+        expr, _, text = expr.partition("?")
+        try:
+            return _cell(records, label, expr, beside)
+        except KeyError:
+            return text
+    if (whole := _FILE.match(expr)) is not None:  # FILE#WHERE: another file, from its top
+        records, expr = beside(whole.group(1), True), whole.group(2)
+    elif ">" in expr.split("(", 1)[0]:  # FILE>...: the same row's records in another file
         file, expr = expr.split(">", 1)
-        records = beside(file)
+        records = beside(file, False)
     if "|" in expr:
         where, style = expr.rsplit("|", 1)
         prefix, _, key = where.rpartition(").")  # where(...).KEY: KEY over the records that meet it
@@ -207,12 +241,16 @@ def render_block(spec: str, body: str, root: Path = ROOT) -> str:
             continue
         label, _, ref = (s.strip() for s in line.partition(" = "))
         for row_label, file, where in _rows(label, ref):
-            records = lookup(load(file), where) if where else load(file)
+            try:
+                records = lookup(load(file), where) if where else load(file)
+            except KeyError:  # a row whose cells read other files only (its WHERE as their $)
+                records = None
 
-            def beside(other: str, where: str = where) -> Any:
-                return lookup(load(other), where) if where else load(other)
+            def beside(other: str, whole: bool, where: str = where) -> Any:
+                return lookup(load(other), where) if where and not whole else load(other)
 
-            out.append(_CELL.sub(lambda m, r=records, lab=row_label, b=beside: _cell(r, lab, m.group(1), b), template))
+            filled = template.replace("$", where)  # $: the row's WHERE, in cells that read another file
+            out.append(_CELL.sub(lambda m, r=records, lab=row_label, b=beside: _cell(r, lab, m.group(1), b), filled))
     return "\n".join(out) + "\n\n"  # the blank line ends the table before the closing comment
 
 
