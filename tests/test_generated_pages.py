@@ -120,3 +120,17 @@ def test_a_table_block_fills_its_template_per_row(tmp_path: Path) -> None:
     assert "| row | v | n | max |\n|---|---|---|---|\n| first" in out and "stale" not in out
     assert out.startswith("text\n<!-- table: r.json\n") and out.endswith("\n<!-- /table -->\nmore text\n")
     assert page_tables.render_page(out, tmp_path) == out
+
+
+def test_a_table_block_reads_other_files_and_compares_fields(tmp_path: Path) -> None:
+    rows = [{"a": 0.5, "b": 0.6, "ok": True}, {"a": 0.5, "b": 0.501, "ok": False}, {"a": 0.5, "b": 0.4, "ok": False}]
+    (tmp_path / "r.json").write_text(json.dumps({"x, one": rows, "y": rows[:1]}))
+    (tmp_path / "s.json").write_text(json.dumps({"x, one": [{"c": 2.0}], "y": [{"c": 4.0}], "top": {"y": 7}}))
+    page = (
+        "<!-- table: r.json\n{} = : x, one; y\n"
+        "| {label} | {where(b>a+0.005).n(b)} / {where(b<a-0.005).n(b)} | {where(ok=True).mean(b)} | "
+        "{where(ok=False,b<0.45).n(b)} | {s.json>mean(c):.1f} | {s.json#top.$?-} | {mean(zz)?none} |\n-->\n"
+        "| row | up / down | trusted | low | c | top | zz |\n|---|---|---|---|---|---|---|\n\n<!-- /table -->\n"
+    )
+    out = page_tables.render_page(page, tmp_path)
+    assert "| x, one | 1 / 1 | 0.600 | 1 | 2.0 | - | none |\n| y | 1 / 0 | 0.600 | 0 | 4.0 | 7 | none |\n" in out
