@@ -6,7 +6,7 @@
 A page's figure marker ``0.953<!-- figure: FILE.json#WHERE -->`` and a generated table's cells read
 their values the same way (:func:`lookup`). ``WHERE`` is dotted keys; ``[k=v,...]`` picks the one
 row of a list whose fields have those values; over a list of records ``where(COND,...)`` keeps the
-rows that meet each COND (``k=v``; ``k<x``, ``k<=x``, ``k>x``, ``k>=x`` with x a number or another
+rows that meet each COND (``k=v``, ``k!=v``; ``k<x``, ``k<=x``, ``k>x``, ``k>=x`` with x a number or another
 field plus or minus one, ``default>before+0.005``; ``k``: has k), and ``mean(KEY)``, ``sd(KEY)``
 (ddof 0), ``min``, ``max``, ``median``, ``p90`` (90th percentile), ``absmean``, ``absmedian``,
 ``absp90``, ``absmax`` and ``n(KEY)`` (how many records have it) summarise KEY, a dotted path inside
@@ -69,7 +69,7 @@ def _pairs(text: str) -> dict[str, str]:
     return {unquote(k.strip()): unquote(v.strip()) for k, v in pairs}
 
 
-_COND = re.compile(r"([^=<>]+)(?:(=|<=|>=|<|>)(.*))?")
+_COND = re.compile(r"([^=<>!]+)(?:(=|!=|<=|>=|<|>)(.*))?")
 _BOUND = re.compile(r"(.*?)([+-]\d+(?:\.\d+)?)?")
 _COMPARE: dict[str, Callable[[float, float], bool]] = {
     "<": lambda a, b: a < b,
@@ -91,7 +91,7 @@ def _bound(record: dict, text: str) -> float | None:
 
 
 def _holds(record: dict, cond: str) -> bool:
-    """Whether ``record`` meets ``k=v`` (its field as text is v), ``k<x`` (``<=``, ``>``, ``>=``; x a
+    """Whether ``record`` meets ``k=v`` (its field as text is v; ``k!=v`` not), ``k<x`` (``<=``, ``>``, ``>=``; x a
     number or another field, ``before+0.005``), or ``k`` (it has the field, not None)."""
     m = _COND.fullmatch(cond.strip())
     if m is None:
@@ -99,8 +99,8 @@ def _holds(record: dict, cond: str) -> bool:
     key, op, value = unquote(m.group(1)), m.group(2), unquote(m.group(3) or "")
     if op is None:
         return record.get(key) is not None
-    if op == "=":
-        return str(record.get(key)) == value
+    if op in ("=", "!="):
+        return (str(record.get(key)) == value) == (op == "=")
     v, bound = record.get(key), _bound(record, value)
     return v is not None and bound is not None and _COMPARE[op](float(v), bound)
 
