@@ -38,7 +38,7 @@ decimals for a float), ``{WHERE:SPEC}`` in a Python format spec, ``{KEY|STYLE}``
 over the records (``msd`` "mean ± sd", ``msdw`` "mean ± sd (worst min)", ``msdl`` "mean ± sd
 (min)", ``mw`` "mean (worst min)", ``ml`` "mean (min)", ``mnw`` "mean (n, min)"), ``{FILE>...}`` the
 same row's WHERE read in another file, ``{FILE#...}`` another file read from its top (``$`` in a
-template is the row's WHERE: ``{field_twin.json#$%2C%20camera%20cloud.mean(default)}``), and
+template is the row's WHERE: ``{field_twin.json#$%2C%20camera%20cloud.where().default|msd}``), and
 ``{...?TEXT}`` TEXT where no record holds what it reads.
 tests/test_generated_pages.py fails when a committed table is not what its files render to.
 """
@@ -149,7 +149,8 @@ def lookup(data: Any, where: str) -> Any:
             if key == "all":
                 data = [r for rows in data.values() if isinstance(rows, list) for r in rows]
             elif key == "where":
-                data = [r for r in data if all(_holds(r, cond) for cond in inner.split(","))]
+                conds = [c for c in inner.split(",") if c.strip()]  # where(): every row
+                data = [r for r in data if all(_holds(r, cond) for cond in conds)]
             elif key in AGGREGATES:
                 data = AGGREGATES[key](data, inner)
             else:
