@@ -346,7 +346,12 @@ def _section_limits(raw: dict, out: Path, md: Path, lines: list[str]) -> dict:
         xs = [r["x"] for r in rows]
         floor_x = crossing(xs, [r["floor"] for r in rows], 1.0)
         sentences = []
-        res[name] = {}
+        # the table's losses, for pages that quote them (docs/explanation/ceilings.md)
+        res[name] = {
+            "rows": [
+                {k: r[k] for k in ("x", "label", "ceiling_gain", "transfer_loss", "estimation_loss")} for r in rows
+            ]
+        }
         for m in methods:
             s = stops_helping(rows, m)
             res[name][m] = s
