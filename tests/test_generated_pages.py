@@ -134,3 +134,15 @@ def test_a_table_block_reads_other_files_and_compares_fields(tmp_path: Path) -> 
     )
     out = page_tables.render_page(page, tmp_path)
     assert "| x, one | 1 / 1 | 0.600 | 1 | 2.0 | - | none |\n| y | 1 / 0 | 0.600 | 0 | 4.0 | 7 | none |\n" in out
+
+
+def test_the_family_trust_summary_is_what_its_records_give() -> None:
+    """dtwin_family_trust.json (``bench_dtwin_family --trust-summary``, which docs/digital_twin_confidence.md's
+    false-trust tables read) is the confidence report's present rules over the committed records."""
+    from benchmarks.bench_dtwin_family import trust_rows
+
+    results = ROOT / "benchmarks" / "results"
+    committed = json.loads((results / "dtwin_family_trust.json").read_text())
+    for name, file in (("bench", "dtwin_family.json"), ("held out", "dtwin_family_heldout.json")):
+        fresh = json.loads(json.dumps(trust_rows(json.loads((results / file).read_text()))))
+        assert fresh == committed[name], f"stale: run python -m benchmarks.bench_dtwin_family --trust-summary ({name})"
