@@ -146,3 +146,12 @@ def test_the_family_trust_summary_is_what_its_records_give() -> None:
     for name, file in (("bench", "dtwin_family.json"), ("held out", "dtwin_family_heldout.json")):
         fresh = json.loads(json.dumps(trust_rows(json.loads((results / file).read_text()))))
         assert fresh == committed[name], f"stale: run python -m benchmarks.bench_dtwin_family --trust-summary ({name})"
+
+
+def test_the_results_pages_field_files_are_the_benchmarks() -> None:
+    """docs/results.md's field section reads copies beside its raw results: they are the benchmark
+    files the field pages quote (docs/handheld.md, docs/digital_twin_autofocus.md), byte for byte."""
+    for copy, source in (("field_handheld.json", "handheld.json"), ("field_twin.json", "field_twin.json")):
+        assert (DOCS / "results" / copy).read_bytes() == (ROOT / "benchmarks" / "results" / source).read_bytes(), (
+            f"copy benchmarks/results/{source} to docs/results/{copy} and rerun twinfocus bench paper --report-only"
+        )
