@@ -500,11 +500,17 @@ def trust_rows(results: dict) -> list[dict]:
 
 def trust_summary(results_dir: str | os.PathLike = "benchmarks/results") -> Path:
     """Write ``dtwin_family_trust.json`` beside the two record files of ``results_dir``: their
-    :func:`trust_rows` (``{"bench": [...], "held out": [...]}``), the confidence report's present
-    rules applied to the records as they are (no draw is run). Returns its path."""
+    :func:`trust_rows` (``{"bench": [...], "held out": [...]}``, and per set both twins' false
+    trusts and alarms together, in % too), the confidence report's present rules applied to the
+    records as they are (no draw is run). Returns its path."""
     out = Path(results_dir)
     files = {"bench": "dtwin_family.json", "held out": "dtwin_family_heldout.json"}
-    summary = {name: trust_rows(json.loads((out / f).read_text())) for name, f in files.items()}
+    summary: dict = {name: trust_rows(json.loads((out / f).read_text())) for name, f in files.items()}
+    for name in files:  # both twins together, shares in %
+        twins = [r for r in summary[name] if r["twin"] in ("digital", "physical")]
+        n = sum(r["results"] for r in twins)
+        both = {k: sum(r[k] for r in twins) for k in ("false_trust", "false_alarm")}
+        summary[f"{name}, both twins"] = {"results": n, **both, **{f"{k}_pct": 100 * v / n for k, v in both.items()}}
     path = out / "dtwin_family_trust.json"
     path.write_text(json.dumps(summary, indent=1) + "\n")
     return path

@@ -146,6 +146,10 @@ def test_the_family_trust_summary_is_what_its_records_give() -> None:
     for name, file in (("bench", "dtwin_family.json"), ("held out", "dtwin_family_heldout.json")):
         fresh = json.loads(json.dumps(trust_rows(json.loads((results / file).read_text()))))
         assert fresh == committed[name], f"stale: run python -m benchmarks.bench_dtwin_family --trust-summary ({name})"
+        both = committed[f"{name}, both twins"]
+        twins = [r for r in fresh if r["twin"] in ("digital", "physical")]
+        assert both["false_trust"] == sum(r["false_trust"] for r in twins)
+        assert both["false_alarm_pct"] == pytest.approx(100 * both["false_alarm"] / both["results"])
 
 
 def test_the_results_pages_field_files_are_the_benchmarks() -> None:
