@@ -37,6 +37,8 @@ confidence reports.
     python -m benchmarks.bench_dtwin_family --add-cloud-parts 8 [--heldout] (the camera cloud's impairments one by one, added
                                                                             on the first 8 draws of each condition)
     python -m benchmarks.bench_dtwin_family --defocus-figure docs/figures/target_defocus.png
+    python -m benchmarks.bench_dtwin_family --trust-summary     (the report's false trusts and alarms
+                                                                 over both files: dtwin_family_trust.json)
 
 (--minutes: no new seed is started after that long; the draws of every condition go seed by seed.)
 
@@ -454,7 +456,22 @@ def table(results: dict) -> str:
         "| twin | results | trusted (their worst) | trusted below 0.90 (false trust) | flagged at or above 0.95 (false alarm) |",
         "|---|---|---|---|---|",
     ]
-    recs = [r for rs in results.values() for r in rs if "refused" not in r]
+    for r in trust_rows(results):
+        worst = f" ({r['trusted_worst']:.3f})" if r["trusted"] else ""
+        lines.append(
+            f"| {r['twin']} | {r['results']} | {r['trusted']}{worst} | {r['false_trust']} ({r['false_trust_share']:.0%}) "
+            f"| {r['false_alarm']} ({r['false_alarm_share']:.0%}) |"
+        )
+    return "\n".join(lines)
+
+
+def trust_rows(results: dict) -> list[dict]:
+    """Per twin and baseline over every scored record of ``results`` ({condition: [record]}): how many
+    results, how many the confidence report trusts by its present rules (:func:`trusted`) and the
+    worst of them, the false trusts (trusted, below ``POOR``) and the false alarms (flagged, at or
+    above ``GOOD``)."""
+    recs = [r for rs in results.values() if isinstance(rs, list) for r in rs if "refused" not in r]
+    rows = []
     for twin in ("digital", "physical", *BASELINES):
         rs = [r for r in recs if twin in r]
         if not rs:
@@ -466,11 +483,37 @@ def table(results: dict) -> str:
         kept = [r[twin] for r in rs if trust(r)]
         poor = sum(r[twin] < POOR and trust(r) for r in rs)
         alarm = sum(r[twin] >= GOOD and not trust(r) for r in rs)
-        worst = f" ({min(kept):.3f})" if kept else ""
-        lines.append(
-            f"| {twin} | {len(rs)} | {len(kept)}{worst} | {poor} ({poor / len(rs):.0%}) | {alarm} ({alarm / len(rs):.0%}) |"
+        rows.append(
+            {
+                "twin": twin,
+                "results": len(rs),
+                "trusted": len(kept),
+                "trusted_worst": min(kept) if kept else None,
+                "false_trust": poor,
+                "false_trust_share": poor / len(rs),
+                "false_alarm": alarm,
+                "false_alarm_share": alarm / len(rs),
+            }
         )
-    return "\n".join(lines)
+    return rows
+
+
+def trust_summary(results_dir: str | os.PathLike = "benchmarks/results") -> Path:
+    """Write ``dtwin_family_trust.json`` beside the two record files of ``results_dir``: their
+    :func:`trust_rows` (``{"bench": [...], "held out": [...]}``, and per set both twins' false
+    trusts and alarms together, in % too), the confidence report's present rules applied to the
+    records as they are (no draw is run). Returns its path."""
+    out = Path(results_dir)
+    files = {"bench": "dtwin_family.json", "held out": "dtwin_family_heldout.json"}
+    summary: dict = {name: trust_rows(json.loads((out / f).read_text())) for name, f in files.items()}
+    for name in files:  # both twins together, shares in %
+        twins = [r for r in summary[name] if r["twin"] in ("digital", "physical")]
+        n = sum(r["results"] for r in twins)
+        both = {k: sum(r[k] for r in twins) for k in ("false_trust", "false_alarm")}
+        summary[f"{name}, both twins"] = {"results": n, **both, **{f"{k}_pct": 100 * v / n for k, v in both.items()}}
+    path = out / "dtwin_family_trust.json"
+    path.write_text(json.dumps(summary, indent=1) + "\n")
+    return path
 
 
 def defocus_figure(path: str | os.PathLike, results_dir: str | os.PathLike = "benchmarks/results") -> None:
@@ -663,7 +706,15 @@ if __name__ == "__main__":
         default=None,
         help="draw the target's focus check from --out's two files into this picture (no draws run)",
     )
+    ap.add_argument(
+        "--trust-summary",
+        action="store_true",
+        help="write dtwin_family_trust.json: the report's present rules over --out's two files (no draws run)",
+    )
     a = ap.parse_args()
+    if a.trust_summary:
+        print(trust_summary(a.out))
+        sys.exit(0)
     if a.defocus_figure:
         defocus_figure(a.defocus_figure, a.out)
         sys.exit(0)

@@ -2,7 +2,9 @@
 
 A page quotes a measured figure as ``0.987<!-- figure: benchmarks/results/core.json#trade_estimator[size=100,estimator=correlation].ssim -->``:
 the number, then a comment naming the file (from the repository's root) and where in it the value
-lies: dotted keys, and ``[k=v,...]`` to pick the one row of a list whose fields have those values.
+lies: dotted keys, ``[k=v,...]`` to pick the one row of a list whose fields have those values, and
+over a list of records a mean, sd, min, ... (``hand.mean(default)``: benchmarks/page_tables.py's
+:func:`lookup`, which the generated tables read with).
 A key or value holding a space, dot, bracket, comma or ``=`` is percent-encoded as in a URL
 (``summary.depth%205%20cm%20off.mean_ssim`` reads the key ``"depth 5 cm off"``).
 The number must be the value rounded to the decimals shown. The scripts that write the files are
@@ -14,30 +16,14 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
-from typing import Any
-from urllib.parse import unquote
 
 import pytest
+
+from benchmarks.page_tables import lookup
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted([ROOT / "README.md", *(ROOT / "docs").rglob("*.md")])
 _MARKED = re.compile(r"(-?\d+(?:\.\d+)?)\s*(?:[a-zA-Z%]+)?<!-- figure: ([^#\s]+)#(\S+) -->")
-_STEP = re.compile(r"([^.\[\]]+)((?:\[[^\]]*\])?)")
-
-
-def lookup(data: Any, where: str) -> Any:
-    """The value at ``where`` (``a.b[k=v,j=w].c``, each key and value percent-encoded) in parsed
-    JSON ``data``."""
-    for key, selector in _STEP.findall(where):
-        data = data[unquote(key)] if not isinstance(data, list) else data[int(key)]
-        if selector:
-            pairs = (pair.split("=", 1) for pair in selector[1:-1].split(","))
-            wanted = {unquote(k): unquote(v) for k, v in pairs}
-            rows = [r for r in data if all(str(r.get(k)) == v for k, v in wanted.items())]
-            if len(rows) != 1:
-                raise KeyError(f"{selector} picks {len(rows)} rows, not one")
-            data = rows[0]
-    return data
 
 
 def marked_figures() -> list[tuple[str, str, str, str]]:

@@ -247,7 +247,9 @@ def write_beyond_report(out_dir, markdown_path=None) -> Path:
     lines = [
         "# Beyond the paper: what each improvement of the twin estimate buys",
         "",
-        f"Regenerate: `{run.get('command') or 'twinfocus bench beyond'}`. Machine: {machine.get('cpu_model', '?')}, "
+        "This page is generated from the raw results in docs/beyond/raw/ by `twinfocus bench beyond --report-only "
+        "--out docs/beyond --markdown docs/beyond.md`; an edit by hand is overwritten. To rerun the experiments: "
+        f"`{run.get('command') or 'twinfocus bench beyond'}`. Machine: {machine.get('cpu_model', '?')}, "
         f"{machine.get('cpu_count', '?')} cores, {'GPU ' + machine['cuda'] if machine.get('cuda') else 'no GPU'}, "
         f"torch {machine.get('torch', '?')}; started {run.get('started', '?')}, "
         f"{run.get('seconds', 0) / 60:.1f} min in all.",

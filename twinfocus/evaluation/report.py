@@ -207,6 +207,7 @@ def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
             continue
         e = st[m]
         raw_ssim = method_mean(rec, cond, m, "ssim_as_estimated")
+        e["ssim_ramp_kept"] = raw_ssim  # the summary holds every figure of the table
         rows.append(
             [
                 METHOD_NAMES[m],
@@ -225,13 +226,15 @@ def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
     ):
         v, sd = mean_sd(draw_values(rec, cond, field))
         none = st.get("none", {}).get("mean")
+        gain = None if (v is None or not none) else (v / none - 1) * 100
+        st[field] = {"mean": v, "sd": sd, "improvement_pct": gain}
         rows.append(
             [
                 f"*{lab}*",
                 "-",
                 "-",
                 _mean_sd_cell(v, sd),
-                _pct(None if (v is None or not none) else (v / none - 1) * 100),
+                _pct(gain),
                 "-",
                 "-",
                 str(n_draws),
@@ -259,13 +262,15 @@ def _section_baseline(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
     fig = out / "baseline.png"
     baseline_figure(doc, fig)
     lines += [f"![baseline]({_rel(fig, md)})", ""]
-    _section_shapes(doc, out, md, lines)
+    st["shapes_median_improvement_pct"] = _section_shapes(doc, out, md, lines)
     _baseline_examples(out, md, lines)
     return st
 
 
-def _section_shapes(doc: dict, out: Path, md: Path, lines: list[str]) -> None:
-    """Shapes (Fig. 13): each method's improvement per reference-target pair, and its figure."""
+def _section_shapes(doc: dict, out: Path, md: Path, lines: list[str]) -> dict:
+    """Shapes (Fig. 13): each method's improvement per reference-target pair, and its figure.
+    Returns {method: median improvement over the pairs, %}."""
+    medians = {}
     rec = doc["records"]
     sp = PAPER["shapes"]
     rows = []
@@ -274,6 +279,7 @@ def _section_shapes(doc: dict, out: Path, md: Path, lines: list[str]) -> None:
         if not imp:
             continue
         gains = np.array(list(imp.values()))
+        medians[m] = float(np.median(gains))
         worst = min(imp, key=imp.__getitem__)
         rows.append(
             [
@@ -290,6 +296,7 @@ def _section_shapes(doc: dict, out: Path, md: Path, lines: list[str]) -> None:
         fig = out / "baseline_pairs.png"
         pairs_figure(doc, fig)
         lines += [f"![pairs]({_rel(fig, md)})", ""]
+    return medians
 
 
 def _baseline_examples(out: Path, md: Path, lines: list[str]) -> None:
@@ -346,7 +353,12 @@ def _section_limits(raw: dict, out: Path, md: Path, lines: list[str]) -> dict:
         xs = [r["x"] for r in rows]
         floor_x = crossing(xs, [r["floor"] for r in rows], 1.0)
         sentences = []
-        res[name] = {}
+        # the table's losses, for pages that quote them (docs/explanation/ceilings.md)
+        res[name] = {
+            "rows": [
+                {k: r[k] for k in ("x", "label", "ceiling_gain", "transfer_loss", "estimation_loss")} for r in rows
+            ]
+        }
         for m in methods:
             s = stops_helping(rows, m)
             res[name][m] = s
@@ -601,9 +613,11 @@ def write_report(out_dir, markdown_path=None) -> Path:
     machine = run.get("machine", {})
     lines = ["# TwinFocus evaluation: the paper's experiments in simulation", ""]
     lines += [
-        "Regenerate: `make bench-paper` (= `twinfocus bench paper --draws 5 --workers 2 --out docs/results "
-        "--markdown docs/results.md`: the paper's five error draws on two Dask workers; add `--resume` to keep "
-        "finished experiments). "
+        "This page is generated from the raw results in docs/results/raw/ by `twinfocus bench paper --report-only "
+        "--out docs/results --markdown docs/results.md` (which also draws the figures beside it); an edit by hand is "
+        "overwritten. To rerun the experiments: `make bench-paper` (= `twinfocus bench paper --draws 5 --workers 2 "
+        "--out docs/results --markdown docs/results.md`: the paper's five error draws on two Dask workers; add "
+        "`--resume` to keep finished experiments). "
         f"Last invocation: `{run.get('command') or 'twinfocus bench paper'}`.",
         "",
     ]
