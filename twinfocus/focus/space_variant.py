@@ -496,26 +496,39 @@ def fit_smooth_drift(
         after = match.value_and_gradients(fit.phase, drift, fit.tilt())[0] if fit.total else before
     dp = np.zeros((m, 3))
     dp[:, :2] = drift
-    info = {
-        "match_before": before,
-        "match_after": after,
-        "knot_spacing_positions": int(cfg.knot_spacing),
-        "iterations": knot_steps,
-        "refine_iterations": refined,
-        "smoothness_per_mm2": float(cfg.smoothness_per_mm2),
+    record = {
         "knot_pixels": int(coarse.n_pixels),
         "row_stride": stride,
-        "phase_fitted": cfg.phase_step_rad > 0,
-        "tilt_fitted": half_basis is not None,
-        "cost_evaluations": len(fit.matches) + 1 + (1 if fit.total else 0),
         "device": str(whole.device),
         "threads": threads,
-        "time_s": time.perf_counter() - t0,
-        "warm_start_positions": 0 if start is None else start.rows,
-        "end_state": fit.end_state(drift, np.asarray(phase0_rad, np.float64)),
     }
+    info = _fit_info(cfg, fit, (before, after), refined, record, start)
+    info["end_state"] = fit.end_state(drift, np.asarray(phase0_rad, np.float64))
+    info["time_s"] = time.perf_counter() - t0
     tilt = fit.tilt()
     return fit.phase.copy(), dp, np.zeros(m) if tilt is None else tilt.astype(np.float64), info
+
+
+def _fit_info(cfg: DriftFitSettings, fit, matches: tuple[float, float], refined: int, record: dict, start) -> dict:
+    """:func:`fit_smooth_drift`'s info (its docstring's keys but ``end_state`` and ``time_s``):
+    ``matches`` the correlation before and after, ``refined`` the per-position stage's steps,
+    ``record`` the knot pixels, row stride, device and threads."""
+    return {
+        "match_before": matches[0],
+        "match_after": matches[1],
+        "knot_spacing_positions": int(cfg.knot_spacing),
+        "iterations": int(cfg.iterations),
+        "refine_iterations": refined,
+        "smoothness_per_mm2": float(cfg.smoothness_per_mm2),
+        "knot_pixels": record["knot_pixels"],
+        "row_stride": record["row_stride"],
+        "phase_fitted": cfg.phase_step_rad > 0,
+        "tilt_fitted": fit.tilt_coef is not None,
+        "cost_evaluations": len(fit.matches) + 1 + (1 if fit.total else 0),
+        "device": record["device"],
+        "threads": record["threads"],
+        "warm_start_positions": 0 if start is None else start.rows,
+    }
 
 
 def _on_rows(fitted: np.ndarray, template: np.ndarray, stride: int) -> tuple[np.ndarray, int]:
