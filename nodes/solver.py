@@ -8,7 +8,12 @@ twin's template, the registration's scores of those rows
 (:class:`twinfocus.focus.template_match.MatchScores`). So when the scan's ``last`` measurement
 arrives, the back-projection is already done and only the optimiser and the metrics remain
 (:meth:`twinfocus.focus.plan.FocusPlan.focus_bases`, the steps ``twinfocus focus`` runs after its
-back-projections: ``twin``, or the baselines ``sharpness`` / ``none``). With
+back-projections: ``twin``, or the baselines ``sharpness`` / ``none``). A hand-held sweep's drift +
+tilt fit runs while the sweep arrives too: the plan's ladder climbed on the rows so far in a
+worker thread, each drift fit warm-started from the one before
+(:class:`twinfocus.focus.ladder.DriftStarts`), so after the last measurement the fit only refines
+from the latest (its held-out fits, which decide whether it is kept, run cold as offline); the
+result's timings say ``space_variant`` (after the last frame) and ``space_variant_streamed``. With
 ``basis:=after_scan`` it instead keeps the samples and runs :meth:`twinfocus.focus.plan.FocusPlan.focus_scan`
 on the assembled scan at the end (the same call as ``twinfocus focus``; the benchmark's
 baseline).
@@ -94,6 +99,7 @@ class _DriftStream:
     fits: int = 0
     fit_s: float = 0.0
     ladder_s: float = 0.0
+    start_rows: int = 0  # the positions the fit after the last frame started from (the latest streamed fit's)
     worker: threading.Thread | None = None
     stop: threading.Event = field(default_factory=threading.Event)
 
@@ -444,6 +450,8 @@ class Solver(Node):
             s.truth = None
         if m.last:
             s.last_wall = time.monotonic()
+            if s.drift is not None:  # the streamed fit stops now, not after the last batch's back-projection
+                s.drift.stop.set()
             self._flush()
             self._end_scan()
         elif not self._flush_scheduled:
@@ -522,7 +530,9 @@ class Solver(Node):
             if stop.is_set():
                 raise _Superseded
 
-        plan = dataclasses.replace(self._plan(), progress_factory=lambda label: check)
+        # the space-variant rungs "on": a streamed fit is there for its end state, and its held-out
+        # fits (a third of its time) would only judge a part of the aperture the last fit judges whole
+        plan = dataclasses.replace(self._plan().varied(space_variant="on"), progress_factory=lambda label: check)
         d.rows = n
         d.worker = threading.Thread(target=self._drift_worker, args=(d, plan, bases, reference), daemon=True)
         d.worker.start()
@@ -565,9 +575,11 @@ class Solver(Node):
         d.stop.set()
         if d.worker is not None:
             d.worker.join()
+        d.start_rows = max((st.rows for st in d.starts.states.values()), default=0)
         if not d.starts.states:
             return None
-        return dataclasses.replace(d.starts, warm=dict(WARM_FIT))
+        # the fit after the last frame records its own end in a copy: the scan's record says what it started from
+        return dataclasses.replace(d.starts, states=dict(d.starts.states), warm=dict(WARM_FIT))
 
     def _half_streamed(self, s: _Scan, pos: np.ndarray) -> bool:
         """Whether this batch's half-array rows are streamed: from the scan's first batch, when the
@@ -878,7 +890,7 @@ class Solver(Node):
             out.timings_s["space_variant_streamed"] = d.fit_s
             out.metrics["space_variant_streamed"] = {
                 "fits": d.fits,
-                "warm_start_positions": max((st.rows for st in d.starts.states.values()), default=0),
+                "warm_start_positions": d.start_rows,
                 "fit_s": round(d.fit_s, 3),
                 "ladder_s": round(d.ladder_s, 3),
                 "used": starts is not None,
@@ -917,11 +929,13 @@ class Solver(Node):
         }
         # the message's metrics are flat: metrics.json's capture entry as capture.frames_lost ...
         numeric.update({f"capture.{k}": float(v) for k, v in out.metrics.get("capture", {}).items()})
-        # the depth found for the target (metrics.json target_depth) as target_depth.depth_m ...
+        # the depth found for the target (metrics.json target_depth) as target_depth.depth_m, the
+        # drift fits streamed during the sweep as space_variant_streamed.fits ...
         numeric.update(
             {
-                f"target_depth.{k}": float(v)
-                for k, v in out.metrics.get("target_depth", {}).items()
+                f"{section}.{k}": float(v)
+                for section in ("target_depth", "space_variant_streamed")
+                for k, v in out.metrics.get(section, {}).items()
                 if isinstance(v, (int, float)) and not isinstance(v, bool)
             }
         )
