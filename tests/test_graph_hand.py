@@ -4,8 +4,9 @@
 hand's drift and the array's turn in its poses (nodes/runtime/sim_backends.py), so the solver fits the
 drift + tilt on a hand-held scan; ``twinfocus simulate --trajectory zigzag --error-model hand`` +
 ``twinfocus focus`` is the same scan offline (its phase centres within 0.4 um of the live ones:
-the tracked pose turns the array exactly where the simulation turns it to first order). The two
-images must be the same image, within 0.005 SSIM.
+the tracked pose turns the array exactly where the simulation turns it to first order). Live, at
+``rate:=1``, the solver fits the drift while the sweep arrives and refines from the latest fit
+after the last frame; the two images must still be the same image, within 0.005 SSIM.
 """
 
 import json
