@@ -546,7 +546,7 @@ class Solver(Node):
             return False
         if not np.iscomplexobj(self.template) or not (plan.climbs("drift") or plan.climbs("tilt")):
             return False
-        return not plan.needs.half_bases or s.half is not None
+        return (not plan.needs.half_bases or s.half is not None) and _parallel_kernels_thread_safe()
 
     @staticmethod
     def _drift_worker(d: _DriftStream, plan, bases, reference) -> None:
@@ -1077,6 +1077,18 @@ class Solver(Node):
             self._finish(s)
         except Shutdown:  # the launcher died meanwhile: nothing can be delivered
             pass
+
+
+def _parallel_kernels_thread_safe() -> bool:
+    """Whether numba's parallel kernels may run on two threads at once (the streamed drift fit
+    beside the back-projection): omp and tbb yes; workqueue, numba's fallback without either
+    library, no (it aborts the process), and then the drift is fitted after the scan alone."""
+    import numba
+
+    try:
+        return numba.threading_layer() != "workqueue"
+    except ValueError:  # no parallel kernel ran yet: the layer the priority list would take
+        return numba.config.THREADING_LAYER != "workqueue"
 
 
 def _alive(pid: int) -> bool:
