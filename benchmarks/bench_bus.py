@@ -370,6 +370,7 @@ def graph_latency_run(
         "solver_latency_s": float(res.latency_s),
         "solver_timing_s": res.timing_s,
         "target_ssim": {k: final.metrics.get(f"target_ssim_{k}") for k in ("uncorrected", "corrected")},
+        "solver_metrics": {k: v for k, v in final.metrics.items() if k.startswith("space_variant_streamed.")},
         "load_average_1min": [load_before[0], load_after[0]],
     }
 
@@ -399,8 +400,19 @@ def hand_sweep(out: Path, quick: bool, repeat: int) -> dict:
     sizes = (2, 40, 40, 1.0) if quick else (6, 130, 100, 1.0)
     runs = [graph_latency_run(*sizes, hand=True) for _ in range(max(1, repeat))]
     key = "last_radar_frame_to_focused_image_s"
+    timing, metrics = runs[0]["solver_timing_s"], runs[0].get("solver_metrics", {})
+    after, streamed = timing.get("space_variant", 0.0), timing.get("space_variant_streamed", 0.0)
     hand = {
         **runs[0],
+        # the drift + tilt fit: after the last frame (warm-started) against all of its work for the
+        # scan (the fits streamed during the sweep too), in the same run
+        "drift_fit_s": {
+            "after_last_frame": after,
+            "streamed": streamed,
+            "streamed_fits": metrics.get("space_variant_streamed.fits", 0.0),
+            "warm_start_positions": metrics.get("space_variant_streamed.warm_start_positions", 0.0),
+            "after_share_of_whole": after / (after + streamed) if after + streamed > 0 else None,
+        },
         "runs": len(runs),
         key: float(np.mean([r[key] for r in runs])),
         "spread_s": [float(min(r[key] for r in runs)), float(max(r[key] for r in runs))],

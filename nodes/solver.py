@@ -8,7 +8,12 @@ twin's template, the registration's scores of those rows
 (:class:`twinfocus.focus.template_match.MatchScores`). So when the scan's ``last`` measurement
 arrives, the back-projection is already done and only the optimiser and the metrics remain
 (:meth:`twinfocus.focus.plan.FocusPlan.focus_bases`, the steps ``twinfocus focus`` runs after its
-back-projections: ``twin``, or the baselines ``sharpness`` / ``none``). With
+back-projections: ``twin``, or the baselines ``sharpness`` / ``none``). A hand-held sweep's drift +
+tilt fit runs while the sweep arrives too: the plan's ladder climbed on the rows so far in a
+worker thread, each drift fit warm-started from the one before
+(:class:`twinfocus.focus.ladder.DriftStarts`), so after the last measurement the fit only refines
+from the latest (its held-out fits, which decide whether it is kept, run cold as offline); the
+result's timings say ``space_variant`` (after the last frame) and ``space_variant_streamed``. With
 ``basis:=after_scan`` it instead keeps the samples and runs :meth:`twinfocus.focus.plan.FocusPlan.focus_scan`
 on the assembled scan at the end (the same call as ``twinfocus focus``; the benchmark's
 baseline).
@@ -35,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -61,6 +67,7 @@ from twinfocus.sensors.capture_to_scan import stream_gaps
 
 if TYPE_CHECKING:  # imported where used: the node starts without the numerics (numba, scipy: 1.0 s
     # against 3.5-4.7 s for `import nodes.solver` at load 25), which a launch's checks import
+    from twinfocus.focus.ladder import DriftStarts
     from twinfocus.focus.plan import FocusPlan
     from twinfocus.focus.template_match import MatchScores
 
@@ -69,6 +76,32 @@ if TYPE_CHECKING:  # imported where used: the node starts without the numerics (
 PROGRESS_EVERY_S = 5.0
 #: fewest reference rows a streamed registration step scores at once (see _score_registration)
 _REGISTRATION_ROWS = 16
+#: a hand-held sweep's drift is fitted while it arrives (:meth:`Solver._stream_drift`) from this
+#: many positions on (two knots' spans of the fit's curve), and again, warm-started, whenever
+#: this many more have arrived since the fit before began and none is running
+DRIFT_STREAM_FIRST = 40
+DRIFT_STREAM_EVERY = 20
+
+
+class _Superseded(Exception):
+    """A streamed drift fit stopped: the scan's last measurement came (or the scan ended)."""
+
+
+@dataclass
+class _DriftStream:
+    """The drift fits streamed during one scan (:meth:`Solver._stream_drift`): the warm starts
+    they leave (``starts``, :class:`twinfocus.focus.ladder.DriftStarts`), the positions the
+    latest one began on, and the fits that ran to their end: count, the drift rungs' seconds and
+    the whole ladders' seconds (each fit climbs the plan's ladder on the rows so far)."""
+
+    starts: DriftStarts
+    rows: int = 0
+    fits: int = 0
+    fit_s: float = 0.0
+    ladder_s: float = 0.0
+    start_rows: int = 0  # the positions the fit after the last frame started from (the latest streamed fit's)
+    worker: threading.Thread | None = None
+    stop: threading.Event = field(default_factory=threading.Event)
 
 
 @dataclass
@@ -104,6 +137,7 @@ class _Scan:
     gaps: tuple[int, int, int] = (0, 0, 0)  # the stream's gap counts at its latest measurement
     incomplete: str = ""  # why the scan ended without its last measurement (empty: it did not)
     counted_before: tuple[int, int] = (0, 0)  # radar frames, measurements published for the scans before
+    drift: _DriftStream | None = None  # the drift fits streamed while the scan arrives (a hand-held sweep's)
 
 
 class Solver(Node):
@@ -416,6 +450,8 @@ class Solver(Node):
             s.truth = None
         if m.last:
             s.last_wall = time.monotonic()
+            if s.drift is not None:  # the streamed fit stops now, not after the last batch's back-projection
+                s.drift.stop.set()
             self._flush()
             self._end_scan()
         elif not self._flush_scheduled:
@@ -456,7 +492,94 @@ class Solver(Node):
         s.basis_time_s += s.last_batch_s
         s.batches += 1
         self._score_registration(s)
+        if not s.last_wall:  # the last measurement's batch: the fit after it runs at once
+            self._stream_drift(s)
         self.heartbeat_if_due()
+
+    def _stream_drift(self, s: _Scan) -> None:
+        """Starts a drift fit on the rows so far in a worker thread when the plan may fit the
+        drift (a template with phase, the space-variant correction not off), none is running and
+        ``DRIFT_STREAM_EVERY`` positions came since the latest began (``DRIFT_STREAM_FIRST`` for
+        the first): the plan's ladder climbed on the streamed bases, each drift fit warm-started
+        from the one before (:data:`twinfocus.focus.ladder.STREAMED_FIT` steps), so that after the
+        last frame the fit only refines from there (:data:`twinfocus.focus.ladder.WARM_FIT`) and
+        a hand-held scan's image does not wait for a whole fit (bus.json ``live_hand_sweep``). The
+        measurements keep being read and back-projected on the node's thread meanwhile (the
+        fit's numba pass releases the GIL)."""
+        n = s.ref_rows.n
+        d = s.drift
+        if d is not None and (d.worker is not None and d.worker.is_alive() or n < d.rows + DRIFT_STREAM_EVERY):
+            return
+        if n < DRIFT_STREAM_FIRST or not self._drift_streams(s):
+            return
+        from twinfocus.focus.ladder import STREAMED_FIT, DriftStarts  # lazy: numba, scipy.fft (+2.1 s at import)
+        from twinfocus.focus.pipeline import Bases, Reference  # lazy: numba, scipy.fft (+2.1 s at import)
+
+        if d is None:
+            d = s.drift = _DriftStream(DriftStarts(warm=dict(STREAMED_FIT)))
+        assert self.ref_grid is not None and self.tgt_grid is not None
+        # views of the rows so far: the rows after them are appended past them (BasisRows)
+        halves = (s.ref_half_rows.array()[:n], s.tgt_half_rows.array()[:n]) if s.ref_half_rows.n >= n else None
+        bases = Bases(s.ref_rows.array()[:n], s.tgt_rows.array()[:n], np.concatenate(s.positions)[:n], s.chirp,
+                      self.ref_grid, self.tgt_grid, half_bases=None if halves is None else lambda: halves,
+                      drift_starts=d.starts)  # fmt: skip
+        reference = Reference(self.template, self.support, self.twin_info)
+        stop = d.stop
+
+        def check(*_args) -> None:  # the fit's progress: stop at its next step once superseded
+            if stop.is_set():
+                raise _Superseded
+
+        # the space-variant rungs "on": a streamed fit is there for its end state, and its held-out
+        # fits (a third of its time) would only judge a part of the aperture the last fit judges whole
+        plan = dataclasses.replace(self._plan().varied(space_variant="on"), progress_factory=lambda label: check)
+        d.rows = n
+        d.worker = threading.Thread(target=self._drift_worker, args=(d, plan, bases, reference), daemon=True)
+        d.worker.start()
+
+    def _drift_streams(self, s: _Scan) -> bool:
+        """Whether the scan's drift is fitted as it arrives: the plan climbs to the drift (or the
+        tilt, whose half-array rows are then streamed) for a template with phase, on the streamed
+        bases at their own resolution (not ``--model fast``'s coarser reference)."""
+        plan = self.plan
+        if self.whole_scan or self.params["method"] != "twin" or self.template is None or plan.model == "fast":
+            return False
+        if not np.iscomplexobj(self.template) or not (plan.climbs("drift") or plan.climbs("tilt")):
+            return False
+        return (not plan.needs.half_bases or s.half is not None) and _parallel_kernels_thread_safe()
+
+    @staticmethod
+    def _drift_worker(d: _DriftStream, plan, bases, reference) -> None:
+        """One streamed fit (on the worker thread): the plan's ladder on the rows so far, its
+        drift fits leaving their warm starts in ``d.starts``; an error or a stop leaves the starts
+        of the fits that ended."""
+        t = time.perf_counter()
+        try:
+            out = plan.focus_bases(bases, reference)
+        except Exception:  # noqa: BLE001 - superseded, or a partial scan the ladder refuses: the fit after the scan says why
+            return
+        d.fits += 1
+        d.ladder_s += time.perf_counter() - t
+        d.fit_s += sum(
+            e["time_s"] for e in out.metrics["model"]["rungs"] if e["rung"] in ("drift", "tilt") and e["tried"]
+        )
+
+    def _stop_drift(self, s: _Scan) -> DriftStarts | None:
+        """The streamed drift fit stopped (at its next step) and waited for; the scan's warm
+        starts for the fit after its last frame, None when no streamed fit left one."""
+        from twinfocus.focus.ladder import WARM_FIT  # lazy: numba, scipy.fft (+2.1 s at import)
+
+        d = s.drift
+        if d is None:
+            return None
+        d.stop.set()
+        if d.worker is not None:
+            d.worker.join()
+        d.start_rows = max((st.rows for st in d.starts.states.values()), default=0)
+        if not d.starts.states:
+            return None
+        # the fit after the last frame records its own end in a copy: the scan's record says what it started from
+        return dataclasses.replace(d.starts, states=dict(d.starts.states), warm=dict(WARM_FIT))
 
     def _half_streamed(self, s: _Scan, pos: np.ndarray) -> bool:
         """Whether this batch's half-array rows are streamed: from the scan's first batch, when the
@@ -542,6 +665,8 @@ class Solver(Node):
         if s is None:
             return
         self._flush()
+        if s.drift is not None:  # a scan dropped or waiting for a template: its streamed fit ends here
+            s.drift.stop.set()
         self._count_positions(s)
         if s.last_wall is None:  # ended without its last measurement: from the latest that came
             s.last_wall = s.seen_wall or time.monotonic()
@@ -743,7 +868,9 @@ class Solver(Node):
         if s.data and plan.needs.upper_band:
             samples = lambda: np.concatenate(s.data)  # noqa: E731
             upper_band = upper_band_basis(samples, positions, s.chirp, ref_grid, self.bp, plan.progress_factory)
-        bases = Bases(ref_basis, tgt_basis, positions, s.chirp, ref_grid, self.tgt_grid, scores, half_bases, upper_band)
+        starts = self._stop_drift(s) if (ky, kx) == (1, 1) else None
+        bases = Bases(ref_basis, tgt_basis, positions, s.chirp, ref_grid, self.tgt_grid, scores, half_bases, upper_band,
+                      starts)  # fmt: skip
         t = time.perf_counter()
         # The BLAS work of these steps (SSIM filters, form_image, small fits on 100 x 100 images)
         # is too small to gain from threads, and OpenBLAS's spinning threads fight numba's and the
@@ -758,6 +885,16 @@ class Solver(Node):
         out.metrics["model"]["reference_strides"] = [ky, kx]
         if s.half_handed:
             out.metrics["half_array_bases"] = "streamed"
+        if s.drift is not None:
+            d = s.drift
+            out.timings_s["space_variant_streamed"] = d.fit_s
+            out.metrics["space_variant_streamed"] = {
+                "fits": d.fits,
+                "warm_start_positions": d.start_rows,
+                "fit_s": round(d.fit_s, 3),
+                "ladder_s": round(d.ladder_s, 3),
+                "used": starts is not None,
+            }
         return out, tgt_basis
 
     def _truth_metrics(self, s: _Scan, out, tgt_basis: np.ndarray, positions: np.ndarray, truth: np.ndarray) -> None:
@@ -792,11 +929,13 @@ class Solver(Node):
         }
         # the message's metrics are flat: metrics.json's capture entry as capture.frames_lost ...
         numeric.update({f"capture.{k}": float(v) for k, v in out.metrics.get("capture", {}).items()})
-        # the depth found for the target (metrics.json target_depth) as target_depth.depth_m ...
+        # the depth found for the target (metrics.json target_depth) as target_depth.depth_m, the
+        # drift fits streamed during the sweep as space_variant_streamed.fits ...
         numeric.update(
             {
-                f"target_depth.{k}": float(v)
-                for k, v in out.metrics.get("target_depth", {}).items()
+                f"{section}.{k}": float(v)
+                for section in ("target_depth", "space_variant_streamed")
+                for k, v in out.metrics.get(section, {}).items()
                 if isinstance(v, (int, float)) and not isinstance(v, bool)
             }
         )
@@ -938,6 +1077,18 @@ class Solver(Node):
             self._finish(s)
         except Shutdown:  # the launcher died meanwhile: nothing can be delivered
             pass
+
+
+def _parallel_kernels_thread_safe() -> bool:
+    """Whether numba's parallel kernels may run on two threads at once (the streamed drift fit
+    beside the back-projection): omp and tbb yes; workqueue, numba's fallback without either
+    library, no (it aborts the process), and then the drift is fitted after the scan alone."""
+    import numba
+
+    try:
+        return numba.threading_layer() != "workqueue"
+    except ValueError:  # no parallel kernel ran yet: the layer the priority list would take
+        return numba.config.THREADING_LAYER != "workqueue"
 
 
 def _alive(pid: int) -> bool:

@@ -88,14 +88,14 @@ def offline_simulate_and_focus(
     return out
 
 
-def sim_graph(tmp_path: Path, sc, size: str, iterations: str, *args: str) -> "Launched":
+def sim_graph(tmp_path: Path, sc, size: str, iterations: str, *args: str, rate: str = "0") -> "Launched":
     """``twinfocus launch launch/sim.yaml`` of one scan (``exit_after:=1``, as fast as it is made:
-    ``rate:=0``) on the scenario ``sc``'s regions, writing under ``tmp_path / "graph"``; ``args``:
-    the scene's own launch arguments (columns, rows, seed, ...)."""
+    ``rate:=0``, or at ``rate``) on the scenario ``sc``'s regions, writing under ``tmp_path /
+    "graph"``; ``args``: the scene's own launch arguments (columns, rows, seed, ...)."""
     yaml_list = lambda r: "[" + ",".join(str(v) for v in r) + "]"  # noqa: E731
     return Launched(
         "launch/sim.yaml", f"port:={free_port()}", "web_port:=0", f"out:={tmp_path / 'graph'}", *args,
-        f"size:={size}", f"iterations:={iterations}", "rate:=0", "exit_after:=1",
+        f"size:={size}", f"iterations:={iterations}", f"rate:={rate}", "exit_after:=1",
         f"reference_roi:={yaml_list(sc.reference_roi())}", f"target_roi:={yaml_list(sc.target_roi())}",
     )  # fmt: skip
 

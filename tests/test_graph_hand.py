@@ -4,8 +4,9 @@
 hand's drift and the array's turn in its poses (nodes/runtime/sim_backends.py), so the solver fits the
 drift + tilt on a hand-held scan; ``twinfocus simulate --trajectory zigzag --error-model hand`` +
 ``twinfocus focus`` is the same scan offline (its phase centres within 0.4 um of the live ones:
-the tracked pose turns the array exactly where the simulation turns it to first order). The two
-images must be the same image, within 0.005 SSIM.
+the tracked pose turns the array exactly where the simulation turns it to first order). Live, at
+``rate:=1``, the solver fits the drift while the sweep arrives and refines from the latest fit
+after the last frame; the two images must still be the same image, within 0.005 SSIM.
 """
 
 import json
@@ -29,6 +30,7 @@ def test_live_hand_sweep_equals_offline_focus(tmp_path):
     g = sim_graph(
         tmp_path, sc, size, iterations,
         f"columns:={cols}", f"rows:={rows}", f"seed:={seed}", "trajectory:=zigzag", "error_model:=hand",
+        rate="1",  # a sweep as a hand makes it, so the solver fits the drift while it arrives
     )  # fmt: skip
     code = g.exit_code(600)
     assert code == 0, g.text
@@ -44,6 +46,10 @@ def test_live_hand_sweep_equals_offline_focus(tmp_path):
     # the drift + tilt fit ran on both, and gave the same image
     assert off_m["space_variant"].get("tilt_fitted"), off_m["space_variant"]
     assert live_m["space_variant"].get("tilt_fitted"), live_m["space_variant"]
+    # live, the fit ran while the sweep arrived and refined from there after its last frame
+    streamed = live_m["space_variant_streamed"]
+    assert streamed["used"] and streamed["fits"] >= 1, streamed
+    assert live_m["space_variant"]["warm_start_positions"] >= 40, live_m["space_variant"]
     live, off = np.load(live_dir / "target.npy"), np.load(off_dir / "target.npy")
     assert image_ssim(live, off) > 0.995, image_ssim(live, off)
     assert abs(live_m["target_ssim_corrected"] - off_m["target_ssim_corrected"]) < 0.005, (

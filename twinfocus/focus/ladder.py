@@ -74,6 +74,17 @@ HELDOUT_FIT = {"iterations": 50, "refine_iterations": 0}
 #: steps) 0.928 / 0.943, with 100 steps 0.914 / 0.936 (the per-position stage takes up what the
 #: knots' straight segments miss; more knot steps without it fit the reference's noise)
 FAST_FIT = {"iterations": 50, "refine_iterations": 20}
+#: a warm-started drift fit after a sweep's last frame (the solver node's, :class:`DriftStarts`): a
+#: few steps of each stage from the latest fit streamed while the sweep arrived. On the paper-size
+#: hand sweep (benchmarks/bench_bus.py, bus.json ``live_hand_sweep``) the fit after the last frame
+#: is a tenth of the scan's fitting, its target SSIM 0.960-0.976 over three runs against the offline
+#: fit's 0.965; replayed
+#: offline from fits every 100 positions, the image 0.985-0.989 SSIM from the cold fit's (a
+#: streamed fit sees part of the aperture against the whole one's template)
+WARM_FIT = {"iterations": 10, "refine_iterations": 10}
+#: ... and the fits streamed during the sweep, each warm-started from the one before: enough steps
+#: that the fits together climb as far as one cold fit (``DriftFitSettings``' 100 + 100)
+STREAMED_FIT = {"iterations": 30, "refine_iterations": 30}
 #: ``--model fast`` forms a reference whose template has phase (a physical twin's) on pixels up to
 #: this share of the scan's resolution cell apart (:func:`fast_reference`), not on every pixel of
 #: ``--size``: the reference is there to measure the errors, and the phase estimate and the quick
@@ -155,6 +166,8 @@ class Problem:
     #: why the reference, as a model corrects it, is below the confidence report's trust line, or
     #: None when it passes (:func:`twinfocus.focus.pipeline.reference_trust`); ``--model fast`` stops there
     trust: Callable[[Problem, Model], str | None] | None = None
+    #: the drift rungs' warm starts (the solver node's streamed fits), or None: every fit cold
+    drift_starts: DriftStarts | None = None
 
     @property
     def centres(self) -> np.ndarray:
@@ -175,6 +188,29 @@ class Problem:
 
     def progress(self, label: str):
         return self.progress_factory(label) if self.progress_factory else None
+
+
+@dataclass
+class DriftStarts:
+    """The drift rungs' warm starts across the fits of one growing scan (the solver node fits the
+    drift on a sweep's positions as they arrive): ``states`` (rung name, fit) ->
+    :class:`twinfocus.focus.space_variant.DriftStart`, each fit's end, which the next fit of that
+    rung starts from (fit: ``"fit"``, or ``"heldout0"`` / ``"heldout1"`` for the held-out
+    fits); ``warm``: the steps a warm-started fit takes (``iterations``, ``refine_iterations``:
+    :data:`WARM_FIT` after the last frame, :data:`STREAMED_FIT` while the sweep arrives; a fit
+    given fewer steps keeps its own, as the held-out fits' knots-only stage). One object shared
+    by the fits of one scan, on one thread at a time."""
+
+    states: dict = field(default_factory=dict)
+    warm: dict = field(default_factory=lambda: dict(WARM_FIT))
+
+    def settings(self, key: tuple[str, str], settings: dict) -> dict:
+        """``settings`` (DriftFitSettings fields) for the fit ``key``: the warm steps when it has
+        a start."""
+        if key not in self.states:
+            return settings
+        steps = {"iterations": 100, "refine_iterations": 100, **settings}
+        return {**settings, **{k: min(int(v), int(steps[k])) for k, v in self.warm.items()}}
 
 
 @dataclass

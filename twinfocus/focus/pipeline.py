@@ -28,7 +28,7 @@ from twinfocus.focus.autofocus import (
 )
 from twinfocus.focus.band_delay import half_band_chirps, half_band_data
 from twinfocus.focus.estimators import AUTO_REFINE_BELOW_COHERENCE, REFERENCE_FREE_RUNGS
-from twinfocus.focus.ladder import Model, Problem, complex_match, model_view
+from twinfocus.focus.ladder import DriftStarts, Model, Problem, complex_match, model_view
 from twinfocus.focus.outline_fill import outline_fill
 from twinfocus.focus.phase_ramp import ramp_free_coherence
 from twinfocus.focus.rig_placement import rig_trust
@@ -171,7 +171,9 @@ class Bases:
     :class:`~twinfocus.radar.fmcw.Chirp`; registration_scores : the template registration's scores when
     already accumulated (the solver node); half_bases, upper_band : the half-array bases and the
     upper band's basis, called only when the tilt and range-errors rungs run
-    (:func:`half_array_bases`, :func:`upper_band_basis`)."""
+    (:func:`half_array_bases`, :func:`upper_band_basis`); drift_starts : the drift rungs' warm
+    starts (:class:`twinfocus.focus.ladder.DriftStarts`: the solver node's fits streamed during a
+    sweep), None: cold fits, as ``twinfocus focus`` runs them."""
 
     ref: np.ndarray
     tgt: np.ndarray
@@ -182,6 +184,7 @@ class Bases:
     registration_scores: np.ndarray | None = None
     half_bases: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
     upper_band: Callable[[np.ndarray], np.ndarray] | None = None
+    drift_starts: DriftStarts | None = None
 
     @classmethod
     def of_scan(

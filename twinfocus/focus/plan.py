@@ -464,7 +464,7 @@ def _focus_bases(plan: FocusPlan, bases: Bases, reference: Reference, truth: Tru
         check_has_signal(template, "the template")
     problem = Problem(bases.ref, bases.tgt, bases.positions, bases.chirp, bases.reference_grid, bases.target_grid,
                       cfg, template, support, bases.registration_scores, bases.half_bases, bases.upper_band,
-                      plan.progress_factory, reference_trust)  # fmt: skip
+                      plan.progress_factory, reference_trust, bases.drift_starts)  # fmt: skip
     kept, section = climb(problem, plan.rungs)
     kept = rig_placed(kept, problem, reference.info)  # a calibrated rig: the reference where the camera saw it
     targets = section.pop("targets")

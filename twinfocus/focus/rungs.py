@@ -616,15 +616,27 @@ class SmoothDrift(Rung):
             return why, {"residual_scalar": residual, "reason": why}
         return None, {"residual_scalar": residual}
 
-    def _fit(self, problem: Problem, model: Model, halves, fitted: np.ndarray | None = None, **settings):
-        """fit_smooth_drift on the reference, or on its ``fitted`` pixels alone (bool (H, W))."""
+    def _fit(self, problem: Problem, model: Model, halves, fitted: np.ndarray | None = None, key="fit", **settings):
+        """fit_smooth_drift on the reference, or on its ``fitted`` pixels alone (bool (H, W));
+        warm-started from ``problem.drift_starts``' state for ``key`` when it holds one (with its
+        warm steps), whose state it then becomes."""
         from twinfocus.focus.space_variant import (  # lazy: numba, scipy (+1.4 s at import; only this rung fits the drift)
             DriftFitSettings,
             fit_smooth_drift,
         )
 
         assert model.template is not None
-        return fit_smooth_drift(
+        # the held-out fits stay cold: warm-started from a sweep's partial fits (which fit a part of
+        # the aperture against the whole one's template, and do not generalise) they turned the
+        # verdict on the hand-drift scene of bench_bus's live hand sweep; cold, it is the offline one
+        starts = problem.drift_starts if key == "fit" else None
+        start = None
+        if starts is not None:
+            settings = starts.settings((self.name, key), settings)
+            start = starts.states.get((self.name, key))
+            if start is not None and start.rows > problem.ref_basis.shape[0]:
+                start = None  # a start from a longer scan than this one (a scan that began again)
+        result = fit_smooth_drift(
             problem.ref_basis,
             model.template,
             model.phase_rad,
@@ -636,7 +648,11 @@ class SmoothDrift(Rung):
             device=problem.config.device,
             progress=problem.progress("space-variant fit" if fitted is None else "space-variant held-out fit"),
             settings=DriftFitSettings(**settings),
+            start=start,
         )
+        if starts is not None:
+            starts.states[(self.name, key)] = result[3]["end_state"]
+        return result
 
     def fit(self, problem: Problem, model: Model) -> Fitted:
         info: dict = {}
@@ -662,6 +678,9 @@ class SmoothDrift(Rung):
             tilt_fitted=bool(fit["tilt_fitted"]),
             tilt_rms_rad=float(np.sqrt((tilt**2).mean())),
         )
+        if fit["warm_start_positions"] and problem.drift_starts is not None:
+            # the solver node's fit after a sweep, from those streamed during it
+            info.update(warm_start_positions=fit["warm_start_positions"], warm_steps=dict(problem.drift_starts.warm))
         return Fitted(model.evolve(phase_rad=phase, drift_m=drift, tilt_rad=tilt, halves=halves), info)
 
     def heldout(
@@ -682,7 +701,7 @@ class SmoothDrift(Rung):
                 # over the template's pixels, so zeroing the template's other half is enough)
                 phase = correlation_phase(problem.ref_basis, before.template * fitted)
                 base = before.evolve(phase_rad=phase)
-            phase, drift, tilt, _ = self._fit(problem, base, after.halves, fitted, **HELDOUT_FIT)
+            phase, drift, tilt, _ = self._fit(problem, base, after.halves, fitted, f"heldout{i}", **HELDOUT_FIT)
             fits.append(after.evolve(phase_rad=phase, drift_m=drift, tilt_rad=tilt))
             folds.append(
                 heldout_gain(

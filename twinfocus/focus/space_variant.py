@@ -383,6 +383,31 @@ class DriftFitSettings:
             raise TwinFocusError("knot_spacing must be >= 1 and the iterations >= 0")
 
 
+@dataclass(frozen=True)
+class DriftStart:
+    """Where a warm-started :func:`fit_smooth_drift` begins: an earlier fit's end on the first
+    ``rows`` positions of the same scan (the solver node fits the drift as a sweep's positions
+    arrive, then refines on the whole scan from there). Made by the fit (its info's
+    ``end_state``), not by hand.
+
+    phase_offset_rad : float64 (rows,) the fitted phase less that fit's ``phase0_rad`` (the scalar
+    estimate beneath moves as the scan grows; the fit's own offset from it is what carries over);
+    knots_m : float64 (n_knots, 2) the knots' values, metres; residual_m : float64 (rows, 2) the
+    per-position stage's drift less the knots' curve, metres; tilt_knots_rad : float64 (n_knots,)
+    the tilt's knots, radians (None: no tilt fitted); knot_spacing : positions between knots
+    (a start only fits a fit with the same knots)."""
+
+    phase_offset_rad: np.ndarray
+    knots_m: np.ndarray
+    residual_m: np.ndarray
+    tilt_knots_rad: np.ndarray | None
+    knot_spacing: int
+
+    @property
+    def rows(self) -> int:
+        return int(self.phase_offset_rad.shape[0])
+
+
 def fit_smooth_drift(
     basis: np.ndarray,
     template: np.ndarray,
@@ -395,6 +420,7 @@ def fit_smooth_drift(
     pixels: np.ndarray | None = None,
     device: str | None = "cpu",
     progress: Callable[[int, int, float], None] | None = None,
+    start: DriftStart | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Smooth across-sight drift (and optionally the per-position phase) from one extended
     reference's image.
@@ -430,12 +456,19 @@ def fit_smooth_drift(
     choice. On a CPU the BLAS products run on one thread, numba's pass on its own count or, when
     the load average is at or above the cores, on one too (:func:`_threads_for_the_load`).
 
+    start : warm start (:class:`DriftStart`, an earlier fit's ``end_state`` on the scan's first
+    rows): the knots, the phase's offset from ``phase0_rad``, the tilt and the per-position
+    stage's residual from there, the positions after it from the last knot's values (None: dp =
+    0, phi = ``phase0_rad``, as always without one). ``settings`` then says how many steps each
+    stage takes from it.
+
     Returns (phase float64 (M,) radians at the region's centre (``phase0_rad`` when phi is
     fixed), dp float64 (M, 3) metres in the correction's sense (z is 0), tilt float64 (M,)
     radians (zeros without ``half_basis``), info: ``match_before`` / ``match_after`` (the
     correlation on every pixel of ``pixels``), the settings, ``knot_pixels``, ``device``,
     ``threads`` (numba's on a CPU, None elsewhere), ``row_stride``, ``cost_evaluations``,
-    ``time_s``). Memory on the CPU: the bases as given, 12 bytes per position and fitted pixel of
+    ``time_s``, ``warm_start_positions``, ``end_state``: the :class:`DriftStart` a later fit on
+    more of the scan may start from). Memory on the CPU: the bases as given, 12 bytes per position and fitted pixel of
     working arrays (20 with ``half_basis``) and copies of the bases on the fitted pixels.
     """
     t0 = time.perf_counter()
@@ -448,7 +481,7 @@ def fit_smooth_drift(
     if cfg.knot_energy_fraction < 1.0:
         coarse = whole.on((bright_pixels(np.where(fitted, tpl, 0), cfg.knot_energy_fraction) & fitted).ravel())
     fit = _DriftDescent(cfg, knot_basis(m, int(cfg.knot_spacing)), np.asarray(phase0_rad, np.float64),
-                        half_basis is not None, progress)  # fmt: skip
+                        half_basis is not None, progress, start)  # fmt: skip
     knot_steps, refine_steps = int(cfg.iterations), int(cfg.refine_iterations)
     with _threads_for_the_load(whole.device) as threads:
         before = match.value_and_gradients(fit.phase, fit.s @ fit.coef, fit.tilt())[0]
@@ -457,28 +490,45 @@ def fit_smooth_drift(
         # Per-position refinement: the knots' straight segments cannot follow a drift that wanders
         # within 10 positions; a penalty on the step between neighbours keeps the noise out.
         drift = fit.s @ fit.coef
+        if fit.residual is not None:  # a warm start: the per-position stage from where it ended
+            drift += fit.residual
         refined = fit.descend(drift, False, refine_steps, float(cfg.smoothness_per_mm2), match, float(cfg.refine_stop))
         after = match.value_and_gradients(fit.phase, drift, fit.tilt())[0] if fit.total else before
     dp = np.zeros((m, 3))
     dp[:, :2] = drift
-    info = {
-        "match_before": before,
-        "match_after": after,
-        "knot_spacing_positions": int(cfg.knot_spacing),
-        "iterations": knot_steps,
-        "refine_iterations": refined,
-        "smoothness_per_mm2": float(cfg.smoothness_per_mm2),
+    record = {
         "knot_pixels": int(coarse.n_pixels),
         "row_stride": stride,
-        "phase_fitted": cfg.phase_step_rad > 0,
-        "tilt_fitted": half_basis is not None,
-        "cost_evaluations": len(fit.matches) + 1 + (1 if fit.total else 0),
         "device": str(whole.device),
         "threads": threads,
-        "time_s": time.perf_counter() - t0,
     }
+    info = _fit_info(cfg, fit, (before, after), refined, record, start)
+    info["end_state"] = fit.end_state(drift, np.asarray(phase0_rad, np.float64))
+    info["time_s"] = time.perf_counter() - t0
     tilt = fit.tilt()
     return fit.phase.copy(), dp, np.zeros(m) if tilt is None else tilt.astype(np.float64), info
+
+
+def _fit_info(cfg: DriftFitSettings, fit, matches: tuple[float, float], refined: int, record: dict, start) -> dict:
+    """:func:`fit_smooth_drift`'s info (its docstring's keys but ``end_state`` and ``time_s``):
+    ``matches`` the correlation before and after, ``refined`` the per-position stage's steps,
+    ``record`` the knot pixels, row stride, device and threads."""
+    return {
+        "match_before": matches[0],
+        "match_after": matches[1],
+        "knot_spacing_positions": int(cfg.knot_spacing),
+        "iterations": int(cfg.iterations),
+        "refine_iterations": refined,
+        "smoothness_per_mm2": float(cfg.smoothness_per_mm2),
+        "knot_pixels": record["knot_pixels"],
+        "row_stride": record["row_stride"],
+        "phase_fitted": cfg.phase_step_rad > 0,
+        "tilt_fitted": fit.tilt_coef is not None,
+        "cost_evaluations": len(fit.matches) + 1 + (1 if fit.total else 0),
+        "device": record["device"],
+        "threads": record["threads"],
+        "warm_start_positions": 0 if start is None else start.rows,
+    }
 
 
 def _on_rows(fitted: np.ndarray, template: np.ndarray, stride: int) -> tuple[np.ndarray, int]:
@@ -520,13 +570,46 @@ class _DriftDescent:
     knots' values ``coef`` (n_knots, 2) metres, the phase (M,) radians, the tilt's knots (n_knots,)
     radians (None without the tilt) and the correlation before each step (``matches``)."""
 
-    def __init__(self, cfg, s, phase0, tilted, progress):
+    def __init__(self, cfg, s, phase0, tilted, progress, start: DriftStart | None = None):
         self.cfg, self.s, self.progress = cfg, s, progress
         self.phase = phase0.copy()
         self.coef = np.zeros((s.shape[1], 2))
         self.tilt_coef = np.zeros(s.shape[1]) if tilted else None
+        self.residual: np.ndarray | None = None  # (M, 2) the per-position stage's start off the knots' curve
         self.matches: list[float] = []
         self.total = 0
+        if start is not None:
+            self._warm(start)
+
+    def _warm(self, start: DriftStart) -> None:
+        """From ``start``'s state on the scan's first rows; the knots after its last from that
+        knot's values (a hand's drift is correlated over more than a knot's spacing)."""
+        m, n_knots = self.s.shape
+        rows = start.rows
+        if start.knot_spacing != int(self.cfg.knot_spacing) or rows > m or start.knots_m.shape[1:] != (2,):
+            raise TwinFocusError(
+                f"a warm start of {rows} positions with knots every {start.knot_spacing} does not fit a fit of "
+                f"{m} positions with knots every {self.cfg.knot_spacing}"
+            )
+        k = min(start.knots_m.shape[0], n_knots)
+        self.coef[:k] = start.knots_m[:k]
+        self.coef[k:] = start.knots_m[k - 1]
+        self.phase[:rows] += start.phase_offset_rad
+        if self.tilt_coef is not None and start.tilt_knots_rad is not None:
+            self.tilt_coef[:k] = start.tilt_knots_rad[:k]
+            self.tilt_coef[k:] = start.tilt_knots_rad[k - 1]
+        self.residual = np.zeros((m, 2))
+        self.residual[:rows] = start.residual_m
+
+    def end_state(self, drift: np.ndarray, phase0: np.ndarray) -> DriftStart:
+        """The fit's end as a :class:`DriftStart` (drift: float64 (M, 2), the per-position stage's)."""
+        return DriftStart(
+            phase_offset_rad=self.phase - phase0,
+            knots_m=self.coef.copy(),
+            residual_m=drift - self.s @ self.coef,
+            tilt_knots_rad=None if self.tilt_coef is None else self.tilt_coef.copy(),
+            knot_spacing=int(self.cfg.knot_spacing),
+        )
 
     def tilt(self) -> np.ndarray | None:
         return None if self.tilt_coef is None else self.s @ self.tilt_coef
@@ -855,7 +938,7 @@ def _rotate_block(n_pixels: int) -> int:
     return int(max(32, min(_ROTATE_BLOCK, -(-n_pixels // (4 * numba.get_num_threads())))))
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=True, cache=True, nogil=True)
 def _rotate(theta, b, half, e, s2, kc, block, c_out, h_out, image):
     """The drift fit's contributions on the CPU, in one pass over the basis.
 
