@@ -30,7 +30,9 @@ def test_live_hand_sweep_equals_offline_focus(tmp_path):
     g = sim_graph(
         tmp_path, sc, size, iterations,
         f"columns:={cols}", f"rows:={rows}", f"seed:={seed}", "trajectory:=zigzag", "error_model:=hand",
-        rate="1",  # a sweep as a hand makes it, so the solver fits the drift while it arrives
+        # slower than a hand (rate 1: 6 s) so that a loaded machine still finishes the first fit on
+        # 40 positions before the last of the 60 arrives
+        rate="0.4",
     )  # fmt: skip
     code = g.exit_code(600)
     assert code == 0, g.text
