@@ -325,14 +325,11 @@ def _align_by_scan(convert, scan, radar_traj, report, args, say, array):
     positions_at = on_track(
         (radar_traj.timestamps_ns - t0) * 1e-9, phase_centres(radar_traj, array), (scan.timestamps_ns - t0) * 1e-9
     )
+    fine = None
     try:
         fine, focus = refine_by_focus(
             scan.data, scan.chirp, positions_at, est, args.z0, progress=Progress("clock", enabled=not args.quiet)
         )
-    except TwinFocusError as exc:
-        say(f"warning: {exc}; the range history's offset stands")
-        fine, focus = None, None
-    if fine is not None:
         record.update(offset_s=fine.offset_s, sigma_s=fine.sigma_s, method="focus", stage="focus", focus=focus)
         x0, x1, y0, y1, _ = focus["region_m"]
         say(
@@ -340,12 +337,18 @@ def _align_by_scan(convert, scan, radar_traj, report, args, say, array):
             f"the sharpness of the brightest region, x {x0:+.3f}..{x1:+.3f} y {y0:+.3f}..{y1:+.3f} m, "
             f"{focus['images_formed']} images, {focus['seconds']:.1f} s) -- applied"
         )
-    elif args.align is None and not abs(est.offset_s) > max(3 * est.sigma_s, DEFAULT_MIN_APPLIED_OFFSET_S):
+    except TwinFocusError as exc:
+        say(f"warning: {exc}; the range history's offset stands")
+    if (
+        fine is None
+        and args.align is None
+        and not abs(est.offset_s) > max(3 * est.sigma_s, DEFAULT_MIN_APPLIED_OFFSET_S)
+    ):
         # By default only an offset the range history is sure of is applied: on an extended scene it
         # is good to about 10-15 ms (docs/sensors.md), less than the start alignment usually is.
         say("the range history's offset not applied (below what it resolves; focus --clock-search refines)")
         return scan, radar_traj, report, {**record, "applied_shift_s": report.time_shift_ns * 1e-9, "applied": False}
-    else:
+    if fine is None:
         say("the range history's offset applied")
     shift = int(round(record["offset_s"] * 1e9))
     scan, radar_traj, report = convert(time_offset_ns=report.time_shift_ns + shift, align="none")

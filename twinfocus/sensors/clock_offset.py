@@ -716,6 +716,22 @@ def brightest_box(data: np.ndarray, positions_m: np.ndarray, chirp: Chirp, z_m: 
     return (x - h, x + h, y - h, y + h, float(z_m))
 
 
+def _indistinct_s(tried: list[tuple[float, float]], centre_s: float) -> float:
+    """How far (s) from its vertex the parabola through the scores within +- :data:`FINE_HALF_STEPS`
+    ms of ``centre_s`` falls by the scores' r.m.s. scatter about it: the offsets the image cannot
+    tell apart. Why not the fit's covariance alone: the scatter is not white across offsets (the
+    tracker's errors move the sharpest image off the truth as a whole: 0.6 ms on bench_clock's
+    draw at 0.2 m/s, 8 ms on a sweep at 0.06 m/s), so it is the breadth it leaves, not its mean."""
+    xs, ys = (np.array(v) for v in zip(*tried, strict=True))
+    near = np.abs(xs - centre_s) <= FINE_HALF_STEPS * FOCUS_STEP_S / 5 + 1e-9
+    if near.sum() < 4:
+        return float("inf")
+    u = (xs[near] - centre_s) * 1e3  # ms
+    q = np.polyfit(u, ys[near], 2)
+    scatter = float(np.sqrt(np.mean((np.polyval(q, u) - ys[near]) ** 2)))
+    return float(np.sqrt(scatter / -q[0]) * 1e-3) if q[0] < 0 else float("inf")
+
+
 def refine_by_focus(
     data: np.ndarray,
     chirp: Chirp,
@@ -757,6 +773,7 @@ def refine_by_focus(
 
     coarse, _ = focus_offset(image, positions_at, half, coarse_steps=steps, centre_s=centre, refine=False)
     fine, tried = refine_offset(image, positions_at, coarse.offset_s, FOCUS_STEP_S / 5)
+    fine = replace(fine, sigma_s=max(fine.sigma_s, FOCUS_STEP_S / 5, _indistinct_s(tried, fine.offset_s)))
     if progress is not None:
         progress(expected, expected)
     if not (np.isfinite(fine.sigma_s) and abs(fine.offset_s - centre) < half):
