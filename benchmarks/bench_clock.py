@@ -127,9 +127,19 @@ CAMERA_PAD_S = 0.3
 CURVE_HALF_MS = 6
 
 
+def camera_stamps(t: np.ndarray, period_s: float) -> np.ndarray:
+    """The camera's pose stamps (S,) seconds: the frames' own (with agreeing clocks its poses are
+    the scan's, tracking error and all), poses ``period_s`` apart through each turn where the scan
+    keeps no frame, and :data:`CAMERA_PAD_S` before and after the sweep."""
+    starts = [*(int(v) for v in leg_starts(t)), len(t)]
+    turns = [np.arange(t[b - 1] + period_s, t[b] - period_s / 2, period_s) for b in starts[1:-1]]
+    pad = np.arange(1, int(np.ceil(CAMERA_PAD_S / period_s)) + 1) * period_s
+    return np.sort(np.concatenate([t[0] - pad, t, *turns, t[-1] + pad]))
+
+
 def convert_row(sc: Scenario, scan, off: float, period_s: float, ssim) -> dict:
-    """``convert --align scan`` on the draw: the camera's trajectory (poses at the frame period
-    through the turns, :data:`CAMERA_PAD_S` past the sweep, stamped ``off`` behind) read as
+    """``convert --align scan`` on the draw: the camera's trajectory (:func:`camera_stamps`, the
+    poses it reports there ``off`` late, :func:`camera_positions`) read as
     convert reads it -- the range history, its focus stage (:func:`refine_by_focus`, positions
     re-sampled on that trajectory), the scan converted again at the offset found -- and the
     converted scan's target SSIM through ``ssim(scan) -> {"physical": ., "digital": .}``. Also the
@@ -137,7 +147,7 @@ def convert_row(sc: Scenario, scan, off: float, period_s: float, ssim) -> dict:
     its own best (the parabola's vertex), its r.m.s. scatter about the parabola, and how much the
     score and the image's amplitude change 1 and 3 ms off the truth."""
     t = position_times_s(scan.timestamps_ns, scan.n_positions)
-    stamps = np.arange(t[0] - CAMERA_PAD_S, t[-1] + CAMERA_PAD_S + 1e-9, period_s)
+    stamps = camera_stamps(t, period_s)
     cam = camera_positions(scan.positions_true, scan.positions, t, stamps + off)  # (S, K, 3)
     t0 = time.perf_counter()
     rh = range_history_offset(scan.data, scan.chirp, t, stamps, cam.mean(axis=1))

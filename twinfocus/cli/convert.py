@@ -92,8 +92,9 @@ def _add_input_arguments(p: argparse.ArgumentParser) -> None:
         choices=["scan", "start", "none", "auto"],
         default=None,
         help="clock alignment: 'scan' (default) finds the radar-camera clock offset from the data (the brightest "
-        "static scatterer's range history against the trajectory) and applies it, falling back to 'auto' with a "
-        "warning when the data cannot tell; 'start' puts the first frame on the first pose; 'none' trusts the "
+        "static scatterer's range history against the trajectory, refined by the sharpness of the scan's brightest "
+        "region on the trajectory's poses) and applies it, falling back to 'auto' with a warning when the data "
+        "cannot tell; 'start' puts the first frame on the first pose; 'none' trusts the "
         "stamps (plus --time-offset-s); 'auto' is 'start' only when the clocks do not overlap",
     )
     p.add_argument(

@@ -14,9 +14,12 @@ which no per-position phase of the ladder fits well. Two estimates, both plain f
   range errors run over a few frames, which the residual's curvature alone does not see. With
   ``fit_rate`` the two halves of the sweep are fitted apart and their difference gives a clock
   rate (drift, s per s), where the sweep is long enough to show one; else it is held at 0.
-- **focus** (:func:`focus_offset`): each position re-sampled at ``t + dt`` along the scan's own
-  track (its time stamps, else the order of its positions), ``dt`` chosen by the sharpness of the
-  back-projected reference region.
+- **focus** (:func:`focus_offset`, :func:`refine_offset`): each position re-sampled at ``t + dt``
+  -- along the scan's own track (:func:`along_track`: its time stamps, else the order of its
+  positions; ``focus --clock-search``), or on the camera's trajectory (:func:`on_track`: its poses
+  through the turns; convert's second stage, :func:`refine_by_focus`, over the range history's
+  +- 3 sigma, on the brightest region found in the scan) -- ``dt`` chosen by the focus of the
+  back-projected region (a template's match, or its sharpness).
 
 Convention: ``dt`` is what is *added to the radar's time stamps* to put them on the camera's clock
 (a radar clock running 15 ms behind the camera's gives ``dt = +0.015``).
