@@ -35,7 +35,7 @@ from twinfocus.radar.calibration import apply_calibration, calibration_for
 from twinfocus.radar.fmcw import mmwcas_virtual_array
 from twinfocus.sensors.capture_to_scan import capture_report_path, scan_from_frames, stream_gaps
 from twinfocus.sensors.chirp_profile import chirp_record, resolve_chirp
-from twinfocus.sensors.clock_offset import on_track, range_history_offset, refine_by_focus
+from twinfocus.sensors.clock_offset import on_track, range_history_offset, refine_by_focus, tracker_floor_s
 from twinfocus.sensors.dca1000 import RawFrameLayout
 from twinfocus.sensors.dca1000_files import Dca1000FileCapture, find_cli_json, read_cli_json
 from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
@@ -329,7 +329,13 @@ def _align_by_scan(convert, scan, radar_traj, report, args, say, array):
     fine = None
     try:
         fine, focus = refine_by_focus(
-            scan.data, scan.chirp, positions_at, est, args.z0, progress=Progress("clock", enabled=not args.quiet)
+            scan.data,
+            scan.chirp,
+            positions_at,
+            est,
+            args.z0,
+            progress=Progress("clock", enabled=not args.quiet),
+            floor_s=tracker_floor_s((radar_traj.timestamps_ns - t0) * 1e-9, radar_traj.position_m),
         )
         record.update(offset_s=fine.offset_s, sigma_s=fine.sigma_s, method="focus", stage="focus", focus=focus)
         x0, x1, y0, y1, _ = focus["region_m"]

@@ -719,6 +719,26 @@ def brightest_box(data: np.ndarray, positions_m: np.ndarray, chirp: Chirp, z_m: 
     return (x - h, x + h, y - h, y + h, float(z_m))
 
 
+def tracker_floor_s(track_s: np.ndarray, track_m: np.ndarray) -> float:
+    """The time (s) the hand takes to move the tracker's jitter along the sweep: the least sigma
+    the focus stage claims. Why: the tracker's errors move the sharpest image along the sweep as a
+    whole by about their own size (bench_clock's draws: 0.1-0.7 mm at 0.4-0.6 mm of jitter; an
+    emulated 0.06 m/s sweep with 0.5 mm ended 8 ms off), which no score's curve shows.
+
+    track_s : (T,) seconds; track_m : (T, 3) metres (or (T, K, 3): their mean). The jitter per
+    axis is the r.m.s. of the track less its smoothing (:func:`smooth_track`), scaled for the
+    line's fit; the speed the median of the smoothed track's moving steps.
+    """
+    t = np.asarray(track_s, np.float64)
+    p = np.asarray(track_m, np.float64).reshape(len(t), -1, 3).mean(axis=1)
+    smooth = smooth_track(t, p, track_segments(t, p))
+    jitter = float(np.sqrt(np.mean((p - smooth) ** 2) / (1 - 2 / SMOOTH_POSES)))
+    dt = np.diff(t)
+    v = np.linalg.norm(np.diff(smooth, axis=0), axis=1)[dt > 0] / dt[dt > 0]
+    speed = float(np.median(v[v > 0])) if np.any(v > 0) else 0.0
+    return jitter / speed if speed > 0 else float("inf")
+
+
 def _indistinct_s(tried: list[tuple[float, float]], centre_s: float) -> float:
     """How far (s) from its vertex the parabola through the scores within +- :data:`FINE_HALF_STEPS`
     ms of ``centre_s`` falls by the scores' r.m.s. scatter about it: the offsets the image cannot
@@ -743,6 +763,7 @@ def refine_by_focus(
     z_m: float,
     bp_options: dict | None = None,
     progress: Callable[[int, int], None] | None = None,
+    floor_s: float = 0.0,
 ) -> tuple[ClockEstimate, dict]:
     """convert's second stage: the range history's ``estimate`` refined by the focus of the scan.
 
@@ -752,7 +773,9 @@ def refine_by_focus(
     :data:`FOCUS_STEP_S` apart, then :func:`refine_offset` around the best, each scored by the
     sharpness of the brightest region (:func:`brightest_box`). Returns (estimate, a record: the
     region, the offsets searched, the images formed, the seconds); raises TwinFocusError (one
-    line) where the sharpness has no peak inside the offsets searched.
+    line) where the sharpness has no peak inside the offsets searched. floor_s : the least sigma
+    (:func:`tracker_floor_s`); sigma is also at least the 1 ms step and the breadth the scores'
+    scatter leaves (:func:`_indistinct_s`).
     """
     import time
 
@@ -776,7 +799,8 @@ def refine_by_focus(
 
     coarse, _ = focus_offset(image, positions_at, half, coarse_steps=steps, centre_s=centre, refine=False)
     fine, tried = refine_offset(image, positions_at, coarse.offset_s, FOCUS_STEP_S / 5)
-    fine = replace(fine, sigma_s=max(fine.sigma_s, FOCUS_STEP_S / 5, _indistinct_s(tried, fine.offset_s)))
+    floor = max(FOCUS_STEP_S / 5, _indistinct_s(tried, fine.offset_s), float(floor_s))
+    fine = replace(fine, sigma_s=max(fine.sigma_s, floor))
     if progress is not None:
         progress(expected, expected)
     if not (np.isfinite(fine.sigma_s) and abs(fine.offset_s - centre) < half):
