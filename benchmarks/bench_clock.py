@@ -315,7 +315,6 @@ def summary(draws: list[dict]) -> dict:
         key = f"{off:g}_ms"
         out[key] = {
             "convert_worst_residual_ms": max(abs(r["convert_residual_ms"]) for r in rows),
-            "convert_worst_sigma_ms": max(r["convert_sigma_ms"] for r in rows),
             "convert_range_history_worst_error_ms": max(abs(r["convert_range_history_found_ms"] - off) for r in rows),
             "convert_physical_worst_loss": max(
                 d["synced"]["physical"] - r["physical_convert"] for d, r in zip(draws, rows)

@@ -334,6 +334,7 @@ def test_convert_ends_an_emulated_zigzag_on_its_true_clock_offset(tmp_path):
         rh = clock["range_history"]
         assert abs(rh["offset_s"] - lead_ms * 1e-3) < 2 * rh["sigma_s"] and rh["sigma_s"] < 0.05, (lead_ms, rh)
         assert clock["stage"] == "focus" and abs(clock["offset_s"] - lead_ms * 1e-3) < 1e-3, (lead_ms, clock)
+        assert 1e-3 <= clock["sigma_s"] < rh["sigma_s"]  # honest: the tracker's jitter over the hand's speed
         assert clock["rate"] == 0.0 and "not measurable: sweep 3.7 s" in clock["rate_note"]
         # a frame past the trajectory's end may drop; the frames at the raster's one-frame jump
         # between columns (10 cm in 12.5 ms) stay off by cm for a fraction of a ms: the median
