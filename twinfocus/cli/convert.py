@@ -297,6 +297,8 @@ def _convert(args: argparse.Namespace, out: Path) -> int:
 #: the least clock offset the default --align scan applies from the range history alone, s (a typed
 #: --align scan applies any; the focus stage's offset is applied whenever it found one)
 DEFAULT_MIN_APPLIED_OFFSET_S = 0.025
+#: the default --align scan applies the focus stage's offset past this many of its sigmas
+FOCUS_APPLIED_SIGMAS = 2.0
 
 
 def _align_by_scan(convert, scan, radar_traj, report, args, say, array):
@@ -339,11 +341,22 @@ def _align_by_scan(convert, scan, radar_traj, report, args, say, array):
         )
         record.update(offset_s=fine.offset_s, sigma_s=fine.sigma_s, method="focus", stage="focus", focus=focus)
         x0, x1, y0, y1, _ = focus["region_m"]
+        # By default an offset within two sigma of the first alignment is left (a stage's pose file on
+        # the radar's clock, clocks started together): applied, it would move the scan by noise.
+        held = args.align is None and not abs(fine.offset_s) > FOCUS_APPLIED_SIGMAS * fine.sigma_s
         say(
             f"clock offset {fine.offset_s * 1e3:+.2f} +- {fine.sigma_s * 1e3:.2f} ms (the range history's refined by "
             f"the sharpness of the brightest region, x {x0:+.3f}..{x1:+.3f} y {y0:+.3f}..{y1:+.3f} m, "
-            f"{focus['images_formed']} images, {focus['seconds']:.1f} s) -- applied"
+            f"{focus['images_formed']} images, {focus['seconds']:.1f} s) -- "
+            + ("not applied (within two sigma of the first alignment)" if held else "applied")
         )
+        if held:
+            return (
+                scan,
+                radar_traj,
+                report,
+                {**record, "applied_shift_s": report.time_shift_ns * 1e-9, "applied": False},
+            )
     except TwinFocusError as exc:
         say(f"warning: {exc}; the range history's offset stands")
     if (
