@@ -19,6 +19,8 @@ draws (seeds 2001 on, letters ``HELDOUT_LETTERS``, none shared) only check it.
     python -m benchmarks.bench_clock [--draws 2] [--heldout] [--offsets-ms 0,15,50,100] [--out benchmarks/results]
     python -m benchmarks.bench_clock --heldout --draws 1 --start 1 --out tmp1      (one draw apart ...)
     python -m benchmarks.bench_clock --heldout --merge tmp0/clock_heldout.json tmp1/clock_heldout.json  (... joined)
+    python -m benchmarks.bench_clock --convert-only --out tmp2                     (convert's rows alone ...)
+    python -m benchmarks.bench_clock --merge benchmarks/results/clock.json tmp2/clock.json  (... laid over the file's)
 
 Writes ``clock.json`` (``clock_heldout.json``); docs/sensors.md quotes them. Small on purpose (one
 core, a few minutes a draw): the sizes are in the file.
@@ -35,15 +37,21 @@ from pathlib import Path
 
 import numpy as np
 
+from twinfocus.errors import TwinFocusError
 from twinfocus.focus.autofocus import AutofocusConfig
 from twinfocus.focus.estimators import estimator_settings
 from twinfocus.focus.pipeline import Reference
 from twinfocus.focus.plan import FocusPlan
+from twinfocus.imaging.backprojection.numba_backend import backproject
 from twinfocus.imaging.grid import ImageGrid
+from twinfocus.imaging.metrics import image_sharpness
 from twinfocus.sensors.clock_offset import (
+    FOCUS_SIZE,
     leg_starts,
+    on_track,
     position_times_s,
     range_history_offset,
+    refine_by_focus,
     resample_track,
     search_scan_clock,
 )
@@ -113,7 +121,130 @@ def _ssim(scan, rg, tg, template) -> float:
     return float(out.metrics["target_ssim_corrected"])
 
 
-def run_draw(sc: Scenario, speed: float, size: int, offsets=OFFSETS_S, sharpness_search: bool = True) -> dict:
+#: the camera's trajectory convert reads runs this long past the radar's first and last frames, s
+CAMERA_PAD_S = 0.3
+#: the score's curve around the truth (why 1 ms is reached or not): offsets this far each side, ms
+CURVE_HALF_MS = 6
+
+
+def camera_stamps(t: np.ndarray, period_s: float) -> np.ndarray:
+    """The camera's pose stamps (S,) seconds: the frames' own (with agreeing clocks its poses are
+    the scan's, tracking error and all), poses ``period_s`` apart through each turn where the scan
+    keeps no frame, and :data:`CAMERA_PAD_S` before and after the sweep."""
+    starts = [*(int(v) for v in leg_starts(t)), len(t)]
+    turns = [np.arange(t[b - 1] + period_s, t[b] - period_s / 2, period_s) for b in starts[1:-1]]
+    pad = np.arange(1, int(np.ceil(CAMERA_PAD_S / period_s)) + 1) * period_s
+    return np.sort(np.concatenate([t[0] - pad, t, *turns, t[-1] + pad]))
+
+
+def convert_row(sc: Scenario, scan, off: float, period_s: float, ssim) -> dict:
+    """``convert --align scan`` on the draw: the camera's trajectory (:func:`camera_stamps`, the
+    poses it reports there ``off`` late, :func:`camera_positions`) read as
+    convert reads it -- the range history, its focus stage (:func:`refine_by_focus`, positions
+    re-sampled on that trajectory), the scan converted again at the offset found -- and the
+    converted scan's target SSIM through ``ssim(scan) -> {"physical": ., "digital": .}``. Also the
+    score's curve at the truth +- :data:`CURVE_HALF_MS` ms, 1 ms apart, on the focus stage's region:
+    its own best (the parabola's vertex), its r.m.s. scatter about the parabola, and how much the
+    score and the image's amplitude change 1 and 3 ms off the truth."""
+    t = position_times_s(scan.timestamps_ns, scan.n_positions)
+    stamps = camera_stamps(t, period_s)
+    cam = camera_positions(scan.positions_true, scan.positions, t, stamps + off)  # (S, K, 3)
+    t0 = time.perf_counter()
+    rh = range_history_offset(scan.data, scan.chirp, t, stamps, cam.mean(axis=1))
+    positions_at = on_track(stamps, cam, t)
+    z = float(sc.reference_roi()[4])
+    try:
+        fine, rec = refine_by_focus(scan.data, scan.chirp, positions_at, rh, z)
+        found, sigma, stage, region = fine.offset_s, fine.sigma_s, "focus", rec["region_m"]
+    except TwinFocusError:
+        found, sigma, stage, region = rh.offset_s, rh.sigma_s, "range_history", None
+    seconds = time.perf_counter() - t0
+    converted = replace(scan, positions=resample_track(stamps, cam, t + found))
+    row = {
+        "convert_range_history_found_ms": -rh.offset_s * 1e3,
+        "convert_range_history_sigma_ms": rh.sigma_s * 1e3,
+        "convert_found_ms": -found * 1e3,
+        "convert_residual_ms": (-found - off) * 1e3,
+        "convert_sigma_ms": sigma * 1e3,
+        "convert_stage": stage,
+        "convert_clock_s": seconds,
+        **{f"{k}_convert": v for k, v in ssim(converted).items()},
+    }
+    if region is not None:
+        row.update(score_curve(scan, positions_at, region, -off))
+    return row
+
+
+def score_curve(scan, positions_at, region, truth_s: float) -> dict:
+    """The focus stage's score (sharpness of the region's FOCUS_SIZE image) at the truth +- 1 ms
+    steps: where its parabola peaks (ms off the truth), its r.m.s. scatter about the parabola, the
+    drop 1 and 3 ms off the truth (mean of both sides), all as shares of the score at the truth;
+    and the image's amplitude change there (r.m.s. difference over r.m.s.)."""
+    grid = ImageGrid.from_roi(region, FOCUS_SIZE)
+    ks = np.arange(-CURVE_HALF_MS, CURVE_HALF_MS + 1)
+    images = [np.abs(backproject(scan.data, positions_at(truth_s + k * 1e-3), scan.chirp, grid)) for k in ks]
+    score = np.array([image_sharpness(im) for im in images])
+    mid = int(CURVE_HALF_MS)
+    rel = score / score[mid]
+    a, b, c = np.polyfit(ks.astype(float), rel, 2)
+    noise = float(np.sqrt(np.mean((np.polyval([a, b, c], ks) - rel) ** 2)))
+
+    def change(k: int) -> float:
+        ref = images[mid]
+        return float(np.mean([np.linalg.norm(images[mid + d] - ref) / np.linalg.norm(ref) for d in (-k, k)]))
+
+    return {
+        "curve_peak_off_truth_ms": float(-b / (2 * a)) if a < 0 else None,
+        "curve_noise": noise,
+        "curve_drop_1ms": float(1 - (rel[mid - 1] + rel[mid + 1]) / 2),
+        "curve_drop_3ms": float(1 - (rel[mid - 3] + rel[mid + 3]) / 2),
+        "image_change_1ms": change(1),
+        "image_change_3ms": change(3),
+    }
+
+
+def search_row(sc: Scenario, late, off: float, size: int, ssim, stage_tpl, sharpness_search: bool) -> dict:
+    """``focus --clock-search`` on the scan with the camera's clock ``late``'s: the range history on
+    the scan's own positions, the searches (physical twin's, digital twin's and sharpness), their
+    residuals and seconds, and the target SSIM without and with the search."""
+    t = position_times_s(late.timestamps_ns, late.n_positions)
+    # convert's view without a trajectory: the scan's own positions (no poses in the turns)
+    try:
+        rh = range_history_offset(late.data, late.chirp, t, t, late.positions.mean(axis=1))
+        rh_found, rh_sigma = -rh.offset_s, rh.sigma_s
+    except Exception as exc:  # noqa: BLE001 -- a refusal is a result here
+        rh_found, rh_sigma = None, str(exc)
+    row: dict = {
+        "range_history_found_ms": None if rh_found is None else rh_found * 1e3,
+        "range_history_sigma_ms": rh_sigma * 1e3 if isinstance(rh_sigma, float) else rh_sigma,
+    }
+    ref_pts, ref_amps = scenario_scatterers(sc, reference_only=True)
+
+    def dtw_tpl(n, positions=late.positions):
+        return psf_template(ref_pts, positions, late.chirp, ImageGrid.from_roi(sc.reference_roi(), n), ref_amps)
+
+    searches = {"physical": stage_tpl, "digital": dtw_tpl}
+    if sharpness_search:
+        searches["sharpness"] = None
+    found = {}
+    for name, tpl in searches.items():
+        t0 = time.perf_counter()
+        # the search's 32 x 32 reference image, then the --size one (as focus --clock-search does)
+        found[name], rec = search_scan_clock(late, sc.reference_roi(), SEARCH_SIZE, template=tpl, fine_size=size)
+        row[f"{name}_found_ms"] = -rec["offset_s"] * 1e3
+        row[f"{name}_residual_ms"] = (-rec["offset_s"] - off) * 1e3
+        row[f"{name}_search_s"] = time.perf_counter() - t0
+    plain = ssim(late)
+    row["physical_no_search"], row["digital_no_search"] = plain["physical"], plain["digital"]
+    row["physical_clock_search"] = ssim(found["physical"], ("physical",))["physical"]
+    row["digital_clock_search"] = ssim(found["digital"], ("digital",))["digital"]
+    if sharpness_search:
+        row["digital_clock_search_by_sharpness"] = ssim(found["sharpness"], ("digital",))["digital"]
+    return row
+
+
+def run_draw(sc: Scenario, speed: float, size: int, offsets=OFFSETS_S, sharpness_search: bool = True,
+             searches: bool = True) -> dict:  # fmt: skip
     period_s = LEG_M / (speed * sc.n_rows)
     import twinfocus.simulation.scenario as scenario_module
 
@@ -131,10 +262,17 @@ def run_draw(sc: Scenario, speed: float, size: int, offsets=OFFSETS_S, sharpness
 
     ref_pts, ref_amps = scenario_scatterers(sc, reference_only=True)
     t = position_times_s(scan.timestamps_ns, scan.n_positions)
-    synced = {
-        "physical": _ssim(scan, rg, tg, physical),
-        "digital": _ssim(scan, rg, tg, psf_template(ref_pts, scan.positions, scan.chirp, rg, ref_amps)),
-    }
+
+    def ssim(s, which=("physical", "digital")) -> dict:
+        """The target SSIM of scan ``s`` by each twin named (the digital twin's template from s's positions)."""
+        out = {}
+        if "physical" in which:
+            out["physical"] = _ssim(s, rg, tg, physical)
+        if "digital" in which:
+            out["digital"] = _ssim(s, rg, tg, psf_template(ref_pts, s.positions, scan.chirp, rg, ref_amps))
+        return out
+
+    synced = ssim(scan)
     rows_out = []
     for off in offsets:
         print(
@@ -142,40 +280,10 @@ def run_draw(sc: Scenario, speed: float, size: int, offsets=OFFSETS_S, sharpness
             file=sys.stderr,
             flush=True,
         )
-        late = replace(scan, positions=camera_positions(scan.positions_true, scan.positions, t, t + off))
-        # convert's view: the camera's poses stamped off behind, the radar's frames at t
-        centre = late.positions.mean(axis=1)
-        try:
-            rh = range_history_offset(late.data, late.chirp, t, t, centre)
-            rh_found, rh_sigma = -rh.offset_s, rh.sigma_s
-        except Exception as exc:  # noqa: BLE001 -- a refusal is a result here
-            rh_found, rh_sigma = None, str(exc)
-        row: dict = {
-            "offset_ms": off * 1e3,
-            "range_history_found_ms": None if rh_found is None else rh_found * 1e3,
-            "range_history_sigma_ms": rh_sigma * 1e3 if isinstance(rh_sigma, float) else rh_sigma,
-        }
-
-        def dtw_tpl(n, positions=late.positions):
-            return psf_template(ref_pts, positions, scan.chirp, ImageGrid.from_roi(sc.reference_roi(), n), ref_amps)
-
-        searches = {"physical": stage_tpl, "digital": dtw_tpl}
-        if sharpness_search:
-            searches["sharpness"] = None
-        found = {}
-        for name, tpl in searches.items():
-            t0 = time.perf_counter()
-            # the search's 32 x 32 reference image, then the --size one (as focus --clock-search does)
-            found[name], rec = search_scan_clock(late, sc.reference_roi(), SEARCH_SIZE, template=tpl, fine_size=size)
-            row[f"{name}_found_ms"] = -rec["offset_s"] * 1e3
-            row[f"{name}_residual_ms"] = (-rec["offset_s"] - off) * 1e3
-            row[f"{name}_search_s"] = time.perf_counter() - t0
-        row["physical_no_search"] = _ssim(late, rg, tg, physical)
-        row["physical_clock_search"] = _ssim(found["physical"], rg, tg, physical)
-        row["digital_no_search"] = _ssim(late, rg, tg, psf_template(ref_pts, late.positions, scan.chirp, rg, ref_amps))
-        for name in ("digital", "sharpness") if sharpness_search else ("digital",):
-            dtw = psf_template(ref_pts, found[name].positions, scan.chirp, rg, ref_amps)
-            row[f"digital_clock_search{'' if name == 'digital' else '_by_sharpness'}"] = _ssim(found[name], rg, tg, dtw)
+        row: dict = {"offset_ms": off * 1e3, **convert_row(sc, scan, off, period_s, ssim)}
+        if searches:
+            late = replace(scan, positions=camera_positions(scan.positions_true, scan.positions, t, t + off))
+            row.update(search_row(sc, late, off, size, ssim, stage_tpl, sharpness_search))
         rows_out.append(row)
         print(
             "  " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()),
@@ -199,42 +307,89 @@ def run_draw(sc: Scenario, speed: float, size: int, offsets=OFFSETS_S, sharpness
 
 def summary(draws: list[dict]) -> dict:
     """Per offset, over the draws: the worst |residual| (ms) and the largest loss against the clocks
-    agreeing (synced - searched SSIM) of each twin, and the mean search time (s)."""
+    agreeing (synced - SSIM) of each twin, for convert's offset and for the searches (where run),
+    the searches' mean time (s), and the score's curve at the truth (why 1 ms is or is not reached)."""
     out = {}
     for i, off in enumerate(d["offset_ms"] for d in draws[0]["offsets"]):
         rows = [d["offsets"][i] for d in draws]
         key = f"{off:g}_ms"
         out[key] = {
-            "physical_worst_residual_ms": max(abs(r["physical_residual_ms"]) for r in rows),
-            "digital_worst_residual_ms": max(abs(r["digital_residual_ms"]) for r in rows),
-            "physical_worst_loss": max(
-                d["synced"]["physical"] - r["physical_clock_search"] for d, r in zip(draws, rows)
+            "convert_worst_residual_ms": max(abs(r["convert_residual_ms"]) for r in rows),
+            "convert_range_history_worst_error_ms": max(abs(r["convert_range_history_found_ms"] - off) for r in rows),
+            "convert_physical_worst_loss": max(
+                d["synced"]["physical"] - r["physical_convert"] for d, r in zip(draws, rows)
             ),
-            "digital_worst_loss": max(d["synced"]["digital"] - r["digital_clock_search"] for d, r in zip(draws, rows)),
-            "mean_search_s": float(np.mean([r["physical_search_s"] for r in rows])),
-            # convert's estimate here reads the scan's own positions (no poses in the turns)
-            "range_history_worst_error_ms": max(
-                (abs(r["range_history_found_ms"] - off) for r in rows if r["range_history_found_ms"] is not None),
-                default=None,
+            "convert_digital_worst_loss": max(
+                d["synced"]["digital"] - r["digital_convert"] for d, r in zip(draws, rows)
             ),
+            "convert_mean_clock_s": float(np.mean([r["convert_clock_s"] for r in rows])),
+            "convert_stages": sorted({r["convert_stage"] for r in rows}),
         }
-        if "sharpness_residual_ms" in rows[0]:
-            out[key]["sharpness_worst_residual_ms"] = max(abs(r["sharpness_residual_ms"]) for r in rows)
-            out[key]["digital_by_sharpness_worst_loss"] = max(
-                d["synced"]["digital"] - r["digital_clock_search_by_sharpness"] for d, r in zip(draws, rows)
+        curves = [r for r in rows if "curve_noise" in r]
+        if curves:
+            peaks = [abs(r["curve_peak_off_truth_ms"]) for r in curves if r["curve_peak_off_truth_ms"] is not None]
+            out[key].update(
+                curve_worst_peak_off_truth_ms=max(peaks, default=None),
+                curve_worst_noise=max(r["curve_noise"] for r in curves),
+                curve_least_drop_1ms=min(r["curve_drop_1ms"] for r in curves),
+                curve_least_drop_3ms=min(r["curve_drop_3ms"] for r in curves),
+                image_least_change_1ms=min(r["image_change_1ms"] for r in curves),
+                image_least_change_3ms=min(r["image_change_3ms"] for r in curves),
             )
+        if "physical_residual_ms" in rows[0]:
+            out[key].update(search_summary(draws, rows, off))
+    return out
+
+
+def search_summary(draws: list[dict], rows: list[dict], off: float) -> dict:
+    """The searches' part of :func:`summary` at one offset."""
+    out = {
+        "physical_worst_residual_ms": max(abs(r["physical_residual_ms"]) for r in rows),
+        "digital_worst_residual_ms": max(abs(r["digital_residual_ms"]) for r in rows),
+        "physical_worst_loss": max(d["synced"]["physical"] - r["physical_clock_search"] for d, r in zip(draws, rows)),
+        "digital_worst_loss": max(d["synced"]["digital"] - r["digital_clock_search"] for d, r in zip(draws, rows)),
+        "mean_search_s": float(np.mean([r["physical_search_s"] for r in rows])),
+        # the range history here reads the scan's own positions (no poses in the turns)
+        "range_history_worst_error_ms": max(
+            (abs(r["range_history_found_ms"] - off) for r in rows if r["range_history_found_ms"] is not None),
+            default=None,
+        ),
+    }
+    if "sharpness_residual_ms" in rows[0]:
+        out["sharpness_worst_residual_ms"] = max(abs(r["sharpness_residual_ms"]) for r in rows)
+        out["digital_by_sharpness_worst_loss"] = max(
+            d["synced"]["digital"] - r["digital_clock_search_by_sharpness"] for d, r in zip(draws, rows)
+        )
     return out
 
 
 def main(out_dir="benchmarks/results", draws: int = 2, heldout: bool = False, columns: int = 3, rows: int = 130,
-         size: int = 48, offsets=OFFSETS_S, start: int = 0) -> dict:  # fmt: skip
+         size: int = 48, offsets=OFFSETS_S, start: int = 0, searches: bool = True) -> dict:  # fmt: skip
     t_start = time.perf_counter()
     first, letters = (HELDOUT_SEED, HELDOUT_LETTERS) if heldout else (BENCH_SEED, BENCH_LETTERS)
     results = []
     for k in range(start, start + draws):
         sc, speed = draw(first + k, letters, columns, rows)
-        results.append(run_draw(sc, speed, size, offsets))
+        results.append(run_draw(sc, speed, size, offsets, searches=searches))
     return write(out_dir, results, heldout, {"columns": columns, "rows": rows}, size, time.perf_counter() - t_start)
+
+
+def merge_into(old: list[dict], new: list[dict]) -> list[dict]:
+    """The draws of ``old`` with each row of ``new``'s (the same seed and offset) laid over its
+    own (a ``--convert-only`` run added to a file of the searches): rows and draws ``old`` lacks
+    are added, the offsets in order."""
+    by_seed = {d["seed"]: d for d in old}
+    for d in new:
+        if d["seed"] not in by_seed:
+            by_seed[d["seed"]] = d
+            continue
+        mine = by_seed[d["seed"]]
+        rows = {r["offset_ms"]: r for r in mine["offsets"]}
+        for r in d["offsets"]:
+            rows[r["offset_ms"]] = {**rows.get(r["offset_ms"], {}), **r}
+        mine.update({k: v for k, v in d.items() if k != "offsets"})
+        mine["offsets"] = [rows[k] for k in sorted(rows)]
+    return [by_seed[k] for k in sorted(by_seed)]
 
 
 def write(out_dir, results: list[dict], heldout: bool, sizes: dict, size: int, seconds: float) -> dict:
@@ -266,11 +421,15 @@ if __name__ == "__main__":
     ap.add_argument("--start", type=int, default=0, help="the first draw's index (draws run apart, then --merge)")
     ap.add_argument("--merge", nargs="+", metavar="JSON", help="write one file of these runs' draws (same sizes)")
     ap.add_argument("--offsets-ms", default=",".join(f"{v * 1e3:g}" for v in OFFSETS_S))
+    ap.add_argument("--convert-only", action="store_true", help="only convert's rows (no focus --clock-search)")
     a = ap.parse_args()
     if a.merge:
+        # the first file's draws, each later file's rows laid over them (merge_into)
         docs = [json.loads(Path(f).read_text()) for f in a.merge]
         sizes = {k: docs[0]["sizes"][k] for k in ("columns", "rows")}
-        runs = [d for doc in docs for d in doc["draws"]]
+        runs: list[dict] = []
+        for doc in docs:
+            runs = merge_into(runs, doc["draws"])
         write(a.out, runs, a.heldout, sizes, docs[0]["sizes"]["image"], sum(doc["seconds"] for doc in docs))
         sys.exit(0)
     main(
@@ -282,4 +441,5 @@ if __name__ == "__main__":
         a.size,
         tuple(float(v) * 1e-3 for v in a.offsets_ms.split(",")),
         a.start,
+        not a.convert_only,
     )

@@ -28,13 +28,14 @@ from nodes.recorder import radar_metadata
 from twinfocus.errors import TwinFocusError
 from twinfocus.io.atomic import output_files
 from twinfocus.jobs.progress import Progress
+from twinfocus.motion.trajectory import phase_centres
 from twinfocus.option_types import finite_float, non_negative_int, positive_float, positive_int
 from twinfocus.radar.board import load_board
 from twinfocus.radar.calibration import apply_calibration, calibration_for
 from twinfocus.radar.fmcw import mmwcas_virtual_array
 from twinfocus.sensors.capture_to_scan import capture_report_path, scan_from_frames, stream_gaps
 from twinfocus.sensors.chirp_profile import chirp_record, resolve_chirp
-from twinfocus.sensors.clock_offset import range_history_offset
+from twinfocus.sensors.clock_offset import on_track, range_history_offset, refine_by_focus, tracker_floor_s
 from twinfocus.sensors.dca1000 import RawFrameLayout
 from twinfocus.sensors.dca1000_files import Dca1000FileCapture, find_cli_json, read_cli_json
 from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
@@ -91,8 +92,9 @@ def _add_input_arguments(p: argparse.ArgumentParser) -> None:
         choices=["scan", "start", "none", "auto"],
         default=None,
         help="clock alignment: 'scan' (default) finds the radar-camera clock offset from the data (the brightest "
-        "static scatterer's range history against the trajectory) and applies it, falling back to 'auto' with a "
-        "warning when the data cannot tell; 'start' puts the first frame on the first pose; 'none' trusts the "
+        "static scatterer's range history against the trajectory, refined by the sharpness of the scan's brightest "
+        "region on the trajectory's poses) and applies it, falling back to 'auto' with a warning when the data "
+        "cannot tell; 'start' puts the first frame on the first pose; 'none' trusts the "
         "stamps (plus --time-offset-s); 'auto' is 'start' only when the clocks do not overlap",
     )
     p.add_argument(
@@ -252,7 +254,7 @@ def _convert(args: argparse.Namespace, out: Path) -> int:
         scan, radar_traj, report = convert(time_offset_ns=offset_ns, align="auto" if align == "scan" else align)
         clock = None
         if align == "scan":
-            scan, radar_traj, report, clock = _align_by_scan(convert, scan, radar_traj, report, args, say)
+            scan, radar_traj, report, clock = _align_by_scan(convert, scan, radar_traj, report, args, say, array)
         for note in report.notes:
             say(note)
         calibration = _calibrate(args, scan, array, board.name, say)
@@ -292,13 +294,17 @@ def _convert(args: argparse.Namespace, out: Path) -> int:
     return 0
 
 
-#: the least clock offset the default --align scan applies, s (a typed --align scan applies any)
+#: the least clock offset the default --align scan applies from the range history alone, s (a typed
+#: --align scan applies any; the focus stage's offset is applied whenever it found one)
 DEFAULT_MIN_APPLIED_OFFSET_S = 0.025
+#: the default --align scan applies the focus stage's offset past this many of its sigmas
+FOCUS_APPLIED_SIGMAS = 2.0
 
 
-def _align_by_scan(convert, scan, radar_traj, report, args, say):
-    """``--align scan``: the clock offset from the first conversion's data, then the conversion again
-    with it applied. Returns (scan, radar trajectory, report, the estimate's record or None)."""
+def _align_by_scan(convert, scan, radar_traj, report, args, say, array):
+    """``--align scan``: the clock offset from the first conversion's data (the range history),
+    refined by the focus of the scan re-sampled on the camera's trajectory, then the conversion
+    again with it applied. Returns (scan, radar trajectory, report, the estimate's record or None)."""
 
     t0 = int(radar_traj.timestamps_ns[0])
     try:
@@ -315,17 +321,58 @@ def _align_by_scan(convert, scan, radar_traj, report, args, say):
             raise
         say(f"warning: {exc}; the clocks were aligned as --align auto does")
         return scan, radar_traj, report, None
-    if args.align is None and not abs(est.offset_s) > max(3 * est.sigma_s, DEFAULT_MIN_APPLIED_OFFSET_S):
+    say(est.line())
+    record = {**est.to_dict(), "stage": "range_history", "range_history": est.to_dict(), "focus": None}
+
+    # the frames' stamps + dt on the camera's trajectory: its own poses through the turns
+    positions_at = on_track(
+        (radar_traj.timestamps_ns - t0) * 1e-9, phase_centres(radar_traj, array), (scan.timestamps_ns - t0) * 1e-9
+    )
+    fine = None
+    try:
+        fine, focus = refine_by_focus(
+            scan.data,
+            scan.chirp,
+            positions_at,
+            est,
+            args.z0,
+            progress=Progress("clock", enabled=not args.quiet),
+            floor_s=tracker_floor_s((radar_traj.timestamps_ns - t0) * 1e-9, radar_traj.position_m),
+        )
+        record.update(offset_s=fine.offset_s, sigma_s=fine.sigma_s, method="focus", stage="focus", focus=focus)
+        x0, x1, y0, y1, _ = focus["region_m"]
+        # By default an offset within two sigma of the first alignment is left (a stage's pose file on
+        # the radar's clock, clocks started together): applied, it would move the scan by noise.
+        held = args.align is None and not abs(fine.offset_s) > FOCUS_APPLIED_SIGMAS * fine.sigma_s
+        say(
+            f"clock offset {fine.offset_s * 1e3:+.2f} +- {fine.sigma_s * 1e3:.2f} ms (the range history's refined by "
+            f"the sharpness of the brightest region, x {x0:+.3f}..{x1:+.3f} y {y0:+.3f}..{y1:+.3f} m, "
+            f"{focus['images_formed']} images, {focus['seconds']:.1f} s) -- "
+            + ("not applied (within two sigma of the first alignment)" if held else "applied")
+        )
+        if held:
+            return (
+                scan,
+                radar_traj,
+                report,
+                {**record, "applied_shift_s": report.time_shift_ns * 1e-9, "applied": False},
+            )
+    except TwinFocusError as exc:
+        say(f"warning: {exc}; the range history's offset stands")
+    if (
+        fine is None
+        and args.align is None
+        and not abs(est.offset_s) > max(3 * est.sigma_s, DEFAULT_MIN_APPLIED_OFFSET_S)
+    ):
         # By default only an offset the range history is sure of is applied: on an extended scene it
         # is good to about 10-15 ms (docs/sensors.md), less than the start alignment usually is.
-        say(est.line() + " -- not applied (below what the range history resolves; focus --clock-search refines)")
-        record = {**est.to_dict(), "applied_shift_s": report.time_shift_ns * 1e-9, "applied": False}
-        return scan, radar_traj, report, record
-    say(est.line() + " -- applied")
-    shift = int(round(est.offset_s * 1e9))
+        say("the range history's offset not applied (below what it resolves; focus --clock-search refines)")
+        return scan, radar_traj, report, {**record, "applied_shift_s": report.time_shift_ns * 1e-9, "applied": False}
+    if fine is None:
+        say("the range history's offset applied")
+    shift = int(round(record["offset_s"] * 1e9))
     scan, radar_traj, report = convert(time_offset_ns=report.time_shift_ns + shift, align="none")
-    record = {**est.to_dict(), "applied_shift_s": report.time_shift_ns * 1e-9, "applied": True}
-    return scan, radar_traj, report, record
+    return scan, radar_traj, report, {**record, "applied_shift_s": report.time_shift_ns * 1e-9, "applied": True}
 
 
 def _calibrate(args, scan, array, board: str, say) -> dict | None:

@@ -14,9 +14,12 @@ which no per-position phase of the ladder fits well. Two estimates, both plain f
   range errors run over a few frames, which the residual's curvature alone does not see. With
   ``fit_rate`` the two halves of the sweep are fitted apart and their difference gives a clock
   rate (drift, s per s), where the sweep is long enough to show one; else it is held at 0.
-- **focus** (:func:`focus_offset`): each position re-sampled at ``t + dt`` along the scan's own
-  track (its time stamps, else the order of its positions), ``dt`` chosen by the sharpness of the
-  back-projected reference region.
+- **focus** (:func:`focus_offset`, :func:`refine_offset`): each position re-sampled at ``t + dt``
+  -- along the scan's own track (:func:`along_track`: its time stamps, else the order of its
+  positions; ``focus --clock-search``), or on the camera's trajectory (:func:`on_track`: its poses
+  through the turns; convert's second stage, :func:`refine_by_focus`, over the range history's
+  +- 3 sigma, on the brightest region found in the scan) -- ``dt`` chosen by the focus of the
+  back-projected region (a template's match, or its sharpness).
 
 Convention: ``dt`` is what is *added to the radar's time stamps* to put them on the camera's clock
 (a radar clock running 15 ms behind the camera's gives ``dt = +0.015``).
@@ -265,7 +268,7 @@ def track_segments(track_s: np.ndarray, track_m: np.ndarray) -> np.ndarray:
 
 
 def smooth_track(track_s: np.ndarray, track_m: np.ndarray, segments: np.ndarray, n: int = SMOOTH_POSES) -> np.ndarray:
-    """Each pose (T, 3) metres replaced by the least-squares line through the ``n`` poses around it
+    """Each pose (T, D) metres (a position, or several side by side) replaced by the least-squares line through the ``n`` poses around it
     in its stretch (:func:`track_segments`), evaluated at its time.
 
     Why: re-sampled linearly, a tracker's white jitter is averaged by an amount that depends on
@@ -285,7 +288,7 @@ def smooth_track(track_s: np.ndarray, track_m: np.ndarray, segments: np.ndarray,
             tt = t[lo : lo + k] - t[lo : lo + k].mean()
             den = float(tt @ tt)
             mean = p[lo : lo + k].mean(axis=0)
-            vel = tt @ (p[lo : lo + k] - mean) / den if den > 0 else np.zeros(3)
+            vel = tt @ (p[lo : lo + k] - mean) / den if den > 0 else np.zeros(p.shape[1])
             out[i] = mean + (t[i] - t[lo : lo + k].mean()) * vel
     return out
 
@@ -465,41 +468,67 @@ def shift_positions(
 FINE_HALF_STEPS = 6
 
 
+def along_track(positions_m: np.ndarray, times_s: np.ndarray) -> Callable[[float], np.ndarray]:
+    """``dt ->`` the positions (M, ...) moved to ``times_s + dt`` along the scan's own track
+    (:func:`shift_positions`, its legs found once): what the searches below re-sample when no
+    trajectory is at hand (``focus --clock-search``)."""
+    starts = leg_starts(times_s, positions_m)
+    return lambda dt: shift_positions(positions_m, times_s, dt, starts)
+
+
+def on_track(track_s: np.ndarray, track_m: np.ndarray, frame_s: np.ndarray) -> Callable[[float], np.ndarray]:
+    """``dt ->`` a trajectory's points (T, ...) metres re-sampled at ``frame_s + dt`` (Q,): the
+    track first smoothed (:func:`smooth_track`, each stretch of :func:`track_segments` apart).
+
+    Why smoothed: re-sampled raw, a tracker's white jitter is averaged by an amount that depends on
+    where between two poses a frame falls (halved midway, whole on a pose), so the focus prefers
+    offsets a fraction of a pose off the true one (on poses taken at the frames, a dip at the
+    true offset itself); smoothed, the jitter left is nearly the same at every offset.
+    track_s : (T,) seconds; track_m : (T, ...) metres (a pose's phase centres (T, K, 3) say).
+    """
+    t = np.asarray(track_s, np.float64)
+    p = np.asarray(track_m, np.float64)
+    centre = p.reshape(len(t), -1, 3).mean(axis=1)
+    flat = p.reshape(len(t), -1)
+    smooth = smooth_track(t, flat, track_segments(t, centre)).reshape(p.shape)
+    frames = np.asarray(frame_s, np.float64)
+    return lambda dt: resample_track(t, smooth, frames + dt)
+
+
 def focus_offset(
     form_image: Callable[[np.ndarray], np.ndarray],
-    positions_m: np.ndarray,
-    times_s: np.ndarray,
+    positions_at: Callable[[float], np.ndarray],
     max_offset_s: float,
     coarse_steps: int = 13,
     score: Callable[[np.ndarray], float] = image_sharpness,
     centre_s: float = 0.0,
     refine: bool = True,
 ) -> tuple[ClockEstimate, list[tuple[float, float]]]:
-    """The offset whose shifted positions (:func:`shift_positions`) focus the reference best.
+    """The offset whose positions focus the reference best.
 
     form_image : positions (M, K, 3) -> the reference region's image (any shape).
-    times_s : (M,) each position's time (:func:`position_times_s`).
+    positions_at : ``dt ->`` the positions at offset ``dt`` (:func:`along_track`, or the
+        trajectory re-sampled at the frames' stamps + ``dt``, as convert does).
     A grid of ``coarse_steps`` offsets over ``centre_s`` +- ``max_offset_s``; its best, refined
     (``refine``) by :func:`refine_offset` at a fifth of the grid's step. Returns (estimate, the
     (offset, score) pairs tried); without ``refine`` the estimate is the grid's best, sigma_s the
     step over sqrt(12).
     """
-    starts = leg_starts(times_s, positions_m)
     tried: dict[float, float] = {}
     coarse = centre_s + np.linspace(-max_offset_s, max_offset_s, int(coarse_steps))
     step = float(coarse[1] - coarse[0]) if len(coarse) > 1 else float(max_offset_s)
     for v in coarse:
-        _score_at(form_image, positions_m, times_s, starts, score, v, tried)
+        _score_at(form_image, positions_at, score, v, tried)
     best = max(tried, key=tried.__getitem__)
     if not refine:
         return ClockEstimate(best, step / np.sqrt(12), "focus"), sorted(tried.items())
-    return refine_offset(form_image, positions_m, times_s, best, step / 5, score)
+    return refine_offset(form_image, positions_at, best, step / 5, score)
 
 
-def _score_at(form_image, positions_m, times_s, starts, score, dt: float, tried: dict) -> float:
+def _score_at(form_image, positions_at, score, dt: float, tried: dict) -> float:
     dt = round(float(dt), 9)
     if dt not in tried:
-        tried[dt] = float(score(form_image(shift_positions(positions_m, times_s, dt, starts))))
+        tried[dt] = float(score(form_image(positions_at(dt))))
     return tried[dt]
 
 
@@ -523,8 +552,7 @@ def _peak_span(ys: np.ndarray, least: int = 5) -> tuple[int, int]:
 
 def refine_offset(
     form_image: Callable[[np.ndarray], np.ndarray],
-    positions_m: np.ndarray,
-    times_s: np.ndarray,
+    positions_at: Callable[[float], np.ndarray],
     centre_s: float,
     step_s: float,
     score: Callable[[np.ndarray], float] = image_sharpness,
@@ -539,13 +567,12 @@ def refine_offset(
     a hand takes to cross a resolution cell, is what places it. sigma_s from the fit's covariance
     (at least the step over sqrt(12)). Returns (estimate, the (offset, score) pairs tried).
     """
-    starts = leg_starts(times_s, positions_m)
     tried: dict[float, float] = {}
     centre, step = float(centre_s), float(step_s)
     best, sigma = centre, float("inf")
     for _ in range(3):
         xs = centre + step * np.arange(-FINE_HALF_STEPS, FINE_HALF_STEPS + 1)
-        ys = np.array([_score_at(form_image, positions_m, times_s, starts, score, v, tried) for v in xs])
+        ys = np.array([_score_at(form_image, positions_at, score, v, tried) for v in xs])
         lo, hi = _peak_span(ys)
         (qa, qb, _), cov = np.polyfit((xs[lo:hi] - centre) / step, ys[lo:hi], 2, cov=True)
         if not qa < 0:  # no peak inside: the best sample
@@ -640,11 +667,12 @@ def search_scan_clock(
 
     image, score = stage(size)
     steps = 2 * int(np.ceil(limit / step)) + 1
-    coarse, _ = focus_offset(image, scan.positions, times, limit, coarse_steps=steps, score=score, refine=False)
+    moved = along_track(scan.positions, times)
+    coarse, _ = focus_offset(image, moved, limit, coarse_steps=steps, score=score, refine=False)
     fine_n = int(fine_size or size)
     image, score = stage(fine_n)
     # a fifth of the coarse step, over +- 1.2 coarse steps
-    fine, tried = refine_offset(image, scan.positions, times, coarse.offset_s, step / 5, score)
+    fine, tried = refine_offset(image, moved, coarse.offset_s, step / 5, score)
     offset = fine.offset_s
     record = {
         **fine.to_dict(),
@@ -653,12 +681,142 @@ def search_scan_clock(
         "searched": [-limit, limit],
         "score": "sharpness" if template is None else "template_match",
         "score_at_zero": score(image(scan.positions)),
-        "score_at_offset": score(image(shift_positions(scan.positions, times, offset))),
+        "score_at_offset": score(image(moved(offset))),
         "images_formed": steps + len(tried) + 2,
         "seconds": time.perf_counter() - t_start,
         "image_size": [int(size), fine_n],
     }
-    return replace(scan, positions=shift_positions(scan.positions, times, offset)), record
+    return replace(scan, positions=moved(offset)), record
+
+
+#: convert's focus stage (:func:`refine_by_focus`): the range history's offset +- this many of its
+#: sigmas (within these bounds, s) in steps of FOCUS_STEP_S, then 13 offsets a fifth of that apart
+FOCUS_SIGMAS = 3.0
+FOCUS_HALF_BOUNDS_S = (0.01, 0.15)
+FOCUS_STEP_S = 0.005
+#: ... scored by the sharpness of an image FOCUS_SIZE pixels a side of a box FOCUS_BOX_M wide
+#: around the brightest pixel of a plane at the imaging range over the aperture (FIND_SIZE pixels a side)
+FOCUS_SIZE = 32
+FOCUS_BOX_M = 0.06
+FIND_SIZE = 48
+
+
+def brightest_box(data: np.ndarray, positions_m: np.ndarray, chirp: Chirp, z_m: float, bp_options: dict | None = None):
+    """A box (X0, X1, Y0, Y1, Z) metres, :data:`FOCUS_BOX_M` wide, around the brightest pixel of
+    the image at depth ``z_m`` over the aperture's x/y extent (:data:`FIND_SIZE` pixels a side).
+
+    data : complex (M, K, N); positions_m : float (M, K, 3) metres. No region from the user: what
+    convert's focus stage sharpens is whatever the scene holds brightest at the imaging range.
+    """
+    from twinfocus.imaging.backprojection.numba_backend import backproject  # lazy: numba (+0.5 s at import)
+
+    c = np.asarray(positions_m, np.float64).reshape(-1, 3)
+    lo, hi = c[:, :2].min(axis=0), c[:, :2].max(axis=0)
+    grid = ImageGrid(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), float(z_m), FIND_SIZE, FIND_SIZE)
+    energy = np.abs(backproject(data, positions_m, chirp, grid, **dict(bp_options or {}))) ** 2
+    iy, ix = np.unravel_index(int(np.argmax(energy)), energy.shape)
+    x, y, h = float(grid.x_m[ix]), float(grid.y_m[iy]), FOCUS_BOX_M / 2
+    return (x - h, x + h, y - h, y + h, float(z_m))
+
+
+def tracker_floor_s(track_s: np.ndarray, track_m: np.ndarray) -> float:
+    """The time (s) the hand takes to move the tracker's jitter along the sweep: the least sigma
+    the focus stage claims. Why: the tracker's errors move the sharpest image along the sweep as a
+    whole by about their own size (bench_clock's draws: 0.1-0.7 mm at 0.4-0.6 mm of jitter; an
+    emulated 0.06 m/s sweep with 0.5 mm ended 8 ms off), which no score's curve shows.
+
+    track_s : (T,) seconds; track_m : (T, 3) metres (or (T, K, 3): their mean). The jitter per
+    axis is the r.m.s. of the track less its smoothing (:func:`smooth_track`), scaled for the
+    line's fit; the speed the median of the smoothed track's moving steps.
+    """
+    t = np.asarray(track_s, np.float64)
+    p = np.asarray(track_m, np.float64).reshape(len(t), -1, 3).mean(axis=1)
+    smooth = smooth_track(t, p, track_segments(t, p))
+    jitter = float(np.sqrt(np.mean((p - smooth) ** 2) / (1 - 2 / SMOOTH_POSES)))
+    dt = np.diff(t)
+    v = np.linalg.norm(np.diff(smooth, axis=0), axis=1)[dt > 0] / dt[dt > 0]
+    speed = float(np.median(v[v > 0])) if np.any(v > 0) else 0.0
+    return jitter / speed if speed > 0 else float("inf")
+
+
+def _indistinct_s(tried: list[tuple[float, float]], centre_s: float) -> float:
+    """How far (s) from its vertex the parabola through the scores within +- :data:`FINE_HALF_STEPS`
+    ms of ``centre_s`` falls by the scores' r.m.s. scatter about it: the offsets the image cannot
+    tell apart. Why not the fit's covariance alone: the scatter is not white across offsets (the
+    tracker's errors move the sharpest image off the truth as a whole: 0.6 ms on bench_clock's
+    draw at 0.2 m/s, 8 ms on a sweep at 0.06 m/s), so it is the breadth it leaves, not its mean."""
+    xs, ys = (np.array(v) for v in zip(*tried, strict=True))
+    near = np.abs(xs - centre_s) <= FINE_HALF_STEPS * FOCUS_STEP_S / 5 + 1e-9
+    if near.sum() < 4:
+        return float("inf")
+    u = (xs[near] - centre_s) * 1e3  # ms
+    q = np.polyfit(u, ys[near], 2)
+    scatter = float(np.sqrt(np.mean((np.polyval(q, u) - ys[near]) ** 2)))
+    return float(np.sqrt(scatter / -q[0]) * 1e-3) if q[0] < 0 else float("inf")
+
+
+def refine_by_focus(
+    data: np.ndarray,
+    chirp: Chirp,
+    positions_at: Callable[[float], np.ndarray],
+    estimate: ClockEstimate,
+    z_m: float,
+    bp_options: dict | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    floor_s: float = 0.0,
+) -> tuple[ClockEstimate, dict]:
+    """convert's second stage: the range history's ``estimate`` refined by the focus of the scan.
+
+    positions_at : ``dt ->`` float (M, K, 3) the phase centres with the frames' stamps + ``dt`` s
+    re-sampled on the camera's trajectory (its poses through the turns, which a converted scan
+    no longer has). The offsets ``estimate`` +- :data:`FOCUS_SIGMAS` sigma (:data:`FOCUS_HALF_BOUNDS_S`)
+    :data:`FOCUS_STEP_S` apart, then :func:`refine_offset` around the best, each scored by the
+    sharpness of the brightest region (:func:`brightest_box`). Returns (estimate, a record: the
+    region, the offsets searched, the images formed, the seconds); raises TwinFocusError (one
+    line) where the sharpness has no peak inside the offsets searched. floor_s : the least sigma
+    (:func:`tracker_floor_s`); sigma is also at least the 1 ms step and the breadth the scores'
+    scatter leaves (:func:`_indistinct_s`).
+    """
+    import time
+
+    from twinfocus.imaging.backprojection.numba_backend import backproject  # lazy: numba (+0.5 s at import)
+
+    t_start = time.perf_counter()
+    bp = dict(bp_options or {})
+    centre = float(estimate.offset_s)
+    half = float(np.clip(FOCUS_SIGMAS * estimate.sigma_s, *FOCUS_HALF_BOUNDS_S))
+    roi = brightest_box(data, positions_at(centre), chirp, z_m, bp)
+    grid = ImageGrid.from_roi(roi, FOCUS_SIZE)
+    steps = 2 * int(np.ceil(half / FOCUS_STEP_S)) + 1
+    expected = steps + 2 * FINE_HALF_STEPS + 1
+    formed = [0]
+
+    def image(positions_m: np.ndarray) -> np.ndarray:
+        formed[0] += 1
+        if progress is not None:
+            progress(min(formed[0], expected - 1), expected)
+        return backproject(data, positions_m, chirp, grid, **bp)
+
+    coarse, _ = focus_offset(image, positions_at, half, coarse_steps=steps, centre_s=centre, refine=False)
+    fine, tried = refine_offset(image, positions_at, coarse.offset_s, FOCUS_STEP_S / 5)
+    floor = max(FOCUS_STEP_S / 5, _indistinct_s(tried, fine.offset_s), float(floor_s))
+    fine = replace(fine, sigma_s=max(fine.sigma_s, floor))
+    if progress is not None:
+        progress(expected, expected)
+    if not (np.isfinite(fine.sigma_s) and abs(fine.offset_s - centre) < half):
+        raise TwinFocusError(
+            f"clock offset: the brightest region's sharpness has no peak within {centre * 1e3:+.0f} +- "
+            f"{half * 1e3:.0f} ms of the range history's offset"
+        )
+    record = {
+        **fine.to_dict(),
+        "region_m": [round(v, 4) for v in roi],
+        "searched_s": [centre - half, centre + half],
+        "images_formed": formed[0],
+        "seconds": time.perf_counter() - t_start,
+        "tried": [[round(dt, 6), sc] for dt, sc in tried],
+    }
+    return fine, record
 
 
 #: above this offset (s) the search's line advises converting again with it: past a leg's ends the
