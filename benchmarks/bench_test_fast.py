@@ -66,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--top", type=int, default=25, help="how many of the slowest tests to keep in the file")
     a = ap.parse_args(argv)
     selection, run_as = ([], _WHOLE) if a.all else (_SELECTION, [])
+    target = "test" if a.all else "test-fast"
     a.out = a.out or f"benchmarks/results/{'test_suite' if a.all else 'test_fast'}.json"
     n = collected(a.paths, selection)
     load_before = os.getloadavg()
@@ -80,8 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         "command": " ".join(["python -m pytest", *(repr(x) if " " in x else x for x in selection + run_as)])
         + " --durations=0"
         + "".join(" " + p for p in a.paths),
-        "what": f"make {'test' if a.all else 'test-fast'}: wall time, and the sum of per-test durations "
-        "(setup+call+teardown)",
+        "what": f"make {target}: wall time, and the sum of per-test durations (setup+call+teardown)",
         "cpu_count": os.cpu_count(),
         "load_average_1_5_15_before": [round(v, 2) for v in load_before],
         "load_average_1_5_15_after": [round(v, 2) for v in load_after],
@@ -96,12 +96,12 @@ def main(argv: list[str] | None = None) -> int:
     }
     write_json_atomic(a.out, doc)
     print(
-        f"[{'test' if a.all else 'test-fast'}] {n} tests, wall {wall:.1f} s (load {load_before[0]:.1f} -> {load_after[0]:.1f} on "
+        f"[{target}] {n} tests, wall {wall:.1f} s (load {load_before[0]:.1f} -> {load_after[0]:.1f} on "
         f"{os.cpu_count()} cores), sum of durations {doc['sum_of_durations_s']} s; {doc['summary']}"
     )
     for r in rows[:15]:
         print(f"  {r['s']:7.2f} s  {r['test']}")
-    print(f"[{'test' if a.all else 'test-fast'}] wrote {Path(a.out)}")
+    print(f"[{target}] wrote {Path(a.out)}")
     return 0 if rc == 0 else 1
 
 
