@@ -6,7 +6,8 @@ drift + tilt on a hand-held scan; ``twinfocus simulate --trajectory zigzag --err
 ``twinfocus focus`` is the same scan offline (its phase centres within 0.4 um of the live ones:
 the tracked pose turns the array exactly where the simulation turns it to first order). Live, at
 ``rate:=1``, the solver fits the drift while the sweep arrives and refines from the latest fit
-after the last frame; the two images must still be the same image, within 0.005 SSIM.
+after the last frame (or fits again cold when that start leads it below where a cold fit
+begins); the two images must still be the same image, within 0.005 SSIM.
 """
 
 import json
@@ -51,7 +52,11 @@ def test_live_hand_sweep_equals_offline_focus(tmp_path):
     # live, the fit ran while the sweep arrived and refined from there after its last frame
     streamed = live_m["space_variant_streamed"]
     assert streamed["used"] and streamed["fits"] >= 1, streamed
-    assert live_m["space_variant"]["warm_start_positions"] >= 40, live_m["space_variant"]
+    # ... and started from the latest streamed fit, or refused it (its 10 + 10 steps ended below
+    # where a cold fit begins: with OpenCV 5.1's letters this scene's first 40 positions led the
+    # fit astray) and fitted cold, as offline
+    sv = live_m["space_variant"]
+    assert sv.get("warm_start_positions", sv.get("warm_start_refused", {}).get("positions", 0)) >= 40, sv
     live, off = np.load(live_dir / "target.npy"), np.load(off_dir / "target.npy")
     assert image_ssim(live, off) > 0.995, image_ssim(live, off)
     assert abs(live_m["target_ssim_corrected"] - off_m["target_ssim_corrected"]) < 0.005, (

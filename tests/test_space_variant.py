@@ -605,6 +605,9 @@ def test_a_warm_started_fit_reaches_the_cold_fits_phase(drifting_scan):
     part = fit_smooth_drift(basis[:220], template, phi0[:220], centres[:220], grid, wavelength)
     warm = fit_smooth_drift(*args, DriftFitSettings(iterations=30, refine_iterations=30), start=part[3]["end_state"])
     assert warm[3]["warm_start_positions"] == 220 and cold[3]["warm_start_positions"] == 0
+    # where the cold fit begins, on the same pixels, for the caller to judge the start by
+    assert warm[3]["match_cold_start"] == pytest.approx(cold[3]["match_before"], rel=0, abs=1e-9)
+    assert cold[3]["match_cold_start"] == cold[3]["match_before"]
     assert warm[3]["cost_evaluations"] < 0.4 * cold[3]["cost_evaluations"]
     assert phase_error_rms(target_phase(warm), target_phase(cold)) < 0.15
     assert phase_error_rms(target_phase(warm), exact) < 0.4 * phase_error_rms(phi0, exact)
@@ -618,6 +621,44 @@ def test_a_warm_started_fit_reaches_the_cold_fits_phase(drifting_scan):
         fit_smooth_drift(*args, DriftFitSettings(knot_spacing=20), start=cold[3]["end_state"])
     with pytest.raises(TwinFocusError, match="warm start"):
         fit_smooth_drift(basis[:100], template, phi0[:100], centres[:100], grid, wavelength, start=part[3]["end_state"])
+
+
+def test_a_warm_start_that_ends_below_the_cold_start_is_fitted_again_cold(drifting_scan):
+    """The drift rung with a start from a fit of the sweep's first part: kept when its fit ends
+    above where a cold fit begins; fitted again from the start when it ends below (every knot
+    moved 1.5 mm across x): then the ladder's target is the cold ladder's, bit for
+    bit, and the metrics name the refused start."""
+    import dataclasses
+
+    from twinfocus.focus.autofocus import AutofocusConfig
+    from twinfocus.focus.estimators import estimator_settings
+    from twinfocus.focus.ladder import DriftStarts
+    from twinfocus.focus.pipeline import Bases, Reference
+    from twinfocus.focus.plan import FocusPlan
+    from twinfocus.focus.space_variant import fit_smooth_drift
+
+    s = drifting_scan
+    basis, template, phi0, centres, grid, wavelength = _fit_args(s)
+    part = fit_smooth_drift(basis[:200], template, phi0[:200], centres[:200], grid, wavelength)[3]["end_state"]
+    plan = FocusPlan.make(config=AutofocusConfig(**estimator_settings("correlation", True)), space_variant="on")
+
+    def focus(start):
+        starts = None if start is None else DriftStarts({("drift", "fit"): start})  # WARM_FIT's steps
+        bases = Bases(s["ref_basis"], s["tgt_basis"], s["tracked"], s["chirp"], s["rg"], s["tg"], drift_starts=starts)
+        return plan.focus_bases(bases, Reference(template=s["template"]))
+
+    cold = focus(None)
+    kept = focus(part)
+    assert kept.metrics["space_variant"]["warm_start_positions"] == 200
+    assert "warm_start_refused" not in kept.metrics["space_variant"]
+    off = focus(dataclasses.replace(part, knots_m=part.knots_m + np.array([1.5e-3, 0.0])))
+    refused = off.metrics["space_variant"]["warm_start_refused"]
+    assert refused["positions"] == 200 and refused["match_after"] < refused["match_cold_start"]
+    np.testing.assert_array_equal(off.target, cold.target)
+    assert (
+        off.metrics["space_variant"]["residual_space_variant"]
+        == cold.metrics["space_variant"]["residual_space_variant"]
+    )
 
 
 def test_drift_starts_give_warm_steps_only_to_a_fit_with_a_start():

@@ -466,9 +466,9 @@ def fit_smooth_drift(
     fixed), dp float64 (M, 3) metres in the correction's sense (z is 0), tilt float64 (M,)
     radians (zeros without ``half_basis``), info: ``match_before`` / ``match_after`` (the
     correlation on every pixel of ``pixels``), the settings, ``knot_pixels``, ``device``,
-    ``threads`` (numba's on a CPU, None elsewhere), ``row_stride``, ``cost_evaluations``,
-    ``time_s``, ``warm_start_positions``, ``end_state``: the :class:`DriftStart` a later fit on
-    more of the scan may start from). Memory on the CPU: the bases as given, 12 bytes per position and fitted pixel of
+    ``threads`` (numba's on a CPU, None elsewhere), ``row_stride``, ``cost_evaluations``, ``time_s``,
+    ``warm_start_positions``, ``match_cold_start`` (where a fit without ``start`` begins), ``end_state``:
+    the :class:`DriftStart` a later fit on more of the scan may start from). Memory on the CPU: the bases as given, 12 bytes per position and fitted pixel of
     working arrays (20 with ``half_basis``) and copies of the bases on the fitted pixels.
     """
     t0 = time.perf_counter()
@@ -485,6 +485,7 @@ def fit_smooth_drift(
     knot_steps, refine_steps = int(cfg.iterations), int(cfg.refine_iterations)
     with _threads_for_the_load(whole.device) as threads:
         before = match.value_and_gradients(fit.phase, fit.s @ fit.coef, fit.tilt())[0]
+        cold = before if start is None else fit.cold_start_value(match, np.asarray(phase0_rad, np.float64))
         fit.total = knot_steps + refine_steps
         fit.descend(fit.coef, True, knot_steps, 0.0, coarse)
         # Per-position refinement: the knots' straight segments cannot follow a drift that wanders
@@ -502,20 +503,23 @@ def fit_smooth_drift(
         "device": str(whole.device),
         "threads": threads,
     }
-    info = _fit_info(cfg, fit, (before, after), refined, record, start)
+    info = _fit_info(cfg, fit, (before, after, cold), refined, record, start)
     info["end_state"] = fit.end_state(drift, np.asarray(phase0_rad, np.float64))
     info["time_s"] = time.perf_counter() - t0
     tilt = fit.tilt()
     return fit.phase.copy(), dp, np.zeros(m) if tilt is None else tilt.astype(np.float64), info
 
 
-def _fit_info(cfg: DriftFitSettings, fit, matches: tuple[float, float], refined: int, record: dict, start) -> dict:
+def _fit_info(
+    cfg: DriftFitSettings, fit, matches: tuple[float, float, float], refined: int, record: dict, start
+) -> dict:
     """:func:`fit_smooth_drift`'s info (its docstring's keys but ``end_state`` and ``time_s``):
-    ``matches`` the correlation before and after, ``refined`` the per-position stage's steps,
-    ``record`` the knot pixels, row stride, device and threads."""
+    ``matches`` the correlation before, after and where a cold fit begins, ``refined`` the
+    per-position stage's steps, ``record`` the knot pixels, row stride, device and threads."""
     return {
         "match_before": matches[0],
         "match_after": matches[1],
+        "match_cold_start": matches[2],
         "knot_spacing_positions": int(cfg.knot_spacing),
         "iterations": int(cfg.iterations),
         "refine_iterations": refined,
@@ -524,7 +528,7 @@ def _fit_info(cfg: DriftFitSettings, fit, matches: tuple[float, float], refined:
         "row_stride": record["row_stride"],
         "phase_fitted": cfg.phase_step_rad > 0,
         "tilt_fitted": fit.tilt_coef is not None,
-        "cost_evaluations": len(fit.matches) + 1 + (1 if fit.total else 0),
+        "cost_evaluations": len(fit.matches) + 1 + (1 if fit.total else 0) + (start is not None),
         "device": record["device"],
         "threads": record["threads"],
         "warm_start_positions": 0 if start is None else start.rows,
@@ -613,6 +617,12 @@ class _DriftDescent:
 
     def tilt(self) -> np.ndarray | None:
         return None if self.tilt_coef is None else self.s @ self.tilt_coef
+
+    def cold_start_value(self, match, phase0: np.ndarray) -> float:
+        """The correlation on ``match``'s pixels where a fit without a start begins (dp = 0, phi =
+        ``phase0``, no tilt): a warm fit that ends below it began from a poor start."""
+        m = self.s.shape[0]
+        return match.value_and_gradients(phase0, np.zeros((m, 2)), None if self.tilt_coef is None else np.zeros(m))[0]
 
     def descend(self, parameter, knots: bool, steps: int, smoothness: float, objective, stop: float = 0.0) -> int:
         """Adam on ``parameter`` (float64, in place; metres: the knots' values when ``knots``, else
