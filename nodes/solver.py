@@ -548,15 +548,18 @@ class Solver(Node):
             return False
         return (not plan.needs.half_bases or s.half is not None) and _parallel_kernels_thread_safe()
 
-    @staticmethod
-    def _drift_worker(d: _DriftStream, plan, bases, reference) -> None:
+    def _drift_worker(self, d: _DriftStream, plan, bases, reference) -> None:
         """One streamed fit (on the worker thread): the plan's ladder on the rows so far, its
         drift fits leaving their warm starts in ``d.starts``; an error or a stop leaves the starts
-        of the fits that ended."""
+        of the fits that ended (an error is logged in one line: the fit after the scan runs
+        whatever it was)."""
         t = time.perf_counter()
         try:
             out = plan.focus_bases(bases, reference)
-        except Exception:  # noqa: BLE001 - superseded, or a partial scan the ladder refuses: the fit after the scan says why
+        except _Superseded:
+            return
+        except Exception as exc:  # noqa: BLE001 - a partial scan the ladder refuses: the fit after the scan says why
+            self.log(f"streamed drift fit on {d.rows} positions stopped: {type(exc).__name__}: {exc}")
             return
         d.fits += 1
         d.ladder_s += time.perf_counter() - t

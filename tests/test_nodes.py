@@ -622,6 +622,32 @@ def send_scan(probe, template, scan, scan_id="p"):
         probe.send("sar/measurement", m)
 
 
+def test_a_streamed_drift_fit_that_fails_says_so_in_one_line_and_a_stopped_one_says_nothing(capsys):
+    """The solver's streamed drift fit (a worker thread): a ladder that refuses the partial scan
+    leaves one log line naming the error and counts no fit; a fit superseded by the scan's last
+    frame ends quietly."""
+    from nodes.solver import Solver, _DriftStream, _Superseded
+    from twinfocus.focus.ladder import DriftStarts
+
+    class Plan:
+        def __init__(self, error):
+            self.error = error
+
+        def focus_bases(self, bases, reference):
+            raise self.error
+
+    with local_broker() as ep:
+        solver = Solver(broker=ep, params={"reference_roi": REF_ROI, "target_roi": TGT_ROI, "warm_up": False})
+        capsys.readouterr()
+        d = _DriftStream(DriftStarts(), rows=40)
+        solver._drift_worker(d, Plan(TwinFocusError("the reference is too small")), None, None)
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "streamed drift fit on 40 positions stopped" in err, err
+        assert "TwinFocusError: the reference is too small" in err and d.fits == 0
+        solver._drift_worker(d, Plan(_Superseded()), None, None)
+        assert capsys.readouterr().err == "" and d.fits == 0
+
+
 def test_solver_streams_the_basis_and_focuses_with_the_template(tmp_path):
     from twinfocus.focus.autofocus import AutofocusConfig
     from twinfocus.imaging.backprojection.numba_backend import backproject
