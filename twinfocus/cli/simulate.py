@@ -17,6 +17,7 @@ from twinfocus.jobs.machine import available_memory_bytes, require_memory
 from twinfocus.jobs.progress import Progress
 from twinfocus.motion.tracking_errors import ERROR_MODELS
 from twinfocus.option_types import (
+    DISPLACEMENT,
     bounded_float,
     finite_float,
     non_negative_float,
@@ -124,10 +125,8 @@ def _add_scan_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-speckle", action="store_true", help="all scatterers in phase")
     p.add_argument(
         "--template-offset-mm",
-        nargs=3,
-        type=finite_float,
+        **DISPLACEMENT,
         default=[1.0, 0.0, 0.0],
-        metavar=("DX", "DY", "DZ"),
         help="placement error of the reference in the template scan, mm (default 1 0 0)",
     )
     p.add_argument(
