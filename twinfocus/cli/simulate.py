@@ -176,6 +176,11 @@ def _add_field_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+#: add_argument keywords of a cloud impairment given as one number or as three (x y z): finite
+#: numbers, held to one or three by :func:`run`
+_ONE_OR_THREE: dict = {"nargs": "+", "type": finite_float}
+
+
 def _add_cloud_arguments(p: argparse.ArgumentParser) -> None:
     c = p.add_argument_group("camera cloud of the reference (for focus --digital-twin)")
     c.add_argument(
@@ -189,8 +194,7 @@ def _add_cloud_arguments(p: argparse.ArgumentParser) -> None:
     )
     c.add_argument(
         "--cloud-noise-mm",
-        nargs="+",
-        type=finite_float,
+        **_ONE_OR_THREE,
         default=[1.0],
         metavar="SD",
         help="noise sd, mm: one for every axis or three (x y z) (default 1)",
@@ -211,8 +215,7 @@ def _add_cloud_arguments(p: argparse.ArgumentParser) -> None:
     )
     c.add_argument(
         "--cloud-offset-mm",
-        nargs="+",
-        type=finite_float,
+        **_ONE_OR_THREE,
         default=[2.0],
         metavar="MM",
         help="rigid offset of the cloud: a length (random direction) or three (x y z), mm (default 2)",
