@@ -98,6 +98,13 @@ def _accumulate_channel(
         out_im[q] += vi * c - vr * s
 
 
+@njit(inline="always")
+def _channel_scratch(n, like):
+    """:func:`_accumulate_channel`'s scratch for a block of ``n`` pixels: (idx int32, frac, cos_buf,
+    sin_buf), each (n,), the last three in the dtype of the array ``like``."""
+    return np.empty(n, np.int32), np.empty(n, like.dtype), np.empty(n, like.dtype), np.empty(n, like.dtype)
+
+
 @njit(inline="always", fastmath=True)
 def _accumulate_position(
     tab, pos, px, py, pz, r0, inv_dr, turns_per_m, kc, out_re, out_im, p_lo, p_hi, idx, frac, cos_buf, sin_buf
@@ -118,10 +125,7 @@ def _basis_kernel(tab, pos, px, py, pz, r0, inv_dr, turns_per_m, kc, out_re, out
     n_pos = pos.shape[0]
     n_pix = px.shape[0]
     for m in prange(n_pos):
-        idx = np.empty(n_pix, np.int32)
-        frac = np.empty(n_pix, px.dtype)
-        cos_buf = np.empty(n_pix, px.dtype)
-        sin_buf = np.empty(n_pix, px.dtype)
+        idx, frac, cos_buf, sin_buf = _channel_scratch(n_pix, px)
         _accumulate_position(
             tab[m], pos[m], px, py, pz, r0, inv_dr, turns_per_m, kc, out_re[m], out_im[m], 0, n_pix, idx, frac,
             cos_buf, sin_buf
@@ -139,10 +143,7 @@ def _image_kernel(tab, pos, px, py, pz, r0, inv_dr, turns_per_m, kc, block, out_
         hi = min(lo + block, n_pix)
         acc_re = np.zeros(hi - lo, dtype=out_re.dtype)
         acc_im = np.zeros(hi - lo, dtype=out_im.dtype)
-        idx = np.empty(hi - lo, np.int32)
-        frac = np.empty(hi - lo, px.dtype)
-        cos_buf = np.empty(hi - lo, px.dtype)
-        sin_buf = np.empty(hi - lo, px.dtype)
+        idx, frac, cos_buf, sin_buf = _channel_scratch(hi - lo, px)
         for m in range(n_pos):
             _accumulate_position(
                 tab[m], pos[m], px, py, pz, r0, inv_dr, turns_per_m, kc, acc_re, acc_im, lo, hi, idx, frac, cos_buf,
