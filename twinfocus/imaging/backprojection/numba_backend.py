@@ -63,9 +63,9 @@ def _accumulate_channel(
     arithmetic in the dtype of the inputs, which the compiler vectorises), then the profile
     gather and accumulation. tab: (Q, 4) the channel's profile as (re, im, d re, d im) per range
     node (:func:`_interpolation_table`): one 16-byte read per pixel instead of four scattered
-    ones, which made the gather pass 1.5x faster. kc: :func:`_kernel_constants`. idx/frac/cos_buf/sin_buf are scratch
-    buffers of the block's length. The carrier is :func:`~twinfocus.imaging.range_geometry.cis_turns`'
-    polynomials, evaluated here with typed constants.
+    ones, which made the gather pass 1.5x faster. kc: :func:`_kernel_constants`. idx/frac/cos_buf/sin_buf
+    are scratch buffers of the block's length (:func:`_channel_scratch`). The carrier is
+    :func:`~twinfocus.imaging.range_geometry.cis_turns`' polynomials, evaluated here with typed constants.
     """
     zero, half, qmax = kc[0], kc[1], kc[2]
     s0, s1, s2, s3, s4, s5, s6 = kc[3], kc[4], kc[5], kc[6], kc[7], kc[8], kc[9]
