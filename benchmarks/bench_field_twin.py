@@ -205,6 +205,13 @@ def main(out_dir: str | os.PathLike = "benchmarks/results", draws: int = 5, only
 GROWTH_ROUNDS = (0, 1, 2, 3, 4)
 
 
+def keep_draw(path: Path, results: dict, key: str, record: dict) -> None:
+    """Add a draw's ``record`` to ``results[key]`` and write all of ``results`` to ``path``
+    (indented JSON) at once: a sweep stopped part way keeps the draws it finished."""
+    results[key].append(record)
+    path.write_text(json.dumps(results, indent=1))
+
+
 def bench_draws(label: str, draws: int, results: dict):
     """(scene, seed, :func:`field_draw`) for the camera-cloud scenes A, B, C, draws 1..``draws``,
     each announced on stderr; ``results`` gets an empty list per scene for its records."""
@@ -247,8 +254,7 @@ def growth_sweep(out_dir: str | os.PathLike = "benchmarks/results", draws: int =
                 "time_s": took,
                 "outline_px": info["growth_px"][-1],
             }
-        results[scene].append(rec)
-        (out_dir / "field_twin_growth.json").write_text(json.dumps(results, indent=1))
+        keep_draw(out_dir / "field_twin_growth.json", results, scene, rec)
     print(
         "| growth rounds | "
         + " | ".join(results)
@@ -300,7 +306,8 @@ def range_error_floor(out_dir: str | os.PathLike = "benchmarks/results", draws: 
         for error, (sigma, snr) in FLOOR_ERRORS.items():
             if texture != "rough (the field's)" and snr is None:
                 continue
-            recs = results.setdefault(f"{texture}, {error}", [])
+            key = f"{texture}, {error}"
+            results.setdefault(key, [])
             for seed in range(1, draws + 1):
                 print(f"[range-error floor] {texture}, {error}, draw {seed}/{draws}", file=sys.stderr, flush=True)
                 sc = Scenario(**{**SCENES["C"], "error_sigma_m": sigma, "snr_db": snr}, **tkw, seed=seed)
@@ -322,7 +329,10 @@ def range_error_floor(out_dir: str | os.PathLike = "benchmarks/results", draws: 
                 ramp, coeffs = fit_linear_phase(ranged, aperture, min_coherence_sqrt_m=0.0)
                 range_m = float(np.linalg.norm(centre - scan.positions.mean(axis=(0, 1))))
                 shift = coeffs[1:] * range_m * scan.chirp.wavelength_m / (4.0 * np.pi)
-                recs.append(
+                keep_draw(
+                    out_dir / "field_twin_range_floor.json",
+                    results,
+                    key,
                     {
                         "seed": seed,
                         "error_sd_mm": 1e3 * float(err.std()),
@@ -332,9 +342,8 @@ def range_error_floor(out_dir: str | os.PathLike = "benchmarks/results", draws: 
                             np.abs(np.exp(1j * (ranged - ramp)).mean()) * np.sqrt(ranged.size)
                         ),
                         "bright_px": int(pixels.sum()),
-                    }
+                    },
                 )
-                (out_dir / "field_twin_range_floor.json").write_text(json.dumps(results, indent=1))
     print(
         "| reference, tracking error | range-error error, sd (mm) | slope "
         "| shift asked with the true phase (mm, mean abs x, y) | coherence x sqrt(M) |"
@@ -426,8 +435,7 @@ def placement_ceiling(out_dir: str | os.PathLike = "benchmarks/results", draws: 
                     rec[name + ", removed"] = bool(info["removed"])
                 rec[placed[2]] = image_ssim(form_image(tb, moved), truth)
                 rec["camera offset_mm"] = (1e3 * offset).tolist()
-                results[scene].append(rec)
-                (out_dir / "field_twin_placement_ceiling.json").write_text(json.dumps(results, indent=1))
+                keep_draw(out_dir / "field_twin_placement_ceiling.json", results, scene, rec)
     print(
         "| scene, draws | true phase | less the range errors' linear part (mean +- sd, lowest) | its shift (mm, mean \\|x\\|, \\|y\\|) | "
         + " | ".join(placed)
@@ -492,8 +500,7 @@ def template_file(out_dir: str | os.PathLike = "benchmarks/results", draws: int 
                 rec[name] = image_ssim(out.target, truth)
                 rec[f"{name} trusted"] = out.metrics["confidence"]["trusted"]
                 rec[f"{name} time_s"] = out.timings_s["autofocus"]
-        results[scene].append(rec)
-        (out_dir / "field_twin_template_file.json").write_text(json.dumps(results, indent=1))
+        keep_draw(out_dir / "field_twin_template_file.json", results, scene, rec)
     print(
         "| scene | template file, image alone (before) | **with its outline and conditioning** | time (s) before / now |"
     )

@@ -71,6 +71,11 @@ def bounded_int(low: int, high: int) -> Callable[[str], float]:
 #: add_argument keywords of a region option (``--reference-roi``, ``--seed-roi``): x and y extent
 #: and depth, metres, five finite numbers
 REGION: dict = {"nargs": 5, "type": finite_float, "metavar": ("X0", "X1", "Y0", "Y1", "Z")}
+#: add_argument keywords of a point option (``--camera-position-mm``): x, y and z, three finite numbers
+POINT: dict = {"nargs": 3, "type": finite_float, "metavar": ("X", "Y", "Z")}
+#: add_argument keywords of a displacement option (``--template-offset-mm``, ``--extrinsic-error-mm``):
+#: dx, dy and dz, three finite numbers
+DISPLACEMENT: dict = {"nargs": 3, "type": finite_float, "metavar": ("DX", "DY", "DZ")}
 
 #: Setting.check name -> its type function (twinfocus.focus.settings)
 CHECKS: dict[str, Callable[[str], float]] = {

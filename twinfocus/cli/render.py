@@ -13,7 +13,7 @@ import numpy as np
 from twinfocus.cli.simulate import add_layout_arguments, layout_kwargs
 from twinfocus.errors import TwinFocusError
 from twinfocus.jobs.machine import require_memory
-from twinfocus.option_types import finite_float, non_negative_float, non_negative_int, positive_int
+from twinfocus.option_types import DISPLACEMENT, POINT, non_negative_float, non_negative_int, positive_int
 from twinfocus.twins.digital_twin.camera import DEFAULT_LEFT_CAMERA_POSITION_M, StereoCamera, pose_matrix
 from twinfocus.twins.digital_twin.render import render_memory_bytes, render_scene
 
@@ -23,20 +23,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_layout_arguments(p)
     p.add_argument("--width", type=positive_int, default=1280, help="picture width (default 1280, ZED 2i HD720)")
     p.add_argument("--height-px", type=positive_int, default=720, help="picture height (default 720)")
-    p.add_argument(
-        "--camera-position-mm",
-        nargs=3,
-        type=finite_float,
-        default=None,
-        metavar=("X", "Y", "Z"),
-        help="left camera position in the scene frame (default -60 -80 0)",
-    )
+    p.add_argument("--camera-position-mm", **POINT, help="left camera position in the scene frame (default -60 -80 0)")
     p.add_argument(
         "--extrinsic-error-mm",
-        nargs=3,
-        type=finite_float,
+        **DISPLACEMENT,
         default=[0.0, 0.0, 0.0],
-        metavar=("DX", "DY", "DZ"),
         help="render from a camera this far from the pose written to camera.json (a mounting error)",
     )
     p.add_argument(

@@ -17,6 +17,7 @@ from twinfocus.jobs.machine import available_memory_bytes, require_memory
 from twinfocus.jobs.progress import Progress
 from twinfocus.motion.tracking_errors import ERROR_MODELS
 from twinfocus.option_types import (
+    DISPLACEMENT,
     bounded_float,
     finite_float,
     non_negative_float,
@@ -124,10 +125,8 @@ def _add_scan_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-speckle", action="store_true", help="all scatterers in phase")
     p.add_argument(
         "--template-offset-mm",
-        nargs=3,
-        type=finite_float,
+        **DISPLACEMENT,
         default=[1.0, 0.0, 0.0],
-        metavar=("DX", "DY", "DZ"),
         help="placement error of the reference in the template scan, mm (default 1 0 0)",
     )
     p.add_argument(
@@ -177,6 +176,11 @@ def _add_field_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+#: add_argument keywords of a cloud impairment given as one number or as three (x y z): finite
+#: numbers, held to one or three by :func:`run`
+_ONE_OR_THREE: dict = {"nargs": "+", "type": finite_float}
+
+
 def _add_cloud_arguments(p: argparse.ArgumentParser) -> None:
     c = p.add_argument_group("camera cloud of the reference (for focus --digital-twin)")
     c.add_argument(
@@ -190,8 +194,7 @@ def _add_cloud_arguments(p: argparse.ArgumentParser) -> None:
     )
     c.add_argument(
         "--cloud-noise-mm",
-        nargs="+",
-        type=finite_float,
+        **_ONE_OR_THREE,
         default=[1.0],
         metavar="SD",
         help="noise sd, mm: one for every axis or three (x y z) (default 1)",
@@ -212,8 +215,7 @@ def _add_cloud_arguments(p: argparse.ArgumentParser) -> None:
     )
     c.add_argument(
         "--cloud-offset-mm",
-        nargs="+",
-        type=finite_float,
+        **_ONE_OR_THREE,
         default=[2.0],
         metavar="MM",
         help="rigid offset of the cloud: a length (random direction) or three (x y z), mm (default 2)",

@@ -23,7 +23,14 @@ from typing import Any, ClassVar
 import numpy as np
 
 from twinfocus.errors import TwinFocusError
-from twinfocus.focus.autofocus import refine_check, sharpness_autofocus, transfer_phase, twin_autofocus
+from twinfocus.focus.autofocus import (
+    AutofocusConfig,
+    AutofocusResult,
+    refine_check,
+    sharpness_autofocus,
+    transfer_phase,
+    twin_autofocus,
+)
 from twinfocus.focus.band_delay import bright_pixels, position_range_errors_m
 from twinfocus.focus.estimators import RUNG_REGISTRY
 from twinfocus.focus.ladder import (
@@ -182,6 +189,13 @@ class NoCorrection(Rung):
         return Verdict(True, "the baseline the rungs above are measured against", fitted.model)
 
 
+def _twin_autofocus(problem: Problem, template: np.ndarray, config: AutofocusConfig, **options) -> AutofocusResult:
+    """:func:`~twinfocus.focus.autofocus.twin_autofocus` on the problem's reference basis with
+    ``template`` (float (H, W)) and ``config``, its progress reported as the problem's
+    "autofocus"; ``options`` are twin_autofocus' other keywords."""
+    return twin_autofocus(problem.ref_basis, template, config, progress=problem.progress("autofocus"), **options)
+
+
 class PhasePerPosition(Rung):
     """One phase per position from the reference, the estimator's closed form (the config's
     ``init``: correlation after the registration, projections or outline); the paper's estimator
@@ -233,11 +247,10 @@ class PhasePerPosition(Rung):
                 info,
             )
         closed = replace(cfg, iterations=0, refine_below_coherence=0.0)
-        result = twin_autofocus(
-            problem.ref_basis,
+        result = _twin_autofocus(
+            problem,
             problem.template,
             closed,
-            progress=problem.progress("autofocus"),
             support=problem.support,
             registration_scores=problem.registration_scores,
             aperture_m=problem.centres[:, :2],
@@ -337,13 +350,7 @@ class Refine(Rung):
             iterations=int(problem.config.iterations or config_default("iterations")),
         )
         assert model.template is not None
-        result = twin_autofocus(
-            problem.ref_basis,
-            model.template,
-            cfg,
-            progress=problem.progress("autofocus"),
-            init_phase_rad=model.estimate_rad,
-        )
+        result = _twin_autofocus(problem, model.template, cfg, init_phase_rad=model.estimate_rad)
         fitted = model.evolve(
             phase_rad=result.phase_rad, estimate_rad=result.phase_rad, loss_history=result.loss_history
         )

@@ -37,6 +37,8 @@ outlines give.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import scipy.fft
 
@@ -284,16 +286,7 @@ def speckle_contrast(energy: np.ndarray, masks: np.ndarray) -> np.ndarray:
     return second / np.maximum(first * first, 1e-300)
 
 
-def outline_phase(
-    basis: np.ndarray,
-    support: np.ndarray,
-    starts: int = OUTLINE_STARTS,
-    iterations: int = 20,
-    rounds: int = 3,
-    max_shift_px: int = 3,
-    seed: int = 0,
-    choose: str = OUTLINE_CHOICE,
-) -> tuple[np.ndarray, dict]:
+def outline_phase(basis: np.ndarray, support: np.ndarray, **options: Any) -> tuple[np.ndarray, dict]:
     """Per-position phases that put the reference's energy inside its outline.
 
     Maximises the fraction of the image's energy inside the support S,
@@ -310,13 +303,15 @@ def outline_phase(
     the largest F unless that end's contrast shows its energy piled (:data:`PILED_CONTRAST`).
 
     basis : complex (M, H, W); support : bool (H, W), True inside the reference's outline (e.g.
-    :attr:`twinfocus.twins.digital_twin.condition.DigitalTwinReference.support`).
+    :attr:`twinfocus.twins.digital_twin.condition.DigitalTwinReference.support`); options :
+    ``starts``, ``iterations``, ``rounds``, ``max_shift_px``, ``seed`` and ``choose``, as (and
+    with the defaults of) :func:`outline_phases`.
 
     Returns (float64 (M,) radians, info: ``energy_inside`` and ``contrast`` per start, ``chosen``
     start, ``chosen_by`` ("energy" or "speckle"), ``support_shift_px`` (dy, dx) of the chosen
     start's outline).
     """
-    ((phi, info),) = outline_phases(basis, [support], starts, iterations, rounds, max_shift_px, seed, choose)
+    ((phi, info),) = outline_phases(basis, [support], **options)
     return phi, info
 
 

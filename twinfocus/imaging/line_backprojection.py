@@ -26,6 +26,7 @@ from numba import njit, prange
 
 from twinfocus.imaging.backprojection.numba_backend import (
     _accumulate_channel,
+    _channel_scratch,
     _interpolation_table,
     _kernel_constants,
     pixel_block,
@@ -169,10 +170,7 @@ def _tables_kernel(tab, offset, group_of, u0, rho0, du, drho, n_u, n_rho, groups
         pz = np.zeros(n, tab.dtype)
         acc_re = np.empty(n, tab.dtype)
         acc_im = np.empty(n, tab.dtype)
-        idx = np.empty(n, np.int32)
-        frac = np.empty(n, tab.dtype)
-        cos_buf = np.empty(n, tab.dtype)
-        sin_buf = np.empty(n, tab.dtype)
+        idx, frac, cos_buf, sin_buf = _channel_scratch(n, tab)
         for g in range(groups):
             for iu in range(n_u):
                 for ir in range(n_rho):

@@ -63,9 +63,9 @@ def _accumulate_channel(
     arithmetic in the dtype of the inputs, which the compiler vectorises), then the profile
     gather and accumulation. tab: (Q, 4) the channel's profile as (re, im, d re, d im) per range
     node (:func:`_interpolation_table`): one 16-byte read per pixel instead of four scattered
-    ones, which made the gather pass 1.5x faster. kc: :func:`_kernel_constants`. idx/frac/cos_buf/sin_buf are scratch
-    buffers of the block's length. The carrier is :func:`~twinfocus.imaging.range_geometry.cis_turns`'
-    polynomials, evaluated here with typed constants.
+    ones, which made the gather pass 1.5x faster. kc: :func:`_kernel_constants`. idx/frac/cos_buf/sin_buf
+    are scratch buffers of the block's length (:func:`_channel_scratch`). The carrier is
+    :func:`~twinfocus.imaging.range_geometry.cis_turns`' polynomials, evaluated here with typed constants.
     """
     zero, half, qmax = kc[0], kc[1], kc[2]
     s0, s1, s2, s3, s4, s5, s6 = kc[3], kc[4], kc[5], kc[6], kc[7], kc[8], kc[9]
@@ -98,44 +98,44 @@ def _accumulate_channel(
         out_im[q] += vi * c - vr * s
 
 
+@njit(inline="always")
+def _channel_scratch(n, like):
+    """:func:`_accumulate_channel`'s scratch for a block of ``n`` pixels: (idx int32, frac, cos_buf,
+    sin_buf), each (n,), the last three in the dtype of the array ``like``."""
+    return np.empty(n, np.int32), np.empty(n, like.dtype), np.empty(n, like.dtype), np.empty(n, like.dtype)
+
+
+@njit(inline="always", fastmath=True)
+def _accumulate_position(
+    tab, pos, px, py, pz, r0, inv_dr, turns_per_m, kc, out_re, out_im, p_lo, p_hi, idx, frac, cos_buf, sin_buf
+):
+    """Add one radar position's channels to out[0:p_hi-p_lo] for pixels p_lo..p_hi, channel by
+    channel (:func:`_accumulate_channel`): tab (K, Q, 4) its channels' tables, pos (K, 3) their
+    phase centres; the rest as :func:`_accumulate_channel`'s. What both kernels do per position."""
+    for k in range(pos.shape[0]):
+        _accumulate_channel(
+            tab[k], pos[k, 0], pos[k, 1], pos[k, 2], px, py, pz, r0, inv_dr, turns_per_m, kc, out_re, out_im, p_lo,
+            p_hi, idx, frac, cos_buf, sin_buf
+        )  # fmt: skip
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def _basis_kernel(tab, pos, px, py, pz, r0, inv_dr, turns_per_m, kc, out_re, out_im):
     """out[m, p] = sum_k MF_mk(R_mkp); parallel over positions (rows never collide)."""
-    n_pos, n_ch = pos.shape[0], pos.shape[1]
+    n_pos = pos.shape[0]
     n_pix = px.shape[0]
     for m in prange(n_pos):
-        idx = np.empty(n_pix, np.int32)
-        frac = np.empty(n_pix, px.dtype)
-        cos_buf = np.empty(n_pix, px.dtype)
-        sin_buf = np.empty(n_pix, px.dtype)
-        for k in range(n_ch):
-            _accumulate_channel(
-                tab[m, k],
-                pos[m, k, 0],
-                pos[m, k, 1],
-                pos[m, k, 2],
-                px,
-                py,
-                pz,
-                r0,
-                inv_dr,
-                turns_per_m,
-                kc,
-                out_re[m],
-                out_im[m],
-                0,
-                n_pix,
-                idx,
-                frac,
-                cos_buf,
-                sin_buf,
-            )
+        idx, frac, cos_buf, sin_buf = _channel_scratch(n_pix, px)
+        _accumulate_position(
+            tab[m], pos[m], px, py, pz, r0, inv_dr, turns_per_m, kc, out_re[m], out_im[m], 0, n_pix, idx, frac,
+            cos_buf, sin_buf
+        )  # fmt: skip
 
 
 @njit(parallel=True, fastmath=True, cache=True)
 def _image_kernel(tab, pos, px, py, pz, r0, inv_dr, turns_per_m, kc, block, out_re, out_im):
     """out[p] = sum_{m,k} MF_mk(R_mkp); parallel over pixel blocks that stay in cache."""
-    n_pos, n_ch = pos.shape[0], pos.shape[1]
+    n_pos = pos.shape[0]
     n_pix = px.shape[0]
     n_blocks = (n_pix + block - 1) // block
     for b in prange(n_blocks):
@@ -143,33 +143,12 @@ def _image_kernel(tab, pos, px, py, pz, r0, inv_dr, turns_per_m, kc, block, out_
         hi = min(lo + block, n_pix)
         acc_re = np.zeros(hi - lo, dtype=out_re.dtype)
         acc_im = np.zeros(hi - lo, dtype=out_im.dtype)
-        idx = np.empty(hi - lo, np.int32)
-        frac = np.empty(hi - lo, px.dtype)
-        cos_buf = np.empty(hi - lo, px.dtype)
-        sin_buf = np.empty(hi - lo, px.dtype)
+        idx, frac, cos_buf, sin_buf = _channel_scratch(hi - lo, px)
         for m in range(n_pos):
-            for k in range(n_ch):
-                _accumulate_channel(
-                    tab[m, k],
-                    pos[m, k, 0],
-                    pos[m, k, 1],
-                    pos[m, k, 2],
-                    px,
-                    py,
-                    pz,
-                    r0,
-                    inv_dr,
-                    turns_per_m,
-                    kc,
-                    acc_re,
-                    acc_im,
-                    lo,
-                    hi,
-                    idx,
-                    frac,
-                    cos_buf,
-                    sin_buf,
-                )
+            _accumulate_position(
+                tab[m], pos[m], px, py, pz, r0, inv_dr, turns_per_m, kc, acc_re, acc_im, lo, hi, idx, frac, cos_buf,
+                sin_buf
+            )  # fmt: skip
         out_re[lo:hi] = acc_re
         out_im[lo:hi] = acc_im
 
@@ -308,34 +287,33 @@ def _image_numba(data, pos, pts, dtype, chirp: Chirp, oversample: int, progress:
     out_re = np.zeros(pts.shape[0], dtype)
     out_im = np.zeros(pts.shape[0], dtype)
     block = pixel_block(pts.shape[0])
-    # Chunks over positions bound the profile memory and give progress ticks.
+    for _, _, inputs in _position_chunks(data, pos, pts, dtype, chirp, oversample, progress):
+        part_re = np.empty_like(out_re)
+        part_im = np.empty_like(out_im)
+        _image_kernel(*inputs, block, part_re, part_im)
+        out_re += part_re
+        out_im += part_im
+    return (out_re + 1j * out_im).astype(np.complex64)
+
+
+def _position_chunks(data, pos, pts, dtype, chirp: Chirp, oversample: int, progress: ProgressFn | None):
+    """The positions in chunks, which bound the profile memory: yields (lo, hi, inputs) per chunk
+    of positions lo..hi, inputs the kernels' first nine arguments (interpolation table, positions,
+    pixel x, y, z, r0, 1 / dr, turns per metre, :func:`_kernel_constants`) in ``dtype``; calls
+    ``progress(hi, M)`` once the chunk is done (when the next is asked for)."""
+    px, py, pz = pts[:, 0].copy(), pts[:, 1].copy(), pts[:, 2].copy()
+    n_pos = data.shape[0]
     chunk = max(1, int(4e6 // max(1, data.shape[1] * chirp.n_samples)))
-    for lo in range(0, data.shape[0], chunk):
-        hi = min(lo + chunk, data.shape[0])
+    for lo in range(0, n_pos, chunk):
+        hi = min(lo + chunk, n_pos)
         pre, pim, r0, dr = prepare_profiles(
             data[lo:hi], pos[lo:hi].astype(np.float64), chirp, pts.astype(np.float64), oversample, dtype
         )
-        part_re = np.empty_like(out_re)
-        part_im = np.empty_like(out_im)
-        _image_kernel(
-            _interpolation_table(pre, pim),
-            pos[lo:hi],
-            pts[:, 0].copy(),
-            pts[:, 1].copy(),
-            pts[:, 2].copy(),
-            dtype(r0),
-            dtype(1.0 / dr),
-            dtype(turns_per_m(chirp)),
-            _kernel_constants(dtype, pre.shape[2] - 1.0001),
-            block,
-            part_re,
-            part_im,
-        )
-        out_re += part_re
-        out_im += part_im
+        table = _interpolation_table(pre, pim)
+        kc = _kernel_constants(dtype, pre.shape[2] - 1.0001)
+        yield lo, hi, (table, pos[lo:hi], px, py, pz, dtype(r0), dtype(1.0 / dr), dtype(turns_per_m(chirp)), kc)
         if progress is not None:
-            progress(hi, data.shape[0])
-    return (out_re + 1j * out_im).astype(np.complex64)
+            progress(hi, n_pos)
 
 
 def subimage_basis_points(
@@ -362,34 +340,13 @@ def subimage_basis_points(
 
 def _basis_numba(data, pos, pts, dtype, chirp: Chirp, oversample: int, progress: ProgressFn | None) -> np.ndarray:
     """The numba path of :func:`subimage_basis_points` (inputs checked, in the local frame)."""
-    n_pos = data.shape[0]
-    out = np.empty((n_pos, pts.shape[0]), np.complex64)
-    px, py, pz = pts[:, 0].copy(), pts[:, 1].copy(), pts[:, 2].copy()
-    chunk = max(1, int(4e6 // max(1, data.shape[1] * chirp.n_samples)))
-    for lo in range(0, n_pos, chunk):
-        hi = min(lo + chunk, n_pos)
-        pre, pim, r0, dr = prepare_profiles(
-            data[lo:hi], pos[lo:hi].astype(np.float64), chirp, pts.astype(np.float64), oversample, dtype
-        )
+    out = np.empty((data.shape[0], pts.shape[0]), np.complex64)
+    for lo, hi, inputs in _position_chunks(data, pos, pts, dtype, chirp, oversample, progress):
         o_re = np.zeros((hi - lo, pts.shape[0]), dtype)
         o_im = np.zeros((hi - lo, pts.shape[0]), dtype)
-        _basis_kernel(
-            _interpolation_table(pre, pim),
-            pos[lo:hi],
-            px,
-            py,
-            pz,
-            dtype(r0),
-            dtype(1.0 / dr),
-            dtype(turns_per_m(chirp)),
-            _kernel_constants(dtype, pre.shape[2] - 1.0001),
-            o_re,
-            o_im,
-        )
+        _basis_kernel(*inputs, o_re, o_im)
         out[lo:hi].real = o_re
         out[lo:hi].imag = o_im
-        if progress is not None:
-            progress(hi, n_pos)
     return out
 
 
