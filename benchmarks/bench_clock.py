@@ -8,7 +8,8 @@ along each leg and, in the turn between columns where the scan keeps no frame, a
 (cubic from the leg's end to the next leg's start, their velocities matched) -- the offset found
 by the range history (what ``convert --align scan`` does) and by the reference's focus
 (``focus --clock-search``: the physical twin's image matched, the digital twin's image matched, and
-the image's sharpness alone, what ``focus --digital-twin --clock-search`` uses), their residuals,
+the image's sharpness alone, what ``focus --digital-twin --clock-search`` uses; convert's focus
+stage also on the reference region by each twin's template, ``convert --template-scan``), their residuals,
 the searches' time, and the target SSIM of the physical twin (the reference's motion-stage scan)
 and of the digital twin (the reference's points as a template) with the clock searched, without,
 and with the clocks agreeing.
