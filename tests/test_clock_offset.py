@@ -227,6 +227,17 @@ def test_a_ti_capture_with_a_shifted_camera_clock_converts_to_the_synchronised_s
     assert abs(clock["offset_s"] - lead_ns * 1e-9) < 2e-3, clock
     assert abs(clock["range_history"]["offset_s"] - lead_ns * 1e-9) < 3 * clock["range_history"]["sigma_s"], clock
     assert err_scan < 1e-4, (err_scan, err_start)
+    assert clock["focus"]["score"] == "sharpness"
+    # the synchronised scan as the stage's (its positions the truth here), matched on the region the
+    # sharpness found: the same 60 ms, and the record says the template chose it
+    roi = [str(v) for v in clock["focus"]["region_m"]]
+    templated = tmp_path / "templated.npz"
+    assert _cli("convert", str(cap), "--trajectory", str(tmp_path / "camera.txt"), "--out", str(templated),
+                "--reference-roi", *roi, "--template-scan", str(out["synced"]), *common) == 0  # fmt: skip
+    clock = json.loads((tmp_path / "templated.capture.json").read_text())["clock"]
+    assert clock["stage"] == "focus" and clock["focus"]["score"] == "template_match", clock
+    assert clock["focus"]["region_m"] == [float(v) for v in roi]
+    assert abs(clock["offset_s"] - lead_ns * 1e-9) < 2e-3, clock
 
 
 def test_clock_search_of_a_scan_without_stamps_counts_positions():
