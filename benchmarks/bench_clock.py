@@ -8,7 +8,8 @@ along each leg and, in the turn between columns where the scan keeps no frame, a
 (cubic from the leg's end to the next leg's start, their velocities matched) -- the offset found
 by the range history (what ``convert --align scan`` does) and by the reference's focus
 (``focus --clock-search``: the physical twin's image matched, the digital twin's image matched, and
-the image's sharpness alone, what ``focus --digital-twin --clock-search`` uses), their residuals,
+the image's sharpness alone, what ``focus --digital-twin --clock-search`` uses; convert's focus
+stage also on the reference region by each twin's template, ``convert --template-scan``), their residuals,
 the searches' time, and the target SSIM of the physical twin (the reference's motion-stage scan)
 and of the digital twin (the reference's points as a template) with the clock searched, without,
 and with the clocks agreeing.
@@ -57,7 +58,7 @@ from twinfocus.sensors.clock_offset import (
 )
 from twinfocus.simulation.scenario import Scenario, scenario_grids, scenario_scatterers, simulate_scenario
 from twinfocus.twins.digital_twin.template import psf_template
-from twinfocus.twins.templates import template_from_scan
+from twinfocus.twins.templates import scan_template_on, template_from_scan
 
 OFFSETS_S = (0.0, 0.015, 0.05, 0.1)
 SEARCH_SIZE = 32
@@ -137,7 +138,7 @@ def camera_stamps(t: np.ndarray, period_s: float) -> np.ndarray:
     return np.sort(np.concatenate([t[0] - pad, t, *turns, t[-1] + pad]))
 
 
-def convert_row(sc: Scenario, scan, off: float, period_s: float, ssim) -> dict:
+def convert_row(sc: Scenario, scan, off: float, period_s: float, ssim, templates: dict | None = None) -> dict:
     """``convert --align scan`` on the draw: the camera's trajectory (:func:`camera_stamps`, the
     poses it reports there ``off`` late, :func:`camera_positions`) read as
     convert reads it -- the range history, its focus stage (:func:`refine_by_focus`, positions
@@ -145,12 +146,16 @@ def convert_row(sc: Scenario, scan, off: float, period_s: float, ssim) -> dict:
     converted scan's target SSIM through ``ssim(scan) -> {"physical": ., "digital": .}``. Also the
     score's curve at the truth +- :data:`CURVE_HALF_MS` ms, 1 ms apart, on the focus stage's region:
     its own best (the parabola's vertex), its r.m.s. scatter about the parabola, and how much the
-    score and the image's amplitude change 1 and 3 ms off the truth."""
+    score and the image's amplitude change 1 and 3 ms off the truth. templates : twin name ->
+    ``(positions_at, n) ->`` its template on the reference's n x n grid: the focus stage again on
+    the reference region matched to it (``convert --template-scan``), that twin's SSIM after it
+    (:func:`template_convert`)."""
     t = position_times_s(scan.timestamps_ns, scan.n_positions)
     stamps = camera_stamps(t, period_s)
     cam = camera_positions(scan.positions_true, scan.positions, t, stamps + off)  # (S, K, 3)
     t0 = time.perf_counter()
     rh = range_history_offset(scan.data, scan.chirp, t, stamps, cam.mean(axis=1))
+    rh_s = time.perf_counter() - t0
     positions_at = on_track(stamps, cam, t)
     z = float(sc.reference_roi()[4])
     try:
@@ -160,7 +165,7 @@ def convert_row(sc: Scenario, scan, off: float, period_s: float, ssim) -> dict:
         found, sigma, stage, region = rh.offset_s, rh.sigma_s, "range_history", None
     seconds = time.perf_counter() - t0
     converted = replace(scan, positions=resample_track(stamps, cam, t + found))
-    row = {
+    row: dict = {
         "convert_range_history_found_ms": -rh.offset_s * 1e3,
         "convert_range_history_sigma_ms": rh.sigma_s * 1e3,
         "convert_found_ms": -found * 1e3,
@@ -172,7 +177,39 @@ def convert_row(sc: Scenario, scan, off: float, period_s: float, ssim) -> dict:
     }
     if region is not None:
         row.update(score_curve(scan, positions_at, region, -off))
+    for name, tpl in (templates or {}).items():
+        row.update(template_convert(sc, scan, (stamps, cam, t), rh, name, tpl, ssim, off, rh_s))
     return row
+
+
+def template_convert(sc: Scenario, scan, track, rh, name: str, tpl, ssim, off: float, rh_s: float) -> dict:
+    """convert's focus stage on the reference region scored by twin ``name``'s template (``tpl``:
+    ``(positions_at, n) ->`` the template, given the positions at the range history's offset, as
+    a digital twin would form it from the converted scan), the scan converted at the offset
+    found and that twin's target SSIM: ``convert_<name>_template_*`` and ``<name>_convert_by_template``."""
+    stamps, cam, t = track
+    positions_at = on_track(stamps, cam, t)
+    t0 = time.perf_counter()
+    at_rh = positions_at(rh.offset_s)
+    try:
+        fine, rec = refine_by_focus(
+            scan.data, scan.chirp, positions_at, rh, float(sc.reference_roi()[4]),
+            region_m=sc.reference_roi(), template=lambda n: tpl(at_rh, n),
+        )  # fmt: skip
+        found, sigma, stage = fine.offset_s, fine.sigma_s, "focus"
+    except TwinFocusError:
+        found, sigma, stage = rh.offset_s, rh.sigma_s, "range_history"
+    key = f"convert_{name}_template"
+    return {
+        f"{key}_found_ms": -found * 1e3,
+        f"{key}_residual_ms": (-found - off) * 1e3,
+        f"{key}_sigma_ms": sigma * 1e3,
+        f"{key}_stage": stage,
+        f"{key}_clock_s": rh_s + time.perf_counter() - t0,
+        f"{name}_convert_by_template": ssim(replace(scan, positions=resample_track(stamps, cam, t + found)), (name,))[
+            name
+        ],
+    }
 
 
 def score_curve(scan, positions_at, region, truth_s: float) -> dict:
@@ -257,10 +294,13 @@ def run_draw(sc: Scenario, speed: float, size: int, offsets=OFFSETS_S, sharpness
     rg, tg = scenario_grids(sc, size)
     physical = template_from_scan(stage, rg, keep_phase=True)
 
-    def stage_tpl(n):
-        return template_from_scan(stage, ImageGrid.from_roi(sc.reference_roi(), n))
-
+    stage_tpl = scan_template_on(stage, sc.reference_roi())
     ref_pts, ref_amps = scenario_scatterers(sc, reference_only=True)
+
+    def digital_tpl(positions, n):
+        return psf_template(ref_pts, positions, scan.chirp, ImageGrid.from_roi(sc.reference_roi(), n), ref_amps)
+
+    templates = {"physical": lambda positions, n: stage_tpl(n), "digital": digital_tpl}
     t = position_times_s(scan.timestamps_ns, scan.n_positions)
 
     def ssim(s, which=("physical", "digital")) -> dict:
@@ -280,7 +320,7 @@ def run_draw(sc: Scenario, speed: float, size: int, offsets=OFFSETS_S, sharpness
             file=sys.stderr,
             flush=True,
         )
-        row: dict = {"offset_ms": off * 1e3, **convert_row(sc, scan, off, period_s, ssim)}
+        row: dict = {"offset_ms": off * 1e3, **convert_row(sc, scan, off, period_s, ssim, templates)}
         if searches:
             late = replace(scan, positions=camera_positions(scan.positions_true, scan.positions, t, t + off))
             row.update(search_row(sc, late, off, size, ssim, stage_tpl, sharpness_search))
@@ -325,6 +365,7 @@ def summary(draws: list[dict]) -> dict:
             "convert_mean_clock_s": float(np.mean([r["convert_clock_s"] for r in rows])),
             "convert_stages": sorted({r["convert_stage"] for r in rows}),
         }
+        out[key].update(template_summary(draws, rows))
         curves = [r for r in rows if "curve_noise" in r]
         if curves:
             peaks = [abs(r["curve_peak_off_truth_ms"]) for r in curves if r["curve_peak_off_truth_ms"] is not None]
@@ -338,6 +379,24 @@ def summary(draws: list[dict]) -> dict:
             )
         if "physical_residual_ms" in rows[0]:
             out[key].update(search_summary(draws, rows, off))
+    return out
+
+
+def template_summary(draws: list[dict], rows: list[dict]) -> dict:
+    """convert's focus stage by each twin's template (:func:`template_convert`), where every draw
+    has it at this offset: its worst |residual| (ms), the twin's largest loss against the clocks
+    agreeing, its mean time (s) and the stages that ended it."""
+    out: dict = {}
+    for name in ("physical", "digital"):
+        key = f"convert_{name}_template"
+        if not all(f"{key}_residual_ms" in r for r in rows):
+            continue
+        out[f"{key}_worst_residual_ms"] = max(abs(r[f"{key}_residual_ms"]) for r in rows)
+        out[f"{key}_worst_loss"] = max(
+            d["synced"][name] - r[f"{name}_convert_by_template"] for d, r in zip(draws, rows)
+        )
+        out[f"{key}_mean_clock_s"] = float(np.mean([r[f"{key}_clock_s"] for r in rows]))
+        out[f"{key}_stages"] = sorted({r[f"{key}_stage"] for r in rows})
     return out
 
 

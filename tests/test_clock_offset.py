@@ -227,6 +227,17 @@ def test_a_ti_capture_with_a_shifted_camera_clock_converts_to_the_synchronised_s
     assert abs(clock["offset_s"] - lead_ns * 1e-9) < 2e-3, clock
     assert abs(clock["range_history"]["offset_s"] - lead_ns * 1e-9) < 3 * clock["range_history"]["sigma_s"], clock
     assert err_scan < 1e-4, (err_scan, err_start)
+    assert clock["focus"]["score"] == "sharpness"
+    # the synchronised scan as the stage's (its positions the truth here), matched on the region the
+    # sharpness found: the same 60 ms, and the record says the template chose it
+    roi = [str(v) for v in clock["focus"]["region_m"]]
+    templated = tmp_path / "templated.npz"
+    assert _cli("convert", str(cap), "--trajectory", str(tmp_path / "camera.txt"), "--out", str(templated),
+                "--reference-roi", *roi, "--template-scan", str(out["synced"]), *common) == 0  # fmt: skip
+    clock = json.loads((tmp_path / "templated.capture.json").read_text())["clock"]
+    assert clock["stage"] == "focus" and clock["focus"]["score"] == "template_match", clock
+    assert clock["focus"]["region_m"] == [float(v) for v in roi]
+    assert abs(clock["offset_s"] - lead_ns * 1e-9) < 2e-3, clock
 
 
 def test_clock_search_of_a_scan_without_stamps_counts_positions():
@@ -366,3 +377,32 @@ def test_a_clock_rate_is_fitted_only_over_a_sweep_long_enough_to_show_one(monkey
     est = range_history_offset(data, CHIRP, stamps, t, track, fit_rate=True)
     assert est.rate_note is None and est.sigma_rate is not None and est.sigma_rate < rate / 3
     assert abs(est.rate - rate) < 2 * est.sigma_rate, est
+
+
+def test_converts_focus_stage_matches_a_template_on_the_reference_region_where_given(tmp_path, capsys):
+    from twinfocus.radar.scan import Scan
+    from twinfocus.sensors.clock_offset import ClockEstimate, on_track, refine_by_focus
+    from twinfocus.twins.templates import scan_template_on
+
+    t, track = _sweep(rows=24, period_s=0.05)
+    offsets = np.stack([np.linspace(-0.04, 0.04, 8), np.zeros(8), np.zeros(8)], axis=1)
+    true = track[:, None, :] + offsets[None]
+    pts = np.array([[0.0, 0.0, 0.5], [0.02, 0.03, 0.5], [-0.03, -0.02, 0.5], [0.1, 0.0, 0.5]])
+    data = monostatic_if(CHIRP, true, pts).astype(np.complex64)
+    lag = 0.03  # the camera stamps each pose 30 ms late: the frames' stamps + 30 ms find it
+    positions_at = on_track(t + lag, true, t)
+    roi = (-0.06, 0.06, -0.06, 0.06, 0.5)
+    # a motion-stage scan of the reference alone (its three points), on the true positions
+    stage = Scan(monostatic_if(CHIRP, true, pts[:3]).astype(np.complex64), true, CHIRP, positions_true=true)
+    rh = ClockEstimate(lag + 0.012, 0.008, "range_history")  # the range history 12 ms off
+    est, rec = refine_by_focus(data, CHIRP, positions_at, rh, 0.5, region_m=roi, template=scan_template_on(stage, roi))
+    assert rec["score"] == "template_match" and rec["region_m"] == list(roi)
+    assert abs(est.offset_s - lag) < 1.5e-3, rec
+    plain, rec = refine_by_focus(data, CHIRP, positions_at, rh, 0.5)
+    assert rec["score"] == "sharpness" and rec["region_m"] != list(roi)  # the brightest box, found
+    with pytest.raises(TwinFocusError, match="needs the reference's region"):
+        refine_by_focus(data, CHIRP, positions_at, rh, 0.5, template=scan_template_on(stage, roi))
+    # on the command line the template needs its region, refused before any work
+    assert _cli("convert", str(tmp_path / "none"), "--trajectory", "x.txt", "--out", str(tmp_path / "s.npz"),
+                "--template-scan", "stage.npz") == 2  # fmt: skip
+    assert "--template-scan needs --reference-roi" in capsys.readouterr().err

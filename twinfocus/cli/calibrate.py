@@ -43,6 +43,8 @@ _NOT_FOR_CALIBRATION = {
     "z0",
     "time_offset_s",
     "align",
+    "reference_roi",
+    "template_scan",
     "frame",
     "overwrite",
     "quiet",

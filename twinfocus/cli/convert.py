@@ -29,13 +29,19 @@ from twinfocus.errors import TwinFocusError
 from twinfocus.io.atomic import output_files
 from twinfocus.jobs.progress import Progress
 from twinfocus.motion.trajectory import phase_centres
-from twinfocus.option_types import finite_float, non_negative_int, positive_float, positive_int
+from twinfocus.option_types import REGION, finite_float, non_negative_int, positive_float, positive_int
 from twinfocus.radar.board import load_board
 from twinfocus.radar.calibration import apply_calibration, calibration_for
 from twinfocus.radar.fmcw import mmwcas_virtual_array
 from twinfocus.sensors.capture_to_scan import capture_report_path, scan_from_frames, stream_gaps
 from twinfocus.sensors.chirp_profile import chirp_record, resolve_chirp
-from twinfocus.sensors.clock_offset import on_track, range_history_offset, refine_by_focus, tracker_floor_s
+from twinfocus.sensors.clock_offset import (
+    FOCUS_SCORE_WORDS,
+    on_track,
+    range_history_offset,
+    refine_by_focus,
+    tracker_floor_s,
+)
 from twinfocus.sensors.dca1000 import RawFrameLayout
 from twinfocus.sensors.dca1000_files import Dca1000FileCapture, find_cli_json, read_cli_json
 from twinfocus.sensors.extrinsics import RadarCameraExtrinsics
@@ -49,6 +55,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     _add_chirp_arguments(p)
     _add_cascade_arguments(p)
     _add_dca1000_arguments(p)
+    _add_clock_arguments(p)
     p.add_argument(
         "--board",
         help="board file (YAML) of the radar's antenna layout (default: TI's MMWCAS-RF-EVM, "
@@ -192,6 +199,22 @@ def _add_dca1000_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_clock_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("the focus stage of --align scan (default: the sharpness of the scan's brightest region)")
+    g.add_argument(
+        "--reference-roi",
+        **REGION,
+        default=None,
+        help="the region (metres, in the scan's frame) whose focus picks the clock offset; with --template-scan "
+        "scored by its match to the template, else by its sharpness",
+    )
+    g.add_argument(
+        "--template-scan",
+        help="a motion-stage scan of the reference (.npz, physical twin): its image on --reference-roi is the "
+        "template the focus stage matches (a sharper peak than the sharpness', docs/sensors_clock.md)",
+    )
+
+
 def _is_mmwcas(path: Path) -> bool:
     return path.is_dir() and any(path.glob("master_*_idx.bin"))
 
@@ -211,6 +234,8 @@ def _convert(args: argparse.Namespace, out: Path) -> int:
 
     if not args.z0 > 0:
         raise TwinFocusError(f"--z0 must be positive, got {args.z0}")
+    if args.template_scan and args.reference_roi is None:
+        raise TwinFocusError("--template-scan needs --reference-roi (the region its image is matched on)")
     capture = Path(args.capture)
     if not capture.exists():
         raise TwinFocusError(f"{capture}: no such capture file or folder")
@@ -338,6 +363,8 @@ def _align_by_scan(convert, scan, radar_traj, report, args, say, array):
             args.z0,
             progress=Progress("clock", enabled=not args.quiet),
             floor_s=tracker_floor_s((radar_traj.timestamps_ns - t0) * 1e-9, radar_traj.position_m),
+            region_m=args.reference_roi,
+            template=_focus_template(args),
         )
         record.update(offset_s=fine.offset_s, sigma_s=fine.sigma_s, method="focus", stage="focus", focus=focus)
         x0, x1, y0, y1, _ = focus["region_m"]
@@ -346,7 +373,7 @@ def _align_by_scan(convert, scan, radar_traj, report, args, say, array):
         held = args.align is None and not abs(fine.offset_s) > FOCUS_APPLIED_SIGMAS * fine.sigma_s
         say(
             f"clock offset {fine.offset_s * 1e3:+.2f} +- {fine.sigma_s * 1e3:.2f} ms (the range history's refined by "
-            f"the sharpness of the brightest region, x {x0:+.3f}..{x1:+.3f} y {y0:+.3f}..{y1:+.3f} m, "
+            f"{FOCUS_SCORE_WORDS[focus['score'], args.reference_roi is not None]}, x {x0:+.3f}..{x1:+.3f} y {y0:+.3f}..{y1:+.3f} m, "
             f"{focus['images_formed']} images, {focus['seconds']:.1f} s) -- "
             + ("not applied (within two sigma of the first alignment)" if held else "applied")
         )
@@ -373,6 +400,16 @@ def _align_by_scan(convert, scan, radar_traj, report, args, say, array):
     shift = int(round(record["offset_s"] * 1e9))
     scan, radar_traj, report = convert(time_offset_ns=report.time_shift_ns + shift, align="none")
     return scan, radar_traj, report, {**record, "applied_shift_s": report.time_shift_ns * 1e-9, "applied": True}
+
+
+def _focus_template(args):
+    """The focus stage's template: ``n ->`` --template-scan's image on the n x n --reference-roi grid, else None."""
+    if not args.template_scan:
+        return None
+    from twinfocus.radar.scan import Scan  # lazy: twinfocus.io.arrays
+    from twinfocus.twins.templates import scan_template_on  # lazy: numba (+2.1 s at import)
+
+    return scan_template_on(Scan.load(args.template_scan), args.reference_roi)
 
 
 def _calibrate(args, scan, array, board: str, say) -> dict | None:

@@ -520,10 +520,9 @@ def _clock_template(args: argparse.Namespace):
     if not args.template_scan or args.reference_roi is None:
         return None
     from twinfocus.radar.scan import Scan  # lazy: twinfocus.io.arrays (+0.04 s on twinfocus focus --help)
-    from twinfocus.twins.templates import template_from_scan  # lazy: numba (+2.1 s at import)
+    from twinfocus.twins.templates import scan_template_on  # lazy: numba (+2.1 s at import)
 
-    stage = Scan.load(args.template_scan[0])
-    return lambda n: template_from_scan(stage, ImageGrid.from_roi(args.reference_roi, n))
+    return scan_template_on(Scan.load(args.template_scan[0]), args.reference_roi)
 
 
 def run(args: argparse.Namespace) -> int:

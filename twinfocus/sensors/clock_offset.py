@@ -701,6 +701,14 @@ FOCUS_BOX_M = 0.06
 FIND_SIZE = 48
 
 
+#: what the focus stage scored, for its lines: (score, a region given) -> words
+FOCUS_SCORE_WORDS = {
+    ("template_match", True): "the reference region's template match",
+    ("sharpness", True): "the reference region's sharpness",
+    ("sharpness", False): "the brightest region's sharpness",
+}
+
+
 def brightest_box(data: np.ndarray, positions_m: np.ndarray, chirp: Chirp, z_m: float, bp_options: dict | None = None):
     """A box (X0, X1, Y0, Y1, Z) metres, :data:`FOCUS_BOX_M` wide, around the brightest pixel of
     the image at depth ``z_m`` over the aperture's x/y extent (:data:`FIND_SIZE` pixels a side).
@@ -764,16 +772,24 @@ def refine_by_focus(
     bp_options: dict | None = None,
     progress: Callable[[int, int], None] | None = None,
     floor_s: float = 0.0,
+    region_m: tuple | None = None,
+    template: Callable[[int], np.ndarray] | None = None,
 ) -> tuple[ClockEstimate, dict]:
     """convert's second stage: the range history's ``estimate`` refined by the focus of the scan.
 
     positions_at : ``dt ->`` float (M, K, 3) the phase centres with the frames' stamps + ``dt`` s
     re-sampled on the camera's trajectory (its poses through the turns, which a converted scan
     no longer has). The offsets ``estimate`` +- :data:`FOCUS_SIGMAS` sigma (:data:`FOCUS_HALF_BOUNDS_S`)
-    :data:`FOCUS_STEP_S` apart, then :func:`refine_offset` around the best, each scored by the
-    sharpness of the brightest region (:func:`brightest_box`). Returns (estimate, a record: the
+    :data:`FOCUS_STEP_S` apart, then :func:`refine_offset` around the best, each scored on
+    ``region_m`` (X0, X1, Y0, Y1, Z) metres, default the brightest region (:func:`brightest_box`):
+    by its match to ``template`` (``n ->`` the reference's (n, n) image there, a twin's;
+    :func:`template_match`) where one is given, else by its sharpness. Why the template first:
+    on bench_clock's build draws its match peaked at most 1.4 ms off the truth, the sharpness up to
+    5.9 ms (a tracker's errors reshape the image as much as a millisecond does; only a known
+    image tells which shape is the right one); on the held-out draws convert's worst residual by
+    the physical twin's template was 1.8 ms, by the sharpness 3.6 (docs/sensors_clock.md). Returns (estimate, a record: the score, the
     region, the offsets searched, the images formed, the seconds); raises TwinFocusError (one
-    line) where the sharpness has no peak inside the offsets searched. floor_s : the least sigma
+    line) where the score has no peak inside the offsets searched. floor_s : the least sigma
     (:func:`tracker_floor_s`); sigma is also at least the 1 ms step and the breadth the scores'
     scatter leaves (:func:`_indistinct_s`).
     """
@@ -785,8 +801,12 @@ def refine_by_focus(
     bp = dict(bp_options or {})
     centre = float(estimate.offset_s)
     half = float(np.clip(FOCUS_SIGMAS * estimate.sigma_s, *FOCUS_HALF_BOUNDS_S))
-    roi = brightest_box(data, positions_at(centre), chirp, z_m, bp)
+    if template is not None and region_m is None:
+        raise TwinFocusError("the focus stage's template needs the reference's region")
+    roi = tuple(region_m) if region_m is not None else brightest_box(data, positions_at(centre), chirp, z_m, bp)
     grid = ImageGrid.from_roi(roi, FOCUS_SIZE)
+    score = image_sharpness if template is None else template_match(template(FOCUS_SIZE))
+    named = "sharpness" if template is None else "template_match"
     steps = 2 * int(np.ceil(half / FOCUS_STEP_S)) + 1
     expected = steps + 2 * FINE_HALF_STEPS + 1
     formed = [0]
@@ -797,20 +817,21 @@ def refine_by_focus(
             progress(min(formed[0], expected - 1), expected)
         return backproject(data, positions_m, chirp, grid, **bp)
 
-    coarse, _ = focus_offset(image, positions_at, half, coarse_steps=steps, centre_s=centre, refine=False)
-    fine, tried = refine_offset(image, positions_at, coarse.offset_s, FOCUS_STEP_S / 5)
+    coarse, _ = focus_offset(image, positions_at, half, coarse_steps=steps, score=score, centre_s=centre, refine=False)
+    fine, tried = refine_offset(image, positions_at, coarse.offset_s, FOCUS_STEP_S / 5, score)
     floor = max(FOCUS_STEP_S / 5, _indistinct_s(tried, fine.offset_s), float(floor_s))
     fine = replace(fine, sigma_s=max(fine.sigma_s, floor))
     if progress is not None:
         progress(expected, expected)
     if not (np.isfinite(fine.sigma_s) and abs(fine.offset_s - centre) < half):
         raise TwinFocusError(
-            f"clock offset: the brightest region's sharpness has no peak within {centre * 1e3:+.0f} +- "
+            f"clock offset: {FOCUS_SCORE_WORDS[named, region_m is not None]} has no peak within {centre * 1e3:+.0f} +- "
             f"{half * 1e3:.0f} ms of the range history's offset"
         )
     record = {
         **fine.to_dict(),
-        "region_m": [round(v, 4) for v in roi],
+        "score": named,
+        "region_m": [round(float(v), 4) for v in roi],
         "searched_s": [centre - half, centre + half],
         "images_formed": formed[0],
         "seconds": time.perf_counter() - t_start,

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 
 import numpy as np
 
@@ -175,6 +176,12 @@ def _bilinear(values: np.ndarray, x: np.ndarray, y: np.ndarray, grid: ImageGrid)
     rows = np.interp(grid.y_m, y, np.arange(y.size))
     rr, cc = np.meshgrid(rows, cols, indexing="ij")
     return map_coordinates(values, [rr, cc], order=1, mode="nearest")
+
+
+def scan_template_on(scan: Scan, roi) -> Callable[[int], np.ndarray]:
+    """``n ->`` :func:`template_from_scan`'s amplitude on the n x n grid of ``roi`` (X0, X1, Y0, Y1, Z)
+    metres: the template a clock search matches at each of its image sizes."""
+    return lambda n: template_from_scan(scan, ImageGrid.from_roi(roi, n))
 
 
 def template_from_scan(scan: Scan, grid: ImageGrid, keep_phase: bool = False, **bp_options) -> np.ndarray:
