@@ -29,10 +29,12 @@ drops one that raises it.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -161,7 +163,7 @@ def judge(records: list[dict]) -> dict:
                 with_rung, without = r["target_ssim"][rung], r["target_ssim"]["beneath"]
                 kept = keeps(r[rung], k, floor)
                 ssims.append(with_rung if kept else without)
-                label = f"{r['draw']} {r['seed']}"
+                label = f"hand {r['seed']}" if r["draw"] == "hand" else r["draw"]
                 if kept and with_rung < without:
                     hurt.append(label)
                 if not kept and with_rung > without:
@@ -180,6 +182,55 @@ def judge(records: list[dict]) -> dict:
         for rung in ("drift", "tilt")
     }
     return out
+
+
+def outcomes(records: list[dict]) -> dict:
+    """Per rung: the draws it lowers and those it raises (against ``beneath``), each with the
+    mean target SSIM beneath it, the mean change and the mean and least held-out gain over its
+    noise (over the draws it was fitted on): whether the evidence tells the two apart."""
+    out: dict = {}
+    for rung in ("drift", "tilt"):
+        out[rung] = {}
+        for side, sign in (("lowers", -1.0), ("raises", 1.0)):
+            rs = [r for r in records if sign * (r["target_ssim"][rung] - r["target_ssim"]["beneath"]) > 0]
+            ratios = [r[rung]["gain_over_noise"] for r in rs if r[rung]["fitted"]]
+            out[rung][side] = {
+                "draws": len(rs),
+                "mean_beneath_ssim": round(float(np.mean([r["target_ssim"]["beneath"] for r in rs])), 4)
+                if rs
+                else None,
+                "mean_change": round(
+                    float(np.mean([r["target_ssim"][rung] - r["target_ssim"]["beneath"] for r in rs])), 4
+                )
+                if rs
+                else None,
+                "mean_gain_over_noise": round(float(np.mean(ratios)), 2) if ratios else None,
+                "least_gain_over_noise": round(float(np.min(ratios)), 2) if ratios else None,
+            }
+    return out
+
+
+def judged(doc: dict) -> dict:
+    """``doc`` (a result with its ``draws``) with the rules judged on them: ``summary`` (all the
+    draws), ``summary_hand_draws``, ``outcomes`` and the check ``default_rule_matches_auto`` (the
+    default rule's tilt is auto's own rule: its judged targets must be auto's)."""
+    records = doc["draws"]
+    return {
+        **doc,
+        # the short scans among the draws (a file written with --no-scans has none)
+        "scans": {k: v for k, v in doc.get("scans", {}).items() if any(r["draw"] == k for r in records)},
+        "summary": judge(records),
+        "summary_hand_draws": judge([r for r in records if r["draw"] == "hand"]),
+        "outcomes": outcomes(records),
+        "default_rule_matches_auto": all(
+            abs(
+                (r["target_ssim"]["tilt"] if keeps(r["tilt"], 1.0, 0.0) else r["target_ssim"]["beneath"])
+                - r["target_ssim"]["auto"]
+            )
+            < 1e-9
+            for r in records
+        ),
+    }
 
 
 def table(summary: dict) -> str:
@@ -206,7 +257,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-scans", action="store_true", help="leave the two short scans (SCANS) out")
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--name", default="space_variant_keep.json", help="the result file's name in --out")
+    ap.add_argument("--rejudge", metavar="FILE", help="judge the rules again on FILE's draws (no focusing)")
     a = ap.parse_args(argv)
+    if a.rejudge:
+        doc = judged(json.loads(Path(a.rejudge).read_text()))
+        write_result(Path(a.rejudge).parent, Path(a.rejudge).name, doc)
+        print(table(doc["summary"]))
+        return doc
     load = [round(v, 2) for v in os.getloadavg()]
     jobs = [("hand", BUILD_SEED + i, a.columns, a.rows, a.size) for i in range(a.draws)]
     if not a.no_scans:
@@ -220,31 +277,21 @@ def main(argv: list[str] | None = None) -> dict:
             {"seed": r["seed"], **{k: round(v, 3) for k, v in r["target_ssim"].items()}, "t": r["time_s"]},
             file=sys.stderr,
         )
-    summary = judge(records)
     argv_text = " ".join(sys.argv[1:]) if argv is None else " ".join(argv)
-    doc = {
-        "command": f"python -m benchmarks.bench_space_variant_keep {argv_text}".strip(),
-        "scene": {**HAND, "columns": a.columns, "rows": a.rows, "size": a.size, "seeds_from": BUILD_SEED},
-        "scans": SCANS,
-        "load_average_before": load,
-        "load_average_after": [round(v, 2) for v in os.getloadavg()],
-        "cpu_count": os.cpu_count(),
-        "rules": {name: {"k": k if np.isfinite(k) else None, "floor": floor} for name, (k, floor) in RULES.items()},
-        "draws": records,
-        "summary": summary,
-        "summary_hand_draws": judge([r for r in records if r["draw"] == "hand"]),
-        # the default rule's tilt is auto's: its judged targets must be auto's own
-        "default_rule_matches_auto": all(
-            abs(
-                (r["target_ssim"]["tilt"] if keeps(r["tilt"], 1.0, 0.0) else r["target_ssim"]["beneath"])
-                - r["target_ssim"]["auto"]
-            )
-            < 1e-9
-            for r in records
-        ),
-    }
+    doc = judged(
+        {
+            "command": f"python -m benchmarks.bench_space_variant_keep {argv_text}".strip(),
+            "scene": {**HAND, "columns": a.columns, "rows": a.rows, "size": a.size, "seeds_from": BUILD_SEED},
+            "scans": SCANS,
+            "load_average_before": load,
+            "load_average_after": [round(v, 2) for v in os.getloadavg()],
+            "cpu_count": os.cpu_count(),
+            "rules": {n: {"k": k if np.isfinite(k) else None, "floor": floor} for n, (k, floor) in RULES.items()},
+            "draws": records,
+        }
+    )
     write_result(a.out, a.name, doc)
-    print(table(summary))
+    print(table(doc["summary"]))
     return doc
 
 
