@@ -2,7 +2,14 @@
 held-out gain is above its noise, half the spread of the two folds' gains) against stricter rules,
 judged by the target's SSIM (against its image on the true positions) on hand-held draws.
 
-    python -m benchmarks.bench_space_variant_keep --draws 10    (writes space_variant_keep.json)
+    python -m benchmarks.bench_space_variant_keep --draws 20    (writes space_variant_keep.json)
+    python -m benchmarks.bench_space_variant_keep --draws 12 --columns 4 --rows 60 --size 40 --no-scans \
+        --name space_variant_keep_4x60.json                     (and 3 x 40 at 40 px, 4 x 60 at 32 px)
+    python -m benchmarks.bench_space_variant_keep --rejudge benchmarks/results/space_variant_keep.json
+
+The rules (:data:`RULES`): gain > k x noise + floor, and gain > a share of the unmatched share
+beneath (the gain relative to what was left to gain); ``--rejudge`` judges them again on a
+result file's draws without focusing anything. docs/notes/2026-12-02-space-variant-keep.md quotes it.
 
 Draws: the hand-held scene of benchmarks/bench_handheld.py (letters H and S, a hand's 0.8 mm
 drift and 0.15 deg rotation, 15 dB) at a small size (``--columns`` x ``--rows`` positions,
@@ -53,15 +60,18 @@ SCANS = {
     "2x30 seed 2": dict(columns=2, rows=30, seed=2, size=32),
 }
 SCAN_ROIS = ((-0.15, 0.0, -0.11, 0.12, 0.6), (0.02, 0.13, -0.11, 0.12, 0.6))
-#: the rules: key -> (k, floor): kept when gain > k * noise + floor (``noise_x1``: the default)
+#: the rules: key -> (k, floor, share): kept when gain > k * noise + floor and gain > share x the
+#: unmatched share beneath (the gain relative to what was left to gain; ``noise_x1``: the default)
 RULES = {
-    "noise_x1": (1.0, 0.0),
-    "noise_x1_5": (1.5, 0.0),
-    "noise_x2": (2.0, 0.0),
-    "noise_x3": (3.0, 0.0),
-    "noise_plus_0_005": (1.0, 0.005),
-    "noise_plus_0_01": (1.0, 0.01),
-    "never": (np.inf, 0.0),
+    "noise_x1": (1.0, 0.0, 0.0),
+    "noise_x1_5": (1.5, 0.0, 0.0),
+    "noise_x2": (2.0, 0.0, 0.0),
+    "noise_x3": (3.0, 0.0, 0.0),
+    "noise_plus_0_005": (1.0, 0.005, 0.0),
+    "noise_plus_0_01": (1.0, 0.01, 0.0),
+    "noise_and_share_0_1": (1.0, 0.0, 0.1),
+    "noise_and_share_0_2": (1.0, 0.0, 0.2),
+    "never": (np.inf, 0.0, 0.0),
 }
 
 
@@ -145,9 +155,13 @@ def one_draw(kind: str, seed: int, columns: int, rows: int, size: int) -> dict:
     return rec
 
 
-def keeps(evidence: dict, k: float, floor: float) -> bool:
-    """Whether the rule gain > k * noise + floor keeps a rung of this ``evidence``."""
-    return bool(evidence["fitted"]) and evidence["gain"] > k * evidence["noise"] + floor
+def keeps(evidence: dict, k: float, floor: float, share: float = 0.0) -> bool:
+    """Whether the rule gain > k * noise + floor and gain > share * unmatched beneath (the folds'
+    mean ``unmatched_before``) keeps a rung of this ``evidence``."""
+    if not evidence["fitted"]:
+        return False
+    beneath = float(np.mean([f["unmatched_before"] for f in evidence["folds"]]))
+    return bool(evidence["gain"] > k * evidence["noise"] + floor and evidence["gain"] > share * beneath)
 
 
 def judge(records: list[dict]) -> dict:
@@ -157,11 +171,11 @@ def judge(records: list[dict]) -> dict:
     out: dict = {}
     for rung in ("drift", "tilt"):
         out[rung] = {}
-        for rule, (k, floor) in RULES.items():
+        for rule, (k, floor, share) in RULES.items():
             ssims, hurt, missed = [], [], []
             for r in records:
                 with_rung, without = r["target_ssim"][rung], r["target_ssim"]["beneath"]
-                kept = keeps(r[rung], k, floor)
+                kept = keeps(r[rung], k, floor, share)
                 ssims.append(with_rung if kept else without)
                 label = f"hand {r['seed']}" if r["draw"] == "hand" else r["draw"]
                 if kept and with_rung < without:
@@ -171,7 +185,7 @@ def judge(records: list[dict]) -> dict:
             out[rung][rule] = {
                 "mean_target_ssim": round(float(np.mean(ssims)), 4),
                 "least_target_ssim": round(float(np.min(ssims)), 4),
-                "kept": sum(keeps(r[rung], k, floor) for r in records),
+                "kept": sum(keeps(r[rung], k, floor, share) for r in records),
                 "keeps_a_rung_that_lowers": len(hurt),
                 "keeps_lowering": hurt,
                 "drops_a_rung_that_raises": len(missed),
@@ -219,6 +233,10 @@ def judged(doc: dict) -> dict:
         **doc,
         # the short scans among the draws (a file written with --no-scans has none)
         "scans": {k: v for k, v in doc.get("scans", {}).items() if any(r["draw"] == k for r in records)},
+        "rules": {
+            n: {"k": k if np.isfinite(k) else None, "floor": floor, "share": share}
+            for n, (k, floor, share) in RULES.items()
+        },
         "summary": judge(records),
         "summary_hand_draws": judge([r for r in records if r["draw"] == "hand"]),
         "outcomes": outcomes(records),
@@ -286,7 +304,6 @@ def main(argv: list[str] | None = None) -> dict:
             "load_average_before": load,
             "load_average_after": [round(v, 2) for v in os.getloadavg()],
             "cpu_count": os.cpu_count(),
-            "rules": {n: {"k": k if np.isfinite(k) else None, "floor": floor} for n, (k, floor) in RULES.items()},
             "draws": records,
         }
     )
