@@ -403,8 +403,12 @@ def test_captured_scene_calibrated_focuses_like_the_perfect_array(captures, tmp_
     assert rc == 0, err
 
     def convert(capture, trajectory, *extra) -> Scan:
+        # the emulated clocks agree: the scans compared differ by their array alone (the default
+        # --align scan's focus stage put this point scene's clock 45-53 ms off, outside its two
+        # sigma, with and without the calibration: docs/sensors_clock.md's known limits)
         out = tmp_path / f"s{len(list(tmp_path.glob('s*.npz')))}.npz"
-        rc, _, err = _run(capsys, "convert", capture, "--trajectory", trajectory, "--out", out, "--quiet", *extra)
+        argv = ("convert", capture, "--trajectory", trajectory, "--out", out, "--align", "start", "--quiet", *extra)
+        rc, _, err = _run(capsys, *argv)
         assert rc == 0, err
         return Scan.load(out)
 
