@@ -82,6 +82,7 @@ def test_the_twin_is_the_same_whatever_ran_before_and_on_any_thread():
     assert np.array_equal(first.mask, got["twin"].mask) and np.array_equal(first.points_m, got["twin"].points_m)
 
 
+@pytest.mark.slow  # 2.0 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_point_seed_and_depth_only_fallback():
     scene = SCENES["card"]()
     r = render_scene(scene, seed=4)

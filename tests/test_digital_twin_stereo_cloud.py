@@ -26,6 +26,7 @@ def letters():
     return scene, render_scene(scene, seed=2)
 
 
+@pytest.mark.slow  # 2.0 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_depth_against_truth(letters):
     import cv2
 

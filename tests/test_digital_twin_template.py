@@ -92,6 +92,7 @@ def test_depth_slabs_follow_a_tilted_plate(small):
     assert _corr(ps[0], ex) > 0.95
 
 
+@pytest.mark.slow  # 2.7 s CPU (2 cores, load ~9): out of make test-fast
 def test_stereo_template_matches_truth_template(small):
     from twinfocus.twins.digital_twin.pipeline import reference_from_stereo
     from twinfocus.twins.digital_twin.render import render_scene

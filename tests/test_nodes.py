@@ -196,6 +196,7 @@ class HoldingBroker(Broker):
             sock.close(linger=0)
 
 
+@pytest.mark.slow  # 1.6 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_a_node_leaves_only_after_the_broker_has_passed_on_what_it_published():
     # A publisher that exits the moment its queue is handed to the kernel can lose its tail
     # (CI lost the last two radar frames of a scan this way): shutdown waits until the node's
@@ -781,6 +782,7 @@ def test_solver_with_model_fast_forms_the_reference_as_focus_does():
     np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
 
 
+@pytest.mark.slow  # 1.7 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_solver_without_a_template_says_so_and_drops_the_scan(capfd):
     from nodes.solver import Solver
 
@@ -853,6 +855,7 @@ def test_visualizer_writes_and_serves_the_focused_image(tmp_path):
 # --- recorder, player, introspection ----------------------------------------------------------
 
 
+@pytest.mark.slow  # 2.3 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_record_then_play_back_with_topic_selection_offset_and_loop(tmp_path):
     from nodes.player import Player
     from nodes.recorder import Recorder
