@@ -58,6 +58,7 @@ def test_iou_against_rendered_truth(rendered):
     assert mask_iou(twin.mask, r.mask("reference")) >= MIN_IOU[name]
 
 
+@pytest.mark.slow  # 1.4 s x
 def test_the_twin_is_the_same_whatever_ran_before_and_on_any_thread():
     """GrabCut's colour models start from OpenCV's per-thread random generator and the plane is a
     RANSAC's: both are seeded, so a serial run and a Dask worker's thread build the same twin of

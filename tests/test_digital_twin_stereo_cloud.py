@@ -50,6 +50,7 @@ def test_depth_against_truth(letters):
     assert not d_roi.valid[:, : max(0, roi[0] - 1)].any()
 
 
+@pytest.mark.slow  # 1.6 s x
 def test_point_cloud_against_true_surface(letters):
     scene, r = letters
     ref = scene.object("reference")

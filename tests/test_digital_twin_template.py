@@ -176,6 +176,7 @@ def test_offset_calibration_round_trip(small, tmp_path):
         calibrate_offset(sim, np.random.default_rng(0).random(grid.shape), grid, min_response=0.5)
 
 
+@pytest.mark.slow  # 2.4 s x
 def test_refinement_by_loss_moves_template_back(small, one_torch_thread):
     from twinfocus.imaging.backprojection.numba_backend import subimage_basis
     from twinfocus.motion.tracking_errors import apply_position_errors, gaussian_errors

@@ -31,6 +31,7 @@ def test_scenario_fields_reach_the_scene():
     assert Scenario().scene().object("reference").roughness_deg is None
 
 
+@pytest.mark.slow  # 1.9 s x
 def test_simulate_writes_camera_cloud(tmp_path, capsys):
     out, cloud = tmp_path / "s.npz", tmp_path / "c.npy"
     rc = main(

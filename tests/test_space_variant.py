@@ -151,6 +151,7 @@ def drifting_scan():
     return _drifting_scan()
 
 
+@pytest.mark.slow  # 2.0 s x
 def test_smooth_drift_fit_recovers_an_injected_drift_and_the_targets_phase(drifting_scan):
     from twinfocus.focus.space_variant import fit_smooth_drift
     from twinfocus.imaging.metrics import phase_error_rms
@@ -172,6 +173,7 @@ def test_smooth_drift_fit_recovers_an_injected_drift_and_the_targets_phase(drift
     assert scalar_err > 0.4 and fitted_err < 0.4 * scalar_err
 
 
+@pytest.mark.slow  # 1.9 s x
 def test_focus_uses_the_space_variant_fit_only_when_the_data_ask_for_it(drifting_scan):
     from twinfocus.focus.autofocus import AutofocusConfig
     from twinfocus.focus.estimators import estimator_settings
