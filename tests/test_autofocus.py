@@ -147,6 +147,7 @@ def test_wrapping_errors_of_2mm_stay_finite():
     assert np.isfinite(result.image).all()
 
 
+@pytest.mark.slow  # 2.3 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_baselines_run(scene_05mm):
     _, _, _, _, tgt_basis, _, truth = scene_05mm
     none = no_correction(tgt_basis)

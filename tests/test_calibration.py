@@ -110,30 +110,36 @@ def test_perfect_array_draw_changes_nothing():
 # --- calibrate and convert, end to end on TI-format captures -------------------------------------
 
 
+def _raster(rows: int) -> Poses:
+    return paper_raster(3, rows, frame_period_s=0.05, t0_ns=1_700_000_000_000_000_000)
+
+
 @pytest.fixture(scope="module")
 def corner_and_scene(tmp_path_factory):
-    """A corner capture and a scene capture through one imperfect array: what the quick tests
-    read (the captures of ``captures`` beside them take most of its time)."""
+    """A corner capture and a short scene capture (6 frames) through one imperfect array: what
+    the quick tests read. They check the channels and the refusals, not an image: the scene's
+    120 frames (5 s to emulate) are made by ``captures``, for the tests that focus it."""
     root = tmp_path_factory.mktemp("calibration")
     errors = draw_array_errors(TYPICAL, 11)
-    traj = paper_raster(3, 40, frame_period_s=0.05, t0_ns=1_700_000_000_000_000_000)
     return {
         "root": root,
         "errors": errors,
         "corner": _capture(root / "corner", _still(8), [[0.0, 0.0, 0.6]], errors, seed=1),
-        "scene": _capture(root / "scene", traj, demo_scatterers(0.6), errors, seed=2),
-        "traj": traj,
+        "scene": _capture(root / "short_scene", _raster(2), demo_scatterers(0.6), errors, seed=2),
     }
 
 
 @pytest.fixture(scope="module")
 def captures(corner_and_scene):
-    """Those two, and the same scene (same trajectory) through a perfect array, and the reference
-    alone on the motion stage through both."""
+    """The corner capture, the scene on a 3 x 40 raster through the imperfect array and the
+    same scene (same trajectory) through a perfect array, and the reference alone on the motion
+    stage through both."""
     c = corner_and_scene
-    root, errors, traj, pts = c["root"], c["errors"], c["traj"], demo_scatterers(0.6)
+    root, errors, traj, pts = c["root"], c["errors"], _raster(40), demo_scatterers(0.6)
     return {
         **c,
+        "traj": traj,
+        "scene": _capture(root / "scene", traj, pts, errors, seed=2),
         "perfect": _capture(root / "perfect", traj, pts, draw_array_errors(NONE), seed=2),
         # The reference (the 'T') alone on the motion stage: the physical twin's capture.
         "stage": _capture(root / "stage", traj, pts[:11], errors, seed=3),

@@ -148,6 +148,7 @@ def test_batch_save_template_stays_inside_out(tmp_path, scan):
     assert str((tmp_path / "out" / "templates" / "t.npz").resolve()) in item.argv
 
 
+@pytest.mark.slow  # 3.7 s CPU (2 cores, load ~9): out of make test-fast
 def test_a_cloud_with_nan_points_is_dropped_in_one_line_and_counted(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("TWINFOCUS_CACHE_DIR", str(tmp_path / "cache"))
     d = tmp_path / "sim"

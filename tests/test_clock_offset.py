@@ -161,6 +161,7 @@ def _cli(*argv: str) -> int:
     return main(list(argv))
 
 
+@pytest.mark.slow  # 3.9 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_a_ti_capture_with_a_shifted_camera_clock_converts_to_the_synchronised_scan(tmp_path, capsys):
     import json
 
@@ -354,6 +355,7 @@ def test_convert_ends_an_emulated_zigzag_on_its_true_clock_offset(tmp_path):
         assert np.median(np.linalg.norm(got[:n] - ref[:n], axis=-1)) < 0.25e-3, lead_ms
 
 
+@pytest.mark.slow  # 2.0 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_a_clock_rate_is_fitted_only_over_a_sweep_long_enough_to_show_one(monkeypatch):
     import twinfocus.sensors.clock_offset as clock
 

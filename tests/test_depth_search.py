@@ -94,8 +94,10 @@ def test_focus_finds_the_target_depth_and_matches_the_typed_result(deep, tmp_pat
         (["0.0", "0.1", "-0.1", "0.1", "0.6"], ["--volume", "0.7", "0.5", "0.01"], "volume needs 0 < Z0 <= Z1"),
     ],
 )
-def test_bad_target_regions_are_refused_before_any_work(deep, tmp_path, capsys, target, extra, needle):
-    d, _, _ = deep
+def test_bad_target_regions_are_refused_before_any_work(small_scene, tmp_path, capsys, target, extra, needle):
+    # refused from the arguments alone: any scene does, and conftest.py's small one is made for
+    # make test-fast's other focus tests anyway (the deep scene only for the slow ones: 1.9 s)
+    d = small_scene
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("earlier result")

@@ -175,6 +175,7 @@ def test_nan_rows_are_dropped_with_a_warning_and_do_not_change_the_result():
         condition_cloud(np.full((100, 3), np.nan), grid)
 
 
+@pytest.mark.slow  # 2.7 s CPU (2 cores, load ~9): out of make test-fast
 def test_million_points_thinned_same_answer():
     grid, exact = _case()
     rng = np.random.default_rng(6)

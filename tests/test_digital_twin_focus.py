@@ -23,15 +23,24 @@ def _focus(scan, out, size, *extra):
 
 
 @pytest.fixture(scope="module")
-def capture(tmp_path_factory):
-    """The paper scene (A and F, speckled metal, 10 dB SNR, 0.5 mm x/y/z tracking error) scanned on
-    a thinned raster (6 columns x 65 rows at 4 mm: same aperture, half the positions), and its
-    stereo pair rendered by the camera model."""
+def stereo_scene(tmp_path_factory):
+    """A folder holding ``stereo/``: the paper scene's stereo pair rendered by the camera model
+    (all the bad-input test reads: the radar scan of ``capture`` takes most of the time)."""
+    d = tmp_path_factory.mktemp("twin_e2e")
+    render_scene(paper_scene(), seed=3).save(d / "stereo")
+    return d
+
+
+@pytest.fixture(scope="module")
+def capture(stereo_scene):
+    """That folder, with the paper scene (A and F, speckled metal, 10 dB SNR, 0.5 mm x/y/z
+    tracking error) scanned on a thinned raster (6 columns x 65 rows at 4 mm: same aperture, half
+    the positions) beside its stereo pair."""
     import torch
 
     n_threads = torch.get_num_threads()
     torch.set_num_threads(1)  # small problem on a shared 2-core machine: one thread is faster
-    d = tmp_path_factory.mktemp("twin_e2e")
+    d = stereo_scene
     rng = np.random.default_rng(0)
     scene = paper_scene()
     chirp = Chirp()
@@ -40,7 +49,6 @@ def capture(tmp_path_factory):
     pts, amp = scene.scatterers(1.2e-3, 1, speckle=True)
     data = add_thermal_noise(simulate_if(pts, amp, true, chirp), 10.0, rng)
     Scan(data, tracked, chirp, positions_true=true).save(d / "scan.npz")
-    render_scene(scene, seed=3).save(d / "stereo")
     yield d
     torch.set_num_threads(n_threads)
 
@@ -96,10 +104,10 @@ def test_twin_then_focus_raises_target_ssim(capture):
     np.testing.assert_allclose(np.load(d / "focus_file" / "phase.npy"), np.load(d / "focus" / "phase.npy"), atol=1e-4)
 
 
-def test_twin_bad_inputs_write_nothing(capture, tmp_path, capsys):
+def test_twin_bad_inputs_write_nothing(stereo_scene, tmp_path, capsys):
     import cv2
 
-    st = capture / "stereo"
+    st = stereo_scene / "stereo"
     small = tmp_path / "small.png"
     cv2.imwrite(str(small), cv2.imread(str(st / "right.png"))[:, :-2])
     out = tmp_path / "points.npy"

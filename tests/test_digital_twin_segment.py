@@ -58,6 +58,7 @@ def test_iou_against_rendered_truth(rendered):
     assert mask_iou(twin.mask, r.mask("reference")) >= MIN_IOU[name]
 
 
+@pytest.mark.slow  # 1.4 s x
 def test_the_twin_is_the_same_whatever_ran_before_and_on_any_thread():
     """GrabCut's colour models start from OpenCV's per-thread random generator and the plane is a
     RANSAC's: both are seeded, so a serial run and a Dask worker's thread build the same twin of
@@ -82,6 +83,7 @@ def test_the_twin_is_the_same_whatever_ran_before_and_on_any_thread():
     assert np.array_equal(first.mask, got["twin"].mask) and np.array_equal(first.points_m, got["twin"].points_m)
 
 
+@pytest.mark.slow  # 2.0 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_point_seed_and_depth_only_fallback():
     scene = SCENES["card"]()
     r = render_scene(scene, seed=4)

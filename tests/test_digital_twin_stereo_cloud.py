@@ -26,6 +26,7 @@ def letters():
     return scene, render_scene(scene, seed=2)
 
 
+@pytest.mark.slow  # 2.0 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_depth_against_truth(letters):
     import cv2
 
@@ -49,6 +50,7 @@ def test_depth_against_truth(letters):
     assert not d_roi.valid[:, : max(0, roi[0] - 1)].any()
 
 
+@pytest.mark.slow  # 1.6 s x
 def test_point_cloud_against_true_surface(letters):
     scene, r = letters
     ref = scene.object("reference")

@@ -92,6 +92,7 @@ def test_depth_slabs_follow_a_tilted_plate(small):
     assert _corr(ps[0], ex) > 0.95
 
 
+@pytest.mark.slow  # 2.7 s CPU (2 cores, load ~9): out of make test-fast
 def test_stereo_template_matches_truth_template(small):
     from twinfocus.twins.digital_twin.pipeline import reference_from_stereo
     from twinfocus.twins.digital_twin.render import render_scene
@@ -175,6 +176,7 @@ def test_offset_calibration_round_trip(small, tmp_path):
         calibrate_offset(sim, np.random.default_rng(0).random(grid.shape), grid, min_response=0.5)
 
 
+@pytest.mark.slow  # 2.4 s x
 def test_refinement_by_loss_moves_template_back(small, one_torch_thread):
     from twinfocus.imaging.backprojection.numba_backend import subimage_basis
     from twinfocus.motion.tracking_errors import apply_position_errors, gaussian_errors

@@ -301,6 +301,7 @@ def test_an_image_of_8_x_8():
         assert any("resolution cells per radar position" in w for w in out.metrics["confidence"]["warnings"])
 
 
+@pytest.mark.slow  # 2.3 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_an_image_of_1000_x_1000_on_a_few_positions():
     """Three positions of a 2-channel line: 3 x 10^6 sub-image pixels, every method's numerics."""
     rng = np.random.default_rng(0)

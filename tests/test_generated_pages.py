@@ -45,6 +45,7 @@ def _stale(page: Path) -> str:
     )
 
 
+@pytest.mark.slow  # 3.8 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json); the beyond page's check stays
 def test_results_page_is_its_raw_results(tmp_path: Path) -> None:
     page = DOCS / "results.md"
     out = _copy_inputs("results", tmp_path, ("field_handheld.json", "field_twin.json"))

@@ -249,6 +249,7 @@ def test_sim_launch_focuses_shows_the_page_in_a_browser_and_stops_on_ctrl_c(tmp_
     assert not [p for p in pids if alive(p)]
 
 
+@pytest.mark.slow  # 1.7 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_a_crashing_node_stops_the_graph_with_a_clear_message(tmp_path):
     launch = tmp_path / "crash.yaml"
     launch.write_text(

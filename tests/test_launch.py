@@ -126,6 +126,7 @@ def test_without_the_bundled_folder_the_error_says_so(tmp_path, monkeypatch):
         launch.find_launch_file("sim")
 
 
+@pytest.mark.slow  # 1.4 s x
 def test_cli_launch_show_from_another_folder(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     for name in ("launch/sim.yaml", "sim"):

@@ -67,6 +67,7 @@ def test_the_reference_mcap_reader_reads_our_files(tmp_path):
         assert rec.publish_time == rec.log_time
 
 
+@pytest.mark.slow  # 1.5 s x
 def test_every_cut_of_a_file_reads_as_a_prefix(tmp_path):
     msgs = [
         Pose(header=Header(i, i, "scene"), position_m=np.array([i, 0.0, 0.0]), quat_xyzw=np.array([0, 0, 0, 1.0]))

@@ -148,6 +148,7 @@ def test_bus_and_blob_round_trips_are_bit_exact(msg):
     assert_same(msg, decode(encode(msg), expect=type(msg)))
 
 
+@pytest.mark.slow  # 2.9 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_large_array_round_trip_and_zero_copy_views():
     big = cplx(780, 86, 256).reshape(-1, 256)  # a whole scan's samples, 137 MB
     m = msgs.SarMeasurement(data=big, positions_m=np.zeros((big.shape[0], 3)), f0_hz=1.0, slope_hz_per_s=1.0, fs_hz=1.0)

@@ -196,6 +196,7 @@ class HoldingBroker(Broker):
             sock.close(linger=0)
 
 
+@pytest.mark.slow  # 1.6 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_a_node_leaves_only_after_the_broker_has_passed_on_what_it_published():
     # A publisher that exits the moment its queue is handed to the kernel can lose its tail
     # (CI lost the last two radar frames of a scan this way): shutdown waits until the node's
@@ -358,6 +359,7 @@ def test_radar_driver_replays_a_scan_file_row_by_row(tmp_path):
         np.testing.assert_allclose(f.channel_offsets_m + scan.positions[0].mean(axis=0), scan.positions[0], atol=1e-15)
 
 
+@pytest.mark.slow  # 1.4 s x
 def test_vio_driver_replays_a_tum_file_paced_by_its_stamps(tmp_path):
     from nodes.vio_driver import VioDriver
     from twinfocus.motion.trajectory import Poses
@@ -683,6 +685,7 @@ def test_solver_streams_the_basis_and_focuses_with_the_template(tmp_path):
     assert AutofocusConfig().iterations == 300  # the node's default is the paper's, tests ask for fewer
 
 
+@pytest.mark.slow  # 2.8 s x
 def test_solver_streams_the_half_array_bases_only_when_the_tilt_may_be_fitted():
     """With a template that has phase the ladder may fit the array's tilt: the solver
     back-projects the half-array bases batch by batch as the scan arrives, and hands the fit the
@@ -770,6 +773,7 @@ def test_solver_registers_a_template_that_comes_mid_scan_as_focus_does_on_the_wh
     np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
 
 
+@pytest.mark.slow  # 1.3 s x
 def test_solver_with_model_fast_forms_the_reference_as_focus_does():
     """``model: fast`` with a physical twin's template on a reference finer than the scan resolves:
     the solver streams the whole reference's rows and hands the ladder every other pixel's
@@ -807,6 +811,7 @@ def test_solver_with_model_fast_forms_the_reference_as_focus_does():
     np.testing.assert_allclose(np.angle(np.exp(1j * (res.phase_rad - want.phase_rad))), 0.0, atol=1e-3)
 
 
+@pytest.mark.slow  # 1.7 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_solver_without_a_template_says_so_and_drops_the_scan(capfd):
     from nodes.solver import Solver
 
@@ -832,6 +837,7 @@ def test_solver_without_a_template_says_so_and_drops_the_scan(capfd):
     assert "no template arrived on twin/template within 0.5 s" in capfd.readouterr().err
 
 
+@pytest.mark.slow  # 1.4 s x
 def test_visualizer_writes_and_serves_the_focused_image(tmp_path):
     from nodes.visualizer import Visualizer
 
@@ -879,6 +885,7 @@ def test_visualizer_writes_and_serves_the_focused_image(tmp_path):
 # --- recorder, player, introspection ----------------------------------------------------------
 
 
+@pytest.mark.slow  # 2.3 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_record_then_play_back_with_topic_selection_offset_and_loop(tmp_path):
     from nodes.player import Player
     from nodes.recorder import Recorder

@@ -12,6 +12,7 @@ from twinfocus.errors import TwinFocusError
 VOLUME = [0.26, 0.34, 0.01]
 
 
+@pytest.mark.slow  # 2.7 s CPU (2 cores, load ~9): out of make test-fast
 def test_solver_finds_the_region_the_depth_and_the_volume_as_focus_does(tmp_path):
     from twinfocus.imaging.grid import ImageGrid
     from twinfocus.imaging.volume import projections, volume_grid

@@ -92,6 +92,7 @@ def reference(scene):
     )
 
 
+@pytest.mark.slow  # 1.5 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_a_points_twin_carries_its_outline_and_the_solver_runs_the_outline_estimator(scene, reference, tmp_path):
     """source points -> twin/template with the cloud's outline -> the solver's auto takes the
     outline estimator and finds the phase focus_bases finds offline with the same outline."""
@@ -249,6 +250,7 @@ def test_a_template_whose_outline_does_not_fit_is_dropped_and_the_waiting_scan_t
     assert res.scan_id == "s1" and res.estimator == "outline"
 
 
+@pytest.mark.slow  # 3.4 s CPU (2 cores, load ~9): out of make test-fast
 def test_a_curved_reference_is_reported_and_not_trusted(scene, reference):
     """A digital twin whose conditioning found the reference curved (tests/test_digital_twin_condition:
     a bent plate and a cylinder section are): the confidence report, offline and in the solver from

@@ -244,6 +244,7 @@ def test_template_builder_takes_a_rig_and_refuses_another_boards(tmp_path):
             TemplateBuilder(broker=ep, params={**params, "rig": str(tmp_path / "other.json")})
 
 
+@pytest.mark.slow  # 2.6 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_place_on_rig_finds_an_injected_ramp_and_carries_the_target(stage):
     """On the stage scan (positions exact: the true phase is 0) a ramp that moves the image 5 mm
     across y and 1 mm across x is put into the phase; the placement on the exact surface's outline

@@ -8,6 +8,7 @@ import socket
 
 import msgpack
 import numpy as np
+import pytest
 
 from msgs import Header, RadarFrame, decode, encode
 from nodes.radar_driver import _gap_fields
@@ -85,6 +86,7 @@ def test_radar_frame_carries_gaps_and_old_logs_still_decode():
     assert _gap_fields(None) == {}
 
 
+@pytest.mark.slow  # 1.7 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_visualizer_status_shows_gaps(tmp_path):
     """A radar frame with gaps sent over the node graph; the served state shows them."""
     import json

@@ -31,6 +31,7 @@ def test_scenario_fields_reach_the_scene():
     assert Scenario().scene().object("reference").roughness_deg is None
 
 
+@pytest.mark.slow  # 1.9 s x
 def test_simulate_writes_camera_cloud(tmp_path, capsys):
     out, cloud = tmp_path / "s.npz", tmp_path / "c.npy"
     rc = main(
@@ -106,6 +107,7 @@ def test_simulation_cost_covers_the_arrays_it_makes():
     assert simulation_cost(10, 7, 256, 1)[0] == 2 * simulation_cost(5, 7, 256, 1)[0]
 
 
+@pytest.mark.slow  # 2.1 s CPU (2 cores, load ~9): out of make test-fast
 def test_render_and_simulate_read_the_same_layout_options(tmp_path, capsys):
     """``twinfocus render`` takes the scene's layout from the options ``simulate`` takes: the regions
     it prints are the scenario's own for the same options."""

@@ -151,6 +151,7 @@ def drifting_scan():
     return _drifting_scan()
 
 
+@pytest.mark.slow  # 2.0 s x
 def test_smooth_drift_fit_recovers_an_injected_drift_and_the_targets_phase(drifting_scan):
     from twinfocus.focus.space_variant import fit_smooth_drift
     from twinfocus.imaging.metrics import phase_error_rms
@@ -172,6 +173,7 @@ def test_smooth_drift_fit_recovers_an_injected_drift_and_the_targets_phase(drift
     assert scalar_err > 0.4 and fitted_err < 0.4 * scalar_err
 
 
+@pytest.mark.slow  # 1.9 s x
 def test_focus_uses_the_space_variant_fit_only_when_the_data_ask_for_it(drifting_scan):
     from twinfocus.focus.autofocus import AutofocusConfig
     from twinfocus.focus.estimators import estimator_settings
@@ -256,6 +258,7 @@ def test_space_variant_bad_requests_are_named(drifting_scan):
         DriftFitSettings(knot_spacing=0)
 
 
+@pytest.mark.slow  # 2.3 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_per_position_refinement_follows_a_drift_faster_than_the_knots():
     from twinfocus.focus.space_variant import DriftFitSettings, fit_smooth_drift
 
@@ -282,6 +285,7 @@ def test_per_position_refinement_follows_a_drift_faster_than_the_knots():
     assert drift_error_mm(refined) < 1.15 * drift_error_mm(every_step)
 
 
+@pytest.mark.slow  # 2.2 s (2 cores, idle): out of make test-fast (benchmarks/results/test_fast.json)
 def test_the_fit_follows_the_arrays_tilt_with_the_half_array_basis():
     """A drift with the array tilting about its cross axis: each channel moves along the line of
     sight by tilt x its offset along the array. With the half-array basis the fit finds the halves'
