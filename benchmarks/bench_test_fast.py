@@ -34,7 +34,9 @@ _WHOLE = ["-n", "2", "--dist", "loadfile"]
 
 def _pytest(args: list[str]) -> tuple[int, str]:
     """Run pytest in a subprocess (this interpreter, this environment): its exit code and stdout."""
-    proc = subprocess.run([sys.executable, "-m", "pytest", *args], capture_output=True, text=True, check=False)
+    # as the Makefile runs it: with the bytecode and pytest's rewritten tests cached
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    proc = subprocess.run([sys.executable, "-m", "pytest", *args], capture_output=True, text=True, check=False, env=env)
     return proc.returncode, proc.stdout + proc.stderr
 
 
