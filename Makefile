@@ -48,8 +48,8 @@ browser-deps:
 
 # The whole suite on two pytest-xdist workers, one test file each at a time (a file's fixtures are
 # built once): the tests wait on subprocesses, sockets and sleeps a good part of their time. Measured
-# by benchmarks/bench_test_fast.py --all into benchmarks/results/test_suite.json, another job sharing the
-# machine: 955.0 s wall for 2148 tests (1803.3 s of summed test durations) at load 4.28 -> 2.48 on
+# by benchmarks/bench_test_fast.py --all into benchmarks/results/test_suite.json, nothing else running
+# on the machine: 908.9 s wall for 2440 tests (1752.7 s of summed test durations) at load 0.88 -> 2.09 on
 # 2 cores. tests/test_makefile.py checks this comment against the file.
 test: $(STAMP) browser-deps
 	$(PY) -m pytest -q -n 2 --dist loadfile
