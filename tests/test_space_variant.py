@@ -647,7 +647,7 @@ def test_a_warm_start_that_ends_below_the_cold_start_is_fitted_again_cold(drifti
     plan = FocusPlan.make(config=AutofocusConfig(**estimator_settings("correlation", True)), space_variant="on")
 
     def focus(start):
-        starts = None if start is None else DriftStarts({("drift", "fit"): start})  # WARM_FIT's steps
+        starts = None if start is None else DriftStarts({"drift": start})  # WARM_FIT's steps
         bases = Bases(s["ref_basis"], s["tgt_basis"], s["tracked"], s["chirp"], s["rg"], s["tg"], drift_starts=starts)
         return plan.focus_bases(bases, Reference(template=s["template"]))
 
@@ -670,8 +670,8 @@ def test_drift_starts_give_warm_steps_only_to_a_fit_with_a_start():
 
     starts = DriftStarts(warm={"iterations": 10, "refine_iterations": 10})
     held = {"iterations": 50, "refine_iterations": 0}
-    assert starts.settings(("tilt", "fit"), {}) == {}
-    starts.states[("tilt", "fit")] = object()
-    assert starts.settings(("tilt", "fit"), {}) == {"iterations": 10, "refine_iterations": 10}
+    assert starts.settings("tilt", {}) == {}
+    starts.states["tilt"] = object()
+    assert starts.settings("tilt", {}) == {"iterations": 10, "refine_iterations": 10}
     # fewer steps than the warm ones are kept (a held-out fit's knots-only stage)
-    assert starts.settings(("tilt", "fit"), held) == {"iterations": 10, "refine_iterations": 0}
+    assert starts.settings("tilt", held) == {"iterations": 10, "refine_iterations": 0}

@@ -193,21 +193,21 @@ class Problem:
 @dataclass
 class DriftStarts:
     """The drift rungs' warm starts across the fits of one growing scan (the solver node fits the
-    drift on a sweep's positions as they arrive): ``states`` (rung name, fit) ->
-    :class:`twinfocus.focus.space_variant.DriftStart`, each fit's end, which the next fit of that
-    rung starts from (fit: ``"fit"``, or ``"heldout0"`` / ``"heldout1"`` for the held-out
-    fits); ``warm``: the steps a warm-started fit takes (``iterations``, ``refine_iterations``:
-    :data:`WARM_FIT` after the last frame, :data:`STREAMED_FIT` while the sweep arrives; a fit
-    given fewer steps keeps its own, as the held-out fits' knots-only stage). One object shared
-    by the fits of one scan, on one thread at a time."""
+    drift on a sweep's positions as they arrive): ``states`` rung name ->
+    :class:`twinfocus.focus.space_variant.DriftStart`, the end of that rung's fit on the whole
+    reference, which its next fit starts from (the held-out fits stay cold); ``warm``: the steps a
+    warm-started fit takes (``iterations``, ``refine_iterations``: :data:`WARM_FIT` after the last
+    frame, :data:`STREAMED_FIT` while the sweep arrives; a fit given fewer steps keeps its own, as
+    ``--model fast``'s per-position stage). One object shared by the fits of one scan, on one
+    thread at a time."""
 
     states: dict = field(default_factory=dict)
     warm: dict = field(default_factory=lambda: dict(WARM_FIT))
 
-    def settings(self, key: tuple[str, str], settings: dict) -> dict:
-        """``settings`` (DriftFitSettings fields) for the fit ``key``: the warm steps when it has
+    def settings(self, rung: str, settings: dict) -> dict:
+        """``settings`` (DriftFitSettings fields) for ``rung``'s fit: the warm steps when it has
         a start."""
-        if key not in self.states:
+        if rung not in self.states:
             return settings
         steps = {"iterations": 100, "refine_iterations": 100, **settings}
         return {**settings, **{k: min(int(v), int(steps[k])) for k, v in self.warm.items()}}

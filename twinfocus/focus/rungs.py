@@ -623,19 +623,20 @@ class SmoothDrift(Rung):
             return why, {"residual_scalar": residual, "reason": why}
         return None, {"residual_scalar": residual}
 
-    def _fit(self, problem: Problem, model: Model, halves, fitted: np.ndarray | None = None, key="fit", **settings):
-        """fit_smooth_drift on the reference, or on its ``fitted`` pixels alone (bool (H, W));
-        warm-started from ``problem.drift_starts``' state for ``key`` when it holds one (with its
-        warm steps), whose state it then becomes; fitted again cold when the warm fit ends below
-        where a cold one begins (``warm_start_refused`` in the fit's info)."""
+    def _fit(self, problem: Problem, model: Model, halves, fitted: np.ndarray | None = None, **settings):
+        """fit_smooth_drift on the reference, or on its ``fitted`` pixels alone (bool (H, W)); the
+        fit on the whole reference warm-started from ``problem.drift_starts``' state for this rung
+        when it holds one (with its warm steps), whose state it then becomes; fitted again cold
+        when the warm fit ends below where a cold one begins (``warm_start_refused`` in the fit's
+        info)."""
         # the held-out fits stay cold: warm-started from a sweep's partial fits (which fit a part of
         # the aperture against the whole one's template, and do not generalise) they turned the
         # verdict on the hand-drift scene of bench_bus's live hand sweep; cold, it is the offline one
-        starts = problem.drift_starts if key == "fit" else None
+        starts = problem.drift_starts if fitted is None else None
         start, cold_settings = None, settings
         if starts is not None:
-            settings = starts.settings((self.name, key), settings)
-            start = starts.states.get((self.name, key))
+            settings = starts.settings(self.name, settings)
+            start = starts.states.get(self.name)
             if start is not None and start.rows > problem.ref_basis.shape[0]:
                 start = None  # a start from a longer scan than this one (a scan that began again)
         result = self._fit_from(problem, model, halves, fitted, settings, start)
@@ -652,7 +653,7 @@ class SmoothDrift(Rung):
                 "match_cold_start": refused["match_cold_start"],
             }
         if starts is not None:
-            starts.states[(self.name, key)] = result[3]["end_state"]
+            starts.states[self.name] = result[3]["end_state"]
         return result
 
     def _fit_from(self, problem: Problem, model: Model, halves, fitted, settings: dict, start):
@@ -728,7 +729,7 @@ class SmoothDrift(Rung):
                 # over the template's pixels, so zeroing the template's other half is enough)
                 phase = correlation_phase(problem.ref_basis, before.template * fitted)
                 base = before.evolve(phase_rad=phase)
-            phase, drift, tilt, _ = self._fit(problem, base, after.halves, fitted, f"heldout{i}", **HELDOUT_FIT)
+            phase, drift, tilt, _ = self._fit(problem, base, after.halves, fitted, **HELDOUT_FIT)
             fits.append(after.evolve(phase_rad=phase, drift_m=drift, tilt_rad=tilt))
             folds.append(
                 heldout_gain(
